@@ -1,0 +1,62 @@
+# imubench top-level Makefile. The two commands of README.md:
+#   make demo   build what is needed and run a session against a device
+#   make test   the whole test suite (what CI runs through .ci/run)
+# Both set up everything themselves on a fresh machine and are safe to run twice.
+
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+BUILD  := build
+HOST   := $(BUILD)/host
+
+# Debian packages the host build and tests need (installed when missing, as root).
+SYSTEM_PKGS := gcc make libc6-dev
+
+CC_HOST  ?= gcc
+CFLAGS_HOST := -std=c11 -O2 -g -Wall -Wextra -Werror -Wshadow -Wstrict-prototypes \
+               -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim/models -I$(HOST)/gen
+# Portable firmware code (core, drivers) and the simulator's sensor models: compiled
+# for the host into one static library that the C unit tests link against.
+FW_PORTABLE_SRC := $(wildcard firmware/core/*.c firmware/drivers/*.c firmware/boards/sim/models/*.c)
+FW_PORTABLE_OBJ := $(patsubst %.c,$(HOST)/obj/%.o,$(FW_PORTABLE_SRC))
+C_TEST_SRC := $(wildcard tests/c/test_*.c)
+C_TEST_BIN := $(patsubst tests/c/%.c,$(HOST)/tests/%,$(C_TEST_SRC))
+
+.PHONY: all test demo venv system-deps c-tests clean protocol check-protocol bench
+
+all: c-tests
+
+system-deps:
+	@bash tools/ensure-system-deps.sh $(SYSTEM_PKGS)
+
+$(VENV)/.stamp: pyproject.toml
+	@$(PYTHON) -m venv $(VENV)
+	@$(PY) -m pip install -q --disable-pip-version-check --upgrade pip
+	@$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
+	@touch $@
+
+venv: $(VENV)/.stamp
+
+$(HOST)/obj/%.o: %.c $(wildcard firmware/core/*.h firmware/drivers/*.h firmware/boards/sim/models/*.h)
+	@mkdir -p $(dir $@)
+	$(CC_HOST) $(CFLAGS_HOST) -c $< -o $@
+
+$(HOST)/libfw.a: $(FW_PORTABLE_OBJ)
+	@mkdir -p $(dir $@)
+	@rm -f $@
+	ar rcs $@ $^
+
+$(HOST)/tests/%: tests/c/%.c $(HOST)/libfw.a
+	@mkdir -p $(dir $@)
+	$(CC_HOST) $(CFLAGS_HOST) -Itests/c $< $(HOST)/libfw.a -lm -o $@
+
+c-tests: system-deps $(C_TEST_BIN)
+
+test: system-deps venv c-tests
+	$(PY) -m pytest
+
+demo: system-deps venv
+	$(PY) -m imubench.demo
+
+clean:
+	rm -rf $(BUILD)
