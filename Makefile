@@ -20,7 +20,7 @@ CFLAGS_HOST := -std=c11 -O2 -g -Wall -Wextra -Werror -Wshadow -Wstrict-prototype
 FW_PORTABLE_SRC := $(wildcard firmware/core/*.c firmware/drivers/*.c firmware/boards/sim/models/*.c)
 FW_PORTABLE_OBJ := $(patsubst %.c,$(HOST)/obj/%.o,$(FW_PORTABLE_SRC))
 C_TEST_SRC := $(wildcard tests/c/test_*.c)
-C_TEST_BIN := $(patsubst tests/c/%.c,$(HOST)/tests/%,$(C_TEST_SRC))
+C_TEST_BIN := $(patsubst tests/c/%.c,$(HOST)/tests/%,$(C_TEST_SRC)) $(HOST)/tests/vector_harness
 
 .PHONY: all test demo venv system-deps c-tests clean protocol check-protocol bench
 
@@ -46,7 +46,7 @@ $(HOST)/libfw.a: $(FW_PORTABLE_OBJ)
 	@rm -f $@
 	ar rcs $@ $^
 
-$(HOST)/tests/%: tests/c/%.c $(HOST)/libfw.a
+$(HOST)/tests/%: tests/c/%.c $(HOST)/libfw.a $(wildcard tests/c/*.h)
 	@mkdir -p $(dir $@)
 	$(CC_HOST) $(CFLAGS_HOST) -Itests/c $< $(HOST)/libfw.a -lm -o $@
 

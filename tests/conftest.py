@@ -1,0 +1,24 @@
+"""Shared fixtures. C programs are built through the top-level Makefile, the same way
+`make test` builds them, so a test never runs a stale binary."""
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+HOST_BUILD = ROOT / "build" / "host"
+
+
+def make(*targets: str) -> None:
+    r = subprocess.run(["make", "-s", "-C", str(ROOT), *targets], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"make {' '.join(targets)} failed:\n{r.stdout}\n{r.stderr}")
+
+
+@pytest.fixture(scope="session")
+def c_harness() -> Path:
+    """The C vector harness (tests/c/vector_harness.c), built for the host."""
+    make("build/host/tests/vector_harness")
+    return HOST_BUILD / "tests" / "vector_harness"
