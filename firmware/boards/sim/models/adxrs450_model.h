@@ -1,0 +1,236 @@
+/*
+ * adxrs450_model.h - register/SPI-level model of one ADXRS450 single-axis gyro for the
+ * simulator. One sim_adxrs450_t per chip (the board has three: IB_CS_GYRO_X/Y/Z measure
+ * rotation about board X/Y/Z, axis 0/1/2).
+ *
+ * Protocol as /work/shared/reference/sensors.md section 2 (the authority); where it is
+ * marked [U] or silent, the choice made here is listed under "Choices" below.
+ *
+ * Use:
+ *   sim_adxrs450_init(&g, seed, 0);                   power on at t = 0, default truth
+ *   sim_adxrs450_set_truth(&g, &t);                    optional
+ *   loop: sim_adxrs450_advance(&g, t_us, &world);      world holds over (t_prev, t_us]
+ *         sim_adxrs450_spi(&g, tx, rx, 4);             one chip-select frame at g's time
+ *
+ * ---- Physics (all in rad/s; T = world temperature in degC; reference T_REF = 25 degC) --
+ *   chip rate r(t) = (1 + scale_tempco*(T - 25)) * (sens . omega_board)
+ *                    + bias_rad_s + bias_tempco*(T - 25) + b_rw(t)
+ *   b_rw: bias random walk, b_rw += K*sqrt(dt)*n at every advance() step of length dt
+ *         (so ADEV = K*sqrt(tau/3) whatever the step size; docs/conventions.md).
+ *   Sampling (integrate and dump): a sample latched at time t is the mean of r over the
+ *   interval since the previous latch, plus white noise of sigma N/sqrt(dt), so a stream
+ *   read at rate fs has per-sample sigma N*sqrt(fs) and ADEV = N/sqrt(tau) whatever fs.
+ *   It is quantised to 80 LSB per deg/s (round to nearest) and saturated to int16.
+ *   - A latch less than SIM_ADXRS450_MIN_LATCH_US after the previous one returns the
+ *     previous sample again and does not start a new interval. This keeps two-frame
+ *     readers exact (their fetch frame latches a throw-away sample microseconds after
+ *     the real one); a one-frame-per-read driver sees repeated samples above 10 kHz,
+ *     far above the part's ~77.5 Hz bandwidth.
+ *   - An interval longer than SIM_ADXRS450_MAX_WINDOW_US (the first sample after power-on,
+ *     or after a pause) uses the current noise-free rate and sigma N/sqrt(100 ms).
+ *   Latches happen on the sensor-data command and on a read of the RATE register.
+ *
+ * ---- Protocol ----
+ *   - spi(): one chip-select frame of 4 bytes, MSB first; the model's time is the time of
+ *     its last advance(). The reply to command N is shifted out during frame N+1; the
+ *     whole reply word (rate, ST, faults) is computed when command N arrives.
+ *   - Power-on (init, power_cycle): the first reply shifted out is 0x00000001. Frames in
+ *     the first startup_us (default SIM_ADXRS450_STARTUP_US = 100 ms) after power-on are
+ *     ignored: MISO reads 0x00 and the command is lost.
+ *   - Command parity: odd over 32 bits. A bad-parity command is not executed; its reply
+ *     is the R/W error response with SPI set (and RE too when the command is not a valid
+ *     sensor-data/read/write pattern, as for the Linux fetch frame 0x00000000).
+ *   - Decoding: bit 29 set = sensor data (SQ in bits 31,30,28; CHK bit 1); bits 31:29 =
+ *     100 read, 010 write; anything else (e.g. 0x00000001) is invalid: R/W error with RE.
+ *   - Sensor-data reply: SQ2:SQ0 echo in 31:29, P0, ST, rate 25:10, bits 9:8 = 0, fault
+ *     bits 7:1 (PLL Q NVM POR PWR CST CHK), P1. ST = 00 when PLL or FAIL is set, else 01.
+ *   - CHK: the reply to the CHK command itself is a normal sample; the next two
+ *     sensor-data replies have ST = 10, all 7 fault bits and rate 0 (0x080000FF with
+ *     SQ = 0), then replies are normal again (count-based, not time-based). A new CHK
+ *     restarts the count. CHK faults never enter the FAULT register.
+ *   - Read / write replies: type 010 / 001 in 31:29, P0, ST = 11, bits 25:21 = 1 0 SM2
+ *     SM1 SM0 (the reference's "probably 10 + SM"), data in 20:5, bits 4:1 = 0, P1.
+ *     The write reply echoes the register contents after the write.
+ *   - R/W error reply: 000, P0, ST = 11, bits 25:21 as above, bit 18 SPI, 17 RE, 16 DU,
+ *     every other bit 0 (no fault bits), P1. DU is never produced.
+ *   - Register map: 0x00 RATE (a read latches a sample as above), 0x02 TEM, 0x04 LOCST,
+ *     0x06 HICST, 0x08 QUAD, 0x0A FAULT, 0x0C PID, 0x0E SNH, 0x10 SNL, 0x12 DNC. Any other
+ *     address (odd ones included) gets the R/W error reply with RE.
+ *   - Only DNC is writable: it keeps the low 10 bits as a signed value and reads back
+ *     sign-extended to 16 bits (write 0x03FF or 0xFFFF -> reads 0xFFFF). DNC does not
+ *     change the rate output (its LSB weight is [U]). A write to another valid register
+ *     changes nothing and its reply echoes the unchanged contents.
+ *   - TEM = raw10 << 6, raw10 = round((T - 45) * 5) clamped to -512..511.
+ *   - PID = 0x5201 (the low byte is [U] in the reference). Serial number: 32 bits
+ *     derived from the seed (never 0). LOCST = 0xFE70, HICST = 0x0190 (arbitrary values;
+ *     the reference gives names only). QUAD = 0x0010, or 0x1068 (4200 > 4096) while a Q
+ *     fault is persistent.
+ * ---- Faults (sensors.md 2.6) ----
+ *   - FAULT register bits 11:1 (FAIL AMP OV UV PLL Q NVM POR PWR CST CHK). Injected UV or
+ *     OV also set PWR; AMP also sets CST.
+ *   - A latched bit stays until a reply reports it: a sensor-data reply reports (and
+ *     clears) bits 7:1, a FAULT register read reports (and clears) bits 11:1. Persistent
+ *     causes re-assert immediately after each report, so they appear in every reply and
+ *     still once more after the cause is removed.
+ *   - FAIL and PLL force ST = 00 (the rate field still carries the sample).
+ * ---- Fault injection ----
+ *   persistent faults, one-shot faults, XOR corruption of the next N reply words (mask
+ *   0x00000001 breaks P1 only; 0x10000000 breaks P0 and P1), missing chip (MISO 0x00,
+ *   no state change), power cycle, PID override.
+ */
+#ifndef SIM_ADXRS450_MODEL_H
+#define SIM_ADXRS450_MODEL_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "sim_rng.h"
+#include "sim_world.h"
+
+#define SIM_ADXRS450_PID 0x5201u
+#define SIM_ADXRS450_POWERUP_WORD 0x00000001u
+#define SIM_ADXRS450_STARTUP_US 100000u     /* commands ignored before this after power-on */
+#define SIM_ADXRS450_MIN_LATCH_US 100u      /* latches closer than this repeat the sample */
+#define SIM_ADXRS450_MAX_WINDOW_US 100000u  /* longest averaging interval of one sample */
+#define SIM_ADXRS450_T_REF_C 25.0           /* reference temperature of the tempcos */
+#define SIM_ADXRS450_LSB_PER_DPS 80.0
+
+/* FAULT register bits (same values as the driver's IB_ADXRS450_FAULT_*) */
+#define SIM_ADXRS450_FAULT_FAIL 0x0800u
+#define SIM_ADXRS450_FAULT_AMP 0x0400u
+#define SIM_ADXRS450_FAULT_OV 0x0200u
+#define SIM_ADXRS450_FAULT_UV 0x0100u
+#define SIM_ADXRS450_FAULT_PLL 0x0080u
+#define SIM_ADXRS450_FAULT_Q 0x0040u
+#define SIM_ADXRS450_FAULT_NVM 0x0020u
+#define SIM_ADXRS450_FAULT_POR 0x0010u
+#define SIM_ADXRS450_FAULT_PWR 0x0008u
+#define SIM_ADXRS450_FAULT_CST 0x0004u
+#define SIM_ADXRS450_FAULT_CHK 0x0002u
+#define SIM_ADXRS450_FAULT_ALL 0x0FFEu
+
+/* R/W error reply flags */
+#define SIM_ADXRS450_ERR_SPI 0x00040000u
+#define SIM_ADXRS450_ERR_RE 0x00020000u
+#define SIM_ADXRS450_ERR_DU 0x00010000u
+
+/* The true error model of one chip (what calibration should find). */
+typedef struct sim_adxrs450_truth {
+    double sens[3];           /* chip rate = sens . omega_board (+ bias); ideal: unit row */
+    double bias_rad_s;        /* null offset at 25 degC */
+    double noise_n;           /* white noise, Allan coefficient N, rad/s/sqrt(Hz) */
+    double bias_rw_k;         /* bias random walk K, rad/s*sqrt(Hz) */
+    double bias_tempco_rad_s_per_c; /* bias change per degC away from 25 degC */
+    double scale_tempco_per_c;      /* relative scale change per degC away from 25 degC */
+} sim_adxrs450_truth_t;
+
+typedef struct sim_adxrs450 {
+    /* physics */
+    int axis;                     /* 0, 1, 2 = board X, Y, Z */
+    sim_adxrs450_truth_t truth;
+    sim_rng_t rng;
+    uint64_t t_us;                /* time of the last advance() */
+    sim_world_t world;            /* world of the last advance() */
+    double bias_rw_rad_s;         /* accumulated random-walk part of the bias */
+    double rate_integral_rad;     /* integral of the noise-free chip rate since last latch */
+    uint64_t last_latch_us;
+    int16_t last_counts;          /* last latched sample */
+    uint8_t have_latch;           /* a sample was latched since power-on */
+
+    /* protocol state */
+    uint64_t power_on_us;
+    uint32_t startup_us;          /* settable; 0 disables the start-up dead time */
+    uint32_t pending;             /* reply to shift out in the next frame */
+    uint16_t pid;
+    uint32_t serial;
+    uint16_t dnc;                 /* as read back (sign-extended 10-bit) */
+    uint16_t fault_latched;
+    uint16_t fault_persistent;
+    uint8_t chk_remaining;        /* CHK-flagged sensor replies still to come */
+    uint8_t missing;
+    uint32_t corrupt_remaining;
+    uint32_t corrupt_mask;
+
+    /* statistics for tests */
+    uint32_t frames;              /* frames seen (while present) */
+    uint32_t ignored_frames;      /* frames during the start-up dead time */
+    uint32_t cmd_parity_errors;
+    uint32_t invalid_cmds;
+    uint32_t last_cmd;
+} sim_adxrs450_t;
+
+/* The ideal chip for `axis` (0/1/2): unit sensitivity row, zero bias, zero tempcos,
+ * N = 0.015 deg/s/sqrt(Hz) ([U] datasheet figure) = 2.618e-4 rad/s/sqrt(Hz), and
+ * K = 0.001 deg/s*sqrt(Hz) = 1.745e-5 rad/s*sqrt(Hz); with that N the Allan minimum is
+ * about 2*sqrt(N*K/sqrt(3)) = 21 deg/h, close to the datasheet's 25 deg/h bias stability.
+ * An axis outside 0..2 gives a zero row. */
+sim_adxrs450_truth_t sim_adxrs450_default_truth(int axis);
+
+/* Draw a representative imperfect chip for `axis` from `rng` (documented ranges; the
+ * [U] datasheet figures are null +-3 deg/s, sensitivity +-3 %):
+ *   bias      Gaussian, sigma 0.5 deg/s, clipped to +-3 deg/s
+ *   scale     1 + uniform +-3 %            cross-axis terms uniform +-1 % each
+ *   N         default * uniform 0.8..1.2   K default
+ *   bias tempco  uniform +-0.01 deg/s/degC scale tempco uniform +-1e-4 /degC */
+void sim_adxrs450_random_truth(sim_adxrs450_truth_t *t, sim_rng_t *rng, int axis);
+
+/* Power the chip on at t = 0 with the default truth for `axis`, an rng seeded by `seed`
+ * (use a different seed per chip), a serial number derived from `seed`, PID 0x5201,
+ * DNC 0, no faults, startup_us = SIM_ADXRS450_STARTUP_US, the world at rest at 25 degC. */
+void sim_adxrs450_init(sim_adxrs450_t *m, uint64_t seed, int axis);
+
+/* Replace / read the truth. set_truth keeps the accumulated random-walk bias. */
+void sim_adxrs450_set_truth(sim_adxrs450_t *m, const sim_adxrs450_truth_t *t);
+const sim_adxrs450_truth_t *sim_adxrs450_get_truth(const sim_adxrs450_t *m);
+
+/* Move time to t_us (microseconds, the simulator's clock) with `world` holding over
+ * (previous time, t_us]: accumulates the bias random walk and the rate integral.
+ * t_us not after the current time only replaces the world. world == NULL keeps it. */
+void sim_adxrs450_advance(sim_adxrs450_t *m, uint64_t t_us, const sim_world_t *world);
+
+/* One chip-select frame: tx (NULL sends 0x00) in, rx (NULL discards) out, at the model's
+ * current time. Returns 0 for a 4-byte frame. Any other length is not a command: rx gets
+ * the first bytes of the queued reply (0x00 past 4 bytes), the queued reply becomes the
+ * R/W error reply with SPI set, and the function returns -1. */
+int sim_adxrs450_spi(sim_adxrs450_t *m, const uint8_t *tx, uint8_t *rx, size_t len);
+
+/* Current true bias (constant + tempco at the current temperature + random walk), rad/s. */
+double sim_adxrs450_true_bias_rad_s(const sim_adxrs450_t *m);
+
+/* Current noise-free chip output (the r(t) above), rad/s. */
+double sim_adxrs450_true_rate_rad_s(const sim_adxrs450_t *m);
+
+/* Fault causes that stay present (FAULT register bits; UV/OV add PWR, AMP adds CST).
+ * 0 removes them; bits already latched still show once (sensors.md 2.6). */
+void sim_adxrs450_set_persistent_faults(sim_adxrs450_t *m, uint16_t mask);
+
+/* Latch faults once (a transient event): reported by the next reply that carries them. */
+void sim_adxrs450_inject_faults(sim_adxrs450_t *m, uint16_t mask);
+
+/* XOR `xor_mask` into each of the next `count` reply words shifted out. */
+void sim_adxrs450_corrupt_responses(sim_adxrs450_t *m, uint32_t count, uint32_t xor_mask);
+
+/* missing != 0: the chip is absent, MISO reads 0x00 and frames change nothing. */
+void sim_adxrs450_set_missing(sim_adxrs450_t *m, int missing);
+
+/* Power cycle at the current time: power-on reply word again, latched faults, CHK
+ * state, DNC, the pending reply and the sample integrator reset, the start-up dead time
+ * restarts. Truth, bias random walk, fault causes (persistent faults), pending parity
+ * corruption and the missing flag are kept. */
+void sim_adxrs450_power_cycle(sim_adxrs450_t *m);
+
+/* Override the PID register (to test a wrong part). */
+void sim_adxrs450_set_pid(sim_adxrs450_t *m, uint16_t pid);
+
+/* ---- pure encoders (exposed for tests) ---- */
+
+/* Set P0 (bits 31:16 odd) and P1 (all 32 bits odd) of a response word. */
+uint32_t sim_adxrs450_response_parity(uint32_t word);
+
+/* A sensor-data reply: SQ2:SQ0 echo `sq`, status `st`, rate `counts`, fault bits 7:1. */
+uint32_t sim_adxrs450_encode_sensor(uint8_t sq, uint8_t st, int16_t counts, uint8_t faults);
+
+/* TEM register contents for a die temperature. */
+uint16_t sim_adxrs450_tem_register(double temp_c);
+
+#endif
