@@ -19,6 +19,9 @@ MAX_FRAME = 268
 MAX_ENCODED = 270
 PARAM_BLOCK_VERSION = 1
 
+# Parameter limits (protocol/imubench.toml [limits]); the device enforces the same.
+LIMITS = {'m_diag_min': 0.5, 'm_diag_max': 1.5, 'm_offdiag_max': 0.2, 'm_cond_max': 6.0, 'accel_bias_max_mps2': 9.80665, 'gyro_bias_max_rad_s': 0.5236, 'accel_bias_tc_max_mps2_per_c': 0.01, 'gyro_bias_tc_max_rad_s_per_c': 0.001, 'scale_tc_max_per_c': 0.001, 't_ref_min_c': -40.0, 't_ref_max_c': 125.0}
+
 class Error(enum.IntEnum):
     """Error codes carried in ack.error (0 = acknowledged; anything else is a nack)."""
     OK = 0

@@ -1,0 +1,389 @@
+"""Host link and device client: talk to an imubench device through any pyserial URL.
+
+    with Device.open("socket://127.0.0.1:5555") as dev:     # or /dev/ttyUSB0, rfc2217://...
+        print(dev.info())
+        dev.start_stream(rate_hz=1000)
+        block = dev.read(n_samples=5000)                     # decoder.SampleBlock (numpy)
+        dev.stop_stream()
+
+A reader thread owns the port's input: it feeds the streaming decoder, matches replies to
+requests by request id, and (optionally) appends every received byte to a capture file
+as it arrives, so a crash loses nothing that reached the host. Every command gets exactly
+one ack; a missing ack is retried with the same request id (the device answers a repeated
+id without running the command twice), then raises LinkTimeout. A nack raises DeviceError.
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import BinaryIO, Iterator
+
+import serial
+
+from . import protocol as P
+from .decoder import DecodedFrame, SampleBlock, StreamDecoder
+from .protocol_gen import (
+    Ack,
+    ClearParams,
+    Error,
+    FaultEvent,
+    GetInfo,
+    GetParams,
+    GetStats,
+    Info,
+    MsgType,
+    Params,
+    ParamsReadback,
+    ParamsWhich,
+    Ping,
+    Reboot,
+    SaveParams,
+    SelfTest,
+    SelfTestResult,
+    SetParams,
+    StartStream,
+    Stats,
+    StopStream,
+    StreamMode,
+)
+
+PORT_ENV = "IMUBENCH_PORT"
+DEFAULT_BAUD = 921600
+
+
+class LinkError(IOError):
+    """The link itself failed (port closed, device gone)."""
+
+
+class LinkTimeout(TimeoutError):
+    """No ack arrived for a command after all retries."""
+
+
+class DeviceError(RuntimeError):
+    """The device refused a command (a nack): `code` says why."""
+
+    def __init__(self, command: int, code: int, detail: int = 0):
+        try:
+            cname = MsgType(command).name.lower()
+        except ValueError:
+            cname = f"0x{command:02X}"
+        try:
+            self.code = Error(code)
+            ename = self.code.name
+        except ValueError:
+            self.code = code
+            ename = f"error {code}"
+        super().__init__(f"device refused {cname}: {ename} (detail {detail})")
+        self.command = command
+        self.detail = detail
+
+
+def resolve_port(url: str | None) -> str:
+    url = url or os.environ.get(PORT_ENV)
+    if not url:
+        raise LinkError(f"no port given: pass --port URL or set {PORT_ENV} "
+                        "(a device path like /dev/ttyUSB0, or socket://HOST:PORT, rfc2217://...)")
+    return url
+
+
+@dataclass
+class _Pending:
+    command: int
+    ack: Ack | None = None
+    data: list | None = None
+
+
+class Link:
+    """Serial endpoint + reader thread + decoder. Use Device for the command API."""
+
+    def __init__(self, url: str | None = None, baudrate: int = DEFAULT_BAUD, capture: BinaryIO | None = None):
+        self.url = resolve_port(url)
+        try:
+            self.port = serial.serial_for_url(self.url, baudrate=baudrate, timeout=0.02, write_timeout=2.0)
+        except (serial.SerialException, ValueError, OSError) as e:
+            raise LinkError(f"cannot open {self.url}: {e}") from e
+        self.decoder = StreamDecoder()
+        self.capture = capture
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self._pending: dict[int, _Pending] = {}
+        self._next_id = 1
+        self.fault_events: deque[tuple[float, FaultEvent]] = deque(maxlen=1000)
+        self.boot_infos: deque[Info] = deque(maxlen=10)
+        self.last_stats: Stats | None = None
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._reader, name=f"imubench-link {self.url}", daemon=True)
+        self._thread.start()
+        self._write(b"\0")     # ends any partial frame the device holds (protocol/SPEC.md, Framing)
+
+    # ----------------------------------------------------------------- reading
+    def _reader(self) -> None:
+        port = self.port
+        try:
+            while not self._stop.is_set():
+                data = port.read(max(1, min(port.in_waiting, 1 << 16)))
+                if not data:
+                    continue
+                if self.capture is not None:
+                    self.capture.write(data)
+                    self.capture.flush()
+                with self._cond:
+                    frames = self.decoder.feed(data)
+                    if frames:
+                        for f in frames:
+                            self._dispatch(f)
+                        self._cond.notify_all()
+                    elif self.decoder.pending_samples() or self.decoder.pending_samples(True):
+                        self._cond.notify_all()
+        except (serial.SerialException, OSError, TypeError, AttributeError) as e:
+            if not self._stop.is_set():
+                self.error = e
+        finally:
+            with self._cond:
+                self._cond.notify_all()
+
+    def _dispatch(self, f: DecodedFrame) -> None:
+        m = f.msg
+        if f.type == MsgType.ACK:
+            p = self._pending.get(m.request_id)
+            if p is not None and p.command == m.command:
+                p.ack = m
+            return
+        rid = getattr(m, "request_id", 0)
+        if rid and rid in self._pending:
+            self._pending[rid].data.append(m)
+            return
+        if f.type == MsgType.FAULT_EVENT:
+            self.fault_events.append((time.monotonic(), m))
+        elif f.type == MsgType.INFO:            # unsolicited: the device (re)booted
+            self.boot_infos.append(m)
+            self.decoder.reset_sequence()
+        elif f.type == MsgType.STATS:
+            self.last_stats = m
+
+    # ---------------------------------------------------------------- requests
+    def request(self, msg, timeout: float = 1.0, retries: int = 2) -> tuple[Ack, list]:
+        """Send a command, wait for its ack; returns (ack, data messages). Raises
+        DeviceError on a nack, LinkTimeout when no ack came after 1 + retries sends."""
+        d = P.MESSAGES_BY_NAME[P.message_name(msg)]
+        payload = P.encode_message(msg)
+        with self._cond:
+            rid = self._next_id
+            self._next_id = self._next_id % 0xFFFF + 1     # 1..65535; 0 means unsolicited
+            pend = self._pending[rid] = _Pending(d.id, None, [])
+        frame = P.build_frame(d.id, payload, rid, int(time.monotonic() * 1e6))
+        try:
+            for _attempt in range(retries + 1):
+                self._write(frame)
+                deadline = time.monotonic() + timeout
+                with self._cond:
+                    while pend.ack is None and self.error is None:
+                        left = deadline - time.monotonic()
+                        if left <= 0:
+                            break
+                        self._cond.wait(left)
+                    if self.error is not None:
+                        raise LinkError(f"link to {self.url} failed: {self.error}")
+                    if pend.ack is not None:
+                        ack = pend.ack
+                        if ack.error != Error.OK:
+                            raise DeviceError(ack.command, ack.error, ack.value)
+                        return ack, pend.data
+            raise LinkTimeout(f"no answer to {d.name} (request {rid}) from {self.url} after "
+                              f"{retries + 1} tries of {timeout:g} s")
+        finally:
+            with self._cond:
+                self._pending.pop(rid, None)
+
+    def _write(self, data: bytes) -> None:
+        try:
+            self.port.write(data)
+            self.port.flush()
+        except (serial.SerialException, OSError) as e:
+            raise LinkError(f"write to {self.url} failed: {e}") from e
+
+    # ----------------------------------------------------------------- samples
+    def take_samples(self, calibrated: bool = False) -> SampleBlock | None:
+        with self._cond:
+            return self.decoder.take_samples(calibrated)
+
+    def discard_samples(self) -> None:
+        """Drop samples not yet taken and forget sequence state (a new stream starts)."""
+        with self._cond:
+            self.decoder.take_samples(False)
+            self.decoder.take_samples(True)
+            self.decoder.reset_sequence()
+
+    def wait_samples(self, n: int, calibrated: bool, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self.decoder.pending_samples(calibrated) < n and self.error is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return
+                self._cond.wait(min(left, 0.1))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        try:
+            self.port.close()
+        except Exception:  # noqa: BLE001 - closing a dead port must not hide the real error
+            pass
+
+
+class Device:
+    """The device's command API on top of a Link."""
+
+    def __init__(self, url: str | None = None, baudrate: int = DEFAULT_BAUD, timeout: float = 1.0,
+                 retries: int = 2, capture: BinaryIO | None = None):
+        self.link = Link(url, baudrate, capture)
+        self.timeout = timeout
+        self.retries = retries
+        self._stream_mode: StreamMode | None = None
+        self._leftover: dict[bool, SampleBlock] = {}
+
+    @classmethod
+    def open(cls, url: str | None = None, **kw) -> "Device":
+        return cls(url, **kw)
+
+    def __enter__(self) -> "Device":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.link.close()
+
+    def _req(self, msg, timeout: float | None = None):
+        return self.link.request(msg, timeout or self.timeout, self.retries)
+
+    @staticmethod
+    def _one(data: list, cls):
+        for m in data:
+            if isinstance(m, cls):
+                return m
+        raise LinkError(f"the device acked without sending {cls.__name__}")
+
+    # ---------------------------------------------------------------- commands
+    def ping(self, nonce: int = 0x1B3C5D7E) -> float:
+        """Round trip time in seconds; checks the echoed nonce."""
+        t0 = time.perf_counter()
+        ack, _ = self._req(Ping(nonce=nonce))
+        if ack.value != nonce:
+            raise LinkError(f"ping echoed 0x{ack.value:08X}, sent 0x{nonce:08X}")
+        return time.perf_counter() - t0
+
+    def info(self) -> Info:
+        return self._one(self._req(GetInfo())[1], Info)
+
+    def start_stream(self, rate_hz: int = 1000, calibrated: bool = False, batch: int = 0,
+                     accel_range_g: int = 0) -> int:
+        """Start streaming; returns the batch size the device chose."""
+        mode = StreamMode.CALIBRATED if calibrated else StreamMode.RAW
+        self.link.discard_samples()
+        self._leftover.clear()
+        ack, _ = self._req(StartStream(rate_hz=rate_hz, mode=mode, batch=batch, accel_range_g=accel_range_g))
+        self._stream_mode = mode
+        return ack.value
+
+    def stop_stream(self) -> None:
+        self._req(StopStream())
+        self._stream_mode = None
+
+    def set_params(self, params: Params) -> None:
+        self._req(SetParams(params=params))
+
+    def get_params(self, which: ParamsWhich = ParamsWhich.ACTIVE) -> ParamsReadback:
+        return self._one(self._req(GetParams(which=which))[1], ParamsReadback)
+
+    def save_params(self) -> int:
+        """Write the active parameters to flash; returns the new generation."""
+        return self._req(SaveParams(), timeout=max(self.timeout, 3.0))[0].value
+
+    def clear_params(self) -> None:
+        self._req(ClearParams(), timeout=max(self.timeout, 3.0))
+
+    def self_test(self) -> SelfTestResult:
+        return self._one(self._req(SelfTest(), timeout=max(self.timeout, 5.0))[1], SelfTestResult)
+
+    def stats(self, reset: bool = False) -> Stats:
+        return self._one(self._req(GetStats(reset=int(reset)))[1], Stats)
+
+    def reboot(self, wait_s: float = 5.0) -> Info | None:
+        """Reboot; with wait_s > 0, wait for the boot info and return it."""
+        n_before = len(self.link.boot_infos)
+        self._req(Reboot())
+        self._stream_mode = None
+        if wait_s <= 0:
+            return None
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            if len(self.link.boot_infos) > n_before:
+                return self.link.boot_infos[-1]
+            time.sleep(0.01)
+        raise LinkTimeout(f"device did not announce itself within {wait_s} s of reboot")
+
+    # ----------------------------------------------------------------- samples
+    def read(self, n_samples: int | None = None, duration_s: float | None = None,
+             calibrated: bool | None = None, timeout: float | None = None) -> SampleBlock:
+        """Collect samples of the running stream: n_samples of them, or for duration_s of
+        host time. Raises LinkTimeout if they do not arrive within timeout."""
+        cal = (self._stream_mode == StreamMode.CALIBRATED) if calibrated is None else calibrated
+        blocks, have = [], 0
+        left = self._leftover.pop(cal, None)
+        if left is not None:
+            blocks.append(left)
+            have = len(left)
+        if n_samples is None and duration_s is None:
+            raise ValueError("give n_samples or duration_s")
+        t_end = time.monotonic() + (duration_s if duration_s is not None else 0)
+        limit = time.monotonic() + (timeout if timeout is not None else
+                                    (duration_s or 0) + 5.0 + (n_samples or 0) / 500.0)
+        while True:
+            need = (n_samples - have) if n_samples is not None else 1
+            self.link.wait_samples(max(need, 1), cal, timeout=0.05)
+            b = self.link.take_samples(cal)
+            if b is not None and len(b):
+                blocks.append(b)
+                have += len(b)
+            if self.link.error is not None:
+                raise LinkError(f"link failed: {self.link.error}")
+            now = time.monotonic()
+            if (n_samples is not None and have >= n_samples) or (n_samples is None and now >= t_end):
+                break
+            if now > limit:
+                raise LinkTimeout(f"{have} of {n_samples} samples arrived before the timeout")
+        if not blocks:
+            raise LinkTimeout("no samples arrived")
+        out = SampleBlock.concat(blocks)
+        if n_samples is not None and len(out) > n_samples:
+            self._leftover[cal] = _slice(out, slice(n_samples, None))   # kept for the next read
+            out = _slice(out, slice(0, n_samples))
+        return out
+
+    def stream(self, calibrated: bool | None = None, poll_s: float = 0.05) -> Iterator[SampleBlock]:
+        """Yield sample blocks as they arrive, until the caller stops iterating."""
+        cal = (self._stream_mode == StreamMode.CALIBRATED) if calibrated is None else calibrated
+        left = self._leftover.pop(cal, None)
+        if left is not None:
+            yield left
+        while True:
+            self.link.wait_samples(1, cal, timeout=poll_s)
+            if self.link.error is not None:
+                raise LinkError(f"link failed: {self.link.error}")
+            b = self.link.take_samples(cal)
+            if b is not None and len(b):
+                yield b
+
+
+def _slice(b: SampleBlock, s: slice) -> SampleBlock:
+    kw = {}
+    for k, v in vars(b).items():
+        kw[k] = v if k == "calibrated" or v is None else v[s]
+    return SampleBlock(**kw)

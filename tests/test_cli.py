@@ -1,0 +1,89 @@
+"""The imubench command line, run as users run it (a subprocess), against the fake
+device over a pty and on recorded files."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from imubench import protocol as P
+from imubench.fakedev import FakeDevice
+from imubench.protocol_gen import BatchHeader, RawBatch, Stats
+
+
+def run(*args, env=None, timeout=60):
+    return subprocess.run([sys.executable, "-m", "imubench.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env={**os.environ, **(env or {})})
+
+
+def _recording(tmp_path, corrupt=False):
+    n = 8
+    frames = []
+    for i in range(10):
+        recs = dict(accel_x_counts=np.full(n, 1000), accel_y_counts=np.full(n, -2000),
+                    accel_z_counts=np.full(n, 256000), status=np.zeros(n, int), gyro_counts=np.zeros((n, 3), int))
+        hdr = BatchHeader(sample_index=i * n, period_us=1000, count=n, accel_range_g=2, accel_temp_counts=1885)
+        frames.append(P.encode(RawBatch(header=hdr), i, i * n * 1000, records=recs))
+    frames.append(P.encode(Stats(frames_sent=10), 10, 80000))
+    data = bytearray(b"".join(frames))
+    if corrupt:
+        data[300] ^= 0xFF       # one frame damaged
+        data[0:0] = b"\x13\x37garbage\x00"     # line noise before the device's leading delimiter
+    path = tmp_path / "rec.bin"
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_decode_summary_and_exports(tmp_path):
+    path = _recording(tmp_path)
+    r = run("decode", str(path), "--json", "--npz", str(tmp_path / "s.npz"), "--csv", str(tmp_path / "s.csv"))
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout.splitlines()[0])
+    assert summary["raw"]["samples"] == 80
+    assert summary["messages"] == {"stats": 1}
+    assert abs(summary["raw"]["accel_mean_mps2"][2] - 9.80665) < 1e-6
+    z = np.load(tmp_path / "s.npz")
+    assert z["accel_counts"].shape == (80, 3) and np.all(z["sample_index"] == np.arange(80))
+    rows = (tmp_path / "s.csv").read_text().splitlines()
+    assert len(rows) == 81 and rows[0].startswith("t_us,sample_index")
+
+
+def test_decode_counts_corruption_and_keeps_the_rest(tmp_path):
+    path = _recording(tmp_path, corrupt=True)
+    r = run("decode", str(path), "--json")
+    summary = json.loads(r.stdout)
+    d = summary["decoder"]
+    assert d["frames_rejected"] >= 2          # the garbage prefix and the damaged frame
+    assert d["frames_ok"] == 10               # 9 batches + stats
+    assert summary["raw"]["samples"] == 72
+    assert d["samples_missing"] == 8 and d["sample_gaps"] == 1
+
+
+def test_decode_missing_file_is_a_clear_error(tmp_path):
+    r = run("decode", str(tmp_path / "nope.bin"))
+    assert r.returncode == 2 and "error" in r.stderr
+
+
+def test_monitor_streams_and_records(tmp_path):
+    rec = tmp_path / "mon.bin"
+    with FakeDevice(seed=5) as fake:
+        r = run("monitor", "--rate", "500", "--duration", "2.2", "--interval", "0.5", "--record", str(rec),
+                env={"IMUBENCH_PORT": fake.port_url})
+    assert r.returncode == 0, r.stderr
+    lines = [ln for ln in r.stdout.splitlines() if "|" in ln and "rej 0" in ln]
+    assert len(lines) >= 3
+    assert "done:" in r.stdout and "0 rejected" in r.stdout
+    r2 = run("decode", str(rec), "--json")
+    assert json.loads(r2.stdout)["raw"]["samples"] > 800
+
+
+def test_info_and_missing_port(monkeypatch):
+    with FakeDevice() as fake:
+        r = run("info", "--port", fake.port_url)
+    assert r.returncode == 0 and "ADXL355 IDs AD 1D ED 01" in r.stdout
+    env = {k: v for k, v in os.environ.items() if k != "IMUBENCH_PORT"}
+    r = subprocess.run([sys.executable, "-m", "imubench.cli", "info"], capture_output=True, text=True, env=env)
+    assert r.returncode == 2 and "IMUBENCH_PORT" in r.stderr
