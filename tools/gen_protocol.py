@@ -61,6 +61,7 @@ def parse_type(t: str) -> tuple[str, int | None]:
 class Spec:
     def __init__(self, data: dict):
         self.proto = data["protocol"]
+        self.limits = data.get("limits", {})
         self.enums = data.get("enum", [])
         self.bitsets = data.get("bits", [])
         self.structs = {s["name"]: s for s in data.get("struct", [])}
@@ -127,7 +128,11 @@ def gen_c_header(sp: Spec) -> str:
          f"#define IB_CRC_SIZE {p['crc_size']}u",
          f"#define IB_MAX_FRAME {max_frame}u /* header + payload + CRC, before COBS */",
          f"#define IB_MAX_ENCODED ({max_frame}u + ({max_frame}u / 254u) + 1u) /* COBS, without the 0x00 */",
-         f"#define IB_PARAM_BLOCK_VERSION {p['param_block_version']}u", ""]
+         f"#define IB_PARAM_BLOCK_VERSION {p['param_block_version']}u", "",
+         "/* Parameter limits (protocol/imubench.toml [limits]). */"]
+    for k, v in sp.limits.items():
+        L.append(f"#define IB_LIMIT_{c_name(k)} {float(v)!r}f")
+    L.append("")
     for e in sp.enums:
         L.append(f"/* {e.get('doc', e['name'])} */")
         L.append(f"enum ib_{e['name']} {{")
@@ -396,7 +401,9 @@ def gen_python(sp: Spec) -> str:
          f"HEADER_SIZE = {p['header_size']}", f"CRC_SIZE = {p['crc_size']}",
          f'CRC_NAME = "{p["crc"]}"', f"MAX_FRAME = {max_frame}",
          f"MAX_ENCODED = {max_frame + max_frame // 254 + 1}",
-         f"PARAM_BLOCK_VERSION = {p['param_block_version']}", ""]
+         f"PARAM_BLOCK_VERSION = {p['param_block_version']}", "",
+         "# Parameter limits (protocol/imubench.toml [limits]); the device enforces the same.",
+         "LIMITS = {" + ", ".join(f"'{k}': {float(v)!r}" for k, v in sp.limits.items()) + "}", ""]
     for e in sp.enums:
         L.append(f"class {camel(e['name'])}(enum.IntEnum):")
         if e.get("doc"):

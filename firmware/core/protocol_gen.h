@@ -13,6 +13,19 @@
 #define IB_MAX_ENCODED (268u + (268u / 254u) + 1u) /* COBS, without the 0x00 */
 #define IB_PARAM_BLOCK_VERSION 1u
 
+/* Parameter limits (protocol/imubench.toml [limits]). */
+#define IB_LIMIT_M_DIAG_MIN 0.5f
+#define IB_LIMIT_M_DIAG_MAX 1.5f
+#define IB_LIMIT_M_OFFDIAG_MAX 0.2f
+#define IB_LIMIT_M_COND_MAX 6.0f
+#define IB_LIMIT_ACCEL_BIAS_MAX_MPS2 9.80665f
+#define IB_LIMIT_GYRO_BIAS_MAX_RAD_S 0.5236f
+#define IB_LIMIT_ACCEL_BIAS_TC_MAX_MPS2_PER_C 0.01f
+#define IB_LIMIT_GYRO_BIAS_TC_MAX_RAD_S_PER_C 0.001f
+#define IB_LIMIT_SCALE_TC_MAX_PER_C 0.001f
+#define IB_LIMIT_T_REF_MIN_C -40.0f
+#define IB_LIMIT_T_REF_MAX_C 125.0f
+
 /* Error codes carried in ack.error (0 = acknowledged; anything else is a nack). */
 enum ib_error {
     IB_ERROR_OK = 0, /* command done */
