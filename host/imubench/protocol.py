@@ -185,21 +185,34 @@ def record_leaf_dtype(d) -> np.dtype:
     return np.dtype(fields)
 
 
-def unpack_records(d, data: bytes | memoryview) -> np.ndarray:
-    """Vectorised decode of concatenated records (any count) into leaf fields."""
+def unpack_record_fields(d, data: bytes | memoryview) -> dict[str, np.ndarray]:
+    """Vectorised decode of concatenated records (any count): one array per leaf field,
+    bit fields extracted and sign-extended."""
     wire = np.frombuffer(data, dtype=d.record_dtype)
-    out = np.empty(len(wire), dtype=record_leaf_dtype(d))
+    out: dict[str, np.ndarray] = {}
+    bit_words = {w for w, *_ in d.record_bits}
     for name in d.record_dtype.names:
-        if name in out.dtype.names:
+        if name not in bit_words:
             out[name] = wire[name]
+    words = {w: np.ascontiguousarray(wire[w]) for w in bit_words}
     for word, name, lsb, width, signed in d.record_bits:
-        w = wire[word]
+        w = words[word]
         if signed:
             # move the field to the top of an int64, then arithmetic-shift it back down
-            v = (w.view(np.int64) << np.int64(64 - lsb - width)) >> np.int64(64 - width)
+            out[name] = ((w << np.uint64(64 - lsb - width)).view(np.int64) >> np.int64(64 - width)).astype(np.int32)
         else:
-            v = (w >> np.uint64(lsb)) & np.uint64((1 << width) - 1)
-        out[name] = v
+            out[name] = ((w >> np.uint64(lsb)) & np.uint64((1 << width) - 1)).astype(
+                np.uint8 if width <= 8 else np.uint32)
+    return out
+
+
+def unpack_records(d, data: bytes | memoryview) -> np.ndarray:
+    """Records as one numpy structured array of leaf fields (see record_leaf_dtype)."""
+    fields = unpack_record_fields(d, data)
+    n = len(data) // d.record_dtype.itemsize
+    out = np.empty(n, dtype=record_leaf_dtype(d))
+    for name in out.dtype.names:
+        out[name] = fields[name]
     return out
 
 
