@@ -170,6 +170,30 @@ def test_c_encodes_every_good_vector(c_harness):
 def test_worked_example_of_the_spec():
     """protocol/SPEC.md works one ping frame out by hand; the codec must agree."""
     from imubench.protocol_gen import Ping
-    assert P.encode(Ping(nonce=0x12345678), seq=7, timestamp_us=99).hex() == \
-        "04010107026301010978563412c3662bc000"
+    assert P.encode(Ping(nonce=0x12345678), seq=7, timestamp_us=99).hex(" ") == \
+        "04 01 01 07 02 63 01 01 09 78 56 34 12 c3 66 2b c0 00"
+    assert P.crc32c(bytes.fromhex("010107006300000078563412")) == 0xC02B66C3
+    spec = (ROOT / "protocol" / "SPEC.md").read_text()
+    assert "04 01 01 07 02 63 01 01 09 78 56 34 12 c3 66 2b c0 00" in spec
     assert P.crc32c(b"123456789") == 0xE3069283
+
+
+def test_link_budget_frame_sizes_of_the_spec():
+    """SPEC.md's link budget: 260 bytes per 16 raw samples, 92 per 4, 236 per 8 calibrated."""
+    import numpy as np
+    from imubench.protocol_gen import BatchHeader, CalBatch, RawBatch
+
+    def raw(n):
+        recs = dict(accel_x_counts=np.full(n, 12345), accel_y_counts=np.full(n, -7), accel_z_counts=np.full(n, 256000),
+                    status=np.zeros(n, int), gyro_counts=np.full((n, 3), 40))
+        return len(P.encode(RawBatch(header=BatchHeader(sample_index=1, period_us=250, count=n, accel_range_g=2)),
+                            1, 1, records=recs))
+
+    cal = len(P.encode(CalBatch(header=BatchHeader(count=8, period_us=250, accel_range_g=2)), 1, 1,
+                       records=dict(accel_mps2=np.full((8, 3), 9.8, np.float32),
+                                    rate_rad_s=np.full((8, 3), 0.01, np.float32), status=np.zeros(8, int))))
+    assert (raw(16), raw(4), cal) == (260, 92, 236)
+    spec = (ROOT / "protocol" / "SPEC.md").read_text()
+    assert "| raw | 16 | 260 | 16.25 |" in spec and "| calibrated | 8 | 236 | 29.5 |" in spec
+    load_4k_921600 = 260 * 250 * 10 / 921600
+    assert f"**{load_4k_921600:.1%}**".replace("%", " %") in spec

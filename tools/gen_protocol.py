@@ -9,6 +9,7 @@ Outputs (never edit them by hand):
     firmware/core/protocol_gen.c   pack/unpack and payload-length checks
     host/imubench/protocol_gen.py  the same layouts for Python (struct formats, numpy dtypes)
     tests/c/protocol_desc_gen.h    field descriptor tables for the C vector harness
+    protocol/MESSAGES.md           the message reference (tables of every layout)
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ OUT_H = ROOT / "firmware" / "core" / "protocol_gen.h"
 OUT_C = ROOT / "firmware" / "core" / "protocol_gen.c"
 OUT_PY = ROOT / "host" / "imubench" / "protocol_gen.py"
 OUT_DESC = ROOT / "tests" / "c" / "protocol_desc_gen.h"
+OUT_MD = ROOT / "protocol" / "MESSAGES.md"
 
 # wire type -> (size, C type, struct char, numpy code, put/get helper suffix)
 SCALARS = {
@@ -550,9 +552,88 @@ def gen_python(sp: Spec) -> str:
     return "\n".join(L)
 
 
+def gen_markdown(sp: Spec) -> str:
+    p = sp.proto
+    L = [f"<!-- {BANNER} -->", "# imubench message reference", "",
+         f"Protocol version {p['version']}. Framing, rules and the link budget are in SPEC.md; this page",
+         "lists every layout. All fields little-endian; offsets are bytes from the start of the payload.", "",
+         "| constant | value |", "|---|---|",
+         f"| max payload | {p['max_payload']} bytes |",
+         f"| header | {p['header_size']} bytes: version u8, type u8, seq u16, timestamp_us u32 |",
+         f"| CRC | {p['crc']}, {p['crc_size']} bytes after the payload |",
+         f"| parameter block version | {p['param_block_version']} |", ""]
+
+    def table(item: dict):
+        rows = ["| offset | field | type | unit | meaning |", "|---|---|---|---|---|"]
+        off = 0
+        for f in sp.fields(item):
+            t = f.base + (f"[{f.count}]" if f.count else "")
+            extra = f" (enum `{f.enum}`)" if f.enum else ""
+            if f.bits:
+                bits = "; ".join(f"bits {b['lsb'] + b['width'] - 1}:{b['lsb']} `{b['name']}`"
+                                 f"{' signed' if b['signed'] else ''}" for b in f.bits)
+                rows.append(f"| {off} | {f.name} | {t} | | {bits} |")
+            else:
+                rows.append(f"| {off} | {f.name} | {t} | {f.unit} | {f.doc}{extra} |")
+            off += field_size(sp, f)
+        rows.append(f"| {off} | | | | (size {off}) |")
+        return rows
+
+    L.append("## Messages\n")
+    L.append("| id | name | direction | payload bytes |")
+    L.append("|---|---|---|---|")
+    for m in sp.messages:
+        size = str(sp.size(m))
+        if "records" in m:
+            r = m["records"]
+            size += f" + count × {sp.size(sp.records[r['type']])} (count ≤ {r['max']})"
+        L.append(f"| 0x{m['id']:02X} | `{m['name']}` | {'host → device' if m['dir'] == 'h2d' else 'device → host'} | {size} |")
+    L.append("")
+    for m in sp.messages:
+        L.append(f"### 0x{m['id']:02X} `{m['name']}`\n")
+        if m.get("doc"):
+            L.append(" ".join(m["doc"].split()) + "\n")
+        if sp.fields(m):
+            L += table(m)
+        else:
+            L.append("No payload.")
+        if "records" in m:
+            L.append(f"\nFollowed by `{m['records']['count_field']}` records of `{m['records']['type']}`.")
+        L.append("")
+    L.append("## Structs and records\n")
+    for name, s in list(sp.structs.items()) + list(sp.records.items()):
+        L.append(f"### `{name}`\n")
+        if s.get("doc"):
+            L.append(" ".join(s["doc"].split()) + "\n")
+        L += table(s)
+        L.append("")
+    L.append("## Enumerations and bit sets\n")
+    for e in sp.enums:
+        L.append(f"### `{e['name']}`\n")
+        if e.get("doc"):
+            L.append(e["doc"] + "\n")
+        L.append("| value | name | meaning |\n|---|---|---|")
+        for v in e["values"]:
+            L.append(f"| {v['value']} | {v['name']} | {v.get('doc', '')} |")
+        L.append("")
+    for b in sp.bitsets:
+        L.append(f"### bits `{b['name']}`\n")
+        L.append("| bit | name | meaning |\n|---|---|---|")
+        for v in b["values"]:
+            L.append(f"| {v['bit']} | {v['name']} | {v.get('doc', '')} |")
+        L.append("")
+    L.append("## Parameter limits (`[limits]`)\n")
+    L.append("| limit | value |\n|---|---|")
+    for k, v in sp.limits.items():
+        L.append(f"| {k} | {v} |")
+    L.append("")
+    return "\n".join(L)
+
+
 def render() -> dict[Path, str]:
     sp = Spec(tomllib.loads(SPEC.read_text()))
-    return {OUT_H: gen_c_header(sp), OUT_C: gen_c_source(sp), OUT_PY: gen_python(sp), OUT_DESC: gen_c_desc(sp)}
+    return {OUT_H: gen_c_header(sp), OUT_C: gen_c_source(sp), OUT_PY: gen_python(sp), OUT_DESC: gen_c_desc(sp),
+            OUT_MD: gen_markdown(sp)}
 
 
 def main() -> int:
