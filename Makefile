@@ -22,7 +22,7 @@ FW_PORTABLE_OBJ := $(patsubst %.c,$(HOST)/obj/%.o,$(FW_PORTABLE_SRC))
 C_TEST_SRC := $(wildcard tests/c/test_*.c)
 C_TEST_BIN := $(patsubst tests/c/%.c,$(HOST)/tests/%,$(C_TEST_SRC)) $(HOST)/tests/vector_harness
 
-.PHONY: all test demo venv system-deps c-tests clean protocol check-protocol bench
+.PHONY: all test demo venv system-deps c-tests clean bench
 
 all: c-tests
 
@@ -60,3 +60,8 @@ demo: system-deps venv
 
 clean:
 	rm -rf $(BUILD)
+
+# Benchmarks print figures; they are not part of `make test`.
+bench: venv
+	@$(PY) -m pip install -q --disable-pip-version-check -e '.[bench]'
+	$(PY) bench/decode_throughput.py
