@@ -22,7 +22,7 @@ FW_PORTABLE_OBJ := $(patsubst %.c,$(HOST)/obj/%.o,$(FW_PORTABLE_SRC))
 C_TEST_SRC := $(wildcard tests/c/test_*.c)
 C_TEST_BIN := $(patsubst tests/c/%.c,$(HOST)/tests/%,$(C_TEST_SRC)) $(HOST)/tests/vector_harness
 
-.PHONY: all test demo venv system-deps c-tests clean bench
+.PHONY: all test demo venv system-deps c-tests clean bench sim
 
 all: c-tests
 
@@ -51,6 +51,15 @@ $(HOST)/tests/%: tests/c/%.c $(HOST)/libfw.a $(wildcard tests/c/*.h)
 	$(CC_HOST) $(CFLAGS_HOST) -Itests/c $< $(HOST)/libfw.a -lm -o $@
 
 c-tests: system-deps $(C_TEST_BIN)
+
+# The virtual device: the firmware core and drivers built for Linux, with the sensor models
+# behind the simulator board's SPI (firmware/boards/sim).
+SIM_SRC := $(wildcard firmware/boards/sim/*.c)
+SIM_BIN := $(HOST)/imubench-sim
+$(SIM_BIN): $(SIM_SRC) $(HOST)/libfw.a $(wildcard firmware/boards/sim/*.h)
+	$(CC_HOST) $(CFLAGS_HOST) -Ifirmware/boards/sim $(SIM_SRC) $(HOST)/libfw.a -lm -o $@
+
+sim: system-deps $(SIM_BIN)
 
 test: system-deps venv c-tests
 	$(PY) -m pytest

@@ -43,6 +43,7 @@ from .units import G0_MPS2
 ACCEL_NOISE_G_RTHZ = 22.5e-6
 GYRO_NOISE_DPS_RTHZ = 0.015
 FW_VERSION = (0, 1, 0)
+SUPPORTED_RATES_HZ = (4000, 2000, 1000, 800, 500, 400, 250, 200, 160, 125, 100, 80, 50, 40, 25, 20)  # SPEC.md
 
 
 class FakeDevice:
@@ -231,7 +232,7 @@ class FakeDevice:
         if t == T.GET_INFO:
             return [self._info(rid)], Error.OK, 0
         if t == T.START_STREAM:
-            if m.rate_hz == 0 or 4000 % m.rate_hz or m.rate_hz < 16 or m.mode not in (0, 1) \
+            if m.rate_hz not in SUPPORTED_RATES_HZ or m.mode not in (0, 1) \
                     or m.accel_range_g not in (0, 2, 4, 8):
                 return [], Error.BAD_ARGUMENT, 0
             maxb = 16 if m.mode == 0 else 8
@@ -266,6 +267,8 @@ class FakeDevice:
             else:
                 return [], Error.BAD_ARGUMENT, 0
             return [rb], Error.OK, 0
+        if t in (T.SAVE_PARAMS, T.CLEAR_PARAMS, T.SELF_TEST) and self.streaming is not None:
+            return [], Error.STREAMING, 0
         if t == T.SAVE_PARAMS:
             if self.flash_fails:
                 return [], Error.FLASH_ERROR, 0

@@ -110,7 +110,7 @@ class Link:
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._pending: dict[int, _Pending] = {}
-        self._next_id = 1
+        self._next_id = int.from_bytes(os.urandom(2), "little") % 0xFFFF + 1   # SPEC.md: random start
         self.fault_events: deque[tuple[float, FaultEvent]] = deque(maxlen=1000)
         self.boot_infos: deque[Info] = deque(maxlen=10)
         self.last_stats: Stats | None = None

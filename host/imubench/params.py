@@ -42,12 +42,15 @@ def gyro(p: Params) -> Triad:
 
 
 def correct(t: Triad, u: np.ndarray, temp_c=None) -> np.ndarray:
-    """Apply the correction to measurements u (n, 3) in SI; temp_c (n,) or None (= t_ref)."""
+    """Apply the correction to measurements u (n, 3) in SI. temp_c: None (= t_ref), (n,) one
+    temperature for all axes, or (n, 3) per axis (docs/conventions.md)."""
     u = np.asarray(u, dtype=np.float64)
     if temp_c is None:
         v = u - t.b
     else:
-        dt = (np.asarray(temp_c, dtype=np.float64) - t.t_ref_c)[..., None]
+        dt = np.asarray(temp_c, dtype=np.float64) - t.t_ref_c
+        if dt.ndim == u.ndim - 1:
+            dt = dt[..., None]
         v = (u - t.b - t.bias_tc * dt) / (1.0 + t.scale_tc * dt)
     return v @ np.linalg.inv(t.m).T
 

@@ -1,0 +1,880 @@
+/* core.c - see core.h. Portable: no register access, hardware only through ib_board_t. */
+#include "core.h"
+
+#include <math.h>
+#include <string.h>
+
+#include "crc32c.h"
+#include "param_store.h"
+#include "wire.h"
+
+#define FW_VERSION_MAJOR 0u
+#define FW_VERSION_MINOR 2u
+#define FW_VERSION_PATCH 0u
+
+#define G0_MPS2 9.80665f
+#define RAD_PER_GYRO_COUNT (3.14159265358979f / 180.0f / 80.0f)
+#define ACCEL_FIFO_MAX_SETS 32u
+/* TX room always kept free for replies when a sample batch is queued. */
+#define REPLY_RESERVE (2u * (IB_MAX_ENCODED + 1u))
+#define STATS_PERIOD_MS 1000u
+
+/* ------------------------------------------------------------------ helpers */
+
+static uint32_t now_us(const ib_core_t *c) { return c->board->time_us(c->board->ctx); }
+
+static void update_uptime(ib_core_t *c)
+{
+    uint32_t t = now_us(c);
+    uint32_t dt = t - c->last_time_us; /* modulo 2^32: fine while polled every < 71 min */
+    c->uptime_us_rem += dt;
+    c->uptime_ms += c->uptime_us_rem / 1000u;
+    c->uptime_us_rem %= 1000u;
+    c->last_time_us = t;
+}
+
+/* Queue an encoded frame; the caller checked the space. */
+static void link_put(ib_core_t *c, const uint8_t *frame, size_t len)
+{
+    size_t n = c->board->link_write(c->board->ctx, frame, len);
+    if (n == len) {
+        c->stats.frames_sent++;
+    } else {
+        c->stats.frames_dropped++;
+    }
+}
+
+/* Encode a device message whose payload is at c->msg_raw + IB_HEADER_SIZE. */
+static size_t encode_msg(ib_core_t *c, uint8_t type, size_t payload_len, uint8_t *out)
+{
+    size_t n = ib_frame_encode(c->msg_raw, type, c->tx_seq, now_us(c), payload_len, out);
+    c->tx_seq++;
+    return n;
+}
+
+/* Unsolicited message (stats, fault event, boot info): sent now if it fits, else dropped
+ * and counted; it is never allowed to eat the reply reserve. */
+static void send_unsolicited(ib_core_t *c, uint8_t type, size_t payload_len)
+{
+    uint8_t out[IB_MAX_ENCODED + 1];
+    size_t n = encode_msg(c, type, payload_len, out);
+    if (c->board->link_tx_free(c->board->ctx) >= n + REPLY_RESERVE / 2u) {
+        link_put(c, out, n);
+    } else {
+        c->stats.frames_dropped++;
+    }
+}
+
+/* ------------------------------------------------------------- parameters */
+
+static int finite_f(float x) { return isfinite(x) != 0; }
+
+static int invert3(const float m[9], float inv[3][3])
+{
+    double a = m[0], b = m[1], cc = m[2], d = m[3], e = m[4], f = m[5], g = m[6], h = m[7], i = m[8];
+    double A = e * i - f * h, B = -(d * i - f * g), C = d * h - e * g;
+    double det = a * A + b * B + cc * C;
+    if (!(fabs(det) > 1e-12)) {
+        return -1;
+    }
+    double r = 1.0 / det;
+    inv[0][0] = (float)(A * r);
+    inv[0][1] = (float)(-(b * i - cc * h) * r);
+    inv[0][2] = (float)((b * f - cc * e) * r);
+    inv[1][0] = (float)(B * r);
+    inv[1][1] = (float)((a * i - cc * g) * r);
+    inv[1][2] = (float)(-(a * f - cc * d) * r);
+    inv[2][0] = (float)(C * r);
+    inv[2][1] = (float)(-(a * h - b * g) * r);
+    inv[2][2] = (float)((a * e - b * d) * r);
+    return 0;
+}
+
+static uint8_t check_triad(const float m[9], const float b[3], const float btc[3], const float stc[3],
+                           float t_ref, float bias_max, float btc_max, ib_triad_corr_t *out)
+{
+    ib_triad_corr_t t;
+    if (invert3(m, t.m_inv) != 0) {
+        return IB_ERROR_PARAM_ILL_CONDITIONED;
+    }
+    double fm = 0.0, fi = 0.0;
+    for (int k = 0; k < 9; k++) {
+        fm += (double)m[k] * m[k];
+        fi += (double)t.m_inv[k / 3][k % 3] * t.m_inv[k / 3][k % 3];
+    }
+    if (sqrt(fm) * sqrt(fi) > (double)IB_LIMIT_M_COND_MAX) {
+        return IB_ERROR_PARAM_ILL_CONDITIONED;
+    }
+    for (int r = 0; r < 3; r++) {
+        for (int k = 0; k < 3; k++) {
+            float v = m[r * 3 + k];
+            if (r == k ? (v < IB_LIMIT_M_DIAG_MIN || v > IB_LIMIT_M_DIAG_MAX) : fabsf(v) > IB_LIMIT_M_OFFDIAG_MAX) {
+                return IB_ERROR_PARAM_OUT_OF_RANGE;
+            }
+        }
+    }
+    for (int k = 0; k < 3; k++) {
+        if (fabsf(b[k]) > bias_max || fabsf(btc[k]) > btc_max || fabsf(stc[k]) > IB_LIMIT_SCALE_TC_MAX_PER_C) {
+            return IB_ERROR_PARAM_OUT_OF_RANGE;
+        }
+    }
+    if (t_ref < IB_LIMIT_T_REF_MIN_C || t_ref > IB_LIMIT_T_REF_MAX_C) {
+        return IB_ERROR_PARAM_OUT_OF_RANGE;
+    }
+    if (out) {
+        for (int k = 0; k < 3; k++) {
+            t.b[k] = b[k];
+            t.bias_tc[k] = btc[k];
+            t.scale_tc[k] = stc[k];
+        }
+        t.t_ref_c = t_ref;
+        *out = t;
+    }
+    return IB_ERROR_OK;
+}
+
+uint8_t ib_core_check_params(const ib_params_t *p, ib_triad_corr_t *accel, ib_triad_corr_t *gyro)
+{
+    /* every float finite: walk the struct's float members */
+    const float *groups[] = {p->accel_m, p->accel_b_mps2, p->gyro_m, p->gyro_b_rad_s,
+                             p->accel_bias_tc_mps2_per_c, p->accel_scale_tc_per_c,
+                             p->gyro_bias_tc_rad_s_per_c, p->gyro_scale_tc_per_c};
+    const unsigned sizes[] = {9, 3, 9, 3, 3, 3, 3, 3};
+    for (unsigned g = 0; g < 8; g++) {
+        for (unsigned k = 0; k < sizes[g]; k++) {
+            if (!finite_f(groups[g][k])) {
+                return IB_ERROR_PARAM_NOT_FINITE;
+            }
+        }
+    }
+    if (!finite_f(p->accel_t_ref_c) || !finite_f(p->gyro_t_ref_c)) {
+        return IB_ERROR_PARAM_NOT_FINITE;
+    }
+    uint8_t e = check_triad(p->accel_m, p->accel_b_mps2, p->accel_bias_tc_mps2_per_c, p->accel_scale_tc_per_c,
+                            p->accel_t_ref_c, IB_LIMIT_ACCEL_BIAS_MAX_MPS2, IB_LIMIT_ACCEL_BIAS_TC_MAX_MPS2_PER_C,
+                            accel);
+    if (e != IB_ERROR_OK) {
+        return e;
+    }
+    return check_triad(p->gyro_m, p->gyro_b_rad_s, p->gyro_bias_tc_rad_s_per_c, p->gyro_scale_tc_per_c,
+                       p->gyro_t_ref_c, IB_LIMIT_GYRO_BIAS_MAX_RAD_S, IB_LIMIT_GYRO_BIAS_TC_MAX_RAD_S_PER_C, gyro);
+}
+
+void ib_core_correct(const ib_triad_corr_t *t, const float u[3], const float temp_c[3], float out[3])
+{
+    float v[3];
+    for (int k = 0; k < 3; k++) {
+        float dt = temp_c[k] - t->t_ref_c;
+        v[k] = (u[k] - t->b[k] - t->bias_tc[k] * dt) / (1.0f + t->scale_tc[k] * dt);
+    }
+    for (int r = 0; r < 3; r++) {
+        out[r] = t->m_inv[r][0] * v[0] + t->m_inv[r][1] * v[1] + t->m_inv[r][2] * v[2];
+    }
+}
+
+static void identity_params(ib_params_t *p)
+{
+    memset(p, 0, sizeof *p);
+    for (int k = 0; k < 3; k++) {
+        p->accel_m[k * 4] = 1.0f;
+        p->gyro_m[k * 4] = 1.0f;
+    }
+    p->accel_t_ref_c = 25.0f;
+    p->gyro_t_ref_c = 25.0f;
+}
+
+static void set_factory(ib_core_t *c)
+{
+    identity_params(&c->params);
+    (void)ib_core_check_params(&c->params, &c->corr_accel, &c->corr_gyro);
+    c->param_source = IB_PARAM_SOURCE_FACTORY;
+}
+
+static void load_params(ib_core_t *c)
+{
+    set_factory(c);
+    c->param_generation = 0;
+    if (!c->board->flash) {
+        return;
+    }
+    uint8_t blob[IB_PARAMS_SIZE];
+    ib_ps_info_t info;
+    ib_ps_status_t st = ib_ps_load(c->board->flash, IB_PARAM_BLOCK_VERSION, blob, sizeof blob, &info);
+    c->param_generation = info.generation;
+    if (st != IB_PS_OK || info.payload_len != IB_PARAMS_SIZE) {
+        return; /* none, cleared, other version: factory defaults, flagged in info */
+    }
+    ib_params_t p;
+    ib_params_unpack(blob, &p);
+    ib_triad_corr_t a, g;
+    if (ib_core_check_params(&p, &a, &g) != IB_ERROR_OK) {
+        return; /* a stored block that fails today's checks is not applied */
+    }
+    c->params = p;
+    c->corr_accel = a;
+    c->corr_gyro = g;
+    c->param_source = IB_PARAM_SOURCE_FLASH;
+}
+
+/* ----------------------------------------------------------------- sensors */
+
+static uint8_t range_code(uint8_t g) { return g == 8 ? IB_ADXL355_RANGE_8G : g == 4 ? IB_ADXL355_RANGE_4G : IB_ADXL355_RANGE_2G; }
+
+static void sensors_init(ib_core_t *c)
+{
+    const ib_spi_bus_t *bus = c->board->spi;
+    c->present = 0;
+    ib_adxl355_config_t cfg = {range_code(c->accel_range_g), 2u, 0u};
+    if (ib_adxl355_init(&c->accel, bus, IB_CS_ACCEL, &cfg) == IB_ADXL355_OK) {
+        c->present |= 1u << IB_SENSOR_ACCEL;
+    }
+    for (int k = 0; k < 3; k++) {
+        if (ib_adxrs450_init(&c->gyro[k], bus, (uint8_t)(IB_CS_GYRO_X + k)) == IB_ADXRS450_OK) {
+            c->present |= (uint8_t)(1u << (IB_SENSOR_GYRO_X + k));
+        }
+    }
+}
+
+/* The ODR code for a stream rate: the lowest ODR (4000 Hz / 2^k) of which the stream period
+ * is a whole multiple of at most ACCEL_FIFO_MAX_SETS samples (averaged per tick). -1: none. */
+static int odr_for_rate(uint32_t rate_hz, uint32_t *avg)
+{
+    if (rate_hz == 0u || 1000000u % rate_hz != 0u) {
+        return -1;
+    }
+    uint32_t period = 1000000u / rate_hz;
+    for (int k = IB_ADXL355_ODR_CODE_MAX; k >= 0; k--) {
+        uint32_t odr_period = ib_adxl355_odr_period_us((uint8_t)k);
+        if (odr_period <= period && period % odr_period == 0u && period / odr_period <= ACCEL_FIFO_MAX_SETS) {
+            *avg = period / odr_period;
+            return k;
+        }
+    }
+    return -1;
+}
+
+/* ------------------------------------------------------------------ stream */
+
+static void emit_fault(ib_core_t *c, uint8_t sensor, uint8_t kind, uint8_t active, uint32_t detail)
+{
+    ib_msg_fault_event_t e = {sensor, kind, active, 0, detail};
+    size_t n = ib_msg_fault_event_pack(&e, c->msg_raw + IB_HEADER_SIZE);
+    send_unsolicited(c, IB_MSG_FAULT_EVENT, n);
+}
+
+/* Compare what this batch saw per sensor with what was last reported; report changes. */
+static void report_faults(ib_core_t *c)
+{
+    uint8_t kind[4] = {0, 0, 0, 0};
+    uint32_t detail[4] = {0, 0, 0, 0};
+    if (!(c->present & 1u)) {
+        kind[0] = IB_FAULT_KIND_MISSING;
+    } else if (c->batch_spi_error & 1u) {
+        kind[0] = IB_FAULT_KIND_SPI_ERROR;
+    } else if (c->batch_hdr.accel_status & 0x04u) {
+        kind[0] = IB_FAULT_KIND_ACCEL_FIFO_OVERRUN;
+    } else if (c->batch_hdr.sensor_flags & IB_BATCH_FLAGS_ACCEL_STALE) {
+        kind[0] = IB_FAULT_KIND_ACCEL_STALE;
+    }
+    for (int k = 0; k < 3; k++) {
+        uint8_t s = (uint8_t)(1 + k);
+        if (!(c->present & (1u << s))) {
+            kind[s] = IB_FAULT_KIND_MISSING;
+        } else if (c->batch_spi_error & (1u << s)) {
+            kind[s] = IB_FAULT_KIND_SPI_ERROR;
+        } else if (c->batch_hdr.gyro_faults[k] & 1u) {
+            kind[s] = IB_FAULT_KIND_PARITY;
+        } else if (c->batch_hdr.gyro_faults[k] & 0xFEu) {
+            kind[s] = IB_FAULT_KIND_GYRO_FAULT_BITS;
+            detail[s] = c->batch_hdr.gyro_faults[k];
+        } else if (c->batch_gyro_st_bad[k]) {
+            kind[s] = IB_FAULT_KIND_GYRO_STATUS;
+            detail[s] = c->batch_gyro_st_bad[k];
+        }
+    }
+    for (uint8_t s = 0; s < 4; s++) {
+        if (kind[s] != c->fault_state[s]) {
+            if (c->fault_state[s]) {
+                emit_fault(c, s, c->fault_state[s], 0, 0);
+            }
+            if (kind[s]) {
+                emit_fault(c, s, kind[s], 1, detail[s]);
+            }
+            c->fault_state[s] = kind[s];
+        }
+    }
+}
+
+static void batch_begin(ib_core_t *c, uint32_t t_us)
+{
+    memset(&c->batch_hdr, 0, sizeof c->batch_hdr);
+    c->batch_hdr.sample_index = c->sample_index;
+    c->batch_hdr.period_us = (uint16_t)(1000000u / c->rate_hz);
+    c->batch_hdr.accel_range_g = c->accel_range_g;
+    c->batch_hdr.sensor_flags = (uint8_t)(~c->present & 0x0Fu);
+    if (c->drop_pending) {
+        c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SAMPLES_DROPPED;
+    }
+    c->batch_t0_us = t_us;
+    c->batch_n = 0;
+    c->batch_spi_error = 0;
+    memset(c->batch_gyro_st_bad, 0, sizeof c->batch_gyro_st_bad);
+    /* temperatures once per batch */
+    if (c->present & 1u) {
+        uint8_t t[2];
+        if (ib_adxl355_read_regs(&c->accel, 0x06, t, 2) == IB_ADXL355_OK) {
+            c->accel_temp_counts = (uint16_t)(((t[0] & 0x0Fu) << 8) | t[1]);
+        } else {
+            c->batch_spi_error |= 1u;
+        }
+    }
+    for (int k = 0; k < 3; k++) {
+        if (c->present & (1u << (1 + k))) {
+            int16_t raw10;
+            if (ib_adxrs450_read_temp(&c->gyro[k], &raw10) == IB_ADXRS450_OK) {
+                c->gyro_temp_raw10[k] = raw10;
+            }
+        }
+    }
+    c->batch_hdr.accel_temp_counts = c->accel_temp_counts;
+    for (int k = 0; k < 3; k++) {
+        c->batch_hdr.gyro_temp_counts[k] = c->gyro_temp_raw10[k];
+    }
+}
+
+static void batch_send(ib_core_t *c)
+{
+    if (c->batch_n == 0) {
+        return;
+    }
+    int cal = c->stream_state == IB_STREAM_STATE_CALIBRATED;
+    size_t rsize = cal ? IB_CAL_SAMPLE_SIZE : IB_RAW_SAMPLE_SIZE;
+    c->batch_hdr.count = c->batch_n;
+    ib_batch_header_pack(&c->batch_hdr, c->batch_buf + IB_HEADER_SIZE);
+    size_t payload = IB_BATCH_HEADER_SIZE + (size_t)c->batch_n * rsize;
+    report_faults(c);
+    /* the frame is encoded only when it can be sent whole, replies first */
+    size_t worst = IB_HEADER_SIZE + payload + IB_CRC_SIZE + 3u;
+    if (c->reply_pending == 0 && c->board->link_tx_free(c->board->ctx) >= worst + REPLY_RESERVE) {
+        size_t n = ib_frame_encode(c->batch_buf, cal ? IB_MSG_CAL_BATCH : IB_MSG_RAW_BATCH, c->tx_seq,
+                                   c->batch_t0_us, payload, c->tx_frame);
+        c->tx_seq++;
+        link_put(c, c->tx_frame, n);
+        c->drop_pending = 0;
+    } else {
+        c->stats.frames_dropped++;
+        c->stats.samples_dropped += c->batch_n;
+        c->drop_pending = 1;
+    }
+    c->batch_n = 0;
+}
+
+/* Read one sample of every sensor and append it to the batch. */
+static void sample(ib_core_t *c, uint32_t t_us)
+{
+    if (c->batch_n == 0) {
+        batch_begin(c, t_us);
+    }
+    uint8_t status = 0;
+    int32_t acc[3] = {c->accel_last[0], c->accel_last[1], c->accel_last[2]};
+    if (c->present & 1u) {
+        int32_t sets[ACCEL_FIFO_MAX_SETS + 2][3];
+        size_t n = 0;
+        if (ib_adxl355_read_fifo(&c->accel, sets, ACCEL_FIFO_MAX_SETS + 2u, &n) != IB_ADXL355_OK) {
+            c->batch_spi_error |= 1u;
+            c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SPI_ERROR;
+            c->stats.spi_errors++;
+            status |= IB_SAMPLE_STATUS_ACCEL_BAD;
+        } else if (n == 0) {
+            c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_ACCEL_STALE;
+            status |= IB_SAMPLE_STATUS_ACCEL_BAD;
+        } else {
+            for (int k = 0; k < 3; k++) {
+                int64_t sum = 0;
+                for (size_t i = 0; i < n; i++) {
+                    sum += sets[i][k];
+                }
+                /* rounded mean, symmetric about zero */
+                int64_t h = (int64_t)n / 2;
+                acc[k] = (int32_t)(sum >= 0 ? (sum + h) / (int64_t)n : -((-sum + h) / (int64_t)n));
+                c->accel_last[k] = acc[k];
+            }
+        }
+        c->batch_hdr.accel_status |= c->accel.last_status;
+    } else {
+        status |= IB_SAMPLE_STATUS_ACCEL_BAD;
+    }
+    int16_t rate[3] = {0, 0, 0};
+    for (int k = 0; k < 3; k++) {
+        uint8_t bad = (uint8_t)(IB_SAMPLE_STATUS_GYRO_X_BAD << k);
+        if (!(c->present & (1u << (1 + k)))) {
+            status |= bad;
+            continue;
+        }
+        ib_adxrs450_sample_t s;
+        ib_adxrs450_err_t e = ib_adxrs450_read_rate(&c->gyro[k], &s);
+        if (e == IB_ADXRS450_ERR_BUS) {
+            c->batch_spi_error |= (uint8_t)(1u << (1 + k));
+            c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SPI_ERROR;
+            c->stats.spi_errors++;
+            status |= bad;
+            continue;
+        }
+        rate[k] = s.rate_counts;
+        c->batch_hdr.gyro_faults[k] |= (uint8_t)(s.faults | (s.parity_error ? 1u : 0u));
+        if (s.st != 1u) {
+            c->batch_gyro_st_bad[k] = (uint8_t)(s.st | 0x80u);
+        }
+        if (!s.good) {
+            status |= bad;
+        }
+    }
+    if (status) {
+        c->stats.sensor_faults++;
+    }
+    uint8_t *rec;
+    if (c->stream_state == IB_STREAM_STATE_CALIBRATED) {
+        ib_cal_sample_t cs;
+        float u[3], w[3], ta[3], tg[3];
+        float lsb = (float)ib_adxl355_lsb_per_g(range_code(c->accel_range_g));
+        float t_acc = 25.0f + ((float)c->accel_temp_counts - 1885.0f) / -9.05f;
+        for (int k = 0; k < 3; k++) {
+            u[k] = (float)acc[k] * (G0_MPS2 / lsb);
+            w[k] = (float)rate[k] * RAD_PER_GYRO_COUNT;
+            ta[k] = t_acc;
+            tg[k] = 45.0f + (float)c->gyro_temp_raw10[k] / 5.0f;
+        }
+        ib_core_correct(&c->corr_accel, u, ta, cs.accel_mps2);
+        ib_core_correct(&c->corr_gyro, w, tg, cs.rate_rad_s);
+        cs.status = status;
+        rec = c->batch_buf + IB_HEADER_SIZE + IB_BATCH_HEADER_SIZE + (size_t)c->batch_n * IB_CAL_SAMPLE_SIZE;
+        ib_cal_sample_pack(&cs, rec);
+    } else {
+        ib_raw_sample_t rs = {acc[0], acc[1], acc[2], status, {rate[0], rate[1], rate[2]}};
+        rec = c->batch_buf + IB_HEADER_SIZE + IB_BATCH_HEADER_SIZE + (size_t)c->batch_n * IB_RAW_SAMPLE_SIZE;
+        ib_raw_sample_pack(&rs, rec);
+    }
+    c->batch_n++;
+    c->sample_index++;
+    c->stats.samples_produced++;
+    if (c->batch_n >= c->batch_max) {
+        batch_send(c);
+    }
+}
+
+void ib_core_tick(ib_core_t *c, uint32_t missed)
+{
+    if (c->stream_state == IB_STREAM_STATE_STOPPED) {
+        return;
+    }
+    if (missed) {
+        /* samples inside a batch are consecutive: close the batch, then skip */
+        batch_send(c);
+        c->sample_index += missed;
+        c->stats.samples_dropped += missed;
+        c->drop_pending = 1;
+    }
+    sample(c, now_us(c));
+}
+
+static void stream_stop(ib_core_t *c)
+{
+    batch_send(c);
+    c->stream_state = IB_STREAM_STATE_STOPPED;
+    c->board->set_tick_hz(c->board->ctx, 0);
+}
+
+/* ---------------------------------------------------------------- commands */
+
+static void info_fill(ib_core_t *c, ib_msg_info_t *m, uint16_t rid)
+{
+    memset(m, 0, sizeof *m);
+    const ib_board_t *b = c->board;
+    m->request_id = rid;
+    m->protocol_version = IB_PROTOCOL_VERSION;
+    m->board = b->board_id;
+    m->fw_version[0] = FW_VERSION_MAJOR;
+    m->fw_version[1] = FW_VERSION_MINOR;
+    m->fw_version[2] = FW_VERSION_PATCH;
+    m->clock_source = b->clock_source;
+    if (b->build) {
+        strncpy(m->fw_build, b->build, sizeof m->fw_build - 1u);
+    }
+    memcpy(m->mcu_uid, b->uid, sizeof m->mcu_uid);
+    m->sensors_present = c->present;
+    m->accel_range_g = c->accel_range_g;
+    m->accel_ids[0] = c->accel.devid_ad;
+    m->accel_ids[1] = c->accel.devid_mst;
+    m->accel_ids[2] = c->accel.partid;
+    m->accel_ids[3] = c->accel.revid;
+    for (int k = 0; k < 3; k++) {
+        m->gyro_pid[k] = c->gyro[k].pid;
+        m->gyro_sn[k] = c->gyro[k].serial;
+    }
+    m->stream_state = c->stream_state;
+    m->param_source = c->param_source;
+    m->stream_rate_hz = c->stream_state ? c->rate_hz : 0;
+    m->max_rate_hz = 4000;
+    m->param_block_version = IB_PARAM_BLOCK_VERSION;
+    m->param_generation = c->param_generation;
+    m->baud = b->baud;
+    m->uptime_ms = c->uptime_ms;
+}
+
+/* Build the reply (optional data message + ack) into c->last_reply and mark it pending. */
+static void reply(ib_core_t *c, uint16_t rid, uint8_t command, uint8_t error, uint32_t value,
+                  uint8_t data_type, size_t data_len)
+{
+    c->last_reply_n = 0;
+    if (data_type) {
+        c->last_reply_len[c->last_reply_n] = (uint16_t)encode_msg(c, data_type, data_len, c->last_reply[c->last_reply_n]);
+        c->last_reply_n++;
+    }
+    ib_msg_ack_t a = {rid, command, error, value};
+    size_t n = ib_msg_ack_pack(&a, c->msg_raw + IB_HEADER_SIZE);
+    c->last_reply_len[c->last_reply_n] = (uint16_t)encode_msg(c, IB_MSG_ACK, n, c->last_reply[c->last_reply_n]);
+    c->last_reply_n++;
+    c->reply_pending = c->last_reply_n;
+    if (error != IB_ERROR_OK) {
+        c->stats.bad_commands++;
+    }
+}
+
+/* Send pending reply frames as the link takes them; true when none is left. */
+static int flush_reply(ib_core_t *c)
+{
+    while (c->reply_pending) {
+        uint8_t i = (uint8_t)(c->last_reply_n - c->reply_pending);
+        size_t n = c->last_reply_len[i];
+        if (c->board->link_tx_free(c->board->ctx) < n) {
+            return 0;
+        }
+        link_put(c, c->last_reply[i], n);
+        c->reply_pending--;
+    }
+    return 1;
+}
+
+static uint8_t do_start_stream(ib_core_t *c, const ib_msg_start_stream_t *m, uint32_t *value)
+{
+    uint32_t avg = 0;
+    int odr = odr_for_rate(m->rate_hz, &avg);
+    uint8_t maxb = m->mode == IB_STREAM_MODE_CALIBRATED ? IB_MSG_CAL_BATCH_MAX_RECORDS : IB_MSG_RAW_BATCH_MAX_RECORDS;
+    if (odr < 0 || m->rate_hz > 4000u || m->mode > IB_STREAM_MODE_CALIBRATED || m->batch > maxb ||
+        !(m->accel_range_g == 0 || m->accel_range_g == 2 || m->accel_range_g == 4 || m->accel_range_g == 8)) {
+        return IB_ERROR_BAD_ARGUMENT;
+    }
+    if (c->stream_state != IB_STREAM_STATE_STOPPED) {
+        stream_stop(c);
+    }
+    if (m->accel_range_g) {
+        c->accel_range_g = m->accel_range_g;
+    }
+    if (c->present & 1u) {
+        ib_adxl355_config_t cfg = {range_code(c->accel_range_g), (uint8_t)odr, 0u};
+        if (ib_adxl355_configure(&c->accel, &cfg) != IB_ADXL355_OK) {
+            c->stats.spi_errors++;
+        }
+        int32_t sink[ACCEL_FIFO_MAX_SETS][3];
+        size_t n;
+        (void)ib_adxl355_read_fifo(&c->accel, sink, ACCEL_FIFO_MAX_SETS, &n); /* start empty */
+    }
+    c->rate_hz = m->rate_hz;
+    uint32_t auto_b = m->rate_hz / 250u;
+    c->batch_max = m->batch ? m->batch : (uint8_t)(auto_b < 1u ? 1u : auto_b > maxb ? maxb : auto_b);
+    c->sample_index = 0;
+    c->batch_n = 0;
+    c->drop_pending = 0;
+    memset(c->fault_state, 0, sizeof c->fault_state);
+    c->stream_state = m->mode == IB_STREAM_MODE_CALIBRATED ? IB_STREAM_STATE_CALIBRATED : IB_STREAM_STATE_RAW;
+    c->board->set_tick_hz(c->board->ctx, m->rate_hz);
+    *value = c->batch_max;
+    return IB_ERROR_OK;
+}
+
+static uint8_t do_self_test(ib_core_t *c, ib_msg_self_test_result_t *r)
+{
+    memset(r, 0, sizeof *r);
+    if (c->present & 1u) {
+        r->tested |= 1u;
+        ib_adxl355_selftest_t st;
+        int e = ib_adxl355_self_test(&c->accel, &st);
+        for (int k = 0; k < 3; k++) {
+            r->accel_delta_counts[k] = st.delta_counts[k];
+        }
+        if (e == IB_ADXL355_OK) {
+            r->passed |= 1u;
+        }
+    }
+    for (int k = 0; k < 3; k++) {
+        if (!(c->present & (1u << (1 + k)))) {
+            continue;
+        }
+        r->tested |= (uint8_t)(1u << (1 + k));
+        /* the CHK sequence is part of the start-up: run it again */
+        ib_adxrs450_err_t e = ib_adxrs450_init(&c->gyro[k], c->board->spi, (uint8_t)(IB_CS_GYRO_X + k));
+        r->gyro_chk_faults[k] = (uint8_t)(c->gyro[k].faults_seen & 0xFEu);
+        if (e == IB_ADXRS450_OK) {
+            r->passed |= (uint8_t)(1u << (1 + k));
+        }
+    }
+    return r->passed == r->tested ? IB_ERROR_OK : IB_ERROR_SELF_TEST_FAILED;
+}
+
+static void execute(ib_core_t *c, const ib_frame_t *f)
+{
+    uint16_t rid = f->seq;
+    uint8_t t = f->type;
+    uint8_t err = IB_ERROR_OK;
+    uint32_t value = 0;
+    uint8_t data_type = 0;
+    size_t data_len = 0;
+    uint8_t *out = c->msg_raw + IB_HEADER_SIZE;
+    int streaming = c->stream_state != IB_STREAM_STATE_STOPPED;
+    switch (t) {
+    case IB_MSG_PING: {
+        ib_msg_ping_t m;
+        ib_msg_ping_unpack(f->payload, &m);
+        value = m.nonce;
+        break;
+    }
+    case IB_MSG_GET_INFO: {
+        ib_msg_info_t m;
+        update_uptime(c);
+        info_fill(c, &m, rid);
+        data_type = IB_MSG_INFO;
+        data_len = ib_msg_info_pack(&m, out);
+        break;
+    }
+    case IB_MSG_START_STREAM: {
+        ib_msg_start_stream_t m;
+        ib_msg_start_stream_unpack(f->payload, &m);
+        err = do_start_stream(c, &m, &value);
+        break;
+    }
+    case IB_MSG_STOP_STREAM:
+        if (streaming) {
+            stream_stop(c);
+        }
+        break;
+    case IB_MSG_SET_PARAMS: {
+        ib_msg_set_params_t m;
+        ib_msg_set_params_unpack(f->payload, &m);
+        ib_triad_corr_t a, g;
+        err = ib_core_check_params(&m.params, &a, &g);
+        if (err == IB_ERROR_OK) {
+            c->params = m.params;
+            c->corr_accel = a;
+            c->corr_gyro = g;
+            c->param_source = IB_PARAM_SOURCE_UNSAVED;
+        }
+        break;
+    }
+    case IB_MSG_GET_PARAMS: {
+        ib_msg_get_params_t m;
+        ib_msg_get_params_unpack(f->payload, &m);
+        ib_msg_params_readback_t r;
+        memset(&r, 0, sizeof r);
+        r.request_id = rid;
+        r.which = m.which;
+        r.generation = c->param_generation;
+        if (m.which == IB_PARAMS_WHICH_ACTIVE) {
+            r.source = c->param_source;
+            r.params = c->params;
+        } else if (m.which == IB_PARAMS_WHICH_STORED) {
+            uint8_t blob[IB_PARAMS_SIZE];
+            ib_ps_info_t info;
+            ib_ps_status_t st = c->board->flash ? ib_ps_load(c->board->flash, IB_PARAM_BLOCK_VERSION, blob,
+                                                            sizeof blob, &info)
+                                                : IB_PS_ERR_NO_VALID_SLOT;
+            if (st == IB_PS_OK && info.payload_len == IB_PARAMS_SIZE) {
+                ib_params_unpack(blob, &r.params);
+                r.source = IB_PARAM_SOURCE_FLASH;
+            } else {
+                identity_params(&r.params);
+                r.source = IB_PARAM_SOURCE_FACTORY;
+            }
+        } else {
+            err = IB_ERROR_BAD_ARGUMENT;
+            break;
+        }
+        data_type = IB_MSG_PARAMS_READBACK;
+        data_len = ib_msg_params_readback_pack(&r, out);
+        break;
+    }
+    case IB_MSG_SAVE_PARAMS: {
+        if (streaming) {
+            err = IB_ERROR_STREAMING;
+            break;
+        }
+        uint8_t blob[IB_PARAMS_SIZE];
+        ib_params_pack(&c->params, blob);
+        ib_ps_info_t info;
+        ib_ps_status_t st = c->board->flash ? ib_ps_save(c->board->flash, IB_PARAM_BLOCK_VERSION, blob,
+                                                        sizeof blob, &info)
+                                            : IB_PS_ERR_BAD_ARG;
+        if (st == IB_PS_OK) {
+            c->param_generation = info.generation;
+            c->param_source = IB_PARAM_SOURCE_FLASH;
+            value = info.generation;
+        } else {
+            err = IB_ERROR_FLASH_ERROR;
+            value = (uint32_t)(int32_t)st;
+        }
+        break;
+    }
+    case IB_MSG_CLEAR_PARAMS: {
+        if (streaming) {
+            err = IB_ERROR_STREAMING;
+            break;
+        }
+        ib_ps_info_t info;
+        ib_ps_status_t st = c->board->flash ? ib_ps_clear(c->board->flash, &info) : IB_PS_ERR_BAD_ARG;
+        if (st == IB_PS_OK || st == IB_PS_CLEARED) {
+            set_factory(c);
+            c->param_generation = info.generation;
+        } else {
+            err = IB_ERROR_FLASH_ERROR;
+            value = (uint32_t)(int32_t)st;
+        }
+        break;
+    }
+    case IB_MSG_REBOOT:
+        c->reboot_pending = 1;
+        break;
+    case IB_MSG_SELF_TEST: {
+        if (streaming) {
+            err = IB_ERROR_STREAMING;
+            break;
+        }
+        ib_msg_self_test_result_t r;
+        err = do_self_test(c, &r);
+        r.request_id = rid;
+        data_type = IB_MSG_SELF_TEST_RESULT;
+        data_len = ib_msg_self_test_result_pack(&r, out);
+        break;
+    }
+    case IB_MSG_GET_STATS: {
+        ib_msg_get_stats_t m;
+        ib_msg_get_stats_unpack(f->payload, &m);
+        update_uptime(c);
+        ib_msg_stats_t s = c->stats;
+        s.request_id = rid;
+        s.uptime_ms = c->uptime_ms;
+        data_type = IB_MSG_STATS;
+        data_len = ib_msg_stats_pack(&s, out);
+        if (m.reset) {
+            memset(&c->stats, 0, sizeof c->stats);
+        }
+        break;
+    }
+    default:
+        err = IB_ERROR_UNKNOWN_COMMAND;
+        break;
+    }
+    reply(c, rid, t, err, value, data_type, data_len);
+}
+
+static void on_frame(ib_core_t *c, int status, const ib_frame_t *f)
+{
+    switch (status) {
+    case IB_FRAME_OK:
+        break;
+    case IB_FRAME_BAD_VERSION:
+        reply(c, f->seq, f->type, IB_ERROR_BAD_VERSION, f->version, 0, 0);
+        return;
+    case IB_FRAME_UNKNOWN_TYPE:
+        reply(c, f->seq, f->type, IB_ERROR_UNKNOWN_COMMAND, 0, 0, 0);
+        return;
+    case IB_FRAME_BAD_LENGTH:
+        reply(c, f->seq, f->type, IB_ERROR_BAD_LENGTH, (uint32_t)f->payload_len, 0, 0);
+        return;
+    default:
+        c->stats.rx_frame_errors++; /* nothing in it can be trusted: no answer */
+        return;
+    }
+    if (!ib_msg_is_command(f->type)) {
+        reply(c, f->seq, f->type, IB_ERROR_UNKNOWN_COMMAND, 0, 0, 0);
+        return;
+    }
+    /* a retry is the same frame again (same request id and content): answer, do not run */
+    uint32_t crc = ib_crc32c(0, f->payload, f->payload_len) ^ ((uint32_t)f->type << 24);
+    if (c->last_rid_valid && f->seq == c->last_rid && crc == c->last_cmd_crc) {
+        c->reply_pending = c->last_reply_n;
+        return;
+    }
+    execute(c, f);
+    c->last_rid = f->seq;
+    c->last_cmd_crc = crc;
+    c->last_rid_valid = 1;
+}
+
+/* -------------------------------------------------------------------- boot */
+
+void ib_core_init(ib_core_t *c, const ib_board_t *b)
+{
+    memset(c, 0, sizeof *c);
+    c->board = b;
+    c->accel_range_g = 2;
+    c->last_time_us = now_us(c);
+    ib_frame_rx_init(&c->rx);
+    b->set_tick_hz(b->ctx, 0);
+    sensors_init(c);
+    load_params(c);
+    update_uptime(c);
+    /* a 0x00 ends any partial frame the host holds, then the boot info (request id 0) */
+    static const uint8_t zero = 0;
+    if (b->link_tx_free(b->ctx) >= 1u) {
+        (void)b->link_write(b->ctx, &zero, 1);
+    }
+    ib_msg_info_t m;
+    info_fill(c, &m, 0);
+    size_t n = ib_msg_info_pack(&m, c->msg_raw + IB_HEADER_SIZE);
+    send_unsolicited(c, IB_MSG_INFO, n);
+    for (uint8_t s = 0; s < 4; s++) {
+        if (!(c->present & (1u << s))) {
+            uint32_t detail = s == 0 ? ((uint32_t)c->accel.devid_ad << 16 | (uint32_t)c->accel.devid_mst << 8 |
+                                        c->accel.partid)
+                                     : c->gyro[s - 1].pid;
+            emit_fault(c, s, IB_FAULT_KIND_MISSING, 1, detail);
+            c->fault_state[s] = IB_FAULT_KIND_MISSING;
+        }
+    }
+}
+
+void ib_core_poll(ib_core_t *c)
+{
+    /* one command at a time: bytes after a command wait until its reply is out */
+    (void)flush_reply(c);
+    while (c->reply_pending == 0 && !c->reboot_pending) {
+        if (c->rx_pos == c->rx_len) {
+            c->rx_len = (uint8_t)c->board->link_read(c->board->ctx, c->rx_buf, sizeof c->rx_buf);
+            c->rx_pos = 0;
+            if (c->rx_len == 0) {
+                break;
+            }
+        }
+        ib_frame_t f;
+        int st = ib_frame_rx_push(&c->rx, c->rx_buf[c->rx_pos++], &f);
+        if (st >= 0) {
+            on_frame(c, st, &f);
+            (void)flush_reply(c);
+        }
+    }
+    if (c->reboot_pending && c->reply_pending == 0) {
+        c->reboot_pending = 0;
+        c->board->reboot(c->board->ctx);
+        return;
+    }
+    if (c->stream_state != IB_STREAM_STATE_STOPPED) {
+        update_uptime(c);
+        if (c->uptime_ms - c->last_stats_ms >= STATS_PERIOD_MS) {
+            c->last_stats_ms = c->uptime_ms;
+            ib_msg_stats_t s = c->stats;
+            s.request_id = 0;
+            s.uptime_ms = c->uptime_ms;
+            size_t len = ib_msg_stats_pack(&s, c->msg_raw + IB_HEADER_SIZE);
+            send_unsolicited(c, IB_MSG_STATS, len);
+        }
+    }
+}

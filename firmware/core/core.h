@@ -1,0 +1,100 @@
+/*
+ * core.h - the firmware core: boot, sample pipeline, command handling, parameters.
+ *
+ * Portable C11, no register access: it talks to the hardware only through the ib_board_t
+ * it is given (board.h), to the sensors only through the drivers, to flash only through
+ * the parameter store. The same code runs on the STM32 boards and in the simulator.
+ */
+#ifndef IB_CORE_H
+#define IB_CORE_H
+
+#include <stdint.h>
+
+#include "adxl355.h"
+#include "adxrs450.h"
+#include "board.h"
+#include "frame.h"
+#include "protocol_gen.h"
+
+typedef struct {
+    float m_inv[3][3];   /* M^-1, computed once when parameters are accepted */
+    float b[3];
+    float bias_tc[3];
+    float scale_tc[3];
+    float t_ref_c;
+} ib_triad_corr_t;
+
+typedef struct ib_core {
+    const ib_board_t *board;
+
+    /* sensors */
+    ib_adxl355_t accel;
+    ib_adxrs450_t gyro[3];
+    uint8_t present;              /* bit per sensor (enum ib_sensor) */
+    uint8_t accel_range_g;
+    int32_t accel_last[3];        /* last good accelerometer value (repeated when stale) */
+    uint16_t accel_temp_counts;   /* read once per batch */
+    int16_t gyro_temp_raw10[3];
+
+    /* parameters */
+    ib_params_t params;           /* active block */
+    ib_triad_corr_t corr_accel, corr_gyro;
+    uint8_t param_source;         /* enum ib_param_source */
+    uint32_t param_generation;    /* of the stored block, 0 = none */
+
+    /* stream */
+    uint8_t stream_state;         /* enum ib_stream_state */
+    uint16_t rate_hz;
+    uint8_t batch_max;
+    uint32_t sample_index;        /* of the next sample */
+    uint8_t batch_n;              /* samples in the batch being built */
+    uint8_t drop_pending;         /* samples were dropped since the last batch sent */
+    uint8_t batch_spi_error;      /* bit per sensor: a transfer failed in this batch */
+    uint8_t batch_gyro_st_bad[3]; /* 0x80 | ST of a gyro reply with ST != 01 in this batch */
+    ib_batch_header_t batch_hdr;
+    uint32_t batch_t0_us;
+    uint8_t batch_buf[IB_MAX_FRAME];  /* raw frame being built: header, payload, CRC */
+    uint8_t fault_state[4];       /* fault kind last reported per sensor, 0 = none */
+
+    /* link */
+    uint16_t tx_seq;
+    ib_frame_rx_t rx;
+    uint8_t rx_buf[64];           /* received bytes not yet pushed into rx */
+    uint8_t rx_len, rx_pos;
+    uint8_t msg_raw[IB_MAX_FRAME];    /* scratch for building one message */
+    uint8_t tx_frame[IB_MAX_ENCODED + 1];
+    /* the last command's reply (data message + ack), kept to answer a retry */
+    uint8_t last_reply[2][IB_MAX_ENCODED + 1];
+    uint16_t last_reply_len[2];
+    uint8_t last_reply_n;
+    uint8_t reply_pending;        /* reply frames not yet handed to the link */
+    uint8_t last_rid_valid;
+    uint16_t last_rid;            /* request id of the last executed command */
+    uint32_t last_cmd_crc;        /* and a checksum of its type and payload */
+    uint8_t reboot_pending;
+
+    ib_msg_stats_t stats;
+    uint32_t uptime_ms;
+    uint32_t uptime_us_rem;
+    uint32_t last_time_us;
+    uint32_t last_stats_ms;
+} ib_core_t;
+
+/* Boot: sensors start-up, parameters from flash, then a 0x00 and an unsolicited info. */
+void ib_core_init(ib_core_t *c, const ib_board_t *b);
+
+/* One sample period elapsed (`missed` periods were skipped before it: counted as dropped). */
+void ib_core_tick(ib_core_t *c, uint32_t missed);
+
+/* Main-loop work: received bytes, commands, periodic stats. Call as often as possible. */
+void ib_core_poll(ib_core_t *c);
+
+/* Validate a parameter block as set_params does; returns IB_ERROR_OK or the error code.
+ * On success fills the two corrections (may be NULL). */
+uint8_t ib_core_check_params(const ib_params_t *p, ib_triad_corr_t *accel, ib_triad_corr_t *gyro);
+
+/* Apply a correction to a nominally scaled measurement u (SI); temp_c is the temperature of
+ * each axis' sensor (the accelerometer's for all three accelerometer axes; each gyro's own). */
+void ib_core_correct(const ib_triad_corr_t *t, const float u[3], const float temp_c[3], float out[3]);
+
+#endif
