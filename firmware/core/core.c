@@ -69,24 +69,27 @@ static void send_unsolicited(ib_core_t *c, uint8_t type, size_t payload_len)
 
 static int finite_f(float x) { return isfinite(x) != 0; }
 
+
+/* Inverse of a row-major 3x3 matrix in single precision (the limits keep M close to the
+ * identity, so float is ample; the Cortex-M4F has a single-precision FPU only). */
 static int invert3(const float m[9], float inv[3][3])
 {
-    double a = m[0], b = m[1], cc = m[2], d = m[3], e = m[4], f = m[5], g = m[6], h = m[7], i = m[8];
-    double A = e * i - f * h, B = -(d * i - f * g), C = d * h - e * g;
-    double det = a * A + b * B + cc * C;
-    if (!(fabs(det) > 1e-12)) {
+    float a = m[0], b = m[1], cc = m[2], d = m[3], e = m[4], f = m[5], g = m[6], h = m[7], i = m[8];
+    float A = e * i - f * h, B = -(d * i - f * g), C = d * h - e * g;
+    float det = a * A + b * B + cc * C;
+    if (!(fabsf(det) > 1e-6f) || !isfinite(det)) {
         return -1;
     }
-    double r = 1.0 / det;
-    inv[0][0] = (float)(A * r);
-    inv[0][1] = (float)(-(b * i - cc * h) * r);
-    inv[0][2] = (float)((b * f - cc * e) * r);
-    inv[1][0] = (float)(B * r);
-    inv[1][1] = (float)((a * i - cc * g) * r);
-    inv[1][2] = (float)(-(a * f - cc * d) * r);
-    inv[2][0] = (float)(C * r);
-    inv[2][1] = (float)(-(a * h - b * g) * r);
-    inv[2][2] = (float)((a * e - b * d) * r);
+    float r = 1.0f / det;
+    inv[0][0] = A * r;
+    inv[0][1] = -(b * i - cc * h) * r;
+    inv[0][2] = (b * f - cc * e) * r;
+    inv[1][0] = B * r;
+    inv[1][1] = (a * i - cc * g) * r;
+    inv[1][2] = -(a * f - cc * d) * r;
+    inv[2][0] = C * r;
+    inv[2][1] = -(a * h - b * g) * r;
+    inv[2][2] = (a * e - b * d) * r;
     return 0;
 }
 
@@ -97,12 +100,13 @@ static uint8_t check_triad(const float m[9], const float b[3], const float btc[3
     if (invert3(m, t.m_inv) != 0) {
         return IB_ERROR_PARAM_ILL_CONDITIONED;
     }
-    double fm = 0.0, fi = 0.0;
+    float fm = 0.0f, fi = 0.0f;
     for (int k = 0; k < 9; k++) {
-        fm += (double)m[k] * m[k];
-        fi += (double)t.m_inv[k / 3][k % 3] * t.m_inv[k / 3][k % 3];
+        fm += m[k] * m[k];
+        fi += t.m_inv[k / 3][k % 3] * t.m_inv[k / 3][k % 3];
     }
-    if (sqrt(fm) * sqrt(fi) > (double)IB_LIMIT_M_COND_MAX) {
+    /* ||M||_F * ||M^-1||_F > limit, compared squared (no sqrt needed) */
+    if (fm * fi > IB_LIMIT_M_COND_MAX * IB_LIMIT_M_COND_MAX) {
         return IB_ERROR_PARAM_ILL_CONDITIONED;
     }
     for (int r = 0; r < 3; r++) {
