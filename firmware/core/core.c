@@ -56,10 +56,9 @@ static size_t encode_msg(ib_core_t *c, uint8_t type, size_t payload_len, uint8_t
  * and counted; it is never allowed to eat the reply reserve. */
 static void send_unsolicited(ib_core_t *c, uint8_t type, size_t payload_len)
 {
-    uint8_t out[IB_MAX_ENCODED + 1];
-    size_t n = encode_msg(c, type, payload_len, out);
+    size_t n = encode_msg(c, type, payload_len, c->tx_frame);
     if (c->board->link_tx_free(c->board->ctx) >= n + REPLY_RESERVE / 2u) {
-        link_put(c, out, n);
+        link_put(c, c->tx_frame, n);
     } else {
         c->stats.frames_dropped++;
     }
@@ -382,29 +381,39 @@ static void sample(ib_core_t *c, uint32_t t_us)
     uint8_t status = 0;
     int32_t acc[3] = {c->accel_last[0], c->accel_last[1], c->accel_last[2]};
     if (c->present & 1u) {
-        int32_t sets[ACCEL_FIFO_MAX_SETS + 2][3];
-        size_t n = 0;
-        if (ib_adxl355_read_fifo(&c->accel, sets, ACCEL_FIFO_MAX_SETS + 2u, &n) != IB_ADXL355_OK) {
+        /* every set the FIFO collected since the last tick, in chunks of 8 (small stack) */
+        int32_t sets[8][3];
+        int64_t sum[3] = {0, 0, 0};
+        size_t total = 0, n = 0;
+        int err = IB_ADXL355_OK;
+        uint8_t st_or = 0;
+        do {
+            err = ib_adxl355_read_fifo(&c->accel, sets, 8u, &n);
+            st_or |= c->accel.last_status;
+            for (size_t i = 0; err == IB_ADXL355_OK && i < n; i++) {
+                sum[0] += sets[i][0];
+                sum[1] += sets[i][1];
+                sum[2] += sets[i][2];
+            }
+            total += n;
+        } while (err == IB_ADXL355_OK && n == 8u && total < ACCEL_FIFO_MAX_SETS + 8u);
+        if (err != IB_ADXL355_OK) {
             c->batch_spi_error |= 1u;
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SPI_ERROR;
             c->stats.spi_errors++;
             status |= IB_SAMPLE_STATUS_ACCEL_BAD;
-        } else if (n == 0) {
+        } else if (total == 0) {
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_ACCEL_STALE;
             status |= IB_SAMPLE_STATUS_ACCEL_BAD;
         } else {
+            int64_t h = (int64_t)total / 2;
             for (int k = 0; k < 3; k++) {
-                int64_t sum = 0;
-                for (size_t i = 0; i < n; i++) {
-                    sum += sets[i][k];
-                }
                 /* rounded mean, symmetric about zero */
-                int64_t h = (int64_t)n / 2;
-                acc[k] = (int32_t)(sum >= 0 ? (sum + h) / (int64_t)n : -((-sum + h) / (int64_t)n));
+                acc[k] = (int32_t)(sum[k] >= 0 ? (sum[k] + h) / (int64_t)total : -((-sum[k] + h) / (int64_t)total));
                 c->accel_last[k] = acc[k];
             }
         }
-        c->batch_hdr.accel_status |= c->accel.last_status;
+        c->batch_hdr.accel_status |= st_or;
     } else {
         status |= IB_SAMPLE_STATUS_ACCEL_BAD;
     }
@@ -579,9 +588,14 @@ static uint8_t do_start_stream(ib_core_t *c, const ib_msg_start_stream_t *m, uin
         if (ib_adxl355_configure(&c->accel, &cfg) != IB_ADXL355_OK) {
             c->stats.spi_errors++;
         }
-        int32_t sink[ACCEL_FIFO_MAX_SETS][3];
-        size_t n;
-        (void)ib_adxl355_read_fifo(&c->accel, sink, ACCEL_FIFO_MAX_SETS, &n); /* start empty */
+        int32_t sink[8][3];
+        size_t n = 0, left = ACCEL_FIFO_MAX_SETS;
+        do { /* start with an empty FIFO */
+            if (ib_adxl355_read_fifo(&c->accel, sink, 8u, &n) != IB_ADXL355_OK) {
+                break;
+            }
+            left = left > n ? left - n : 0;
+        } while (n == 8u && left);
     }
     c->rate_hz = m->rate_hz;
     uint32_t auto_b = m->rate_hz / 250u;

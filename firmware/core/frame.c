@@ -43,6 +43,8 @@ size_t ib_cobs_encode(const uint8_t *in, size_t len, uint8_t *out)
     return o;
 }
 
+/* Safe in place (out == in): every output byte is written after the input byte it comes
+ * from has been read, and the output never runs ahead of the input. */
 int ib_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t cap, size_t *out_len)
 {
     size_t i = 0;
@@ -140,8 +142,8 @@ void ib_frame_rx_init(ib_frame_rx_t *rx)
 int ib_frame_rx_push(ib_frame_rx_t *rx, uint8_t byte, ib_frame_t *f)
 {
     if (byte != 0) {
-        if (rx->n < sizeof rx->enc) {
-            rx->enc[rx->n++] = byte;
+        if (rx->n < sizeof rx->buf) {
+            rx->buf[rx->n++] = byte;
         } else {
             rx->overflow = 1;
         }
@@ -157,5 +159,5 @@ int ib_frame_rx_push(ib_frame_rx_t *rx, uint8_t byte, ib_frame_t *f)
     }
     size_t len = rx->n;
     rx->n = 0;
-    return (int)ib_frame_parse(rx->enc, len, rx->dec, f);
+    return (int)ib_frame_parse(rx->buf, len, rx->buf, f);
 }

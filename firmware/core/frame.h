@@ -57,14 +57,15 @@ size_t ib_frame_encode(uint8_t *raw, uint8_t type, uint16_t seq, uint32_t timest
                        size_t payload_len, uint8_t *out);
 
 /* Check one encoded frame (without the 0x00). `scratch` (IB_MAX_FRAME bytes) receives the
- * decoded bytes; on IB_FRAME_OK `f` describes the frame (f->payload points into scratch).
- * Header fields are filled in as far as the checks got. */
+ * decoded bytes and may be `enc` itself (in-place decoding); on IB_FRAME_OK `f` describes
+ * the frame (f->payload points into scratch). Header fields are filled in as far as the
+ * checks got. */
 ib_frame_status_t ib_frame_parse(const uint8_t *enc, size_t len, uint8_t *scratch, ib_frame_t *f);
 
-/* Streaming receiver: accumulates bytes up to each 0x00 delimiter. */
+/* Streaming receiver: accumulates bytes up to each 0x00 delimiter, then decodes the frame
+ * in place (COBS output is never longer than its input). */
 typedef struct {
-    uint8_t enc[IB_MAX_ENCODED];
-    uint8_t dec[IB_MAX_FRAME];
+    uint8_t buf[IB_MAX_ENCODED];
     size_t n;
     uint8_t overflow; /* dropping bytes of an over-long frame until the next 0x00 */
 } ib_frame_rx_t;
