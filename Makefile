@@ -72,5 +72,7 @@ clean:
 
 # Benchmarks print figures; they are not part of `make test`.
 bench: venv
+	@bash tools/ensure-system-deps.sh valgrind
 	@$(PY) -m pip install -q --disable-pip-version-check -e '.[bench]'
 	$(PY) bench/decode_throughput.py
+	$(PY) bench/core_instructions.py
