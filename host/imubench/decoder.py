@@ -47,6 +47,7 @@ class DecoderStats:
     unknown_type: int = 0
     bad_length: int = 0
     seq_gaps: int = 0          # places where the device's frame sequence jumped
+    seq_restarts: int = 0      # backward jumps (the device restarted its sequence: a reboot)
     frames_missing: int = 0    # frames lost in those jumps
     sample_gaps: int = 0       # places where sample_index jumped
     samples_missing: int = 0   # samples lost in those jumps (link or device drops)
@@ -65,12 +66,14 @@ class DecoderStats:
 
 @dataclass
 class DecodedFrame:
-    """A checked non-sample frame and its decoded message object."""
+    """A checked non-sample frame and its decoded message object; t_us is its timestamp
+    unwrapped to 64 bits on the same time line as the samples."""
 
     type: int
     seq: int
     timestamp_us: int
     msg: object
+    t_us: int = 0
 
 
 @dataclass
@@ -114,7 +117,7 @@ class SampleBlock:
 class _Pending:
     headers: list = field(default_factory=list)    # batch header bytes
     records: list = field(default_factory=list)    # record bytes
-    ts: list = field(default_factory=list)         # frame timestamps
+    ts: list = field(default_factory=list)         # arrays of unwrapped frame timestamps
 
     def clear(self):
         self.headers.clear()
@@ -160,6 +163,9 @@ class StreamDecoder:
             parts = parts[1:]
         out: list[DecodedFrame] = []
         seqs: list[int] = []
+        tss: list[int] = []          # timestamps of accepted frames, in arrival order
+        raw_at: list[int] = []       # which of them are raw / calibrated batches
+        cal_at: list[int] = []
         crc = self._crc
         residue = _CRC_RESIDUE
         decode = self._decode
@@ -195,15 +201,19 @@ class StreamDecoder:
                 d = _RAW if mtype == 0x90 else _CAL
                 rsize = d.record_dtype.itemsize
                 body = n - 12 - _BH
+                if body < 0:
+                    st.bad_length += 1
+                    continue
                 count = raw[8 + _COUNT_OFF]
-                if body < 0 or body != count * rsize or count > d.max_records:
+                if body != count * rsize or count > d.max_records:
                     st.bad_length += 1
                     continue
                 seqs.append(seq)
+                (raw_at if mtype == 0x90 else cal_at).append(len(tss))
+                tss.append(ts)
                 pend = raw_p if mtype == 0x90 else cal_p
                 pend.headers.append(raw[8:8 + _BH])
                 pend.records.append(raw[8 + _BH:-4])
-                pend.ts.append(ts)
                 continue
             payload = raw[8:-4]
             err = P.payload_error(mtype, payload)
@@ -214,9 +224,17 @@ class StreamDecoder:
                     st.bad_length += 1
                 continue
             seqs.append(seq)
-            out.append(DecodedFrame(mtype, seq, ts, P.decode_message(mtype, payload)))
+            out.append(DecodedFrame(mtype, seq, ts, P.decode_message(mtype, payload), len(tss)))
+            tss.append(ts)
         if seqs:
             self._count_seq_gaps(seqs)
+            t = self._unwrap(np.asarray(tss, dtype=np.int64))
+            if raw_at:
+                raw_p.ts.append(t[raw_at])
+            if cal_at:
+                cal_p.ts.append(t[cal_at])
+            for f in out:
+                f.t_us = int(t[f.t_us])
         return out
 
     def _count_seq_gaps(self, seqs: list[int]) -> None:
@@ -227,6 +245,11 @@ class StreamDecoder:
         prev[0] = a[0] - 1 if self._last_seq is None else self._last_seq
         prev[1:] = a[:-1]
         missing = (a - prev - 1) & 0xFFFF
+        # a jump of half the sequence space or more is the device restarting its count
+        # (a reboot), not 30000+ lost frames
+        restart = missing >= 0x8000
+        self.stats.seq_restarts += int(np.count_nonzero(restart))
+        missing = np.where(restart, 0, missing)
         self.stats.seq_gaps += int(np.count_nonzero(missing))
         self.stats.frames_missing += int(missing.sum())
         self._last_seq = int(a[-1])
@@ -250,10 +273,9 @@ class StreamDecoder:
         d = _CAL if calibrated else _RAW
         hdr = np.frombuffer(b"".join(p.headers), dtype=BATCH_HEADER_DTYPE)
         rec_bytes = b"".join(p.records)
-        ts = np.asarray(p.ts, dtype=np.int64)
+        ts = np.concatenate(p.ts)
         p.clear()
         counts = hdr["count"].astype(np.int64)
-        ts = self._unwrap(ts)
         per = np.repeat(hdr, counts)                        # batch fields, one row per sample
         starts = np.cumsum(counts) - counts
         within = np.arange(len(per), dtype=np.int64) - np.repeat(starts, counts)
@@ -275,7 +297,8 @@ class StreamDecoder:
         return SampleBlock(False, accel_counts=accel, gyro_counts=recs["gyro_counts"], **common)
 
     def _unwrap(self, ts: np.ndarray) -> np.ndarray:
-        """32-bit microsecond timestamps to a monotonic int64 (wraps every 71.6 min)."""
+        """32-bit microsecond timestamps, in arrival order, to a monotonic int64 (they wrap
+        every 71.6 min)."""
         if self._ts_last is None:
             self._ts_last = int(ts[0])
         prev = np.concatenate(([self._ts_last], ts[:-1]))
