@@ -1,0 +1,284 @@
+/*
+ * sim_board.c - the ib_board_t and ib_spi_bus_t the simulator hands to the firmware core.
+ *
+ * Device time (g_sim.t_us) is owned here: time_us() returns its low 32 bits; delay_us()
+ * and every SPI transfer advance it (the core is "busy" for that long; the main loop then
+ * waits for the wall clock to catch up, sim_main.c).
+ *
+ * SPI: chip select IB_CS_ACCEL goes to the ADXL355 model, IB_CS_GYRO_X/Y/Z to three
+ * ADXRS450 models (axis 0/1/2, different seeds). Before each transaction the addressed
+ * model is advanced to the current device time with the current world; the transaction
+ * then takes SIM_SPI_US_PER_BYTE per byte plus SIM_SPI_CS_US (8 MHz SCK: 1 us per byte),
+ * so a 4 kHz sample read (13 + 6 x 4 bytes in 7 transactions) costs 44 us of device time.
+ * The gyro models get the exact MEAN angular rate over the interval they are advanced by
+ * (from the integral of omega kept by sim_physics.c), so a rate-integrating test sees the
+ * exact angle turned, however the reads fall.
+ */
+#define _GNU_SOURCE
+#include "sim.h"
+
+#include <string.h>
+
+#define SIM_SPI_US_PER_BYTE 1u
+#define SIM_SPI_CS_US 1u
+#define SIM_SPIN_LIMIT 2000u /* board calls with no progress inside one core call before
+                                each further call is charged 1 us (a busy-wait loop) */
+
+void sim_spin_reset(void) { g_sim.spin = 0; }
+
+void sim_advance_to(uint64_t t_us)
+{
+    if (t_us > g_sim.t_us) {
+        g_sim.t_us = t_us;
+        sim_link_uart_update(&g_sim.link, t_us);
+    }
+}
+
+/* A core polling time_us()/link_tx_free() in a loop is busy-waiting: charge it time so the
+ * loop ends as it would on hardware. Normal code calls these a few times per call. */
+static void spin_check(void)
+{
+    if (g_sim.in_core && ++g_sim.spin > SIM_SPIN_LIMIT) {
+        sim_advance_to(g_sim.t_us + 1);
+    }
+}
+
+static uint64_t model_time(int cs)
+{
+    return cs == IB_CS_ACCEL ? g_sim.accel.t_us : g_sim.gyro[cs - 1].t_us;
+}
+
+void sim_model_world(int cs, sim_world_t *w)
+{
+    const sim_physics_t *p = &g_sim.phys;
+    uint64_t t = g_sim.t_us, last = model_time(cs);
+    double g[3], wi[3];
+    sim_phys_gravity_dir(p, t, g);
+    sim_phys_omega_integral(p, t, wi);
+    for (int i = 0; i < 3; i++) {
+        w->specific_force_mps2[i] = SIM_G0_MPS2 * g[i];
+    }
+    if (t > last) {
+        double dt = (double)(t - last) * 1e-6;
+        for (int i = 0; i < 3; i++) {
+            w->rate_rad_s[i] = (wi[i] - g_sim.omega_int_at[cs][i]) / dt;
+        }
+        memcpy(g_sim.omega_int_at[cs], wi, sizeof wi);
+    } else {
+        sim_phys_omega(p, t, w->rate_rad_s);
+    }
+    w->temperature_c = sim_phys_temperature(p, t);
+}
+
+void sim_model_advance(int cs)
+{
+    sim_world_t w;
+    sim_model_world(cs, &w);
+    if (cs == IB_CS_ACCEL) {
+        adxl355_model_advance(&g_sim.accel, g_sim.t_us, &w);
+    } else {
+        sim_adxrs450_advance(&g_sim.gyro[cs - 1], g_sim.t_us, &w);
+    }
+}
+
+void sim_models_sync(void)
+{
+    for (int cs = 0; cs < IB_CS_COUNT; cs++) {
+        sim_model_advance(cs);
+    }
+}
+
+/* ---- derived seeds ---- */
+
+static uint64_t derive(uint64_t seed, uint64_t k)
+{
+    sim_rng_t r;
+    sim_rng_seed(&r, seed ^ (0x9E3779B97F4A7C15ull * (k + 1)));
+    return sim_rng_u64(&r);
+}
+
+void sim_randomize_truth(uint64_t seed)
+{
+    sim_rng_t r;
+    sim_rng_seed(&r, derive(seed, 100));
+    adxl355_truth_t at;
+    adxl355_model_random_truth(&at, &r);
+    adxl355_model_set_truth(&g_sim.accel, &at);
+    for (int i = 0; i < 3; i++) {
+        sim_adxrs450_truth_t gt;
+        sim_adxrs450_random_truth(&gt, &r, i);
+        sim_adxrs450_set_truth(&g_sim.gyro[i], &gt);
+    }
+}
+
+void sim_seed_models(uint64_t seed, int random_truth)
+{
+    adxl355_model_init(&g_sim.accel, derive(seed, 1));
+    for (int i = 0; i < 3; i++) {
+        sim_adxrs450_init(&g_sim.gyro[i], derive(seed, 2 + (uint64_t)i), i);
+    }
+    memset(g_sim.omega_int_at, 0, sizeof g_sim.omega_int_at);
+    if (random_truth) {
+        sim_randomize_truth(seed);
+    }
+    sim_rng_seed(&g_sim.spi_fault_rng, derive(seed, 10));
+    sim_rng_seed(&g_sim.link.fault_rng, derive(seed, 11));
+    uint64_t u0 = derive(seed, 200), u1 = derive(seed, 201);
+    for (int i = 0; i < 8; i++) {
+        g_sim.uid[i] = (uint8_t)(u0 >> (8 * i));
+    }
+    for (int i = 0; i < 4; i++) {
+        g_sim.uid[8 + i] = (uint8_t)(u1 >> (8 * i));
+    }
+}
+
+void sim_power_cycle_models(void)
+{
+    sim_models_sync();
+    /* ADXL355: back to its power-on registers; the part itself (truth, factory bytes,
+     * noise generator, random-walk bias, injected faults) stays the same part. */
+    adxl355_model_t *m = &g_sim.accel;
+    adxl355_model_t keep = *m;
+    adxl355_model_init(m, 0);
+    m->truth = keep.truth;
+    memcpy(m->st_force_g, keep.st_force_g, sizeof m->st_force_g);
+    memcpy(m->id, keep.id, sizeof m->id);
+    memcpy(m->shadow, keep.shadow, sizeof m->shadow);
+    m->reset_busy_us = keep.reset_busy_us;
+    m->fault = keep.fault;
+    m->rng = keep.rng;
+    memcpy(m->rw_bias, keep.rw_bias, sizeof m->rw_bias);
+    m->rw_last_us = keep.rw_last_us;
+    m->rw_started = keep.rw_started;
+    m->samples = keep.samples;
+    m->temp_c = keep.temp_c;
+    m->t_us = keep.t_us;
+    for (int i = 0; i < 3; i++) {
+        sim_adxrs450_power_cycle(&g_sim.gyro[i]);
+    }
+}
+
+/* ---- ib_spi_bus_t ---- */
+
+static int spi_transfer(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len)
+{
+    sim_t *s = ctx;
+    s->spin = 0;
+    s->spi_transfers++;
+    if (cs >= IB_CS_COUNT) {
+        return -1;
+    }
+    uint64_t t_end = s->t_us + (uint64_t)len * SIM_SPI_US_PER_BYTE + SIM_SPI_CS_US;
+    int fail = 0;
+    if (s->spi_faults.error_count[cs] > 0) {
+        s->spi_faults.error_count[cs]--;
+        fail = 1;
+    } else if (s->spi_faults.error_prob[cs] > 0.0 &&
+               sim_rng_uniform(&s->spi_fault_rng) < s->spi_faults.error_prob[cs]) {
+        fail = 1;
+    }
+    if (fail) {
+        s->spi_faults.errors_injected[cs]++;
+        if (rx != NULL) {
+            memset(rx, 0xFF, len);
+        }
+        sim_advance_to(t_end);
+        return -1;
+    }
+    sim_model_advance(cs);
+    if (cs == IB_CS_ACCEL) {
+        adxl355_model_spi(&s->accel, tx, rx, len);
+    } else {
+        /* A frame of another length than 4 is answered by the model as the part would
+         * (not a bus error), so the return value is not passed on. */
+        (void)sim_adxrs450_spi(&s->gyro[cs - 1], tx, rx, len);
+    }
+    sim_advance_to(t_end);
+    return 0;
+}
+
+static void spi_delay_us(void *ctx, uint32_t us)
+{
+    sim_t *s = ctx;
+    s->spin = 0;
+    sim_advance_to(s->t_us + us);
+}
+
+/* ---- ib_board_t ---- */
+
+static uint32_t b_time_us(void *ctx)
+{
+    (void)ctx;
+    spin_check();
+    return (uint32_t)g_sim.t_us;
+}
+
+static void b_set_tick_hz(void *ctx, uint32_t rate_hz)
+{
+    sim_t *s = ctx;
+    s->tick_hz = rate_hz;
+    if (rate_hz != 0) {
+        s->tick_base_us = s->t_us;
+        s->tick_n = 1;
+        s->next_tick_us = s->tick_base_us + 1000000u / rate_hz;
+    }
+}
+
+static size_t b_link_tx_free(void *ctx)
+{
+    sim_t *s = ctx;
+    spin_check();
+    sim_link_uart_update(&s->link, s->t_us);
+    return sim_link_tx_free(&s->link);
+}
+
+static size_t b_link_write(void *ctx, const uint8_t *data, size_t len)
+{
+    sim_t *s = ctx;
+    s->spin = 0;
+    sim_link_uart_update(&s->link, s->t_us);
+    return sim_link_write(&s->link, data, len);
+}
+
+static size_t b_link_read(void *ctx, uint8_t *buf, size_t cap)
+{
+    sim_t *s = ctx;
+    size_t n = sim_link_read(&s->link, buf, cap);
+    if (n > 0) {
+        s->spin = 0;
+    }
+    return n;
+}
+
+static void b_reboot(void *ctx)
+{
+    (void)ctx;
+    sim_request_reset(SIM_RESET_REBOOT); /* does not return when called from the core */
+}
+
+void sim_board_setup(void)
+{
+    sim_t *s = &g_sim;
+    memset(&s->spi, 0, sizeof s->spi);
+    s->spi.transfer = spi_transfer;
+    s->spi.delay_us = spi_delay_us;
+    s->spi.ctx = s;
+    sim_flash_setup_if(&s->flash, &s->flash_if);
+
+    ib_board_t *b = &s->board;
+    memset(b, 0, sizeof *b);
+    b->board_id = IB_BOARD_SIM;
+    b->clock_source = IB_CLOCK_SOURCE_NONE;
+    b->baud = s->baud;
+    memcpy(b->uid, s->uid, sizeof b->uid);
+    b->build = SIM_BUILD_ID;
+    b->time_us = b_time_us;
+    b->set_tick_hz = b_set_tick_hz;
+    b->link_tx_free = b_link_tx_free;
+    b->link_write = b_link_write;
+    b->link_read = b_link_read;
+    b->spi = &s->spi;
+    b->flash = &s->flash_if;
+    b->reboot = b_reboot;
+    b->ctx = s;
+}

@@ -1,0 +1,620 @@
+/*
+ * sim_main.c - the virtual device process: options, start-up line, boot / power cycle,
+ * and the paced event loop.
+ *
+ *   imubench-sim [--pty] [--tcp PORT] [--control PORT] [--flash FILE] [--speed X]
+ *                [--seed N] [--truth default|random] [--baud B] [--uid HEX24]
+ *
+ * Without --pty and --tcp the link listens on TCP (a free port). Once the ports are open
+ * it prints ONE JSON line on stdout, e.g.
+ *   {"pty": null, "port_url": "socket://127.0.0.1:40123", "tcp_port": 40123,
+ *    "control": "127.0.0.1:40125", "control_port": 40125, "pid": 4242,
+ *    "flash": "/tmp/imubench-sim-XXXX/flash.bin", "seed": 1, ...}
+ * and logs only to stderr afterwards. It exits on SIGTERM/SIGINT/SIGHUP, on the control
+ * command "quit", and when its parent process dies (getppid() checked every 100 ms).
+ *
+ * Pacing. Device time runs `speed` times the wall clock: target(wall) = anchor_dev +
+ * (wall - anchor_wall) * speed. Each loop iteration runs the device up to the target:
+ * every sample tick that falls due in device time (ib_core_tick at its exact due time,
+ * then ib_core_poll), then moves device time to the target and polls once more; then it
+ * hands the link bytes to the OS in one batch and blocks in poll() until the next due
+ * tick / event (at least 1 ms, at most 20 ms while idle) or I/O. So there is no syscall
+ * per tick, and an idle device sleeps. When the core consumed device time on its own
+ * (delay_us, e.g. the ~1 s of sensor start-up at boot), device time is ahead of the
+ * target: the device is busy, the loop only serves the control channel and waits. When
+ * the CPU cannot keep up (target more than 200 ms x speed ahead of the device), the
+ * anchor slips: device time stays continuous and no tick is skipped, the run is just
+ * slower than asked (logged). speed 0 = as fast as possible: ticks run back to back
+ * (pausing up to 50 ms when the host does not read the link), idle device time follows
+ * the wall clock but jumps straight to the next pending event (wait deadline, end of a
+ * move or temperature ramp).
+ *
+ * Resets. A power cut (flash op, control command) and board.reboot() longjmp out of the
+ * core back to core_call() when they happen inside a core call, exactly like a reset
+ * cuts the firmware off wherever it is; the loop then re-initialises a zeroed core.
+ */
+#define _GNU_SOURCE
+#include "sim.h"
+
+#include <errno.h>
+#include <fcntl.h>
+#include <math.h>
+#include <signal.h>
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "sim_json.h"
+
+sim_t g_sim;
+
+static volatile sig_atomic_t g_signal;
+static pid_t g_parent; /* 0: do not watch */
+
+#define MAX_LAG_WALL_US 200000.0 /* CPU behind by more than this (wall) -> slip the anchor */
+#define IDLE_POLL_MS 20
+#define BUDGET_NS 5000000ull     /* wall time spent running ticks before serving I/O */
+
+uint64_t sim_wall_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (uint64_t)ts.tv_sec * 1000000000ull + (uint64_t)ts.tv_nsec;
+}
+
+void sim_log(const char *fmt, ...)
+{
+    char buf[1024];
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(buf, sizeof buf, fmt, ap);
+    va_end(ap);
+    fprintf(stderr, "[imubench-sim %.6f] %s\n", (double)g_sim.t_us * 1e-6, buf);
+}
+
+int sim_streaming(void) { return g_sim.core.stream_state != IB_STREAM_STATE_STOPPED; }
+
+/* ---- resets ---- */
+
+void sim_request_reset(int kind)
+{
+    sim_t *s = &g_sim;
+    if (s->in_core) {
+        s->in_core = 0;
+        s->reset_kind = kind;
+        longjmp(s->reset_jmp, 1);
+    }
+    if (kind > s->reset_pending) {
+        s->reset_pending = kind;
+    }
+}
+
+enum { CORE_INIT, CORE_TICK, CORE_POLL };
+
+/* Run one core entry point; -1 when it was cut off by a reset (g_sim.reset_kind says
+ * which). Nothing here is modified between setjmp and longjmp. */
+static int core_call(int what, uint32_t arg)
+{
+    sim_t *s = &g_sim;
+    if (setjmp(s->reset_jmp) != 0) {
+        return -1;
+    }
+    s->in_core = 1;
+    s->spin = 0;
+    switch (what) {
+    case CORE_INIT:
+        ib_core_init(&s->core, &s->board);
+        break;
+    case CORE_TICK:
+        ib_core_tick(&s->core, arg);
+        break;
+    default:
+        ib_core_poll(&s->core);
+        break;
+    }
+    s->in_core = 0;
+    return 0;
+}
+
+static void boot(int kind)
+{
+    sim_t *s = &g_sim;
+    for (;;) {
+        s->reset_pending = SIM_RESET_NONE;
+        if (kind == SIM_RESET_POWER_CUT) {
+            s->power_cuts++;
+            sim_power_cycle_models();
+            sim_log("power cut: power-cycling the sensors and restarting the firmware");
+        } else if (kind == SIM_RESET_REBOOT) {
+            s->reboots++;
+            sim_log("reboot: restarting the firmware");
+        }
+        if (kind == SIM_RESET_REBOOT) {
+            /* board.h: reboot() comes after the ack was queued and the link drained; what
+             * is still queued is sent (a core that did not wait loses nothing) */
+            s->link.rx_head = s->link.rx_tail = 0;
+        } else {
+            sim_link_reset(&s->link, s->t_us); /* power: UART buffers lost */
+        }
+        s->tick_hz = 0;
+        s->flash.ops_since_boot = 0;
+        s->boots++;
+        memset(&s->core, 0, sizeof s->core);
+        uint64_t t0 = s->t_us;
+        if (core_call(CORE_INIT, 0) == 0) {
+            sim_log("boot %u done (%.3f s of device time)", s->boots, (double)(s->t_us - t0) * 1e-6);
+            return;
+        }
+        kind = s->reset_kind;
+    }
+}
+
+/* ---- pacing ---- */
+
+static uint64_t pace_target(uint64_t now_ns)
+{
+    sim_t *s = &g_sim;
+    if (now_ns <= s->anchor_wall_ns) {
+        return s->anchor_dev_us;
+    }
+    double speed = s->speed > 0.0 ? s->speed : 1.0;
+    return s->anchor_dev_us + (uint64_t)((double)(now_ns - s->anchor_wall_ns) * 1e-3 * speed);
+}
+
+void sim_set_speed(double speed)
+{
+    sim_t *s = &g_sim;
+    uint64_t now = sim_wall_ns();
+    uint64_t target = pace_target(now);
+    /* paced -> paced: keep the device's lead or lag; from "as fast as possible": now */
+    s->anchor_dev_us = s->speed > 0.0 ? target : s->t_us;
+    s->anchor_wall_ns = now;
+    s->speed = speed;
+}
+
+static uint64_t tick_time(uint64_t n)
+{
+    sim_t *s = &g_sim;
+    return s->tick_base_us + n * 1000000ull / s->tick_hz;
+}
+
+/* Run the device up to device time `target`. Returns 1 when it stopped early (wall
+ * budget used up) with ticks still due. */
+static int run_device(uint64_t target, uint64_t budget_end_ns)
+{
+    sim_t *s = &g_sim;
+    if (s->reset_pending) {
+        boot(s->reset_pending);
+    }
+    if (s->t_us > target) {
+        return 0; /* the core is still "busy" (delay_us ran ahead): wait for the clock */
+    }
+    unsigned n = 0;
+    while (s->tick_hz != 0 && s->next_tick_us <= target) {
+        sim_advance_to(s->next_tick_us);
+        uint32_t missed = 0;
+        /* periods that passed entirely while the core was busy */
+        while (tick_time(s->tick_n + 1) <= s->t_us) {
+            s->tick_n++;
+            missed++;
+        }
+        s->tick_n++;
+        s->next_tick_us = tick_time(s->tick_n);
+        s->ticks++;
+        s->ticks_missed += missed;
+        if (core_call(CORE_TICK, missed) != 0) {
+            boot(s->reset_kind);
+            return 0;
+        }
+        if (core_call(CORE_POLL, 0) != 0) {
+            boot(s->reset_kind);
+            return 0;
+        }
+        if (s->reset_pending) {
+            boot(s->reset_pending);
+            return 0;
+        }
+        if (s->t_us > target) {
+            return 0;
+        }
+        if ((++n & 31u) == 0 && sim_wall_ns() > budget_end_ns) {
+            return 1;
+        }
+    }
+    sim_advance_to(target);
+    if (core_call(CORE_POLL, 0) != 0) {
+        boot(s->reset_kind);
+    }
+    return 0;
+}
+
+/* ---- options ---- */
+
+static void usage(FILE *f)
+{
+    fprintf(f,
+            "usage: imubench-sim [--pty] [--tcp PORT] [--control PORT] [--flash FILE]\n"
+            "                    [--speed X] [--seed N] [--truth default|random] [--baud B]\n"
+            "                    [--uid HEX24]\n"
+            "  --pty          expose the device's serial port on a new pseudo-terminal\n"
+            "  --tcp PORT     ... and/or on TCP 127.0.0.1:PORT (0 = free port; the default\n"
+            "                 when neither --pty nor --tcp is given)\n"
+            "  --control PORT JSON-lines control channel on 127.0.0.1 (default 0 = free port)\n"
+            "  --flash FILE   parameter flash file (created 0xFF-filled; default: temp dir)\n"
+            "  --speed X      device time runs X times real time (default 1; 0 = max)\n"
+            "  --seed N       seed of the sensor models (default 1)\n"
+            "  --truth T      default | random (the sensors' errors drawn from the seed)\n"
+            "  --baud B       link speed that drains the TX buffer (default 2000000)\n"
+            "  --uid HEX24    MCU unique id, 12 bytes in hex (default: from the seed)\n");
+}
+
+static int parse_u64(const char *s, uint64_t *out)
+{
+    char *end;
+    errno = 0;
+    unsigned long long v = strtoull(s, &end, 0);
+    if (errno || end == s || *end || s[0] == '-') {
+        return -1;
+    }
+    *out = v;
+    return 0;
+}
+
+static int parse_uid(const char *s, uint8_t uid[12])
+{
+    if (strlen(s) != 24) {
+        return -1;
+    }
+    for (int i = 0; i < 12; i++) {
+        unsigned v;
+        char two[3] = {s[2 * i], s[2 * i + 1], 0};
+        char *end;
+        v = (unsigned)strtoul(two, &end, 16);
+        if (*end) {
+            return -1;
+        }
+        uid[i] = (uint8_t)v;
+    }
+    return 0;
+}
+
+static void on_signal(int sig) { g_signal = sig; }
+
+static void print_startup_line(const char *flash_path)
+{
+    sim_t *s = &g_sim;
+    char fp[4096];
+    if (realpath(flash_path, fp) == NULL) {
+        snprintf(fp, sizeof fp, "%s", flash_path);
+    }
+    sj_buf_t b = {0};
+    sj_raw(&b, "{");
+    sj_key(&b, "pty");
+    if (s->link.pty_master >= 0) {
+        sj_str(&b, s->link.pty_name);
+    } else {
+        sj_raw(&b, "null");
+    }
+    sj_key(&b, "port_url");
+    if (s->link.tcp_listen >= 0) {
+        sj_printf(&b, "\"socket://127.0.0.1:%d\"", s->link.tcp_port);
+    } else {
+        sj_str(&b, s->link.pty_name);
+    }
+    sj_key(&b, "tcp_port");
+    if (s->link.tcp_listen >= 0) {
+        sj_printf(&b, "%d", s->link.tcp_port);
+    } else {
+        sj_raw(&b, "null");
+    }
+    sj_key(&b, "control");
+    sj_printf(&b, "\"127.0.0.1:%d\"", s->control_port);
+    sj_key(&b, "control_port");
+    sj_printf(&b, "%d", s->control_port);
+    sj_key(&b, "pid");
+    sj_printf(&b, "%ld", (long)getpid());
+    sj_key(&b, "flash");
+    sj_str(&b, fp);
+    sj_key(&b, "seed");
+    sj_printf(&b, "%llu", (unsigned long long)s->seed);
+    sj_key(&b, "speed");
+    sj_num(&b, s->speed);
+    sj_key(&b, "baud");
+    sj_printf(&b, "%u", s->baud);
+    sj_key(&b, "truth");
+    sj_str(&b, s->truth_random ? "random" : "default");
+    char uid[25];
+    for (int i = 0; i < 12; i++) {
+        snprintf(uid + 2 * i, 3, "%02x", s->uid[i]);
+    }
+    sj_key(&b, "uid");
+    sj_str(&b, uid);
+    sj_key(&b, "build");
+    sj_str(&b, SIM_BUILD_ID);
+    sj_raw(&b, "}\n");
+    fputs(b.p ? b.p : "{}\n", stdout);
+    fflush(stdout);
+    sj_buf_free(&b);
+}
+
+/* ---- the loop ---- */
+
+static uint64_t min_u64(uint64_t a, uint64_t b) { return a < b ? a : b; }
+
+static void main_loop(void)
+{
+    sim_t *s = &g_sim;
+    struct pollfd pfd[64];
+    uint64_t last_wall = sim_wall_ns();
+    uint64_t bp_since = 0; /* speed 0: when the link back-pressure wait began */
+    uint64_t last_slip_log = 0;
+
+    uint64_t last_parent_check = 0;
+    while (!s->quit && !g_signal) {
+        uint64_t now = sim_wall_ns();
+        if (g_parent != 0 && now - last_parent_check > 100000000ull) {
+            last_parent_check = now;
+            if (getppid() != g_parent) {
+                sim_log("parent process %ld is gone: exiting", (long)g_parent);
+                break;
+            }
+        }
+        uint64_t target;
+        int more = 0, bp_wait = 0;
+        if (s->speed > 0.0) {
+            target = pace_target(now);
+            double max_lag = MAX_LAG_WALL_US * s->speed;
+            if (target > s->t_us && (double)(target - s->t_us) > max_lag) {
+                s->anchor_dev_us = s->t_us;
+                s->anchor_wall_ns = now;
+                target = s->t_us;
+                s->slips++;
+                if (s->slips == 1 || now - last_slip_log > 10000000000ull) {
+                    sim_log("cannot keep up with speed %g: running slower (slip %llu)", s->speed,
+                            (unsigned long long)s->slips);
+                    last_slip_log = now;
+                }
+            }
+        } else {
+            /* as fast as possible */
+            uint64_t idle = s->t_us + (now - last_wall) / 1000u;
+            if (s->tick_hz != 0) {
+                target = s->next_tick_us + 50000u;
+                if (s->link.os_blocked && sim_link_staged(&s->link) > (SIM_TX_STORE - SIM_TX_RING) / 2) {
+                    if (bp_since == 0) {
+                        bp_since = now;
+                    }
+                    if (now - bp_since < 50000000ull) {
+                        bp_wait = 1;
+                        target = s->t_us;
+                    }
+                } else {
+                    bp_since = 0;
+                }
+            } else {
+                uint64_t ev = min_u64(sim_control_next_deadline(), sim_phys_next_event(&s->phys, s->t_us));
+                target = ev != UINT64_MAX && ev > idle ? ev : idle;
+            }
+        }
+        last_wall = now;
+        if (!bp_wait) {
+            more = run_device(target, now + BUDGET_NS);
+        }
+        if (sim_link_staged(&s->link) > 0) {
+            sim_link_flush(&s->link);
+        }
+        sim_control_check_waits();
+        if (s->quit || g_signal) {
+            break;
+        }
+
+        /* how long to sleep */
+        int timeout_ms;
+        if (more) {
+            timeout_ms = 0;
+        } else if (s->speed > 0.0) {
+            uint64_t tgt = pace_target(sim_wall_ns());
+            uint64_t wait_dev;
+            if (s->t_us > tgt) {
+                wait_dev = s->t_us - tgt;
+            } else {
+                uint64_t ev = UINT64_MAX;
+                if (s->tick_hz != 0) {
+                    ev = s->next_tick_us;
+                }
+                ev = min_u64(ev, sim_control_next_deadline());
+                ev = min_u64(ev, sim_phys_next_event(&s->phys, s->t_us));
+                uint64_t drain = sim_link_next_drain_us(&s->link);
+                if (drain) {
+                    ev = min_u64(ev, s->t_us + drain);
+                }
+                wait_dev = ev == UINT64_MAX ? UINT64_MAX : (ev > tgt ? ev - tgt : 0);
+            }
+            double wall_ms = wait_dev == UINT64_MAX ? IDLE_POLL_MS : (double)wait_dev / s->speed / 1000.0;
+            timeout_ms = wall_ms >= IDLE_POLL_MS ? IDLE_POLL_MS : (int)ceil(wall_ms);
+            if (timeout_ms < 1) {
+                timeout_ms = 1;
+            }
+        } else if (bp_wait) {
+            timeout_ms = 5;
+        } else if (s->tick_hz != 0 || sim_control_next_deadline() != UINT64_MAX ||
+                   sim_phys_next_event(&s->phys, s->t_us) != UINT64_MAX) {
+            timeout_ms = 0;
+        } else {
+            timeout_ms = sim_link_queued(&s->link) ? 1 : IDLE_POLL_MS;
+        }
+
+        int n = 0;
+        sim_link_t *l = &s->link;
+        int i_listen = -1, i_client = -1, i_pty = -1;
+        if (l->tcp_listen >= 0) {
+            i_listen = n;
+            pfd[n++] = (struct pollfd){l->tcp_listen, POLLIN, 0};
+        }
+        int want_out = l->os_blocked && sim_link_staged(l) > 0;
+        short in = (l->rx_head - l->rx_tail) < SIM_RX_RING ? POLLIN : 0; /* room to receive */
+        if (l->tcp_client >= 0) {
+            i_client = n;
+            pfd[n++] = (struct pollfd){l->tcp_client, (short)(in | (want_out ? POLLOUT : 0)), 0};
+        }
+        if (l->pty_master >= 0) {
+            i_pty = n;
+            pfd[n++] = (struct pollfd){l->pty_master,
+                                       (short)(in | (want_out && l->tcp_client < 0 ? POLLOUT : 0)), 0};
+        }
+        int n_ctl = sim_control_pollfds(pfd + n, (int)(sizeof pfd / sizeof pfd[0]) - n);
+        int r = poll(pfd, (nfds_t)(n + n_ctl), timeout_ms);
+        if (r < 0) {
+            if (errno == EINTR) {
+                continue;
+            }
+            sim_log("poll failed: %s", strerror(errno));
+            break;
+        }
+        if (r == 0) {
+            continue;
+        }
+        if (i_listen >= 0 && (pfd[i_listen].revents & POLLIN)) {
+            if (sim_link_accept(l) == 0) {
+                sim_log("link: TCP client connected");
+            }
+        }
+        if ((i_client >= 0 && (pfd[i_client].revents & (POLLIN | POLLHUP | POLLERR))) ||
+            (i_pty >= 0 && (pfd[i_pty].revents & POLLIN))) {
+            sim_link_receive(l);
+        }
+        sim_control_handle(pfd + n, n_ctl);
+    }
+}
+
+static char g_tmpdir[256];
+static char g_tmpflash[300];
+
+static void cleanup_tmp(void)
+{
+    if (g_tmpflash[0]) {
+        unlink(g_tmpflash);
+    }
+    if (g_tmpdir[0]) {
+        rmdir(g_tmpdir);
+    }
+}
+
+int main(int argc, char **argv)
+{
+    sim_t *s = &g_sim;
+    int want_pty = 0, tcp_port = -1, control_port = 0, have_uid = 0;
+    const char *flash_path = NULL;
+    uint8_t uid[12];
+    double speed = 1.0;
+    uint64_t seed = 1, v;
+    s->baud = SIM_DEFAULT_BAUD;
+
+    for (int i = 1; i < argc; i++) {
+        const char *a = argv[i];
+        const char *val = i + 1 < argc ? argv[i + 1] : NULL;
+        int need = 1;
+        if (!strcmp(a, "--help") || !strcmp(a, "-h")) {
+            usage(stdout);
+            return 0;
+        } else if (!strcmp(a, "--pty")) {
+            want_pty = 1;
+            need = 0;
+        } else if (val == NULL) {
+            fprintf(stderr, "imubench-sim: %s needs a value\n", a);
+            return 2;
+        } else if (!strcmp(a, "--tcp") && parse_u64(val, &v) == 0 && v <= 65535) {
+            tcp_port = (int)v;
+        } else if (!strcmp(a, "--control") && parse_u64(val, &v) == 0 && v <= 65535) {
+            control_port = (int)v;
+        } else if (!strcmp(a, "--flash")) {
+            flash_path = val;
+        } else if (!strcmp(a, "--speed")) {
+            char *end;
+            speed = strtod(val, &end);
+            if (*end || !(speed >= 0.0) || !isfinite(speed)) {
+                fprintf(stderr, "imubench-sim: bad --speed %s\n", val);
+                return 2;
+            }
+        } else if (!strcmp(a, "--seed") && parse_u64(val, &v) == 0) {
+            seed = v;
+        } else if (!strcmp(a, "--truth") && (!strcmp(val, "default") || !strcmp(val, "random"))) {
+            s->truth_random = !strcmp(val, "random");
+        } else if (!strcmp(a, "--baud") && parse_u64(val, &v) == 0 && v >= 1200 && v <= 100000000) {
+            s->baud = (uint32_t)v;
+        } else if (!strcmp(a, "--uid") && parse_uid(val, uid) == 0) {
+            have_uid = 1;
+        } else {
+            fprintf(stderr, "imubench-sim: bad option or value: %s %s\n", a, val);
+            usage(stderr);
+            return 2;
+        }
+        i += need;
+    }
+    if (!want_pty && tcp_port < 0) {
+        tcp_port = 0;
+    }
+
+    /* No orphans: exit when the parent process dies. PR_SET_PDEATHSIG alone would also fire
+     * when the parent THREAD that started us ends (e.g. a Python worker thread), so the
+     * loop checks getppid() instead, at least every 100 ms. */
+    g_parent = getppid();
+    if (g_parent == 1) {
+        g_parent = 0; /* started by init / a daemon: nothing to watch */
+    }
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = on_signal; /* no SA_RESTART: poll() returns EINTR */
+    sigemptyset(&sa.sa_mask);
+    sigaction(SIGTERM, &sa, NULL);
+    sigaction(SIGINT, &sa, NULL);
+    sigaction(SIGHUP, &sa, NULL);
+    signal(SIGPIPE, SIG_IGN);
+
+    s->seed = seed;
+    s->speed = speed;
+    if (flash_path == NULL) {
+        const char *tmp = getenv("TMPDIR");
+        snprintf(g_tmpdir, sizeof g_tmpdir, "%s/imubench-sim-XXXXXX", tmp && *tmp ? tmp : "/tmp");
+        if (mkdtemp(g_tmpdir) == NULL) {
+            fprintf(stderr, "imubench-sim: cannot create a temp dir: %s\n", strerror(errno));
+            return 1;
+        }
+        snprintf(g_tmpflash, sizeof g_tmpflash, "%s/flash.bin", g_tmpdir);
+        flash_path = g_tmpflash;
+    }
+    int rc = 1;
+    if (sim_flash_open(&s->flash, flash_path) != 0) {
+        goto out;
+    }
+    if (sim_link_open(&s->link, want_pty, tcp_port, s->baud) != 0) {
+        goto out;
+    }
+    if (sim_control_open(control_port) != 0) {
+        goto out;
+    }
+    sim_seed_models(seed, s->truth_random);
+    if (have_uid) {
+        memcpy(s->uid, uid, sizeof uid);
+    }
+    sim_phys_init(&s->phys);
+    sim_board_setup();
+
+    print_startup_line(flash_path);
+
+    s->anchor_wall_ns = sim_wall_ns();
+    s->anchor_dev_us = 0;
+    boot(SIM_RESET_NONE);
+    main_loop();
+    rc = 0;
+    sim_log("exiting (%s)", g_signal ? strsignal(g_signal) : (s->quit ? "quit" : "parent gone"));
+out:
+    sim_control_close();
+    sim_link_close(&s->link);
+    sim_flash_close(&s->flash);
+    cleanup_tmp();
+    return rc;
+}

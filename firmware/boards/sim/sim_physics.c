@@ -1,0 +1,350 @@
+/*
+ * sim_physics.c - the physical world of the virtual device: orientation on a turntable,
+ * angular rate, temperature (climate chamber), all as functions of device time.
+ *
+ * Frames (docs/conventions.md): board X forward, Y left, Z up, right-handed. The level
+ * (earth) frame has Z up. R maps board-frame vectors to the level frame, so the specific
+ * force of a still board is f_board = R^T (0, 0, g0): third row of R times g0. Lying
+ * level, R = I and f = (0, 0, +g0).
+ *
+ * "gravity" in the control channel (set_orientation {gravity}, status gravity_board) is the
+ * DIRECTION OF THE MEASURED SPECIFIC FORCE in the board frame (the "up" direction, as
+ * imubench.fakedev's gravity_board): level = [0, 0, 1], upside down = [0, 0, -1].
+ *
+ * Roll/pitch/yaw (degrees in the control channel): ZYX convention,
+ *     R = Rz(yaw) * Ry(pitch) * Rx(roll),
+ * each a right-handed rotation about the board axis (roll about X, pitch about Y, yaw
+ * about Z). With Y to the left, a positive pitch lowers the nose (X goes down):
+ * f_board = g0 * (-sin(pitch), sin(roll) cos(pitch), cos(roll) cos(pitch)).
+ *
+ * Motion: one motion at a time, about a fixed axis of the BOARD frame (a turntable with
+ * the board mounted on it): R(t) = R0 * Rot(axis, angle(t)), angle(t) = rate * (t - t0)
+ * up to the end of a finite move (rotate), or forever (set_rate). Body-fixed rotations
+ * compose on the right. The closed form is exact at any t, so the world seen by the
+ * sensors does not depend on how often it is evaluated. omega_board = rate * axis during
+ * the motion, 0 otherwise; its time integral is kept so a gyro model advanced over any
+ * interval gets the exact mean rate (sim_board.c).
+ */
+#define _GNU_SOURCE
+#include "sim.h"
+
+#include <math.h>
+#include <string.h>
+
+static void mat_identity(double r[3][3])
+{
+    memset(r, 0, 9 * sizeof(double));
+    r[0][0] = r[1][1] = r[2][2] = 1.0;
+}
+
+static void mat_mul(const double a[3][3], const double b[3][3], double out[3][3])
+{
+    double t[3][3];
+    for (int i = 0; i < 3; i++) {
+        for (int j = 0; j < 3; j++) {
+            t[i][j] = a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j];
+        }
+    }
+    memcpy(out, t, sizeof t);
+}
+
+/* Rodrigues: rotation matrix of angle th about unit axis k (right-handed). */
+static void rot_matrix(const double k[3], double th, double r[3][3])
+{
+    double c = cos(th), s = sin(th), v = 1.0 - c;
+    r[0][0] = c + k[0] * k[0] * v;
+    r[0][1] = k[0] * k[1] * v - k[2] * s;
+    r[0][2] = k[0] * k[2] * v + k[1] * s;
+    r[1][0] = k[1] * k[0] * v + k[2] * s;
+    r[1][1] = c + k[1] * k[1] * v;
+    r[1][2] = k[1] * k[2] * v - k[0] * s;
+    r[2][0] = k[2] * k[0] * v - k[1] * s;
+    r[2][1] = k[2] * k[1] * v + k[0] * s;
+    r[2][2] = c + k[2] * k[2] * v;
+}
+
+/* Rotate vector v by angle th about unit axis k. */
+static void rot_vec(const double k[3], double th, const double v[3], double out[3])
+{
+    double c = cos(th), s = sin(th);
+    double kv = k[0] * v[0] + k[1] * v[1] + k[2] * v[2];
+    double cx = k[1] * v[2] - k[2] * v[1];
+    double cy = k[2] * v[0] - k[0] * v[2];
+    double cz = k[0] * v[1] - k[1] * v[0];
+    out[0] = v[0] * c + cx * s + k[0] * kv * (1.0 - c);
+    out[1] = v[1] * c + cy * s + k[1] * kv * (1.0 - c);
+    out[2] = v[2] * c + cz * s + k[2] * kv * (1.0 - c);
+}
+
+static int normalize(const double v[3], double out[3])
+{
+    double n = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    if (!(n > 1e-12) || !isfinite(n)) {
+        return -1;
+    }
+    out[0] = v[0] / n;
+    out[1] = v[1] / n;
+    out[2] = v[2] / n;
+    return 0;
+}
+
+/* Gram-Schmidt on the rows (keeps row 2, the up direction, exact). */
+static void orthonormalize(double r[3][3])
+{
+    double z[3], x[3], y[3];
+    if (normalize(r[2], z) != 0) {
+        mat_identity(r);
+        return;
+    }
+    double d = r[0][0] * z[0] + r[0][1] * z[1] + r[0][2] * z[2];
+    double xr[3] = {r[0][0] - d * z[0], r[0][1] - d * z[1], r[0][2] - d * z[2]};
+    if (normalize(xr, x) != 0) {
+        mat_identity(r);
+        return;
+    }
+    y[0] = z[1] * x[2] - z[2] * x[1];
+    y[1] = z[2] * x[0] - z[0] * x[2];
+    y[2] = z[0] * x[1] - z[1] * x[0];
+    memcpy(r[0], x, sizeof x);
+    memcpy(r[1], y, sizeof y);
+    memcpy(r[2], z, sizeof z);
+}
+
+void sim_phys_init(sim_physics_t *p)
+{
+    memset(p, 0, sizeof *p);
+    mat_identity(p->r0);
+    p->axis[2] = 1.0;
+    p->kind = SIM_MOTION_NONE;
+    p->temp0_c = p->temp_target_c = 25.0;
+}
+
+/* Motion time elapsed at t (clamped to the motion's interval), us. */
+static uint64_t motion_elapsed_us(const sim_physics_t *p, uint64_t t_us)
+{
+    if (p->kind == SIM_MOTION_NONE || t_us <= p->t0_us) {
+        return 0;
+    }
+    uint64_t end = t_us < p->t_end_us ? t_us : p->t_end_us;
+    return end - p->t0_us;
+}
+
+static double motion_angle(const sim_physics_t *p, uint64_t t_us)
+{
+    if (p->kind == SIM_MOTION_ROTATE && t_us >= p->t_end_us) {
+        return p->angle_total_rad;
+    }
+    return p->rate_rad_s * (double)motion_elapsed_us(p, t_us) * 1e-6;
+}
+
+void sim_phys_orientation(const sim_physics_t *p, uint64_t t_us, double r[3][3])
+{
+    double th = motion_angle(p, t_us);
+    if (th == 0.0) {
+        memcpy(r, p->r0, 9 * sizeof(double));
+        return;
+    }
+    double m[3][3];
+    rot_matrix(p->axis, th, m);
+    mat_mul(p->r0, m, r);
+}
+
+void sim_phys_gravity_dir(const sim_physics_t *p, uint64_t t_us, double g[3])
+{
+    double th = motion_angle(p, t_us);
+    if (th == 0.0) {
+        memcpy(g, p->r0[2], 3 * sizeof(double));
+        return;
+    }
+    rot_vec(p->axis, -th, p->r0[2], g);
+}
+
+void sim_phys_omega(const sim_physics_t *p, uint64_t t_us, double w[3])
+{
+    int on = p->kind != SIM_MOTION_NONE && t_us >= p->t0_us && t_us < p->t_end_us;
+    for (int i = 0; i < 3; i++) {
+        w[i] = on ? p->rate_rad_s * p->axis[i] : 0.0;
+    }
+}
+
+void sim_phys_omega_integral(const sim_physics_t *p, uint64_t t_us, double out[3])
+{
+    double th = motion_angle(p, t_us);
+    for (int i = 0; i < 3; i++) {
+        out[i] = p->omega_int0[i] + th * p->axis[i];
+    }
+}
+
+double sim_phys_temperature(const sim_physics_t *p, uint64_t t_us)
+{
+    if (!(p->ramp_c_per_s > 0.0) || t_us <= p->temp_t0_us) {
+        return p->ramp_c_per_s > 0.0 ? p->temp0_c : p->temp_target_c;
+    }
+    double span = p->temp_target_c - p->temp0_c;
+    double done = p->ramp_c_per_s * (double)(t_us - p->temp_t0_us) * 1e-6;
+    if (t_us >= p->temp_end_us || done >= fabs(span)) {
+        return p->temp_target_c;
+    }
+    return p->temp0_c + (span >= 0.0 ? done : -done);
+}
+
+int sim_phys_moving(const sim_physics_t *p, uint64_t t_us)
+{
+    return p->kind == SIM_MOTION_ROTATE && t_us < p->t_end_us;
+}
+
+void sim_phys_settle(sim_physics_t *p, uint64_t t_us)
+{
+    if (p->kind == SIM_MOTION_NONE) {
+        p->t0_us = t_us;
+        return;
+    }
+    if (t_us < p->t0_us) {
+        return;
+    }
+    double r[3][3], wi[3];
+    sim_phys_orientation(p, t_us, r);
+    sim_phys_omega_integral(p, t_us, wi);
+    double done = motion_angle(p, t_us);
+    orthonormalize(r);
+    memcpy(p->r0, r, sizeof r);
+    memcpy(p->omega_int0, wi, sizeof wi);
+    if (p->kind == SIM_MOTION_ROTATE) {
+        if (t_us >= p->t_end_us) {
+            p->kind = SIM_MOTION_NONE;
+            p->rate_rad_s = 0.0;
+            p->angle_total_rad = 0.0;
+        } else {
+            p->angle_total_rad -= done;
+        }
+    }
+    p->t0_us = t_us;
+}
+
+static void stop_motion(sim_physics_t *p, uint64_t t_us)
+{
+    sim_phys_settle(p, t_us);
+    p->kind = SIM_MOTION_NONE;
+    p->rate_rad_s = 0.0;
+    p->angle_total_rad = 0.0;
+    p->t0_us = p->t_end_us = t_us;
+}
+
+int sim_phys_set_gravity(sim_physics_t *p, uint64_t t_us, const double g_in[3])
+{
+    double g[3];
+    if (normalize(g_in, g) != 0) {
+        return -1;
+    }
+    stop_motion(p, t_us);
+    /* Shortest arc: R^T = Rot(k, a) takes level up (0,0,1) to g; k = z x g. */
+    double k[3] = {-g[1], g[0], 0.0};
+    double s = sqrt(k[0] * k[0] + k[1] * k[1]);
+    double a = atan2(s, g[2]);
+    double rt[3][3];
+    if (s < 1e-12) {
+        if (g[2] > 0.0) {
+            mat_identity(rt);
+        } else {
+            const double x[3] = {1.0, 0.0, 0.0}; /* upside down: roll 180 degrees */
+            rot_matrix(x, M_PI, rt);
+        }
+    } else {
+        k[0] /= s;
+        k[1] /= s;
+        rot_matrix(k, a, rt);
+    }
+    for (int i = 0; i < 3; i++) {
+        for (int j = 0; j < 3; j++) {
+            p->r0[i][j] = rt[j][i];
+        }
+    }
+    memcpy(p->r0[2], g, sizeof g); /* exact */
+    orthonormalize(p->r0);
+    return 0;
+}
+
+void sim_phys_set_rpy(sim_physics_t *p, uint64_t t_us, double roll, double pitch, double yaw)
+{
+    static const double ex[3] = {1, 0, 0}, ey[3] = {0, 1, 0}, ez[3] = {0, 0, 1};
+    double rx[3][3], ry[3][3], rz[3][3], t[3][3];
+    stop_motion(p, t_us);
+    rot_matrix(ex, roll, rx);
+    rot_matrix(ey, pitch, ry);
+    rot_matrix(ez, yaw, rz);
+    mat_mul(rz, ry, t);
+    mat_mul(t, rx, p->r0);
+}
+
+void sim_phys_rpy(const double r[3][3], double *roll, double *pitch, double *yaw)
+{
+    double s = -r[2][0];
+    s = s > 1.0 ? 1.0 : (s < -1.0 ? -1.0 : s);
+    *pitch = asin(s);
+    *roll = atan2(r[2][1], r[2][2]);
+    *yaw = atan2(r[1][0], r[0][0]);
+}
+
+int sim_phys_rotate(sim_physics_t *p, uint64_t t_us, const double axis[3], double rate_rad_s,
+                    double duration_s)
+{
+    double k[3];
+    if (normalize(axis, k) != 0 || !isfinite(rate_rad_s) || !isfinite(duration_s) ||
+        duration_s < 0.0 || duration_s > 1e7) {
+        return -1;
+    }
+    stop_motion(p, t_us);
+    uint64_t dur_us = (uint64_t)llround(duration_s * 1e6);
+    if (dur_us == 0 || rate_rad_s == 0.0) {
+        return 0;
+    }
+    memcpy(p->axis, k, sizeof k);
+    p->angle_total_rad = rate_rad_s * duration_s;
+    /* the rate that turns exactly angle_total over the whole microseconds of the move */
+    p->rate_rad_s = p->angle_total_rad / ((double)dur_us * 1e-6);
+    p->t0_us = t_us;
+    p->t_end_us = t_us + dur_us;
+    p->kind = SIM_MOTION_ROTATE;
+    return 0;
+}
+
+void sim_phys_set_rate(sim_physics_t *p, uint64_t t_us, const double w[3])
+{
+    double n = sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]);
+    stop_motion(p, t_us);
+    if (!(n > 0.0) || !isfinite(n)) {
+        return;
+    }
+    for (int i = 0; i < 3; i++) {
+        p->axis[i] = w[i] / n;
+    }
+    p->rate_rad_s = n;
+    p->t0_us = t_us;
+    p->t_end_us = UINT64_MAX;
+    p->kind = SIM_MOTION_RATE;
+}
+
+void sim_phys_set_temperature(sim_physics_t *p, uint64_t t_us, double c, double ramp_c_per_s)
+{
+    p->temp0_c = sim_phys_temperature(p, t_us);
+    p->temp_t0_us = t_us;
+    p->temp_target_c = c;
+    p->ramp_c_per_s = ramp_c_per_s > 0.0 ? ramp_c_per_s : 0.0;
+    p->temp_end_us = t_us;
+    if (p->ramp_c_per_s > 0.0) {
+        double span_us = fabs(c - p->temp0_c) / p->ramp_c_per_s * 1e6;
+        p->temp_end_us = t_us + (span_us < 1e15 ? (uint64_t)ceil(span_us) : (uint64_t)1e15);
+    }
+}
+
+uint64_t sim_phys_next_event(const sim_physics_t *p, uint64_t t_us)
+{
+    uint64_t ev = UINT64_MAX;
+    if (p->kind == SIM_MOTION_ROTATE && p->t_end_us > t_us) {
+        ev = p->t_end_us;
+    }
+    if (p->ramp_c_per_s > 0.0 && p->temp_end_us > t_us && p->temp_end_us < ev) {
+        ev = p->temp_end_us;
+    }
+    return ev;
+}

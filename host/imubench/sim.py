@@ -1,0 +1,511 @@
+"""The virtual device: the firmware core built for Linux with register-level sensor models
+(firmware/boards/sim), driven from Python.
+
+    from imubench.sim import VirtualBench
+    from imubench.link import Device
+
+    with VirtualBench(speed=20, seed=1) as bench:         # builds and starts imubench-sim
+        with Device.open(bench.port_url) as dev:         # socket://127.0.0.1:PORT
+            dev.start_stream(rate_hz=1000)
+            bench.rotate("z", rate_dps=90, duration_s=1)  # turntable: 90 deg about board Z
+            ...
+        print(bench.get_truth())                         # what calibration should find
+
+The process runs in its own process group; `stop()` (also at exit of the with-block and at
+interpreter exit) asks it to quit, then SIGTERMs and SIGKILLs the group, and always reaps
+it. The simulator also exits by itself when its parent process dies.
+
+The control channel is JSON lines over TCP (one request, one reply per line); see
+firmware/boards/sim/sim_control.c for every command and its arguments. `control()` sends
+one and returns the reply as a dict, raising SimError when the simulator refuses it.
+"""
+from __future__ import annotations
+
+import argparse
+import atexit
+import json
+import os
+import select
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import weakref
+from pathlib import Path
+from typing import Any, Sequence
+
+__all__ = ["SimError", "VirtualBench", "build_sim", "repo_root", "main_cli"]
+
+SIM_BIN_REL = Path("build") / "host" / "imubench-sim"
+
+
+class SimError(RuntimeError):
+    """The virtual device could not be built or started, or refused a control command."""
+
+
+def repo_root() -> Path:
+    """The source checkout this package lives in (host/imubench/sim.py -> repo root)."""
+    root = Path(__file__).resolve().parent.parent.parent
+    if not (root / "Makefile").is_file() or not (root / "firmware").is_dir():
+        raise SimError(f"{root} is not an imubench source checkout: the virtual device is built "
+                       "from firmware/ with `make sim`")
+    return root
+
+
+def build_sim() -> Path:
+    """Build the simulator (`make -s sim` in the repo) and return the binary's path."""
+    root = repo_root()
+    try:
+        r = subprocess.run(["make", "-s", "-C", str(root), "sim"], capture_output=True, text=True)
+    except FileNotFoundError as e:
+        raise SimError("`make` not found: install make and a C compiler (gcc) to build the "
+                       "virtual device") from e
+    binary = root / SIM_BIN_REL
+    if r.returncode != 0 or not binary.is_file():
+        raise SimError(f"building the virtual device failed (make -s sim, exit {r.returncode}):\n"
+                       f"{r.stdout}{r.stderr}".rstrip())
+    return binary
+
+
+_LIVE: "weakref.WeakSet[VirtualBench]" = weakref.WeakSet()
+
+
+@atexit.register
+def _stop_all() -> None:
+    for b in list(_LIVE):
+        try:
+            b.close()
+        except Exception:  # noqa: BLE001 - best effort at interpreter exit
+            pass
+
+
+class VirtualBench:
+    """One simulator process (the virtual device, its turntable and climate chamber).
+
+    speed     device time per wall time (20 for CI; 1 = real time; 0 = as fast as possible)
+    seed      seed of the sensor models (noise, random truth, serial numbers, uid)
+    truth     "default" (ideal parts with datasheet noise) or "random" (errors drawn from seed)
+    flash     parameter flash file; None = a temporary file kept for this object's lifetime
+              (restart() keeps it, so saved parameters survive)
+    pty       also expose the link on a pseudo-terminal (`.pty`)
+    tcp       expose the link on TCP 127.0.0.1 (True = a free port, or a port number)
+    """
+
+    def __init__(self, speed: float = 20, seed: int = 1, truth: str = "default",
+                 flash: str | os.PathLike | None = None, pty: bool = False,
+                 baud: int = 2000000, *, tcp: bool | int = True, control_port: int = 0,
+                 uid: str | None = None, binary: str | os.PathLike | None = None,
+                 startup_timeout: float = 15.0, start: bool = True):
+        if truth not in ("default", "random"):
+            raise ValueError("truth must be 'default' or 'random'")
+        if not pty and tcp is False:
+            raise ValueError("give pty=True or tcp")
+        self.speed = speed
+        self.seed = int(seed)
+        self.truth = truth
+        self.pty_enabled = bool(pty)
+        self.baud = int(baud)
+        self.uid = uid
+        self.startup_timeout = startup_timeout
+        self._tcp_req: int | None = None if tcp is False else (0 if tcp is True else int(tcp))
+        self._control_req = int(control_port)
+        self._tmpdir = tempfile.mkdtemp(prefix="imubench-vbench-")
+        self.flash = str(Path(flash).resolve()) if flash is not None else os.path.join(self._tmpdir, "flash.bin")
+        self.log_path = os.path.join(self._tmpdir, "sim.log")
+        self._binary = Path(binary) if binary is not None else None
+        self.proc: subprocess.Popen | None = None
+        self.info: dict[str, Any] = {}
+        self._sock: socket.socket | None = None
+        self._rfile = None
+        self._lock = threading.Lock()
+        self._closed = False
+        if start:
+            self.start()
+
+    # ------------------------------------------------------------ lifecycle
+    @property
+    def binary(self) -> Path:
+        if self._binary is None:
+            self._binary = build_sim()
+        return self._binary
+
+    def start(self) -> "VirtualBench":
+        if self.proc is not None and self.proc.poll() is None:
+            raise SimError("the virtual device is already running")
+        self._start(self._tcp_req, self._control_req)
+        return self
+
+    def _start(self, tcp_port: int | None, control_port: int) -> None:
+        args = [str(self.binary), "--speed", repr(float(self.speed)), "--seed", str(self.seed),
+                "--truth", self.truth, "--flash", self.flash, "--baud", str(self.baud),
+                "--control", str(control_port)]
+        if self.pty_enabled:
+            args.append("--pty")
+        if tcp_port is not None:
+            args += ["--tcp", str(tcp_port)]
+        if self.uid:
+            args += ["--uid", self.uid]
+        log = open(self.log_path, "ab")
+        try:
+            log.write(f"--- {' '.join(args)}\n".encode())
+            log.flush()
+            self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                         stderr=log, start_new_session=True)
+        finally:
+            log.close()
+        _LIVE.add(self)
+        try:
+            line = self._read_startup_line()
+            self.info = json.loads(line)
+            self._connect_control()
+        except BaseException:
+            self._kill()
+            raise
+
+    def _read_startup_line(self) -> str:
+        assert self.proc is not None and self.proc.stdout is not None
+        fd = self.proc.stdout.fileno()
+        buf = b""
+        deadline = time.monotonic() + self.startup_timeout
+        while b"\n" not in buf:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise SimError(f"the virtual device printed no start-up line within "
+                               f"{self.startup_timeout:g} s{self._log_tail()}")
+            r, _, _ = select.select([fd], [], [], min(left, 0.2))
+            if r:
+                chunk = os.read(fd, 4096)
+                if not chunk:
+                    code = self.proc.wait(timeout=5)
+                    raise SimError(f"the virtual device exited at start-up (code {code})"
+                                   f"{self._log_tail()}")
+                buf += chunk
+        line = buf.split(b"\n", 1)[0].decode()
+        try:
+            json.loads(line)
+        except ValueError as e:
+            raise SimError(f"bad start-up line from the virtual device: {line!r}") from e
+        return line
+
+    def _connect_control(self) -> None:
+        self._disconnect_control()
+        s = socket.create_connection(("127.0.0.1", int(self.info["control_port"])), timeout=5.0)
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock = s
+        self._rfile = s.makefile("rb")
+
+    def _disconnect_control(self) -> None:
+        for obj in (self._rfile, self._sock):
+            if obj is not None:
+                try:
+                    obj.close()
+                except OSError:
+                    pass
+        self._rfile = self._sock = None
+
+    def _log_tail(self, n: int = 30) -> str:
+        try:
+            lines = Path(self.log_path).read_text(errors="replace").splitlines()[-n:]
+        except OSError:
+            return ""
+        return ("\n--- simulator log (" + self.log_path + "):\n" + "\n".join(lines)) if lines else ""
+
+    @property
+    def log(self) -> str:
+        """Everything the simulator wrote to stderr (all runs of this object)."""
+        try:
+            return Path(self.log_path).read_text(errors="replace")
+        except OSError:
+            return ""
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    @property
+    def pid(self) -> int | None:
+        return self.proc.pid if self.proc is not None else None
+
+    @property
+    def port_url(self) -> str:
+        """pyserial URL of the device's serial link (socket:// when TCP is on, else the pty)."""
+        return self.info["port_url"]
+
+    @property
+    def pty(self) -> str | None:
+        return self.info.get("pty")
+
+    @property
+    def tcp_port(self) -> int | None:
+        return self.info.get("tcp_port")
+
+    @property
+    def control_address(self) -> tuple[str, int]:
+        return ("127.0.0.1", int(self.info["control_port"]))
+
+    def stop(self, timeout: float = 3.0) -> None:
+        """Stop the process: quit command, then SIGTERM, then SIGKILL of its process group;
+        always reaps it. The flash file is kept."""
+        proc = self.proc
+        if proc is None:
+            return
+        if proc.poll() is None and self._sock is not None:
+            try:
+                self._sock.settimeout(1.0)
+                self._sock.sendall(b'{"cmd": "quit"}\n')
+                self._rfile.readline()
+            except (OSError, ValueError):
+                pass
+        self._disconnect_control()
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self._kill()
+        self._reap()
+
+    def _kill(self) -> None:
+        proc = self.proc
+        if proc is None:
+            return
+        for sig, wait in ((signal.SIGTERM, 2.0), (signal.SIGKILL, 5.0)):
+            if proc.poll() is not None:
+                break
+            try:
+                os.killpg(proc.pid, sig)    # own session: the group id is its pid
+            except ProcessLookupError:
+                break
+            try:
+                proc.wait(timeout=wait)
+            except subprocess.TimeoutExpired:
+                continue
+        self._disconnect_control()
+        self._reap()
+
+    def _reap(self) -> None:
+        proc = self.proc
+        if proc is None:
+            return
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            pass
+        if proc.stdout is not None:
+            proc.stdout.close()
+        self.proc = None
+        _LIVE.discard(self)
+
+    def restart(self) -> "VirtualBench":
+        """Stop and start again with the same flash file (saved parameters survive) and, if
+        they are still free, the same ports."""
+        old_tcp, old_ctl = self.info.get("tcp_port"), self.info.get("control_port")
+        self.stop()
+        tcp = None if self._tcp_req is None else (old_tcp if old_tcp is not None else self._tcp_req)
+        try:
+            self._start(tcp, old_ctl if old_ctl is not None else self._control_req)
+        except SimError:
+            self._start(self._tcp_req, self._control_req)
+        return self
+
+    def close(self) -> None:
+        """stop() and remove the temporary directory (and the flash file if it lives there)."""
+        self.stop()
+        if not self._closed:
+            self._closed = True
+            shutil.rmtree(self._tmpdir, ignore_errors=True)
+
+    def __enter__(self) -> "VirtualBench":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        try:
+            if self.proc is not None:
+                self._kill()
+        except Exception:  # noqa: BLE001
+            pass
+
+    # ------------------------------------------------------------ control
+    def control(self, _cmd: str | None = None, *, timeout: float | None = 10.0, **fields) -> dict:
+        """Send one control command (`control("status")` or `control(cmd="status")`) and
+        return the reply; SimError when the simulator answers ok=false or is gone."""
+        if _cmd is not None:
+            fields["cmd"] = _cmd
+        if "cmd" not in fields:
+            raise ValueError("no cmd given")
+        line = (json.dumps(fields) + "\n").encode()
+        with self._lock:
+            if not self.running:
+                raise SimError(f"the virtual device is not running{self._log_tail(10)}")
+            if self._sock is None:
+                self._connect_control()
+            try:
+                self._sock.settimeout(timeout)
+                self._sock.sendall(line)
+                reply = self._rfile.readline()
+            except (socket.timeout, TimeoutError) as e:
+                self._disconnect_control()     # a late reply must not answer the next request
+                raise SimError(f"no reply to {fields['cmd']} within {timeout} s") from e
+            except OSError as e:
+                self._disconnect_control()
+                raise SimError(f"control channel failed: {e}{self._log_tail(10)}") from e
+        if not reply:
+            self._disconnect_control()
+            raise SimError(f"the virtual device closed the control channel{self._log_tail(10)}")
+        r = json.loads(reply)
+        if not r.get("ok"):
+            raise SimError(f"{fields['cmd']}: {r.get('error', 'refused')}")
+        return r
+
+    def _wait_timeout(self, device_s: float) -> float:
+        sp = float(self.speed)
+        return 30.0 + (device_s / sp if sp > 0 else device_s / 50.0)
+
+    # convenience wrappers
+    def status(self) -> dict:
+        return self.control("status")
+
+    def set_orientation(self, gravity: Sequence[float] | None = None, roll_deg: float | None = None,
+                        pitch_deg: float | None = None, yaw_deg: float | None = None) -> dict:
+        """Gravity = direction of the measured specific force in the board frame (level:
+        [0, 0, 1]), or roll/pitch/yaw in degrees (ZYX, right-handed about board X/Y/Z)."""
+        kw: dict[str, Any] = {}
+        if gravity is not None:
+            kw["gravity"] = [float(x) for x in gravity]
+        for k, v in (("roll_deg", roll_deg), ("pitch_deg", pitch_deg), ("yaw_deg", yaw_deg)):
+            if v is not None:
+                kw[k] = float(v)
+        return self.control("set_orientation", **kw)
+
+    def rotate(self, axis: str | Sequence[float], rate_dps: float, duration_s: float,
+               wait: bool = True) -> dict:
+        """Turn about a board-frame axis ("x", "-y", or a vector) at rate_dps for duration_s
+        of device time; with wait, return when the move is over."""
+        ax = axis if isinstance(axis, str) else [float(x) for x in axis]
+        r = self.control("rotate", axis=ax, rate_dps=float(rate_dps), duration_s=float(duration_s))
+        if wait:
+            self.wait_idle(timeout=self._wait_timeout(duration_s))
+        return r
+
+    def set_rate(self, rate_dps: Sequence[float]) -> dict:
+        return self.control("set_rate", rate_dps=[float(x) for x in rate_dps])
+
+    def set_temperature(self, c: float, ramp_c_per_s: float | None = None, wait: bool = False) -> dict:
+        kw: dict[str, Any] = {"c": float(c)}
+        if ramp_c_per_s:
+            kw["ramp_c_per_s"] = float(ramp_c_per_s)
+        r = self.control("set_temperature", **kw)
+        if wait and ramp_c_per_s:
+            span = abs(float(c) - float(self.status()["temperature_c"]))
+            self.wait_idle(temperature=True, timeout=self._wait_timeout(span / float(ramp_c_per_s)))
+        return r
+
+    def set_speed(self, speed: float) -> dict:
+        r = self.control("set_speed", speed=float(speed))
+        self.speed = speed
+        return r
+
+    def set_truth(self, accel: dict | None = None, gyro: Sequence[dict | None] | dict | None = None) -> dict:
+        kw: dict[str, Any] = {}
+        if accel is not None:
+            kw["accel"] = accel
+        if gyro is not None:
+            kw["gyro"] = gyro
+        return self.control("set_truth", **kw)
+
+    def randomize_truth(self, seed: int | None = None) -> dict:
+        return self.control("randomize_truth", **({} if seed is None else {"seed": int(seed)}))
+
+    def get_truth(self) -> dict:
+        return self.control("get_truth")
+
+    def inject(self, fault: str, **kw) -> dict:
+        """inject("gyro_fault_bits", sensor="gyro_x", bits=0x10, persistent=False),
+        inject("gyro_parity", sensor="gyro_y", count=3), inject("missing", sensor="accel"),
+        inject("spi_error", sensor="gyro_z", count=5), inject("link_drop", count=100),
+        inject("link_flip", count=10), inject("clear")."""
+        return self.control("inject", fault=fault, **kw)
+
+    def clear_faults(self) -> dict:
+        return self.inject("clear")
+
+    def power_cut(self, after_flash_ops: int | None = None) -> dict:
+        """Cut the power now, or during the after_flash_ops-th next flash operation."""
+        if after_flash_ops is None:
+            return self.control("power_cut")
+        return self.control("power_cut", after_flash_ops=int(after_flash_ops))
+
+    def flash_ops(self) -> int:
+        """Flash operations (program or erase calls) since the device last booted."""
+        return int(self.control("flash_ops")["flash_ops"])
+
+    def wait(self, device_s: float) -> dict:
+        """Return after device_s seconds of device time."""
+        return self.control("wait", device_s=float(device_s), timeout=self._wait_timeout(device_s))
+
+    def wait_idle(self, temperature: bool = False, timeout: float | None = 600.0) -> dict:
+        """Return when no move (and with temperature=True, no temperature ramp) is running."""
+        return self.control("wait_idle", temperature=bool(temperature), timeout=timeout)
+
+    def device(self, **kw):
+        """An imubench.link.Device connected to this bench's link."""
+        from .link import Device
+        return Device.open(self.port_url, **kw)
+
+    def __repr__(self) -> str:
+        state = f"pid {self.pid}" if self.running else "stopped"
+        return f"<VirtualBench {self.info.get('port_url', '?')} speed={self.speed} seed={self.seed} {state}>"
+
+
+# ---------------------------------------------------------------- command line
+def main_cli(argv: Sequence[str] | None = None) -> int:
+    """`imubench sim`: run the virtual device until Ctrl-C."""
+    ap = argparse.ArgumentParser(prog="imubench sim", description="run the virtual device "
+                                 "(firmware core + sensor models) on a TCP port and/or a pty")
+    ap.add_argument("--speed", type=float, default=1.0, help="device time per wall time (default 1; 0 = max)")
+    ap.add_argument("--seed", type=int, default=1, help="seed of the sensor models (default 1)")
+    ap.add_argument("--truth", choices=("default", "random"), default="default",
+                    help="ideal parts (default) or random errors drawn from the seed")
+    ap.add_argument("--flash", help="parameter flash file (default: a temporary file)")
+    ap.add_argument("--pty", action="store_true", help="expose the link on a pseudo-terminal")
+    ap.add_argument("--tcp", type=int, default=None, metavar="PORT",
+                    help="expose the link on TCP 127.0.0.1:PORT (0 = free port; default when no --pty)")
+    ap.add_argument("--control", type=int, default=0, metavar="PORT", help="control channel port (default free)")
+    ap.add_argument("--baud", type=int, default=2000000, help="link speed (default 2000000)")
+    a = ap.parse_args(argv)
+    tcp: bool | int = a.tcp if a.tcp is not None else (False if a.pty else True)
+    try:
+        bench = VirtualBench(speed=a.speed, seed=a.seed, truth=a.truth, flash=a.flash, pty=a.pty,
+                             baud=a.baud, tcp=tcp, control_port=a.control)
+    except SimError as e:
+        print(f"imubench sim: {e}", file=sys.stderr)
+        return 1
+    def _term(signum, frame):              # SIGTERM: leave through the with-block's cleanup
+        raise KeyboardInterrupt
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _term)
+    with bench:
+        print(f"virtual device (firmware core + sensor models, speed {a.speed:g}) on {bench.port_url}", flush=True)
+        if bench.pty and bench.pty != bench.port_url:
+            print(f"  also on the pseudo-terminal {bench.pty}", flush=True)
+        host, port = bench.control_address
+        print(f"control channel (JSON lines): {host}:{port}", flush=True)
+        print(f"flash file: {bench.flash}", flush=True)
+        print(f"try: IMUBENCH_PORT={bench.port_url} imubench monitor", flush=True)
+        try:
+            while bench.running:
+                time.sleep(0.5)
+            print(f"imubench sim: the virtual device exited{bench._log_tail(10)}", file=sys.stderr)
+            return 1
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main_cli())
