@@ -15,6 +15,7 @@ id without running the command twice), then raises LinkTimeout. A nack raises De
 from __future__ import annotations
 
 import os
+import select
 import threading
 import time
 from collections import deque
@@ -102,7 +103,10 @@ class Link:
     def __init__(self, url: str | None = None, baudrate: int = DEFAULT_BAUD, capture: BinaryIO | None = None):
         self.url = resolve_port(url)
         try:
-            self.port = serial.serial_for_url(self.url, baudrate=baudrate, timeout=0.02, write_timeout=2.0)
+            # non-blocking reads: the reader thread waits in select() on the port's descriptor
+            # and then takes everything available at once (pyserial's in_waiting is only
+            # 0 or 1 for socket:// URLs, so it cannot size the reads)
+            self.port = serial.serial_for_url(self.url, baudrate=baudrate, timeout=0, write_timeout=2.0)
         except (serial.SerialException, ValueError, OSError) as e:
             raise LinkError(f"cannot open {self.url}: {e}") from e
         self.decoder = StreamDecoder()
@@ -121,12 +125,24 @@ class Link:
         self._write(b"\0")     # ends any partial frame the device holds (protocol/SPEC.md, Framing)
 
     # ----------------------------------------------------------------- reading
+    def _wait_readable(self) -> None:
+        """Block until the port may have data (or 50 ms pass)."""
+        try:
+            fd = self.port.fileno()
+        except (AttributeError, OSError, ValueError, NotImplementedError):
+            fd = None
+        if fd is None:
+            time.sleep(0.002)       # URL handlers without a descriptor (rfc2217, loop)
+        else:
+            select.select([fd], [], [], 0.05)
+
     def _reader(self) -> None:
         port = self.port
         try:
             while not self._stop.is_set():
-                data = port.read(max(1, min(port.in_waiting, 1 << 16)))
+                data = port.read(1 << 16)
                 if not data:
+                    self._wait_readable()
                     continue
                 if self.capture is not None:
                     self.capture.write(data)
