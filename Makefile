@@ -61,14 +61,16 @@ $(SIM_BIN): $(SIM_SRC) $(HOST)/libfw.a $(wildcard firmware/boards/sim/*.h)
 
 sim: system-deps $(SIM_BIN)
 
-test: system-deps venv c-tests
+test: system-deps venv c-tests sim
 	$(PY) -m pytest
 
-demo: system-deps venv
+demo: system-deps venv sim
 	$(PY) -m imubench.demo
 
 clean:
 	rm -rf $(BUILD)
+
+include firmware/arm.mk
 
 # Benchmarks print figures; they are not part of `make test`.
 bench: venv

@@ -329,13 +329,18 @@ static void batch_begin(ib_core_t *c, uint32_t t_us)
             c->accel_temp_counts = (uint16_t)(((t[0] & 0x0Fu) << 8) | t[1]);
         } else {
             c->batch_spi_error |= 1u;
+            c->stats.spi_errors++;
         }
     }
     for (int k = 0; k < 3; k++) {
         if (c->present & (1u << (1 + k))) {
             int16_t raw10;
-            if (ib_adxrs450_read_temp(&c->gyro[k], &raw10) == IB_ADXRS450_OK) {
+            ib_adxrs450_err_t e = ib_adxrs450_read_temp(&c->gyro[k], &raw10);
+            if (e == IB_ADXRS450_OK) {
                 c->gyro_temp_raw10[k] = raw10;
+            } else if (e == IB_ADXRS450_ERR_BUS) {
+                c->batch_spi_error |= (uint8_t)(1u << (1 + k));
+                c->stats.spi_errors++;
             }
         }
     }
@@ -353,6 +358,9 @@ static void batch_send(ib_core_t *c)
     int cal = c->stream_state == IB_STREAM_STATE_CALIBRATED;
     size_t rsize = cal ? IB_CAL_SAMPLE_SIZE : IB_RAW_SAMPLE_SIZE;
     c->batch_hdr.count = c->batch_n;
+    if (c->batch_spi_error) {
+        c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SPI_ERROR;
+    }
     ib_batch_header_pack(&c->batch_hdr, c->batch_buf + IB_HEADER_SIZE);
     size_t payload = IB_BATCH_HEADER_SIZE + (size_t)c->batch_n * rsize;
     report_faults(c);
@@ -631,7 +639,7 @@ static uint8_t do_self_test(ib_core_t *c, ib_msg_self_test_result_t *r)
         r->tested |= (uint8_t)(1u << (1 + k));
         /* the CHK sequence is part of the start-up: run it again */
         ib_adxrs450_err_t e = ib_adxrs450_init(&c->gyro[k], c->board->spi, (uint8_t)(IB_CS_GYRO_X + k));
-        r->gyro_chk_faults[k] = (uint8_t)(c->gyro[k].faults_seen & 0xFEu);
+        r->gyro_chk_faults[k] = c->gyro[k].chk_faults;
         if (e == IB_ADXRS450_OK) {
             r->passed |= (uint8_t)(1u << (1 + k));
         }

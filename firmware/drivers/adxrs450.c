@@ -310,6 +310,7 @@ ib_adxrs450_err_t ib_adxrs450_init(ib_adxrs450_t *dev, const ib_spi_bus_t *bus, 
         dev->last_response = w[3];
         return IB_ADXRS450_ERR_MISSING;
     }
+    dev->chk_faults = (uint8_t)(w[2] & w[3] & IB_ADXRS450_FAULT_LOW_MASK);
     e = check_chk_reply(dev, w[2]);
     if (e == IB_ADXRS450_OK) {
         e = check_chk_reply(dev, w[3]);

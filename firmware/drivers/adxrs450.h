@@ -155,6 +155,8 @@ typedef struct ib_adxrs450 {
     uint32_t last_response;   /* the last response word the driver evaluated */
     uint32_t parity_errors;   /* responses that failed P0/P1 (all evaluated replies) */
     uint32_t bus_errors;      /* transfer() failures */
+    uint8_t chk_faults;       /* fault bits 7:1 present in BOTH start-up CHK replies
+                               * (0xFE when the continuous self-test raised all seven) */
     uint16_t faults_seen;     /* sticky OR of the fault bits of every reply with good
                                * parity, including discarded replies; clear it with
                                * ib_adxrs450_clear_faults_seen() */

@@ -3,6 +3,7 @@
     imubench decode FILE [--npz OUT] [--csv OUT] [--json]   decode a recorded byte stream
     imubench monitor [--port URL] [--rate HZ] [--calibrated] [--duration S] [--record FILE]
     imubench info [--port URL]                               device information
+    imubench sim [--speed X] [--seed N] [--truth default|random] [--pty]   the virtual device
     imubench fake [--speed X]                                run the Python fake device on a pty
 
 --port takes any pyserial URL (/dev/ttyUSB0, socket://HOST:PORT, rfc2217://..., spy://...)
@@ -209,6 +210,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("info", help="show device information")
     _port_arg(p)
     p.set_defaults(fn=cmd_info)
+    for name, (_, _, helptext) in DELEGATED.items():
+        sub.add_parser(name, help=helptext, add_help=False)
     p = sub.add_parser("fake", help="run the Python fake device on a pseudo-terminal")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--speed", type=float, default=1.0)
@@ -216,7 +219,18 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+# Subcommands that own their whole argument list (their modules parse it).
+DELEGATED = {
+    "sim": ("imubench.sim", "main_cli", "run the virtual device (firmware core + sensor models)"),
+}
+
+
 def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in DELEGATED:
+        import importlib
+        module, fn, _ = DELEGATED[argv[0]]
+        return getattr(importlib.import_module(module), fn)(argv[1:])
     a = build_parser().parse_args(argv)
     try:
         return a.fn(a)

@@ -346,6 +346,14 @@ class Device:
         raise LinkTimeout(f"device did not announce itself within {wait_s} s of reboot")
 
     # ----------------------------------------------------------------- samples
+    def discard_buffered(self) -> None:
+        """Drop every sample received but not yet read (e.g. after changing the board's
+        attitude, to read only what comes after). The stream keeps running."""
+        with self.link._cond:
+            self.link.decoder.take_samples(False)
+            self.link.decoder.take_samples(True)
+        self._leftover.clear()
+
     def read(self, n_samples: int | None = None, duration_s: float | None = None,
              calibrated: bool | None = None, timeout: float | None = None) -> SampleBlock:
         """Collect samples of the running stream: n_samples of them, or for duration_s of

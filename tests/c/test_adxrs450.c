@@ -271,6 +271,7 @@ static void test_startup_each_chip(void)
         CHECK(g[i].serial != 0u);
         CHECK_EQ_INT(g[i].startup_fault, 0);
         CHECK_EQ_INT(g[i].parity_errors, 0);
+        CHECK_EQ_INT(g[i].chk_faults, 0xFE); /* CHK raised all seven fault bits */
         /* frames: CHK, SD x3, FAULT x2, PID x2, SNH x2, SNL x2, all on this chip */
         CHECK_EQ_INT(B.nframes, 12);
         static const uint32_t expect[12] = {0x20000003u, 0x20000000u, 0x20000000u,
