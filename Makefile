@@ -70,7 +70,6 @@ demo: system-deps venv sim
 clean:
 	rm -rf $(BUILD)
 
-include firmware/arm.mk
 
 # Benchmarks print figures; they are not part of `make test`.
 bench: venv
