@@ -76,4 +76,5 @@ bench: venv
 	@bash tools/ensure-system-deps.sh valgrind
 	@$(PY) -m pip install -q --disable-pip-version-check -e '.[bench]'
 	$(PY) bench/decode_throughput.py
+	$(PY) bench/sim_stream.py
 	$(PY) bench/core_instructions.py
