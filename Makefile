@@ -10,7 +10,7 @@ BUILD  := build
 HOST   := $(BUILD)/host
 
 # Debian packages the host build and tests need (installed when missing, as root).
-SYSTEM_PKGS := gcc make libc6-dev
+SYSTEM_PKGS := gcc make libc6-dev cppcheck
 
 CC_HOST  ?= gcc
 CFLAGS_HOST := -std=c11 -O2 -g -Wall -Wextra -Werror -Wshadow -Wstrict-prototypes \
@@ -22,7 +22,7 @@ FW_PORTABLE_OBJ := $(patsubst %.c,$(HOST)/obj/%.o,$(FW_PORTABLE_SRC))
 C_TEST_SRC := $(wildcard tests/c/test_*.c)
 C_TEST_BIN := $(patsubst tests/c/%.c,$(HOST)/tests/%,$(C_TEST_SRC)) $(HOST)/tests/vector_harness
 
-.PHONY: all test demo venv system-deps c-tests clean bench sim
+.PHONY: all test demo venv system-deps c-tests clean bench sim lint
 
 all: c-tests
 
@@ -60,6 +60,12 @@ $(SIM_BIN): $(SIM_SRC) $(HOST)/libfw.a $(wildcard firmware/boards/sim/*.h)
 	$(CC_HOST) $(CFLAGS_HOST) -Ifirmware/boards/sim $(SIM_SRC) $(HOST)/libfw.a -lm -o $@
 
 sim: system-deps $(SIM_BIN)
+
+# Static analysis of every firmware C file (portable code, drivers, boards).
+CPPCHECK_DIRS := $(wildcard firmware/core firmware/drivers firmware/boards/sim firmware/boards/stm32f1 firmware/boards/stm32f4 firmware/boards/common_arm)
+lint: system-deps
+	cppcheck --enable=warning,style,performance,portability --error-exitcode=1 --inline-suppr --quiet \
+	    -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim -Ifirmware/boards/sim/models $(CPPCHECK_DIRS)
 
 test: system-deps venv c-tests sim
 	$(PY) -m pytest

@@ -434,3 +434,27 @@ def test_link_corruption_is_counted_and_never_accepted(vb, dev):
     assert np.all(np.abs(acc[:, 2] - U.G0_MPS2) < 8 * sigma)
     assert np.all(np.abs(acc[:, :2]) < 8 * sigma)
     assert np.all(np.diff(b.sample_index) >= 1)
+
+
+def test_a_link_too_slow_for_the_stream_drops_whole_batches_and_says_so():
+    """At 115200 baud a 4 kHz raw stream (650 kbit/s) cannot fit: the device drops whole
+    batches, counts them, flags the next batch, and the host sees exactly those gaps."""
+    with VirtualBench(speed=20, seed=2, baud=115200) as vb, _connect(vb) as d:
+        d.start_stream(4000)
+        b = d.read(n_samples=20000, timeout=60)
+        d.stop_stream()
+        time.sleep(0.3)
+        d.discard_buffered()             # take (and count) everything that arrived
+        dev_stats = d.stats()
+        host = d.link.decoder.stats
+    assert dev_stats.samples_dropped > 0 and dev_stats.frames_dropped > 0
+    assert host.frames_rejected == 0                     # nothing cut or corrupted
+    gaps = np.diff(b.sample_index)
+    assert (gaps > 1).any()
+    assert 0 < int((gaps - 1).sum()) <= host.samples_missing
+    after_gap = np.flatnonzero(gaps > 1) + 1
+    assert (b.sensor_flags[after_gap] & BatchFlags.SAMPLES_DROPPED).all()
+    # every sample the device produced and did not drop arrived; the host's gaps are the
+    # device's drops (drops after the last batch that arrived show in no gap)
+    assert host.samples == dev_stats.samples_produced - dev_stats.samples_dropped
+    assert host.samples_missing <= dev_stats.samples_dropped

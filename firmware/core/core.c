@@ -96,6 +96,7 @@ static uint8_t check_triad(const float m[9], const float b[3], const float btc[3
                            float t_ref, float bias_max, float btc_max, ib_triad_corr_t *out)
 {
     ib_triad_corr_t t;
+    memset(&t, 0, sizeof t);
     if (invert3(m, t.m_inv) != 0) {
         return IB_ERROR_PARAM_ILL_CONDITIONED;
     }

@@ -75,7 +75,7 @@ static const char *parse_string(parser_t *ps)
     char *in = ps->p + 1, *out = in, *start = in;
     for (;;) {
         unsigned char c = (unsigned char)*in;
-        if (c == '\0' || c < 0x20) {
+        if (c < 0x20) { /* includes the terminating NUL */
             ps->d->error = "bad string";
             return NULL;
         }
