@@ -392,7 +392,7 @@ static void sample(ib_core_t *c, uint32_t t_us)
     if (c->present & 1u) {
         /* every set the FIFO collected since the last tick, in chunks of 8 (small stack) */
         int32_t sets[8][3];
-        int64_t sum[3] = {0, 0, 0};
+        int32_t sum[3] = {0, 0, 0}; /* <= 40 sets of 20-bit values: |sum| < 2^25 */
         size_t total = 0, n = 0;
         int err = IB_ADXL355_OK;
         uint8_t st_or = 0;
@@ -415,10 +415,10 @@ static void sample(ib_core_t *c, uint32_t t_us)
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_ACCEL_STALE;
             status |= IB_SAMPLE_STATUS_ACCEL_BAD;
         } else {
-            int64_t h = (int64_t)total / 2;
+            const int32_t n_sets = (int32_t)total, h = n_sets / 2; /* 32-bit: no libgcc divide */
             for (int k = 0; k < 3; k++) {
                 /* rounded mean, symmetric about zero */
-                acc[k] = (int32_t)(sum[k] >= 0 ? (sum[k] + h) / (int64_t)total : -((-sum[k] + h) / (int64_t)total));
+                acc[k] = sum[k] >= 0 ? (sum[k] + h) / n_sets : -((-sum[k] + h) / n_sets);
                 c->accel_last[k] = acc[k];
             }
         }
