@@ -67,7 +67,7 @@ lint: system-deps
 	cppcheck --enable=warning,style,performance,portability --error-exitcode=1 --inline-suppr --quiet \
 	    -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim -Ifirmware/boards/sim/models $(CPPCHECK_DIRS)
 
-test: system-deps venv c-tests sim
+test: system-deps venv c-tests sim firmware
 	$(PY) -m pytest
 
 demo: system-deps venv sim
@@ -76,6 +76,7 @@ demo: system-deps venv sim
 clean:
 	rm -rf $(BUILD)
 
+include firmware/arm.mk
 
 # Benchmarks print figures; they are not part of `make test`.
 bench: venv
