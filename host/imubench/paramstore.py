@@ -1,0 +1,239 @@
+"""Parameter-store records built on the host, byte for byte as the firmware writes them.
+
+The firmware keeps its calibration block in two flash slots (firmware/core/param_store.h).
+This module builds and checks such records in Python, e.g. to preload a parameter page into
+QEMU (`-device loader,file=page.bin,addr=0x0801F800,force-raw=on`, see imubench.qemu) or to
+prepare a factory image. Record layout, store format 1 (all little-endian; a = max(4,
+program_unit)):
+
+    offset   size  field
+    0        4     magic 0x53504249 ('I' 'B' 'P' 'S')
+    4        2     format 1
+    6        2     payload_version (the parameter block version, PARAM_BLOCK_VERSION)
+    8        4     generation (newer wins, serial-number arithmetic; 0 is never written)
+    12       2     payload_len N
+    14       1     flags (bit 0 CLEARED: a factory reset, N == 0)
+    15       1     crc_salt: smallest of 0, 1, 2 giving a CRC that is neither 0 nor 0xFFFFFFFF
+    16       N     payload (the params block, protocol_gen.Params packed, 160 bytes)
+    16+N     P     zero padding up to crc_off = round_up(16 + N, a)
+    crc_off  4     CRC-32C over bytes [0, crc_off)
+    +4       a-4   zero padding (program_unit > 4 only)
+
+tests/test_qemu.py checks these bytes against the C store (ib_ps_save / ib_ps_load).
+
+    python -m imubench.paramstore --layout qemu-f1 -o page.bin            # identity params
+    python -m imubench.paramstore --layout f4 --params cal.json -o page.bin
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import struct
+import sys
+from dataclasses import dataclass
+
+import crcmod.predefined
+
+from .protocol_gen import PARAM_BLOCK_VERSION, Params
+
+MAGIC = 0x53504249
+FORMAT = 1
+HEADER_SIZE = 16
+FLAG_CLEARED = 0x01
+MAX_PROGRAM_UNIT = 32
+HEADER = struct.Struct("<IHHIHBB")
+
+_crc32c = crcmod.predefined.mkCrcFun("crc-32c")
+
+
+def crc32c(data: bytes) -> int:
+    """CRC-32C as ib_crc32c(0, data, len) computes it (check value 0xE3069283)."""
+    return _crc32c(bytes(data))
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where a board keeps its two slots (firmware/boards/*/*.ld, flash_if.h)."""
+    slots: tuple[int, int]
+    slot_size: int
+    program_unit: int
+
+
+LAYOUTS: dict[str, Layout] = {
+    # STM32F103C8 image (64 KiB map, also fine on an RB): the last two 1 KiB pages
+    "f103": Layout((0x0800F800, 0x0800FC00), 1024, 2),
+    # QEMU stm32vldiscovery (128 KiB) and a 128 KiB F103RB layout
+    "qemu-f1": Layout((0x0801F800, 0x0801FC00), 1024, 2),
+    # STM32F405/407: sectors 10 and 11, 4 KiB used, x32 programming
+    "f4": Layout((0x080C0000, 0x080E0000), 4096, 4),
+    "qemu-f4": Layout((0x080C0000, 0x080E0000), 4096, 4),
+}
+
+
+def _check_pu(program_unit: int) -> int:
+    if program_unit < 1 or program_unit > MAX_PROGRAM_UNIT or program_unit & (program_unit - 1):
+        raise ValueError(f"program_unit must be a power of two in 1..{MAX_PROGRAM_UNIT}, not {program_unit}")
+    return max(4, program_unit)
+
+
+def _round_up(x: int, a: int) -> int:
+    return (x + a - 1) // a * a
+
+
+def record_size(payload_len: int, program_unit: int) -> int:
+    """Bytes a record with a payload_len-byte payload occupies (ib_ps_record_size)."""
+    a = _check_pu(program_unit)
+    return _round_up(HEADER_SIZE + payload_len, a) + a
+
+
+def max_payload(slot_size: int, program_unit: int) -> int:
+    """Largest payload a slot holds (ib_ps_max_payload)."""
+    a = _check_pu(program_unit)
+    return min(0xFFFF, ((slot_size - a) // a) * a - HEADER_SIZE)
+
+
+def build_record(payload: bytes, *, generation: int = 1, payload_version: int = PARAM_BLOCK_VERSION,
+                 program_unit: int = 4, flags: int = 0) -> bytes:
+    """One record exactly as ib_ps_save (flags 0) / ib_ps_clear (flags CLEARED) writes it."""
+    payload = bytes(payload)
+    a = _check_pu(program_unit)
+    n = len(payload)
+    if n > 0xFFFF:
+        raise ValueError("payload longer than 65535 bytes")
+    if flags & ~FLAG_CLEARED:
+        raise ValueError(f"unknown flag bits 0x{flags:02X}")
+    if flags & FLAG_CLEARED and n:
+        raise ValueError("a cleared record carries no payload")
+    if not 0 < generation <= 0xFFFFFFFF:
+        raise ValueError("generation must be 1..2^32-1 (0 means 'none' and is never written)")
+    if not 0 <= payload_version <= 0xFFFF:
+        raise ValueError("payload_version must fit 16 bits")
+    crc_off = _round_up(HEADER_SIZE + n, a)
+    pad = bytes(crc_off - HEADER_SIZE - n)
+    for salt in (0, 1, 2):
+        body = HEADER.pack(MAGIC, FORMAT, payload_version, generation, n, flags, salt) + payload + pad
+        crc = crc32c(body)
+        if crc not in (0, 0xFFFFFFFF):
+            break
+    return body + struct.pack("<I", crc) + bytes(a - 4)
+
+
+def params_payload(p: Params) -> bytes:
+    """The 160-byte parameter block (ib_params_pack)."""
+    return Params.STRUCT.pack(*p.values())
+
+
+def params_record(p: Params, *, generation: int = 1, program_unit: int = 4) -> bytes:
+    return build_record(params_payload(p), generation=generation, payload_version=PARAM_BLOCK_VERSION,
+                        program_unit=program_unit)
+
+
+def cleared_record(*, generation: int = 1, program_unit: int = 4) -> bytes:
+    """A factory-reset record (ib_ps_clear)."""
+    return build_record(b"", generation=generation, payload_version=0, program_unit=program_unit,
+                        flags=FLAG_CLEARED)
+
+
+def slot_image(record: bytes, slot_size: int, fill: int = 0xFF) -> bytes:
+    """A whole slot: the record, then `fill` (0xFF = erased NOR flash) up to slot_size."""
+    if len(record) > slot_size:
+        raise ValueError(f"record of {len(record)} bytes does not fit a {slot_size}-byte slot")
+    return bytes(record) + bytes([fill]) * (slot_size - len(record))
+
+
+@dataclass
+class Record:
+    generation: int
+    payload_version: int
+    flags: int
+    salt: int
+    payload: bytes
+
+    @property
+    def cleared(self) -> bool:
+        return bool(self.flags & FLAG_CLEARED)
+
+    def params(self) -> Params:
+        if len(self.payload) != Params.SIZE:
+            raise ValueError(f"payload is {len(self.payload)} bytes, a params block {Params.SIZE}")
+        return Params.from_values(Params.STRUCT.unpack(self.payload))
+
+
+class InvalidRecord(ValueError):
+    def __init__(self, state: str, detail: str = ""):
+        super().__init__(f"{state}: {detail}" if detail else state)
+        self.state = state  # the C store's slot state name (ib_ps_slot_state_name)
+
+
+def parse_record(slot: bytes, *, program_unit: int = 4, slot_size: int | None = None) -> Record:
+    """Validate a slot's contents as ps_check_slot() does; raises InvalidRecord with the
+    C store's reason ('blank', 'bad magic', 'bad crc', ...)."""
+    slot = bytes(slot)
+    a = _check_pu(program_unit)
+    slot_size = len(slot) if slot_size is None else slot_size
+    if len(slot) < HEADER_SIZE:
+        raise InvalidRecord("read error", "shorter than a header")
+    hdr = slot[:HEADER_SIZE]
+    if hdr in (bytes(HEADER_SIZE), b"\xff" * HEADER_SIZE):
+        raise InvalidRecord("blank")
+    magic, fmt, pv, gen, n, flags, salt = HEADER.unpack(hdr)
+    if magic != MAGIC:
+        raise InvalidRecord("bad magic", f"0x{magic:08X}")
+    if fmt != FORMAT:
+        raise InvalidRecord("unsupported format", str(fmt))
+    if flags & ~FLAG_CLEARED or (flags & FLAG_CLEARED and n):
+        raise InvalidRecord("bad header", f"flags 0x{flags:02X}, payload_len {n}")
+    if n > max_payload(slot_size, program_unit):
+        raise InvalidRecord("bad length", str(n))
+    crc_off = _round_up(HEADER_SIZE + n, a)
+    if len(slot) < crc_off + a:
+        raise InvalidRecord("read error", "slot shorter than the record")
+    stored = struct.unpack_from("<I", slot, crc_off)[0]
+    if stored in (0, 0xFFFFFFFF):
+        raise InvalidRecord("incomplete")
+    if any(slot[crc_off + 4:crc_off + a]) or stored != crc32c(slot[:crc_off]):
+        raise InvalidRecord("bad crc")
+    return Record(gen, pv, flags, salt, slot[HEADER_SIZE:HEADER_SIZE + n])
+
+
+def _params_from_json(path: str) -> Params:
+    with open(path) as f:
+        d = json.load(f)
+    base = _identity()
+    kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
+    unknown = set(kw) - set(base.__dataclass_fields__)
+    if unknown:
+        raise ValueError(f"unknown parameter fields: {', '.join(sorted(unknown))}")
+    return Params(**{**base.__dict__, **kw})
+
+
+def _identity() -> Params:
+    from .params import identity
+    return identity()
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m imubench.paramstore",
+                                 description="build a parameter-store slot image (firmware/core/param_store.h)")
+    ap.add_argument("--layout", choices=sorted(LAYOUTS), required=True, help="flash layout of the image")
+    ap.add_argument("--params", help="JSON object of protocol_gen.Params fields (default: identity)")
+    ap.add_argument("--generation", type=int, default=1)
+    ap.add_argument("--cleared", action="store_true", help="a factory-reset record instead")
+    ap.add_argument("--fill", type=lambda s: int(s, 0), default=0xFF, help="byte after the record (default 0xFF)")
+    ap.add_argument("-o", "--output", required=True)
+    a = ap.parse_args(argv)
+    lay = LAYOUTS[a.layout]
+    if a.cleared:
+        rec = cleared_record(generation=a.generation, program_unit=lay.program_unit)
+    else:
+        p = _params_from_json(a.params) if a.params else _identity()
+        rec = params_record(p, generation=a.generation, program_unit=lay.program_unit)
+    with open(a.output, "wb") as f:
+        f.write(slot_image(rec, lay.slot_size, a.fill))
+    print(f"{a.output}: {len(rec)}-byte record in a {lay.slot_size}-byte slot; load it at "
+          f"0x{lay.slots[0]:08X} (slot 0) or 0x{lay.slots[1]:08X} (slot 1)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
