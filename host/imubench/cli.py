@@ -4,6 +4,8 @@
     imubench monitor [--port URL] [--rate HZ] [--calibrated] [--duration S] [--record FILE]
     imubench info [--port URL]                               device information
     imubench sim [--speed X] [--seed N] [--truth default|random] [--pty]   the virtual device
+    imubench qemu --board f103|f4 [--params FILE]            the ARM image under QEMU
+    imubench flash --board f103|f4 [--probe openocd|stlink|serial] [--port DEV] [--dry-run]
     imubench fake [--speed X]                                run the Python fake device on a pty
 
 --port takes any pyserial URL (/dev/ttyUSB0, socket://HOST:PORT, rfc2217://..., spy://...)
@@ -222,6 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
 # Subcommands that own their whole argument list (their modules parse it).
 DELEGATED = {
     "sim": ("imubench.sim", "main_cli", "run the virtual device (firmware core + sensor models)"),
+    "qemu": ("imubench.qemu", "main_qemu", "run the real STM32 firmware image under qemu-system-arm"),
+    "flash": ("imubench.flash", "main_flash", "write the firmware to a board (openocd, st-flash, stm32flash)"),
 }
 
 
