@@ -1,0 +1,829 @@
+"""Calibration history: every finished session's result record, per device, in SQLite.
+
+    imubench history [DEVICE] [--db PATH] [--json]
+
+Without DEVICE: the devices the database knows (MCU UID, board, number of runs, last
+calibration). With DEVICE (the full MCU UID, a unique prefix of it of at least 4 hex
+digits, or one of its gyro serial numbers): every run in time order, then how bias and
+scale moved from session to session, flagged where a change is larger than 3 combined
+sigmas (a real drift, not the noise of the two fits).
+
+The database lives in the user's data directory (platformdirs:
+`user_data_dir("imubench")/history.sqlite`) unless a path is given (`History(path)`,
+`--db`). It runs in WAL mode, so readers (another `imubench history`) never block a
+session that is recording, and every write is one transaction: a crash or an exception
+leaves either the whole run or nothing.
+
+Units as docs/conventions.md: stored parameters are SI (m/s², rad/s); the report converts at
+the edge (mg, °/s, ppm = 1e-6 of the dimensionless M).
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import math
+import re
+import sqlite3
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from . import units as U
+
+SCHEMA_VERSION = 1          # of the database (tables below)
+RECORD_SCHEMA = 1           # of the result record a calibration session produces
+DRIFT_SIGMAS = 3.0          # a change is flagged when |change| > DRIFT_SIGMAS * combined sigma
+MIN_PREFIX = 4              # hex digits of an MCU UID prefix
+_AXES = ("x", "y", "z")
+
+_DDL = """
+CREATE TABLE IF NOT EXISTS schema_version (
+    version     INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS devices (
+    id          INTEGER PRIMARY KEY,
+    mcu_uid     TEXT NOT NULL UNIQUE,       -- lower-case hex
+    board       TEXT,
+    accel_ids   TEXT,                       -- JSON, as of the latest run
+    gyro_pid    TEXT,                       -- JSON
+    gyro_sn     TEXT,                       -- JSON
+    first_seen  TEXT NOT NULL,              -- UTC ISO 8601 of the first run's start
+    last_seen   TEXT NOT NULL               -- ... of the latest run's start
+);
+CREATE TABLE IF NOT EXISTS runs (
+    id                        INTEGER PRIMARY KEY,
+    device_id                 INTEGER NOT NULL REFERENCES devices(id),
+    started                   TEXT NOT NULL,    -- UTC, fixed width: sorts as text
+    finished                  TEXT,             -- UTC
+    method                    TEXT NOT NULL,
+    gyro_method               TEXT,
+    accel_m                   TEXT NOT NULL,    -- JSON 3x3
+    accel_b_mps2              TEXT NOT NULL,    -- JSON [3]
+    accel_sigma_m             TEXT,
+    accel_sigma_b_mps2        TEXT,
+    accel_residual_rms_mps2   REAL,
+    gyro_m                    TEXT,
+    gyro_b_rad_s              TEXT,
+    gyro_sigma_m              TEXT,
+    gyro_sigma_b_rad_s        TEXT,
+    gyro_residual_rms         REAL,
+    poses                     TEXT NOT NULL,    -- JSON: per-pose |a| before/after, sigma, temperature
+    verification              TEXT,             -- JSON
+    temp_accel_c              REAL,
+    temp_gyro_c               TEXT,             -- JSON [3]
+    tolerances                TEXT,             -- JSON
+    fw_version                TEXT,
+    fw_build                  TEXT,
+    gyro_sn                   TEXT,             -- JSON: the gyros fitted in this run
+    passed                    INTEGER NOT NULL,
+    written                   INTEGER NOT NULL,
+    verified                  INTEGER NOT NULL,
+    note                      TEXT,
+    capture_dir               TEXT,
+    recorded_at               TEXT NOT NULL,
+    record                    TEXT NOT NULL,    -- the whole result record, JSON (sorted keys)
+    UNIQUE (device_id, started)
+);
+CREATE INDEX IF NOT EXISTS runs_device_started ON runs (device_id, started);
+"""
+
+
+class HistoryError(Exception):
+    """The history database cannot be used; the message says why."""
+
+
+class SchemaError(HistoryError):
+    """The database was written by a newer imubench (or is not an imubench history)."""
+
+
+class UnknownDevice(HistoryError, LookupError):
+    """No device matches what was asked for."""
+
+
+class AmbiguousDevice(HistoryError, LookupError):
+    """A UID prefix or serial number matches more than one device."""
+
+    def __init__(self, query: str, matches: list[str]):
+        self.query = query
+        self.matches = matches
+        super().__init__(f"{query!r} matches {len(matches)} devices: {', '.join(matches)} — give more of the MCU UID")
+
+
+def default_path() -> Path:
+    import platformdirs
+    return Path(platformdirs.user_data_dir("imubench")) / "history.sqlite"
+
+
+# ------------------------------------------------------------------ validation
+def _num_array(x, shape) -> np.ndarray | None:
+    """x as a float array of `shape` (None → NaN), or None when it is not that."""
+    try:
+        a = np.array(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    return a if a.shape == shape else None
+
+
+def _parse_time(s) -> _dt.datetime | None:
+    if not isinstance(s, str):
+        return None
+    try:
+        t = _dt.datetime.fromisoformat(s.replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    if t.tzinfo is None:            # no offset: taken as UTC (what sessions write)
+        t = t.replace(tzinfo=_dt.timezone.utc)
+    return t.astimezone(_dt.timezone.utc)
+
+
+def _utc_text(t: _dt.datetime) -> str:
+    return t.isoformat(timespec="microseconds")
+
+
+def _triad_problems(d, prefix: str, b_key: str, rms_keys: tuple[str, ...]) -> tuple[list, list]:
+    missing, bad = [], []
+    if not isinstance(d, dict):
+        return [], [f"{prefix} must be an object"]
+    for k in ("m", b_key, "sigma_m", f"sigma_{b_key}"):
+        if k not in d:
+            missing.append(f"{prefix}.{k}")
+    if not any(k in d for k in rms_keys):
+        missing.append(f"{prefix}.{rms_keys[0]}")
+    if "m" in d:
+        m = _num_array(d["m"], (3, 3))
+        if m is None or not np.isfinite(m).all():
+            bad.append(f"{prefix}.m must be 3x3 finite numbers")
+    if b_key in d:
+        b = _num_array(d[b_key], (3,))
+        if b is None or not np.isfinite(b).all():
+            bad.append(f"{prefix}.{b_key} must be 3 finite numbers")
+    if "sigma_m" in d and _num_array(d["sigma_m"], (3, 3)) is None:
+        bad.append(f"{prefix}.sigma_m must be 3x3 numbers (null/NaN where not estimated)")
+    if f"sigma_{b_key}" in d and _num_array(d[f"sigma_{b_key}"], (3,)) is None:
+        bad.append(f"{prefix}.sigma_{b_key} must be 3 numbers (null/NaN where not estimated)")
+    return missing, bad
+
+
+def validate_result(result) -> None:
+    """Raise ValueError naming every missing or malformed key of a result record."""
+    if not isinstance(result, dict):
+        raise ValueError(f"a result record is a dict, got {type(result).__name__}")
+    missing, bad = [], []
+    for k in ("schema", "device", "started", "finished", "method", "gyro_method", "accel", "gyro",
+              "poses", "passed", "written", "verified"):
+        if k not in result:
+            missing.append(k)
+    if "schema" in result and result["schema"] != RECORD_SCHEMA:
+        bad.append(f"schema is {result['schema']!r}, this imubench records schema {RECORD_SCHEMA}")
+    dev = result.get("device")
+    if "device" in result:
+        if not isinstance(dev, dict):
+            bad.append("device must be an object")
+        else:
+            missing += [f"device.{k}" for k in ("mcu_uid", "board", "fw_version", "fw_build") if k not in dev]
+            uid = dev.get("mcu_uid")
+            if "mcu_uid" in dev and not (isinstance(uid, str) and re.fullmatch(r"[0-9a-fA-F]{24}", uid)):
+                bad.append(f"device.mcu_uid must be 24 hex digits, got {uid!r}")
+            sn = dev.get("gyro_sn")
+            if sn is not None and not (isinstance(sn, list) and all(isinstance(v, int) for v in sn)):
+                bad.append("device.gyro_sn must be a list of integers")
+    for k in ("started", "finished"):
+        if k in result and _parse_time(result[k]) is None:
+            bad.append(f"{k} must be an ISO 8601 time, got {result[k]!r}")
+    if "method" in result and not (isinstance(result["method"], str) and result["method"]):
+        bad.append("method must be a non-empty string")
+    if "gyro_method" in result and not (result["gyro_method"] is None or isinstance(result["gyro_method"], str)):
+        bad.append("gyro_method must be a string or null")
+    if "accel" in result:
+        mi, ba = _triad_problems(result["accel"], "accel", "b_mps2", ("residual_rms_mps2", "residual_rms"))
+        missing += mi
+        bad += ba
+    if result.get("gyro") is not None:
+        mi, ba = _triad_problems(result["gyro"], "gyro", "b_rad_s", ("residual_rms",))
+        missing += mi
+        bad += ba
+    if "poses" in result:
+        poses = result["poses"]
+        if not isinstance(poses, list) or not poses:
+            bad.append("poses must be a non-empty list")
+        else:
+            for i, p in enumerate(poses):
+                if not isinstance(p, dict):
+                    bad.append(f"poses[{i}] must be an object")
+                    continue
+                missing += [f"poses[{i}].{k}" for k in ("name", "before_g", "after_g") if k not in p]
+    for k in ("passed", "written", "verified"):
+        if k in result and not isinstance(result[k], (bool, np.bool_)):
+            bad.append(f"{k} must be true or false")
+    problems = []
+    if missing:
+        problems.append("missing " + ", ".join(missing))
+    if bad:
+        problems += bad
+    if problems:
+        raise ValueError("result record not stored: " + "; ".join(problems))
+
+
+def _json_default(x):
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(f"{type(x).__name__} is not JSON-serialisable")
+
+
+def _dumps(x) -> str | None:
+    if x is None:
+        return None
+    return json.dumps(x, sort_keys=True, default=_json_default)
+
+
+def _loads(s):
+    return None if s is None else json.loads(s)
+
+
+# ------------------------------------------------------------------ database
+class History:
+    """The calibration history database. `History()` opens (creating) the one in the user's
+    data directory; `History(path)` another; `readonly=True` never creates or changes it."""
+
+    def __init__(self, path: str | Path | None = None, *, readonly: bool = False, timeout_s: float = 10.0):
+        self.path = Path(path) if path is not None else default_path()
+        self.readonly = readonly
+        if readonly:
+            if not self.path.is_file():
+                raise HistoryError(f"no history database at {self.path}")
+            target, uri = self.path.resolve().as_uri() + "?mode=ro", True
+        else:
+            if self.path.exists() and not self.path.is_file():
+                raise HistoryError(f"{self.path} is not a file")
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            target, uri = str(self.path), False
+        try:
+            self._db = sqlite3.connect(target, uri=uri, timeout=timeout_s, isolation_level=None)
+        except sqlite3.Error as e:
+            raise HistoryError(f"cannot open {self.path}: {e}") from None
+        try:
+            self._open()
+        except sqlite3.DatabaseError as e:
+            self._db.close()
+            raise HistoryError(f"cannot read {self.path} as an imubench history database: {e}") from None
+        except Exception:
+            self._db.close()
+            raise
+
+    def _open(self) -> None:
+        db = self._db
+        db.execute("PRAGMA foreign_keys = ON")
+        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        version = None
+        if "schema_version" in tables:
+            row = db.execute("SELECT MAX(version) FROM schema_version").fetchone()
+            version = row[0]
+        if version is not None and version > SCHEMA_VERSION:
+            raise SchemaError(f"{self.path} was written by a newer imubench (history schema {version}; "
+                              f"this one reads up to {SCHEMA_VERSION}): upgrade imubench to read it")
+        if version is None and tables - {"schema_version"}:
+            raise SchemaError(f"{self.path} is an SQLite database but not an imubench history "
+                              f"(tables: {', '.join(sorted(tables))})")
+        if self.readonly:
+            if version is None:
+                raise SchemaError(f"{self.path} is empty: not an imubench history database")
+            return
+        db.execute("PRAGMA journal_mode = WAL")     # concurrent readers while a session records
+        db.execute("PRAGMA synchronous = FULL")     # a run reported as recorded survives a power cut too
+        # executescript() would commit an open transaction, so the tables are created one by one
+        # (the DDL has no ';' other than between statements).
+        with self._write():
+            for stmt in _DDL.split(";"):
+                if stmt.strip():
+                    db.execute(stmt)
+            row = db.execute("SELECT MAX(version) FROM schema_version").fetchone()
+            if row[0] is None:
+                db.execute("INSERT INTO schema_version (version) VALUES (?)", (SCHEMA_VERSION,))
+            elif row[0] > SCHEMA_VERSION:       # another writer upgraded it meanwhile
+                raise SchemaError(f"{self.path} was written by a newer imubench (history schema {row[0]})")
+
+    # ------------------------------------------------------------ transactions
+    class _Txn:
+        def __init__(self, db: sqlite3.Connection, mode: str):
+            self.db, self.mode = db, mode
+
+        def __enter__(self):
+            try:
+                self.db.execute(f"BEGIN {self.mode}")
+            except sqlite3.OperationalError as e:      # e.g. another writer held the lock past the timeout
+                raise HistoryError(f"history database busy or unavailable: {e}") from None
+            return self.db
+
+        def __exit__(self, et, ev, tb):
+            if et is None:
+                try:
+                    self.db.execute("COMMIT")
+                    return False
+                except sqlite3.Error:
+                    if self.db.in_transaction:
+                        self.db.execute("ROLLBACK")
+                    raise
+            if self.db.in_transaction:
+                self.db.execute("ROLLBACK")
+            return False
+
+    def _write(self):
+        if self.readonly:
+            raise HistoryError(f"{self.path} is open read-only")
+        return self._Txn(self._db, "IMMEDIATE")
+
+    def _read(self):
+        return self._Txn(self._db, "DEFERRED")     # one snapshot for a multi-statement read
+
+    # ------------------------------------------------------------ API
+    def close(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    def record(self, result: dict) -> int:
+        """Store one session's result record; returns its run id. Raises ValueError (and
+        stores nothing) when a required key is missing or malformed. Recording the same
+        record again returns the existing run's id; a different record for the same device
+        and start time is refused."""
+        validate_result(result)
+        dev = result["device"]
+        uid = dev["mcu_uid"].lower()
+        started = _utc_text(_parse_time(result["started"]))
+        finished = _utc_text(_parse_time(result["finished"]))
+        record_json = _dumps(result)          # everything serialised before the transaction starts
+        acc = result["accel"]
+        gyr = result.get("gyro")
+        temps = result.get("temperature_c") or {}
+        sn = dev.get("gyro_sn")
+        run = {
+            "started": started, "finished": finished, "method": result["method"],
+            "gyro_method": result["gyro_method"],
+            "accel_m": _dumps(acc["m"]), "accel_b_mps2": _dumps(acc["b_mps2"]),
+            "accel_sigma_m": _dumps(acc["sigma_m"]), "accel_sigma_b_mps2": _dumps(acc["sigma_b_mps2"]),
+            "accel_residual_rms_mps2": _float_or_none(acc.get("residual_rms_mps2", acc.get("residual_rms"))),
+            "gyro_m": _dumps(gyr["m"]) if gyr else None,
+            "gyro_b_rad_s": _dumps(gyr["b_rad_s"]) if gyr else None,
+            "gyro_sigma_m": _dumps(gyr["sigma_m"]) if gyr else None,
+            "gyro_sigma_b_rad_s": _dumps(gyr["sigma_b_rad_s"]) if gyr else None,
+            "gyro_residual_rms": _float_or_none(gyr.get("residual_rms")) if gyr else None,
+            "poses": _dumps(result["poses"]), "verification": _dumps(result.get("verification")),
+            "temp_accel_c": _float_or_none(temps.get("accel")), "temp_gyro_c": _dumps(temps.get("gyro")),
+            "tolerances": _dumps(result.get("tolerances")),
+            "fw_version": dev.get("fw_version"), "fw_build": dev.get("fw_build"), "gyro_sn": _dumps(sn),
+            "passed": int(bool(result["passed"])), "written": int(bool(result["written"])),
+            "verified": int(bool(result["verified"])), "note": result.get("note"),
+            "capture_dir": None if result.get("capture_dir") is None else str(result["capture_dir"]),
+            "recorded_at": _utc_text(_dt.datetime.now(_dt.timezone.utc)), "record": record_json,
+        }
+        device_row = {"board": dev.get("board"), "accel_ids": _dumps(dev.get("accel_ids")),
+                      "gyro_pid": _dumps(dev.get("gyro_pid")), "gyro_sn": _dumps(sn)}
+        with self._write() as db:
+            row = db.execute("SELECT id, first_seen, last_seen FROM devices WHERE mcu_uid = ?", (uid,)).fetchone()
+            if row is None:
+                cur = db.execute("INSERT INTO devices (mcu_uid, board, accel_ids, gyro_pid, gyro_sn, first_seen, last_seen) "
+                                 "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                                 (uid, device_row["board"], device_row["accel_ids"], device_row["gyro_pid"],
+                                  device_row["gyro_sn"], started, started))
+                device_id = cur.lastrowid
+            else:
+                device_id, first_seen, last_seen = row
+                existing = db.execute("SELECT id, record FROM runs WHERE device_id = ? AND started = ?",
+                                      (device_id, started)).fetchone()
+                if existing is not None:
+                    if existing[1] == record_json:
+                        return existing[0]
+                    raise ValueError(f"device {uid} already has a different run started at {result['started']} "
+                                     f"(run {existing[0]}): not stored")
+                if started >= last_seen:     # the newest run describes the device as it is now
+                    db.execute("UPDATE devices SET board = ?, accel_ids = ?, gyro_pid = ?, gyro_sn = ?, last_seen = ? "
+                               "WHERE id = ?", (device_row["board"], device_row["accel_ids"], device_row["gyro_pid"],
+                                                device_row["gyro_sn"], started, device_id))
+                if started < first_seen:
+                    db.execute("UPDATE devices SET first_seen = ? WHERE id = ?", (started, device_id))
+            return self._insert_run(db, device_id, run)
+
+    def _insert_run(self, db: sqlite3.Connection, device_id: int, run: dict) -> int:
+        cols = ["device_id", *run]
+        cur = db.execute(f"INSERT INTO runs ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})",
+                         (device_id, *run.values()))
+        return cur.lastrowid
+
+    def devices(self) -> list[dict]:
+        """Every known device, most recently calibrated first."""
+        with self._read() as db:
+            rows = db.execute("SELECT id, mcu_uid, board, accel_ids, gyro_pid, gyro_sn, first_seen, last_seen "
+                              "FROM devices ORDER BY last_seen DESC, mcu_uid").fetchall()
+            out = []
+            for (dev_id, uid, board, ids, pid, sn, first, last) in rows:
+                n = db.execute("SELECT COUNT(*) FROM runs WHERE device_id = ?", (dev_id,)).fetchone()[0]
+                latest = db.execute("SELECT started, method, gyro_method, passed, written, verified FROM runs "
+                                    "WHERE device_id = ? ORDER BY started DESC, id DESC LIMIT 1", (dev_id,)).fetchone()
+                d = {"mcu_uid": uid, "board": board, "accel_ids": _loads(ids), "gyro_pid": _loads(pid),
+                     "gyro_sn": _loads(sn), "first_seen": first, "last_seen": last, "runs": n, "last_run": None}
+                if latest:
+                    d["last_run"] = {"started": latest[0], "method": latest[1], "gyro_method": latest[2],
+                                     "passed": bool(latest[3]), "written": bool(latest[4]), "verified": bool(latest[5])}
+                out.append(d)
+        return out
+
+    def resolve(self, device: str) -> str:
+        """The full MCU UID of `device`: a full UID, a unique UID prefix (≥ 4 hex digits) or
+        a gyro serial number (decimal, or hex with 0x)."""
+        q = str(device).strip()
+        if not q:
+            raise UnknownDevice("no device given")
+        with self._read() as db:
+            devs = db.execute("SELECT id, mcu_uid, gyro_sn FROM devices").fetchall()
+            run_sns = db.execute("SELECT DISTINCT device_id, gyro_sn FROM runs WHERE gyro_sn IS NOT NULL").fetchall()
+        by_id = {i: uid for i, uid, _ in devs}
+        ql = q.lower()
+        if ql.startswith("0x"):
+            hexq = None
+        else:
+            hexq = ql if re.fullmatch(r"[0-9a-f]+", ql) else None
+        matches: set[str] = set()
+        if hexq is not None:
+            exact = [uid for uid in by_id.values() if uid == hexq]
+            if exact:
+                return exact[0]
+            if len(hexq) >= MIN_PREFIX:
+                matches |= {uid for uid in by_id.values() if uid.startswith(hexq)}
+        serial = None
+        try:
+            serial = int(q, 0) if ql.startswith("0x") else (int(q) if q.isdigit() else None)
+        except ValueError:
+            serial = None
+        if serial is not None:
+            for i, _uid, sn in devs:
+                if serial in (_loads(sn) or []):
+                    matches.add(by_id[i])
+            for i, sn in run_sns:           # a gyro that was on the board in an earlier run
+                if serial in (_loads(sn) or []):
+                    matches.add(by_id[i])
+        if len(matches) == 1:
+            return matches.pop()
+        if len(matches) > 1:
+            raise AmbiguousDevice(q, sorted(matches))
+        hint = ""
+        if hexq is not None and len(hexq) < MIN_PREFIX:
+            hint = (" (no gyro has that serial number, and" if serial is not None else " (") \
+                + f" a UID prefix needs at least {MIN_PREFIX} hex digits)"
+        elif hexq is None and serial is None:
+            hint = " (give an MCU UID, a prefix of at least 4 hex digits, or a gyro serial number)"
+        raise UnknownDevice(f"no device {q!r} in {self.path}{hint}")
+
+    def runs(self, device: str) -> list[dict]:
+        """Every run of a device (see resolve()), oldest first."""
+        uid = self.resolve(device)
+        with self._read() as db:
+            cur = db.execute("SELECT r.*, d.mcu_uid, d.board FROM runs r JOIN devices d ON d.id = r.device_id "
+                             "WHERE d.mcu_uid = ? ORDER BY r.started, r.id", (uid,))
+            names = [c[0] for c in cur.description]
+            rows = [dict(zip(names, r)) for r in cur.fetchall()]
+        return [_run_from_row(r) for r in rows]
+
+    def count_runs(self) -> int:
+        with self._read() as db:
+            return db.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+
+
+def _float_or_none(x):
+    if x is None:
+        return None
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return None
+
+
+def _run_from_row(r: dict) -> dict:
+    record = json.loads(r["record"])
+    gyro = None
+    if r["gyro_m"] is not None:
+        gyro = {"m": _loads(r["gyro_m"]), "b_rad_s": _loads(r["gyro_b_rad_s"]),
+                "sigma_m": _loads(r["gyro_sigma_m"]), "sigma_b_rad_s": _loads(r["gyro_sigma_b_rad_s"]),
+                "residual_rms": r["gyro_residual_rms"]}
+    return {
+        "run_id": r["id"], "mcu_uid": r["mcu_uid"], "board": r["board"],
+        "started": record["started"], "finished": record["finished"],
+        "started_utc": r["started"], "finished_utc": r["finished"],
+        "method": r["method"], "gyro_method": r["gyro_method"],
+        "accel": {"m": _loads(r["accel_m"]), "b_mps2": _loads(r["accel_b_mps2"]),
+                  "sigma_m": _loads(r["accel_sigma_m"]), "sigma_b_mps2": _loads(r["accel_sigma_b_mps2"]),
+                  "residual_rms_mps2": r["accel_residual_rms_mps2"]},
+        "gyro": gyro,
+        "poses": _loads(r["poses"]), "verification": _loads(r["verification"]) or [],
+        "temperature_c": {"accel": r["temp_accel_c"], "gyro": _loads(r["temp_gyro_c"])},
+        "tolerances": _loads(r["tolerances"]),
+        "fw_version": r["fw_version"], "fw_build": r["fw_build"], "gyro_sn": _loads(r["gyro_sn"]),
+        "passed": bool(r["passed"]), "written": bool(r["written"]), "verified": bool(r["verified"]),
+        "note": r["note"], "capture_dir": r["capture_dir"], "recorded_at": r["recorded_at"],
+        "record": record,
+    }
+
+
+# ------------------------------------------------------------------ derived values
+def _fin(x) -> float | None:
+    """A float for JSON: None for NaN/inf/None."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _sigma_ok(s) -> bool:
+    return s is not None and math.isfinite(s) and s > 0
+
+
+def _triad_summary(t: dict | None, b_key: str, to_user, bias_unit: str) -> dict | None:
+    """Bias in user units, scale error diag(M) − 1 in ppm, the largest off-diagonal of M in
+    ppm; sigmas None where the fit did not estimate the parameter."""
+    if t is None:
+        return None
+    m = np.array(t["m"], dtype=np.float64)
+    sm = np.array(t["sigma_m"], dtype=np.float64)
+    b = np.array(t[b_key], dtype=np.float64)
+    sb = np.array(t[f"sigma_{b_key}"], dtype=np.float64)
+    off = np.abs(m)
+    np.fill_diagonal(off, -1.0)             # only the off-diagonal (cross-axis) terms compete
+    i, j = np.unravel_index(int(np.argmax(off)), (3, 3))
+    return {
+        f"bias_{bias_unit}": [_fin(v) for v in to_user(b)],
+        f"bias_sigma_{bias_unit}": [_fin(v) for v in to_user(sb)],
+        "scale_error_ppm": [_fin(v) for v in (np.diag(m) - 1.0) * 1e6],
+        "scale_error_sigma_ppm": [_fin(v) for v in np.diag(sm) * 1e6],
+        "cross_axis": {"term": f"M[{_AXES[i]},{_AXES[j]}]", "row": int(i), "col": int(j),
+                       "ppm": _fin(m[i, j] * 1e6), "sigma_ppm": _fin(sm[i, j] * 1e6)},
+    }
+
+
+def run_summary(run: dict, index: int) -> dict:
+    """One run in user units (mg, °/s, ppm), as `imubench history DEVICE` shows it."""
+    acc = _triad_summary(run["accel"], "b_mps2", U.mps2_to_mg, "mg")
+    rr = run["accel"].get("residual_rms_mps2")
+    acc["residual_rms_mg"] = _fin(U.mps2_to_mg(rr)) if rr is not None else None
+    gyr = _triad_summary(run["gyro"], "b_rad_s", U.rad_s_to_dps, "dps")
+    if gyr is not None:
+        gyr["residual_rms"] = _fin(run["gyro"].get("residual_rms"))
+    return {
+        "index": index, "run_id": run["run_id"], "started": run["started"], "finished": run["finished"],
+        "method": run["method"], "gyro_method": run["gyro_method"],
+        "fw_version": run["fw_version"], "fw_build": run["fw_build"],
+        "accel": acc, "gyro": gyr,
+        "temperature_c": {"accel": _fin(run["temperature_c"]["accel"]),
+                          "gyro": None if run["temperature_c"]["gyro"] is None
+                          else [_fin(v) for v in run["temperature_c"]["gyro"]]},
+        "passed": run["passed"], "written": run["written"], "verified": run["verified"],
+        "note": run["note"] or "", "capture_dir": run["capture_dir"],
+    }
+
+
+# (key, sensor, value key, sigma key, unit)
+DRIFT_QUANTITIES = (
+    ("accel_bias_mg", "accel", "bias_mg", "bias_sigma_mg", "mg"),
+    ("accel_scale_ppm", "accel", "scale_error_ppm", "scale_error_sigma_ppm", "ppm"),
+    ("gyro_bias_dps", "gyro", "bias_dps", "bias_sigma_dps", "°/s"),
+    ("gyro_scale_ppm", "gyro", "scale_error_ppm", "scale_error_sigma_ppm", "ppm"),
+)
+
+
+def _change(a: dict, b: dict) -> dict:
+    d = b["value"] - a["value"]
+    s = math.hypot(a["sigma"], b["sigma"])
+    return {"from": a["index"], "to": b["index"], "from_run_id": a["run_id"], "to_run_id": b["run_id"],
+            "change": d, "sigma": s, "n_sigma": abs(d) / s, "flagged": abs(d) > DRIFT_SIGMAS * s}
+
+
+def drift(summaries: list[dict]) -> dict:
+    """How each bias and scale error moved across runs: per axis, the change between
+    consecutive runs that estimated it, and first → last; each with the combined 1-sigma
+    sqrt(σ1² + σ2²) and flagged when |change| > DRIFT_SIGMAS × that. A run where a quantity
+    was not estimated (no sigma, e.g. the gyro scale of a bias-only run) is left out of it."""
+    out = {"threshold_sigmas": DRIFT_SIGMAS, "quantities": {}, "flagged": []}
+    for key, sensor, vkey, skey, unit in DRIFT_QUANTITIES:
+        axes = {}
+        for k, ax in enumerate(_AXES):
+            series = []
+            for s in summaries:
+                t = s[sensor]
+                if t is None:
+                    continue
+                v, sg = t[vkey][k], t[skey][k]
+                if v is None or not _sigma_ok(sg):
+                    continue
+                series.append({"index": s["index"], "run_id": s["run_id"], "value": v, "sigma": sg})
+            steps = [_change(a, b) for a, b in zip(series, series[1:])]
+            first_last = _change(series[0], series[-1]) if len(series) >= 2 else None
+            axes[ax] = {"runs": [x["index"] for x in series], "steps": steps, "first_last": first_last}
+            for st in steps + ([first_last] if first_last and len(series) > 2 else []):
+                if st["flagged"]:
+                    out["flagged"].append({"quantity": key, "axis": ax, "unit": unit, **st})
+        out["quantities"][key] = {"unit": unit, "axes": axes}
+    return out
+
+
+def device_report(h: History, device: str) -> dict:
+    """Everything `imubench history DEVICE` shows, as data."""
+    uid = h.resolve(device)
+    runs = h.runs(uid)
+    dev = next(d for d in h.devices() if d["mcu_uid"] == uid)
+    summaries = [run_summary(r, i + 1) for i, r in enumerate(runs)]
+    return {"device": dev, "runs": summaries, "drift": drift(summaries)}
+
+
+# ------------------------------------------------------------------ text
+def _pm(v, s, dec: int, width: int = 0) -> str:
+    if v is None:
+        return "-".rjust(width)
+    txt = f"{v:+.{dec}f}" + (f" ± {s:.{dec}f}" if s is not None and math.isfinite(s) else " (not estimated)")
+    return txt.ljust(width)
+
+
+def _when(iso: str) -> str:
+    t = _parse_time(iso)
+    return t.strftime("%Y-%m-%d %H:%M UTC") if t else str(iso)
+
+
+def _yes(b: bool) -> str:
+    return "yes" if b else "NO"
+
+
+def format_devices(devs: list[dict], path) -> str:
+    if not devs:
+        return f"no calibrations recorded yet in {path}"
+    lines = [f"{'MCU UID':<24}  {'board':<6} {'runs':>4}  {'last calibration':<20}  {'method':<16}  result"]
+    for d in devs:
+        lr = d["last_run"] or {}
+        method = lr.get("method", "-") + (f"/{lr['gyro_method']}" if lr.get("gyro_method") else "")
+        res = ("passed" if lr.get("passed") else "FAILED") + (", written" if lr.get("written") else ", not written") \
+            + (", verified" if lr.get("verified") else ", not verified") if lr else "-"
+        lines.append(f"{d['mcu_uid']:<24}  {d['board'] or '-':<6} {d['runs']:>4}  {_when(d['last_seen']):<20}  "
+                     f"{method:<16}  {res}")
+    lines.append(f"({len(devs)} device{'s' if len(devs) != 1 else ''} in {path}; "
+                 "`imubench history DEVICE` for one device's runs and drift)")
+    return "\n".join(lines)
+
+
+_LABEL_W = 24       # label column of the per-run lines
+_CELL_W = 20        # one axis: "+1.0197 ± 0.0020"
+
+
+def _triad_lines(t: dict, name: str, bias_unit: str, bias_label: str, bias_dec: int) -> list[str]:
+    def row(label, values, sigmas, dec):
+        return (f"  {label}".ljust(_LABEL_W)
+                + "  ".join(f"{ax.upper()} " + _pm(v, s, dec, _CELL_W) for ax, v, s in zip(_AXES, values, sigmas))).rstrip()
+    lines = [row(f"{name} bias [{bias_label}]", t[f"bias_{bias_unit}"], t[f"bias_sigma_{bias_unit}"], bias_dec),
+             row(f"{name} scale [ppm]", t["scale_error_ppm"], t["scale_error_sigma_ppm"], 1)]
+    c = t["cross_axis"]
+    lines.append(f"  {name} cross-axis".ljust(_LABEL_W) + f"largest {c['term']} = {_pm(c['ppm'], c['sigma_ppm'], 1)} ppm")
+    return lines
+
+
+def format_device_report(rep: dict) -> str:
+    dev = rep["device"]
+    runs = rep["runs"]
+    sn = dev.get("gyro_sn")
+    out = [f"device {dev['mcu_uid']}  board {dev['board'] or '-'}"
+           + (f"  gyro SN {' '.join(str(x) for x in sn)}" if sn else "")
+           + f"  {len(runs)} run{'s' if len(runs) != 1 else ''}"]
+    for s in runs:
+        out.append("")
+        gm = f", gyro {s['gyro_method']}" if s["gyro_method"] else ", no gyro calibration"
+        out.append(f"run {s['index']} (id {s['run_id']})  {_when(s['started'])}  method {s['method']}{gm}  "
+                   f"fw {s['fw_version']} ({s['fw_build']})")
+        out += _triad_lines(s["accel"], "accel", "mg", "mg", 4)
+        if s["accel"]["residual_rms_mg"] is not None:
+            out.append("  accel fit residual".ljust(_LABEL_W) + f"{s['accel']['residual_rms_mg']:.4f} mg RMS")
+        if s["gyro"] is not None:
+            out += _triad_lines(s["gyro"], "gyro", "dps", "°/s", 5)
+        t = s["temperature_c"]
+        temp = []
+        if t["accel"] is not None:
+            temp.append(f"accel {t['accel']:.1f} °C")
+        if t["gyro"]:
+            temp.append("gyro X/Y/Z " + "/".join("-" if v is None else f"{v:.1f}" for v in t["gyro"]) + " °C")
+        out.append("  temperature".ljust(_LABEL_W) + (", ".join(temp) or "-"))
+        out.append("  status".ljust(_LABEL_W) + f"passed {_yes(s['passed'])}, written {_yes(s['written'])}, "
+                   f"verified {_yes(s['verified'])}")
+        if s["note"]:
+            out.append("  note".ljust(_LABEL_W) + s["note"])
+    out.append("")
+    out += _format_drift(rep["drift"], len(runs))
+    return "\n".join(out)
+
+
+_DRIFT_LABELS = {"accel_bias_mg": ("accel bias [mg]", 4), "accel_scale_ppm": ("accel scale [ppm]", 1),
+                 "gyro_bias_dps": ("gyro bias [°/s]", 5), "gyro_scale_ppm": ("gyro scale [ppm]", 1)}
+
+
+_DRIFT_LABEL_W = 28
+_DRIFT_CELL_W = 28
+
+
+def _format_drift(dr: dict, n_runs: int) -> list[str]:
+    thr = dr["threshold_sigmas"]
+    if n_runs < 2:
+        return ["drift: only one run, nothing to compare yet"]
+    out = [f"drift across runs: change ± combined 1σ; DRIFT where |change| > {thr:g}σ (a real change, not fit noise)"]
+    for key, q in dr["quantities"].items():
+        label, dec = _DRIFT_LABELS[key]
+        # rows: each step, then first -> last, over the runs that estimated the quantity
+        rows: dict[tuple, dict] = {}
+        for ax in _AXES:
+            a = q["axes"][ax]
+            for st in a["steps"]:
+                rows.setdefault(("step", st["from"], st["to"]), {})[ax] = st
+            if a["first_last"] is not None and len(a["runs"]) > 2:
+                fl = a["first_last"]
+                rows.setdefault(("first_last", fl["from"], fl["to"]), {})[ax] = fl
+        if not rows:
+            out.append(f"  {label}: fewer than two runs estimated it")
+            continue
+        out.append(f"  {label}".ljust(_DRIFT_LABEL_W) + "".join(f"{ax.upper():<{_DRIFT_CELL_W}}" for ax in _AXES).rstrip())
+        for k in sorted(rows, key=lambda k: (k[0] == "first_last", k[1], k[2])):
+            name = (f"first -> last ({k[1]} -> {k[2]})" if k[0] == "first_last" else f"run {k[1]} -> {k[2]}")
+            cells = []
+            for ax in _AXES:
+                st = rows[k].get(ax)
+                cell = "-" if st is None else _pm(st["change"], st["sigma"], dec) + (" DRIFT" if st["flagged"] else "")
+                cells.append(cell.ljust(_DRIFT_CELL_W))
+            out.append(f"    {name}".ljust(_DRIFT_LABEL_W) + "".join(cells).rstrip())
+    flagged = dr["flagged"]
+    if flagged:
+        out.append(f"{len(flagged)} change{'s' if len(flagged) != 1 else ''} larger than {thr:g}σ: "
+                   + "; ".join(f"{f['quantity'].rsplit('_', 1)[0].replace('_', ' ')} {f['axis'].upper()} "
+                               f"run {f['from']} -> {f['to']} {f['change']:+.{_DRIFT_LABELS[f['quantity']][1]}f} "
+                               f"{f['unit']} ({f['n_sigma']:.1f}σ)" for f in flagged))
+    else:
+        out.append(f"no change larger than {thr:g}σ: bias and scale are stable within the fits' uncertainty")
+    return out
+
+
+# ------------------------------------------------------------------ CLI
+def _strict_json(x):
+    """NaN/inf → null, so --json output is standard JSON."""
+    if isinstance(x, dict):
+        return {k: _strict_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_strict_json(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def main_history(argv=None) -> int:
+    """`imubench history [DEVICE] [--db PATH] [--json]`; returns the exit status."""
+    ap = argparse.ArgumentParser(
+        prog="imubench history",
+        description="Calibration history: the known devices, or one device's runs and how its bias and "
+                    "scale drifted between calibrations.")
+    ap.add_argument("device", nargs="?", metavar="DEVICE",
+                    help="MCU UID, a unique prefix of it (at least 4 hex digits) or a gyro serial number")
+    ap.add_argument("--db", help=f"history database (default: {default_path()})")
+    ap.add_argument("--json", action="store_true", help="print the same data as JSON")
+    try:
+        a = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
+    except SystemExit as e:            # --help (0) or a usage error (2, argparse printed why)
+        return int(e.code or 0)
+    path = Path(a.db) if a.db else default_path()
+    if not path.exists() and a.db is None and a.device is None:
+        # the default database does not exist until the first session records into it
+        print(json.dumps({"database": str(path), "devices": []}) if a.json
+              else f"no calibrations recorded yet ({path} does not exist)")
+        return 0
+    try:
+        with History(path, readonly=True) as h:
+            if a.device is None:
+                devs = h.devices()
+                if a.json:
+                    print(json.dumps(_strict_json({"database": str(path), "devices": devs}), indent=1))
+                else:
+                    print(format_devices(devs, path))
+                return 0
+            rep = device_report(h, a.device)
+    except HistoryError as e:
+        print(f"imubench history: error: {e}", file=sys.stderr)
+        return 2
+    if a.json:
+        print(json.dumps(_strict_json({"database": str(path), **rep}), indent=1, allow_nan=False))
+    else:
+        print(format_device_report(rep))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main_history())
