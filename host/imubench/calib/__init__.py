@@ -32,7 +32,8 @@ class TriadFit:
     method: str                       # "six_position", "multi_position", "turntable", "rotation", "bias"
     m: np.ndarray                     # (3, 3)
     b: np.ndarray                     # (3,)
-    cov: np.ndarray                   # (12, 12): covariance of (M row-major, b); NaN where not estimated
+    cov: np.ndarray                   # (12, 12): covariance of (M row-major, b); NaN where not estimated,
+                                      # 0 where the model fixes an entry (multi-position's upper triangle)
     residual_rms: float = float("nan")     # RMS of the fit's residuals, in the residual's unit
     residuals: np.ndarray | None = None    # per observation (pose or segment)
     dof: int = 0                           # observations minus estimated parameters

@@ -1,0 +1,682 @@
+"""Accelerometer calibration from static poses: the six-position linear least squares and the
+multi-position |a| = g fit (Shin & El-Sheimy 2001, as modified by Syed et al. 2007).
+
+Input: one mean per pose (the specific force the board measured while still, u in the model
+u = M·x + b of docs/conventions.md) and, best, its 1-sigma uncertainty (StaticInterval.sigma_mean).
+Units are free — m/s² or raw counts — as long as g is given in the same unit (g = 256000 for
+±2 g counts); M is dimensionless either way and b comes back in the unit of the input.
+
+    six_position(means, sigmas)              12 parameters, the faces must be square to gravity
+    multi_position(means, sigmas, init)      9 parameters, any attitudes, |a| = g
+    POSE_PLAN, match_plan(means)             the 26 attitudes and which of them were covered
+    check_observability(means, method)       raises NotObservable with the reason
+    pose_table(means, fit)                   |a| before / after per pose
+    lower_triangular_form(m)                 M = L·Q, the part of M that |a| = g can see
+
+docs/calibration.md states the models, the parametrisation and what the covariance means.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import optimize
+
+from ..units import G0_MPS2
+from . import CalibrationError, NotObservable, TriadFit
+
+__all__ = [
+    "FACES", "POSE_PLAN", "PlannedPose", "MULTI_PARAM_NAMES", "six_position", "multi_position",
+    "identify_faces", "match_plan", "check_observability", "pose_table", "lower_triangular_form",
+    "multi_params_to_mb",
+]
+
+AXES = "XYZ"
+FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+FACE_TOL_DEG = 30.0          # a pose counts as a face when its mean is this close to an axis
+DISTINCT_DEG = 10.0          # two poses closer than this are the same attitude
+PLAN_TOL_DEG = 20.0          # match_plan: neighbours in the plan are ≥ 35° apart
+UPDOWN_COS = 0.5          # an axis "pointed up": within 60° of vertical (corners count)
+MIN_ATTITUDES = 9
+GOOD_ATTITUDES = 12
+DOP_WARN = 4.0
+DOP_MAX = 25.0
+MULTI_PARAM_NAMES = ("b_x", "b_y", "b_z", "s_x", "s_y", "s_z", "a_yx", "a_zx", "a_zy")
+# (row, column) of M that each angle sits in: M = diag(s)·(I + A), A strictly lower triangular
+_ANGLE_POS = ((1, 0), (2, 0), (2, 1))
+
+
+# --------------------------------------------------------------------------------------------
+# the pose plan
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class PlannedPose:
+    name: str
+    direction: tuple[float, float, float]   # unit specific force in the board frame (the "up" axis)
+
+    @property
+    def vector(self) -> np.ndarray:
+        return np.array(self.direction)
+
+
+_FACE_NAMES = {
+    (0, 0, 1): "+Z up (level)", (0, 0, -1): "-Z up (upside down)",
+    (1, 0, 0): "+X up (nose up)", (-1, 0, 0): "-X up (nose down)",
+    (0, 1, 0): "+Y up (on its right side)", (0, -1, 0): "-Y up (on its left side)",
+}
+
+
+def _plan() -> tuple[PlannedPose, ...]:
+    def label(v):
+        return "".join(("+" if c > 0 else "-") + AXES[i] for i, c in enumerate(v) if c != 0)
+
+    faces, edges, corners = [], [], []
+    for v in [(0, 0, 1), (0, 0, -1), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)]:
+        faces.append(PlannedPose(_FACE_NAMES[v], tuple(float(c) for c in v)))
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        for si in (1, -1):
+            for sj in (1, -1):
+                v = [0, 0, 0]
+                v[i], v[j] = si, sj
+                u = np.array(v, float) / math.sqrt(2.0)
+                edges.append(PlannedPose(f"{label(v)} edge", tuple(u.tolist())))
+    for sx in (1, -1):
+        for sy in (1, -1):
+            for sz in (1, -1):
+                v = (sx, sy, sz)
+                u = np.array(v, float) / math.sqrt(3.0)
+                corners.append(PlannedPose(f"{label(v)} corner", tuple(u.tolist())))
+    return tuple(faces + edges + corners)
+
+
+#: The 26 attitudes of Syed et al. (2007): 6 faces, 12 edges, 8 corners, neighbours 35–45°
+#: apart. direction = the unit specific force the accelerometer should read (the axes that
+#: point up), in the board frame (X forward, Y left, Z up).
+POSE_PLAN: tuple[PlannedPose, ...] = _plan()
+_PLAN_DIRS = np.array([p.direction for p in POSE_PLAN])
+
+
+def _units(means) -> np.ndarray:
+    u = np.asarray(means, dtype=np.float64)
+    if u.ndim != 2 or u.shape[1] != 3:
+        raise ValueError(f"expected pose means of shape (m, 3), got {u.shape}")
+    if not np.all(np.isfinite(u)):
+        raise ValueError("pose means contain NaN or inf")
+    n = np.linalg.norm(u, axis=1)
+    if np.any(n == 0):
+        raise CalibrationError("a pose mean is exactly zero: not an accelerometer at rest")
+    return u / n[:, None]
+
+
+def match_plan(means, tol_deg: float = PLAN_TOL_DEG) -> tuple[list[str], list[str], list[int]]:
+    """Which planned attitudes the poses cover. Each mean is matched to the nearest plan
+    direction by angle; within tol_deg it covers it. Returns (covered names in plan order,
+    missing names in plan order, indices (0-based) of the means that match none)."""
+    d = _units(means)
+    cosang = np.clip(d @ _PLAN_DIRS.T, -1, 1)
+    best = np.argmax(cosang, axis=1)
+    ok = np.degrees(np.arccos(cosang[np.arange(len(d)), best])) <= tol_deg
+    hit = set(best[ok].tolist())
+    covered = [p.name for i, p in enumerate(POSE_PLAN) if i in hit]
+    missing = [p.name for i, p in enumerate(POSE_PLAN) if i not in hit]
+    unmatched = [int(i) for i in np.nonzero(~ok)[0]]
+    return covered, missing, unmatched
+
+
+def _pose_names(means, tol_deg: float = PLAN_TOL_DEG) -> list[str]:
+    d = _units(means)
+    cosang = np.clip(d @ _PLAN_DIRS.T, -1, 1)
+    best = np.argmax(cosang, axis=1)
+    names = []
+    for i, b in enumerate(best):
+        ang = math.degrees(math.acos(cosang[i, b]))
+        names.append(POSE_PLAN[b].name if ang <= tol_deg else f"pose {i + 1}")
+    return names
+
+
+# --------------------------------------------------------------------------------------------
+# shared helpers
+# --------------------------------------------------------------------------------------------
+
+def _check_g(u: np.ndarray, g: float) -> None:
+    if not (g > 0 and math.isfinite(g)):
+        raise ValueError(f"g must be positive, got {g}")
+    ratio = float(np.median(np.linalg.norm(u, axis=1))) / g
+    if not 0.5 <= ratio <= 1.5:
+        raise CalibrationError(
+            f"the pose means have a median magnitude of {ratio:.4g} × g (g = {g:g}): the means "
+            f"and g must be in the same unit — m/s² with g = {G0_MPS2}, or raw counts with "
+            f"g = LSB per g (256000 at ±2 g, 128000 at ±4 g, 64000 at ±8 g)")
+
+
+def _sigmas(sigmas, m: int) -> np.ndarray | None:
+    if sigmas is None:
+        return None
+    s = np.asarray(sigmas, dtype=np.float64)
+    if s.ndim == 1 and s.shape[0] == m:
+        s = np.repeat(s[:, None], 3, axis=1)
+    s = np.broadcast_to(s, (m, 3)).astype(np.float64)
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise ValueError("sigmas must be finite and > 0 (pass None for unknown noise)")
+    return s
+
+
+def _chi2_factor(chi2: float, dof: int, weighted: bool, mode: str) -> float:
+    """Factor applied to the covariance (JᵀWJ)⁻¹.
+
+    weighted (measured sigmas): "inflate" (default) multiplies by max(1, χ²/dof): the sigmas of
+    the means are measured, so the covariance is never shrunk below what they imply, and it is
+    inflated when the residuals show unmodelled error (tilted faces, motion, drift). "always"
+    multiplies by χ²/dof (scipy curve_fit's default), "never" by 1. Unweighted: always by
+    χ²/dof (the residuals are the only estimate of the noise)."""
+    if dof <= 0:
+        return 1.0 if weighted else float("nan")
+    red = chi2 / dof
+    if not weighted:
+        return red
+    if mode == "inflate":
+        return max(1.0, red)
+    if mode == "always":
+        return red
+    if mode == "never":
+        return 1.0
+    raise ValueError(f"chi2_scaling must be 'inflate', 'always' or 'never', not {mode!r}")
+
+
+def lower_triangular_form(m) -> tuple[np.ndarray, np.ndarray]:
+    """M = L·Q with L lower triangular (positive diagonal) and Q orthogonal: L is M expressed
+    in the frame whose x axis is the sensor's X sensitive axis and whose y axis lies in the
+    plane of the sensor's X and Y axes — the frame of multi_position. |M⁻¹·(u − b)| does not
+    depend on Q, so L is all of M that |a| = g can observe."""
+    m = np.asarray(m, dtype=np.float64)
+    q, r = np.linalg.qr(m.T)              # mᵀ = q·r  →  m = rᵀ·qᵀ
+    d = np.sign(np.diag(r))
+    d[d == 0] = 1.0
+    L = r.T * d                            # rᵀ·D
+    Q = (q * d).T                          # D·qᵀ
+    return L, Q
+
+
+# --------------------------------------------------------------------------------------------
+# six-position
+# --------------------------------------------------------------------------------------------
+
+def identify_faces(means, max_angle_deg: float = FACE_TOL_DEG) -> tuple[list[str | None], np.ndarray]:
+    """Face of each pose: which board axis is vertical and its sign ("+Z" = Z up, reading +g),
+    and the angle (deg) between the mean and that axis. None where the angle exceeds
+    max_angle_deg (not a face pose)."""
+    d = _units(means)
+    j = np.argmax(np.abs(d), axis=1)
+    comp = d[np.arange(len(d)), j]
+    ang = np.degrees(np.arccos(np.clip(np.abs(comp), -1, 1)))
+    faces = [(("+" if c > 0 else "-") + AXES[a]) if t <= max_angle_deg else None
+             for a, c, t in zip(j, comp, ang)]
+    return faces, ang
+
+
+def _face_report(faces: list[str | None]) -> tuple[list[str], list[str]]:
+    missing = [f for f in FACES if f not in faces]
+    repeated = []
+    for f in FACES:
+        idx = [i + 1 for i, x in enumerate(faces) if x == f]
+        if len(idx) > 1:
+            repeated.append(f"{f} (poses {', '.join(map(str, idx[:-1]))} and {idx[-1]})")
+    return missing, repeated
+
+
+def _check_faces(faces, angles, skip_non_faces: bool) -> None:
+    bad = [i for i, f in enumerate(faces) if f is None]
+    if bad and not skip_non_faces:
+        lst = ", ".join(f"pose {i + 1} ({angles[i]:.0f}°)" for i in bad)
+        raise CalibrationError(
+            f"six-position needs every pose on a face (one axis vertical, within "
+            f"{FACE_TOL_DEG:.0f}°); these are not: {lst}. Use multi_position for tilted poses, or "
+            f"pass skip_non_faces=True to ignore them.")
+    missing, repeated = _face_report(faces)
+    if missing:
+        msg = f"missing faces: {', '.join(missing)}"
+        if repeated:
+            msg += f"; repeated: {'; '.join(repeated)}"
+        msg += (". Six-position needs each of the six faces up at least once (+X = X axis up, "
+                "reading +g); poses are numbered from 1.")
+        raise NotObservable(msg)
+
+
+def six_position(means, sigmas=None, g: float = G0_MPS2, *, skip_non_faces: bool = False,
+                 chi2_scaling: str = "inflate") -> TriadFit:
+    """Six-position calibration: every pose lies on a face, so its true specific force is ±g on
+    one board axis; weighted linear least squares on the stacked z = A·β, β = (M row-major, b).
+
+    means (m, 3), m ≥ 6, each face at least once (repeats add redundancy); sigmas (m, 3) the
+    1-sigma uncertainty of each mean (weights 1/σ²), or None (unit weights, noise from the
+    residuals). Raises NotObservable naming missing (and repeated) faces. The covariance is
+    (AᵀWA)⁻¹ × max(1, χ²/dof) (see _chi2_factor): the spread of (M, b) from the noise of the
+    means, inflated when the residuals exceed that noise — it does not cover a tilt of the
+    faces that the residuals cannot see (docs/calibration.md)."""
+    u = np.asarray(means, dtype=np.float64)
+    faces, angles = identify_faces(u)
+    _check_faces(faces, angles, skip_non_faces)
+    use = np.array([f is not None for f in faces])
+    u_all = u
+    u = u[use]
+    _check_g(u, g)
+    m = len(u)
+    sig = _sigmas(sigmas, len(u_all))
+    sig = sig[use] if sig is not None else None
+
+    f_true = np.zeros((m, 3))
+    for i, f in enumerate([f for f in faces if f is not None]):
+        f_true[i, AXES.index(f[1])] = g if f[0] == "+" else -g
+
+    # z = A·β: rows (pose i, axis a): u_ia = Σ_c M_ac f_ic + b_a
+    A = np.zeros((3 * m, 12))
+    for i in range(m):
+        for a in range(3):
+            A[3 * i + a, 3 * a:3 * a + 3] = f_true[i]
+            A[3 * i + a, 9 + a] = 1.0
+    z = u.ravel()
+    w = 1.0 / (sig.ravel() if sig is not None else np.ones(3 * m))
+    Aw = A * w[:, None]
+    zw = z * w
+    beta, *_ = np.linalg.lstsq(Aw, zw, rcond=None)
+    res = z - A @ beta
+    chi2 = float(np.sum((res * w) ** 2))
+    dof = 3 * m - 12
+    N = Aw.T @ Aw
+    cov = np.linalg.inv(N) * _chi2_factor(chi2, dof, sig is not None, chi2_scaling)
+
+    M = beta[:9].reshape(3, 3)
+    b = beta[9:]
+    resid = res.reshape(m, 3)
+    extra = {
+        "faces": [f for f in faces if f is not None],
+        "used_poses": [int(i) for i in np.nonzero(use)[0]],
+        "skipped_poses": [int(i) for i in np.nonzero(~use)[0]],
+        "face_angle_deg": angles[use],
+        "chi2": chi2,
+        "chi2_red": chi2 / dof if dof > 0 else float("nan"),
+        "chi2_scaling": chi2_scaling if sig is not None else "always (unweighted)",
+        # misfit as an angle: the rms residual over g; a large value means the faces were not
+        # square to gravity (or the board moved)
+        "residual_angle_deg": math.degrees(float(np.sqrt(np.mean(res ** 2))) / g),
+        "g": g,
+    }
+    return TriadFit(method="six_position", m=M, b=b, cov=cov,
+                    residual_rms=float(np.sqrt(np.mean(res ** 2))), residuals=resid, dof=dof,
+                    estimated=np.ones(12, dtype=bool), extra=extra)
+
+
+# --------------------------------------------------------------------------------------------
+# multi-position
+# --------------------------------------------------------------------------------------------
+
+def multi_params_to_mb(theta) -> tuple[np.ndarray, np.ndarray]:
+    """θ = (b_x, b_y, b_z, s_x, s_y, s_z, a_yx, a_zx, a_zy) → (M, b), M = diag(s)·(I + A) with
+    A strictly lower triangular: A[1,0] = a_yx, A[2,0] = a_zx, A[2,1] = a_zy."""
+    t = np.asarray(theta, dtype=np.float64)
+    b = t[0:3].copy()
+    s = t[3:6]
+    T = np.eye(3)
+    for (r, c), a in zip(_ANGLE_POS, t[6:9]):
+        T[r, c] = a
+    return s[:, None] * T, b
+
+
+def _mb_to_params(M: np.ndarray, b: np.ndarray) -> np.ndarray:
+    L, _ = lower_triangular_form(M)
+    s = np.diag(L).copy()
+    ang = [L[r, c] / s[r] for r, c in _ANGLE_POS]
+    return np.concatenate([np.asarray(b, float), s, ang])
+
+
+def _param_jacobian_mb(theta) -> np.ndarray:
+    """d(M row-major, b)/dθ, (12, 9)."""
+    t = np.asarray(theta, dtype=np.float64)
+    s = t[3:6]
+    T = np.eye(3)
+    for (r, c), a in zip(_ANGLE_POS, t[6:9]):
+        T[r, c] = a
+    G = np.zeros((12, 9))
+    G[9:, 0:3] = np.eye(3)
+    for j in range(3):                        # ∂M[j, k]/∂s_j = T[j, k]
+        for k in range(3):
+            G[3 * j + k, 3 + j] = T[j, k]
+    for p, (r, c) in enumerate(_ANGLE_POS):   # ∂M[r, c]/∂a = s_r
+        G[3 * r + c, 6 + p] = s[r]
+    return G
+
+
+def _residuals_and_jac(theta, u, g):
+    """r_i = |x_i| − g, x_i = M⁻¹(u_i − b), and dr/dθ (m, 9)."""
+    M, b = multi_params_to_mb(theta)
+    Minv = np.linalg.inv(M)
+    x = (u - b) @ Minv.T
+    nx = np.linalg.norm(x, axis=1)
+    r = nx - g
+    xh = x / nx[:, None]
+    v = xh @ Minv                               # rows: M⁻ᵀ x̂  (dr/du)
+    s = theta[3:6]
+    T = M / s[:, None]
+    J = np.empty((len(u), 9))
+    J[:, 0:3] = -v                              # dr/db
+    Tx = x @ T.T                                # (T x)_j
+    J[:, 3:6] = -v * Tx                         # dr/ds_j = −v_j (T x)_j
+    for p, (rr, cc) in enumerate(_ANGLE_POS):   # dr/da = −v_r s_r x_c
+        J[:, 6 + p] = -v[:, rr] * s[rr] * x[:, cc]
+    return r, J, v
+
+
+def _ellipsoid_init(u: np.ndarray, g: float) -> np.ndarray | None:
+    """Algebraic quadric fit to the means (normalised by g), → θ, or None if it is not an
+    ellipsoid (too few or badly spread poses)."""
+    v = u / g
+    if len(v) < 9:
+        return None
+    x, y, z = v.T
+    D = np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, 2 * x, 2 * y, 2 * z,
+                         np.ones_like(x)])
+    try:
+        _, _, vt = np.linalg.svd(D, full_matrices=False)
+    except np.linalg.LinAlgError:
+        return None
+    p = vt[-1]
+    Aq = np.array([[p[0], p[3], p[4]], [p[3], p[1], p[5]], [p[4], p[5], p[2]]])
+    bq = p[6:9]
+    try:
+        c0 = -np.linalg.solve(Aq, bq)
+    except np.linalg.LinAlgError:
+        return None
+    k = c0 @ Aq @ c0 - p[9]
+    if k == 0:
+        return None
+    P = Aq / k                                   # (v − c0)ᵀ P (v − c0) = 1
+    try:
+        Mm = np.linalg.cholesky(np.linalg.inv(P))  # M Mᵀ = P⁻¹, M lower triangular
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(Mm)) or np.any(np.diag(Mm) < 0.2) or np.any(np.diag(Mm) > 5):
+        return None
+    if np.any(np.abs(c0) > 1.0):
+        return None
+    return _mb_to_params(Mm, c0 * g)
+
+
+def _minmax_init(u: np.ndarray, g: float) -> np.ndarray:
+    b = np.zeros(3)
+    s = np.ones(3)
+    for a in range(3):
+        hi, lo = u[:, a].max(), u[:, a].min()
+        if hi > 0.5 * g and lo < -0.5 * g:
+            b[a] = 0.5 * (hi + lo)
+            s[a] = 0.5 * (hi - lo) / g
+    return np.concatenate([b, s, np.zeros(3)])
+
+
+def _obs_jacobian(d: np.ndarray) -> np.ndarray:
+    """The |a| = g Jacobian at M = I, b = 0 for unit directions d (m, 3); bias columns per g."""
+    J = np.empty((len(d), 9))
+    J[:, 0:3] = -d
+    J[:, 3:6] = -d * d
+    for p, (r, c) in enumerate(_ANGLE_POS):
+        J[:, 6 + p] = -d[:, r] * d[:, c]
+    return J
+
+
+def _param_sigmas_unit(J: np.ndarray) -> np.ndarray | None:
+    N = J.T @ J
+    try:
+        w = np.linalg.eigvalsh(N)
+        if w[0] <= 1e-12 * w[-1]:
+            return None
+        return np.sqrt(np.diag(np.linalg.inv(N)))
+    except np.linalg.LinAlgError:
+        return None
+
+
+_REF_SIGMA_SQRTM = _param_sigmas_unit(_obs_jacobian(_PLAN_DIRS)) * math.sqrt(len(_PLAN_DIRS))
+
+
+def _distinct(d: np.ndarray, tol_deg: float = DISTINCT_DEG) -> int:
+    """Number of distinct attitudes: greedy, a pose within tol_deg of a kept one is a repeat."""
+    c = math.cos(math.radians(tol_deg))
+    close = (d @ d.T) >= c
+    keep = np.zeros(len(d), dtype=bool)
+    for i in range(len(d)):
+        if not np.any(close[i] & keep):
+            keep[i] = True
+    return int(keep.sum())
+
+
+def check_observability(means, method: str = "multi_position") -> dict:
+    """Raise NotObservable with the reason when the poses cannot constrain the model; return a
+    report otherwise: {"method", "n_poses", "n_distinct", "dop" (multi: per parameter, 1 = as
+    well constrained per pose as the 26-pose plan), "worst", "warnings"}.
+
+    six_position: the six faces must all be present. multi_position: ≥ 9 distinct attitudes
+    (warn under 12); every axis pointed up and down (within 60° of ±g: a corner counts); the |a| = g Jacobian at
+    the nominal point of full rank, and no parameter's dilution of precision above DOP_MAX."""
+    u = np.asarray(means, dtype=np.float64)
+    d = _units(u)
+    rep: dict = {"method": method, "n_poses": len(u), "n_distinct": _distinct(d), "warnings": []}
+    if method == "six_position":
+        faces, angles = identify_faces(u)
+        _check_faces(faces, angles, skip_non_faces=True)
+        return rep
+    if method != "multi_position":
+        raise ValueError(f"method must be 'six_position' or 'multi_position', not {method!r}")
+
+    nd = rep["n_distinct"]
+    if nd < MIN_ATTITUDES:
+        raise NotObservable(
+            f"too few poses: {len(u)} given, {nd} distinct attitudes (poses within "
+            f"{DISTINCT_DEG:.0f}° count once); the 9-parameter |a| = g model needs at least "
+            f"{MIN_ATTITUDES}, in practice 12–26 well spread (faces, edges and corners: POSE_PLAN)")
+    for a in range(3):
+        up, down = d[:, a].max(), d[:, a].min()
+        lacks = [w for w, ok in (("up", up >= UPDOWN_COS), ("down", down <= -UPDOWN_COS)) if not ok]
+        if lacks:
+            want = " or ".join(("+" if w == "up" else "-") + f"{AXES[a]} up" for w in lacks)
+            raise NotObservable(
+                f"the {AXES[a]} axis was never pointed {' or '.join(lacks)}: its reading ranged "
+                f"{down:+.2f} … {up:+.2f} of |a| over the poses, and within 60° of "
+                f"{' and '.join(('+g' if w == 'up' else '−g') for w in lacks)} is needed, or its bias "
+                f"and scale factor cannot be told apart. Add poses with {want} "
+                f"(e.g. {', '.join(repr(_face_pose(a, w == 'up')) for w in lacks)}).")
+    J = _obs_jacobian(d)
+    sig = _param_sigmas_unit(J)
+    if sig is None:
+        # name the parameters of the unconstrained combination (the null vector of the
+        # column-normalised normal matrix)
+        Jn = J / np.maximum(np.linalg.norm(J, axis=0), 1e-300)
+        _, vec = np.linalg.eigh(Jn.T @ Jn)
+        v = vec[:, 0]
+        names = [MULTI_PARAM_NAMES[i] for i in np.argsort(-np.abs(v)) if abs(v[i]) > 0.25]
+        raise NotObservable(
+            f"the poses leave a combination of {', '.join(names)} unconstrained (the |a| = g "
+            f"Jacobian is rank-deficient): spread the attitudes over faces, edges and corners "
+            f"(POSE_PLAN); {_missing_str(u)}")
+    dop = sig * math.sqrt(len(d)) / _REF_SIGMA_SQRTM
+    rep["dop"] = dict(zip(MULTI_PARAM_NAMES, dop.tolist()))
+    worst = int(np.argmax(dop))
+    rep["worst"] = MULTI_PARAM_NAMES[worst]
+    if dop[worst] > DOP_MAX:
+        raise NotObservable(
+            f"the poses constrain {MULTI_PARAM_NAMES[worst]} poorly: {dop[worst]:.0f}× worse per "
+            f"pose than the 26-attitude plan (limit {DOP_MAX:.0f}). Spread the attitudes: "
+            f"faces, edges and corners (POSE_PLAN); {_missing_str(u)}")
+    if nd < GOOD_ATTITUDES:
+        rep["warnings"].append(f"only {nd} distinct attitudes: ≥ {GOOD_ATTITUDES} give a reliable "
+                               f"fit (the 26 of POSE_PLAN best)")
+    if dop[worst] > DOP_WARN:
+        rep["warnings"].append(f"{MULTI_PARAM_NAMES[worst]} is weakly constrained "
+                               f"({dop[worst]:.1f}× the plan's dilution of precision)")
+    return rep
+
+
+def _missing_str(u) -> str:
+    missing = match_plan(u)[1]
+    if not missing:
+        return "every planned attitude is covered"
+    more = f", … ({len(missing) - 8} more)" if len(missing) > 8 else ""
+    return f"not yet covered: {', '.join(missing[:8])}{more}"
+
+
+def _face_pose(axis: int, up: bool) -> str:
+    v = [0, 0, 0]
+    v[axis] = 1 if up else -1
+    return _FACE_NAMES[tuple(v)]
+
+
+def multi_position(means, sigmas=None, init: TriadFit | None = None, g: float = G0_MPS2, *,
+                   chi2_scaling: str = "inflate", check: bool = True) -> TriadFit:
+    """Multi-position calibration: 9 parameters from |M⁻¹(u_i − b)| = g at m ≥ 9 attitudes.
+
+    θ = (b_x, b_y, b_z, s_x, s_y, s_z, a_yx, a_zx, a_zy), M = diag(s)·(I + A), A strictly lower
+    triangular (A[1,0] = a_yx, A[2,0] = a_zx, A[2,1] = a_zy): the frame x = the sensor's X
+    axis, y in the plane of its X and Y axes (docs/calibration.md). Nonlinear least squares
+    (scipy least_squares, Levenberg–Marquardt, analytic Jacobian) on r_i = |x_i| − g weighted by
+    the sigma of |x_i| propagated from sigmas; initial values from `init` (e.g. a six-position
+    pre-calibration, Syed et al.), else an algebraic ellipsoid fit of the means, else min/max
+    per axis (the first start that converges to a plausible solution is kept, else the lowest
+    χ² of all). Covariance of θ: (JᵀJ)⁻¹ at the solution × max(1, χ²/dof) (see _chi2_factor),
+    propagated to (M, b) through ∂(M, b)/∂θ; the three entries of M above the diagonal are 0
+    by the frame convention (estimated = False, variance 0)."""
+    u = np.asarray(means, dtype=np.float64)
+    _units(u)
+    _check_g(u, g)
+    m = len(u)
+    rep = check_observability(u, "multi_position") if check else {"warnings": []}
+    sig = _sigmas(sigmas, m)
+
+    xs = np.array([g * 1e-2] * 3 + [1e-2] * 6)
+
+    def sig_r(theta):
+        if sig is None:
+            return np.ones(m)
+        _, _, v = _residuals_and_jac(theta, u, g)
+        return np.sqrt(np.sum((v * sig) ** 2, axis=1))
+
+    def solve(theta0):
+        """LM from theta0, re-weighting until the weights settle; (theta, cost, nfev, sol)."""
+        theta = theta0.copy()
+        nfev = 0
+        sr = sig_r(theta)
+        sol = None
+        for _ in range(3):
+            def fun(t, sr=sr):
+                return _residuals_and_jac(t, u, g)[0] / sr
+
+            def jac(t, sr=sr):
+                return _residuals_and_jac(t, u, g)[1] / sr[:, None]
+
+            sol = optimize.least_squares(fun, theta, jac=jac, method="lm", x_scale=xs,
+                                         xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=2000)
+            nfev += sol.nfev
+            theta = sol.x
+            if not (np.all(np.isfinite(theta)) and np.all(theta[3:6] > 0)):
+                raise CalibrationError("non-finite or negative scale")
+            sr_new = sig_r(theta)
+            if np.max(np.abs(sr_new / sr - 1.0)) < 1e-3:
+                break
+            sr = sr_new
+        r = _residuals_and_jac(theta, u, g)[0]
+        return theta, float(np.sum((r / sig_r(theta)) ** 2)), nfev, sol
+
+    # starts: the given init, then the automatic ones; the given init alone when it fits well,
+    # otherwise the best of all (a poor init can lead LM to a degenerate corner)
+    starts = []
+    if init is not None:
+        starts.append((_mb_to_params(np.asarray(init.m, float), np.asarray(init.b, float)), "init"))
+    t_ell = _ellipsoid_init(u, g)
+    if t_ell is not None:
+        starts.append((t_ell, "ellipsoid"))
+    starts.append((_minmax_init(u, g), "minmax"))
+    best = None
+    errors = []
+    nfev = 0
+    for theta0, start in starts:
+        try:
+            theta, cost, nf, sol = solve(theta0)
+        except (CalibrationError, np.linalg.LinAlgError, ValueError) as e:
+            errors.append(f"{start}: {e}")
+            continue
+        nfev += nf
+        ok = np.all(np.abs(theta[3:6] - 1) < 0.5) and float(
+            np.sqrt(np.mean(_residuals_and_jac(theta, u, g)[0] ** 2))) < 0.01 * g
+        if best is None or cost < best[1] * (1 - 1e-9):
+            best = (theta, cost, sol, start, theta0)
+        if ok:
+            break
+    if best is None:
+        raise CalibrationError("multi-position fit did not converge from any start ("
+                               + "; ".join(errors) + "): give a six-position pre-calibration as init")
+    theta, _, sol, start, theta0 = best
+
+    sr = sig_r(theta)
+    r, J, _ = _residuals_and_jac(theta, u, g)
+    Jw = J / sr[:, None]
+    rw = r / sr
+    chi2 = float(rw @ rw)
+    dof = m - 9
+    N = Jw.T @ Jw
+    cn = np.sqrt(np.diag(N))
+    ev = np.linalg.eigvalsh(N / np.outer(cn, cn)) if np.all(cn > 0) else np.zeros(1)
+    if not ev[0] > 1e-12 * ev[-1]:
+        raise NotObservable("the multi-position fit is singular at its solution: spread the poses "
+                            "over faces, edges and corners (POSE_PLAN)")
+    cov_t = np.linalg.inv(N) * _chi2_factor(chi2, dof, sig is not None, chi2_scaling)
+    G = _param_jacobian_mb(theta)
+    cov = G @ cov_t @ G.T
+    M, b = multi_params_to_mb(theta)
+    est = np.ones(12, dtype=bool)
+    for rr, cc in ((0, 1), (0, 2), (1, 2)):
+        est[3 * rr + cc] = False
+    st = np.sqrt(np.clip(np.diag(cov_t), 0, None))
+    # converged |a| residuals must be small compared with g; otherwise a local minimum
+    rms = float(np.sqrt(np.mean(r ** 2)))
+    if rms > 0.05 * g:
+        raise CalibrationError(f"multi-position fit ended with |a| residuals of {rms / g:.3f} g rms: "
+                               f"the poses were not still, or the start was too poor (give init)")
+    extra = {
+        "params": dict(zip(MULTI_PARAM_NAMES, theta.tolist())),
+        "sigma_params": dict(zip(MULTI_PARAM_NAMES, st.tolist())),
+        "cov_params": cov_t,
+        "scales": theta[3:6].copy(),
+        "sigma_scales": st[3:6].copy(),
+        "angles_rad": {"a_yx": theta[6], "a_zx": theta[7], "a_zy": theta[8]},
+        "sigma_angles_rad": {"a_yx": st[6], "a_zx": st[7], "a_zy": st[8]},
+        "chi2": chi2,
+        "chi2_red": chi2 / dof if dof > 0 else float("nan"),
+        "chi2_scaling": chi2_scaling if sig is not None else "always (unweighted)",
+        "start": start,
+        "theta0": theta0,
+        "nfev": nfev,
+        "status": sol.status,
+        "message": sol.message,
+        "observability": rep,
+        "frame": "x = sensor X axis, y in the sensor X-Y plane (M lower triangular)",
+        "g": g,
+    }
+    return TriadFit(method="multi_position", m=M, b=b, cov=cov, residual_rms=rms, residuals=r,
+                    dof=dof, estimated=est, extra=extra)
+
+
+# --------------------------------------------------------------------------------------------
+# session table
+# --------------------------------------------------------------------------------------------
+
+def pose_table(means, fit: TriadFit, g: float | None = None) -> list[dict]:
+    """Per pose: {"index" (0-based), "pose" (plan name, or "pose N" counting from 1),
+    "before_g": |u|/g, "after_g": |M⁻¹(u − b)|/g, "before_err_mg", "after_err_mg"} — |a| should be
+    1 g in every pose after calibration. g defaults to the fit's (extra["g"]) or G0."""
+    u = np.asarray(means, dtype=np.float64)
+    if g is None:
+        g = float(fit.extra.get("g", G0_MPS2))
+    before = np.linalg.norm(u, axis=1) / g
+    after = np.linalg.norm(fit.correct(u), axis=1) / g
+    names = _pose_names(u)
+    return [{"index": i, "pose": names[i], "before_g": float(before[i]), "after_g": float(after[i]),
+             "before_err_mg": float((before[i] - 1) * 1e3), "after_err_mg": float((after[i] - 1) * 1e3)}
+            for i in range(len(u))]

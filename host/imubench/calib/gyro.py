@@ -1,0 +1,890 @@
+"""Gyro triad calibration: bias at rest, turntable, and the rotation method (no fixture).
+
+Model (docs/conventions.md): u = M·x + b, x = M⁻¹·(u − b); u the nominally scaled gyro
+reading in rad/s, x the true angular rate of the board in rad/s, both in the board frame
+(X forward, Y left, Z up; positive rate by the right-hand rule).
+
+Three fits, each returning a :class:`~imubench.calib.TriadFit`:
+
+* :func:`gyro_bias` — b from a recording at rest (M not estimated). Its sigma accounts for
+  correlated samples (sensor filter, oversampling) and, when given, the bias's random walk.
+* :func:`turntable` — M and b by weighted linear least squares from segments at known
+  constant rates about known axes, each axis turned both ways.
+* :func:`rotation_method` — M without a fixture (imu_tk's idea): between consecutive static
+  poses the corrected gyro is integrated, the previous pose's gravity direction is carried
+  through that rotation and compared with the next pose's; M is fitted by nonlinear least
+  squares with the bias fixed from a rest recording.
+
+Frame convention of :func:`integrate_rotation` (used by the rotation method): R is the
+attitude of the board at the end of the interval expressed in the board frame at its start;
+its columns are the end frame's axes in start-frame coordinates, so for a vector v given in
+end-frame coordinates ``R @ v`` is the same vector in start-frame coordinates. Body rates
+compose on the right (R = R₁·R₂ for two successive intervals). A world-fixed vector, such as
+the direction of gravity, seen from the board: ``v_end = R.T @ v_start``. Example: +90° about
++Z gives R = Rz(90°), R @ e_x = e_y (the board's +X now points where +Y pointed).
+
+Everything here is numpy/scipy; nothing touches a serial port.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Sequence
+
+import numpy as np
+from scipy import optimize, stats
+
+from . import CalibrationError, NotObservable, TriadFit
+
+__all__ = [
+    "TurntableSegment",
+    "gyro_bias",
+    "integrate_rotation",
+    "rotation_method",
+    "turntable",
+]
+
+_AXES = "XYZ"
+_ADXRS450_RANGE_RAD_S = math.radians(300.0)
+_CHECK_JACOBIAN = False      # tests set this to compare the analytic Jacobian with differences
+
+
+# ---------------------------------------------------------------------------- helpers
+def _as_rates(rates, what: str = "rates") -> np.ndarray:
+    a = np.asarray(rates, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise CalibrationError(f"{what}: expected an (n, 3) array of rad/s, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise CalibrationError(f"{what}: contains NaN or infinite values")
+    return a
+
+
+def _avar_octaves(y: np.ndarray, ms: Sequence[int]) -> np.ndarray:
+    """Overlapping Allan variance of the columns of y (n, c) at cluster sizes ms (samples)."""
+    y = y - y.mean(axis=0)
+    c = np.concatenate([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0)])
+    out = np.empty((len(ms), y.shape[1]))
+    for i, m in enumerate(ms):
+        a = (c[m:] - c[:-m]) / m              # means of m consecutive samples
+        d = a[m:] - a[:-m]                     # differences of adjacent means
+        out[i] = 0.5 * np.mean(d * d, axis=0)
+    return out
+
+
+def _mean_uncertainty(y: np.ndarray, min_cluster: int = 1, rrw2: np.ndarray | None = None) -> dict:
+    """1-sigma uncertainty of the column means of y (n, c), in sample units.
+
+    White level N² (variance per sample period, as if the samples were independent) from the
+    overlapping Allan variance at cluster sizes m from max(n/128, min_cluster) to n/4, where a
+    sensor's filter or oversampling no longer correlates the clusters: the per-cluster
+    estimates m·AVAR(m) averaged with weights = their degrees of freedom (≈ 1.5 n/m).
+    rrw2: a known bias random walk, variance per sample; adds K²·n/3 (the mean as an estimate
+    of the bias at either end of the recording). Returned sigma = √(N²/n + K²·n/3), never less
+    than std/√n. drift_z: (mean of the second half − mean of the first half) / its sigma from
+    N² (≈ N(0, 1) for white noise; |drift_z| ≳ 4 when the bias wandered during the recording).
+    """
+    n, ncol = y.shape
+    std = y.std(axis=0, ddof=1) if n > 1 else np.full(ncol, np.nan)
+    white = std / math.sqrt(n)
+    k2 = np.zeros(ncol) if rrw2 is None else np.broadcast_to(np.asarray(rrw2, float), (ncol,)).copy()
+    out = {"sigma": np.sqrt(white**2 + k2 * n / 3.0), "sigma_white": white, "n2": std**2,
+           "k2": k2, "drift_z": np.full(ncol, np.nan), "method": "std/sqrt(n)"}
+    m_lo = max(1, int(min_cluster), n // 128)
+    ms = []
+    m = 1
+    while m <= n // 4:
+        if m >= m_lo:
+            ms.append(m)
+        m *= 2
+    half = n // 2
+    if len(ms) < 2:
+        if half >= 1 and n > 2:
+            out["drift_z"] = (y[half:].mean(0) - y[:half].mean(0)) / np.maximum(2.0 * white, 1e-300)
+        return out
+    ms_a = np.asarray(ms, dtype=np.float64)
+    yk = _avar_octaves(y, ms) * ms_a[:, None]                    # per-cluster estimates of N²
+    edf = np.maximum(1.0, 1.5 * n / ms_a - 2.0)
+    n2 = edf @ yk / edf.sum()
+    var = n2 / n + k2 * n / 3.0
+    dz = (y[half:].mean(0) - y[:half].mean(0)) / np.maximum(
+        np.sqrt(n2 / half + n2 / (n - half)), 1e-300)
+    out.update(sigma=np.maximum(np.sqrt(var), white), n2=n2, drift_z=dz, method="allan")
+    return out
+
+
+def _rotvec_quat(phi: np.ndarray) -> np.ndarray:
+    """Unit quaternions (4, ...) = (w, x, y, z) of rotation vectors given component-first,
+    phi (3, ...)."""
+    half = 0.5 * np.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+    s = 0.5 * np.sinc(half * (1.0 / math.pi))          # sin(θ/2)/θ, smooth at 0
+    q = np.empty((4,) + phi.shape[1:])
+    q[0] = np.cos(half)
+    np.multiply(phi, s, out=q[1:])
+    return q
+
+
+def _quat_chain(q: np.ndarray) -> np.ndarray:
+    """Ordered Hamilton product q₀⊗q₁⊗…⊗q_{L-1} along the last axis of q (4, ..., L)."""
+    while q.shape[-1] > 1:
+        if q.shape[-1] % 2:
+            pad = np.zeros(q.shape[:-1] + (1,))
+            pad[0] = 1.0
+            q = np.concatenate([q, pad], axis=-1)
+        a0, a1, a2, a3 = q[..., 0::2]
+        b0, b1, b2, b3 = q[..., 1::2]
+        out = np.empty(q.shape[:-1] + (q.shape[-1] // 2,))
+        out[0] = a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3
+        out[1] = a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2
+        out[2] = a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1
+        out[3] = a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0
+        q = out
+    return q[..., 0]
+
+
+def _qmul(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Hamilton product of quaternion arrays (4, ...), broadcasting; into out if given."""
+    a0, a1, a2, a3 = a
+    b0, b1, b2, b3 = b
+    if out is None:
+        out = np.empty((4,) + np.broadcast_shapes(a0.shape, b0.shape))
+    r0 = a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3
+    r1 = a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2
+    r2 = a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1
+    out[3] = a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0
+    out[0], out[1], out[2] = r0, r1, r2
+    return out
+
+
+def _quat_prefix(q: np.ndarray) -> np.ndarray:
+    """Inclusive prefix products q₀⊗…⊗q_k along the last axis of q (4, J, n), by blocks of
+    about √n (two short sequential passes of vectorised products)."""
+    n = q.shape[-1]
+    bl = max(1, int(math.ceil(math.sqrt(n))))
+    nb = -(-n // bl)
+    pad = nb * bl - n
+    if pad:
+        ident = np.zeros(q.shape[:-1] + (pad,))
+        ident[0] = 1.0
+        q = np.concatenate([q, ident], axis=-1)
+    qb = np.ascontiguousarray(np.moveaxis(q.reshape(q.shape[:-1] + (nb, bl)), -1, 1))  # (4, bl, ..., nb)
+    for i in range(1, bl):                       # within each block
+        _qmul(qb[:, i - 1], qb[:, i], out=qb[:, i])
+    carry = np.empty(qb[:, 0].shape)             # (4, ..., nb): product of all earlier blocks
+    carry[..., 0] = 0.0
+    carry[0, ..., 0] = 1.0
+    for j in range(1, nb):
+        _qmul(carry[..., j - 1], qb[:, -1, ..., j - 1], out=carry[..., j])
+    out = _qmul(carry[:, None], qb)              # (4, bl, ..., nb)
+    return np.moveaxis(out, 1, -1).reshape(q.shape)[..., :n]
+
+
+def _quat_matrix_cf(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices component-first (3, 3, ...) of unit quaternions (4, ...)."""
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _quat_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of quaternions (4, ...) (normalised here)."""
+    q = q / np.sqrt(np.sum(q * q, axis=0))
+    w, x, y, z = q
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+def _step_vectors(x: np.ndarray, h: float, lens: np.ndarray | None = None,
+                  step_mask: np.ndarray | None = None, coning: bool = True) -> np.ndarray:
+    """Rotation vector of each step between consecutive samples; component-first: x (3, ..., L)
+    → (3, ..., L-1).
+
+    The rate is taken as a smooth signal sampled at the sample instants: the integral over a
+    step uses cubic interpolation through the four nearest samples, h·(−x₋₁ + 13x₀ + 13x₁ −
+    x₂)/24 (one-sided quadratic, h·(5x₀ + 8x₁ − x₂)/12, at the first and last step), plus the
+    second Magnus (coning) term h²/12·x₀ × x₁; the local error is O(h⁵). Constant rates are
+    integrated exactly. lens: for x (3, J, L) holding J padded runs, the number of valid
+    samples of each run; step_mask (J, L-1) zeroes the steps beyond a run's end.
+    """
+    L = x.shape[-1]
+    x0, x1 = x[..., :-1], x[..., 1:]
+    phi = x0 + x1
+    phi *= 0.5 * h
+    if L >= 4:
+        phi[..., 1:-1] += (h / 24.0) * ((x[..., 1:-2] + x[..., 2:-1]) - (x[..., :-3] + x[..., 3:]))
+    if L >= 3:
+        first = (h / 12.0) * (5.0 * x[..., 0] + 8.0 * x[..., 1] - x[..., 2])
+        if lens is None:
+            phi[..., 0] = first
+            phi[..., -1] = (h / 12.0) * (5.0 * x[..., -1] + 8.0 * x[..., -2] - x[..., -3])
+        else:
+            lens = np.asarray(lens)
+            rows = np.flatnonzero(lens >= 3)
+            last = lens[rows] - 1
+            phi[:, rows, 0] = first[:, rows]
+            phi[:, rows, last - 1] = (h / 12.0) * (5.0 * x[:, rows, last] + 8.0 * x[:, rows, last - 1]
+                                                   - x[:, rows, last - 2])
+    c = (h * h / 12.0) if coning else 0.0
+    phi[0] += c * (x0[1] * x1[2] - x0[2] * x1[1])
+    phi[1] += c * (x0[2] * x1[0] - x0[0] * x1[2])
+    phi[2] += c * (x0[0] * x1[1] - x0[1] * x1[0])
+    if step_mask is not None:
+        phi *= step_mask
+    return phi
+
+
+def _rotate(phi: np.ndarray) -> np.ndarray:
+    """Product of the step rotations exp([φ_k]×), phi component-first (3, ..., L) → (..., 3, 3)."""
+    return _quat_matrix(_quat_chain(_rotvec_quat(phi)))
+
+
+def integrate_rotation(rates, fs_hz: float) -> np.ndarray:
+    """Rotation of the board over a run of gyro samples.
+
+    rates: (n, 3) true body rates in rad/s (board frame), sampled at fs_hz; the samples are
+    instantaneous values at t_k = k/fs, and the interval runs from the first sample to the
+    last ((n − 1)/fs long). Between samples the rate is interpolated by cubics through the
+    four nearest samples, and each step's rotation vector carries the coning (second Magnus)
+    term; constant rates are exact, smooth motions at 100 Hz and 300 °/s are within ~1e-5°.
+
+    Returns R (3, 3): the board's attitude at the end expressed in the board frame at the
+    start (columns: end-frame axes in start-frame coordinates). A world-fixed vector seen
+    from the board transforms as v_end = R.T @ v_start. Successive intervals compose as
+    R = R₁ @ R₂. Example: 1 s at +π/2 rad/s about +Z gives Rz(90°), R @ e_x = e_y.
+    """
+    x = _as_rates(rates)
+    if not fs_hz > 0:
+        raise CalibrationError("fs_hz must be positive")
+    if len(x) < 2:
+        return np.eye(3)
+    return _rotate(_step_vectors(np.ascontiguousarray(x.T), 1.0 / fs_hz))
+
+
+def _cov12(m_cov: np.ndarray | None = None, b_cov: np.ndarray | None = None,
+           mb_cov: np.ndarray | None = None) -> np.ndarray:
+    cov = np.full((12, 12), np.nan)
+    if m_cov is not None:
+        cov[:9, :9] = m_cov
+    if b_cov is not None:
+        cov[9:, 9:] = b_cov
+    if mb_cov is not None:
+        cov[:9, 9:] = mb_cov
+        cov[9:, :9] = mb_cov.T
+    return cov
+
+
+def _bias_input(bias) -> tuple[np.ndarray, np.ndarray | None]:
+    """(b, cov_b or None) from a TriadFit or a (3,) array."""
+    if isinstance(bias, TriadFit):
+        b = np.asarray(bias.b, dtype=np.float64).reshape(3)
+        cb = np.asarray(bias.cov, dtype=np.float64)[9:, 9:]
+        return b, (cb if np.all(np.isfinite(cb)) else None)
+    b = np.asarray(bias, dtype=np.float64).reshape(-1)
+    if b.shape != (3,) or not np.all(np.isfinite(b)):
+        raise CalibrationError("bias: expected a TriadFit or three finite values in rad/s")
+    return b, None
+
+
+# ---------------------------------------------------------------------------- bias
+def gyro_bias(rates, fs_hz: float, *, rate_random_walk=None) -> TriadFit:
+    """Gyro bias from a recording at rest.
+
+    rates: (n, 3) rad/s at rest; fs_hz: sample rate. rate_random_walk: optional bias random
+    walk K per axis (rad/s·√Hz, ADEV(τ) = K·√(τ/3), from an Allan deviation run).
+
+    b is the mean rate (it includes the Earth's rotation as seen by the board, ≤ 0.0042 °/s).
+    Its sigma is the uncertainty of the mean: the white level comes from the Allan variance at
+    cluster times long enough to ignore the sensor's filter, so oversampled, correlated samples
+    are not over-trusted (std/√n would be too small by √(fs / 2·noise bandwidth)); never less
+    than std/√n. With K given, K²·T/3 is added: sigma is then that of b as the bias at either
+    end of the recording (the moment it is used), and extra["best_duration_s"] = √3·N/K is
+    the rest length that minimises it. A random walk is not estimated from the recording
+    itself (the recording cannot show it at its own length); extra["drift_z"] (second-half
+    mean − first-half mean, in sigmas of white noise) beyond about ±4 flags a bias that
+    visibly wandered (temperature settling, a bump): record again or pass K.
+    M is not estimated (identity, NaN covariance). Raises CalibrationError when the data are
+    too short or show motion.
+    """
+    u = _as_rates(rates)
+    n = len(u)
+    if not fs_hz > 0:
+        raise CalibrationError("fs_hz must be positive")
+    if n < 16:
+        raise CalibrationError(f"gyro_bias: {n} samples at rest is too short; record at least "
+                               "a few seconds (10-60 s recommended)")
+    med = np.median(u, axis=0)
+    mad = 1.4826 * np.median(np.abs(u - med), axis=0)
+    excursion = np.max(np.abs(u - med), axis=0)
+    limit = 10.0 * mad + math.radians(1.0)
+    moved = excursion > limit
+    if np.any(moved):
+        axes = ", ".join(f"{_AXES[k]} ({math.degrees(excursion[k]):.2f} °/s)"
+                         for k in np.flatnonzero(moved))
+        raise CalibrationError(f"gyro_bias: the board was not at rest: rate excursions on {axes} "
+                               "well beyond the noise; record again without touching the board")
+    rrw2 = None
+    kk = None
+    if rate_random_walk is not None:
+        kk = np.broadcast_to(np.asarray(rate_random_walk, float), (3,)).copy()
+        if not (np.all(np.isfinite(kk)) and np.all(kk >= 0)):
+            raise CalibrationError("rate_random_walk must be finite and >= 0")
+        rrw2 = kk**2 / fs_hz
+    mu = _mean_uncertainty(u, min_cluster=max(1, int(round(0.02 * fs_hz))), rrw2=rrw2)
+    b = u.mean(axis=0)
+    sig = mu["sigma"]
+    res = u - b
+    nd = np.sqrt(mu["n2"] / fs_hz)
+    extra = {
+        "n": n,
+        "duration_s": n / fs_hz,
+        "std_rad_s": res.std(axis=0, ddof=1),
+        "sigma_white_rad_s": mu["sigma_white"],
+        "noise_density_rad_s_rthz": nd,
+        "drift_z": mu["drift_z"],
+        "sigma_method": mu["method"],
+    }
+    if kk is not None:
+        extra["rate_random_walk_rad_s_rthz"] = kk
+        with np.errstate(divide="ignore"):
+            extra["best_duration_s"] = np.where(kk > 0, math.sqrt(3.0) * nd / np.maximum(kk, 1e-300),
+                                                np.inf)
+    return TriadFit(
+        method="bias",
+        m=np.eye(3),
+        b=b,
+        cov=_cov12(b_cov=np.diag(sig**2)),
+        residual_rms=float(np.sqrt(np.mean(res**2))),
+        residuals=None,
+        dof=3 * (n - 1),
+        estimated=np.array([False] * 9 + [True] * 3),
+        extra=extra,
+    )
+
+
+# ---------------------------------------------------------------------------- turntable
+class TurntableSegment(NamedTuple):
+    """One turntable segment: the board turning at a constant rate about a fixed axis.
+
+    rates: (n, 3) gyro readings u in rad/s while the table turns at constant rate;
+    axis: the table's rotation axis in the board frame (normalised here);
+    table_rate_rad_s: the table's rate about that axis (right-hand rule; negative = other way);
+    sigma: optional 1-sigma uncertainty of this segment's MEAN reading, rad/s (scalar or per
+    axis); estimated from the data when None.
+    """
+
+    rates: np.ndarray
+    axis: np.ndarray
+    table_rate_rad_s: float
+    sigma: float | np.ndarray | None = None
+
+
+def _segments(segments) -> list[TurntableSegment]:
+    out = []
+    for i, s in enumerate(segments):
+        if isinstance(s, dict):
+            s = TurntableSegment(**s)
+        s = tuple(s)
+        if len(s) not in (3, 4):
+            raise CalibrationError(f"segment {i}: expected (rates, axis, table_rate_rad_s[, sigma])")
+        rates = _as_rates(s[0], f"segment {i} rates")
+        if len(rates) < 2:
+            raise CalibrationError(f"segment {i}: needs at least 2 samples")
+        ax = np.asarray(s[1], dtype=np.float64).reshape(-1)
+        if ax.shape != (3,) or not np.all(np.isfinite(ax)) or np.linalg.norm(ax) < 1e-6:
+            raise CalibrationError(f"segment {i}: axis must be a non-zero 3-vector in the board frame")
+        ax = ax / np.linalg.norm(ax)
+        w = float(s[2])
+        if not math.isfinite(w):
+            raise CalibrationError(f"segment {i}: table rate is not finite")
+        sig = None if len(s) < 4 or s[3] is None else np.broadcast_to(
+            np.asarray(s[3], float), (3,)).copy()
+        if sig is not None and not (np.all(np.isfinite(sig)) and np.all(sig > 0)):
+            raise CalibrationError(f"segment {i}: sigma must be positive")
+        out.append(TurntableSegment(rates, ax, w, sig))
+    return out
+
+
+def _direction_coverage(vecs: np.ndarray, threshold: float) -> list[tuple[int, bool, bool]]:
+    """For each board axis k: (k, has +, has −) where a vector counts for ±k when its
+    k-component is at least `threshold` in that sign (threshold in the vectors' units)."""
+    return [(k, bool(np.any(vecs[:, k] >= threshold)), bool(np.any(vecs[:, k] <= -threshold)))
+            for k in range(3)]
+
+
+def turntable(segments, bias: TriadFit | np.ndarray | None = None) -> TriadFit:
+    """M and b from turntable segments at known constant rates.
+
+    segments: iterable of TurntableSegment or tuples (rates (n,3) rad/s, axis (3,) unit vector
+    in the board frame, table_rate_rad_s, optional sigma of the segment mean). Each segment's
+    mean reading ū = M·(ω·axis) + b; every row of M with its b is a weighted linear least
+    squares problem (weights 1/σ² of the segment means, estimated from the data like
+    gyro_bias unless given).
+
+    bias: None → b is fitted with M; every board axis must then be turned both ways (the
+    sum/difference of the two directions separates bias from scale). A TriadFit (e.g. from
+    gyro_bias on a rest recording) → b is fixed to it and its uncertainty propagated into M;
+    a plain (3,) array → b fixed and taken as exact (its covariance NaN).
+
+    The covariance comes from the segment sigmas; it is scaled by the reduced chi-square when
+    that is significantly above 1 (p < 0.01: unmodelled errors such as table-rate error or
+    wobble), see extra["cov_scaled"]. residuals: per segment (S, 3), ū − (M·w + b), rad/s.
+    Raises NotObservable when an axis was turned only one way (b fitted) or the segments'
+    rate vectors do not span 3-D; CalibrationError when a segment's reading is far from its
+    table rate (wrong axis or sign).
+    """
+    segs = _segments(segments)
+    if not segs:
+        raise NotObservable("turntable: no segments")
+    S = len(segs)
+    w = np.array([s.table_rate_rad_s * s.axis for s in segs])            # (S, 3) true rates
+    ubar = np.array([s.rates.mean(axis=0) for s in segs])                 # (S, 3)
+    sig = np.empty((S, 3))
+    for i, s in enumerate(segs):
+        sig[i] = s.sigma if s.sigma is not None else _mean_uncertainty(s.rates)["sigma"]
+    sig = np.maximum(sig, 1e-12)
+
+    fix_b = bias is not None
+    if fix_b:
+        b_fixed, cov_b = _bias_input(bias)
+    # gross errors: the reading must be near the table rate (|M − I| ≲ 0.1, |b| ≲ 10 °/s)
+    b_guess = b_fixed if fix_b else np.zeros(3)
+    dev = np.linalg.norm(ubar - b_guess - w, axis=1)
+    bad = np.flatnonzero(dev > 0.2 * np.linalg.norm(w, axis=1) + math.radians(10.0))
+    if bad.size:
+        i = int(bad[0])
+        raise CalibrationError(
+            f"turntable: segment {i} reads {np.round(np.degrees(ubar[i]), 2).tolist()} °/s but the "
+            f"table turns {math.degrees(segs[i].table_rate_rad_s):.2f} °/s about board axis "
+            f"{np.round(segs[i].axis, 3).tolist()}; check the axis and the sign (right-hand rule, "
+            "board X forward, Y left, Z up)")
+
+    mag = np.linalg.norm(w, axis=1)
+    if not fix_b:
+        missing = []
+        for k, pos, neg in _direction_coverage(w / np.maximum(mag, 1e-300)[:, None] * (mag > 0)[:, None], 0.5):
+            if not (pos and neg):
+                which = "in neither direction" if not (pos or neg) else (
+                    "only in the + direction" if pos else "only in the − direction")
+                missing.append(f"{_AXES[k]} ({which})")
+        if missing:
+            raise NotObservable(
+                "turntable: board axis " + ", ".join(missing) + " was not turned both ways; "
+                "with b fitted from the segments each axis needs a + and a − rate (the "
+                "difference gives the scale, the sum the bias). Add the missing direction(s), "
+                "or pass bias= from a rest recording (gyro_bias)")
+
+    design = np.column_stack([w, np.ones(S)]) if not fix_b else w.copy()
+    dn = design / np.maximum(np.linalg.norm(design, axis=0), 1e-300)
+    _, sv, sv_vt = np.linalg.svd(dn, full_matrices=False)
+    if sv.size < design.shape[1] or sv[-1] < 1e-6 * sv[0]:
+        v = sv_vt[-1, :3]
+        v = v / max(np.linalg.norm(v), 1e-300)
+        raise NotObservable(
+            "turntable: the segments' rate vectors do not span 3-D"
+            + (" (with a bias)" if not fix_b else "")
+            + f"; nothing constrains the response to rotation along {np.round(v, 3).tolist()} "
+            "(board frame). Turn the board about three independent axes")
+
+    p = design.shape[1]
+    m = np.empty((3, 3))
+    b = b_fixed.copy() if fix_b else np.empty(3)
+    m_cov = np.zeros((9, 9))                  # from the segments' noise
+    mb_cov = np.zeros((9, 3))
+    b_cov = np.zeros((3, 3))
+    G = np.zeros((9, 3))                      # dM/db when b is fixed
+    resid = np.empty((S, 3))
+    for i in range(3):
+        wt = 1.0 / sig[:, i]
+        A = design * wt[:, None]
+        y = ubar[:, i] - (b_fixed[i] if fix_b else 0.0)
+        sol = np.linalg.lstsq(A, y * wt, rcond=None)[0]
+        C = np.linalg.inv(A.T @ A)
+        m[i] = sol[:3]
+        sl = slice(3 * i, 3 * i + 3)
+        resid[:, i] = y - design @ sol
+        m_cov[sl, sl] = C[:3, :3]
+        if fix_b:
+            G[sl, i] = -C @ (A.T @ wt)
+        else:
+            b[i] = sol[3]
+            mb_cov[sl, i] = C[:3, 3]
+            b_cov[i, i] = C[3, 3]
+
+    # chi-square; with b fixed from a rest its error is common to every segment of a row, so
+    # the residuals' covariance is diag(σ²) + σ_b²·11ᵀ (Sherman–Morrison)
+    chi2 = float(np.sum((resid / sig) ** 2))
+    if fix_b and cov_b is not None:
+        for i in range(3):
+            d = 1.0 / sig[:, i] ** 2
+            sb2 = cov_b[i, i]
+            chi2 -= sb2 * float(np.dot(d, resid[:, i])) ** 2 / (1.0 + sb2 * float(d.sum()))
+    dof = 3 * S - 3 * p
+    pval = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float("nan")
+    scaled = bool(dof > 0 and pval < 0.01)
+    if scaled:
+        f = chi2 / dof
+        m_cov *= f
+        mb_cov *= f
+        b_cov *= f
+    if fix_b:
+        if cov_b is not None:                 # the rest bias's uncertainty, through the fit
+            m_cov += G @ cov_b @ G.T
+            mb_cov = G @ cov_b
+            b_cov = cov_b.copy()
+        else:
+            b_cov = None
+    have_b_cov = b_cov is not None
+    cov = _cov12(m_cov, b_cov, mb_cov if have_b_cov else None)
+    estimated = np.array([True] * 9 + [have_b_cov] * 3)
+    fit = TriadFit(
+        method="turntable",
+        m=m,
+        b=b,
+        cov=cov,
+        residual_rms=float(np.sqrt(np.mean(resid**2))),
+        residuals=resid,
+        dof=dof,
+        estimated=estimated,
+        extra={
+            "segment_rates_rad_s": w,
+            "segment_mean_rad_s": ubar,
+            "segment_sigma_rad_s": sig,
+            "normalized_residuals": resid / sig,
+            "chi2": chi2,
+            "reduced_chi2": chi2 / dof if dof > 0 else float("nan"),
+            "chi2_p": pval,
+            "cov_scaled": scaled,
+            "bias_source": ("rest" if b_cov is not None else "given") if fix_b else "segments",
+        },
+    )
+    if np.max(np.abs(m - np.eye(3))) > 0.2:
+        raise CalibrationError(f"turntable: fitted M is far from identity ({np.round(m, 3).tolist()}); "
+                               "check the segments' axes and signs")
+    return fit
+
+
+# ---------------------------------------------------------------------------- rotation method
+def _skew_rows(v: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) cross-product matrices [v]× of the rows of v (k, 3)."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
+    return out
+
+
+def _tangent_basis(g: np.ndarray) -> np.ndarray:
+    """(k, 2, 3): two orthonormal vectors perpendicular to each unit vector g (k, 3)."""
+    a = np.where((np.abs(g[:, 0]) < 0.9)[:, None], np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
+    e1 = a - np.sum(a * g, axis=1)[:, None] * g
+    e1 /= np.linalg.norm(e1, axis=1)[:, None]
+    e2 = np.cross(g, e1)
+    return np.stack([e1, e2], axis=1)
+
+
+_COLUMN_NAMES = {0: "first column (m00, m10, m20: the response to rotation about X)",
+                 1: "second column (m01, m11, m21: the response to rotation about Y)",
+                 2: "third column (m02, m12, m22: the response to rotation about Z)"}
+
+
+def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, init_m=None, *,
+                    gravity_sigma=0.0, max_rate_rad_s: float | None = _ADXRS450_RANGE_RAD_S,
+                    min_turn_deg: float = 30.0, max_residual_deg: float = 1.0) -> TriadFit:
+    """Gyro M without a turntable, from rotations between static poses (imu_tk's method).
+
+    gyro: (n, 3) readings u in rad/s at fs_hz. static_intervals: k half-open sample ranges
+    (start, stop), in time order, where the board was still. gravity_dirs: (k, 3) the
+    calibrated accelerometer's specific-force direction (i.e. "up", +Z when level) in the board
+    frame for each interval; normalised here. bias: (3,) rad/s or a TriadFit (gyro_bias of the
+    rest recording; its uncertainty is propagated into M). init_m: starting M (identity).
+
+    Motion j runs from the last sample of interval j to the first sample of interval j+1. With
+    x = M⁻¹(u − b) integrated (integrate_rotation) to R_j, the board's attitude after the motion
+    in its frame before it, the gravity direction seen by the board is predicted as
+    g_pred = R_jᵀ·g_j and compared with g_{j+1}: two residual components (radians) along a
+    basis perpendicular to g_{j+1}, weighted by the expected noise of the motion (gyro white
+    noise estimated in the static intervals × √duration, and gravity_sigma, rad per direction,
+    scalar or (k,)). M's 9 entries are fitted by scipy.optimize.least_squares; the covariance
+    is the Jacobian's, scaled by the reduced chi-square, plus the bias uncertainty propagated
+    through the fit. M is relative to the accelerometer's frame (gravity_dirs define it).
+
+    Observability: a motion informs about rotation about an axis only when that axis is off the
+    vertical; each board axis must be turned both ways (≥ min_turn_deg, counted on the part of
+    the turn perpendicular to gravity), so at least 6 motions; 12–24 are recommended (2
+    constraints per motion, 9 parameters, and enough spare to estimate the noise).
+    NotObservable otherwise, naming the axis and the column of M it leaves undetermined.
+    """
+    u = _as_rates(gyro, "gyro")
+    n = len(u)
+    if not fs_hz > 0:
+        raise CalibrationError("fs_hz must be positive")
+    h = 1.0 / fs_hz
+    iv = np.asarray(static_intervals, dtype=np.int64).reshape(-1, 2) if len(static_intervals) else \
+        np.zeros((0, 2), np.int64)
+    k = len(iv)
+    g = np.asarray(gravity_dirs, dtype=np.float64)
+    if g.ndim != 2 or g.shape != (k, 3):
+        raise CalibrationError(f"gravity_dirs: expected ({k}, 3), one per static interval, got {g.shape}")
+    gn = np.linalg.norm(g, axis=1)
+    if not np.all(np.isfinite(g)) or np.any(gn < 1e-9):
+        raise CalibrationError("gravity_dirs: every direction must be a finite non-zero vector")
+    g = g / gn[:, None]
+    for i, (a, z) in enumerate(iv):
+        if not (0 <= a < z <= n):
+            raise CalibrationError(f"static interval {i} = ({a}, {z}) is empty or outside 0..{n}")
+        if i and a < iv[i - 1, 1]:
+            raise CalibrationError(f"static intervals {i - 1} and {i} overlap or are out of order")
+    J = k - 1
+    if J < 6:
+        raise NotObservable(
+            f"rotation_method: {max(J, 0)} motion(s) between {k} static poses; at least 6 are "
+            "needed (each board axis turned both ways while off the vertical: 2 constraints per "
+            "motion for the 9 entries of M) and 12–24 are recommended (e.g. ±90° and ±180° about "
+            "X, Y and Z from different poses) so the noise can be estimated from the residuals")
+    b, cov_b = _bias_input(bias)
+    m0 = np.eye(3) if init_m is None else np.asarray(init_m, dtype=np.float64).reshape(3, 3)
+    gsig = np.broadcast_to(np.asarray(gravity_sigma, float), (k,)).astype(float)
+
+    if max_rate_rad_s is not None:
+        over = np.flatnonzero(np.max(np.abs(u), axis=1) >= max_rate_rad_s)
+        if over.size:
+            raise CalibrationError(
+                f"rotation_method: {over.size} samples at or beyond ±{math.degrees(max_rate_rad_s):.0f} °/s "
+                f"(first at sample {over[0]}): the gyro may have clipped; turn slower")
+
+    # motions: samples [stop_j - 1, start_{j+1}] inclusive
+    starts = iv[:-1, 1] - 1
+    ends = iv[1:, 0]
+    lens = ends - starts + 1
+    L = int(lens.max())
+    idx = starts[:, None] + np.arange(L)[None, :]
+    valid = np.arange(L)[None, :] < lens[:, None]
+    idx = np.where(valid, idx, starts[:, None])
+    U = u[idx]                                                     # (J, L, 3)
+    step_mask = (np.arange(L - 1)[None, :] < (lens - 1)[:, None])  # (J, L-1)
+    dur = (lens - 1) * h
+
+    # gyro white noise from the static intervals (weights only; the covariance is rescaled)
+    dev = np.concatenate([u[a:z] - u[a:z].mean(axis=0) for a, z in iv])
+    nst = int(sum(z - a for a, z in iv))
+    if nst - k >= 3:
+        var = np.sum(dev**2, axis=0) / (nst - k)
+    else:
+        var = np.zeros(3)
+    nd = np.sqrt(var * h)                                          # rad/s/√Hz
+    nd2 = max(float(np.mean(nd**2)), 1e-18)
+    msig = np.sqrt(nd2 * dur + gsig[:-1] ** 2 + gsig[1:] ** 2)     # (J,) rad per component
+    msig = np.maximum(msig, 1e-12)
+    gp0, gn1 = g[:-1], g[1:]
+    T = _tangent_basis(gn1)                                         # (J, 2, 3)
+
+    Uc = np.ascontiguousarray(np.moveaxis(U, -1, 0))                # (3, J, L)
+
+    def rotations(mflat: np.ndarray, bb: np.ndarray = b) -> np.ndarray:
+        P = np.linalg.inv(mflat.reshape(3, 3))
+        X = np.tensordot(P, Uc, axes=1) - (P @ bb)[:, None, None]
+        return _rotate(_step_vectors(X, h, lens, step_mask))         # (J, 3, 3)
+
+    def residual(mflat: np.ndarray, bb: np.ndarray = b) -> np.ndarray:
+        gp = np.einsum("jca,jc->ja", rotations(mflat, bb), gp0)      # Rᵀ g_prev
+        return (np.einsum("jkc,jc->jk", T, gp) / msig[:, None]).ravel()
+
+    dstep = 1e-7
+
+    def jac_fd(mflat: np.ndarray) -> np.ndarray:
+        """Forward-difference Jacobian of residual() w.r.t. M (a check on jac_m)."""
+        r0 = residual(mflat)
+        jm = np.empty((r0.size, 9))
+        for i in range(9):
+            xx = mflat.copy()
+            xx[i] += dstep
+            jm[:, i] = (residual(xx) - r0) / dstep
+        return jm
+
+    # quadrature-weighted (u − b) per step: the linear part of φ is P·v_lin
+    vlin = _step_vectors(Uc - b[:, None, None], h, lens, step_mask, coning=False)  # (3, J, L-1)
+    gx = _skew_rows(gp0)                                            # (J, 3, 3) [g_prev]×
+
+    def jac_m(mflat: np.ndarray, with_bias: bool = False):
+        """Analytic Jacobian of residual() w.r.t. M (row-major), and optionally w.r.t. b.
+
+        A perturbation of the step rotation vectors δφ_k changes the motion's rotation as
+        δR = [δθ]×·R with δθ = Σ_k A_{k+1}·J_r(φ_k)·δφ_k in the start frame (A_{k+1} the
+        attitude after step k, J_r ≈ I − ½[φ_k]×); δφ_k = δP·v_k (coning term's derivative
+        neglected, relative size ~h·|ω|/6) and δP = −P·δM·P. Then δ(Rᵀg) = Rᵀ·(g × δθ).
+        """
+        P = np.linalg.inv(mflat.reshape(3, 3))
+        X = np.tensordot(P, Uc, axes=1) - (P @ b)[:, None, None]
+        phi = _step_vectors(X, h, lens, step_mask)
+        q = _rotvec_quat(phi)
+        A = _quat_matrix_cf(_quat_prefix(q))                        # (3, 3, J, L-1)
+        R = _quat_matrix(_quat_chain(q))                            # (J, 3, 3)
+        # Q_k = A_{k+1}·(I − ½[φ_k]×)
+        Q = A.copy()
+        hp = 0.5 * phi
+        # A·[hp]×: column a of [hp]× is hp × e_a
+        Q[:, 0] -= A[:, 1] * hp[2] - A[:, 2] * hp[1]
+        Q[:, 1] -= A[:, 2] * hp[0] - A[:, 0] * hp[2]
+        Q[:, 2] -= A[:, 0] * hp[1] - A[:, 1] * hp[0]
+        dth_dp = np.einsum("cajk,bjk->jcab", Q, vlin)               # ∂θ/∂P_ab (J, 3, 3, 3)
+        dth_dm = -np.einsum("jcab,ae,fb->jcef", dth_dp, P, P).reshape(J, 3, 9)
+        W = np.einsum("jkc,jdc,jde->jke", T, R, gx) / msig[:, None, None]   # T·Rᵀ·[g]× /σ
+        jm = np.einsum("jke,jep->jkp", W, dth_dm).reshape(2 * J, 9)
+        if not with_bias:
+            return jm
+        dth_db = -h * np.einsum("cajk,jk,ad->jcd", Q, step_mask.astype(float), P)   # (J, 3, 3)
+        jb = np.einsum("jke,jep->jkp", W, dth_db).reshape(2 * J, 3)
+        return jm, jb
+
+    # --- observability by rule: turns about each axis, both ways, with the axis off vertical
+    try:
+        P0 = np.linalg.inv(m0)
+    except np.linalg.LinAlgError as e:
+        raise CalibrationError("init_m is singular") from e
+    X0 = (U - b) @ P0.T
+    X0[~valid] = 0.0
+    eps = h * (X0.sum(axis=1) - 0.5 * X0[:, 0] - 0.5 * X0[np.arange(J), lens - 1])  # (J, 3) rad
+    gm = gp0 + gn1
+    gmn = np.linalg.norm(gm, axis=1)
+    gbar = np.where((gmn > 0.5)[:, None], gm / np.maximum(gmn, 1e-300)[:, None], gp0)
+    eps_perp = eps - np.sum(eps * gbar, axis=1)[:, None] * gbar
+    thr = math.radians(min_turn_deg)
+    problems = []
+    for ax, pos, neg in _direction_coverage(eps_perp, thr):
+        if pos and neg:
+            continue
+        if not (pos or neg):
+            problems.append(f"no turn about board {_AXES[ax]} (≥ {min_turn_deg:g}° with {_AXES[ax]} "
+                            f"off the vertical): M's {_COLUMN_NAMES[ax]} is not observable")
+        else:
+            problems.append(f"board {_AXES[ax]} was turned only in the {'+' if pos else '−'} "
+                            f"direction: M's {_COLUMN_NAMES[ax]} cannot be separated from a bias "
+                            "error; turn it the other way too")
+    if problems:
+        raise NotObservable("rotation_method: " + "; ".join(problems)
+                            + ". Each board axis needs turns both ways while it is horizontal-ish "
+                            "(a turn about the vertical does not change the gravity direction)")
+
+    sol = optimize.least_squares(residual, m0.ravel(), jac=jac_m, method="lm",
+                                 xtol=1e-10, ftol=1e-10, gtol=1e-10)
+    mhat = sol.x.reshape(3, 3)
+    rw = residual(sol.x)
+    if cov_b is not None:
+        Jm, Jb = jac_m(sol.x, with_bias=True)
+    else:
+        Jm = jac_m(sol.x)
+    jac_check = None
+    if _CHECK_JACOBIAN:
+        jf = jac_fd(sol.x)
+        jbf = np.empty((rw.size, 3))
+        for i in range(3):
+            bb = b.copy()
+            bb[i] += dstep
+            jbf[:, i] = (residual(sol.x, bb) - rw) / dstep
+        jb = jac_m(sol.x, with_bias=True)[1]
+        jac_check = (float(np.max(np.abs(Jm - jf)) / np.max(np.abs(jf))),
+                     float(np.max(np.abs(jb - jbf)) / np.max(np.abs(jbf))))
+    cn = np.linalg.norm(Jm, axis=0)
+    svals, vt = np.linalg.svd(Jm / np.maximum(cn, 1e-300), full_matrices=False)[1:]
+    if np.any(cn < 1e-9 * max(cn.max(), 1e-300)) or svals[-1] < 1e-7 * svals[0]:
+        null = vt[-1]
+        names = [f"m{i // 3}{i % 3}" for i in np.flatnonzero(np.abs(null) > 0.3)]
+        raise NotObservable("rotation_method: the motions leave a combination of "
+                            + ", ".join(names) + " undetermined; add turns about other axes and "
+                            "from other poses")
+    JtJ = Jm.T @ Jm
+    C = np.linalg.inv(JtJ)
+    chi2 = float(rw @ rw)
+    if cov_b is not None:
+        # the rest-bias error is common to all motions: residual covariance I + Jb·Σb·Jbᵀ
+        Lb = np.linalg.cholesky(cov_b + 1e-30 * np.eye(3))
+        Z = Jb @ Lb
+        v = Z.T @ rw
+        chi2 -= float(v @ np.linalg.solve(np.eye(3) + Z.T @ Z, v))
+    dof = rw.size - 9
+    s2 = chi2 / dof if dof > 0 else float("nan")
+    m_cov = C * s2 if dof > 0 else C
+    mb_cov = None
+    b_cov = None
+    if cov_b is not None:
+        G = -C @ (Jm.T @ Jb)                                       # dM/db (9, 3)
+        m_cov = m_cov + G @ cov_b @ G.T
+        mb_cov = G @ cov_b
+        b_cov = cov_b
+    cov = _cov12(m_cov, b_cov, mb_cov)
+
+    R = rotations(sol.x)
+    gp = np.einsum("jba,jb->ja", R, gp0)
+    ang = np.arctan2(np.linalg.norm(np.cross(gp, gn1), axis=1), np.sum(gp * gn1, axis=1))
+    R0 = rotations(m0.ravel())
+    gq = np.einsum("jba,jb->ja", R0, gp0)
+    ang0 = np.arctan2(np.linalg.norm(np.cross(gq, gn1), axis=1), np.sum(gq * gn1, axis=1))
+    turn = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1, 1)))
+
+    warnings = []
+    if J < 12:
+        warnings.append(f"only {J} motions: the reduced chi-square (dof {dof}) that scales the "
+                        f"covariance is itself uncertain by ±{100 / math.sqrt(2 * dof):.0f} %; "
+                        "12-24 motions are recommended")
+    fit = TriadFit(
+        method="rotation",
+        m=mhat,
+        b=b.copy(),
+        cov=cov,
+        residual_rms=float(np.sqrt(np.mean(ang**2))),
+        residuals=ang,
+        dof=dof,
+        estimated=np.array([True] * 9 + [cov_b is not None] * 3),
+        extra={
+            "angle_residuals_deg": np.degrees(ang),
+            "angle_residuals_initial_deg": np.degrees(ang0),
+            "motion_angles_deg": turn,
+            "motion_duration_s": dur,
+            "excitation_deg": np.degrees(eps_perp),
+            "motion_sigma_rad": msig,
+            "noise_density_rad_s_rthz": nd,
+            "chi2": chi2,
+            "reduced_chi2": s2,
+            "nfev": int(sol.nfev),
+            "converged": bool(sol.status > 0),
+            "message": sol.message,
+            "bias_source": "rest" if cov_b is not None else "given",
+            "n_motions": J,
+            "warnings": warnings,
+            **({"jacobian_check": jac_check} if jac_check is not None else {}),
+        },
+    )
+    if not sol.status > 0:
+        raise CalibrationError(f"rotation_method: the fit did not converge ({sol.message})")
+    if fit.residual_rms > math.radians(max_residual_deg):
+        worst = np.argsort(ang)[::-1][:3]
+        hint = ""
+        # a reversed gyro axis: the gravity prediction with that axis negated fits far better
+        best = None
+        for flips in ((1, 1, -1), (1, -1, 1), (-1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1),
+                      (-1, -1, -1)):
+            Rf = rotations((m0 * np.asarray(flips, float)[:, None]).ravel())
+            gf = np.einsum("jba,jb->ja", Rf, gp0)
+            af = np.arctan2(np.linalg.norm(np.cross(gf, gn1), axis=1), np.sum(gf * gn1, axis=1))
+            rms = float(np.sqrt(np.mean(af**2)))
+            if best is None or rms < best[0]:
+                best = (rms, flips)
+        if best is not None and best[0] < math.radians(10.0) and best[0] < 0.2 * float(
+                np.sqrt(np.mean(ang0**2))):
+            hint = (" The data fit far better with gyro axis "
+                    + ", ".join(_AXES[i] for i in range(3) if best[1][i] < 0)
+                    + " reversed: check that axis's sign (right-hand rule).")
+        raise CalibrationError(
+            f"rotation_method: the gyro does not explain the gravity directions (RMS angle residual "
+            f"{math.degrees(fit.residual_rms):.2f}° after the fit; worst motions "
+            + ", ".join(f"{int(i)} ({math.degrees(ang[i]):.1f}°)" for i in worst)
+            + "). Check the static intervals (a pose moved, an interval spans a motion), the "
+            "gravity directions (one per interval, board frame) and gyro clipping." + hint)
+    if np.max(np.abs(mhat - np.eye(3))) > 0.2:
+        raise CalibrationError(
+            f"rotation_method: fitted M is far from identity ({np.round(mhat, 3).tolist()}); check "
+            "the static intervals, the gravity directions (board frame, +Z up when level) and the "
+            "gyro axes' signs")
+    return fit

@@ -1,0 +1,583 @@
+"""Static-interval detection from the data itself (imu_tk style), with thresholds derived from
+the measured noise, never fixed in m/s².
+
+Everything here works in the unit of the data it is given (m/s², counts, g): noise, thresholds
+and means come back in that unit. docs/calibration.md ("Static detection") explains the method.
+
+    rest_noise(acc, fs_hz)                    per-axis noise sigma of the quietest part
+    detect_static(acc, fs_hz, ...)            the still intervals (StaticIntervals, a list)
+    require_static(intervals, n_needed)       raises NotEnoughStatic, explaining what to do
+    interval_stats(samples)                   mean, std, sigma of the mean (correlated noise)
+    StillnessDetector(fs_hz, noise_sigma)     real-time moving / settling / still for a session
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from . import CalibrationError
+
+__all__ = [
+    "StaticInterval", "StaticIntervals", "NotEnoughStatic", "StillnessDetector", "StillnessState",
+    "rest_noise", "detect_static", "require_static", "interval_stats", "window_length",
+    "noise_floor", "moving_variance", "k_min_for_window", "K_GRID",
+]
+
+# Candidate threshold factors k (window std / rest noise sigma), as imu_tk's 2..10, finer.
+K_GRID = tuple(np.round(np.arange(2.0, 10.0001, 0.5), 2))
+# A window is still when its variance is below k² × the rest variance. k never goes below the
+# level a still window of w samples exceeds with probability ALPHA_STILL per axis (chi-square).
+ALPHA_STILL = 1e-6
+# Floor of the noise sigma, relative to the median |a| of the recording (1 µg for data in g):
+# keeps the thresholds finite for a noise-free (simulated) sensor, well below the ADXL355's
+# per-sample noise at any rate (≥ 100 µg at 20 Hz).
+REL_SIGMA_FLOOR = 1e-6
+# An interval whose first and last thirds differ by more than this many sigmas of their
+# difference is not clean (it contains motion, or two poses merged across a gentle move).
+DRIFT_Z_MAX = 8.0
+# Auto k: the smallest k whose clean still time is at least this fraction of the best k's.
+CLEAN_TIME_FRACTION = 0.97
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------
+
+def window_length(window_s: float, fs_hz: float) -> int:
+    """Samples in a centred window of window_s seconds: odd, at least 3."""
+    if not (fs_hz > 0 and window_s > 0):
+        raise ValueError(f"need fs_hz > 0 and window_s > 0 (got {fs_hz}, {window_s})")
+    w = int(round(window_s * fs_hz))
+    w = max(3, w)
+    return w if w % 2 == 1 else w + 1
+
+
+def _as_samples(acc) -> np.ndarray:
+    a = np.asarray(acc, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"expected samples of shape (n, 3), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError("samples contain NaN or inf")
+    return a
+
+
+def _scale_of(a: np.ndarray) -> float:
+    """Typical magnitude of the data (median |a|; for an accelerometer at rest, g in the data's
+    unit). Falls back to the largest absolute value for data near zero."""
+    s = float(np.median(np.linalg.norm(a, axis=1))) if len(a) else 0.0
+    if not s > 0:
+        s = float(np.max(np.abs(a))) if a.size else 0.0
+    return s if s > 0 else 1.0
+
+
+def noise_floor(acc) -> np.ndarray:
+    """The smallest noise sigma the thresholds use, per axis: REL_SIGMA_FLOOR × the median |a|,
+    or the quantisation noise (LSB/√12) when the data are visibly quantised, whichever is
+    larger. Keeps a noise-free recording usable."""
+    a = _as_samples(acc)
+    floor = REL_SIGMA_FLOOR * _scale_of(a)
+    out = np.full(3, floor)
+    for j in range(3):
+        u = np.unique(a[:, j])
+        if len(u) > 1:
+            lsb = float(np.min(np.diff(u)))
+            # only a real quantisation step counts (float data have tiny spurious steps)
+            if lsb > floor:
+                out[j] = max(out[j], lsb / math.sqrt(12.0))
+    return out
+
+
+def _window_sums(y: np.ndarray, w: int) -> np.ndarray:
+    """Sums of y over windows of w consecutive rows, for every start 0..len(y)-w, computed from
+    prefix sums restarted every w rows, so rounding stays local (no error accumulated over a
+    long recording). y: (L, c)."""
+    L, c = y.shape
+    nwin = L - w + 1
+    if nwin <= 0:
+        return np.zeros((0, c))
+    nb = -(-L // w) + 1                       # blocks, plus one of zeros
+    yp = np.zeros((nb * w, c))
+    yp[:L] = y
+    blk = yp.reshape(nb, w, c)
+    pre = np.cumsum(blk, axis=1)                         # inclusive prefix within a block
+    suf = np.cumsum(blk[:, ::-1], axis=1)[:, ::-1]       # inclusive suffix within a block
+    # window starting at (b, t): suffix of block b from t, plus prefix of block b+1 up to t-1
+    nxt = np.zeros_like(pre)
+    nxt[:-1, 1:] = pre[1:, :-1]
+    return (suf + nxt).reshape(nb * w, c)[:nwin]
+
+
+def moving_variance(a: np.ndarray, w: int, centred: bool = True) -> np.ndarray:
+    """Per-axis variance (ddof=1) over a window of w samples. centred: a window centred on each
+    sample, truncated at the ends of the recording; otherwise trailing windows (the sample and
+    the w-1 before it), only where complete: output length len(a) - w + 1."""
+    a = np.asarray(a, dtype=np.float64)
+    ref = np.median(a, axis=0) if len(a) else np.zeros(a.shape[1])
+    d = a - ref
+    if centred:
+        h = w // 2
+        pad = np.zeros((h, a.shape[1]))
+        dp = np.vstack([pad, d, pad])
+        ones = np.zeros((len(dp), 1))
+        ones[h:h + len(a)] = 1.0
+        s1 = _window_sums(dp, w)
+        s2 = _window_sums(dp * dp, w)
+        cnt = _window_sums(ones, w)
+    else:
+        s1 = _window_sums(d, w)
+        s2 = _window_sums(d * d, w)
+        cnt = np.full((len(s1), 1), float(w))
+    mean = s1 / cnt
+    var = (s2 - cnt * mean * mean) / np.maximum(cnt - 1.0, 1.0)
+    return np.clip(var, 0.0, None)
+
+
+def _tau_int(x: np.ndarray) -> np.ndarray:
+    """Integrated autocorrelation time per column (1 for white noise), Sokal's automatic
+    window (the sum of autocorrelations stops at the smallest lag M ≥ 5·τ(M)). Floored at 1."""
+    n, c = x.shape
+    if n < 16:
+        return np.ones(c)
+    d = x - x.mean(axis=0)
+    nfft = 1 << int(math.ceil(math.log2(2 * n)))
+    f = np.fft.rfft(d, n=nfft, axis=0)
+    acf = np.fft.irfft(f * np.conj(f), n=nfft, axis=0)[: n // 4 + 1]
+    out = np.ones(c)
+    for j in range(c):
+        if acf[0, j] <= 0:
+            continue
+        rho = acf[:, j] / acf[0, j]
+        tau = 2.0 * np.cumsum(rho) - 1.0          # tau(M) = 1 + 2 Σ_{k=1..M} rho_k
+        m = np.arange(len(rho))
+        ok = np.nonzero(m >= 5.0 * tau)[0]
+        t = tau[ok[0]] if len(ok) else tau[-1]
+        out[j] = max(1.0, float(t))
+    return out
+
+
+def interval_stats(samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean, std, sigma_mean) per axis of still samples (n, 3). sigma_mean is the 1-sigma
+    uncertainty of the mean: std·√(τ/n) with τ the integrated autocorrelation time of the
+    samples (τ = 1 for white noise; a low-pass filtered or drifting signal has τ > 1), never
+    less than std/√n."""
+    x = _as_samples(samples)
+    n = len(x)
+    if n < 2:
+        raise ValueError("need at least 2 samples")
+    mean = x.mean(axis=0)
+    std = x.std(axis=0, ddof=1)
+    tau = _tau_int(x)
+    return mean, std, std * np.sqrt(tau / n)
+
+
+# --------------------------------------------------------------------------------------------
+# noise
+# --------------------------------------------------------------------------------------------
+
+def rest_noise(acc, fs_hz: float, window_s: float = 0.5, quantile: float = 0.1) -> np.ndarray:
+    """Per-axis noise sigma of the quietest part of a recording.
+
+    The recording is cut into non-overlapping windows of window_s. A first estimate is the
+    `quantile` (default the 10th percentile) of the windows' standard deviations divided by the
+    same quantile of a window std of Gaussian noise (√(χ²_q(w−1)/(w−1))): it is right as long
+    as more than `quantile` of the recording is still. Then the variances of all windows
+    consistent with that noise (below its 99.9 % chi-square point) are pooled, and divided by
+    the mean of a chi-square truncated there: a far less noisy estimate than one quantile (it
+    uses every still window), still unbiased. Works at any rate; a recording shorter than two
+    windows gives its plain std."""
+    a = _as_samples(acc)
+    w = max(3, int(round(window_s * fs_hz)))
+    nw = len(a) // w
+    if nw < 2:
+        return a.std(axis=0, ddof=1) if len(a) > 1 else np.zeros(3)
+    nu = w - 1
+    blocks = a[: nw * w].reshape(nw, w, 3)
+    v = blocks.var(axis=1, ddof=1)                       # (nw, 3)
+    q = float(np.clip(quantile, 0.01, 0.5))
+    s0 = np.quantile(np.sqrt(v), q, axis=0) / math.sqrt(stats.chi2.ppf(q, nu) / nu)
+    cut = stats.chi2.ppf(0.999, nu) / nu                 # in units of sigma²
+    # E[X | X ≤ c] for X = χ²_ν/ν: P(χ²_{ν+2} ≤ νc) / P(χ²_ν ≤ νc)
+    trunc = stats.chi2.cdf(nu * cut, nu + 2) / stats.chi2.cdf(nu * cut, nu)
+    out = np.empty(3)
+    for j in range(3):
+        sel = v[:, j] <= cut * s0[j] ** 2
+        out[j] = math.sqrt(v[sel, j].mean() / trunc) if sel.any() and s0[j] > 0 else s0[j]
+    return out
+
+
+def k_min_for_window(w: int) -> float:
+    """The smallest sensible k for a window of w samples: the window std of still Gaussian
+    noise exceeds k·sigma with probability ALPHA_STILL per axis. ≈ 2 for w = 11, 1.4 for 51."""
+    return math.sqrt(stats.chi2.isf(ALPHA_STILL, w - 1) / (w - 1))
+
+
+# --------------------------------------------------------------------------------------------
+# detection
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class StaticInterval:
+    """One still interval: samples start..stop-1 of the recording."""
+    start: int
+    stop: int                     # exclusive
+    n: int
+    mean: np.ndarray              # (3,) in the data's unit
+    std: np.ndarray               # (3,) sample std (ddof=1)
+    sigma_mean: np.ndarray        # (3,) 1-sigma uncertainty of the mean (correlated noise included)
+    fs_hz: float = float("nan")
+    drift_z: float = 0.0          # max over axes: |mean(first third) − mean(last third)| in sigmas
+
+    @property
+    def duration_s(self) -> float:
+        return self.n / self.fs_hz
+
+    @property
+    def t_start_s(self) -> float:
+        return self.start / self.fs_hz
+
+    @property
+    def clean(self) -> bool:
+        """False when the interval's mean moved within it (motion or a merge of two poses)."""
+        return self.drift_z <= DRIFT_Z_MAX
+
+
+class StaticIntervals(list):
+    """The result of detect_static: a list of StaticInterval, plus how they were found (what
+    require_static / NotEnoughStatic need to explain a shortfall)."""
+
+    def __init__(self, items=(), *, fs_hz: float, window_s: float, min_duration_s: float,
+                 k: float, noise_sigma: np.ndarray, scale: float, n_samples: int,
+                 short: list[tuple[int, int]] | None = None, k_auto: bool = False):
+        super().__init__(items)
+        self.fs_hz = fs_hz
+        self.window_s = window_s
+        self.min_duration_s = min_duration_s
+        self.k = k
+        self.k_auto = k_auto
+        self.noise_sigma = np.asarray(noise_sigma, dtype=np.float64)   # as used (floored)
+        self.scale = scale                   # median |a| of the recording
+        self.n_samples = n_samples
+        self.short = short or []             # still runs dropped as shorter than min_duration_s
+
+    @property
+    def threshold_sigma(self) -> np.ndarray:
+        """Per axis: the window std above which a window counts as moving."""
+        return self.k * self.noise_sigma
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) of the runs of True in a boolean array."""
+    if not mask.any():
+        return []
+    m = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    d = np.diff(m)
+    starts = np.nonzero(d == 1)[0]
+    stops = np.nonzero(d == -1)[0]
+    return list(zip(starts.tolist(), stops.tolist()))
+
+
+def _intervals_for_k(ratio: np.ndarray, k: float, n: int, h: int, min_n: int):
+    """Trimmed still runs for one k: (kept, short). Edges next to motion are trimmed by h
+    samples (half a window); the ends of the recording are not."""
+    kept, short = [], []
+    for s, e in _runs(ratio <= k * k):
+        s2 = s + h if s > 0 else s
+        e2 = e - h if e < n else e
+        if e2 - s2 >= min_n:
+            kept.append((s2, e2))
+        elif e2 > s2:
+            short.append((s2, e2))
+    return kept, short
+
+
+def _drift_z(a: np.ndarray, s: int, e: int, sig_floor: np.ndarray) -> float:
+    """|mean(first third) − mean(last third)| over its 1-sigma (from the interval's own std,
+    floored), max over axes."""
+    n = e - s
+    if n < 6:
+        return 0.0
+    t = n // 3
+    x = a[s:e]
+    d = np.abs(x[:t].mean(axis=0) - x[-t:].mean(axis=0))
+    sd = np.maximum(x.std(axis=0, ddof=1), sig_floor)
+    return float(np.max(d / (sd * math.sqrt(2.0 / t))))
+
+
+def detect_static(acc, fs_hz: float, noise_sigma=None, window_s: float = 0.5,
+                  min_duration_s: float = 1.0, k: float | None = None) -> StaticIntervals:
+    """Still intervals of a recording acc (n, 3) sampled at fs_hz.
+
+    A sample is still when the variance over a centred window of window_s, on every axis, is
+    at most k² × the rest variance (noise_sigma², from rest_noise when not given, floored by
+    noise_floor). Each still run is trimmed by half a window at both ends (not at the ends of
+    the recording) and kept when at least min_duration_s remain; runs separated by motion are
+    never merged. With k None it is chosen from K_GRID (≥ k_min_for_window): the smallest k
+    whose clean still time (intervals whose mean did not move within them) is within 3 % of
+    the best k's — see docs/calibration.md. Returns a StaticIntervals (a list)."""
+    a = _as_samples(acc)
+    n = len(a)
+    w = window_length(window_s, fs_hz)
+    h = w // 2
+    min_n = max(2, int(math.ceil(min_duration_s * fs_hz - 1e-9)))
+    scale = _scale_of(a) if n else 1.0
+    if noise_sigma is None:
+        sigma = rest_noise(a, fs_hz, window_s) if n >= 2 else np.zeros(3)
+    else:
+        sigma = np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (3,)).copy()
+    sigma = np.maximum(sigma, noise_floor(a) if n else REL_SIGMA_FLOOR)
+
+    common = dict(fs_hz=fs_hz, window_s=window_s, min_duration_s=min_duration_s,
+                  noise_sigma=sigma, scale=scale, n_samples=n)
+    if n < 2:
+        return StaticIntervals([], k=float(k or K_GRID[0]), **common)
+
+    var = moving_variance(a, w, centred=True)
+    ratio = np.max(var / sigma**2, axis=1)
+
+    if k is not None:
+        kept, short = _intervals_for_k(ratio, float(k), n, h, min_n)
+        k_used, k_auto = float(k), False
+    else:
+        kmin = k_min_for_window(w)
+        grid = [kk for kk in K_GRID if kk >= kmin - 1e-9] or [K_GRID[-1]]
+        cand = []
+        for kk in grid:
+            kept_k, short_k = _intervals_for_k(ratio, kk, n, h, min_n)
+            clean_n = sum(e - s for s, e in kept_k if _drift_z(a, s, e, sigma) <= DRIFT_Z_MAX)
+            cand.append((kk, clean_n, kept_k, short_k))
+        best = max(c[1] for c in cand)
+        if best > 0:
+            pick = next(c for c in cand if c[1] >= CLEAN_TIME_FRACTION * best)
+        else:        # nothing still at any k: report the most permissive attempt
+            pick = max(cand, key=lambda c: (len(c[2]), len(c[3]), c[0]))
+        k_used, _, kept, short = pick
+        k_auto = True
+
+    out = []
+    for s, e in kept:
+        mean, std, sig = interval_stats(a[s:e])
+        out.append(StaticInterval(start=s, stop=e, n=e - s, mean=mean, std=std, sigma_mean=sig,
+                                  fs_hz=fs_hz, drift_z=_drift_z(a, s, e, sigma)))
+    return StaticIntervals(out, k=k_used, k_auto=k_auto, short=short, **common)
+
+
+# --------------------------------------------------------------------------------------------
+# not enough
+# --------------------------------------------------------------------------------------------
+
+class NotEnoughStatic(CalibrationError):
+    """Fewer still intervals than the calibration needs. The message says how many were found,
+    how long each was, the threshold relative to the noise, and what to do."""
+
+    def __init__(self, message: str, *, found: int, needed: int, durations_s: list[float],
+                 short_s: list[float], k: float | None, noise_sigma: np.ndarray | None,
+                 hold_s: float):
+        super().__init__(message)
+        self.found = found
+        self.needed = needed
+        self.durations_s = durations_s
+        self.short_s = short_s
+        self.k = k
+        self.noise_sigma = noise_sigma
+        self.hold_s = hold_s          # how long to hold each pose
+
+
+def _fmt_list(xs, fmt="{:.1f}", limit=12) -> str:
+    xs = list(xs)
+    body = ", ".join(fmt.format(x) for x in xs[:limit])
+    return body + (f", … ({len(xs) - limit} more)" if len(xs) > limit else "")
+
+
+def require_static(intervals, n_needed: int, what: str = "poses", *,
+                   fs_hz: float | None = None, min_duration_s: float | None = None) -> list:
+    """Return `intervals` if there are at least n_needed of them, else raise NotEnoughStatic.
+    Best given the StaticIntervals of detect_static (it carries the threshold and the dropped
+    short runs); a plain list works too (fs_hz / min_duration_s then say what they can)."""
+    ivs = list(intervals)
+    if len(ivs) >= n_needed:
+        return intervals
+    fs = getattr(intervals, "fs_hz", fs_hz)
+    if fs is None and ivs:
+        fs = ivs[0].fs_hz
+    min_d = getattr(intervals, "min_duration_s", min_duration_s)
+    window_s = getattr(intervals, "window_s", None)
+    k = getattr(intervals, "k", None)
+    sigma = getattr(intervals, "noise_sigma", None)
+    scale = getattr(intervals, "scale", None)
+    short = getattr(intervals, "short", [])
+
+    def dur(nsamp):
+        return nsamp / fs if fs else float("nan")
+
+    durations = [dur(iv.n) for iv in ivs]
+    short_s = [dur(e - s) for s, e in short]
+    win = window_s if window_s else 0.0
+    # a hold loses about a window at each end (the centred window, then half a window trimmed)
+    hold_s = (min_d or 1.0) + 2.0 * win + 1.0
+
+    lines = [f"not enough still {what}: found {len(ivs)} still interval"
+             f"{'' if len(ivs) == 1 else 's'}, {n_needed} needed."]
+    if ivs:
+        lines.append(f"Still intervals kept (s): {_fmt_list(durations)}.")
+    if short_s:
+        lines.append(f"{len(short_s)} shorter still stretch{'' if len(short_s) == 1 else 'es'} "
+                     f"dropped as under {min_d:.1f} s: {_fmt_list(sorted(short_s, reverse=True), '{:.2f}')} s.")
+    if k is not None and sigma is not None and window_s is not None:
+        rel = ""
+        if scale:
+            rel_ug = np.asarray(sigma) / scale * 1e6
+            rel = f" = {_fmt_list(rel_ug, '{:.0f}')} µg if |a| at rest is 1 g"
+        auto = "chosen automatically" if getattr(intervals, "k_auto", False) else "given"
+        lines.append(
+            f"A {window_s:.2f} s window counted as still when its standard deviation stayed "
+            f"below k = {k:.1f} ({auto}) × the rest noise on every axis; rest noise σ = "
+            f"{_fmt_list(sigma, '{:.3g}')} (x, y, z, in the data's unit{rel}).")
+    lines.append(
+        f"What to do: hold each pose at least {hold_s:.0f} s without touching the board "
+        f"(the detection gives up about {win:.2f} s at each end of a hold, and "
+        f"{min_d or 1.0:.1f} s must remain); move between poses in one clear motion; put the "
+        f"board on a firm surface away "
+        f"from fans, vibration and cables that pull on it. If the board was held still and "
+        f"intervals were still dropped, the rest noise was measured on a quieter stretch than "
+        f"the poses: record a longer rest at the start, or pass a larger k.")
+    raise NotEnoughStatic(" ".join(lines), found=len(ivs), needed=n_needed, durations_s=durations,
+                          short_s=short_s, k=k, noise_sigma=sigma, hold_s=hold_s)
+
+
+# --------------------------------------------------------------------------------------------
+# real time
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class StillnessState:
+    state: str                    # "moving", "settling" or "still"
+    mean: np.ndarray              # (3,) mean since the stillness began (still), else of the last window
+    std: np.ndarray               # (3,) std over the same samples
+    n: int                        # samples in that mean
+    still_s: float                # how long the board has been still (0 unless still/settling-still)
+    ratio: float                  # current window std / rest noise, max over axes (k-equivalent)
+
+    @property
+    def sigma_mean(self) -> np.ndarray:
+        return self.std / math.sqrt(max(self.n, 1))
+
+
+class StillnessDetector:
+    """Classifies a live stream as "moving" / "settling" / "still" for a guided session.
+
+    The current window (trailing, window_s) is compared with the rest noise: its std above
+    k_move × sigma is "moving" (k_move = 2·k, PX4 uses 4× on variance); at most k × sigma for
+    the last settle_s (default one window) is "still"; in between "settling". k defaults to
+    max(3, k_min_for_window(w)), so a still board is never called moving by chance (< 1e-6 per
+    window and axis) and the thresholds come from the measured noise, not from fixed m/s².
+
+    update(samples) takes any number of new samples (n, 3) and returns a StillnessState; every
+    sample is examined, so a bump between two updates is not missed."""
+
+    def __init__(self, fs_hz: float, noise_sigma, window_s: float = 0.5, k: float | None = None,
+                 k_move: float | None = None, settle_s: float | None = None, scale: float | None = None):
+        self.fs_hz = float(fs_hz)
+        self.w = window_length(window_s, fs_hz)
+        self.window_s = window_s
+        self._sigma_in = np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (3,)).copy()
+        self.sigma = self._sigma_in.copy()
+        self.scale = scale
+        if scale:
+            self.sigma = np.maximum(self._sigma_in, REL_SIGMA_FLOOR * scale)
+        self.k = float(k) if k is not None else max(3.0, k_min_for_window(self.w))
+        self.k_move = float(k_move) if k_move is not None else 2.0 * self.k
+        self.settle_n = max(1, int(round((settle_s if settle_s is not None else window_s) * fs_hz)))
+        self.reset()
+
+    def reset(self) -> None:
+        self._tail = np.zeros((0, 3))        # last w-1 samples
+        self._quiet = 0                      # consecutive samples whose window was quiet
+        self._hold_ref = None                # running sums over the current hold
+        self._hold_s1 = np.zeros(3)
+        self._hold_s2 = np.zeros(3)
+        self._hold_n = 0
+        self._last_ratio = float("inf")
+
+    def _hold_add(self, x: np.ndarray) -> None:
+        if len(x) == 0:
+            return
+        if self._hold_ref is None:
+            self._hold_ref = x[0].copy()
+        d = x - self._hold_ref
+        self._hold_s1 += d.sum(axis=0)
+        self._hold_s2 += (d * d).sum(axis=0)
+        self._hold_n += len(x)
+
+    def _hold_reset(self) -> None:
+        self._hold_ref = None
+        self._hold_s1 = np.zeros(3)
+        self._hold_s2 = np.zeros(3)
+        self._hold_n = 0
+
+    def update(self, samples) -> StillnessState:
+        x = np.asarray(samples, dtype=np.float64).reshape(-1, 3)
+        if not self.scale and len(x):
+            # floor of the noise (noise-free data): REL_SIGMA_FLOOR of the data's magnitude
+            sc = float(np.median(np.linalg.norm(x, axis=1)))
+            if sc > 0:
+                self.scale = sc
+                self.sigma = np.maximum(self._sigma_in, REL_SIGMA_FLOOR * sc)
+        if not np.all(self.sigma > 0):
+            self.sigma = np.where(self.sigma > 0, self.sigma, 1e-150)   # all-zero data
+        buf = np.vstack([self._tail, x])
+        w = self.w
+        if len(buf) >= w and len(x):
+            var = moving_variance(buf, w, centred=False)        # one per complete trailing window
+            r2 = np.max(var / self.sigma**2, axis=1)
+            # sample index (in buf) that closes each window
+            ends = np.arange(w - 1, len(buf))
+            # only windows closed by the new samples are new
+            new = ends >= len(self._tail)
+            r2, ends = r2[new], ends[new]
+            loud = r2 > self.k**2
+            if loud.any():
+                last_loud = int(np.nonzero(loud)[0][-1])
+                self._quiet = len(r2) - 1 - last_loud
+                self._hold_reset()
+                # the hold now starts with the first quiet window after the last loud one
+                qs = ends[last_loud + 1:] if last_loud + 1 < len(ends) else ends[:0]
+                if len(qs):
+                    self._hold_add(buf[qs[0] - w + 1 + w // 2: ends[-1] + 1])
+            else:
+                if self._quiet == 0 and self._hold_n == 0:
+                    # a hold starts half a window into its first quiet window (as detect_static
+                    # trims), so the end of the motion stays out of the mean
+                    self._hold_add(buf[ends[0] - w + 1 + w // 2: ends[-1] + 1])
+                else:
+                    self._hold_add(x[-len(r2):] if len(r2) <= len(x) else x)
+                self._quiet += len(r2)
+            if len(r2):
+                self._last_ratio = float(math.sqrt(r2[-1]))
+        self._tail = buf[-(w - 1):] if w > 1 else buf[:0]
+
+        ratio = self._last_ratio
+        if len(buf) < w:
+            state = "settling"
+        elif ratio > self.k_move:
+            state = "moving"
+        elif ratio <= self.k and self._quiet >= self.settle_n:
+            state = "still"
+        else:
+            state = "settling"
+
+        if state == "still" and self._hold_n > 1:
+            m = self._hold_s1 / self._hold_n
+            var = (self._hold_s2 - self._hold_n * m * m) / (self._hold_n - 1)
+            mean = self._hold_ref + m
+            std = np.sqrt(np.clip(var, 0, None))
+            n = self._hold_n
+        else:
+            win = buf[-w:] if len(buf) else np.zeros((1, 3))
+            mean = win.mean(axis=0)
+            std = win.std(axis=0, ddof=1) if len(win) > 1 else np.zeros(3)
+            n = len(win)
+        still_s = self._hold_n / self.fs_hz if self._quiet > 0 else 0.0
+        return StillnessState(state=state, mean=mean, std=std, n=n, still_s=still_s, ratio=ratio)
