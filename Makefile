@@ -85,3 +85,4 @@ bench: venv
 	$(PY) bench/decode_throughput.py
 	$(PY) bench/sim_stream.py
 	$(PY) bench/core_instructions.py
+	$(PY) bench/calib_solve.py

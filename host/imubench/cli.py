@@ -226,6 +226,8 @@ DELEGATED = {
     "sim": ("imubench.sim", "main_cli", "run the virtual device (firmware core + sensor models)"),
     "qemu": ("imubench.qemu", "main_qemu", "run the real STM32 firmware image under qemu-system-arm"),
     "flash": ("imubench.flash", "main_flash", "write the firmware to a board (openocd, st-flash, stm32flash)"),
+    "calibrate": ("imubench.session", "main_calibrate", "guided calibration session, write-back and verification"),
+    "history": ("imubench.history", "main_history", "calibration history of a device"),
 }
 
 

@@ -1,0 +1,238 @@
+"""The guided calibration session end to end on the virtual device: capture, fit, write-back,
+verification, history, crash and resume, refusals; and its accuracy over random truths."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from imubench import params as PR
+from imubench.history import History
+from imubench.link import Device
+from imubench.protocol_gen import ParamsWhich
+from imubench.session import (
+    Session,
+    SessionAborted,
+    SessionConfig,
+    SimPresenter,
+    plan_for,
+    truth_in_fit_frame,
+)
+from imubench.sim import VirtualBench
+
+NO_DRIFT = {"rw_k": 0.0}                    # a fixed truth: the bias does not wander
+
+
+def _bench(seed: int, drift: bool = False) -> VirtualBench:
+    vb = VirtualBench(speed=20, seed=seed, truth="random")
+    if not drift:
+        vb.set_truth(accel=NO_DRIFT, gyro=[{"bias_rw_k": 0.0}] * 3)
+    return vb
+
+
+def _z_scores(result: dict, truth: dict) -> np.ndarray:
+    """(recovered − truth) / sigma for every estimated parameter."""
+    t = truth_in_fit_frame(result, truth)
+    a = result["accel"]
+    z = []
+    sm, m = np.array(a["sigma_m"]), np.array(a["m"])
+    est = sm > 0
+    z += list(((m - t["accel_m"]) / np.where(est, sm, 1))[est])
+    z += list((np.array(a["b_mps2"]) - t["accel_b_mps2"]) / np.array(a["sigma_b_mps2"]))
+    g = result.get("gyro")
+    if g:
+        z += list((np.array(g["b_rad_s"]) - t["gyro_b_rad_s"]) / np.array(g["sigma_b_rad_s"]))
+        if g["method"] != "bias":
+            z += list(((np.array(g["m"]) - t["gyro_m"]) / np.array(g["sigma_m"])).ravel())
+    return np.array(z)
+
+
+def _run(vb, tmp_path, method="six", gyro="bias", write=True, tilt=0.0, name="s", hold=2.0):
+    cfg = SessionConfig(method=method, gyro=gyro, write=write, hold_s=hold)
+    with Device.open(vb.port_url, timeout=5.0) as dev:
+        dev.ping()
+        s = Session(dev, tmp_path / name, cfg, SimPresenter(vb, tilt_deg=tilt, quiet=True))
+        result = s.run(plan_for(method))
+        if write and result["passed"]:
+            s.write_back(s.accel_fit, s.gyro_fit, cal_id=7)
+            result["verification"] = s.verify(plan_for("six")[:3])
+        return s, result
+
+
+def test_six_position_session_writes_verifies_and_records(tmp_path):
+    with _bench(21) as vb:
+        s, result = _run(vb, tmp_path)
+        truth = vb.get_truth()
+        with Device.open(vb.port_url, timeout=5.0) as dev:
+            active = dev.get_params(ParamsWhich.ACTIVE)
+    assert result["passed"] and result["accel_rms_after_mg"] < 0.05
+    # after calibration |a| − g is at the noise floor of the averaged data (within 1.5x)
+    floor_mg = np.sqrt(np.mean([p["sigma_g"] ** 2 for p in result["poses"]])) * 1e3
+    assert result["accel_rms_after_mg"] <= 1.5 * floor_mg
+    before = [p["before_g"] for p in result["poses"]]
+    assert max(abs(b - 1) for b in before) > 5e-3          # the random truth was visibly off
+    assert np.all(np.abs(_z_scores(result, truth)) < 4.0)
+    assert np.allclose(np.array(active.params.accel_m).reshape(3, 3), s.accel_fit.m, atol=1e-6)
+    assert all(abs(v["after_g"] - 1.0) < 2e-3 for v in result["verification"])
+    # on disk: state, the raw capture of the stream, the result
+    state = json.loads((tmp_path / "s" / "session.json").read_text())
+    assert len(state["poses"]) == 6 and state["result"]["passed"]
+    assert (tmp_path / "s" / "capture-1.bin").stat().st_size > 6 * 1000 * 16
+    with History(tmp_path / "h.sqlite") as h:
+        result["written"] = result["verified"] = True
+        rid = h.record(result)
+        assert h.runs(result["device"]["mcu_uid"])[0]["run_id"] == rid
+
+
+def test_multi_position_with_rotation_gyro_recovers_the_truth(tmp_path):
+    with _bench(22) as vb:
+        _, result = _run(vb, tmp_path, method="multi", gyro="rotation", write=False)
+        truth = vb.get_truth()
+    assert len(result["poses"]) == 26
+    z = _z_scores(result, truth)
+    assert len(z) == 6 + 3 + 3 + 9                             # L (6), b, gyro b, gyro M
+    assert np.all(np.abs(z) < 4.0), z
+
+
+def test_turntable_gyro_calibration(tmp_path):
+    with _bench(23) as vb:
+        _, result = _run(vb, tmp_path, gyro="turntable", write=False)
+        truth = vb.get_truth()
+    g = result["gyro"]
+    assert g["method"] == "turntable"
+    assert np.all(np.abs(_z_scores(result, truth)) < 4.0)
+
+
+def test_tilted_faces_bias_six_position_but_not_multi_position(tmp_path):
+    """Faces presented 5° off square: six-position, which assumes ±g along an axis, turns the
+    tilt into scale/misalignment error (and says so: its chi-square explodes and its sigmas
+    inflate); |a| = g needs no alignment (docs/calibration.md)."""
+    with _bench(24) as vb:
+        _, six = _run(vb, tmp_path, tilt=5.0, write=False, name="six")
+        _, multi = _run(vb, tmp_path, method="multi", gyro=None, tilt=5.0, write=False, name="multi")
+        truth = vb.get_truth()
+    err_six = np.abs(np.array(six["accel"]["m"]) - truth_in_fit_frame(six, truth)["accel_m"]).max()
+    err_multi = np.abs(np.array(multi["accel"]["m"]) - truth_in_fit_frame(multi, truth)["accel_m"]).max()
+    print(f"tilt 5°: max |M error| six-position {err_six:.4f}, multi-position {err_multi:.6f}")
+    assert err_six > 0.01                                    # of the order of sin(5°)
+    assert err_multi < 2e-4
+    assert six["accel"]["extra"]["chi2_red"] > 100          # six-position's own warning sign
+    assert np.all(np.abs(_z_scores(multi, truth)) < 4.0)
+
+
+def test_refuses_to_calibrate_on_faulted_data(tmp_path):
+    with _bench(25) as vb:
+        vb.inject("gyro_fault_bits", sensor="gyro_z", bits=0x40, persistent=True)
+        with Device.open(vb.port_url, timeout=5.0) as dev:
+            s = Session(dev, tmp_path / "f", SessionConfig(), SimPresenter(vb, quiet=True))
+            with pytest.raises(SessionAborted, match="faulted data"):
+                s.run(plan_for("six"))
+
+
+class _Crash(Exception):
+    pass
+
+
+class _CrashingPresenter(SimPresenter):
+    def __init__(self, vb, after: int):
+        super().__init__(vb, quiet=True)
+        self.after = after
+
+    def present_pose(self, name, direction, index, total):
+        if index >= self.after:
+            raise _Crash(f"lost at pose {index}")
+        super().present_pose(name, direction, index, total)
+
+
+def test_a_crash_keeps_what_was_captured_and_resume_finishes(tmp_path):
+    with _bench(26) as vb:
+        with Device.open(vb.port_url, timeout=5.0) as dev:
+            s = Session(dev, tmp_path / "r", SessionConfig(write=False), _CrashingPresenter(vb, after=3))
+            with pytest.raises(_Crash):
+                s.run(plan_for("six"))
+        state = json.loads((tmp_path / "r" / "session.json").read_text())
+        assert [p["name"] for p in state["poses"]] == [n for n, _ in plan_for("six")[:3]]
+        assert (tmp_path / "r" / "capture-1.bin").stat().st_size > 0
+        with Device.open(vb.port_url, timeout=5.0) as dev:
+            s2 = Session(dev, tmp_path / "r", SessionConfig(write=False), SimPresenter(vb, quiet=True), resume=True)
+            result = s2.run(plan_for("six"))
+        truth = vb.get_truth()
+    assert len(result["poses"]) == 6 and result["passed"]
+    assert sorted({p.stream for p in s2.poses}) == [1, 2]      # two streams, both kept on disk
+    assert (tmp_path / "r" / "capture-2.bin").exists()
+    assert np.all(np.abs(_z_scores(result, truth)) < 4.0)
+
+
+def test_a_failed_write_back_keeps_the_previous_parameters(tmp_path):
+    with _bench(27) as vb:
+        with Device.open(vb.port_url, timeout=3.0, retries=0) as dev:
+            old = PR.identity()
+            old.accel_b_mps2 = (0.01, 0.02, 0.03)
+            dev.set_params(old)
+            dev.save_params()
+            s = Session(dev, tmp_path / "w", SessionConfig(write=True), SimPresenter(vb, quiet=True))
+            s.run(plan_for("six"))
+            vb.power_cut(after_flash_ops=2)                    # power fails during the save
+            with pytest.raises(Exception):
+                s.write_back(s.accel_fit, s.gyro_fit, cal_id=1)
+        with Device.open(vb.port_url, timeout=3.0) as dev:
+            dev.ping()
+            active = dev.get_params(ParamsWhich.ACTIVE).params
+            stored = dev.get_params(ParamsWhich.STORED).params
+    want = np.float32(old.accel_b_mps2)
+    assert np.array_equal(np.float32(active.accel_b_mps2), want) and np.array_equal(np.float32(stored.accel_b_mps2), want)
+
+
+def test_session_accuracy_over_random_truths(tmp_path):
+    """Issue 5's statistics on the virtual device: over many random truths, every estimated
+    parameter within 3 sigma in ≥ 99 % of cases, and the z-scores' spread ≈ 1 (the reported
+    sigma agrees with the actual scatter within 20 %)."""
+    zs = []
+    with VirtualBench(speed=20, seed=100, truth="random") as vb:
+        for k in range(16):
+            vb.randomize_truth(seed=1000 + k)
+            vb.set_truth(accel=NO_DRIFT, gyro=[{"bias_rw_k": 0.0}] * 3)
+            _, result = _run(vb, tmp_path, write=False, name=f"acc{k}", hold=1.0)
+            zs.append(_z_scores(result, vb.get_truth()))
+    z = np.concatenate(zs)
+    inside = np.mean(np.abs(z) < 3.0)
+    spread = np.std(z)
+    print(f"{len(z)} parameter estimates: {inside:.1%} within 3 sigma, z spread {spread:.3f}")
+    assert inside >= 0.99
+    assert 0.8 <= spread <= 1.2
+
+
+class _RedoOnce(SimPresenter):
+    """A user who rejects the first capture of one pose."""
+
+    def __init__(self, vb, pose):
+        super().__init__(vb, quiet=True)
+        self.pose, self.asked = pose, 0
+
+    def keep_pose(self, name, summary):
+        if name == self.pose:
+            self.asked += 1
+            return self.asked > 1
+        return True
+
+
+def test_the_user_can_redo_a_pose_live_and_after_a_resume(tmp_path):
+    plan = plan_for("six")
+    with _bench(28) as vb:
+        with Device.open(vb.port_url, timeout=5.0) as dev:
+            ui = _RedoOnce(vb, plan[2][0])
+            s = Session(dev, tmp_path / "d", SessionConfig(write=False), ui)
+            r1 = s.run(plan)
+            assert ui.asked == 2 and len(r1["poses"]) == 6
+            first = {p.name: p.start_index for p in s.poses}
+        with Device.open(vb.port_url, timeout=5.0) as dev:
+            s2 = Session(dev, tmp_path / "d", SessionConfig(write=False), SimPresenter(vb, quiet=True), resume=True)
+            with pytest.raises(SessionAborted, match="cannot redo"):
+                s2.redo(["no such pose"])
+            s2.redo([plan[4][0]])
+            r2 = s2.run(plan)
+    assert len(r2["poses"]) == 6 and r2["passed"]
+    redone = next(p for p in s2.poses if p.name == plan[4][0])
+    assert redone.stream == 2 and all(p.stream == 1 for p in s2.poses if p.name != plan[4][0])
+    assert first[plan[0][0]] == next(p for p in s2.poses if p.name == plan[0][0]).start_index
