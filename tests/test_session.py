@@ -236,3 +236,34 @@ def test_the_user_can_redo_a_pose_live_and_after_a_resume(tmp_path):
     redone = next(p for p in s2.poses if p.name == plan[4][0])
     assert redone.stream == 2 and all(p.stream == 1 for p in s2.poses if p.name != plan[4][0])
     assert first[plan[0][0]] == next(p for p in s2.poses if p.name == plan[0][0]).start_index
+
+
+def test_human_presenter_tells_what_to_do(capsys):
+    from imubench.session import HumanPresenter
+    ui = HumanPresenter()
+    ui.present_pose("+X up (nose up)", np.array([1.0, 0, 0]), 2, 6)
+    ui.progress("+X up (nose up)", 0.5)
+    ui.present_turn(np.array([0, 0, 1.0]), -90.0, 3.0)
+    assert ui.keep_pose("+X up (nose up)", "captured") is True    # not a terminal: keep
+    out = capsys.readouterr()
+    assert "[3/6] place the board: +X up (nose up)" in out.out
+    assert "-90.0 °/s" in out.out
+
+
+def test_calibrate_command_end_to_end(tmp_path):
+    import subprocess
+    import sys
+    r = subprocess.run([sys.executable, "-m", "imubench.cli", "calibrate", "--sim", "--sim-seed", "3",
+                        "--method", "six", "--gyro", "bias", "--dir", str(tmp_path / "s"),
+                        "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+    assert "calibration PASSED" in r.stdout and "accelerometer (six_position): u = M·x + b" in r.stdout
+    assert (tmp_path / "s" / "residuals.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    h = subprocess.run([sys.executable, "-m", "imubench.cli", "history", "--db", str(tmp_path / "h.sqlite")],
+                       capture_output=True, text=True, timeout=60)
+    assert h.returncode == 0 and "SIM" in h.stdout
+    # resuming a finished session with --redo recaptures one pose and passes again
+    r2 = subprocess.run([sys.executable, "-m", "imubench.cli", "calibrate", "--sim", "--sim-seed", "3",
+                         "--resume", str(tmp_path / "s"), "--redo", "+Z up (level)", "--no-write",
+                         "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True, timeout=300)
+    assert r2.returncode == 0, r2.stdout[-3000:] + r2.stderr[-2000:]

@@ -434,6 +434,7 @@ class Session:
     def run(self, plan: list[tuple[str, np.ndarray]], history=None, verify_plan=None) -> dict:
         from .calib import accel as CA
         from .calib import gyro as CG
+        self.run_started = _now()
         ident = self.check_health()
         self._start_stream()
         try:
@@ -526,7 +527,8 @@ class Session:
             "device": {"mcu_uid": bytes(info.mcu_uid).hex(), "board": Board(info.board).name,
                        "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
                        "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)},
-            "started": self.started, "finished": _now(),
+            "started": getattr(self, "run_started", self.started), "session_started": self.started,
+            "finished": _now(),
             "method": self.cfg.method, "gyro_method": self.cfg.gyro,
             "accel": fit_dict(accel, "mps2") | {"residual_rms_mps2": accel.residual_rms},
             "gyro": fit_dict(gyro, "rad_s"),
@@ -822,9 +824,13 @@ def main_calibrate(argv=None) -> int:
             elif not result["passed"]:
                 print("the fit did not pass its tolerance: nothing was written to the device")
             sess._save(result=result)
-            with History(a.db) as h:
-                run_id = h.record(result)
-            print(f"recorded in the history as run {run_id}")
+            try:
+                with History(a.db) as h:
+                    run_id = h.record(result)
+                print(f"recorded in the history as run {run_id}")
+            except Exception as e:  # noqa: BLE001 - the result is safe in session.json; say why it is not in the history
+                print(f"warning: not recorded in the history ({e}); the result is in {sess.state_path}",
+                      file=sys.stderr)
             ok = result["passed"] and (result["verified"] or not cfg.write)
             print("\ncalibration " + ("PASSED" if ok else "FAILED"))
             return 0 if ok else 1
