@@ -22,7 +22,6 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "host"))
 
 from imubench import protocol as P  # noqa: E402
-from imubench.protocol_gen import MESSAGES_BY_NAME  # noqa: E402
 
 OUT = ROOT / "protocol" / "vectors" / "vectors.json"
 
