@@ -228,6 +228,7 @@ DELEGATED = {
     "flash": ("imubench.flash", "main_flash", "write the firmware to a board (openocd, st-flash, stm32flash)"),
     "calibrate": ("imubench.session", "main_calibrate", "guided calibration session, write-back and verification"),
     "history": ("imubench.history", "main_history", "calibration history of a device"),
+    "allan": ("imubench.noise", "main_allan", "record for hours and read the Allan deviation (noise terms)"),
 }
 
 
