@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
+from .link import DEFAULT_BAUD
 from .units import G0_MPS2
 
 DEG = math.pi / 180.0
@@ -412,7 +413,7 @@ def main_attitude(argv: Sequence[str] | None = None) -> int:
                                  "roll = atan2(fy, fz), pitch = atan2(-fx, hypot(fy, fz)), "
                                  "positive pitch = nose down (docs/attitude.md)")
     ap.add_argument("--port", help="pyserial URL of the device (default: $IMUBENCH_PORT)")
-    ap.add_argument("--baud", type=int, default=921600, help="baud rate for a real UART (default 921600)")
+    ap.add_argument("--baud", type=int, default=DEFAULT_BAUD, help=f"baud rate for a real UART (default {DEFAULT_BAUD})")
     ap.add_argument("--rate", type=int, default=200, help="sample rate in Hz (default 200)")
     ap.add_argument("--duration", type=float, default=None, help="seconds to run (default: until Ctrl-C)")
     ap.add_argument("--filter", choices=("rc", "kalman", "complementary", "all"), default="all")

@@ -25,13 +25,13 @@ import numpy as np
 
 from . import units as U
 from .decoder import SampleBlock, decode_bytes
-from .link import PORT_ENV, Device, DeviceError, LinkError, LinkTimeout
+from .link import DEFAULT_BAUD, PORT_ENV, Device, DeviceError, LinkError, LinkTimeout
 from .protocol_gen import Board, ClockSource, MsgType, ParamSource, StreamState
 
 
 def _port_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", help=f"pyserial URL of the device (default: ${PORT_ENV})")
-    p.add_argument("--baud", type=int, default=921600, help="baud rate for a real UART (default 921600)")
+    p.add_argument("--baud", type=int, default=DEFAULT_BAUD, help=f"baud rate for a real UART (default {DEFAULT_BAUD})")
 
 
 def _si(block: SampleBlock) -> tuple[np.ndarray, np.ndarray]:

@@ -52,7 +52,7 @@ from .protocol_gen import (
 )
 
 PORT_ENV = "IMUBENCH_PORT"
-DEFAULT_BAUD = 921600
+DEFAULT_BAUD = 2_000_000   # the boards' default (protocol/SPEC.md, link budget)
 
 
 class LinkError(IOError):

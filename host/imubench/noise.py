@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .link import DEFAULT_BAUD
+
 G0 = 9.80665
 RAD2DEG = 180.0 / np.pi
 SLOPE_TOL = 0.15
@@ -289,7 +291,7 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
     return res
 
 
-def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int = 921600,
+def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int = DEFAULT_BAUD,
            progress_s: float = 5.0, stop: dict | None = None, log=print) -> str:
     """Stream raw at rate_hz into capture_path (every byte appended as it arrives) until
     duration_s of *device* time has been received, stop["now"] is set, or the link is lost.
@@ -349,7 +351,7 @@ def main_allan(argv=None) -> int:
                                  description="Record a resting IMU for a long time (crash-safe) and compute "
                                              "Allan deviations and the noise read-offs N, B, K per axis.")
     ap.add_argument("--port", help="pyserial URL of the device (default: $IMUBENCH_PORT)")
-    ap.add_argument("--baud", type=int, default=921600, help="baud rate for a real UART (default 921600)")
+    ap.add_argument("--baud", type=int, default=DEFAULT_BAUD, help=f"baud rate for a real UART (default {DEFAULT_BAUD})")
     ap.add_argument("--duration", type=parse_duration, default=None,
                     help="recording length in device time: 90s, 30m, 2h, 1h30m (required unless --analyse)")
     ap.add_argument("--rate", type=int, default=100, help="sample rate in Hz (default 100)")

@@ -27,7 +27,7 @@ from . import params as PR
 from . import units as U
 from .calib import CalibrationError, TriadFit
 from .decoder import SampleBlock
-from .link import Device
+from .link import DEFAULT_BAUD, Device
 from .protocol_gen import Board, Params, ParamsWhich
 
 SESSION_SCHEMA = 1
@@ -757,7 +757,7 @@ def main_calibrate(argv=None) -> int:
     from .history import History
     ap = argparse.ArgumentParser(prog="imubench calibrate", description="guided calibration session")
     ap.add_argument("--port", help="pyserial URL of the device (default: $IMUBENCH_PORT)")
-    ap.add_argument("--baud", type=int, default=921600)
+    ap.add_argument("--baud", type=int, default=DEFAULT_BAUD, help=f"baud rate for a real UART (default {DEFAULT_BAUD})")
     ap.add_argument("--method", choices=("six", "multi"), default="six",
                     help="six faces (linear least squares, full M) or the multi-position |a| = g fit (26 attitudes)")
     ap.add_argument("--gyro", choices=("turntable", "rotation", "bias", "none"), default="bias")
