@@ -6,7 +6,7 @@
     imubench sim [--speed X] [--seed N] [--truth default|random] [--pty]   the virtual device
     imubench qemu --board f103|f4 [--params FILE]            the ARM image under QEMU
     imubench flash --board f103|f4 [--probe openocd|stlink|serial] [--port DEV] [--dry-run]
-    imubench calibrate / history / allan / attitude / thermal   see README.md
+    imubench calibrate / history / allan / attitude / thermal / report   see README.md
     imubench fake [--speed X]                                run the Python fake device on a pty
 
 --port takes any pyserial URL (/dev/ttyUSB0, socket://HOST:PORT, rfc2217://..., spy://...)
@@ -232,6 +232,7 @@ DELEGATED = {
     "allan": ("imubench.noise", "main_allan", "record for hours and read the Allan deviation (noise terms)"),
     "attitude": ("imubench.attitude", "main_attitude", "live pitch/roll through RC, Kalman and complementary filters"),
     "thermal": ("imubench.thermal", "main_thermal", "fit temperature coefficients over a sweep and write them back"),
+    "report": ("imubench.html_report", "main_report", "one self-contained HTML report of a session"),
 }
 
 

@@ -1,0 +1,470 @@
+"""One self-contained HTML report per session: calibration, noise, attitude, temperature.
+
+    build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, thermal_json=None) -> Path
+    imubench report SESSION_DIR [--out FILE] [--allan DIR] [--attitude PNG] [--thermal JSON]
+
+The report is ONE .html file that can be archived or sent on its own: the CSS is inline, every
+plot is a PNG embedded as a data:image/png;base64 URI, there is no JavaScript and no reference
+to anything outside the file. Every string taken from the data is HTML-escaped.
+
+Inputs:
+  * calibration: SESSION_DIR/session.json (imubench.session: "config", "poses", "result") and
+    SESSION_DIR/residuals.png if present (else drawn with imubench.report.plot_pose_residuals);
+  * noise: allan.json + allan_accel.png / allan_gyro.png (imubench.noise) in SESSION_DIR or --allan DIR;
+  * attitude: a PNG (imubench.attitude's plot) given with --attitude;
+  * temperature: a JSON given with --thermal. `imubench thermal` itself saves no file (it prints
+    the fit); a JSON with ThermalFit's fields (t_ref_c, accel_bias_tc, ..., *_sigma) is shown as
+    a table of coefficients, any other JSON as a key/value table.
+A section without input is shown as "not measured in this session", never silently omitted.
+"""
+from __future__ import annotations
+
+import argparse
+import base64
+import datetime as _dt
+import html
+import json
+import math
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+G0 = 9.80665
+RAD2DEG = 180.0 / math.pi
+AXES = ("x", "y", "z")
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+CSS = """
+body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;margin:2em auto;max-width:1100px;
+     color:#222;line-height:1.4;padding:0 1em}
+h1{font-size:1.6em;margin-bottom:.2em}h2{border-bottom:2px solid #ccc;padding-bottom:.2em;margin-top:1.8em}
+h3{margin-bottom:.3em}
+table{border-collapse:collapse;margin:.6em 0 1em 0;font-size:.92em}
+th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right;vertical-align:top}
+th{background:#f0f0f0}td.l,th.l{text-align:left}
+.badge{display:inline-block;padding:.15em .7em;border-radius:1em;font-weight:bold;margin-right:.4em;
+       font-size:.9em;color:#fff}
+.ok{background:#2e9e4f}.bad{background:#c0392b}.na{background:#888}
+.note{background:#fff8dc;border-left:4px solid #e0b84c;padding:.4em .8em;margin:.6em 0}
+.missing{background:#f4f4f4;border-left:4px solid #999;padding:.4em .8em;color:#555;font-style:italic}
+img{max-width:100%;height:auto;border:1px solid #ddd;margin:.4em 0}
+pre{background:#f7f7f7;padding:.6em;overflow-x:auto;font-size:.85em}
+footer{margin-top:3em;border-top:1px solid #ccc;padding-top:.5em;color:#666;font-size:.85em}
+.mono{font-family:monospace}
+"""
+
+
+# ------------------------------------------------------------------ helpers
+def esc(x) -> str:
+    return html.escape("" if x is None else str(x), quote=True)
+
+
+def _f(x) -> float:
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _num(x, fmt="{:.6g}") -> str:
+    v = _f(x)
+    return "–" if not math.isfinite(v) else fmt.format(v)
+
+
+def _pm(v, s, fmt="{:+.6g}", sfmt="{:.2g}", scale=1.0) -> str:
+    v, s = _f(v) * scale, _f(s) * scale
+    if not math.isfinite(v):
+        return "–"
+    out = fmt.format(v)
+    if math.isfinite(s):
+        out += " ± " + sfmt.format(abs(s))
+    return out
+
+
+def png_data_uri(path) -> str | None:
+    """The PNG at path as a data URI, or None if it is missing or not a PNG."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        return None
+    if not data.startswith(PNG_MAGIC):
+        return None
+    return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
+
+
+def _img(uri: str | None, alt: str) -> str:
+    if uri is None:
+        return f'<p class="missing">{esc(alt)}: plot not available</p>'
+    return f'<p><img src="{uri}" alt="{esc(alt)}"></p>'
+
+
+def _badge(label: str, value) -> str:
+    cls = "na" if value is None else ("ok" if value else "bad")
+    word = "n/a" if value is None else ("yes" if value else "NO")
+    return f'<span class="badge {cls}">{esc(label)}: {word}</span>'
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence], left: int = 1) -> str:
+    """rows of already-escaped HTML cells; the first `left` columns are left-aligned."""
+    h = "".join(f'<th class="{"l" if i < left else ""}">{c}</th>' for i, c in enumerate(header))
+    body = "".join("<tr>" + "".join(f'<td class="{"l" if i < left else ""}">{c}</td>' for i, c in enumerate(r))
+                   + "</tr>" for r in rows)
+    return f"<table><thead><tr>{h}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _missing(what: str, how: str) -> str:
+    return f'<p class="missing">{esc(what)}: not measured in this session ({esc(how)}).</p>'
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+        return version("imubench")
+    except Exception:  # noqa: BLE001 - not installed as a distribution
+        return "unknown"
+
+
+def _kv(d: dict) -> str:
+    rows = [[esc(k), f'<span class="mono">{esc(json.dumps(v) if not isinstance(v, str) else v)}</span>']
+            for k, v in d.items()]
+    return _table(["key", "value"], rows, left=2)
+
+
+# ------------------------------------------------------------------ calibration
+def _device_section(state: dict, result: dict | None) -> str:
+    dev = (result or {}).get("device") or {}
+    rows = []
+    for label, key in (("MCU UID", "mcu_uid"), ("board", "board"), ("firmware", "fw_version"),
+                       ("firmware build", "fw_build"), ("accelerometer IDs", "accel_ids"),
+                       ("gyro part IDs", "gyro_pid"), ("gyro serial numbers", "gyro_sn")):
+        if key in dev:
+            v = dev[key]
+            rows.append([esc(label), f'<span class="mono">{esc(", ".join(map(str, v)) if isinstance(v, list) else v)}</span>'])
+    r = result or {}
+    for label, v in (("session started", state.get("started")), ("run started", r.get("started")),
+                     ("finished", r.get("finished"))):
+        if v:
+            rows.append([esc(label), esc(v)])
+    if not rows:
+        return _missing("device identity", "the session has no result record")
+    return _table(["", "value"], rows, left=2)
+
+
+def _fit_table(fit: dict, kind: str) -> str:
+    """M (dimensionless, with the scale error in ppm on the diagonal) and b in SI and usual units."""
+    si = "b_mps2" if kind == "accel" else "b_rad_s"
+    m, sm = fit.get("m") or [], fit.get("sigma_m") or []
+    b, sb = fit.get(si) or [], fit.get("sigma_" + si) or []
+    rows = []
+    for i, ax in enumerate(AXES):
+        mrow = m[i] if i < len(m) else []
+        srow = sm[i] if i < len(sm) else []
+        cells = [esc(ax)]
+        for j in range(3):
+            v = mrow[j] if j < len(mrow) else None
+            s = srow[j] if j < len(srow) else None
+            cells.append(esc(_pm(v, s, "{:.7f}", "{:.1g}")))
+        diag = mrow[i] if i < len(mrow) else None
+        sdiag = srow[i] if i < len(srow) else None
+        cells.append(esc(_pm(_f(diag) - 1.0, sdiag, "{:+.1f}", "{:.1f}", scale=1e6)))
+        bv = b[i] if i < len(b) else None
+        bs = sb[i] if i < len(sb) else None
+        if kind == "accel":
+            cells.append(esc(_pm(bv, bs, "{:+.6f}", "{:.2g}")))
+            cells.append(esc(_pm(bv, bs, "{:+.4f}", "{:.2g}", scale=1e3 / G0)))
+        else:
+            cells.append(esc(_pm(bv, bs, "{:+.3e}", "{:.2g}")))
+            cells.append(esc(_pm(bv, bs, "{:+.5f}", "{:.2g}", scale=RAD2DEG)))
+        rows.append(cells)
+    bu = ("b [m/s²]", "b [mg]") if kind == "accel" else ("b [rad/s]", "b [°/s]")
+    head = ["axis", "M[·,x] ± 1σ", "M[·,y] ± 1σ", "M[·,z] ± 1σ", "scale error M<sub>ii</sub>−1 [ppm]",
+            esc(bu[0]) + " ± 1σ", esc(bu[1]) + " ± 1σ"]
+    out = _table(head, rows)
+    facts = [f"fit method: <b>{esc(fit.get('method', '?'))}</b>"]
+    if kind == "accel":
+        rr = fit.get("residual_rms_mps2", fit.get("residual_rms"))
+        if math.isfinite(_f(rr)):
+            facts.append(f"residual RMS {esc(_num(rr))} m/s² = {esc(_num(_f(rr) * 1e3 / G0, '{:.4f}'))} mg")
+    else:
+        rr = fit.get("residual_rms")
+        if math.isfinite(_f(rr)):
+            facts.append(f"residual RMS {esc(_num(rr))} (fit units)")
+    out += "<p>" + "; ".join(facts) + "</p>"
+    extra = fit.get("extra")
+    if extra:
+        out += "<details><summary>fit details (extra)</summary><pre>" + esc(json.dumps(extra, indent=1)) + "</pre></details>"
+    return out
+
+
+def _before_after_html(result: dict) -> str:
+    """The before/after table of imubench.report.before_after_table, as HTML."""
+    from .report import _poses, _rms, _tol, _verification, before_after_table
+    names, before, after, sigma = _poses(result)
+    temps = [p.get("temp_c") for p in result.get("poses") or []]
+    ns = [p.get("n") for p in result.get("poses") or []]
+    rows = []
+    for k, (n, b, a, s) in enumerate(zip(names, before, after, sigma)):
+        rows.append([esc(n), esc(_num(ns[k] if k < len(ns) else None, "{:.0f}")),
+                     esc(f"{1 + b / 1000:.5f}") if math.isfinite(b) else "–",
+                     esc(f"{1 + a / 1000:.5f}") if math.isfinite(a) else "–",
+                     esc(_num(a - b, "{:+.3f}")), esc(_pm(a, s, "{:+.4f}", "{:.4f}")),
+                     esc(_num(temps[k] if k < len(temps) else None, "{:.2f}"))])
+    out = _table(["pose", "samples", "|a| before [g]", "|a| after [g]", "Δ after − before [mg]",
+                  "after: |a| − g ± 1σ [mg]", "temp [°C]"], rows)
+    tol = _tol(result, "accel_rms_mg")
+    rb, ra = _rms(before), _rms(after)
+    verdict = "no tolerance given" if tol is None else \
+        f"tolerance {tol:g} mg RMS: {'PASS' if ra <= tol else 'FAIL'}"
+    out += f"<p>RMS of |a| − g over {len(names)} poses: before {rb:.3f} mg, after {ra:.4f} mg; {esc(verdict)}</p>"
+    vnames, vafter, _vs = _verification(result)
+    if len(vnames):
+        vtol = _tol(result, "verify_mg")
+        vrows = []
+        for n, a, v in zip(vnames, vafter, result.get("verification") or []):
+            ok = "" if vtol is None or not math.isfinite(a) else ("ok" if abs(a) <= vtol else "FAIL")
+            vrows.append([esc(n), esc(f"{1 + a / 1000:.5f}") if math.isfinite(a) else "–",
+                          esc(_num(a, "{:+.4f}")), esc(_num(v.get("angle_from_plan_deg"), "{:.2f}")), esc(ok)])
+        out += "<h4>Verification: the device's own calibrated output after write-back</h4>"
+        out += _table(["pose", "|a| [g]", "|a| − g [mg]", "angle from plan [°]",
+                       f"within ±{vtol:g} mg" if vtol else "verdict"], vrows)
+    else:
+        out += _missing("verification", "parameters not written back, so the device's output was not checked")
+    out += ("<details><summary>as text (imubench.report.before_after_table)</summary><pre>"
+            + esc(before_after_table(result)) + "</pre></details>")
+    return out
+
+
+def _calibration_section(session_dir: Path, state: dict) -> str:
+    cfg = state.get("config") or {}
+    result = state.get("result")
+    out = ["<h2>Calibration</h2>"]
+    out.append("<h3>Device</h3>" + _device_section(state, result))
+    method = (result or {}).get("method", cfg.get("method"))
+    gyro_method = (result or {}).get("gyro_method", cfg.get("gyro"))
+    out.append(f"<p>accelerometer method: <b>{esc({'six': 'six-position', 'multi': 'multi-position'}.get(method, method))}</b>; "
+               f"gyro method: <b>{esc(gyro_method if gyro_method else 'none')}</b>; "
+               f"rate {esc(_num(cfg.get('rate_hz'), '{:g}'))} Hz, hold {esc(_num(cfg.get('hold_s'), '{:g}'))} s per pose</p>")
+    note = (result or {}).get("note", cfg.get("note"))
+    if note:
+        out.append(f'<p class="note"><b>note:</b> {esc(note)}</p>')
+    if not result:
+        n = len(state.get("poses") or [])
+        out.append(_missing("calibration result", f"the session stopped before the fit: {n} pose(s) captured; "
+                            "resume it with imubench calibrate --resume"))
+        if state.get("poses"):
+            out.append(_table(["pose", "samples", "temp [°C]"],
+                              [[esc(p.get("name")), esc(p.get("n")), esc(_num(p.get("temp_c"), "{:.2f}"))]
+                               for p in state["poses"]]))
+        return "\n".join(out)
+    rms = result.get("accel_rms_after_mg")
+    out.append("<p>" + _badge("passed", result.get("passed")) + _badge("written", result.get("written"))
+               + _badge("verified", result.get("verified") if result.get("written") or result.get("verification")
+                        else None)
+               + (f" accelerometer RMS after calibration: <b>{esc(_num(rms, '{:.4f}'))} mg</b>" if rms is not None else "")
+               + "</p>")
+    tol = result.get("tolerances") or {}
+    if tol:
+        out.append("<p>tolerances: " + ", ".join(f"{esc(k)} = {esc(v)}" for k, v in tol.items()) + "</p>")
+    out.append("<h3>Accelerometer parameters (corrected = M·(raw − b))</h3>")
+    out.append(_fit_table(result["accel"], "accel") if result.get("accel") else _missing("accelerometer fit", "no fit"))
+    out.append("<h3>Gyroscope parameters</h3>")
+    out.append(_fit_table(result["gyro"], "gyro") if result.get("gyro")
+               else _missing("gyroscope calibration", "no gyro method was chosen"))
+    out.append("<h3>|a| per pose, before and after calibration</h3>")
+    try:
+        out.append(_before_after_html(result))
+    except ValueError as e:
+        out.append(f'<p class="missing">{esc(e)}</p>')
+    uri = png_data_uri(session_dir / "residuals.png")
+    if uri is None and result.get("poses"):
+        from .report import plot_pose_residuals
+        with tempfile.TemporaryDirectory() as td:
+            uri = png_data_uri(plot_pose_residuals(result, Path(td) / "residuals.png"))
+    out.append("<h3>Residual plot</h3>" + _img(uri, "|a| − g per pose, before and after calibration"))
+    return "\n".join(out)
+
+
+# ------------------------------------------------------------------ noise
+def _noise_section(allan_dir: Path | None) -> str:
+    out = ["<h2>Noise (Allan deviation)</h2>"]
+    path = allan_dir / "allan.json" if allan_dir is not None else None
+    if path is None or not path.is_file():
+        out.append(_missing("noise", "no allan.json; record one with imubench allan and give --allan DIR"))
+        return "\n".join(out)
+    try:
+        res = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        out.append(f'<p class="missing">{esc(path)}: unreadable ({esc(e)})</p>')
+        return "\n".join(out)
+    from .noise import usual_units
+    dur = _f(res.get("duration_s"))
+    out.append(f"<p>{esc(_num(res.get('samples'), '{:.0f}'))} samples at {esc(_num(res.get('rate_hz'), '{:g}'))} Hz = "
+               f"{esc(_num(dur / 3600, '{:.3f}'))} h; source {esc(', '.join(map(str, res.get('source') or [])))}</p>")
+    dec = res.get("decoder") or {}
+    if dec.get("samples_missing"):
+        out.append(f'<p class="note">{esc(dec["samples_missing"])} samples were lost in the recording; the '
+                   "analysis joins the pieces.</p>")
+    for kind, title, si in (("accel", "Accelerometer", "m/s²"), ("gyro", "Gyroscope", "rad/s")):
+        r = res.get(kind) or {}
+        usual = res.get(kind + "_usual") or {}
+        rows = []
+        for a in AXES:
+            if a not in r:
+                continue
+            ra = r[a]
+            u = usual.get(a) or usual_units(ra, kind)
+            if kind == "accel":
+                rows.append([esc(a), esc(_num(ra.get("N"), "{:.4g}")), esc(_num(u.get("N_ug_per_rtHz"), "{:.4g}")),
+                             esc(_num(u.get("VRW_m_s_per_rth"), "{:.4g}")), esc(_num(ra.get("B"), "{:.4g}")),
+                             esc(_num(u.get("B_ug"), "{:.4g}")), esc(_num(ra.get("B_tau"), "{:.4g}")),
+                             esc(_num(ra.get("K"), "{:.4g}")), esc(_num(u.get("K_ug_rtHz"), "{:.4g}"))])
+            else:
+                rows.append([esc(a), esc(_num(ra.get("N"), "{:.4g}")), esc(_num(u.get("N_deg_per_rth"), "{:.4g}")),
+                             esc(_num(u.get("N_deg_s_per_rtHz"), "{:.4g}")), esc(_num(ra.get("B"), "{:.4g}")),
+                             esc(_num(u.get("B_deg_h"), "{:.4g}")), esc(_num(ra.get("B_tau"), "{:.4g}")),
+                             esc(_num(ra.get("K"), "{:.4g}")), esc(_num(u.get("K_deg_h_per_rth"), "{:.4g}"))])
+        if kind == "accel":
+            head = ["axis", "N [m/s²/√Hz]", "VRW [µg/√Hz]", "VRW [m/s/√h]", "B [m/s²]", "B [µg]",
+                    "B at τ [s]", "K [m/s²·√Hz]", "K [µg·√Hz]"]
+        else:
+            head = ["axis", "N [rad/s/√Hz]", "ARW [°/√h]", "ARW [°/s/√Hz]", "B [rad/s]", "B [°/h]",
+                    "B at τ [s]", "K [rad/s·√Hz]", "RRW [°/h/√h]"]
+        out.append(f"<h3>{title}</h3>")
+        out.append(_table([esc(h) for h in head], rows) if rows else _missing(title, "no axes in allan.json"))
+        out.append(_img(png_data_uri(allan_dir / f"allan_{kind}.png"), f"{title} Allan deviation ({si})"))
+    out.append("<p>N: white noise, ADEV(τ) = N/√τ read at τ = 1 s; B: bias instability = min ADEV / 0.664; "
+               "K: rate random walk, ADEV(τ) = K·√(τ/3) read at τ = 3 s; – where not resolved.</p>")
+    return "\n".join(out)
+
+
+# ------------------------------------------------------------------ attitude, thermal
+def _attitude_section(png: Path | None) -> str:
+    out = ["<h2>Attitude</h2>"]
+    if png is None:
+        out.append(_missing("attitude", "no plot given; give --attitude FILE.png from imubench attitude"))
+    else:
+        uri = png_data_uri(png)
+        if uri is None:
+            out.append(f'<p class="missing">attitude plot {esc(png)} is missing or not a PNG.</p>')
+        else:
+            out.append(f"<p>from {esc(png.name)}</p>" + _img(uri, "roll/pitch from the attitude filters"))
+    return "\n".join(out)
+
+
+THERMAL_FIELDS = (("accel_bias_tc", "accel bias", "µg/°C", 1e6 / G0), ("accel_scale_tc", "accel scale", "ppm/°C", 1e6),
+                  ("gyro_bias_tc", "gyro bias", "m°/s/°C", RAD2DEG * 1e3), ("gyro_scale_tc", "gyro scale", "ppm/°C", 1e6))
+
+
+def _thermal_section(path: Path | None) -> str:
+    out = ["<h2>Temperature</h2>"]
+    if path is None:
+        out.append(_missing("temperature", "no thermal data given; imubench thermal prints its fit and saves no "
+                            "file, so there is nothing to embed unless a JSON is given with --thermal"))
+        return "\n".join(out)
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        out.append(f'<p class="missing">thermal data {esc(path)}: unreadable ({esc(e)}); not measured in this session.</p>')
+        return "\n".join(out)
+    out.append(f"<p>from {esc(Path(path).name)}</p>")
+    if isinstance(data, dict) and any(k in data for k, *_ in THERMAL_FIELDS):
+        if "t_ref_c" in data:
+            out.append(f"<p>reference temperature {esc(_num(data['t_ref_c'], '{:g}'))} °C</p>")
+        rows = []
+        for key, label, unit, scale in THERMAL_FIELDS:
+            v, s = data.get(key) or [], data.get(key + "_sigma") or []
+            if not v:
+                continue
+            rows.append([esc(f"{label} [{unit}]")] + [esc(_pm(v[k] if k < len(v) else None, s[k] if k < len(s) else None,
+                                                              "{:+.3f}", "{:.3f}", scale)) for k in range(3)])
+        out.append(_table(["coefficient ± 1σ", "x", "y", "z"], rows))
+        notes = data.get("notes") or []
+        for n in notes:
+            out.append(f'<p class="note">{esc(n)}</p>')
+        rest = {k: v for k, v in data.items() if k not in {f for f, *_ in THERMAL_FIELDS}
+                | {f + "_sigma" for f, *_ in THERMAL_FIELDS} | {"t_ref_c", "notes"}}
+        if rest:
+            out.append(_kv(rest))
+    elif isinstance(data, dict):
+        out.append(_kv(data))
+    else:
+        out.append("<pre>" + esc(json.dumps(data, indent=1)) + "</pre>")
+    return "\n".join(out)
+
+
+# ------------------------------------------------------------------ the report
+def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, thermal_json=None) -> Path:
+    """Write the session's report as one self-contained HTML file and return its path
+    (default SESSION_DIR/report.html). allan_dir defaults to session_dir (its allan.json is
+    used if present). Raises FileNotFoundError if session_dir has no session.json."""
+    session_dir = Path(session_dir)
+    state_path = session_dir / "session.json"
+    if not state_path.is_file():
+        raise FileNotFoundError(f"{session_dir} has no session.json: not a calibration session directory")
+    state = json.loads(state_path.read_text())
+    result = state.get("result") or {}
+    out_path = Path(out_path) if out_path is not None else session_dir / "report.html"
+    allan_dir = Path(allan_dir) if allan_dir is not None else session_dir
+    uid = (result.get("device") or {}).get("mcu_uid", "unknown device")
+    when = str(result.get("started") or state.get("started") or "")
+
+    sections = [_calibration_section(session_dir, state), _noise_section(allan_dir),
+                _attitude_section(Path(attitude_png) if attitude_png else None),
+                _thermal_section(Path(thermal_json) if thermal_json else None)]
+    present = {"calibration": bool(result), "noise": (allan_dir / "allan.json").is_file(),
+               "attitude": attitude_png is not None, "temperature": thermal_json is not None}
+    summary = ", ".join(f"{esc(k)}: {'yes' if v else 'not measured'}" for k, v in present.items())
+    generated = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    doc = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<title>imubench report: {esc(uid)} {esc(when)}</title>
+<style>{CSS}</style></head>
+<body>
+<h1>IMU calibration report</h1>
+<p>device <b class="mono">{esc(uid)}</b>, session started {esc(state.get('started', '?'))}</p>
+<p>contents — {summary}</p>
+{chr(10).join(sections)}
+<footer>generated by imubench {esc(_version())} at {esc(generated)} from session directory
+<span class="mono">{esc(session_dir.resolve())}</span></footer>
+</body></html>
+"""
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_path.with_name(out_path.name + ".tmp")
+    tmp.write_text(doc, encoding="utf-8")
+    tmp.replace(out_path)
+    return out_path
+
+
+def main_report(argv: Sequence[str] | None = None) -> int:
+    """`imubench report SESSION_DIR [--out FILE] [--allan DIR] [--attitude PNG] [--thermal JSON]`"""
+    ap = argparse.ArgumentParser(prog="imubench report",
+                                 description="write one self-contained HTML report of a session "
+                                             "(calibration, noise, attitude, temperature; plots embedded)")
+    ap.add_argument("session_dir", metavar="SESSION_DIR", help="the calibration session directory (with session.json)")
+    ap.add_argument("--out", metavar="FILE", help="output HTML file (default SESSION_DIR/report.html)")
+    ap.add_argument("--allan", metavar="DIR", help="directory with allan.json and its plots (default: SESSION_DIR)")
+    ap.add_argument("--attitude", metavar="PNG", help="attitude plot to embed")
+    ap.add_argument("--thermal", metavar="JSON", help="temperature coefficients to show")
+    a = ap.parse_args(argv)
+    sd = Path(a.session_dir)
+    if not (sd / "session.json").is_file():
+        print(f"imubench report: {sd} has no session.json (give the directory of a calibration session, "
+              "e.g. the --dir of imubench calibrate)", file=sys.stderr)
+        return 2
+    for opt, p, is_dir in (("--allan", a.allan, True), ("--attitude", a.attitude, False), ("--thermal", a.thermal, False)):
+        if p is not None and not (Path(p).is_dir() if is_dir else Path(p).is_file()):
+            print(f"imubench report: {opt} {p}: no such {'directory' if is_dir else 'file'}", file=sys.stderr)
+            return 2
+    try:
+        path = build_report(sd, a.out, a.allan, a.attitude, a.thermal)
+    except (OSError, ValueError) as e:
+        print(f"imubench report: {e}", file=sys.stderr)
+        return 1
+    print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main_report())
