@@ -105,7 +105,7 @@ def test_stream_60_s_of_device_time_without_loss(vb, dev, rate):
     assert np.allclose(rate_rs.std(axis=0), want_g, rtol=0.1)
 
 
-@pytest.mark.parametrize("rate", [4000, 2000, 1000, 800, 500, 400, 250, 200, 160, 125, 100, 80, 50, 40, 25, 20])
+@pytest.mark.parametrize("rate", P.gen.STREAM_RATES_HZ)
 def test_every_documented_rate_streams_with_datasheet_noise(vb, dev, rate):
     dev.start_stream(rate)
     n = max(400, rate // 2)

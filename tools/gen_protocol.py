@@ -130,7 +130,10 @@ def gen_c_header(sp: Spec) -> str:
          f"#define IB_CRC_SIZE {p['crc_size']}u",
          f"#define IB_MAX_FRAME {max_frame}u /* header + payload + CRC, before COBS */",
          f"#define IB_MAX_ENCODED ({max_frame}u + ({max_frame}u / 254u) + 1u) /* COBS, without the 0x00 */",
-         f"#define IB_PARAM_BLOCK_VERSION {p['param_block_version']}u", "",
+         f"#define IB_PARAM_BLOCK_VERSION {p['param_block_version']}u",
+         "/* start_stream rates (SPEC.md, Streaming) */",
+         f"#define IB_STREAM_RATES_HZ {{{', '.join(f'{r}u' for r in p['stream_rates_hz'])}}}",
+         f"#define IB_STREAM_RATES_COUNT {len(p['stream_rates_hz'])}u", "",
          "/* Parameter limits (protocol/imubench.toml [limits]). */"]
     for k, v in sp.limits.items():
         L.append(f"#define IB_LIMIT_{c_name(k)} {float(v)!r}f")
@@ -403,7 +406,8 @@ def gen_python(sp: Spec) -> str:
          f"HEADER_SIZE = {p['header_size']}", f"CRC_SIZE = {p['crc_size']}",
          f'CRC_NAME = "{p["crc"]}"', f"MAX_FRAME = {max_frame}",
          f"MAX_ENCODED = {max_frame + max_frame // 254 + 1}",
-         f"PARAM_BLOCK_VERSION = {p['param_block_version']}", "",
+         f"PARAM_BLOCK_VERSION = {p['param_block_version']}",
+         f"STREAM_RATES_HZ = {tuple(p['stream_rates_hz'])!r}  # start_stream rates (SPEC.md, Streaming)", "",
          "# Parameter limits (protocol/imubench.toml [limits]); the device enforces the same.",
          "LIMITS = {" + ", ".join(f"'{k}': {float(v)!r}" for k, v in sp.limits.items()) + "}", ""]
     for e in sp.enums:
@@ -558,6 +562,7 @@ def gen_markdown(sp: Spec) -> str:
          f"Protocol version {p['version']}. Framing, rules and the link budget are in SPEC.md; this page",
          "lists every layout. All fields little-endian; offsets are bytes from the start of the payload.", "",
          "| constant | value |", "|---|---|",
+         f"| start_stream rates | {', '.join(map(str, p['stream_rates_hz']))} Hz |",
          f"| max payload | {p['max_payload']} bytes |",
          f"| header | {p['header_size']} bytes: version u8, type u8, seq u16, timestamp_us u32 |",
          f"| CRC | {p['crc']}, {p['crc_size']} bytes after the payload |",

@@ -579,8 +579,13 @@ static int flush_reply(ib_core_t *c)
 
 static uint8_t do_start_stream(ib_core_t *c, const ib_msg_start_stream_t *m, uint32_t *value)
 {
+    static const uint16_t rates[IB_STREAM_RATES_COUNT] = IB_STREAM_RATES_HZ;
+    int listed = 0;
+    for (unsigned i = 0; i < IB_STREAM_RATES_COUNT; i++) {
+        listed |= rates[i] == m->rate_hz;
+    }
     uint32_t avg = 0;
-    int odr = odr_for_rate(m->rate_hz, &avg);
+    int odr = listed ? odr_for_rate(m->rate_hz, &avg) : -1;
     uint8_t maxb = m->mode == IB_STREAM_MODE_CALIBRATED ? IB_MSG_CAL_BATCH_MAX_RECORDS : IB_MSG_RAW_BATCH_MAX_RECORDS;
     if (odr < 0 || m->rate_hz > 4000u || m->mode > IB_STREAM_MODE_CALIBRATED || m->batch > maxb ||
         !(m->accel_range_g == 0 || m->accel_range_g == 2 || m->accel_range_g == 4 || m->accel_range_g == 8)) {

@@ -12,6 +12,9 @@
 #define IB_MAX_FRAME 268u /* header + payload + CRC, before COBS */
 #define IB_MAX_ENCODED (268u + (268u / 254u) + 1u) /* COBS, without the 0x00 */
 #define IB_PARAM_BLOCK_VERSION 1u
+/* start_stream rates (SPEC.md, Streaming) */
+#define IB_STREAM_RATES_HZ {4000u, 2000u, 1000u, 800u, 500u, 400u, 250u, 200u, 160u, 125u, 100u, 80u, 50u, 40u, 25u, 20u}
+#define IB_STREAM_RATES_COUNT 16u
 
 /* Parameter limits (protocol/imubench.toml [limits]). */
 #define IB_LIMIT_M_DIAG_MIN 0.5f
@@ -221,7 +224,7 @@ typedef struct {
 size_t ib_msg_get_info_pack(const ib_msg_get_info_t *v, uint8_t *out);
 void ib_msg_get_info_unpack(const uint8_t *in, ib_msg_get_info_t *v);
 
-/* Start (or restart with new settings) sample streaming. The ack's value is the batch size used. rate_hz must divide 4000 (4000, 2000, 1000, 800, 500, 400, 250, 200, 125, 100, ... down to 16). */
+/* Start (or restart with new settings) sample streaming. The ack's value is the batch size used. rate_hz is one of [protocol] stream_rates_hz. */
 typedef struct {
     uint16_t rate_hz; /* [Hz] */
     uint8_t mode;

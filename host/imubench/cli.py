@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from . import units as U
-from .decoder import SampleBlock, decode_bytes
+from .decoder import decode_bytes
 from .link import DEFAULT_BAUD, PORT_ENV, Device, DeviceError, LinkError, LinkTimeout
 from .protocol_gen import Board, ClockSource, MsgType, ParamSource, StreamState
 
@@ -32,13 +32,6 @@ from .protocol_gen import Board, ClockSource, MsgType, ParamSource, StreamState
 def _port_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", help=f"pyserial URL of the device (default: ${PORT_ENV})")
     p.add_argument("--baud", type=int, default=DEFAULT_BAUD, help=f"baud rate for a real UART (default {DEFAULT_BAUD})")
-
-
-def _si(block: SampleBlock) -> tuple[np.ndarray, np.ndarray]:
-    if block.calibrated:
-        return block.accel_mps2.astype(np.float64), block.rate_rad_s.astype(np.float64)
-    return (U.accel_counts_to_mps2(block.accel_counts, block.accel_range_g),
-            U.gyro_counts_to_rad_s(block.gyro_counts))
 
 
 def _axes(v: np.ndarray, fmt: str) -> str:
@@ -56,7 +49,7 @@ def cmd_decode(a) -> int:
     for name, b in (("raw", raw), ("calibrated", cal)):
         if b is None:
             continue
-        acc, gyr = _si(b)
+        acc, gyr = b.si()
         dur = (b.t_us[-1] - b.t_us[0]) / 1e6 if len(b) > 1 else 0.0
         summary[name] = {
             "samples": len(b), "duration_s": dur,
@@ -90,7 +83,7 @@ def cmd_decode(a) -> int:
             print(f"    rate  mean [°/s]   {_axes(s['rate_mean_dps'], '{:+10.5f}')}   std [°/s] {_axes(s['rate_std_dps'], '{:.4f}')}")
     block = raw if raw is not None else cal
     if block is not None and (a.npz or a.csv):
-        acc, gyr = _si(block)
+        acc, gyr = block.si()
         cols = {"t_us": block.t_us, "sample_index": block.sample_index, "status": block.status,
                 "accel_mps2": acc, "rate_rad_s": gyr,
                 "accel_temp_c": U.accel_temp_counts_to_c(block.accel_temp_counts),
@@ -152,7 +145,7 @@ def cmd_monitor(a) -> int:
             try:
                 while not stop["now"] and (a.duration is None or time.monotonic() - t0 < a.duration):
                     b = dev.read(duration_s=a.interval)
-                    acc, gyr = _si(b)
+                    acc, gyr = b.si()
                     span = (b.t_us[-1] - b.t_us[0]) / 1e6 if len(b) > 1 else 0
                     rate = (len(b) - 1) / span if span else 0
                     st = dev.link.decoder.stats

@@ -20,6 +20,7 @@ import numpy as np
 from cobs import cobs
 
 from . import protocol as P
+from . import units as U
 from .protocol_gen import BATCH_HEADER_DTYPE, MsgType
 
 _HDR = struct.Struct("<BBHI")
@@ -98,6 +99,21 @@ class SampleBlock:
 
     def __len__(self) -> int:
         return len(self.t_us)
+
+    def __getitem__(self, s: slice) -> "SampleBlock":
+        """The samples of a slice, as a block: block[-n:], block[:n]."""
+        if not isinstance(s, slice):
+            raise TypeError("index a SampleBlock with a slice")
+        return SampleBlock(**{f.name: (getattr(self, f.name) if f.name == "calibrated" or getattr(self, f.name) is None
+                                       else getattr(self, f.name)[s]) for f in fields(self)})
+
+    def si(self) -> tuple[np.ndarray, np.ndarray]:
+        """(accel m/s², rate rad/s) as float64: nominal scaling of raw counts
+        (docs/conventions.md), or the device's calibrated values."""
+        if self.calibrated:
+            return self.accel_mps2.astype(np.float64), self.rate_rad_s.astype(np.float64)
+        return (U.accel_counts_to_mps2(self.accel_counts, self.accel_range_g),
+                U.gyro_counts_to_rad_s(self.gyro_counts))
 
     @classmethod
     def concat(cls, blocks: list["SampleBlock"]) -> "SampleBlock":

@@ -43,7 +43,6 @@ from .units import G0_MPS2
 ACCEL_NOISE_G_RTHZ = 22.5e-6
 GYRO_NOISE_DPS_RTHZ = 0.015
 FW_VERSION = (0, 1, 0)
-SUPPORTED_RATES_HZ = (4000, 2000, 1000, 800, 500, 400, 250, 200, 160, 125, 100, 80, 50, 40, 25, 20)  # SPEC.md
 
 
 class FakeDevice:
@@ -232,7 +231,7 @@ class FakeDevice:
         if t == T.GET_INFO:
             return [self._info(rid)], Error.OK, 0
         if t == T.START_STREAM:
-            if m.rate_hz not in SUPPORTED_RATES_HZ or m.mode not in (0, 1) \
+            if m.rate_hz not in P.gen.STREAM_RATES_HZ or m.mode not in (0, 1) \
                     or m.accel_range_g not in (0, 2, 4, 8):
                 return [], Error.BAD_ARGUMENT, 0
             maxb = 16 if m.mode == 0 else 8

@@ -387,8 +387,8 @@ class Device:
             raise LinkTimeout("no samples arrived")
         out = SampleBlock.concat(blocks)
         if n_samples is not None and len(out) > n_samples:
-            self._leftover[cal] = _slice(out, slice(n_samples, None))   # kept for the next read
-            out = _slice(out, slice(0, n_samples))
+            self._leftover[cal] = out[n_samples:]   # kept for the next read
+            out = out[:n_samples]
         return out
 
     def stream(self, calibrated: bool | None = None, poll_s: float = 0.05) -> Iterator[SampleBlock]:
@@ -405,9 +405,3 @@ class Device:
             if b is not None and len(b):
                 yield b
 
-
-def _slice(b: SampleBlock, s: slice) -> SampleBlock:
-    kw = {}
-    for k, v in vars(b).items():
-        kw[k] = v if k == "calibrated" or v is None else v[s]
-    return SampleBlock(**kw)

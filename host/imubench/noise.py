@@ -249,7 +249,6 @@ def _fmt(v, f="{:.4g}"):
 def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=print) -> dict:
     """Decode capture file(s), convert raw counts to SI, run allan() on accel and gyro,
     write allan.json and the two PNGs to out_dir; returns the summary dict."""
-    from . import units as U
     from .decoder import decode_bytes
     data = b"".join(Path(p).read_bytes() for p in paths)
     _msgs, raw, _cal, stats = decode_bytes(data)
@@ -259,8 +258,7 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
     if rate_hz is None:                          # from the device time stamps
         rate_hz = (len(raw) - 1) / ((raw.t_us[-1] - raw.t_us[0]) / 1e6)
         rate_hz = float(np.round(rate_hz, 1))
-    acc = U.accel_counts_to_mps2(raw.accel_counts, raw.accel_range_g)
-    gyr = U.gyro_counts_to_rad_s(raw.gyro_counts)
+    acc, gyr = raw.si()
     out_dir.mkdir(parents=True, exist_ok=True)
     res = {"source": [str(p) for p in paths], "samples": len(raw), "rate_hz": rate_hz,
            "duration_s": len(raw) / rate_hz, "decoder": stats.as_dict(),

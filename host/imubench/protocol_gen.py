@@ -18,6 +18,7 @@ CRC_NAME = "crc-32c"
 MAX_FRAME = 268
 MAX_ENCODED = 270
 PARAM_BLOCK_VERSION = 1
+STREAM_RATES_HZ = (4000, 2000, 1000, 800, 500, 400, 250, 200, 160, 125, 100, 80, 50, 40, 25, 20)  # start_stream rates (SPEC.md, Streaming)
 
 # Parameter limits (protocol/imubench.toml [limits]); the device enforces the same.
 LIMITS = {'m_diag_min': 0.5, 'm_diag_max': 1.5, 'm_offdiag_max': 0.2, 'm_cond_max': 6.0, 'accel_bias_max_mps2': 9.80665, 'gyro_bias_max_rad_s': 0.5236, 'accel_bias_tc_max_mps2_per_c': 0.01, 'gyro_bias_tc_max_rad_s_per_c': 0.001, 'scale_tc_max_per_c': 0.001, 't_ref_min_c': -40.0, 't_ref_max_c': 125.0}
@@ -282,7 +283,7 @@ GetInfo.STRUCT = struct.Struct(GetInfo.FORMAT)
 @dataclass
 class StartStream:
     """Start (or restart with new settings) sample streaming. The ack's value is the batch size
-used. rate_hz must divide 4000 (4000, 2000, 1000, 800, 500, 400, 250, 200, 125, 100, ... down to 16)."""
+used. rate_hz is one of [protocol] stream_rates_hz."""
     rate_hz: int = 0  # [Hz]
     mode: int = 0
     batch: int = 0  # [samples]

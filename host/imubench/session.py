@@ -192,7 +192,6 @@ class Session:
         self.poses: list[PoseRecord] = []
         self.rest: dict | None = None
         self.state_path = self.dir / "session.json"
-        self.samples: list[SampleBlock] = []   # everything streamed, in order
         if resume:
             self._load()
         else:
@@ -263,9 +262,7 @@ class Session:
 
     # ------------------------------------------------------------- streaming
     def _next_block(self, timeout: float = 10.0) -> SampleBlock:
-        b = self.dev.read(duration_s=0.05, timeout=timeout)
-        self.samples.append(b)
-        return b
+        return self.dev.read(duration_s=0.05, timeout=timeout)
 
     # ------------------------------------------------------------------ rest
     def capture_rest(self) -> dict:
@@ -283,7 +280,7 @@ class Session:
             have += len(b)
             self.ui.progress("rest", have / n)
         b = SampleBlock.concat(got)
-        acc, gyr = si(b)
+        acc, gyr = b.si()
         self.rest = {"noise_mps2": rest_noise(acc, self.cfg.rate_hz).tolist(),
                      "gyro": gyr.tolist() if self.cfg.gyro in ("bias", "rotation", "turntable") else None,
                      "start_index": int(b.sample_index[0]), "stop_index": int(b.sample_index[-1]) + 1}
@@ -314,7 +311,7 @@ class Session:
             waited += len(b)
             recent.append(b)
             recent_n += len(b)
-            st = det.update(si(b)[0])
+            st = det.update(b.si()[0])
             still = st.state == "still"
             # the still run restarted inside this block if it is shorter than before + the block
             restarted = still and (not was_still or st.n < prev_n + len(b))
@@ -327,9 +324,8 @@ class Session:
                 self.ui.progress(name, st.n / hold_n)
                 if st.n >= hold_n:
                     # exactly the samples of this still run: the last st.n received
-                    run = SampleBlock.concat(recent)
-                    run = _tail(run, min(st.n, len(run)))
-                    rec = self._pose_from(_tail(run, hold_n), plan)
+                    run = SampleBlock.concat(recent)       # the still run is its last st.n samples
+                    rec = self._pose_from(run[len(run) - min(st.n, hold_n, len(run)):], plan)
                     if isinstance(rec, PoseRecord):
                         return rec
                     last_msg = self._tell(rec, last_msg)
@@ -347,7 +343,7 @@ class Session:
         return msg
 
     def _pose_from(self, b: SampleBlock, plan) -> PoseRecord | str:
-        acc, gyr = si(b)
+        acc, gyr = b.si()
         mean = acc.mean(axis=0)
         d = mean / np.linalg.norm(mean)
         angles = [np.degrees(np.arccos(np.clip(d @ (v / np.linalg.norm(v)), -1, 1))) for _, v in plan]
@@ -376,7 +372,6 @@ class Session:
         self.dev.link.capture = open(self.dir / f"capture-{self.stream_no}.bin", "ab")
         if old is not None:
             old.close()
-        self.samples = []
         self.dev.start_stream(self.cfg.rate_hz)
 
     def _stop_stream(self) -> None:
@@ -402,7 +397,7 @@ class Session:
                     while steady < need:
                         b = self._next_block()
                         waited += len(b)
-                        _, gyr = si(b)
+                        _, gyr = b.si()
                         on = np.abs(gyr @ np.array(axis) - np.radians(r_dps)) < 0.1 * abs(np.radians(r_dps))
                         if on.all():
                             got.append(gyr)
@@ -425,8 +420,8 @@ class Session:
         while waited < timeout_s * self.cfg.rate_hz:
             b = self._next_block()
             waited += len(b)
-            _, gyr = si(b)
-            st = det.update(si(b)[0])
+            _, gyr = b.si()
+            st = det.update(b.si()[0])
             if getattr(st, "state", st) == "still" and np.abs(gyr.mean(axis=0)).max() < np.radians(2.0):
                 return
 
@@ -498,7 +493,7 @@ class Session:
                 raise CalibrationError(f"stream {k} has gaps ({st.samples_missing} samples lost): "
                                        "the rotation method needs every sample between poses")
             idx0 = int(raw.sample_index[0])
-            _, gyr = si(raw)
+            _, gyr = raw.si()
             poses = sorted(poses, key=lambda p: p.start_index)
             for p in poses:
                 intervals.append((offset + p.start_index - idx0, offset + p.stop_index - idx0))
@@ -627,12 +622,6 @@ def params_from_fits(accel: TriadFit | None, gyro: TriadFit | None, base: Params
     return p
 
 
-def _tail(b: SampleBlock, n: int) -> SampleBlock:
-    """The last n samples of a block."""
-    kw = {k: (v if k == "calibrated" or v is None else v[len(b) - n:]) for k, v in vars(b).items()}
-    return SampleBlock(**kw)
-
-
 def _pack(p: Params) -> bytes:
     return p.STRUCT.pack(*p.values())
 
@@ -651,12 +640,6 @@ def _jsonable(x):
     if isinstance(x, (np.floating, np.integer)):
         return x.item()
     return x
-
-
-def si(block: SampleBlock) -> tuple[np.ndarray, np.ndarray]:
-    """Nominally scaled accelerometer (m/s²) and gyro (rad/s) of a raw block."""
-    return (U.accel_counts_to_mps2(block.accel_counts, block.accel_range_g),
-            U.gyro_counts_to_rad_s(block.gyro_counts))
 
 
 def fit_dict(fit: TriadFit | None, unit: str) -> dict | None:

@@ -155,9 +155,9 @@ def measure_point(dev, hooks: Hooks, target_c: float | None, n: int = 2000,
         elif name != "+z":
             continue
         b = _settled(dev, n)
-        a = U.accel_counts_to_mps2(b.accel_counts, b.accel_range_g)
+        a, g = b.si()
         accel[name] = _mean_sigma(a)
-        gyro_all.append(U.gyro_counts_to_rad_s(b.gyro_counts))
+        gyro_all.append(g)
         at, gt = _temps(b)
         atemps.append(at)
         gtemps.append(gt)
@@ -172,7 +172,7 @@ def measure_point(dev, hooks: Hooks, target_c: float | None, n: int = 2000,
                 dev.discard_buffered()
                 hooks.turn(ax, sgn * turn_rate_dps, dur)
                 b = dev.read(duration_s=0.05)
-                w = U.gyro_counts_to_rad_s(b.gyro_counts)[:, ax]
+                w = b.si()[1][:, ax]
                 target = sgn * turn_rate_dps * U.DEG
                 sel = np.flatnonzero(np.abs(w - target) < 0.1 * abs(target))
                 if len(sel) < 20:
