@@ -395,6 +395,16 @@ class VirtualBench:
     def set_rate(self, rate_dps: Sequence[float]) -> dict:
         return self.control("set_rate", rate_dps=[float(x) for x in rate_dps])
 
+    def path(self, legs: Sequence[dict], wait: bool = True) -> dict:
+        """Drive a path: legs [{"duration_s": T, "move_m": [dx, dy, dz] (level frame),
+        "axis": "z", "turn_deg": A}, ...] back to back, each rest to rest on a minimum-jerk
+        profile (firmware/boards/sim/sim_physics.c). With wait, return when it is driven.
+        The reply carries t_start_us, t_end_us (device time) and duration_s."""
+        r = self.control("path", legs=[dict(leg) for leg in legs])
+        if wait:
+            self.wait_idle(timeout=self._wait_timeout(float(r["duration_s"])))
+        return r
+
     def set_temperature(self, c: float, ramp_c_per_s: float | None = None, wait: bool = False) -> dict:
         kw: dict[str, Any] = {"c": float(c)}
         if ramp_c_per_s:

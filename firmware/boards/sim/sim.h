@@ -86,6 +86,22 @@ typedef struct sim_flash {
 } sim_flash_t;
 
 /* ---- physics (sim_physics.c) ---- */
+#define SIM_PATH_MAX_LEGS 32
+
+/* One leg of a path (sim_phys_path): rest to rest in dur_us, translating by dp_m (level
+ * frame) and turning by angle_rad about axis (board frame), both on the minimum-jerk
+ * profile h(s) = 10 s^3 - 15 s^4 + 6 s^5, s = (t - t0) / dur. The start state (r0, p0,
+ * omega integral) is filled in when the path is set. */
+typedef struct sim_leg {
+    uint64_t t0_us, dur_us;
+    double dp_m[3];
+    double axis[3];
+    double angle_rad;
+    double r0[3][3];
+    double p0_m[3];
+    double wi0[3];
+} sim_leg_t;
+
 typedef struct sim_physics {
     /* orientation: R maps board-frame vectors to the level (earth) frame, Z up. Under a
      * motion, R(t) = R0 * Rot(axis, rate * (min(t, t_end) - t0)). */
@@ -97,12 +113,16 @@ typedef struct sim_physics {
     double angle_total_rad;  /* rate * duration for a finite move (exact end angle) */
     int kind;                /* SIM_MOTION_NONE / _ROTATE / _RATE */
     double omega_int0[3];    /* integral of omega (board frame) from 0 to t0, rad */
+    /* position of the board's origin in the level frame, m (moves only on a path) */
+    double pos0_m[3];
+    sim_leg_t legs[SIM_PATH_MAX_LEGS]; /* SIM_MOTION_PATH: legs back to back from t0 */
+    int n_legs;
     /* temperature: linear ramp from temp0 at temp_t0 towards temp_target */
     double temp0_c, temp_target_c, ramp_c_per_s;
     uint64_t temp_t0_us, temp_end_us;
 } sim_physics_t;
 
-enum { SIM_MOTION_NONE = 0, SIM_MOTION_ROTATE = 1, SIM_MOTION_RATE = 2 };
+enum { SIM_MOTION_NONE = 0, SIM_MOTION_ROTATE = 1, SIM_MOTION_RATE = 2, SIM_MOTION_PATH = 3 };
 
 /* ---- faults on the SPI bus ---- */
 typedef struct sim_spi_faults {
@@ -218,6 +238,11 @@ void sim_phys_orientation(const sim_physics_t *p, uint64_t t_us, double r[3][3])
 void sim_phys_gravity_dir(const sim_physics_t *p, uint64_t t_us, double g[3]);
 void sim_phys_omega(const sim_physics_t *p, uint64_t t_us, double w[3]);
 void sim_phys_omega_integral(const sim_physics_t *p, uint64_t t_us, double out[3]);
+/* Specific force in the board frame, m/s^2: g0 * gravity_dir + R^T a_level. */
+void sim_phys_specific_force(const sim_physics_t *p, uint64_t t_us, double f[3]);
+/* Position (m), velocity (m/s) and acceleration (m/s^2) in the level frame. */
+void sim_phys_kinematics(const sim_physics_t *p, uint64_t t_us, double pos[3], double vel[3],
+                         double acc[3]);
 double sim_phys_temperature(const sim_physics_t *p, uint64_t t_us);
 int sim_phys_moving(const sim_physics_t *p, uint64_t t_us);  /* a finite move in progress */
 /* Commands; all take effect at t_us. Return 0 or -1 (bad argument). */
@@ -226,6 +251,11 @@ void sim_phys_set_rpy(sim_physics_t *p, uint64_t t_us, double roll, double pitch
 int sim_phys_rotate(sim_physics_t *p, uint64_t t_us, const double axis[3], double rate_rad_s,
                     double duration_s);
 void sim_phys_set_rate(sim_physics_t *p, uint64_t t_us, const double w[3]);
+/* Drive a path: n legs (dur_us, dp_m, axis, angle_rad used; the rest is filled in),
+ * back to back from t_us. -1 when n is out of 1..SIM_PATH_MAX_LEGS or a leg is bad. */
+int sim_phys_path(sim_physics_t *p, uint64_t t_us, const sim_leg_t *legs, int n);
+/* Index of the path leg in progress at t, -1 when no path is being driven. */
+int sim_phys_path_leg(const sim_physics_t *p, uint64_t t_us);
 void sim_phys_set_temperature(sim_physics_t *p, uint64_t t_us, double c, double ramp_c_per_s);
 void sim_phys_rpy(const double r[3][3], double *roll, double *pitch, double *yaw);
 /* Next device time something changes by itself (move end, ramp end), UINT64_MAX if none. */

@@ -12,7 +12,8 @@
  * so a 4 kHz sample read (13 + 6 x 4 bytes in 7 transactions) costs 44 us of device time.
  * The gyro models get the exact MEAN angular rate over the interval they are advanced by
  * (from the integral of omega kept by sim_physics.c), so a rate-integrating test sees the
- * exact angle turned, however the reads fall.
+ * exact angle turned, however the reads fall. The accelerometer model produces each
+ * output sample with the specific force at that sample's own time.
  */
 #define _GNU_SOURCE
 #include "sim.h"
@@ -52,12 +53,9 @@ void sim_model_world(int cs, sim_world_t *w)
 {
     const sim_physics_t *p = &g_sim.phys;
     uint64_t t = g_sim.t_us, last = model_time(cs);
-    double g[3], wi[3];
-    sim_phys_gravity_dir(p, t, g);
+    double wi[3];
+    sim_phys_specific_force(p, t, w->specific_force_mps2);
     sim_phys_omega_integral(p, t, wi);
-    for (int i = 0; i < 3; i++) {
-        w->specific_force_mps2[i] = SIM_G0_MPS2 * g[i];
-    }
     if (t > last) {
         double dt = (double)(t - last) * 1e-6;
         for (int i = 0; i < 3; i++) {
@@ -75,7 +73,19 @@ void sim_model_advance(int cs)
     sim_world_t w;
     sim_model_world(cs, &w);
     if (cs == IB_CS_ACCEL) {
-        adxl355_model_advance(&g_sim.accel, g_sim.t_us, &w);
+        /* each output sample sees the world at its own sample time (a path's specific
+         * force changes between reads), then the model is brought up to now */
+        adxl355_model_t *m = &g_sim.accel;
+        const sim_physics_t *p = &g_sim.phys;
+        while (m->measuring && m->next_sample_us > m->t_us && m->next_sample_us < g_sim.t_us) {
+            uint64_t ts = m->next_sample_us;
+            sim_world_t ws;
+            sim_phys_specific_force(p, ts, ws.specific_force_mps2);
+            sim_phys_omega(p, ts, ws.rate_rad_s);
+            ws.temperature_c = sim_phys_temperature(p, ts);
+            adxl355_model_advance(m, ts, &ws);
+        }
+        adxl355_model_advance(m, g_sim.t_us, &w);
     } else {
         sim_adxrs450_advance(&g_sim.gyro[cs - 1], g_sim.t_us, &w);
     }

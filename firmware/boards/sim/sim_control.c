@@ -17,6 +17,11 @@
  *                     turn about a board-frame axis; replaces a move in progress
  *   set_rate          {rate_dps: [x,y,z]} or {rate_rad_s: [x,y,z]}  constant rate (rate
  *                     table), [0,0,0] stops
+ *   path              {legs: [{duration_s, move_m: [dx,dy,dz] (level frame, optional),
+ *                      axis, turn_deg (optional)}, ...]}  up to SIM_PATH_MAX_LEGS legs
+ *                     back to back, each rest to rest on a minimum-jerk profile (a cart or
+ *                     gantry driving a path); replaces a move in progress. status and
+ *                     every world reply carry position_m, velocity_mps, acceleration_mps2
  *   set_temperature   {c, ramp_c_per_s (optional; absent/0 = at once)}
  *   set_speed         {speed}  (0 = as fast as possible)
  *   wait              {device_s}  reply after that much device time
@@ -358,13 +363,14 @@ static void put_world(sj_buf_t *r)
 {
     const sim_physics_t *p = &g_sim.phys;
     uint64_t t = g_sim.t_us;
-    double g[3], f[3], w[3], wd[3], rm[3][3], roll, pitch, yaw;
+    double g[3], f[3], w[3], wd[3], rm[3][3], roll, pitch, yaw, pos[3], vel[3], acc[3];
     sim_phys_gravity_dir(p, t, g);
+    sim_phys_specific_force(p, t, f);
     sim_phys_omega(p, t, w);
     sim_phys_orientation(p, t, rm);
     sim_phys_rpy(rm, &roll, &pitch, &yaw);
+    sim_phys_kinematics(p, t, pos, vel, acc);
     for (int i = 0; i < 3; i++) {
-        f[i] = SIM_G0_MPS2 * g[i];
         wd[i] = w[i] / DEG;
     }
     put_vec(r, "gravity_board", g, 3);
@@ -375,6 +381,9 @@ static void put_world(sj_buf_t *r)
     put_num(r, "roll_deg", roll / DEG);
     put_num(r, "pitch_deg", pitch / DEG);
     put_num(r, "yaw_deg", yaw / DEG);
+    put_vec(r, "position_m", pos, 3);
+    put_vec(r, "velocity_mps", vel, 3);
+    put_vec(r, "acceleration_mps2", acc, 3);
 }
 
 static int cmd_status(req_t *q)
@@ -395,15 +404,20 @@ static int cmd_status(req_t *q)
     int moving = sim_phys_moving(p, s->t_us);
     put_bool(r, "moving", moving);
     sj_key(r, "move");
-    if (p->kind == SIM_MOTION_NONE || (p->kind == SIM_MOTION_ROTATE && !moving)) {
+    if (p->kind == SIM_MOTION_NONE || (p->kind != SIM_MOTION_RATE && !moving)) {
         sj_raw(r, "null");
     } else {
         sj_raw(r, "{");
         sj_key(r, "kind");
-        sj_str(r, p->kind == SIM_MOTION_ROTATE ? "rotate" : "rate");
-        put_vec(r, "axis", p->axis, 3);
-        put_num(r, "rate_dps", p->rate_rad_s / DEG);
-        if (p->kind == SIM_MOTION_ROTATE) {
+        sj_str(r, p->kind == SIM_MOTION_ROTATE ? "rotate" : p->kind == SIM_MOTION_PATH ? "path" : "rate");
+        if (p->kind == SIM_MOTION_PATH) {
+            put_u64(r, "leg", (uint64_t)sim_phys_path_leg(p, s->t_us));
+            put_u64(r, "legs", (uint64_t)p->n_legs);
+        } else {
+            put_vec(r, "axis", p->axis, 3);
+            put_num(r, "rate_dps", p->rate_rad_s / DEG);
+        }
+        if (p->kind != SIM_MOTION_RATE) {
             put_num(r, "remaining_s", (double)(p->t_end_us - s->t_us) * 1e-6);
             put_u64(r, "t_end_us", p->t_end_us);
         }
@@ -553,6 +567,82 @@ static int cmd_set_rate(req_t *q)
     }
     sim_phys_set_rate(&s->phys, s->t_us, w);
     put_world(q->r);
+    return 0;
+}
+
+/* {"cmd": "path", "legs": [{"duration_s": T, "move_m": [dx, dy, dz], "axis": "z",
+ *   "turn_deg": A}, ...]}: drive the legs back to back, each rest to rest on a minimum-jerk
+ * profile; move_m in the level frame, the turn about a board axis (sim_physics.c). */
+static int cmd_path(req_t *q)
+{
+    sim_t *s = &g_sim;
+    static sim_leg_t legs[SIM_PATH_MAX_LEGS];
+    if (check_keys(q, q->root, "cmd,id,legs") != 0) {
+        return -1;
+    }
+    int arr = sj_get(q->d, q->root, "legs");
+    if (arr < 0 || q->d->nodes[arr].type != SJ_ARR || q->d->nodes[arr].count < 1 ||
+        q->d->nodes[arr].count > SIM_PATH_MAX_LEGS) {
+        return fail("legs must be an array of 1 .. %d legs", SIM_PATH_MAX_LEGS);
+    }
+    int n = q->d->nodes[arr].count;
+    double total_s = 0.0;
+    for (int i = 0; i < n; i++) {
+        int o = sj_at(q->d, arr, i);
+        sim_leg_t *l = &legs[i];
+        memset(l, 0, sizeof *l);
+        if (q->d->nodes[o].type != SJ_OBJ) {
+            return fail("leg %d must be an object", i);
+        }
+        if (check_keys(q, o, "duration_s,move_m,axis,turn_deg") != 0) {
+            return -1;
+        }
+        double dur, turn = 0.0;
+        if (req_num(q, o, "duration_s", &dur) != 0) {
+            return -1;
+        }
+        if (!(dur >= 0.01 && dur <= 3600.0)) {
+            return fail("leg %d: duration_s must be in 0.01 .. 3600", i);
+        }
+        int mn = sj_get(q->d, o, "move_m");
+        if (!is_null(q->d, mn) && node_vec(q->d, mn, "move_m", l->dp_m, 3, 0) != 0) {
+            return -1;
+        }
+        for (int j = 0; j < 3; j++) {
+            if (fabs(l->dp_m[j]) > 1000.0) {
+                return fail("leg %d: move_m components must be within +-1000 m", i);
+            }
+        }
+        int nt = opt_num(q, o, "turn_deg", &turn);
+        if (nt < 0) {
+            return -1;
+        }
+        if (fabs(turn) > 36000.0) {
+            return fail("leg %d: turn_deg must be within +-36000", i);
+        }
+        if (turn != 0.0) {
+            /* parse_axis reads q->root: look at this leg instead */
+            req_t lq = *q;
+            lq.root = o;
+            if (sj_get(q->d, o, "axis") < 0) {
+                return fail("leg %d: a turn needs an axis", i);
+            }
+            if (parse_axis(&lq, l->axis) != 0) {
+                return -1;
+            }
+        } else if (nt == 0 && sj_get(q->d, o, "axis") >= 0) {
+            return fail("leg %d: axis given without turn_deg", i);
+        }
+        l->angle_rad = turn * DEG;
+        l->dur_us = (uint64_t)llround(dur * 1e6);
+        total_s += (double)l->dur_us * 1e-6;
+    }
+    if (sim_phys_path(&s->phys, s->t_us, legs, n) != 0) {
+        return fail("bad path");
+    }
+    put_u64(q->r, "t_start_us", s->t_us);
+    put_u64(q->r, "t_end_us", s->phys.t_end_us);
+    put_num(q->r, "duration_s", total_s);
     return 0;
 }
 
@@ -752,11 +842,7 @@ static int cmd_get_truth(req_t *q)
      * advance, so it only gets the current world (temperature) at its own time. */
     sim_model_advance(IB_CS_ACCEL);
     sim_world_t w;
-    double g[3];
-    sim_phys_gravity_dir(&s->phys, s->t_us, g);
-    for (int i = 0; i < 3; i++) {
-        w.specific_force_mps2[i] = SIM_G0_MPS2 * g[i];
-    }
+    sim_phys_specific_force(&s->phys, s->t_us, w.specific_force_mps2);
     sim_phys_omega(&s->phys, s->t_us, w.rate_rad_s);
     w.temperature_c = sim_phys_temperature(&s->phys, s->t_us);
 
@@ -985,6 +1071,7 @@ static const struct {
     {"set_orientation", cmd_set_orientation},
     {"rotate", cmd_rotate},
     {"set_rate", cmd_set_rate},
+    {"path", cmd_path},
     {"set_temperature", cmd_set_temperature},
     {"set_speed", cmd_set_speed},
     {"wait", cmd_wait},

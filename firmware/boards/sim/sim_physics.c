@@ -24,6 +24,17 @@
  * sensors does not depend on how often it is evaluated. omega_board = rate * axis during
  * the motion, 0 otherwise; its time integral is kept so a gyro model advanced over any
  * interval gets the exact mean rate (sim_board.c).
+ *
+ * Path (translation): a list of legs driven back to back, each rest to rest on the
+ * minimum-jerk profile h(s) = 10 s^3 - 15 s^4 + 6 s^5 (s = elapsed / duration), moving the
+ * board's origin by dp (level frame, metres) and turning it by an angle about a board
+ * axis, both on the same profile. In closed form per leg:
+ *     p(t) = p0 + dp h(s),  v = dp h'(s) / T,  a = dp h''(s) / T^2,
+ *     R(t) = R0 Rot(axis, angle h(s)),  omega_board = axis angle h'(s) / T,
+ * and the specific force the accelerometer feels is f_board = R^T (a + (0, 0, g0)).
+ * Position, velocity and acceleration are continuous at every leg boundary (all zero
+ * there), so a path is what a cart or a gantry can drive. The position is kept in every
+ * motion (rotations do not move the origin).
  */
 #define _GNU_SOURCE
 #include "sim.h"
@@ -110,6 +121,60 @@ static void orthonormalize(double r[3][3])
     memcpy(r[2], z, sizeof z);
 }
 
+/* Minimum-jerk profile and its derivatives with respect to s. */
+static double mj_h(double s) { return s * s * s * (10.0 + s * (-15.0 + 6.0 * s)); }
+static double mj_h1(double s) { return 30.0 * s * s * (1.0 + s * (-2.0 + s)); }
+static double mj_h2(double s) { return 60.0 * s * (1.0 + s * (-3.0 + 2.0 * s)); }
+
+/* The leg in progress at t and its phase s in [0, 1]; past the end: the last leg, s = 1.
+ * Before the path's start: the first leg, s = 0. */
+static const sim_leg_t *path_leg(const sim_physics_t *p, uint64_t t_us, double *s)
+{
+    int i = sim_phys_path_leg(p, t_us);
+    if (i < 0) {
+        i = t_us < p->legs[0].t0_us ? 0 : p->n_legs - 1;
+    }
+    const sim_leg_t *l = &p->legs[i];
+    if (t_us <= l->t0_us) {
+        *s = 0.0;
+    } else if (t_us >= l->t0_us + l->dur_us) {
+        *s = 1.0;
+    } else {
+        *s = (double)(t_us - l->t0_us) / (double)l->dur_us;
+    }
+    return l;
+}
+
+int sim_phys_path_leg(const sim_physics_t *p, uint64_t t_us)
+{
+    if (p->kind != SIM_MOTION_PATH || p->n_legs <= 0 || t_us < p->legs[0].t0_us ||
+        t_us >= p->t_end_us) {
+        return -1;
+    }
+    int lo = 0, hi = p->n_legs - 1;
+    while (lo < hi) { /* last leg with t0 <= t */
+        int mid = (lo + hi + 1) / 2;
+        if (p->legs[mid].t0_us <= t_us) {
+            lo = mid;
+        } else {
+            hi = mid - 1;
+        }
+    }
+    return lo;
+}
+
+static void path_orientation(const sim_leg_t *l, double s, double r[3][3])
+{
+    double th = l->angle_rad * mj_h(s);
+    if (th == 0.0) {
+        memcpy(r, l->r0, 9 * sizeof(double));
+        return;
+    }
+    double m[3][3];
+    rot_matrix(l->axis, th, m);
+    mat_mul(l->r0, m, r);
+}
+
 void sim_phys_init(sim_physics_t *p)
 {
     memset(p, 0, sizeof *p);
@@ -139,6 +204,12 @@ static double motion_angle(const sim_physics_t *p, uint64_t t_us)
 
 void sim_phys_orientation(const sim_physics_t *p, uint64_t t_us, double r[3][3])
 {
+    if (p->kind == SIM_MOTION_PATH) {
+        double s;
+        const sim_leg_t *l = path_leg(p, t_us, &s);
+        path_orientation(l, s, r);
+        return;
+    }
     double th = motion_angle(p, t_us);
     if (th == 0.0) {
         memcpy(r, p->r0, 9 * sizeof(double));
@@ -151,6 +222,12 @@ void sim_phys_orientation(const sim_physics_t *p, uint64_t t_us, double r[3][3])
 
 void sim_phys_gravity_dir(const sim_physics_t *p, uint64_t t_us, double g[3])
 {
+    if (p->kind == SIM_MOTION_PATH) {
+        double r[3][3];
+        sim_phys_orientation(p, t_us, r);
+        memcpy(g, r[2], 3 * sizeof(double));
+        return;
+    }
     double th = motion_angle(p, t_us);
     if (th == 0.0) {
         memcpy(g, p->r0[2], 3 * sizeof(double));
@@ -161,6 +238,17 @@ void sim_phys_gravity_dir(const sim_physics_t *p, uint64_t t_us, double g[3])
 
 void sim_phys_omega(const sim_physics_t *p, uint64_t t_us, double w[3])
 {
+    if (p->kind == SIM_MOTION_PATH) {
+        double s;
+        const sim_leg_t *l = path_leg(p, t_us, &s);
+        double k = sim_phys_path_leg(p, t_us) < 0
+                       ? 0.0
+                       : l->angle_rad * mj_h1(s) / ((double)l->dur_us * 1e-6);
+        for (int i = 0; i < 3; i++) {
+            w[i] = k * l->axis[i];
+        }
+        return;
+    }
     int on = p->kind != SIM_MOTION_NONE && t_us >= p->t0_us && t_us < p->t_end_us;
     for (int i = 0; i < 3; i++) {
         w[i] = on ? p->rate_rad_s * p->axis[i] : 0.0;
@@ -169,9 +257,59 @@ void sim_phys_omega(const sim_physics_t *p, uint64_t t_us, double w[3])
 
 void sim_phys_omega_integral(const sim_physics_t *p, uint64_t t_us, double out[3])
 {
+    if (p->kind == SIM_MOTION_PATH) {
+        double s;
+        const sim_leg_t *l = path_leg(p, t_us, &s);
+        double th = l->angle_rad * mj_h(s);
+        for (int i = 0; i < 3; i++) {
+            out[i] = l->wi0[i] + th * l->axis[i];
+        }
+        return;
+    }
     double th = motion_angle(p, t_us);
     for (int i = 0; i < 3; i++) {
         out[i] = p->omega_int0[i] + th * p->axis[i];
+    }
+}
+
+void sim_phys_kinematics(const sim_physics_t *p, uint64_t t_us, double pos[3], double vel[3],
+                         double acc[3])
+{
+    if (p->kind != SIM_MOTION_PATH) {
+        for (int i = 0; i < 3; i++) {
+            pos[i] = p->pos0_m[i];
+            vel[i] = acc[i] = 0.0;
+        }
+        return;
+    }
+    double s;
+    const sim_leg_t *l = path_leg(p, t_us, &s);
+    double T = (double)l->dur_us * 1e-6;
+    int on = sim_phys_path_leg(p, t_us) >= 0;
+    double h = mj_h(s), h1 = on ? mj_h1(s) / T : 0.0, h2 = on ? mj_h2(s) / (T * T) : 0.0;
+    for (int i = 0; i < 3; i++) {
+        pos[i] = l->p0_m[i] + l->dp_m[i] * h;
+        vel[i] = l->dp_m[i] * h1;
+        acc[i] = l->dp_m[i] * h2;
+    }
+}
+
+void sim_phys_specific_force(const sim_physics_t *p, uint64_t t_us, double f[3])
+{
+    if (p->kind != SIM_MOTION_PATH) {
+        double g[3];
+        sim_phys_gravity_dir(p, t_us, g);
+        for (int i = 0; i < 3; i++) {
+            f[i] = SIM_G0_MPS2 * g[i];
+        }
+        return;
+    }
+    double r[3][3], pos[3], vel[3], acc[3];
+    sim_phys_orientation(p, t_us, r);
+    sim_phys_kinematics(p, t_us, pos, vel, acc);
+    acc[2] += SIM_G0_MPS2;
+    for (int i = 0; i < 3; i++) { /* R^T acc: column i of R */
+        f[i] = r[0][i] * acc[0] + r[1][i] * acc[1] + r[2][i] * acc[2];
     }
 }
 
@@ -190,7 +328,7 @@ double sim_phys_temperature(const sim_physics_t *p, uint64_t t_us)
 
 int sim_phys_moving(const sim_physics_t *p, uint64_t t_us)
 {
-    return p->kind == SIM_MOTION_ROTATE && t_us < p->t_end_us;
+    return (p->kind == SIM_MOTION_ROTATE || p->kind == SIM_MOTION_PATH) && t_us < p->t_end_us;
 }
 
 void sim_phys_settle(sim_physics_t *p, uint64_t t_us)
@@ -200,6 +338,24 @@ void sim_phys_settle(sim_physics_t *p, uint64_t t_us)
         return;
     }
     if (t_us < p->t0_us) {
+        return;
+    }
+    if (p->kind == SIM_MOTION_PATH) {
+        /* fold the state at t; a path cannot be resumed, so it ends here (at rest at
+         * its end, or stopped dead where it was) */
+        double r[3][3], wi[3], pos[3], vel[3], acc[3];
+        sim_phys_orientation(p, t_us, r);
+        sim_phys_omega_integral(p, t_us, wi);
+        sim_phys_kinematics(p, t_us, pos, vel, acc);
+        orthonormalize(r);
+        memcpy(p->r0, r, sizeof r);
+        memcpy(p->omega_int0, wi, sizeof wi);
+        memcpy(p->pos0_m, pos, sizeof pos);
+        p->kind = SIM_MOTION_NONE;
+        p->n_legs = 0;
+        p->rate_rad_s = 0.0;
+        p->angle_total_rad = 0.0;
+        p->t0_us = p->t_end_us = t_us;
         return;
     }
     double r[3][3], wi[3];
@@ -324,6 +480,58 @@ void sim_phys_set_rate(sim_physics_t *p, uint64_t t_us, const double w[3])
     p->kind = SIM_MOTION_RATE;
 }
 
+int sim_phys_path(sim_physics_t *p, uint64_t t_us, const sim_leg_t *legs, int n)
+{
+    if (n < 1 || n > SIM_PATH_MAX_LEGS) {
+        return -1;
+    }
+    for (int i = 0; i < n; i++) {
+        const sim_leg_t *l = &legs[i];
+        double k[3];
+        if (l->dur_us == 0 || l->dur_us > 10000000000ull || !isfinite(l->angle_rad) ||
+            (l->angle_rad != 0.0 && normalize(l->axis, k) != 0)) {
+            return -1;
+        }
+        for (int j = 0; j < 3; j++) {
+            if (!isfinite(l->dp_m[j])) {
+                return -1;
+            }
+        }
+    }
+    stop_motion(p, t_us);
+    double r[3][3], pos[3], wi[3];
+    memcpy(r, p->r0, sizeof r);
+    memcpy(pos, p->pos0_m, sizeof pos);
+    memcpy(wi, p->omega_int0, sizeof wi);
+    uint64_t t = t_us;
+    for (int i = 0; i < n; i++) {
+        sim_leg_t *l = &p->legs[i];
+        *l = legs[i];
+        l->t0_us = t;
+        if (l->angle_rad != 0.0) {
+            normalize(legs[i].axis, l->axis);
+        } else {
+            l->axis[0] = l->axis[1] = 0.0;
+            l->axis[2] = 1.0;
+        }
+        memcpy(l->r0, r, sizeof r);
+        memcpy(l->p0_m, pos, sizeof pos);
+        memcpy(l->wi0, wi, sizeof wi);
+        path_orientation(l, 1.0, r);
+        orthonormalize(r);
+        for (int j = 0; j < 3; j++) {
+            pos[j] += l->dp_m[j];
+            wi[j] += l->angle_rad * l->axis[j];
+        }
+        t += l->dur_us;
+    }
+    p->n_legs = n;
+    p->t0_us = t_us;
+    p->t_end_us = t;
+    p->kind = SIM_MOTION_PATH;
+    return 0;
+}
+
 void sim_phys_set_temperature(sim_physics_t *p, uint64_t t_us, double c, double ramp_c_per_s)
 {
     p->temp0_c = sim_phys_temperature(p, t_us);
@@ -340,7 +548,7 @@ void sim_phys_set_temperature(sim_physics_t *p, uint64_t t_us, double c, double 
 uint64_t sim_phys_next_event(const sim_physics_t *p, uint64_t t_us)
 {
     uint64_t ev = UINT64_MAX;
-    if (p->kind == SIM_MOTION_ROTATE && p->t_end_us > t_us) {
+    if ((p->kind == SIM_MOTION_ROTATE || p->kind == SIM_MOTION_PATH) && p->t_end_us > t_us) {
         ev = p->t_end_us;
     }
     if (p->ramp_c_per_s > 0.0 && p->temp_end_us > t_us && p->temp_end_us < ev) {
