@@ -12,9 +12,9 @@ Inputs:
     SESSION_DIR/residuals.png if present (else drawn with imubench.report.plot_pose_residuals);
   * noise: allan.json + allan_accel.png / allan_gyro.png (imubench.noise) in SESSION_DIR or --allan DIR;
   * attitude: a PNG (imubench.attitude's plot) given with --attitude;
-  * temperature: a JSON given with --thermal. `imubench thermal` itself saves no file (it prints
-    the fit); a JSON with ThermalFit's fields (t_ref_c, accel_bias_tc, ..., *_sigma) is shown as
-    a table of coefficients, any other JSON as a key/value table.
+  * temperature: DIR/thermal.json of `imubench thermal --out DIR`, given with --thermal
+    (coefficients ± sigma, the per-temperature points, drift before/after, the write-back);
+    any other JSON is shown as a key/value table.
 A section without input is shown as "not measured in this session", never silently omitted.
 """
 from __future__ import annotations
@@ -352,15 +352,20 @@ def _attitude_section(png: Path | None) -> str:
     return "\n".join(out)
 
 
-THERMAL_FIELDS = (("accel_bias_tc", "accel bias", "µg/°C", 1e6 / G0), ("accel_scale_tc", "accel scale", "ppm/°C", 1e6),
-                  ("gyro_bias_tc", "gyro bias", "m°/s/°C", RAD2DEG * 1e3), ("gyro_scale_tc", "gyro scale", "ppm/°C", 1e6))
+# (key, unit suffix of its SI value in thermal.json, label, display unit, SI -> display factor).
+# imubench thermal writes f"{key}_{suffix}" and f"{key}_sigma_{suffix}"; the bare key and
+# f"{key}_sigma" (ThermalFit's field names) are read too.
+THERMAL_FIELDS = (("accel_bias_tc", "mps2_per_c", "accel bias", "µg/°C", 1e6 / G0),
+                  ("accel_scale_tc", "per_c", "accel scale", "ppm/°C", 1e6),
+                  ("gyro_bias_tc", "rad_s_per_c", "gyro bias", "m°/s/°C", RAD2DEG * 1e3),
+                  ("gyro_scale_tc", "per_c", "gyro scale", "ppm/°C", 1e6))
 
 
 def _thermal_section(path: Path | None) -> str:
     out = ["<h2>Temperature</h2>"]
     if path is None:
-        out.append(_missing("temperature", "no thermal data given; imubench thermal prints its fit and saves no "
-                            "file, so there is nothing to embed unless a JSON is given with --thermal"))
+        out.append(_missing("temperature", "no thermal data given; run imubench thermal --out DIR and pass "
+                            "--thermal DIR/thermal.json"))
         return "\n".join(out)
     try:
         data = json.loads(Path(path).read_text())
@@ -368,28 +373,117 @@ def _thermal_section(path: Path | None) -> str:
         out.append(f'<p class="missing">thermal data {esc(path)}: unreadable ({esc(e)}); not measured in this session.</p>')
         return "\n".join(out)
     out.append(f"<p>from {esc(Path(path).name)}</p>")
-    if isinstance(data, dict) and any(k in data for k, *_ in THERMAL_FIELDS):
-        if "t_ref_c" in data:
-            out.append(f"<p>reference temperature {esc(_num(data['t_ref_c'], '{:g}'))} °C</p>")
-        rows = []
-        for key, label, unit, scale in THERMAL_FIELDS:
-            v, s = data.get(key) or [], data.get(key + "_sigma") or []
-            if not v:
-                continue
-            rows.append([esc(f"{label} [{unit}]")] + [esc(_pm(v[k] if k < len(v) else None, s[k] if k < len(s) else None,
-                                                              "{:+.3f}", "{:.3f}", scale)) for k in range(3)])
+
+    def seq(x, n=3) -> list:
+        x = x if isinstance(x, (list, tuple)) else []
+        return [x[k] if k < len(x) else None for k in range(n)]
+
+    def pm(v, s, fmt, scale):                  # value ± sigma in display units
+        return esc(_pm(v, s, "{:+" + fmt + "}", "{:" + fmt + "}", scale))
+
+    fit_keys = {}
+    if isinstance(data, dict):
+        for key, suffix, *_ in THERMAL_FIELDS:
+            for vk, sk in ((f"{key}_{suffix}", f"{key}_sigma_{suffix}"), (key, key + "_sigma")):
+                if vk in data:
+                    fit_keys[key] = (vk, sk)
+                    break
+    if not (isinstance(data, dict) and (fit_keys or "points" in data)):
+        out.append(_kv(data) if isinstance(data, dict) else "<pre>" + esc(json.dumps(data, indent=1)) + "</pre>")
+        return "\n".join(out)
+
+    status = data.get("status")
+    if status not in (None, "done"):
+        msg = f"incomplete run: status {status}, stage {data.get('stage')}"
+        if data.get("error"):
+            msg += f"; error: {data['error']}"
+        out.append(f'<p class="note">{esc(msg)}; what was measured is shown.</p>')
+    if data.get("t_ref_c") is not None:
+        out.append(f"<p>reference temperature {esc(_num(data['t_ref_c'], '{:g}'))} °C</p>")
+    rows = []
+    for key, _suffix, label, unit, scale in THERMAL_FIELDS:
+        if key not in fit_keys:
+            continue
+        vk, sk = fit_keys[key]
+        v, s = seq(data.get(vk)), seq(data.get(sk))
+        if all(x is None for x in v):
+            continue
+        rows.append([esc(f"{label} [{unit}]")] + [pm(v[k], s[k], ".3f", scale) for k in range(3)])
+    if rows:
         out.append(_table(["coefficient ± 1σ", "x", "y", "z"], rows))
-        notes = data.get("notes") or []
-        for n in notes:
-            out.append(f'<p class="note">{esc(n)}</p>')
-        rest = {k: v for k, v in data.items() if k not in {f for f, *_ in THERMAL_FIELDS}
-                | {f + "_sigma" for f, *_ in THERMAL_FIELDS} | {"t_ref_c", "notes"}}
-        if rest:
-            out.append(_kv(rest))
-    elif isinstance(data, dict):
-        out.append(_kv(data))
-    else:
-        out.append("<pre>" + esc(json.dumps(data, indent=1)) + "</pre>")
+    elif "points" in data:
+        out.append('<p class="missing">coefficients: not fitted (the sweep did not finish).</p>')
+    for n in data.get("notes") or []:
+        out.append(f'<p class="note">{esc(n)}</p>')
+
+    points = [p for p in data.get("points") or [] if isinstance(p, dict)]
+    if points:
+        out.append("<h3>Temperature points</h3>")
+        rows = []
+        for p in points:
+            st = p.get("settle") if isinstance(p.get("settle"), dict) else {}
+            rates = [abs(_f(r)) for r in st.get("rate_c_per_min") or []]
+            t0, t1 = _f(p.get("t_first_us")) * 1e-6, _f(p.get("t_last_us")) * 1e-6
+            gs = p.get("gyro_rest_sigma_rad_s")
+            rows.append([esc(_num(p.get("set_c"), "{:g}")), esc(_num(p.get("accel_temp_c"), "{:.2f}")),
+                         esc(" / ".join(_num(t, "{:.2f}") for t in seq(p.get("gyro_temp_c")))),
+                         esc(_num(st.get("waited_s"), "{:.0f}")),
+                         esc(_num(max(rates) if rates else None, "{:.3f}")),
+                         esc(f"{_num(t0, '{:.1f}')} – {_num(t1, '{:.1f}')}")]
+                        + [pm(g, s, ".4f", RAD2DEG) for g, s in zip(seq(p.get("gyro_rest_rad_s")), seq(gs))])
+        out.append(_table(["set [°C]", "ADXL355 [°C]", "gyro X / Y / Z [°C]", "settled after [s]",
+                           "max |dT/dt| [°C/min]", "measured, device time [s]", "gyro at rest x [°/s]",
+                           "y [°/s]", "z [°/s]"], rows, left=0))
+        out.append("<p>Temperatures are the sensors' own readings (the fit uses them, not the set point); "
+                   "settled: every sensor's |dT/dt| over the settling window below the limit.</p>")
+        rows = []
+        for p in points:
+            acc, sig = p.get("accel_mps2") or {}, p.get("accel_sigma_mps2") or {}
+            for pose in acc if isinstance(acc, dict) else []:
+                rows.append([esc(_num(p.get("set_c"), "{:g}")), esc(pose)]
+                            + [pm(v, s, ".3f", 1e3 / G0) for v, s in zip(seq(acc.get(pose)), seq(sig.get(pose)))])
+        if rows:
+            out.append("<h3>Accelerometer means per pose (nominal scaling)</h3>")
+            out.append(_table(["set [°C]", "pose", "x [mg]", "y [mg]", "z [mg]"], rows, left=2))
+        rows = [[esc(_num(p.get("set_c"), "{:g}"))]
+                + [pm(v, s, ".4f", RAD2DEG) for v, s in zip(seq(p.get("gyro_turn_rad_s")), seq(p.get("gyro_turn_sigma_rad_s")))]
+                for p in points if p.get("gyro_turn_rad_s")]
+        if rows:
+            out.append("<h3>Gyro turntable, (ω₊ − ω₋)/2</h3>")
+            out.append(_table(["set [°C]", "x [°/s]", "y [°/s]", "z [°/s]"], rows))
+
+    before, after = data.get("drift_before"), data.get("drift_after")
+    if isinstance(before, dict):
+        after = after if isinstance(after, dict) else {}
+        out.append("<h3>Drift of the device's calibrated output over the sweep (max − min)</h3>")
+        rows = []
+        for i, (label, key, unit, scale, fmt) in enumerate(
+                [(f"accel {a}", "accel_drift_mps2", "mg", 1e3 / G0, "{:.4f}") for a in AXES]
+                + [("|accel|", "accel_drift_mps2", "mg", 1e3 / G0, "{:.4f}")]
+                + [(f"gyro {a}", "gyro_drift_rad_s", "°/s", RAD2DEG, "{:.5f}") for a in AXES]):
+            k = i if i < 4 else i - 4
+            b, a = _f(seq(before.get(key), 4)[k]) * scale, _f(seq(after.get(key), 4)[k]) * scale
+            ratio = b / a if math.isfinite(a) and a > 0 and math.isfinite(b) else math.nan
+            rows.append([esc(f"{label} [{unit}]"), esc(_num(b, fmt)), esc(_num(a, fmt)), esc(_num(ratio, "{:.0f}x"))])
+        out.append(_table(["quantity", "before writing", "after writing", "before / after"], rows))
+        out.append(f"<p>level, +Z up, at {esc(', '.join(_num(c, '{:g}') for c in before.get('set_c') or []))} °C "
+                   "(set points); before: the parameters the device had, after: with the temperature coefficients "
+                   "written.</p>")
+    wb = data.get("write")
+    if isinstance(wb, dict):
+        if wb.get("verified"):
+            out.append(f"<p>written to the device: generation {esc(wb.get('generation'))}, read back bit-exactly, "
+                       f"saved, rebooted and read back again ({esc(', '.join(map(str, wb.get('steps') or [])))}).</p>")
+        else:
+            restored = {True: "the previous parameters are active again", False: "the previous parameters are NOT "
+                        "active", None: "whether the previous parameters are active is unknown"}.get(wb.get("previous_restored"))
+            out.append(f'<p class="note">write-back failed: {esc(wb.get("error"))}; {esc(restored)}.</p>')
+
+    known = {k for pair in fit_keys.values() for k in pair} | {
+        "t_ref_c", "notes", "points", "drift_before", "drift_after", "write", "status", "stage", "error", "schema", "kind"}
+    rest = {k: v for k, v in data.items() if k not in known}
+    if rest:
+        out.append(_kv(rest))
     return "\n".join(out)
 
 
@@ -446,7 +540,7 @@ def main_report(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", metavar="FILE", help="output HTML file (default SESSION_DIR/report.html)")
     ap.add_argument("--allan", metavar="DIR", help="directory with allan.json and its plots (default: SESSION_DIR)")
     ap.add_argument("--attitude", metavar="PNG", help="attitude plot to embed")
-    ap.add_argument("--thermal", metavar="JSON", help="temperature coefficients to show")
+    ap.add_argument("--thermal", metavar="JSON", help="DIR/thermal.json of imubench thermal --out DIR")
     a = ap.parse_args(argv)
     sd = Path(a.session_dir)
     if not (sd / "session.json").is_file():

@@ -579,32 +579,45 @@ class Session:
         old = self.dev.get_params(ParamsWhich.ACTIVE)
         new = params_from_fits(accel, gyro, old.params, cal_id)
         PR.validate(new)                                      # the device's own checks, first here
-        steps = []
+        return write_verified(self.dev, new, previous=old.params, say=self.ui.say)
+
+
+def write_verified(dev: Device, new: Params, previous: Params | None = None,
+                   say=lambda s: None, reboot_wait_s: float = 10.0) -> dict:
+    """Write a parameter block and prove it took: set_params, read back bit-exactly, save,
+    reboot, read the active parameters back (bit-exactly, and the generation just saved).
+    On any failure the previous parameters (`previous`, default: the active ones read
+    first) are put back, and saved again if the new ones had been saved; the error is
+    re-raised (SessionAborted if the restore failed too). Returns {"generation", "steps",
+    "params"}. The caller validates `new` first (params.validate)."""
+    if previous is None:
+        previous = dev.get_params(ParamsWhich.ACTIVE).params
+    steps = []
+    try:
+        dev.set_params(new)
+        steps.append("set")
+        if _pack(dev.get_params(ParamsWhich.ACTIVE).params) != _pack(new):
+            raise SessionAborted("read-back after set_params differs from what was written")
+        steps.append("read back")
+        gen = dev.save_params()
+        steps.append(f"saved (generation {gen})")
+        info = dev.reboot(wait_s=reboot_wait_s)
+        dev.discard_buffered()
+        steps.append("rebooted")
+        stored = dev.get_params(ParamsWhich.ACTIVE)
+        if _pack(stored.params) != _pack(new) or stored.generation != gen:
+            raise SessionAborted("after reboot the active parameters are not the ones saved")
+        steps.append(f"read back after reboot ({info.param_source and 'flash'})")
+    except Exception as e:
+        say(f"write-back failed after: {', '.join(steps) or 'nothing'} — {e}; restoring the previous parameters")
         try:
-            self.dev.set_params(new)
-            steps.append("set")
-            if _pack(self.dev.get_params(ParamsWhich.ACTIVE).params) != _pack(new):
-                raise SessionAborted("read-back after set_params differs from what was written")
-            steps.append("read back")
-            gen = self.dev.save_params()
-            steps.append(f"saved (generation {gen})")
-            info = self.dev.reboot(wait_s=10.0)
-            self.dev.discard_buffered()
-            steps.append("rebooted")
-            stored = self.dev.get_params(ParamsWhich.ACTIVE)
-            if _pack(stored.params) != _pack(new) or stored.generation != gen:
-                raise SessionAborted("after reboot the active parameters are not the ones saved")
-            steps.append(f"read back after reboot ({info.param_source and 'flash'})")
-        except Exception as e:
-            self.ui.say(f"write-back failed after: {', '.join(steps) or 'nothing'} — {e}; restoring the previous parameters")
-            try:
-                self.dev.set_params(old.params)
-                if "saved" in " ".join(steps):
-                    self.dev.save_params()
-            except Exception as e2:  # noqa: BLE001 - report both failures
-                raise SessionAborted(f"write-back failed ({e}) and restoring the previous parameters failed too ({e2})") from e
-            raise
-        return {"generation": gen, "steps": steps, "params": new}
+            dev.set_params(previous)
+            if "saved" in " ".join(steps):
+                dev.save_params()
+        except Exception as e2:  # noqa: BLE001 - report both failures
+            raise SessionAborted(f"write-back failed ({e}) and restoring the previous parameters failed too ({e2})") from e
+        raise
+    return {"generation": gen, "steps": steps, "params": new}
 
 
 # ------------------------------------------------------------------- helpers

@@ -14,14 +14,24 @@ What a sweep measures at each temperature (RAW stream, nominal scaling, board st
   slope is bias_tc_z + scale_tc_z·g: put into bias_tc_z (right at level), scale_tc_z = 0.
 - turntable (if available): ±rate about each axis, (ω(+) − ω(−))/2 = (1 + scale_tc·ΔT)·S·rate.
   Without a turntable the gyro scale_tc stays 0.
+
+Before each temperature is measured the sensors' own temperatures must have settled
+(wait_settled: |dT/dt| from a straight line over a sliding window below a limit). Everything
+measured is kept in DIR/thermal.json (ThermalRecord), rewritten atomically after every
+temperature point and every later step, so an interrupted sweep keeps what it measured.
 """
 from __future__ import annotations
 
 import argparse
+import collections
+import datetime as _dt
+import json
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -31,15 +41,21 @@ from .protocol_gen import Params, ParamsWhich
 
 __all__ = [
     "Hooks",
+    "SettleTimeout",
+    "Settling",
     "TempPoint",
     "ThermalFit",
+    "ThermalRecord",
     "apply_tempcos",
     "fit_sweep",
     "fit_tempco",
     "main_thermal",
     "measure_drift",
+    "run_thermal",
     "sim_hooks",
     "sweep",
+    "wait_settled",
+    "write_params",
 ]
 
 AXES = "xyz"
@@ -98,15 +114,19 @@ class TempPoint:
     gyro_rest_sigma: np.ndarray                   # (3,)
     accel: dict = field(default_factory=dict)     # pose name -> (mean (3,), sigma (3,)) m/s²
     turns: dict = field(default_factory=dict)     # axis index -> (scale (rad/s, at +rate), sigma)
+    t_first_us: int | None = None                 # device time of the first / last sample measured
+    t_last_us: int | None = None
+    settle: dict | None = None                    # what wait_settled returned (None: not waited for)
 
 
 @dataclass
 class Hooks:
     """What the bench can do. set_temperature(c): bring the board to c °C (None: the user
-    waits for the ambient; `ready(c)` is called instead). orient(direction (3,)): put the
-    board with the specific force along direction (None: it stays level, +Z up). turn(axis
-    index, rate_dps, duration_s): spin about a board axis, returning when done (None: no
-    turntable)."""
+    waits for the ambient; `ready(c)` is called instead); it may return before the sensors
+    got there (a chamber ramping): the sweep waits for their temperatures to settle. orient(
+    direction (3,)): put the board with the specific force along direction (None: it stays
+    level, +Z up). turn(axis index, rate_dps, duration_s): spin about a board axis, returning
+    when done (None: no turntable)."""
     set_temperature: Callable[[float], None] | None = None
     orient: Callable[[np.ndarray], None] | None = None
     turn: Callable[[int, float, float], None] | None = None
@@ -114,11 +134,16 @@ class Hooks:
     say: Callable[[str], None] = lambda s: None
 
 
-def sim_hooks(vb, say: Callable[[str], None] = lambda s: None) -> Hooks:
-    """Hooks driving a VirtualBench: climate chamber (at once, no ramp), orientation, turntable."""
+def sim_hooks(vb, say: Callable[[str], None] = lambda s: None, ramp_c_per_s: float = 0.0) -> Hooks:
+    """Hooks driving a VirtualBench: climate chamber, orientation, turntable. With
+    ramp_c_per_s > 0 the chamber ramps linearly towards the set point and set_temperature
+    returns at once (the sweep's settling wait sees the ramp); 0: the temperature jumps."""
     def set_t(c):
-        vb.set_temperature(c)
-        vb.wait(0.05)
+        if ramp_c_per_s > 0:
+            vb.set_temperature(c, ramp_c_per_s=ramp_c_per_s)
+        else:
+            vb.set_temperature(c)
+            vb.wait(0.05)
 
     def orient(d):
         vb.set_orientation(gravity=[float(v) for v in d])
@@ -128,6 +153,95 @@ def sim_hooks(vb, say: Callable[[str], None] = lambda s: None) -> Hooks:
         vb.wait(0.1)
 
     return Hooks(set_temperature=set_t, orient=orient, turn=turn, say=say)
+
+
+# ------------------------------------------------------------------ thermal settling
+@dataclass(frozen=True)
+class Settling:
+    """Measure only when every sensor's temperature (ADXL355, gyro X/Y/Z) changes slower than
+    rate_c_per_min, the rate being the slope of a straight line through the last window_s
+    seconds (device time) of its readings; give up after timeout_s (device time)."""
+    rate_c_per_min: float = 0.1
+    window_s: float = 300.0
+    timeout_s: float = 7200.0
+
+    def __post_init__(self):
+        if not (self.rate_c_per_min > 0 and self.window_s > 0 and self.timeout_s >= self.window_s):
+            raise ValueError(f"settling: need rate > 0, window > 0 and timeout ≥ window (got {self.rate_c_per_min} "
+                             f"°C/min, {self.window_s} s, timeout {self.timeout_s} s)")
+
+
+DEFAULT_SETTLING = Settling()
+
+
+class SettleTimeout(RuntimeError):
+    """The sensors' temperatures did not settle in time; the message says where they were
+    and how fast they moved (also as temp_c and rate_c_per_min: ADXL355, gyro X, Y, Z)."""
+
+    def __init__(self, msg: str, target_c: float | None, temp_c, rate_c_per_min):
+        super().__init__(msg)
+        self.target_c = target_c
+        self.temp_c = [float(v) for v in temp_c]
+        self.rate_c_per_min = [float(v) for v in rate_c_per_min]
+
+
+SENSOR_NAMES = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
+TEMP_RESOLUTION_C = 0.2        # one LSB of the ADXRS450 temperature (the ADXL355's: 1/9.05 °C)
+
+
+def wait_settled(dev, settle: Settling, rate_hz: int = 200, target_c: float | None = None,
+                 say: Callable[[str], None] = lambda s: None, report_every_s: float = 30.0) -> dict:
+    """On a running stream, read the sensors' temperatures until all four change slower than
+    settle.rate_c_per_min over a full window of settle.window_s (device time). Returns
+    {"waited_s", "window_s", "limit_c_per_min", "rate_c_per_min" (4: ADXL355, gyro X, Y, Z),
+    "temp_c" (4, the latest readings)}. Raises SettleTimeout after settle.timeout_s of device
+    time, naming the temperatures reached and their rates."""
+    chunk_s = min(1.0, settle.window_s / 10.0)
+    chunk_n = max(1, round(rate_hz * chunk_s))
+    dev.discard_buffered()
+    win = collections.deque()                     # (t0 s, t_mean s, temps (4,)) per chunk
+    t_begin = t_said = None
+    rates = np.full(4, np.nan)
+    while True:
+        b = dev.read(n_samples=chunk_n)
+        t = b.t_us.astype(np.float64) * 1e-6
+        at, gt = _temps(b)
+        win.append((t[0], t.mean(), np.r_[at, gt]))
+        t_now = t[-1]
+        if t_begin is None:
+            t_begin = t_said = t[0]
+        while len(win) >= 2 and win[1][0] <= t_now - settle.window_s:
+            win.popleft()
+        covered = t_now - win[0][0] >= settle.window_s * (1 - 1e-6)
+        temps = np.array([w[2] for w in win])
+        if len(win) >= 2:
+            tm = np.array([w[1] for w in win])
+            rates = np.polyfit(tm - tm[0], temps, 1)[0] * 60.0
+        now_c = win[-1][2]                         # the latest chunk's mean
+        if covered and np.all(np.abs(rates) < settle.rate_c_per_min):
+            info = {"waited_s": float(t_now - t_begin), "window_s": settle.window_s,
+                    "limit_c_per_min": settle.rate_c_per_min, "rate_c_per_min": [float(r) for r in rates],
+                    "temp_c": [float(v) for v in now_c]}
+            say(f"  settled at {_fmt_temps(now_c)} after {t_now - t_begin:.0f} s "
+                f"(|dT/dt| ≤ {np.max(np.abs(rates)):.3f} °C/min over {settle.window_s:g} s)")
+            return info
+        if t_now - t_begin > settle.timeout_s:
+            at_c = f" at the set point {target_c:g} °C" if target_c is not None else ""
+            raise SettleTimeout(
+                f"temperature not settled{at_c} within {settle.timeout_s:g} s: the sensors reached "
+                f"{_fmt_temps(now_c)}, changing at {_fmt_rates(rates)} (limit {settle.rate_c_per_min:g} °C/min "
+                f"over {settle.window_s:g} s)", target_c, now_c, rates)
+        if t_now - t_said >= report_every_s:
+            t_said = t_now
+            say(f"  settling: {_fmt_temps(now_c)}, {_fmt_rates(rates)} after {t_now - t_begin:.0f} s")
+
+
+def _fmt_temps(c) -> str:
+    return ", ".join(f"{n} {v:.2f} °C" for n, v in zip(SENSOR_NAMES, c))
+
+
+def _fmt_rates(r) -> str:
+    return "[" + ", ".join(f"{v:+.3f}" for v in r) + "] °C/min (ADXL355, gyro X/Y/Z)"
 
 
 def _settled(dev, n: int):
@@ -148,13 +262,14 @@ def _temps(b):
 def measure_point(dev, hooks: Hooks, target_c: float | None, n: int = 2000,
                   poses: Sequence[str] = ("+z",), turn_rate_dps: float = 90.0) -> TempPoint:
     """One temperature step on a RAW stream that is running."""
-    gyro_all, accel, atemps, gtemps = [], {}, [], []
+    gyro_all, accel, atemps, gtemps, times = [], {}, [], [], []
     for name in poses:
         if hooks.orient is not None:
             hooks.orient(np.array(POSES[name], dtype=float))
         elif name != "+z":
             continue
         b = _settled(dev, n)
+        times += [int(b.t_us[0]), int(b.t_us[-1])]
         a, g = b.si()
         accel[name] = _mean_sigma(a)
         gyro_all.append(g)
@@ -172,6 +287,7 @@ def measure_point(dev, hooks: Hooks, target_c: float | None, n: int = 2000,
                 dev.discard_buffered()
                 hooks.turn(ax, sgn * turn_rate_dps, dur)
                 b = dev.read(duration_s=0.05)
+                times += [int(b.t_us[0]), int(b.t_us[-1])]
                 w = b.si()[1][:, ax]
                 target = sgn * turn_rate_dps * U.DEG
                 sel = np.flatnonzero(np.abs(w - target) < 0.1 * abs(target))
@@ -184,25 +300,39 @@ def measure_point(dev, hooks: Hooks, target_c: float | None, n: int = 2000,
             turns[ax] = (float(s), float(ss))
     g = np.concatenate(gyro_all)
     gm, gs = _mean_sigma(g)
-    return TempPoint(target_c, float(np.mean(atemps)), np.mean(gtemps, axis=0), gm, gs, accel, turns)
+    return TempPoint(target_c, float(np.mean(atemps)), np.mean(gtemps, axis=0), gm, gs, accel, turns,
+                     t_first_us=min(times), t_last_us=max(times))
+
+
+def _go_to(dev, hooks: Hooks, c: float | None, settle: Settling | None, rate_hz: int) -> dict | None:
+    """Bring the board to c (set point, or the user) and, with settle, wait for the sensors."""
+    if hooks.set_temperature is not None and c is not None:
+        hooks.set_temperature(c)
+    elif hooks.ready is not None:
+        hooks.ready(c)
+    if settle is None:
+        return None
+    return wait_settled(dev, settle, rate_hz=rate_hz, target_c=c, say=hooks.say)
 
 
 def sweep(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 2000,
           poses: Sequence[str] = ("+z", "-z"), rate_hz: int = 200, turntable: bool = True,
-          check_tol_c: float | None = 2.0) -> list[TempPoint]:
-    """At each temperature (set by hooks.set_temperature, or waited for by the user), measure
-    a TempPoint on a RAW stream at rate_hz. With check_tol_c and a set_temperature hook, the
-    sensors' own temperature outputs must follow the set point within that tolerance."""
+          check_tol_c: float | None = 2.0, settle: Settling | None = DEFAULT_SETTLING,
+          on_point: Callable[[TempPoint], None] | None = None) -> list[TempPoint]:
+    """At each temperature (set by hooks.set_temperature, or waited for by the user), wait
+    until the sensors' temperatures have settled (settle; None: measure at once), then
+    measure a TempPoint on a RAW stream at rate_hz; on_point(point) is called with each
+    point as soon as it is measured (to save it). With check_tol_c and a set_temperature
+    hook, the sensors' own temperature outputs must follow the set point within that
+    tolerance."""
     h = hooks if turntable else Hooks(hooks.set_temperature, hooks.orient, None, hooks.ready, hooks.say)
     out = []
     dev.start_stream(rate_hz=rate_hz, calibrated=False)
     try:
         for c in temps:
-            if h.set_temperature is not None and c is not None:
-                h.set_temperature(c)
-            elif h.ready is not None:
-                h.ready(c)
+            st = _go_to(dev, h, c, settle, rate_hz)
             p = measure_point(dev, h, c, n=n, poses=poses)
+            p.settle = st
             if check_tol_c is not None and h.set_temperature is not None and c is not None:
                 dev_t = np.r_[p.accel_temp_c, p.gyro_temp_c]
                 if np.any(np.abs(dev_t - c) > check_tol_c):
@@ -211,6 +341,8 @@ def sweep(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 2000,
                   f"gyro {np.round(U.rad_s_to_dps(p.gyro_rest), 4).tolist()} °/s, "
                   f"accel +Z {np.round(U.mps2_to_mg(p.accel['+z'][0]), 3).tolist()} mg")
             out.append(p)
+            if on_point is not None:
+                on_point(p)
     finally:
         dev.stop_stream()
     return out
@@ -291,20 +423,18 @@ def apply_tempcos(params: Params, fits: ThermalFit, t_ref_c: float | None = None
 
 
 # ------------------------------------------------------------------ drift of the calibrated output
-def measure_drift(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 2000, rate_hz: int = 200) -> dict:
-    """Stream CALIBRATED, level and still, at each temperature; the device's corrected means
-    and their drift (max − min over the sweep) per axis: accel x/y/z and |a| (m/s²), gyro
-    x/y/z (rad/s)."""
+def measure_drift(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 2000, rate_hz: int = 200,
+                  settle: Settling | None = DEFAULT_SETTLING) -> dict:
+    """Stream CALIBRATED, level and still, at each temperature (after the sensors settled,
+    as in sweep); the device's corrected means and their drift (max − min over the sweep)
+    per axis: accel x/y/z and |a| (m/s²), gyro x/y/z (rad/s)."""
     acc, gyr, tc = [], [], []
     if hooks.orient is not None:
         hooks.orient(np.array(POSES["+z"], dtype=float))
     dev.start_stream(rate_hz=rate_hz, calibrated=True)
     try:
         for c in temps:
-            if hooks.set_temperature is not None and c is not None:
-                hooks.set_temperature(c)
-            elif hooks.ready is not None:
-                hooks.ready(c)
+            _go_to(dev, hooks, c, settle, rate_hz)
             b = _settled(dev, n)
             a = b.accel_mps2.astype(np.float64)
             acc.append(np.r_[a.mean(axis=0), np.linalg.norm(a, axis=1).mean()])
@@ -313,9 +443,110 @@ def measure_drift(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 200
     finally:
         dev.stop_stream()
     acc, gyr = np.array(acc), np.array(gyr)
-    return {"temps_c": tc, "accel_mean_mps2": acc, "gyro_mean_rad_s": gyr,
+    return {"set_c": [None if c is None else float(c) for c in temps], "accel_temp_c": tc,
+            "accel_mean_mps2": acc, "gyro_mean_rad_s": gyr,
             "accel_drift_mps2": np.ptp(acc, axis=0),      # x, y, z, |a|
             "gyro_drift_rad_s": np.ptp(gyr, axis=0)}
+
+
+# ------------------------------------------------------------------ thermal.json
+THERMAL_SCHEMA = 1
+FIT_KEYS = (("accel_bias_tc", "mps2_per_c"), ("accel_scale_tc", "per_c"),
+            ("gyro_bias_tc", "rad_s_per_c"), ("gyro_scale_tc", "per_c"))
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _js(x):
+    """JSON-able copy (numpy arrays and scalars to lists and floats)."""
+    if isinstance(x, dict):
+        return {str(k): _js(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_js(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    return x
+
+
+def point_json(p: TempPoint) -> dict:
+    """One temperature point as stored in thermal.json (SI; the unit ends each key)."""
+    d = {"set_c": p.target_c, "accel_temp_c": p.accel_temp_c, "gyro_temp_c": p.gyro_temp_c,
+         "t_first_us": p.t_first_us, "t_last_us": p.t_last_us, "settle": p.settle,
+         "gyro_rest_rad_s": p.gyro_rest, "gyro_rest_sigma_rad_s": p.gyro_rest_sigma,
+         "accel_mps2": {k: v[0] for k, v in p.accel.items()},
+         "accel_sigma_mps2": {k: v[1] for k, v in p.accel.items()},
+         "gyro_turn_rad_s": None, "gyro_turn_sigma_rad_s": None}
+    if len(p.turns) == 3:
+        d["gyro_turn_rad_s"] = [p.turns[a][0] for a in range(3)]
+        d["gyro_turn_sigma_rad_s"] = [p.turns[a][1] for a in range(3)]
+    return _js(d)
+
+
+def fit_json(f: ThermalFit) -> dict:
+    """The fit's coefficients and 1-sigma, keyed with their units (the params field names)."""
+    d = {"t_ref_c": f.t_ref_c}
+    for key, unit in FIT_KEYS:
+        d[f"{key}_{unit}"] = getattr(f, key)
+        d[f"{key}_sigma_{unit}"] = getattr(f, key + "_sigma")
+    d["notes"] = list(f.notes)
+    return _js(d)
+
+
+def drift_json(d: dict) -> dict:
+    return _js({"set_c": d["set_c"], "accel_temp_c": d["accel_temp_c"],
+                "accel_mean_mps2": d["accel_mean_mps2"], "gyro_mean_rad_s": d["gyro_mean_rad_s"],
+                "accel_drift_mps2": d["accel_drift_mps2"], "gyro_drift_rad_s": d["gyro_drift_rad_s"]})
+
+
+class ThermalRecord:
+    """DIR/thermal.json of one run, rewritten atomically (temp file + os.replace) by every
+    update, so a crash leaves the previous or the new version, never a torn one. A directory
+    that already holds a thermal.json is refused (no --resume: choose another directory)."""
+
+    NAME = "thermal.json"
+
+    def __init__(self, directory, config: dict):
+        self.dir = Path(directory)
+        self.path = self.dir / self.NAME
+        self.dir.mkdir(parents=True, exist_ok=True)
+        if self.path.exists():
+            raise FileExistsError(f"{self.path} exists: choose another --out directory")
+        self.data = {"schema": THERMAL_SCHEMA, "kind": "imubench thermal", "status": "running",
+                     "stage": "start", "error": None, "started": _now(), "updated": None,
+                     "config": _js(config), "device": None, "t_ref_c": None, "points": []}
+        self.save()
+
+    def update(self, **kw) -> None:
+        self.data.update(_js(kw))
+        self.save()
+
+    def add_point(self, p: TempPoint) -> None:
+        self.data["points"].append(point_json(p))
+        self.save()
+
+    def save(self) -> None:
+        self.data["updated"] = _now()
+        tmp = self.path.with_name(self.NAME + ".tmp")
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(self.data, fh, indent=1)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, self.path)
+
+
+def _device_json(dev) -> dict:
+    from .protocol_gen import Board
+    info = dev.info()
+    try:
+        board = Board(info.board).name
+    except ValueError:
+        board = int(info.board)
+    return {"mcu_uid": bytes(info.mcu_uid).hex(), "board": board,
+            "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build}
 
 
 # ------------------------------------------------------------------ command line
@@ -353,13 +584,74 @@ def format_drift(before: dict, after: dict | None) -> str:
     return "\n".join(L)
 
 
-def write_params(dev, new: Params) -> int:
-    """set_params, read back bit-exactly, save; returns the flash generation."""
-    dev.set_params(new)
-    back = dev.get_params(ParamsWhich.ACTIVE).params
-    if Params.STRUCT.pack(*back.values()) != Params.STRUCT.pack(*new.values()):
-        raise RuntimeError("read-back after set_params differs from what was written")
-    return dev.save_params()
+def write_params(dev, new: Params, say: Callable[[str], None] = lambda s: None) -> dict:
+    """set_params, bit-exact read-back, save, reboot, bit-exact read-back of the active
+    parameters after the reboot (imubench.session.write_verified, as `imubench calibrate`
+    does); on any failure the previous parameters are put back (and saved again if they had
+    been saved) and the error raised. Returns {"generation", "steps", "verified": True}."""
+    from .session import write_verified
+    r = write_verified(dev, new, say=say)
+    return {"generation": int(r["generation"]), "steps": list(r["steps"]), "verified": True}
+
+
+def _is_active(dev, p: Params) -> bool | None:
+    """Whether the device's active parameters are p, bit-exactly (None: cannot tell)."""
+    try:
+        return Params.STRUCT.pack(*dev.get_params(ParamsWhich.ACTIVE).params.values()) == Params.STRUCT.pack(*p.values())
+    except Exception:  # noqa: BLE001 - the device may be gone; say so rather than guess
+        return None
+
+
+def run_thermal(dev, out_dir, temps: Sequence[float | None], hooks: Hooks, *, n: int = 2000,
+                poses: Sequence[str] = ("+z",), turntable: bool = False, t_ref_c: float | None = None,
+                write: bool = False, settle: Settling | None = DEFAULT_SETTLING, rate_hz: int = 200,
+                config: dict | None = None) -> dict:
+    """The whole run of `imubench thermal` on an open device, recorded in out_dir/thermal.json
+    (ThermalRecord): sweep (each point saved as soon as it is measured), fit, and with write
+    the drift before, the verified write-back (write_params) and the drift after. On any
+    error (or Ctrl-C) the file keeps what was done, with status "failed" and the error, and
+    the error is raised. Returns the final content of thermal.json."""
+    say = hooks.say
+    cfg = {"temps_c": list(temps), "samples_per_measurement": n, "rate_hz": rate_hz, "poses": list(poses),
+           "turntable": turntable, "turn_rate_dps": 90.0 if turntable else None, "write": write,
+           "settle_rate_c_per_min": None if settle is None else settle.rate_c_per_min,
+           "settle_s": None if settle is None else settle.window_s,
+           "settle_timeout_s": None if settle is None else settle.timeout_s, **(config or {})}
+    rec = ThermalRecord(out_dir, cfg)
+    say(f"recording in {rec.path}")
+    try:
+        old = dev.get_params(ParamsWhich.ACTIVE).params
+        t_ref = float(old.accel_t_ref_c) if t_ref_c is None else float(t_ref_c)
+        rec.update(device=_device_json(dev), t_ref_c=t_ref, stage="sweep")
+        points = sweep(dev, temps, hooks, n=n, poses=poses, rate_hz=rate_hz, turntable=turntable,
+                       settle=settle, on_point=rec.add_point)
+        fit = fit_sweep(points, t_ref)
+        rec.update(stage="fitted", **fit_json(fit))
+        say(format_fit(fit))
+        if write:
+            new = apply_tempcos(old, fit, t_ref)
+            rec.update(stage="drift before")
+            before = measure_drift(dev, temps, hooks, n=n, rate_hz=rate_hz, settle=settle)
+            rec.update(stage="write", drift_before=drift_json(before))
+            try:
+                wb = write_params(dev, new, say=say)
+            except Exception as e:
+                rec.update(write={"generation": None, "steps": [], "verified": False, "error": str(e),
+                                  "previous_restored": _is_active(dev, old)})
+                raise
+            rec.update(stage="drift after", write=wb)
+            say(f"written, read back, saved, rebooted, read back again (generation {wb['generation']})")
+            after = measure_drift(dev, temps, hooks, n=n, rate_hz=rate_hz, settle=settle)
+            rec.update(drift_after=drift_json(after))
+            say(format_drift(before, after))
+        else:
+            say("(not written: give --write)")
+        rec.update(status="done", stage="done")
+    except BaseException as e:
+        rec.update(status="failed", error=f"{type(e).__name__}: {e}" if str(e) else type(e).__name__)
+        raise
+    say(f"saved {rec.path}")
+    return rec.data
 
 
 # truth of the virtual device with --sim (within the device's limits)
@@ -376,9 +668,20 @@ def main_thermal(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--sim", action="store_true", help="run on a virtual device with temperature "
                     "coefficients in its truth; it drives temperature, orientation and turntable")
     ap.add_argument("--write", action="store_true", help="write the coefficients to the device "
-                    "(set, read back, save) and measure the drift after")
+                    "(set, read back, save, reboot, read back) and measure the drift before and after")
+    ap.add_argument("--out", metavar="DIR", help="directory for thermal.json, written after every "
+                    "temperature point (default: ./imubench-thermal-<time>)")
     ap.add_argument("--t-ref", type=float, default=None, help="reference temperature (default: the device's)")
     ap.add_argument("--samples", type=int, default=2000, help="samples per measurement (default 2000 at 200 Hz)")
+    ap.add_argument("--settle-rate", type=float, default=0.1, metavar="C_PER_MIN",
+                    help="settled when every sensor's |dT/dt| is below this, in °C/min (default 0.1)")
+    ap.add_argument("--settle-s", type=float, default=None, metavar="S",
+                    help="... over a sliding window of this many seconds of device time "
+                         "(default 300; with --sim 10); 0: do not wait")
+    ap.add_argument("--settle-timeout", type=float, default=7200.0, metavar="S",
+                    help="give up waiting for a temperature after this many seconds (default 7200)")
+    ap.add_argument("--ramp", type=float, default=None, metavar="C_PER_S",
+                    help="--sim: the virtual chamber's ramp in °C/s (default 0.5; 0 = at once)")
     ap.add_argument("--speed", type=float, default=20, help="--sim: device time per wall time (default 20)")
     a = ap.parse_args(argv)
     try:
@@ -387,6 +690,26 @@ def main_thermal(argv: Sequence[str] | None = None) -> int:
         ap.error("--temps: comma separated numbers")
     if len(temps) < 2:
         ap.error("--temps: at least two temperatures")
+    if a.ramp is not None and not a.sim:
+        ap.error("--ramp goes with --sim (a real chamber ramps by itself)")
+    ramp = 0.5 if a.ramp is None else a.ramp
+    if ramp < 0:
+        ap.error("--ramp: °C/s, ≥ 0")
+    settle_s = (10.0 if a.sim else 300.0) if a.settle_s is None else a.settle_s
+    settle = None
+    if settle_s > 0:
+        try:
+            settle = Settling(a.settle_rate, settle_s, a.settle_timeout)
+        except ValueError as e:
+            ap.error(str(e))
+    if settle is not None and not a.sim and settle.rate_c_per_min / 60.0 * settle.window_s < 2 * TEMP_RESOLUTION_C:
+        print(f"note: over {settle.window_s:g} s a drift of {settle.rate_c_per_min:g} °C/min stays within "
+              f"{2 * TEMP_RESOLUTION_C:g} °C, about the sensors' temperature resolution: it may pass as settled "
+              "(a longer --settle-s sees it)", flush=True)
+    out = Path(a.out or f"imubench-thermal-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    if (out / ThermalRecord.NAME).exists():
+        print(f"imubench thermal: {out / ThermalRecord.NAME} exists: choose another --out directory", file=sys.stderr)
+        return 1
     say = lambda s: print(s, flush=True)
     from .link import Device
     vb = None
@@ -395,33 +718,25 @@ def main_thermal(argv: Sequence[str] | None = None) -> int:
             from .sim import VirtualBench
             vb = VirtualBench(speed=a.speed)
             vb.set_truth(accel=SIM_ACCEL_TRUTH, gyro=SIM_GYRO_TRUTH)
-            url, hooks, poses = vb.port_url, sim_hooks(vb, say), tuple(POSES)
+            url, hooks, poses = vb.port_url, sim_hooks(vb, say, ramp_c_per_s=ramp), tuple(POSES)
         else:
             url, poses = a.port, ("+z",)
             def ready(c):
                 input(f"bring the board (still, level, +Z up) to {c:g} °C and press Enter ")
             hooks = Hooks(ready=ready, say=say)
         with Device.open(url) as dev:
-            old = dev.get_params(ParamsWhich.ACTIVE).params
-            t_ref = float(old.accel_t_ref_c) if a.t_ref is None else a.t_ref
             say(f"sweep over {temps} °C ({'virtual bench' if a.sim else 'ambient: you set it'})")
             t0 = time.monotonic()
-            points = sweep(dev, temps, hooks, n=a.samples, poses=poses, turntable=a.sim)
-            fit = fit_sweep(points, t_ref)
-            say(format_fit(fit))
-            if not a.write:
-                say(f"(not written: give --write) [{time.monotonic() - t0:.1f} s]")
-                return 0
-            new = apply_tempcos(old, fit, t_ref)
-            before = measure_drift(dev, temps, hooks, n=a.samples)
-            gen = write_params(dev, new)
-            say(f"written, read back, saved (generation {gen})")
-            after = measure_drift(dev, temps, hooks, n=a.samples)
-            say(format_drift(before, after))
+            run_thermal(dev, out, temps, hooks, n=a.samples, poses=poses, turntable=a.sim,
+                        t_ref_c=a.t_ref, write=a.write, settle=settle,
+                        config={"sim": a.sim, "ramp_c_per_s": ramp if a.sim else None})
+            say(f"[{time.monotonic() - t0:.1f} s]")
             return 0
-    except (PR.InvalidParams, RuntimeError, OSError, ValueError) as e:
-        print(f"imubench thermal: {e}", file=sys.stderr)
-        return 1
+    except (PR.InvalidParams, RuntimeError, OSError, ValueError, KeyboardInterrupt) as e:
+        print(f"imubench thermal: {str(e) or 'interrupted'}", file=sys.stderr)
+        if (out / ThermalRecord.NAME).exists():
+            print(f"imubench thermal: what was measured is in {out / ThermalRecord.NAME}", file=sys.stderr)
+        return 130 if isinstance(e, KeyboardInterrupt) else 1
     finally:
         if vb is not None:
             vb.close()
