@@ -473,10 +473,32 @@ class Session:
             gyro = CG.turntable(segments, bias=CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
         elif self.cfg.gyro == "rotation":
             gyro = self._rotation_fit(accel, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
+        frame_note = None
+        if self.cfg.method == "multi" and self.cfg.gyro == "turntable":
+            accel, frame_note = self._align_frames(accel, gyro, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
         self.accel_fit, self.gyro_fit = accel, gyro
         result = self._result(ident, accel, gyro)
+        result["accel_frame"] = accel.extra.get("frame", "board")
+        if frame_note:
+            result.setdefault("warnings", []).append(frame_note)
         self._save(result=result)
         return result
+
+    def _align_frames(self, accel: TriadFit, gyro: TriadFit, bias: TriadFit) -> tuple[TriadFit, str | None]:
+        """Multi-position + turntable: rotate the accelerometer's fit into the gyro (board)
+        frame, the rotation measured by the gyros between the poses (calib.frames). Returns
+        the fit and, when that is impossible, the fit unchanged and the reason."""
+        from .calib.frames import align_accel_to_gyro
+        try:
+            in_accel_frame = self._rotation_fit(accel, bias)
+            aligned = align_accel_to_gyro(accel, gyro, in_accel_frame)
+        except (CalibrationError, OSError) as e:
+            return accel, (f"accelerometer left in its own frame (not aligned to the gyros): {e}; "
+                           "strapdown use of both will see that rotation")
+        phi = np.degrees(aligned.extra["alignment_rad"])
+        self.ui.say(f"accelerometer frame aligned to the gyro turntable axes: rotation "
+                    f"{np.round(phi, 3).tolist()} ° (about board x, y, z)")
+        return aligned, None
 
     def _rotation_fit(self, accel: TriadFit, bias: TriadFit) -> TriadFit:
         """Gyro M from the motions between consecutive poses of one stream (on disk)."""
@@ -685,7 +707,7 @@ def truth_in_fit_frame(result: dict, truth: dict) -> dict:
     m_a = np.array(truth["accel"]["m"], dtype=float)
     m_g = np.array([g["sens"] for g in truth["gyro"]], dtype=float)
     q = np.eye(3)
-    if result["method"] == "multi":
+    if result["method"] == "multi" and not str(result.get("accel_frame", "")).startswith("board"):
         m_a, q = lower_triangular_form(m_a)
     if result.get("gyro_method") == "rotation":
         m_g = m_g @ q.T
@@ -714,9 +736,12 @@ def truth_table(result: dict, truth: dict) -> str:
             for i in range(3):
                 for j in range(3):
                     lines.append(_row(f"gyro M{i}{j}", t["gyro_m"][i, j], g["m"][i][j], g["sigma_m"][i][j]))
-    if result["method"] == "multi":
+    if result["method"] == "multi" and not str(result.get("accel_frame", "")).startswith("board"):
         lines.append("(multi-position: M in the frame of the sensor's X axis and X-Y plane; "
                      "see docs/calibration.md)")
+    elif result["method"] == "multi":
+        lines.append("(multi-position: M rotated into the gyro turntable's board frame by the rotations "
+                     "between poses; see docs/calibration.md, \"One frame\")")
     lines.append("(biases: the models' bias random walk moves them during the session; the truth shown is "
                  "the value at the end, the estimate the mean over the session's rest or poses)")
     return "\n".join(lines)
