@@ -68,7 +68,7 @@ def test_report_of_a_session(session_dir, tmp_path):
     # the note is escaped, never live
     assert "<script>" not in doc and "&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt; &amp; co" in doc
     # absent sections are named
-    for what in ("noise", "attitude", "temperature"):
+    for what in ("noise", "attitude", "temperature", "closure check"):
         assert f"{what}: not measured in this session" in doc
     assert "pass --thermal DIR/thermal.json" in doc                  # how to get the temperature section
     # footer
@@ -191,3 +191,34 @@ def test_report_of_an_interrupted_thermal_run(session_dir, thermal_json, tmp_pat
     assert "incomplete run: status failed, stage sweep; error: RuntimeError: chamber failed" in doc
     assert "coefficients: not fitted" in doc and "before writing" not in doc
     assert f"{part['points'][0]['accel_temp_c']:.2f}" in doc
+
+
+def test_report_shows_the_closure_check(session_dir, tmp_path):
+    """closure.json + closure.png from imubench.closure (here from an exact synthetic box path,
+    integrated with a biased and a clean accelerometer) become a table and an embedded plot."""
+    from imubench import closure as CL
+    from test_closure import synthetic
+    t, f, w, _ = synthetic(CL.PATHS["box"])
+    i0, i1 = CL.motion_window(t, f, w, rest_s=2.0)
+    res = {"before": CL.strapdown(t, f + [0.05, -0.03, 0.1], w * 1.01, i0, i1, 1600, label="before calibration"),
+           "after": CL.strapdown(t, f, w, i0, i1, 1600, label="after calibration"),
+           "after_rest_bias": CL.strapdown(t, f, w, i0, i1, 1600, label="after, gyro bias zeroed at rest"),
+           "gyro_bias_at_rest_rad_s": [1e-4, -2e-4, 0.0],
+           "window": {"i0": i0, "i1": i1, "t0_s": t[i0], "t1_s": t[i1], "duration_s": t[i1] - t[i0],
+                      "fs_hz": 1000.0, "samples": i1 - i0 + 1},
+           "noise_floor": CL.noise_floor(f[:2000] + 0.007, w[:2000] + 0.001, 1000.0, 7.7, 1600)}
+    res["improvement"] = res["before"].distance_m / res["after"].distance_m
+    d = tmp_path / "cl"
+    d.mkdir()
+    CL.plot_closure(res, d / "closure.png")
+    (d / "closure.json").write_text(json.dumps(CL.result_json(res, {"path": "box <b>", "plot": "closure.png"})))
+    doc = build_report(session_dir, tmp_path / "r.html", closure_dir=d).read_text(encoding="utf-8")
+    _check_self_contained(doc)
+    assert "<h2>Closure check</h2>" in doc and "closure check: yes" in doc
+    assert f"{res['before'].distance_m:.4f}" in doc and f"{res['after'].distance_m:.4f}" in doc
+    assert "box &lt;b&gt;" in doc and "+0.0057, -0.0115, +0.0000 °/s" in doc
+    assert len(_imgs(doc)) == 2                                   # residuals + closure plot
+    # an unfinished recording (parameters written, no result yet) says how to recompute it
+    (d / "closure.json").write_text(json.dumps({"schema": 1, "path": "box"}))
+    doc = build_report(session_dir, tmp_path / "r2.html", closure_dir=d).read_text(encoding="utf-8")
+    assert "holds no result" in doc and "--analyse" in doc

@@ -225,6 +225,7 @@ DELEGATED = {
     "allan": ("imubench.noise", "main_allan", "record for hours and read the Allan deviation (noise terms)"),
     "attitude": ("imubench.attitude", "main_attitude", "live pitch/roll through RC, Kalman and complementary filters"),
     "thermal": ("imubench.thermal", "main_thermal", "fit temperature coefficients over a sweep and write them back"),
+    "closure": ("imubench.closure", "main_closure", "integrate a closed path before and after calibration"),
     "report": ("imubench.html_report", "main_report", "one self-contained HTML report of a session"),
 }
 

@@ -1,7 +1,7 @@
 """One self-contained HTML report per session: calibration, noise, attitude, temperature.
 
     build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, thermal_json=None) -> Path
-    imubench report SESSION_DIR [--out FILE] [--allan DIR] [--attitude PNG] [--thermal JSON]
+    imubench report SESSION_DIR [--out FILE] [--allan DIR] [--attitude PNG] [--thermal JSON] [--closure DIR]
 
 The report is ONE .html file that can be archived or sent on its own: the CSS is inline, every
 plot is a PNG embedded as a data:image/png;base64 URI, there is no JavaScript and no reference
@@ -11,6 +11,7 @@ Inputs:
   * calibration: SESSION_DIR/session.json (imubench.session: "config", "poses", "result") and
     SESSION_DIR/residuals.png if present (else drawn with imubench.report.plot_pose_residuals);
   * noise: allan.json + allan_accel.png / allan_gyro.png (imubench.noise) in SESSION_DIR or --allan DIR;
+  * closure check: closure.json + closure.png (imubench.closure) in SESSION_DIR/closure or --closure DIR;
   * attitude: a PNG (imubench.attitude's plot) given with --attitude;
   * temperature: DIR/thermal.json of `imubench thermal --out DIR`, given with --thermal
     (coefficients ± sigma, the per-temperature points, drift before/after, the write-back);
@@ -487,11 +488,60 @@ def _thermal_section(path: Path | None) -> str:
     return "\n".join(out)
 
 
+# ------------------------------------------------------------------ closure
+def _closure_section(directory: Path | None) -> str:
+    out = ["<h2>Closure check</h2>"]
+    path = directory / "closure.json" if directory is not None else None
+    if path is None or not path.is_file():
+        out.append(_missing("closure check", "run imubench calibrate --closure, or imubench closure --out DIR "
+                            "and give --closure DIR"))
+        return "\n".join(out)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        out.append(f'<p class="missing">closure data {esc(path)}: unreadable ({esc(e)}); not measured in this session.</p>')
+        return "\n".join(out)
+    if not isinstance(data, dict) or "after" not in data:
+        out.append(f'<p class="missing">{esc(path)} holds no result (the recording did not finish: '
+                   f'imubench closure --analyse {esc(directory)} recomputes it from capture.bin).</p>')
+        return "\n".join(out)
+    w = data.get("window") or {}
+    out.append(f"<p>path {esc(data.get('path', '?'))}: {esc(_num(w.get('duration_s'), '{:.2f}'))} s of motion, "
+               f"{esc(w.get('samples', '?'))} raw samples at {esc(_num(w.get('fs_hz'), '{:.0f}'))} Hz, integrated "
+               "(strapdown, attitude from the gyros) from rest to rest; the closure is how far from the start the "
+               "integration ends (docs/closure.md).</p>")
+    rows = []
+    for key in ("before", "after", "after_rest_bias"):
+        r = data.get(key) or {}
+        c = r.get("closure_m") or [None] * 3
+        rows.append([esc(r.get("label", key))] + [esc(_num(v, "{:.4f}")) for v in (
+            r.get("distance_m"), r.get("horizontal_m"), r.get("vertical_m"), r.get("end_speed_mps"), *c)])
+    nf = data.get("noise_floor") or {}
+    rows.append([esc("white-noise floor (1 sigma)"), esc(_num(nf.get("sigma_distance_m"), "{:.4f}")),
+                 "", esc(_num(nf.get("sigma_z_m"), "{:.4f}")), "", "", "", ""])
+    out.append(_table(["integration", "distance m", "horizontal m", "vertical m", "end speed m/s",
+                       "x m", "y m", "z m"], rows))
+    gb = data.get("gyro_bias_at_rest_rad_s")
+    if gb:
+        out.append(f"<p>the calibrated gyros read {esc(', '.join(_num(v * RAD2DEG, '{:+.4f}') for v in gb))} °/s "
+                   "at the start rest (their bias change since the calibration).</p>")
+    if data.get("improvement"):
+        out.append(f"<p>calibration shrinks the closure error <b>{esc(_num(data['improvement'], '{:.0f}'))}x</b>.</p>")
+    if data.get("truth_closure_m") is not None:
+        out.append(f"<p>the virtual bench's own path closes to {esc(_num(max(abs(v) for v in data['truth_closure_m']), '{:.1e}'))} m.</p>")
+    uri = png_data_uri(directory / str(data.get("plot", "closure.png")))
+    if uri is not None:
+        out.append(_img(uri, "top views before and after calibration and the distance from the start over time"))
+    return "\n".join(out)
+
+
 # ------------------------------------------------------------------ the report
-def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, thermal_json=None) -> Path:
+def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, thermal_json=None,
+                 closure_dir=None) -> Path:
     """Write the session's report as one self-contained HTML file and return its path
     (default SESSION_DIR/report.html). allan_dir defaults to session_dir (its allan.json is
-    used if present). Raises FileNotFoundError if session_dir has no session.json."""
+    used if present), closure_dir to SESSION_DIR/closure (imubench calibrate --closure).
+    Raises FileNotFoundError if session_dir has no session.json."""
     session_dir = Path(session_dir)
     state_path = session_dir / "session.json"
     if not state_path.is_file():
@@ -506,7 +556,10 @@ def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, 
     sections = [_calibration_section(session_dir, state), _noise_section(allan_dir),
                 _attitude_section(Path(attitude_png) if attitude_png else None),
                 _thermal_section(Path(thermal_json) if thermal_json else None)]
-    present = {"calibration": bool(result), "noise": (allan_dir / "allan.json").is_file(),
+    closure_dir = Path(closure_dir) if closure_dir is not None else session_dir / "closure"
+    sections.insert(1, _closure_section(closure_dir))
+    present = {"calibration": bool(result), "closure check": (closure_dir / "closure.json").is_file(),
+               "noise": (allan_dir / "allan.json").is_file(),
                "attitude": attitude_png is not None, "temperature": thermal_json is not None}
     summary = ", ".join(f"{esc(k)}: {'yes' if v else 'not measured'}" for k, v in present.items())
     generated = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
@@ -532,7 +585,7 @@ def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, 
 
 
 def main_report(argv: Sequence[str] | None = None) -> int:
-    """`imubench report SESSION_DIR [--out FILE] [--allan DIR] [--attitude PNG] [--thermal JSON]`"""
+    """`imubench report SESSION_DIR [--out FILE] [--allan DIR] [--attitude PNG] [--thermal JSON] [--closure DIR]`"""
     ap = argparse.ArgumentParser(prog="imubench report",
                                  description="write one self-contained HTML report of a session "
                                              "(calibration, noise, attitude, temperature; plots embedded)")
@@ -541,18 +594,21 @@ def main_report(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--allan", metavar="DIR", help="directory with allan.json and its plots (default: SESSION_DIR)")
     ap.add_argument("--attitude", metavar="PNG", help="attitude plot to embed")
     ap.add_argument("--thermal", metavar="JSON", help="DIR/thermal.json of imubench thermal --out DIR")
+    ap.add_argument("--closure", metavar="DIR", help="output directory of imubench closure "
+                    "(default: SESSION_DIR/closure, written by imubench calibrate --closure)")
     a = ap.parse_args(argv)
     sd = Path(a.session_dir)
     if not (sd / "session.json").is_file():
         print(f"imubench report: {sd} has no session.json (give the directory of a calibration session, "
               "e.g. the --dir of imubench calibrate)", file=sys.stderr)
         return 2
-    for opt, p, is_dir in (("--allan", a.allan, True), ("--attitude", a.attitude, False), ("--thermal", a.thermal, False)):
+    for opt, p, is_dir in (("--allan", a.allan, True), ("--attitude", a.attitude, False), ("--thermal", a.thermal, False),
+                           ("--closure", a.closure, True)):
         if p is not None and not (Path(p).is_dir() if is_dir else Path(p).is_file()):
             print(f"imubench report: {opt} {p}: no such {'directory' if is_dir else 'file'}", file=sys.stderr)
             return 2
     try:
-        path = build_report(sd, a.out, a.allan, a.attitude, a.thermal)
+        path = build_report(sd, a.out, a.allan, a.attitude, a.thermal, a.closure)
     except (OSError, ValueError) as e:
         print(f"imubench report: {e}", file=sys.stderr)
         return 1

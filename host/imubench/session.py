@@ -771,6 +771,28 @@ def _row(name, truth, got, sigma):
     return f"{name:<14}{truth:>14.6f}{got:>14.6f}{sigma:>12.6f}{z:>9.2f}"
 
 
+def _closure_after_session(dev, vb, out_dir: Path, params: Params) -> dict:
+    """The closure check with the parameters just written (imubench.closure): a summary for
+    the session's result; the details are in out_dir."""
+    from . import closure as CL
+    if vb is not None:
+        legs = CL.PATHS["box"]
+        start, finished = CL.sim_drive(vb, legs)
+        extra = {"truth_path_m": CL.sim_truth_path(legs).tolist()}
+        path = "box"
+    else:
+        start = lambda: print("now move the board along a closed path and put it back on the start mark",  # noqa: E731
+                              flush=True)
+        finished, extra, path = CL.human_finished(), {}, "by hand"
+    print("\nclosure check: integrating a closed path before and after calibration")
+    res = CL.run_closure(dev, out_dir, params, start, finished, path, extra=extra)
+    print(CL.summarize(res))
+    print(f"closure details: {out_dir / 'closure.json'}, plot {out_dir / 'closure.png'}")
+    return {"dir": str(out_dir), "before_m": res["before"].distance_m, "after_m": res["after"].distance_m,
+            "after_rest_bias_m": res["after_rest_bias"].distance_m,
+            "noise_floor_m": res["noise_floor"]["sigma_distance_m"]}
+
+
 def main_calibrate(argv=None) -> int:
     import argparse
     import sys
@@ -795,6 +817,9 @@ def main_calibrate(argv=None) -> int:
     ap.add_argument("--sim-speed", type=float, default=20.0, help="virtual device speed factor (default 20)")
     ap.add_argument("--sim-seed", type=int, default=1)
     ap.add_argument("--sim-tilt", type=float, default=0.0, help="misalign each virtual attitude by this many degrees")
+    ap.add_argument("--closure", action="store_true",
+                    help="after a verified write-back, run the closure check (imubench closure) into DIR/closure: "
+                         "the virtual bench drives a closed path, or you carry the board around one")
     a = ap.parse_args(argv)
     cfg = SessionConfig(method=a.method, gyro=None if a.gyro == "none" else a.gyro, rate_hz=a.rate,
                         hold_s=a.hold, write=not a.no_write, note=a.note)
@@ -844,6 +869,14 @@ def main_calibrate(argv=None) -> int:
                     print("verification failed: the previous parameters were written back and saved")
             elif not result["passed"]:
                 print("the fit did not pass its tolerance: nothing was written to the device")
+            if a.closure and result["written"]:
+                from .closure import ClosureError
+                try:
+                    result["closure"] = _closure_after_session(dev, vb, sess.dir / "closure",
+                                                               dev.get_params(ParamsWhich.ACTIVE).params)
+                except ClosureError as e:       # the calibration stands; say why there is no figure
+                    result["closure"] = {"error": str(e)}
+                    print(f"closure check not possible: {e}", file=sys.stderr)
             sess._save(result=result)
             try:
                 with History(a.db) as h:
