@@ -9,7 +9,6 @@ import math
 
 import numpy as np
 import pytest
-
 from imubench import closure as CL
 from imubench import params as PR
 from imubench.decoder import SampleBlock

@@ -18,17 +18,17 @@ import argparse
 import datetime as _dt
 import json
 import math
-import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from . import params as PR
 from . import units as U
+from .atomic import write_json_atomic
 from .attitude import accel_tilt
 from .decoder import SampleBlock, decode_bytes
 from .protocol_gen import Params
@@ -163,36 +163,19 @@ def align_level(f_mean) -> np.ndarray:
     return ry @ rx
 
 
-def _quat_from_matrix(r: np.ndarray) -> np.ndarray:
+def _attitudes(r0: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n+1, 3, 3): R_0 = r0, R_{k+1} = R_k·exp([rotvec_k]×) (body-frame
+    increments composed on the right), through calib.gyro's vectorised quaternion products."""
     from scipy.spatial.transform import Rotation
-    x, y, z, w = Rotation.from_matrix(r).as_quat()
-    return np.array([w, x, y, z])
 
-
-def _propagate(q0: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
-    """Quaternions (w, x, y, z) q_{k+1} = q_k ⊗ exp(rotvec_k / 2): body-frame increments."""
-    ang = np.linalg.norm(rotvec, axis=1)
-    half = 0.5 * ang
-    s = np.where(ang > 1e-12, np.sin(half) / np.where(ang > 1e-12, ang, 1.0), 0.5 - ang ** 2 / 48.0)
-    dq = np.column_stack([np.cos(half), rotvec * s[:, None]])
-    out = np.empty((len(rotvec) + 1, 4))
-    w, x, y, z = (float(v) for v in q0)
-    out[0] = (w, x, y, z)
-    for i, (b0, b1, b2, b3) in enumerate(dq.tolist(), start=1):
-        w, x, y, z = (w * b0 - x * b1 - y * b2 - z * b3, w * b1 + x * b0 + y * b3 - z * b2,
-                      w * b2 - x * b3 + y * b0 + z * b1, w * b3 + x * b2 - y * b1 + z * b0)
-        n = math.sqrt(w * w + x * x + y * y + z * z)
-        w, x, y, z = w / n, x / n, y / n, z / n
-        out[i] = (w, x, y, z)
-    return out
-
-
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate body vectors v (n, 3) by quaternions q (n, 4): R(q)·v."""
-    w = q[:, :1]
-    u = q[:, 1:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+    from .calib.gyro import _qmul, _quat_matrix, _quat_prefix, _rotvec_quat
+    x, y, z, w = Rotation.from_matrix(r0).as_quat()
+    q0 = np.array([w, x, y, z])
+    q = np.empty((4, len(rotvec) + 1))
+    q[:, 0] = q0
+    if len(rotvec):
+        q[:, 1:] = _qmul(q0[:, None], _quat_prefix(_rotvec_quat(rotvec.T)[:, None, :])[:, 0, :])
+    return _quat_matrix(q)
 
 
 @dataclass
@@ -255,16 +238,15 @@ def strapdown(t_s, accel_mps2, gyro_rad_s, i0: int, i1: int, align_n: int, g_mps
     sl = slice(i0, i1 + 1)
     tt, ff, ww = t[sl], f[sl], w[sl]
     dt = np.diff(tt)
-    q = _propagate(_quat_from_matrix(r0), 0.5 * (ww[:-1] + ww[1:]) * dt[:, None])
-    a_nav = _rotate(q, ff)
+    rm = _attitudes(r0, 0.5 * (ww[:-1] + ww[1:]) * dt[:, None])
+    a_nav = np.einsum("nij,nj->ni", rm, ff)
     a_nav[:, 2] -= g_mps2
     vel = np.zeros_like(a_nav)
     vel[1:] = np.cumsum(0.5 * (a_nav[:-1] + a_nav[1:]) * dt[:, None], axis=0)
     pos = np.zeros_like(a_nav)
     pos[1:] = np.cumsum(0.5 * (vel[:-1] + vel[1:]) * dt[:, None], axis=0)
     # heading of the board's X axis in the navigation frame
-    xb = _rotate(q, np.tile([1.0, 0.0, 0.0], (len(q), 1)))
-    heading = np.degrees(np.unwrap(np.arctan2(xb[:, 1], xb[:, 0])))
+    heading = np.degrees(np.unwrap(np.arctan2(rm[:, 1, 0], rm[:, 0, 0])))
     return Integration(label, tt - tt[0], pos, vel, heading)
 
 
@@ -363,7 +345,6 @@ def summarize(res: dict) -> str:
     """A text table: closure before and after calibration."""
     b, a, nf = res["before"], res["after"], res["noise_floor"]
     w = res["window"]
-    zb = res["after_rest_bias"]
     lines = [f"closure check: {w['duration_s']:.2f} s of motion, {w['samples']} samples at {w['fs_hz']:.0f} Hz; "
              f"path length (calibrated) {a.path_length_m:.2f} m",
              f"{'':32} {'distance m':>11} {'horiz m':>9} {'vert m':>9} {'end speed m/s':>14} "
@@ -489,12 +470,6 @@ def _load_params(src: str | None, dev=None) -> Params:
     return Params(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()})
 
 
-def _write_json(path: Path, obj) -> None:
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(obj, indent=1))
-    os.replace(tmp, path)
-
-
 def _params_json(p: Params) -> dict:
     from dataclasses import asdict
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(p).items()}
@@ -519,7 +494,7 @@ def analyse(out_dir: Path, rest_s: float | None = None, g_mps2: float | None = N
     keep["rest_s"] = rest
     keep["decoder"] = stats.as_dict()
     keep["plot"] = png.name
-    _write_json(out_dir / "closure.json", result_json(res, keep))
+    write_json_atomic(out_dir / "closure.json", result_json(res, keep))
     if not quiet:
         print(summarize(res))
         print(f"results: {out_dir / 'closure.json'}, plot: {png}")
@@ -538,8 +513,8 @@ def run_closure(dev, out_dir: Path, params: Params, start: Callable[[], None],
             "rest_s": rest_s, "g_mps2": g_mps2, "params": _params_json(params),
             "device": {"mcu_uid": bytes(info.mcu_uid).hex(), "fw_build": info.fw_build}}
     meta.update(extra or {})
-    _write_json(out_dir / "closure.json", meta)
-    cap = open(out_dir / "capture.bin", "ab")  # noqa: SIM115 - closed below
+    write_json_atomic(out_dir / "closure.json", meta)
+    cap = open(out_dir / "capture.bin", "ab")
     old = dev.link.capture
     dev.link.capture = cap
     try:
@@ -648,7 +623,7 @@ def main_closure(argv: Sequence[str] | None = None) -> int:
                     pos0 = np.asarray(vb.status()["position_m"])
                 else:
                     params = _load_params(a.params, dev)
-                    start = lambda: print("now move the board along a closed path and put it back on the start mark",  # noqa: E731
+                    start = lambda: print("now move the board along a closed path and put it back on the start mark",
                                           flush=True)
                     finished = human_finished()
                     extra = {}
@@ -661,7 +636,7 @@ def main_closure(argv: Sequence[str] | None = None) -> int:
                     pos1 = np.asarray(vb.status()["position_m"])
                     meta = json.loads((out / "closure.json").read_text())
                     meta["truth_closure_m"] = (pos1 - pos0).tolist()
-                    _write_json(out / "closure.json", meta)
+                    write_json_atomic(out / "closure.json", meta)
         finally:
             if vb is not None:
                 vb.stop()

@@ -31,6 +31,8 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
+from .atomic import write_text_atomic
+
 G0 = 9.80665
 RAD2DEG = 180.0 / math.pi
 AXES = ("x", "y", "z")
@@ -578,10 +580,7 @@ def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, 
 </body></html>
 """
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(out_path.name + ".tmp")
-    tmp.write_text(doc, encoding="utf-8")
-    tmp.replace(out_path)
-    return out_path
+    return write_text_atomic(out_path, doc)
 
 
 def main_report(argv: Sequence[str] | None = None) -> int:

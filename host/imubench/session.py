@@ -25,6 +25,7 @@ import numpy as np
 
 from . import params as PR
 from . import units as U
+from .atomic import write_json_atomic
 from .calib import CalibrationError, TriadFit
 from .decoder import SampleBlock
 from .link import DEFAULT_BAUD, Device
@@ -205,9 +206,7 @@ class Session:
     def _save(self, **extra) -> None:
         state = {"schema": SESSION_SCHEMA, "started": self.started, "config": _jsonable(asdict(self.cfg)),
                  "rest": self.rest, "poses": [asdict(p) for p in self.poses], **extra}
-        tmp = self.state_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(state, indent=1))
-        os.replace(tmp, self.state_path)     # atomic: a crash leaves the old or the new file
+        write_json_atomic(self.state_path, state)     # a crash leaves the old or the new file
 
     def _load(self) -> None:
         try:
@@ -796,6 +795,7 @@ def _closure_after_session(dev, vb, out_dir: Path, params: Params) -> dict:
 def main_calibrate(argv=None) -> int:
     import argparse
     import sys
+
     from . import report
     from .history import History
     ap = argparse.ArgumentParser(prog="imubench calibrate", description="guided calibration session")

@@ -25,8 +25,6 @@ from __future__ import annotations
 import argparse
 import collections
 import datetime as _dt
-import json
-import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -37,6 +35,7 @@ import numpy as np
 
 from . import params as PR
 from . import units as U
+from .atomic import write_json_atomic
 from .protocol_gen import Params, ParamsWhich
 
 __all__ = [
@@ -530,12 +529,7 @@ class ThermalRecord:
 
     def save(self) -> None:
         self.data["updated"] = _now()
-        tmp = self.path.with_name(self.NAME + ".tmp")
-        with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(self.data, fh, indent=1)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, self.path)
+        write_json_atomic(self.path, self.data)
 
 
 def _device_json(dev) -> dict:
