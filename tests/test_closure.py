@@ -1,4 +1,4 @@
-"""Closure check (imubench.closure): the strapdown integration against analytic cases, the
+"""Closure check (imubench.closure, imubench.strapdown): the strapdown integration against analytic cases, the
 motion detection, the white-noise floor against a Monte Carlo, refusals; the simulator's
 path motion; and the whole check on the virtual device, calibrated by a real session."""
 from __future__ import annotations
@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from imubench import closure as CL
 from imubench import params as PR
+from imubench import strapdown as SD
 from imubench.decoder import SampleBlock
 from imubench.protocol_gen import Params
 from imubench.sim import VirtualBench
@@ -73,8 +74,8 @@ def synthetic(legs, rest_s=2.0, end_s=2.0, fs=FS):
 def test_strapdown_closes_exact_data_of_both_paths():
     for name, legs in CL.PATHS.items():
         t, f, w, p = synthetic(legs)
-        i0, i1 = CL.motion_window(t, f, w, rest_s=2.0)
-        res = CL.strapdown(t, f, w, i0, i1, align_n=1000)
+        i0, i1 = SD.motion_window(t, f, w, rest_s=2.0)
+        res = SD.strapdown(t, f, w, i0, i1, align_n=1000)
         assert np.allclose(p[-1], p[0], atol=1e-12)                      # the paths are closed
         assert res.distance_m < 2e-3, (name, res.closure_m)
         # the integrated path follows the true one (not only its end)
@@ -92,7 +93,7 @@ def test_strapdown_signs_gyro_bias_tilts_gravity_into_the_horizontal():
     for k, (ax, sign) in enumerate((("x", -1.0), ("y", +1.0))):
         w = np.zeros((n, 3))
         w[:, k] = b
-        res = CL.strapdown(t, f, w, 0, n - 1, align_n=1)
+        res = SD.strapdown(t, f, w, 0, n - 1, align_n=1)
         T = t[-1]
         expect = G * b * T ** 3 / 6
         other = 1 - k                                   # roll (about X) moves Y, pitch moves X
@@ -101,7 +102,7 @@ def test_strapdown_signs_gyro_bias_tilts_gravity_into_the_horizontal():
     # levelling at the start absorbs a horizontal bias: the known limit of a level platform)
     w = np.zeros((n, 3))
     fb = f + [0.01, 0, 0.02]
-    res = CL.strapdown(t, fb, w, 0, n - 1, align_n=100)
+    res = SD.strapdown(t, fb, w, 0, n - 1, align_n=100)
     assert abs(res.closure_m[0]) < 1e-6                     # levelled away
     zexp = (math.hypot(0.01, G + 0.02) - G) * t[-1] ** 2 / 2  # |f| − g stays vertical
     assert res.closure_m[2] == pytest.approx(zexp, rel=1e-3)
@@ -111,9 +112,9 @@ def test_turns_reveal_a_horizontal_accelerometer_bias():
     """The square path: an X bias is levelled away at the start, but the cart turns, so it
     points elsewhere and the loop no longer closes; calibration (removing it) closes it."""
     t, f, w, _ = synthetic(CL.PATHS["square"])
-    i0, i1 = CL.motion_window(t, f, w, rest_s=2.0)
-    biased = CL.strapdown(t, f + [0.05, 0, 0], w, i0, i1, align_n=1000)
-    clean = CL.strapdown(t, f, w, i0, i1, align_n=1000)
+    i0, i1 = SD.motion_window(t, f, w, rest_s=2.0)
+    biased = SD.strapdown(t, f + [0.05, 0, 0], w, i0, i1, align_n=1000)
+    clean = SD.strapdown(t, f, w, i0, i1, align_n=1000)
     assert biased.horizontal_m > 0.3 and clean.horizontal_m < 2e-3
 
 
@@ -123,21 +124,21 @@ def test_motion_window_brackets_the_motion_and_refuses_bad_recordings():
     rng = np.random.default_rng(3)
     fn = f + rng.normal(0, 0.007, f.shape)
     wn = w + rng.normal(0, 0.008, w.shape)
-    i0, i1 = CL.motion_window(t, fn, wn, rest_s=2.0)
+    i0, i1 = SD.motion_window(t, fn, wn, rest_s=2.0)
     t_start, t_end = 2.0, 2.0 + sum(leg["duration_s"] for leg in legs)
     assert t_start - 0.35 <= t[i0] <= t_start            # pad 0.25 s, detection within ~0.1 s
     assert t_end <= t[i1] <= t_end + 0.35
-    with pytest.raises(CL.ClosureError, match="no motion"):
-        CL.motion_window(t[:1500], fn[:1500], wn[:1500], rest_s=1.0)
+    with pytest.raises(SD.ClosureError, match="no motion"):
+        SD.motion_window(t[:1500], fn[:1500], wn[:1500], rest_s=1.0)
     n_end = len(t) - 1000                                 # cut in the middle of the path
-    with pytest.raises(CL.ClosureError, match="still moving"):
-        CL.motion_window(t[:n_end - 2000], fn[:n_end - 2000], wn[:n_end - 2000], rest_s=2.0)
-    with pytest.raises(CL.ClosureError, match="before its rest"):
-        CL.motion_window(t[1500:], fn[1500:], wn[1500:], rest_s=1.0)
+    with pytest.raises(SD.ClosureError, match="still moving"):
+        SD.motion_window(t[:n_end - 2000], fn[:n_end - 2000], wn[:n_end - 2000], rest_s=2.0)
+    with pytest.raises(SD.ClosureError, match="before its rest"):
+        SD.motion_window(t[1500:], fn[1500:], wn[1500:], rest_s=1.0)
     # a board left still in another attitude than at the start is not moving
     still_tilted = np.vstack([np.tile([0, 0, G], (3000, 1)), np.tile(_rot([1, 0, 0], 0.3).T @ [0, 0, G], (3000, 1))])
     still_tilted += rng.normal(0, 0.007, still_tilted.shape)
-    i0, i1 = CL.motion_window(np.arange(6000) / FS, still_tilted, rng.normal(0, 0.008, (6000, 3)), rest_s=2.0)
+    i0, i1 = SD.motion_window(np.arange(6000) / FS, still_tilted, rng.normal(0, 0.008, (6000, 3)), rest_s=2.0)
     assert 2700 <= i0 <= 3000 <= i1 <= 3300
 
 
@@ -153,9 +154,9 @@ def test_noise_floor_matches_a_monte_carlo():
     for _ in range(150):
         f = np.tile([0, 0, G], (n, 1)) + rng.normal(0, sa, (n, 3))
         w = rng.normal(0, sg, (n, 3))
-        ends.append(CL.strapdown(t, f, w, n_rest, n - 1, align_n=1600).closure_m)
+        ends.append(SD.strapdown(t, f, w, n_rest, n - 1, align_n=1600).closure_m)
     ends = np.array(ends)
-    floor = CL.noise_floor(f[:n_rest], w[:n_rest], FS, t[-1] - t[n_rest], align_n=1600)
+    floor = SD.noise_floor(f[:n_rest], w[:n_rest], FS, t[-1] - t[n_rest], align_n=1600)
     sx, sz = np.std(ends[:, 0]), np.std(ends[:, 2])
     print(f"Monte Carlo sigma x {sx:.4f} m (floor {floor['sigma_x_m']:.4f}), z {sz:.5f} (floor {floor['sigma_z_m']:.5f})")
     assert sx == pytest.approx(floor["sigma_x_m"], rel=0.2)
@@ -178,11 +179,11 @@ def _block(n=5000, gap_at=None, calibrated=False):
 
 def test_closure_refuses_lost_samples_calibrated_data_and_still_recordings():
     p = PR.identity()
-    with pytest.raises(CL.ClosureError, match="3 samples were lost"):
+    with pytest.raises(SD.ClosureError, match="3 samples were lost"):
         CL.closure_from_block(_block(gap_at=2500), p)
-    with pytest.raises(CL.ClosureError, match="RAW"):
+    with pytest.raises(SD.ClosureError, match="RAW"):
         CL.closure_from_block(_block(calibrated=True), p)
-    with pytest.raises(CL.ClosureError, match="no motion"):
+    with pytest.raises(SD.ClosureError, match="no motion"):
         CL.closure_from_block(_block(), p)
     assert CL.is_factory(p) and not CL.is_factory(dataclasses.replace(p, gyro_b_rad_s=(0.001, 0.0, 0.0)))
 
@@ -226,8 +227,6 @@ def calibrated_run(tmp_path_factory):
         with vb.device(timeout=5.0) as dev:
             params = CL.calibrate_virtual(vb, dev, out / "session", seed=31, say=lambda s: None)
             truth = vb.get_truth()
-            legs = CL.PATHS["box"]
-            start, finished = CL.sim_drive(vb, legs)
             replies = []
             orig = vb.path
 
@@ -236,7 +235,7 @@ def calibrated_run(tmp_path_factory):
                 return replies[-1]
             vb.path = recording_path
             pos0 = vb.status()["position_m"]
-            res = CL.run_closure(dev, out / "closure", params, start, finished, "box", say=lambda s: None)
+            res = CL.run_closure(dev, out / "closure", params, vb, "box", say=lambda s: None)
             pos1 = vb.status()["position_m"]
     return {"out": out, "params": params, "truth": truth, "res": res, "reply": replies[0], "pos": (pos0, pos1)}
 
@@ -251,12 +250,14 @@ def test_closure_on_the_virtual_device_before_and_after_calibration(calibrated_r
     assert res["after_rest_bias"].distance_m < 4 * floor
     assert res["improvement"] > 10
     # the window found in the data brackets the path the bench drove
+    # (pad 0.25 s; the 50 ms statistics may see the motion up to one window early or late)
     rep, w = calibrated_run["reply"], res["window"]
-    assert w["t0_s"] <= rep["t_start_us"] * 1e-6 <= w["t0_s"] + 0.3
-    assert w["t1_s"] - 0.3 <= rep["t_end_us"] * 1e-6 <= w["t1_s"]
-    # the integrated path length is the driven one's
+    assert w["t0_s"] <= rep["t_start_us"] * 1e-6 <= w["t0_s"] + 0.35
+    assert w["t1_s"] - 0.35 <= rep["t_end_us"] * 1e-6 <= w["t1_s"]
+    # the integrated path length is the driven one's, give or take the drift of the integration
+    # (its end error is itself up to ~4 floors, and the drift lengthens the path by about that)
     true_len = float(np.linalg.norm(np.diff(CL.sim_truth_path(CL.PATHS["box"], 400), axis=0), axis=1).sum())
-    assert res["after_rest_bias"].path_length_m == pytest.approx(true_len, rel=0.1)
+    assert abs(res["after_rest_bias"].path_length_m - true_len) < 0.1 + 4 * floor
 
 
 def test_session_aligns_the_accelerometer_to_the_gyro_frame(calibrated_run):
@@ -278,6 +279,7 @@ def test_closure_files_and_reanalysis(calibrated_run, capsys):
     assert meta["after"]["distance_m"] == pytest.approx(calibrated_run["res"]["after"].distance_m)
     assert (d / "closure.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert meta["decoder"]["samples_missing"] == 0
+    assert max(abs(v) for v in meta["truth_closure_m"]) < 1e-9          # the bench's own path closed
     # the raw capture alone (with the parameters recorded first) gives the same figures
     assert CL.main_closure(["--analyse", str(d)]) == 0
     again = json.loads((d / "closure.json").read_text())
@@ -296,6 +298,6 @@ def test_closure_refuses_factory_parameters(tmp_path, capsys):
 def test_params_file_is_read(tmp_path):
     p = dataclasses.replace(PR.identity(), gyro_b_rad_s=(0.01, 0.0, 0.0))
     f = tmp_path / "p.json"
-    f.write_text(json.dumps({"params": CL._params_json(p)}))
+    f.write_text(json.dumps({"params": PR.to_json(p)}))
     q = CL._load_params(str(f))
     assert isinstance(q, Params) and q.gyro_b_rad_s == (0.01, 0.0, 0.0)

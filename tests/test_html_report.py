@@ -197,16 +197,17 @@ def test_report_shows_the_closure_check(session_dir, tmp_path):
     """closure.json + closure.png from imubench.closure (here from an exact synthetic box path,
     integrated with a biased and a clean accelerometer) become a table and an embedded plot."""
     from imubench import closure as CL
+    from imubench import strapdown as SD
     from test_closure import synthetic
     t, f, w, _ = synthetic(CL.PATHS["box"])
-    i0, i1 = CL.motion_window(t, f, w, rest_s=2.0)
-    res = {"before": CL.strapdown(t, f + [0.05, -0.03, 0.1], w * 1.01, i0, i1, 1600, label="before calibration"),
-           "after": CL.strapdown(t, f, w, i0, i1, 1600, label="after calibration"),
-           "after_rest_bias": CL.strapdown(t, f, w, i0, i1, 1600, label="after, gyro bias zeroed at rest"),
+    i0, i1 = SD.motion_window(t, f, w, rest_s=2.0)
+    res = {"before": SD.strapdown(t, f + [0.05, -0.03, 0.1], w * 1.01, i0, i1, 1600, label="before calibration"),
+           "after": SD.strapdown(t, f, w, i0, i1, 1600, label="after calibration"),
+           "after_rest_bias": SD.strapdown(t, f, w, i0, i1, 1600, label="after, gyro bias zeroed at rest"),
            "gyro_bias_at_rest_rad_s": [1e-4, -2e-4, 0.0],
            "window": {"i0": i0, "i1": i1, "t0_s": t[i0], "t1_s": t[i1], "duration_s": t[i1] - t[i0],
                       "fs_hz": 1000.0, "samples": i1 - i0 + 1},
-           "noise_floor": CL.noise_floor(f[:2000] + 0.007, w[:2000] + 0.001, 1000.0, 7.7, 1600)}
+           "noise_floor": SD.noise_floor(f[:2000] + 0.007, w[:2000] + 0.001, 1000.0, 7.7, 1600)}
     res["improvement"] = res["before"].distance_m / res["after"].distance_m
     d = tmp_path / "cl"
     d.mkdir()
@@ -222,3 +223,7 @@ def test_report_shows_the_closure_check(session_dir, tmp_path):
     (d / "closure.json").write_text(json.dumps({"schema": 1, "path": "box"}))
     doc = build_report(session_dir, tmp_path / "r2.html", closure_dir=d).read_text(encoding="utf-8")
     assert "holds no result" in doc and "--analyse" in doc
+    # a file that does not parse is named, not skipped
+    (d / "closure.json").write_text("{not json")
+    doc = build_report(session_dir, tmp_path / "r3.html", closure_dir=d).read_text(encoding="utf-8")
+    assert "closure check data" in doc and "unreadable" in doc

@@ -120,6 +120,20 @@ def _missing(what: str, how: str) -> str:
     return f'<p class="missing">{esc(what)}: not measured in this session ({esc(how)}).</p>'
 
 
+def _load_json(path: Path | None, what: str, how: str, out: list[str]):
+    """The JSON at path, or None after appending to out why there is none: "not measured"
+    (with how to get it) when the file is absent, "unreadable" when it does not parse."""
+    if path is None or not Path(path).is_file():
+        out.append(_missing(what, how))
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        out.append(f'<p class="missing">{esc(what)} data {esc(path)}: unreadable ({esc(e)}); '
+                   "not measured in this session.</p>")
+        return None
+
+
 def _version() -> str:
     try:
         from importlib.metadata import version
@@ -291,14 +305,9 @@ def _calibration_section(session_dir: Path, state: dict) -> str:
 # ------------------------------------------------------------------ noise
 def _noise_section(allan_dir: Path | None) -> str:
     out = ["<h2>Noise (Allan deviation)</h2>"]
-    path = allan_dir / "allan.json" if allan_dir is not None else None
-    if path is None or not path.is_file():
-        out.append(_missing("noise", "no allan.json; record one with imubench allan and give --allan DIR"))
-        return "\n".join(out)
-    try:
-        res = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        out.append(f'<p class="missing">{esc(path)}: unreadable ({esc(e)})</p>')
+    res = _load_json(allan_dir / "allan.json" if allan_dir is not None else None, "noise",
+                     "no allan.json; record one with imubench allan and give --allan DIR", out)
+    if res is None:
         return "\n".join(out)
     from .noise import usual_units
     dur = _f(res.get("duration_s"))
@@ -366,14 +375,9 @@ THERMAL_FIELDS = (("accel_bias_tc", "mps2_per_c", "accel bias", "µg/°C", 1e6 /
 
 def _thermal_section(path: Path | None) -> str:
     out = ["<h2>Temperature</h2>"]
-    if path is None:
-        out.append(_missing("temperature", "no thermal data given; run imubench thermal --out DIR and pass "
-                            "--thermal DIR/thermal.json"))
-        return "\n".join(out)
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as e:
-        out.append(f'<p class="missing">thermal data {esc(path)}: unreadable ({esc(e)}); not measured in this session.</p>')
+    data = _load_json(path, "temperature", "no thermal data given; run imubench thermal --out DIR and pass "
+                      "--thermal DIR/thermal.json", out)
+    if data is None:
         return "\n".join(out)
     out.append(f"<p>from {esc(Path(path).name)}</p>")
 
@@ -494,14 +498,9 @@ def _thermal_section(path: Path | None) -> str:
 def _closure_section(directory: Path | None) -> str:
     out = ["<h2>Closure check</h2>"]
     path = directory / "closure.json" if directory is not None else None
-    if path is None or not path.is_file():
-        out.append(_missing("closure check", "run imubench calibrate --closure, or imubench closure --out DIR "
-                            "and give --closure DIR"))
-        return "\n".join(out)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        out.append(f'<p class="missing">closure data {esc(path)}: unreadable ({esc(e)}); not measured in this session.</p>')
+    data = _load_json(path, "closure check", "run imubench calibrate --closure, or imubench closure --out DIR "
+                      "and give --closure DIR", out)
+    if data is None:
         return "\n".join(out)
     if not isinstance(data, dict) or "after" not in data:
         out.append(f'<p class="missing">{esc(path)} holds no result (the recording did not finish: '

@@ -7,7 +7,7 @@ with temperature terms: x = M⁻¹·((u − b − bias_tc·ΔT) / (1 + scale_tc�
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -18,6 +18,16 @@ def identity() -> Params:
     """Factory defaults: identity matrices, zero biases and temperature terms."""
     eye = tuple(float(v) for v in np.eye(3).ravel())
     return Params(accel_m=eye, gyro_m=eye, accel_t_ref_c=25.0, gyro_t_ref_c=25.0)
+
+
+def to_json(p: Params) -> dict:
+    """The block as a JSON-able dict: field names of the protocol definition, vectors as lists."""
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(p).items()}
+
+
+def from_json(d: dict) -> Params:
+    """The inverse of to_json (unknown keys are an error, as Params itself says)."""
+    return Params(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
 
 
 @dataclass

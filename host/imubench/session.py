@@ -774,17 +774,8 @@ def _closure_after_session(dev, vb, out_dir: Path, params: Params) -> dict:
     """The closure check with the parameters just written (imubench.closure): a summary for
     the session's result; the details are in out_dir."""
     from . import closure as CL
-    if vb is not None:
-        legs = CL.PATHS["box"]
-        start, finished = CL.sim_drive(vb, legs)
-        extra = {"truth_path_m": CL.sim_truth_path(legs).tolist()}
-        path = "box"
-    else:
-        start = lambda: print("now move the board along a closed path and put it back on the start mark",  # noqa: E731
-                              flush=True)
-        finished, extra, path = CL.human_finished(), {}, "by hand"
     print("\nclosure check: integrating a closed path before and after calibration")
-    res = CL.run_closure(dev, out_dir, params, start, finished, path, extra=extra)
+    res = CL.run_closure(dev, out_dir, params, vb, "box")
     print(CL.summarize(res))
     print(f"closure details: {out_dir / 'closure.json'}, plot {out_dir / 'closure.png'}")
     return {"dir": str(out_dir), "before_m": res["before"].distance_m, "after_m": res["after"].distance_m,

@@ -163,16 +163,21 @@ int sim_phys_path_leg(const sim_physics_t *p, uint64_t t_us)
     return lo;
 }
 
-static void path_orientation(const sim_leg_t *l, double s, double r[3][3])
+/* r = r0 * Rot(axis, th): a body-fixed turn composed on the right (r0 itself at th = 0). */
+static void turned(const double r0[3][3], const double axis[3], double th, double r[3][3])
 {
-    double th = l->angle_rad * mj_h(s);
     if (th == 0.0) {
-        memcpy(r, l->r0, 9 * sizeof(double));
+        memcpy(r, r0, 9 * sizeof(double));
         return;
     }
     double m[3][3];
-    rot_matrix(l->axis, th, m);
-    mat_mul(l->r0, m, r);
+    rot_matrix(axis, th, m);
+    mat_mul(r0, m, r);
+}
+
+static void path_orientation(const sim_leg_t *l, double s, double r[3][3])
+{
+    turned(l->r0, l->axis, l->angle_rad * mj_h(s), r);
 }
 
 void sim_phys_init(sim_physics_t *p)
@@ -210,14 +215,7 @@ void sim_phys_orientation(const sim_physics_t *p, uint64_t t_us, double r[3][3])
         path_orientation(l, s, r);
         return;
     }
-    double th = motion_angle(p, t_us);
-    if (th == 0.0) {
-        memcpy(r, p->r0, 9 * sizeof(double));
-        return;
-    }
-    double m[3][3];
-    rot_matrix(p->axis, th, m);
-    mat_mul(p->r0, m, r);
+    turned(p->r0, p->axis, motion_angle(p, t_us), r);
 }
 
 void sim_phys_gravity_dir(const sim_physics_t *p, uint64_t t_us, double g[3])
