@@ -71,7 +71,7 @@ test: system-deps venv c-tests sim firmware
 	$(PY) -m pytest
 
 demo: system-deps venv sim
-	$(PY) -m imubench.demo
+	$(PY) -m imubench.cli.demo
 
 clean:
 	rm -rf $(BUILD)

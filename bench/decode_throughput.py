@@ -8,8 +8,8 @@ What is measured:
 
 * imubench: a device stream of raw_batch frames (16 samples of 14 bytes each by default,
   4 kHz, accel noise around 1 g on Z, small gyro counts), built once with
-  imubench.protocol (pack_records + build_frame), then decoded by a fresh
-  imubench.decoder.StreamDecoder per run, fed in fixed-size chunks; the time runs from
+  imubench.wire.frame (pack_records + build_frame), then decoded by a fresh
+  imubench.wire.decoder.StreamDecoder per run, fed in fixed-size chunks; the time runs from
   the first feed() to the arrays returned by the final take_samples(). Best of --repeat.
 * pymavlink: a MAVLink v2 stream of RAW_IMU messages (one sample per message, the same
   sample values rescaled to mg / mrad/s), encoded with pymavlink's own MAVLink class and
@@ -32,9 +32,9 @@ import time
 
 import numpy as np
 
-from imubench import protocol as P
-from imubench.decoder import StreamDecoder
-from imubench.protocol_gen import BATCH_HEADER_DTYPE, BatchHeader, MsgType, RawBatch
+from imubench.wire import frame as P
+from imubench.wire.decoder import StreamDecoder
+from imubench.wire.protocol_gen import BATCH_HEADER_DTYPE, BatchHeader, MsgType, RawBatch
 
 RATE_HZ = 4000
 PERIOD_US = 1_000_000 // RATE_HZ

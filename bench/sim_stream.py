@@ -3,7 +3,7 @@
 
 Starts the virtual device (firmware core + drivers + sensor models) with no pacing
 (--speed 0: device time runs as fast as the process can go), streams raw samples over its
-TCP serial port into imubench.link.Device, and reports samples per second of wall time
+TCP serial port into imubench.device.link.Device, and reports samples per second of wall time
 and that as a multiple of real time (samples/s divided by the stream rate). Target: at
 least 20x real time at 1 kHz. Every sample is checked for continuity (no gap, no rejected
 frame). Prints a final JSON line.
@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "host"))
 
 import numpy as np  # noqa: E402
 
-from imubench.link import Device  # noqa: E402
-from imubench.sim import VirtualBench, build_sim  # noqa: E402
+from imubench.device.link import Device  # noqa: E402
+from imubench.device.sim import VirtualBench, build_sim  # noqa: E402
 
 
 def run(rate: int, device_s: float) -> dict:

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 import pytest
-from imubench import attitude as A
+from imubench.procedures import attitude as A
 from imubench.units import G0_MPS2
 
 
@@ -103,7 +103,7 @@ def test_kalman_speed():
 # ------------------------------------------------------------------ on the virtual device
 @pytest.fixture(scope="module")
 def bench():
-    from imubench.sim import VirtualBench
+    from imubench.device.sim import VirtualBench
     with VirtualBench(speed=20, seed=1) as b:   # default truth: ideal parts, datasheet noise
         yield b
 
@@ -175,7 +175,7 @@ def test_main_attitude_records(bench, tmp_path, capsys):
         assert float(last[f"{name}_roll_deg"]) == pytest.approx(10, abs=0.05)
         assert float(last[f"{name}_pitch_deg"]) == pytest.approx(-5, abs=0.05)
     # the capture decodes back to the same stream
-    from imubench.decoder import decode_bytes
+    from imubench.wire.decoder import decode_bytes
     _, _, cal, _ = decode_bytes(rec.read_bytes())
     assert cal is not None and len(cal) >= len(rows)
 

@@ -9,13 +9,13 @@ import sys
 
 import numpy as np
 
-from imubench import protocol as P
-from imubench.fakedev import FakeDevice
-from imubench.protocol_gen import BatchHeader, RawBatch, Stats
+from imubench.wire import frame as P
+from imubench.device.fake import FakeDevice
+from imubench.wire.protocol_gen import BatchHeader, RawBatch, Stats
 
 
 def run(*args, env=None, timeout=60):
-    return subprocess.run([sys.executable, "-m", "imubench.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "imubench", *args], capture_output=True, text=True,
                           timeout=timeout, env={**os.environ, **(env or {})})
 
 
@@ -85,5 +85,5 @@ def test_info_and_missing_port(monkeypatch):
         r = run("info", "--port", fake.port_url)
     assert r.returncode == 0 and "ADXL355 IDs AD 1D ED 01" in r.stdout
     env = {k: v for k, v in os.environ.items() if k != "IMUBENCH_PORT"}
-    r = subprocess.run([sys.executable, "-m", "imubench.cli", "info"], capture_output=True, text=True, env=env)
+    r = subprocess.run([sys.executable, "-m", "imubench", "info"], capture_output=True, text=True, env=env)
     assert r.returncode == 2 and "IMUBENCH_PORT" in r.stderr

@@ -1,4 +1,4 @@
-"""Closure check (imubench.closure, imubench.strapdown): the strapdown integration against analytic cases, the
+"""Closure check (imubench.procedures.closure, imubench.analysis.strapdown): the strapdown integration against analytic cases, the
 motion detection, the white-noise floor against a Monte Carlo, refusals; the simulator's
 path motion; and the whole check on the virtual device, calibrated by a real session."""
 from __future__ import annotations
@@ -9,12 +9,12 @@ import math
 
 import numpy as np
 import pytest
-from imubench import closure as CL
-from imubench import params as PR
-from imubench import strapdown as SD
-from imubench.decoder import SampleBlock
-from imubench.protocol_gen import Params
-from imubench.sim import VirtualBench
+from imubench.procedures import closure as CL
+from imubench.wire import params as PR
+from imubench.analysis import strapdown as SD
+from imubench.wire.decoder import SampleBlock
+from imubench.wire.protocol_gen import Params
+from imubench.device.sim import VirtualBench
 
 G = CL.G0
 FS = 1000.0

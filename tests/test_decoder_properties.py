@@ -1,4 +1,4 @@
-"""Property-based tests of the stream decoder (imubench.decoder.StreamDecoder), with hypothesis.
+"""Property-based tests of the stream decoder (imubench.wire.decoder.StreamDecoder), with hypothesis.
 
 What is checked (one section each below):
  1. garbage in: random bytes, and random bytes mixed with fuzzed frames that carry a valid CRC
@@ -11,7 +11,7 @@ What is checked (one section each below):
  4. whole frames removed: seq_gaps / frames_missing and sample_gaps / samples_missing are exact;
  5. 32-bit microsecond timestamps that wrap are unwrapped monotonically by take_samples().
 
-Streams are built with imubench.protocol.encode and the protocol_gen message classes; the
+Streams are built with imubench.wire.frame.encode and the protocol_gen message classes; the
 expected samples are computed from the generated values, not with the decoder's own code.
 """
 from __future__ import annotations
@@ -27,9 +27,9 @@ from cobs import cobs
 from hypothesis import HealthCheck, Phase, event, given, note, settings
 from hypothesis import strategies as st
 
-from imubench import protocol as P
-from imubench import protocol_gen as G
-from imubench.decoder import SampleBlock, StreamDecoder, decode_bytes
+from imubench.wire import frame as P
+from imubench.wire import protocol_gen as G
+from imubench.wire.decoder import SampleBlock, StreamDecoder, decode_bytes
 
 # Bounded example counts, no deadline (the first examples pay for imports and numpy warm-up),
 # no example database written into the tree.

@@ -1,4 +1,4 @@
-"""`imubench flash` (imubench.flash.main_flash) against stand-in flashing tools.
+"""`imubench flash` (imubench.device.flash.main_flash) against stand-in flashing tools.
 
 Each stand-in is a shell script on a private PATH that records its argv in a log and exits
 0, or 1 with an error message when $FAKE_FAIL names it. The st-flash stand-in answers
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from imubench.flash import main_flash
+from imubench.device.flash import main_flash
 
 ROOT = Path(__file__).resolve().parent.parent
 

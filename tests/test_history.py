@@ -9,8 +9,8 @@ import sqlite3
 import numpy as np
 import pytest
 
-from imubench import history as H
-from imubench.history import AmbiguousDevice, History, SchemaError, UnknownDevice, main_history
+from imubench.results import history as H
+from imubench.results.history import AmbiguousDevice, History, SchemaError, UnknownDevice, main_history
 
 G0 = 9.80665
 UID_A = "0123456789abcdef01234567"

@@ -8,10 +8,10 @@ import shutil
 
 import numpy as np
 import pytest
-from imubench.html_report import PNG_MAGIC, build_report, main_report
-from imubench.link import Device
-from imubench.session import Session, SessionConfig, SimPresenter, plan_for
-from imubench.sim import VirtualBench
+from imubench.results.report import PNG_MAGIC, build_report, main_report
+from imubench.device.link import Device
+from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for
+from imubench.device.sim import VirtualBench
 
 NOTE = 'bench A <script>alert("x")</script> & co'
 
@@ -76,7 +76,7 @@ def test_report_of_a_session(session_dir, tmp_path):
 
 
 def test_report_with_noise_attitude_and_thermal(session_dir, tmp_path):
-    from imubench.noise import allan, plot_allan, usual_units
+    from imubench.procedures.allan import allan, plot_allan, usual_units
     rng = np.random.default_rng(1)
     acc, gyr = rng.normal(0, 1e-3, (20000, 3)), rng.normal(0, 1e-4, (20000, 3))
     res = {"source": ["capture.bin"], "samples": 20000, "rate_hz": 100.0, "duration_s": 200.0,
@@ -93,7 +93,7 @@ def test_report_with_noise_attitude_and_thermal(session_dir, tmp_path):
                                    "gyro_scale_tc": [1e-5, 0, 0], "notes": ["<b>hot</b>"]}))
     sd = tmp_path / "s"
     shutil.copytree(session_dir, sd)
-    from imubench.report import plot_pose_residuals
+    from imubench.results.calibration import plot_pose_residuals
     plot_pose_residuals(json.loads((sd / "session.json").read_text())["result"], sd / "residuals.png")
     out = tmp_path / "full.html"
     assert main_report([str(sd), "--out", str(out), "--allan", str(nd), "--attitude", str(nd / "allan_gyro.png"),
@@ -137,7 +137,7 @@ def test_unfinished_session_is_reported(session_dir, tmp_path):
 @pytest.fixture(scope="module")
 def thermal_json(tmp_path_factory):
     """thermal.json of a real `imubench thermal --sim --write` run (short: two temperatures)."""
-    from imubench.thermal import main_thermal
+    from imubench.procedures.thermal import main_thermal
     d = tmp_path_factory.mktemp("thermal") / "t"
     assert main_thermal(["--sim", "--temps", "10,40", "--samples", "300", "--write", "--ramp", "5",
                          "--settle-s", "2", "--out", str(d)]) == 0
@@ -194,10 +194,10 @@ def test_report_of_an_interrupted_thermal_run(session_dir, thermal_json, tmp_pat
 
 
 def test_report_shows_the_closure_check(session_dir, tmp_path):
-    """closure.json + closure.png from imubench.closure (here from an exact synthetic box path,
+    """closure.json + closure.png from imubench.procedures.closure (here from an exact synthetic box path,
     integrated with a biased and a clean accelerometer) become a table and an embedded plot."""
-    from imubench import closure as CL
-    from imubench import strapdown as SD
+    from imubench.procedures import closure as CL
+    from imubench.analysis import strapdown as SD
     from test_closure import synthetic
     t, f, w, _ = synthetic(CL.PATHS["box"])
     i0, i1 = SD.motion_window(t, f, w, rest_s=2.0)

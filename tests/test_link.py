@@ -1,5 +1,5 @@
 """The host link and device client over a real pseudo-terminal, against the Python fake
-device (imubench.fakedev). The same tests run against the virtual device once it exists."""
+device (imubench.device.fake). The same tests run against the virtual device once it exists."""
 from __future__ import annotations
 
 import os
@@ -7,10 +7,10 @@ import os
 import numpy as np
 import pytest
 
-from imubench import params as PR
-from imubench.fakedev import FakeDevice
-from imubench.link import Device, DeviceError, LinkError, LinkTimeout
-from imubench.protocol_gen import Error, MsgType, ParamsWhich, ParamSource, StreamState
+from imubench.wire import params as PR
+from imubench.device.fake import FakeDevice
+from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
+from imubench.wire.protocol_gen import Error, MsgType, ParamsWhich, ParamSource, StreamState
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""Allan-deviation noise characterisation (imubench.noise): synthetic data with known noise,
+"""Allan-deviation noise characterisation (imubench.procedures.allan): synthetic data with known noise,
 the virtual device's known noise parameters, and the crash-safe `imubench allan` command."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from imubench.noise import allan, main_allan, parse_duration, plot_allan
+from imubench.procedures.allan import allan, main_allan, parse_duration, plot_allan
 
 FS = 100.0
 GYRO_N, GYRO_K = 2.6e-4, 1.0e-4        # rad/s/√Hz, rad/s·√Hz
@@ -60,7 +60,7 @@ def test_white_noise_only_has_no_random_walk():
 
 @pytest.fixture(scope="module")
 def vb():
-    from imubench.sim import VirtualBench
+    from imubench.device.sim import VirtualBench
     with VirtualBench(speed=0, seed=5) as b:
         b.set_truth(accel={"noise_n": [ACC_N] * 3, "rw_k": [ACC_K] * 3},
                     gyro=[{"noise_n": GYRO_N, "bias_rw_k": GYRO_K}] * 3)

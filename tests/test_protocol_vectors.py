@@ -7,8 +7,8 @@ import subprocess
 import numpy as np
 import pytest
 
-from imubench import protocol as P
-from imubench.protocol_gen import MESSAGES_BY_NAME
+from imubench.wire import frame as P
+from imubench.wire.protocol_gen import MESSAGES_BY_NAME
 
 from conftest import ROOT
 
@@ -169,7 +169,7 @@ def test_c_encodes_every_good_vector(c_harness):
 
 def test_worked_example_of_the_spec():
     """protocol/SPEC.md works one ping frame out by hand; the codec must agree."""
-    from imubench.protocol_gen import Ping
+    from imubench.wire.protocol_gen import Ping
     assert P.encode(Ping(nonce=0x12345678), seq=7, timestamp_us=99).hex(" ") == \
         "04 01 01 07 02 63 01 01 09 78 56 34 12 c3 66 2b c0 00"
     assert P.crc32c(bytes.fromhex("010107006300000078563412")) == 0xC02B66C3
@@ -181,7 +181,7 @@ def test_worked_example_of_the_spec():
 def test_link_budget_frame_sizes_of_the_spec():
     """SPEC.md's link budget: 260 bytes per 16 raw samples, 92 per 4, 236 per 8 calibrated."""
     import numpy as np
-    from imubench.protocol_gen import BatchHeader, CalBatch, RawBatch
+    from imubench.wire.protocol_gen import BatchHeader, CalBatch, RawBatch
 
     def raw(n):
         recs = dict(accel_x_counts=np.full(n, 12345), accel_y_counts=np.full(n, -7), accel_z_counts=np.full(n, 256000),

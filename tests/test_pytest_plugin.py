@@ -1,6 +1,6 @@
 """The pytest plugin users get with the package: a device fixture that is the virtual
 device by default and a real port when one is given."""
-from imubench.sim import VirtualBench
+from imubench.device.sim import VirtualBench
 
 USER_TEST = """
 def test_device(imubench_device):

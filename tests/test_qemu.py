@@ -1,16 +1,16 @@
-"""The STM32 firmware images under qemu-system-arm (imubench.qemu), both boards:
+"""The STM32 firmware images under qemu-system-arm (imubench.device.qemu), both boards:
 stm32vldiscovery (F1 board code, build/arm/qemu-f1) and netduinoplus2 (F4, build/arm/qemu-f4).
 
 Under QEMU nothing answers on SPI (reads 0x00), so the firmware must find every sensor
 missing, say so (info, fault events, batch flags, sample status) and keep serving commands.
 Flash writes are dropped by QEMU, so save_params must fail cleanly (FLASH_ERROR); a parameter
-page preloaded with -device loader (built by imubench.paramstore) must be validated and
+page preloaded with -device loader (built by imubench.wire.paramstore) must be validated and
 applied at boot, a corrupted one rejected.
 
 These tests never skip: `make firmware` installs the toolchain and QEMU (as root); when
 qemu-system-arm is missing QemuBoard raises and the tests fail.
 
-The last part checks imubench.paramstore against the C parameter store itself
+The last part checks imubench.wire.paramstore against the C parameter store itself
 (firmware/core/param_store.c compiled for the host with a small checker program).
 """
 from __future__ import annotations
@@ -24,12 +24,12 @@ from pathlib import Path
 
 import pytest
 
-from imubench import paramstore as PS
-from imubench import protocol as P
-from imubench.link import Device, DeviceError
-from imubench.protocol_gen import (Board, ClockSource, Error, FaultKind, MsgType, Params, ParamsWhich,
+from imubench.wire import paramstore as PS
+from imubench.wire import frame as P
+from imubench.device.link import Device, DeviceError
+from imubench.wire.protocol_gen import (Board, ClockSource, Error, FaultKind, MsgType, Params, ParamsWhich,
                                    ParamSource, StreamState)
-from imubench.qemu import QemuBoard, build_firmware
+from imubench.device.qemu import QemuBoard, build_firmware
 
 from conftest import ROOT
 
@@ -316,7 +316,7 @@ def test_corrupted_param_page_rejected(firmware_built, board):
         with r.device() as d:
             act = d.get_params(ParamsWhich.ACTIVE)
             assert act.source == ParamSource.FACTORY
-            from imubench.params import identity
+            from imubench.wire.params import identity
             assert params_bytes(act.params) == params_bytes(identity())
     finally:
         r.q.close()

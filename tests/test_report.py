@@ -7,7 +7,7 @@ import struct
 import numpy as np
 import pytest
 
-from imubench.report import before_after_table, plot_pose_residuals
+from imubench.results.calibration import before_after_table, plot_pose_residuals
 
 SIX = ["+X up", "-X up", "+Y up", "-Y up", "+Z up (level)", "-Z up"]
 
@@ -60,7 +60,7 @@ def test_plot_needs_no_display_and_no_pyplot(tmp_path):
     import os
     import subprocess
     import sys
-    code = ("import sys; from imubench.report import plot_pose_residuals; "
+    code = ("import sys; from imubench.results.calibration import plot_pose_residuals; "
             "r = {'method': 'six', 'device': {'mcu_uid': 'ab' * 12}, "
             "'poses': [{'name': f'p{i}', 'before_g': 1.01, 'after_g': 1.0, 'sigma_g': 1e-5} for i in range(6)]}; "
             f"plot_pose_residuals(r, {str(tmp_path / 'p.png')!r}); "

@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from imubench import params as PR
-from imubench.history import History
-from imubench.link import Device
-from imubench.protocol_gen import ParamsWhich
-from imubench.session import (
+from imubench.wire import params as PR
+from imubench.results.history import History
+from imubench.device.link import Device
+from imubench.wire.protocol_gen import ParamsWhich
+from imubench.procedures.session import (
     Session,
     SessionAborted,
     SessionConfig,
@@ -19,7 +19,7 @@ from imubench.session import (
     plan_for,
     truth_in_fit_frame,
 )
-from imubench.sim import VirtualBench
+from imubench.device.sim import VirtualBench
 
 NO_DRIFT = {"rw_k": 0.0}                    # a fixed truth: the bias does not wander
 
@@ -239,7 +239,7 @@ def test_the_user_can_redo_a_pose_live_and_after_a_resume(tmp_path):
 
 
 def test_human_presenter_tells_what_to_do(capsys):
-    from imubench.session import HumanPresenter
+    from imubench.procedures.session import HumanPresenter
     ui = HumanPresenter()
     ui.present_pose("+X up (nose up)", np.array([1.0, 0, 0]), 2, 6)
     ui.progress("+X up (nose up)", 0.5)
@@ -253,17 +253,17 @@ def test_human_presenter_tells_what_to_do(capsys):
 def test_calibrate_command_end_to_end(tmp_path):
     import subprocess
     import sys
-    r = subprocess.run([sys.executable, "-m", "imubench.cli", "calibrate", "--sim", "--sim-seed", "3",
+    r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-seed", "3",
                         "--method", "six", "--gyro", "bias", "--dir", str(tmp_path / "s"),
                         "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
     assert "calibration PASSED" in r.stdout and "accelerometer (six_position): u = M·x + b" in r.stdout
     assert (tmp_path / "s" / "residuals.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    h = subprocess.run([sys.executable, "-m", "imubench.cli", "history", "--db", str(tmp_path / "h.sqlite")],
+    h = subprocess.run([sys.executable, "-m", "imubench", "history", "--db", str(tmp_path / "h.sqlite")],
                        capture_output=True, text=True, timeout=60)
     assert h.returncode == 0 and "SIM" in h.stdout
     # resuming a finished session with --redo recaptures one pose and passes again
-    r2 = subprocess.run([sys.executable, "-m", "imubench.cli", "calibrate", "--sim", "--sim-seed", "3",
+    r2 = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-seed", "3",
                          "--resume", str(tmp_path / "s"), "--redo", "+Z up (level)", "--no-write",
                          "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True, timeout=300)
     assert r2.returncode == 0, r2.stdout[-3000:] + r2.stderr[-2000:]

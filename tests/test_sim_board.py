@@ -1,5 +1,5 @@
 """The virtual device's board layer (firmware/boards/sim) and its Python wrapper
-(imubench.sim): process start-up and shutdown, the control channel, the turntable physics,
+(imubench.device.sim): process start-up and shutdown, the control channel, the turntable physics,
 the flash file, fault injection plumbing. End-to-end stream tests through the firmware
 core live with the core's tests; the few here that talk to the device only check what
 the board supplies (identity, link, flash, resets)."""
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from imubench.sim import SimError, VirtualBench, build_sim, repo_root
+from imubench.device.sim import SimError, VirtualBench, build_sim, repo_root
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -142,7 +142,7 @@ def test_exits_when_parent_dies(sim_bin):
     code = textwrap.dedent(f"""
         import os, sys
         sys.path.insert(0, {str(ROOT / 'host')!r})
-        from imubench.sim import VirtualBench
+        from imubench.device.sim import VirtualBench
         b = VirtualBench(speed=20, binary={str(sim_bin)!r})
         print(b.pid, flush=True)
         os._exit(0)          # no atexit, no stop(): only the simulator's own watch helps
@@ -179,7 +179,7 @@ def test_wrong_size_flash_file_is_refused(sim_bin, tmp_path):
 
 
 def test_pty_link(sim_bin):
-    from imubench.link import Device
+    from imubench.device.link import Device
     with VirtualBench(speed=20, pty=True, tcp=False, binary=sim_bin) as b:
         assert b.pty is not None and b.pty.startswith("/dev/")
         assert b.port_url == b.pty and b.tcp_port is None
@@ -431,8 +431,8 @@ def test_truth_is_deterministic_from_seed(sim_bin):
 
 # ------------------------------------------------------------------ with the core
 def test_device_identity_and_link(bench):
-    from imubench.link import Device
-    from imubench.protocol_gen import Board, ClockSource
+    from imubench.device.link import Device
+    from imubench.wire.protocol_gen import Board, ClockSource
     with Device.open(bench.port_url, timeout=1.0) as dev:
         dev.ping()
         info = dev.info()
@@ -452,8 +452,8 @@ def test_device_identity_and_link(bench):
 
 
 def test_flash_ops_power_cut_and_restart(sim_bin, tmp_path):
-    from imubench.link import Device, LinkTimeout
-    from imubench.protocol_gen import ParamSource
+    from imubench.device.link import Device, LinkTimeout
+    from imubench.wire.protocol_gen import ParamSource
     flash = tmp_path / "flash.bin"
     with VirtualBench(speed=20, flash=flash, binary=sim_bin) as b:
         with Device.open(b.port_url, timeout=1.0, retries=0) as dev:
@@ -485,7 +485,7 @@ def test_flash_ops_power_cut_and_restart(sim_bin, tmp_path):
 
 
 def test_missing_sensor_at_power_cycle(bench):
-    from imubench.link import Device
+    from imubench.device.link import Device
     bench.inject("missing", sensor="gyro_y")
     bench.power_cut()
     bench.wait(1.5)
@@ -499,7 +499,7 @@ def test_missing_sensor_at_power_cycle(bench):
 
 
 def test_spi_error_injection_reaches_the_core(bench):
-    from imubench.link import Device
+    from imubench.device.link import Device
     with Device.open(bench.port_url, timeout=1.0) as dev:
         dev.start_stream(rate_hz=100)
         bench.inject("spi_error", sensor="gyro_z", count=3)
@@ -510,7 +510,7 @@ def test_spi_error_injection_reaches_the_core(bench):
 
 
 def test_new_tcp_client_replaces_the_old_one(bench):
-    from imubench.link import Device
+    from imubench.device.link import Device
     a = Device.open(bench.port_url, timeout=1.0)
     try:
         a.ping()
@@ -528,7 +528,7 @@ def test_new_tcp_client_replaces_the_old_one(bench):
 def test_slow_link_drops_whole_batches(sim_bin):
     """At 115200 baud a 4 kHz raw stream does not fit: the TX ring fills, the core drops
     whole batches and counts them; no frame is ever cut."""
-    from imubench.link import Device
+    from imubench.device.link import Device
     with VirtualBench(speed=2, baud=115200, binary=sim_bin) as b:
         with Device.open(b.port_url, timeout=2.0) as dev:
             assert dev.info().baud == 115200

@@ -1,4 +1,4 @@
-"""Temperature calibration (imubench.thermal): the weighted fit, and the whole sweep on the
+"""Temperature calibration (imubench.procedures.thermal): the weighted fit, and the whole sweep on the
 virtual device: fitted coefficients written to the device cut the drift of its calibrated
 output over the sweep at least 10x (the device applies them itself); thermal settling on a
 ramping chamber; the write-back checked after a reboot; thermal.json written point by point."""
@@ -9,11 +9,11 @@ import json
 
 import numpy as np
 import pytest
-from imubench import params as PR
-from imubench import thermal as TH
+from imubench.wire import params as PR
+from imubench.procedures import thermal as TH
 from imubench import units as U
-from imubench.protocol_gen import Params, ParamsWhich
-from imubench.sim import VirtualBench
+from imubench.wire.protocol_gen import Params, ParamsWhich
+from imubench.device.sim import VirtualBench
 
 TEMPS = [5.0, 25.0, 45.0]
 ACC_BTC = np.array([2e-3, -1.5e-3, 1e-3])          # m/s²/°C

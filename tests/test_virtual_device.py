@@ -7,11 +7,11 @@ import time
 import numpy as np
 import pytest
 
-from imubench import params as PR
-from imubench import protocol as P
+from imubench.wire import params as PR
+from imubench.wire import frame as P
 from imubench import units as U
-from imubench.link import Device, DeviceError, LinkError, LinkTimeout
-from imubench.protocol_gen import (
+from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
+from imubench.wire.protocol_gen import (
     BatchFlags,
     Board,
     Error,
@@ -24,7 +24,7 @@ from imubench.protocol_gen import (
     Sensor,
     StreamState,
 )
-from imubench.sim import VirtualBench
+from imubench.device.sim import VirtualBench
 
 
 def _connect(vb: VirtualBench, **kw) -> Device:
@@ -184,7 +184,7 @@ def _raw_command(dev: Device, frame: bytes):
     """Send hand-made bytes and return the ack that answers them."""
     rid = P.HEADER.unpack_from(P.cobs.decode(frame[:-1]))[2]
     link = dev.link
-    from imubench.link import _Pending
+    from imubench.device.link import _Pending
     with link._cond:
         pend = link._pending[rid] = _Pending(P.cobs.decode(frame[:-1])[1], None, [])
     link._write(frame)

@@ -7,7 +7,7 @@
 Outputs (never edit them by hand):
     firmware/core/protocol_gen.h   constants, enums, structs, pack/unpack prototypes
     firmware/core/protocol_gen.c   pack/unpack and payload-length checks
-    host/imubench/protocol_gen.py  the same layouts for Python (struct formats, numpy dtypes)
+    host/imubench/wire/protocol_gen.py the same layouts for Python (struct formats, numpy dtypes)
     tests/c/protocol_desc_gen.h    field descriptor tables for the C vector harness
     protocol/MESSAGES.md           the message reference (tables of every layout)
 """
@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SPEC = ROOT / "protocol" / "imubench.toml"
 OUT_H = ROOT / "firmware" / "core" / "protocol_gen.h"
 OUT_C = ROOT / "firmware" / "core" / "protocol_gen.c"
-OUT_PY = ROOT / "host" / "imubench" / "protocol_gen.py"
+OUT_PY = ROOT / "host" / "imubench" / "wire" / "protocol_gen.py"
 OUT_DESC = ROOT / "tests" / "c" / "protocol_desc_gen.h"
 OUT_MD = ROOT / "protocol" / "MESSAGES.md"
 
@@ -399,7 +399,7 @@ def gen_c_desc(sp: Spec) -> str:
 def gen_python(sp: Spec) -> str:
     p = sp.proto
     max_frame = p["header_size"] + p["max_payload"] + p["crc_size"]
-    L = [f'"""{BANNER}', "", "Message layouts for imubench.protocol; see protocol/SPEC.md.", '"""',
+    L = [f'"""{BANNER}', "", "Message layouts for imubench.wire.frame; see protocol/SPEC.md.", '"""',
          "from __future__ import annotations", "", "import enum", "import struct",
          "from dataclasses import dataclass, field", "", "import numpy as np", "",
          f"PROTOCOL_VERSION = {p['version']}", f"MAX_PAYLOAD = {p['max_payload']}",

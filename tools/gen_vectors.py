@@ -21,7 +21,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "host"))
 
-from imubench import protocol as P  # noqa: E402
+from imubench.wire import frame as P  # noqa: E402
 
 OUT = ROOT / "protocol" / "vectors" / "vectors.json"
 
@@ -79,7 +79,7 @@ def bad(name, frame: bytes, reason: str, note: str):
 
 
 def params_example():
-    G = gen = __import__("imubench.protocol_gen", fromlist=["Params"])
+    G = gen = __import__("imubench.wire.protocol_gen", fromlist=["Params"])
     return G.Params(
         accel_m=tuple(f32(x) for x in (1.0125, -0.0043, 0.002, 0.0031, 0.9875, -0.0011, -0.0025, 0.0017, 1.003)),
         accel_b_mps2=(f32(0.196133), f32(-0.0980665), f32(0.0490333)),

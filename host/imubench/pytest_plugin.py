@@ -3,7 +3,7 @@
     def test_my_board(imubench_device):
         assert imubench_device.info().sensors_present == 0b1111
 
-`imubench_device` is an open, pinged imubench.link.Device. It connects to the port given by
+`imubench_device` is an open, pinged imubench.device.link.Device. It connects to the port given by
 `--imubench-port URL` or the environment variable IMUBENCH_PORT (a real board: /dev/ttyUSB0,
 socket://..., rfc2217://...); with neither, it starts the virtual device for the session,
 so a bench and CI differ only in that URL. `virtual_bench` gives the VirtualBench itself
@@ -26,7 +26,7 @@ def pytest_addoption(parser):
 
 @pytest.fixture(scope="session")
 def virtual_bench(request):
-    from .sim import VirtualBench
+    from imubench.device.sim import VirtualBench
     with VirtualBench(speed=request.config.getoption("--imubench-sim-speed")) as vb:
         yield vb
 
@@ -41,7 +41,7 @@ def imubench_port(request) -> str:
 
 @pytest.fixture
 def imubench_device(imubench_port):
-    from .link import Device
+    from imubench.device.link import Device
     with Device.open(imubench_port, timeout=3.0) as dev:
         dev.ping()
         yield dev

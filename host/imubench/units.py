@@ -1,6 +1,6 @@
 """Nominal scaling from raw counts to SI, exactly as docs/conventions.md states it.
 
-These are the datasheet scale factors; calibration (imubench.params) corrects what they
+These are the datasheet scale factors; calibration (imubench.wire.params) corrects what they
 get wrong for a particular part.
 """
 from __future__ import annotations

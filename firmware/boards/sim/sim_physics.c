@@ -9,7 +9,7 @@
  *
  * "gravity" in the control channel (set_orientation {gravity}, status gravity_board) is the
  * DIRECTION OF THE MEASURED SPECIFIC FORCE in the board frame (the "up" direction, as
- * imubench.fakedev's gravity_board): level = [0, 0, 1], upside down = [0, 0, -1].
+ * imubench.device.fake's gravity_board): level = [0, 0, 1], upside down = [0, 0, -1].
  *
  * Roll/pitch/yaw (degrees in the control channel): ZYX convention,
  *     R = Rz(yaw) * Ry(pitch) * Rx(roll),

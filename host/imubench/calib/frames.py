@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import CalibrationError, TriadFit
+from imubench.calib import CalibrationError, TriadFit
 
 __all__ = ["align_accel_to_gyro", "nearest_rotation"]
 

@@ -33,7 +33,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 from scipy import optimize, stats
 
-from . import CalibrationError, NotObservable, TriadFit
+from imubench.calib import CalibrationError, NotObservable, TriadFit
 
 __all__ = [
     "TurntableSegment",

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from . import CalibrationError
+from imubench.calib import CalibrationError
 
 __all__ = [
     "StaticInterval", "StaticIntervals", "NotEnoughStatic", "StillnessDetector", "StillnessState",

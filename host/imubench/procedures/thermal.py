@@ -33,10 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import params as PR
-from . import units as U
-from .atomic import write_json_atomic
-from .protocol_gen import Params, ParamsWhich
+from imubench.wire import params as PR
+from imubench import units as U
+from imubench.results.atomic import write_json_atomic
+from imubench.wire.protocol_gen import Params, ParamsWhich
 
 __all__ = [
     "Hooks",
@@ -533,7 +533,7 @@ class ThermalRecord:
 
 
 def _device_json(dev) -> dict:
-    from .protocol_gen import Board
+    from imubench.wire.protocol_gen import Board
     info = dev.info()
     try:
         board = Board(info.board).name
@@ -580,10 +580,10 @@ def format_drift(before: dict, after: dict | None) -> str:
 
 def write_params(dev, new: Params, say: Callable[[str], None] = lambda s: None) -> dict:
     """set_params, bit-exact read-back, save, reboot, bit-exact read-back of the active
-    parameters after the reboot (imubench.session.write_verified, as `imubench calibrate`
+    parameters after the reboot (imubench.procedures.session.write_verified, as `imubench calibrate`
     does); on any failure the previous parameters are put back (and saved again if they had
     been saved) and the error raised. Returns {"generation", "steps", "verified": True}."""
-    from .session import write_verified
+    from imubench.procedures.session import write_verified
     r = write_verified(dev, new, say=say)
     return {"generation": int(r["generation"]), "steps": list(r["steps"]), "verified": True}
 
@@ -705,11 +705,11 @@ def main_thermal(argv: Sequence[str] | None = None) -> int:
         print(f"imubench thermal: {out / ThermalRecord.NAME} exists: choose another --out directory", file=sys.stderr)
         return 1
     say = lambda s: print(s, flush=True)
-    from .link import Device
+    from imubench.device.link import Device
     vb = None
     try:
         if a.sim:
-            from .sim import VirtualBench
+            from imubench.device.sim import VirtualBench
             vb = VirtualBench(speed=a.speed)
             vb.set_truth(accel=SIM_ACCEL_TRUTH, gyro=SIM_GYRO_TRUTH)
             url, hooks, poses = vb.port_url, sim_hooks(vb, say, ramp_c_per_s=ramp), tuple(POSES)

@@ -5,7 +5,7 @@ applied. A calibrated IMU closes the loop to within its noise; an uncalibrated o
 metres away. docs/closure.md describes the method and its numbers.
 
 The integration itself (motion window, levelling, strapdown, noise floor) is
-imubench.strapdown, pure numpy; this module applies the calibration to a recording
+imubench.analysis.strapdown, pure numpy; this module applies the calibration to a recording
 (closure_from_block, also pure), records paths on a device and runs the command line.
 """
 from __future__ import annotations
@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from . import params as PR
-from . import units as U
-from .atomic import write_json_atomic
-from .decoder import SampleBlock, decode_bytes
-from .protocol_gen import Params
-from .strapdown import (
+from imubench.wire import params as PR
+from imubench import units as U
+from imubench.results.atomic import write_json_atomic
+from imubench.wire.decoder import SampleBlock, decode_bytes
+from imubench.wire.protocol_gen import Params
+from imubench.analysis.strapdown import (
     ClosureError,
     motion_window,
     noise_floor,
@@ -74,7 +74,7 @@ def _temperatures(block: SampleBlock) -> tuple[np.ndarray, np.ndarray]:
 
 def corrected(block: SampleBlock, params: Params) -> tuple[np.ndarray, np.ndarray]:
     """(accel m/s², rate rad/s) of a RAW block with params applied on the host, exactly as
-    the device applies them (imubench.params.correct, per-sample sensor temperatures)."""
+    the device applies them (imubench.wire.params.correct, per-sample sensor temperatures)."""
     acc, gyr = block.si()
     ta, tg = _temperatures(block)
     return PR.correct(PR.accel(params), acc, ta), PR.correct(PR.gyro(params), gyr, tg)
@@ -254,7 +254,7 @@ def human_finished(rest: SampleBlock | None = None, still_s: float = 1.0, k: flo
 
 # ------------------------------------------------------------------ command line
 def _load_params(src: str | None, dev=None) -> Params:
-    from .protocol_gen import ParamsWhich
+    from imubench.wire.protocol_gen import ParamsWhich
     if src is None or src == "device":
         return dev.get_params(ParamsWhich.ACTIVE).params
     data = json.loads(Path(src).read_text())
@@ -354,7 +354,7 @@ def is_factory(p: Params) -> bool:
 def calibrate_virtual(vb, dev, directory: Path, seed: int = 1, say: Callable[[str], None] = print) -> Params:
     """Calibrate a virtual device as `make demo` does (multi-position + turntable), write the
     parameters back and return them."""
-    from .session import Session, SessionConfig, SimPresenter, plan_for
+    from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for
     cfg = SessionConfig(method="multi", gyro="turntable")
     sess = Session(dev, directory, cfg, SimPresenter(vb, seed=seed, quiet=True))
     say(f"calibrating the virtual device first (multi-position + turntable; session in {directory})")
@@ -367,7 +367,7 @@ def calibrate_virtual(vb, dev, directory: Path, seed: int = 1, say: Callable[[st
 
 def main_closure(argv: Sequence[str] | None = None) -> int:
     """`imubench closure`: integrate a closed path before and after calibration."""
-    from .link import DEFAULT_BAUD, Device, DeviceError, LinkError, LinkTimeout
+    from imubench.device.link import DEFAULT_BAUD, Device, DeviceError, LinkError, LinkTimeout
 
     ap = argparse.ArgumentParser(
         prog="imubench closure",
@@ -403,7 +403,7 @@ def main_closure(argv: Sequence[str] | None = None) -> int:
         vb = None
         try:
             if a.sim:
-                from .sim import VirtualBench
+                from imubench.device.sim import VirtualBench
                 vb = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random")
                 url = vb.port_url
             else:

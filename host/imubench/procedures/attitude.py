@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
-from .link import DEFAULT_BAUD
-from .units import G0_MPS2
+from imubench.device.link import DEFAULT_BAUD
+from imubench.units import G0_MPS2
 
 DEG = math.pi / 180.0
 
@@ -320,7 +320,7 @@ def tilt_step_experiment(bench, dev, angles: Sequence[float] = (-20, -10, 0, 10,
         block = dev.read(duration_s=0.3)
         more = dev.link.take_samples(True)
         if more is not None and len(more):
-            from .decoder import SampleBlock
+            from imubench.wire.decoder import SampleBlock
             block = SampleBlock.concat([block, more])
     finally:
         dev.stop_stream()
@@ -406,7 +406,7 @@ def plot_steps(results: dict, path) -> None:
 # -------------------------------------------------------------------- command line
 def main_attitude(argv: Sequence[str] | None = None) -> int:
     """`imubench attitude`: live roll/pitch from the device's calibrated stream."""
-    from .link import Device, DeviceError, LinkError, LinkTimeout
+    from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
 
     ap = argparse.ArgumentParser(prog="imubench attitude",
                                  description="live roll/pitch (deg) from the device's calibrated output; "

@@ -23,13 +23,13 @@ from typing import Protocol
 
 import numpy as np
 
-from . import params as PR
-from . import units as U
-from .atomic import write_json_atomic
-from .calib import CalibrationError, TriadFit
-from .decoder import SampleBlock
-from .link import DEFAULT_BAUD, Device
-from .protocol_gen import Board, Params, ParamsWhich
+from imubench.wire import params as PR
+from imubench import units as U
+from imubench.results.atomic import write_json_atomic
+from imubench.calib import CalibrationError, TriadFit
+from imubench.wire.decoder import SampleBlock
+from imubench.device.link import DEFAULT_BAUD, Device
+from imubench.wire.protocol_gen import Board, Params, ParamsWhich
 
 SESSION_SCHEMA = 1
 
@@ -266,7 +266,7 @@ class Session:
     # ------------------------------------------------------------------ rest
     def capture_rest(self) -> dict:
         """Still at the start: the noise that sets every threshold, and the gyro bias."""
-        from .calib.static import rest_noise
+        from imubench.calib.static import rest_noise
         if self.rest is not None:
             return self.rest
         self.ui.say(f"hold the board still for {self.cfg.rest_s:g} s (noise and gyro bias)")
@@ -291,7 +291,7 @@ class Session:
         """Wait until the board is still in one of the `plan` attitudes not yet captured,
         capture hold_s of it, and return it. Motion restarts the capture; an attitude that
         is not in the plan, or already captured, is named and waited past."""
-        from .calib.static import StillnessDetector
+        from imubench.calib.static import StillnessDetector
         fs = self.cfg.rate_hz
         noise = np.asarray(self.rest["noise_mps2"])
         name, direction = plan[0]
@@ -353,7 +353,7 @@ class Session:
         name, direction = plan[k]
         if name in done:
             return f"{name} is already captured: present another attitude"
-        from .calib.static import detect_static
+        from imubench.calib.static import detect_static
         iv = detect_static(acc, self.cfg.rate_hz, noise_sigma=np.asarray(self.rest["noise_mps2"]),
                            min_duration_s=min(1.0, 0.5 * self.cfg.hold_s))
         sigma = (max(iv, key=lambda i: i.n).sigma_mean if iv else acc.std(axis=0) / np.sqrt(len(acc)))
@@ -413,7 +413,7 @@ class Session:
         return segments
 
     def _wait_still(self, timeout_s: float) -> None:
-        from .calib.static import StillnessDetector
+        from imubench.calib.static import StillnessDetector
         det = StillnessDetector(self.cfg.rate_hz, np.asarray(self.rest["noise_mps2"]), window_s=self.cfg.settle_s)
         waited = 0
         while waited < timeout_s * self.cfg.rate_hz:
@@ -426,8 +426,8 @@ class Session:
 
     # ------------------------------------------------------------------- run
     def run(self, plan: list[tuple[str, np.ndarray]], history=None, verify_plan=None) -> dict:
-        from .calib import accel as CA
-        from .calib import gyro as CG
+        from imubench.calib import accel as CA
+        from imubench.calib import gyro as CG
         self.run_started = _now()
         ident = self.check_health()
         self._start_stream()
@@ -487,7 +487,7 @@ class Session:
         """Multi-position + turntable: rotate the accelerometer's fit into the gyro (board)
         frame, the rotation measured by the gyros between the poses (calib.frames). Returns
         the fit and, when that is impossible, the fit unchanged and the reason."""
-        from .calib.frames import align_accel_to_gyro
+        from imubench.calib.frames import align_accel_to_gyro
         try:
             in_accel_frame = self._rotation_fit(accel, bias)
             aligned = align_accel_to_gyro(accel, gyro, in_accel_frame)
@@ -501,8 +501,8 @@ class Session:
 
     def _rotation_fit(self, accel: TriadFit, bias: TriadFit) -> TriadFit:
         """Gyro M from the motions between consecutive poses of one stream (on disk)."""
-        from .calib import gyro as CG
-        from .decoder import decode_bytes
+        from imubench.calib import gyro as CG
+        from imubench.wire.decoder import decode_bytes
         by_stream: dict[int, list[PoseRecord]] = {}
         for p in self.poses:
             by_stream.setdefault(p.stream, []).append(p)
@@ -559,7 +559,7 @@ class Session:
 
     def verify(self, plan: list[tuple[str, np.ndarray]]) -> list[dict]:
         """The device's own calibrated output in a few attitudes: | |a| - g | per pose."""
-        from .calib.static import StillnessDetector
+        from imubench.calib.static import StillnessDetector
         fs = self.cfg.rate_hz
         hold_n = int(self.cfg.hold_s * fs)
         out = []
@@ -687,7 +687,7 @@ def fit_dict(fit: TriadFit | None, unit: str) -> dict | None:
 # ------------------------------------------------------------------------ CLI
 def plan_for(method: str) -> list[tuple[str, np.ndarray]]:
     """(name, gravity direction) of the attitudes to present: the six faces, or all 26."""
-    from .calib.accel import POSE_PLAN
+    from imubench.calib.accel import POSE_PLAN
     plan = [(p.name, p.vector) for p in POSE_PLAN]
     if method == "six":
         plan = [(n, v) for n, v in plan if np.count_nonzero(v) == 1]
@@ -702,7 +702,7 @@ def truth_in_fit_frame(result: dict, truth: dict) -> dict:
     output is in the Q-rotated frame. A rotation-method gyro fit, which matches gravity
     directions in that frame, then returns M_gyro·Qᵀ. Six-position and the turntable are
     tied to the board axes and see the truth as it is."""
-    from .calib.accel import lower_triangular_form
+    from imubench.calib.accel import lower_triangular_form
     m_a = np.array(truth["accel"]["m"], dtype=float)
     m_g = np.array([g["sens"] for g in truth["gyro"]], dtype=float)
     q = np.eye(3)
@@ -771,9 +771,9 @@ def _row(name, truth, got, sigma):
 
 
 def _closure_after_session(dev, vb, out_dir: Path, params: Params) -> dict:
-    """The closure check with the parameters just written (imubench.closure): a summary for
+    """The closure check with the parameters just written (imubench.procedures.closure): a summary for
     the session's result; the details are in out_dir."""
-    from . import closure as CL
+    from imubench.procedures import closure as CL
     print("\nclosure check: integrating a closed path before and after calibration")
     res = CL.run_closure(dev, out_dir, params, vb, "box")
     print(CL.summarize(res))
@@ -787,8 +787,8 @@ def main_calibrate(argv=None) -> int:
     import argparse
     import sys
 
-    from . import report
-    from .history import History
+    from imubench.results import calibration as report
+    from imubench.results.history import History
     ap = argparse.ArgumentParser(prog="imubench calibrate", description="guided calibration session")
     ap.add_argument("--port", help="pyserial URL of the device (default: $IMUBENCH_PORT)")
     ap.add_argument("--baud", type=int, default=DEFAULT_BAUD, help=f"baud rate for a real UART (default {DEFAULT_BAUD})")
@@ -818,7 +818,7 @@ def main_calibrate(argv=None) -> int:
     vb = None
     try:
         if a.sim:
-            from .sim import VirtualBench
+            from imubench.device.sim import VirtualBench
             vb = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random")
             url = vb.port_url
             ui = SimPresenter(vb, tilt_deg=a.sim_tilt, seed=a.sim_seed)
@@ -861,7 +861,7 @@ def main_calibrate(argv=None) -> int:
             elif not result["passed"]:
                 print("the fit did not pass its tolerance: nothing was written to the device")
             if a.closure and result["written"]:
-                from .closure import ClosureError
+                from imubench.procedures.closure import ClosureError
                 try:
                     result["closure"] = _closure_after_session(dev, vb, sess.dir / "closure",
                                                                dev.get_params(ParamsWhich.ACTIVE).params)

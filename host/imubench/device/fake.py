@@ -18,9 +18,9 @@ import tty
 
 import numpy as np
 
-from . import params as PR
-from . import protocol as P
-from .protocol_gen import (
+from imubench.wire import params as PR
+from imubench.wire import frame as P
+from imubench.wire.protocol_gen import (
     Ack,
     BatchHeader,
     Board,
@@ -38,7 +38,7 @@ from .protocol_gen import (
     StreamMode,
     StreamState,
 )
-from .units import G0_MPS2
+from imubench.units import G0_MPS2
 
 ACCEL_NOISE_G_RTHZ = 22.5e-6
 GYRO_NOISE_DPS_RTHZ = 0.015

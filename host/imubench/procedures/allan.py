@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .link import DEFAULT_BAUD
+from imubench.device.link import DEFAULT_BAUD
 
 G0 = 9.80665
 RAD2DEG = 180.0 / np.pi
@@ -249,7 +249,7 @@ def _fmt(v, f="{:.4g}"):
 def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=print) -> dict:
     """Decode capture file(s), convert raw counts to SI, run allan() on accel and gyro,
     write allan.json and the two PNGs to out_dir; returns the summary dict."""
-    from .decoder import decode_bytes
+    from imubench.wire.decoder import decode_bytes
     data = b"".join(Path(p).read_bytes() for p in paths)
     _msgs, raw, _cal, stats = decode_bytes(data)
     if raw is None or len(raw) < 16:
@@ -294,7 +294,7 @@ def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int 
     """Stream raw at rate_hz into capture_path (every byte appended as it arrives) until
     duration_s of *device* time has been received, stop["now"] is set, or the link is lost.
     Returns why it ended: 'done', 'interrupted' or 'link lost: ...'."""
-    from .link import Device, DeviceError, LinkError, LinkTimeout
+    from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
     stop = stop if stop is not None else {"now": False}
     want = int(round(duration_s * rate_hz))
     why = "done"

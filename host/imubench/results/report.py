@@ -8,11 +8,11 @@ plot is a PNG embedded as a data:image/png;base64 URI, there is no JavaScript an
 to anything outside the file. Every string taken from the data is HTML-escaped.
 
 Inputs:
-  * calibration: SESSION_DIR/session.json (imubench.session: "config", "poses", "result") and
-    SESSION_DIR/residuals.png if present (else drawn with imubench.report.plot_pose_residuals);
-  * noise: allan.json + allan_accel.png / allan_gyro.png (imubench.noise) in SESSION_DIR or --allan DIR;
-  * closure check: closure.json + closure.png (imubench.closure) in SESSION_DIR/closure or --closure DIR;
-  * attitude: a PNG (imubench.attitude's plot) given with --attitude;
+  * calibration: SESSION_DIR/session.json (imubench.procedures.session: "config", "poses", "result") and
+    SESSION_DIR/residuals.png if present (else drawn with imubench.results.calibration.plot_pose_residuals);
+  * noise: allan.json + allan_accel.png / allan_gyro.png (imubench.procedures.allan) in SESSION_DIR or --allan DIR;
+  * closure check: closure.json + closure.png (imubench.procedures.closure) in SESSION_DIR/closure or --closure DIR;
+  * attitude: a PNG (imubench.procedures.attitude's plot) given with --attitude;
   * temperature: DIR/thermal.json of `imubench thermal --out DIR`, given with --thermal
     (coefficients ± sigma, the per-temperature points, drift before/after, the write-back);
     any other JSON is shown as a key/value table.
@@ -31,7 +31,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from .atomic import write_text_atomic
+from imubench.results.atomic import write_text_atomic
 
 G0 = 9.80665
 RAD2DEG = 180.0 / math.pi
@@ -215,8 +215,8 @@ def _fit_table(fit: dict, kind: str) -> str:
 
 
 def _before_after_html(result: dict) -> str:
-    """The before/after table of imubench.report.before_after_table, as HTML."""
-    from .report import _poses, _rms, _tol, _verification, before_after_table
+    """The before/after table of imubench.results.calibration.before_after_table, as HTML."""
+    from imubench.results.calibration import _poses, _rms, _tol, _verification, before_after_table
     names, before, after, sigma = _poses(result)
     temps = [p.get("temp_c") for p in result.get("poses") or []]
     ns = [p.get("n") for p in result.get("poses") or []]
@@ -247,7 +247,7 @@ def _before_after_html(result: dict) -> str:
                        f"within ±{vtol:g} mg" if vtol else "verdict"], vrows)
     else:
         out += _missing("verification", "parameters not written back, so the device's output was not checked")
-    out += ("<details><summary>as text (imubench.report.before_after_table)</summary><pre>"
+    out += ("<details><summary>as text (imubench.results.calibration.before_after_table)</summary><pre>"
             + esc(before_after_table(result)) + "</pre></details>")
     return out
 
@@ -295,7 +295,7 @@ def _calibration_section(session_dir: Path, state: dict) -> str:
         out.append(f'<p class="missing">{esc(e)}</p>')
     uri = png_data_uri(session_dir / "residuals.png")
     if uri is None and result.get("poses"):
-        from .report import plot_pose_residuals
+        from imubench.results.calibration import plot_pose_residuals
         with tempfile.TemporaryDirectory() as td:
             uri = png_data_uri(plot_pose_residuals(result, Path(td) / "residuals.png"))
     out.append("<h3>Residual plot</h3>" + _img(uri, "|a| − g per pose, before and after calibration"))
@@ -309,7 +309,7 @@ def _noise_section(allan_dir: Path | None) -> str:
                      "no allan.json; record one with imubench allan and give --allan DIR", out)
     if res is None:
         return "\n".join(out)
-    from .noise import usual_units
+    from imubench.procedures.allan import usual_units
     dur = _f(res.get("duration_s"))
     out.append(f"<p>{esc(_num(res.get('samples'), '{:.0f}'))} samples at {esc(_num(res.get('rate_hz'), '{:g}'))} Hz = "
                f"{esc(_num(dur / 3600, '{:.3f}'))} h; source {esc(', '.join(map(str, res.get('source') or [])))}</p>")

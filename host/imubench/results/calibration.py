@@ -1,5 +1,5 @@
 """What a calibration session shows about its accelerometer fit: a per-pose plot (PNG) and a
-before/after table, both from the session's result record (see imubench.history for its keys).
+before/after table, both from the session's result record (see imubench.results.history for its keys).
 
 The per-pose quantity is |a| − g: the magnitude of the measured specific force, lying still,
 minus one standard gravity (docs/conventions.md: g0 = 9.80665 m/s²). The record carries |a| in

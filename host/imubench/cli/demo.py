@@ -1,6 +1,6 @@
 """`make demo`: a whole guided calibration session on the virtual device.
 
-The virtual device (firmware core + drivers + register-level sensor models, imubench.sim) is
+The virtual device (firmware core + drivers + register-level sensor models, imubench.device.sim) is
 started with random, non-trivial truth errors (scale, misalignment and bias of every sensor).
 Its virtual bench presents the 26 attitudes of the multi-position plan and turns the table
 at known rates about each axis, both ways, while `imubench calibrate` captures, detects
@@ -18,8 +18,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from .session import main_calibrate
-from .sim import build_sim
+from imubench.procedures.session import main_calibrate
+from imubench.device.sim import build_sim
 
 
 def main() -> int:

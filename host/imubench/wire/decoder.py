@@ -19,9 +19,9 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from cobs import cobs
 
-from . import protocol as P
-from . import units as U
-from .protocol_gen import BATCH_HEADER_DTYPE, MsgType
+from imubench.wire import frame as P
+from imubench import units as U
+from imubench.wire.protocol_gen import BATCH_HEADER_DTYPE, MsgType
 
 _HDR = struct.Struct("<BBHI")
 _RAW = P.MESSAGES[MsgType.RAW_BATCH]

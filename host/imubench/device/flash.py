@@ -34,7 +34,7 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 FLASH_BASE = 0x08000000
 
 TARGET_CFG = {"f103": "target/stm32f1x.cfg", "f4": "target/stm32f4x.cfg"}

@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .protocol_gen import LIMITS, Error, Params
+from imubench.wire.protocol_gen import LIMITS, Error, Params
 
 
 def identity() -> Params:

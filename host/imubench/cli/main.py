@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import units as U
-from .decoder import decode_bytes
-from .link import DEFAULT_BAUD, PORT_ENV, Device, DeviceError, LinkError, LinkTimeout
-from .protocol_gen import Board, ClockSource, MsgType, ParamSource, StreamState
+from imubench import units as U
+from imubench.wire.decoder import decode_bytes
+from imubench.device.link import DEFAULT_BAUD, PORT_ENV, Device, DeviceError, LinkError, LinkTimeout
+from imubench.wire.protocol_gen import Board, ClockSource, MsgType, ParamSource, StreamState
 
 
 def _port_arg(p: argparse.ArgumentParser) -> None:
@@ -173,7 +173,7 @@ def cmd_monitor(a) -> int:
 
 
 def cmd_fake(a) -> int:
-    from .fakedev import FakeDevice
+    from imubench.device.fake import FakeDevice
     with FakeDevice(seed=a.seed, speed=a.speed) as f:
         print(f"fake device (Python emulation, synthetic still board) on {f.port_url}", flush=True)
         print(f"try: IMUBENCH_PORT={f.port_url} imubench monitor", flush=True)
@@ -217,16 +217,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 # Subcommands that own their whole argument list (their modules parse it).
 DELEGATED = {
-    "sim": ("imubench.sim", "main_cli", "run the virtual device (firmware core + sensor models)"),
-    "qemu": ("imubench.qemu", "main_qemu", "run the real STM32 firmware image under qemu-system-arm"),
-    "flash": ("imubench.flash", "main_flash", "write the firmware to a board (openocd, st-flash, stm32flash)"),
-    "calibrate": ("imubench.session", "main_calibrate", "guided calibration session, write-back and verification"),
-    "history": ("imubench.history", "main_history", "calibration history of a device"),
-    "allan": ("imubench.noise", "main_allan", "record for hours and read the Allan deviation (noise terms)"),
-    "attitude": ("imubench.attitude", "main_attitude", "live pitch/roll through RC, Kalman and complementary filters"),
-    "thermal": ("imubench.thermal", "main_thermal", "fit temperature coefficients over a sweep and write them back"),
-    "closure": ("imubench.closure", "main_closure", "integrate a closed path before and after calibration"),
-    "report": ("imubench.html_report", "main_report", "one self-contained HTML report of a session"),
+    "sim": ("imubench.device.sim", "main_cli", "run the virtual device (firmware core + sensor models)"),
+    "qemu": ("imubench.device.qemu", "main_qemu", "run the real STM32 firmware image under qemu-system-arm"),
+    "flash": ("imubench.device.flash", "main_flash", "write the firmware to a board (openocd, st-flash, stm32flash)"),
+    "calibrate": ("imubench.procedures.session", "main_calibrate", "guided calibration session, write-back and verification"),
+    "history": ("imubench.results.history", "main_history", "calibration history of a device"),
+    "allan": ("imubench.procedures.allan", "main_allan", "record for hours and read the Allan deviation (noise terms)"),
+    "attitude": ("imubench.procedures.attitude", "main_attitude", "live pitch/roll through RC, Kalman and complementary filters"),
+    "thermal": ("imubench.procedures.thermal", "main_thermal", "fit temperature coefficients over a sweep and write them back"),
+    "closure": ("imubench.procedures.closure", "main_closure", "integrate a closed path before and after calibration"),
+    "report": ("imubench.results.report", "main_report", "one self-contained HTML report of a session"),
 }
 
 

@@ -6,7 +6,7 @@ A frame on the wire is COBS(header + payload + CRC-32C) followed by one 0x00 byt
     payload  the message's fields (layouts in protocol_gen, generated from the definition)
     crc      CRC-32C over header + payload, u32 little-endian
 
-Functions here work on one frame at a time; imubench.decoder does streams.
+Functions here work on one frame at a time; imubench.wire.decoder does streams.
 """
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ import crcmod.predefined
 import numpy as np
 from cobs import cobs
 
-from . import protocol_gen as gen
-from .protocol_gen import (  # noqa: F401  (re-exported: the public names of the protocol)
+from imubench.wire import protocol_gen as gen
+from imubench.wire.protocol_gen import (  # noqa: F401  (re-exported: the public names of the protocol)
     CRC_SIZE,
     HEADER_SIZE,
     MAX_ENCODED,

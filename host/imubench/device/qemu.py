@@ -36,7 +36,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 QEMU = "qemu-system-arm"
 
 # board -> (QEMU machine, image directory under build/arm, parameter slot 0 address)
@@ -205,7 +205,7 @@ def main_qemu(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="imubench qemu",
                                  description="run the STM32 firmware under qemu-system-arm on a TCP port")
     ap.add_argument("--board", choices=sorted(BOARDS), default="f103")
-    ap.add_argument("--params", help="parameter page to preload into slot 0 (see python -m imubench.paramstore)")
+    ap.add_argument("--params", help="parameter page to preload into slot 0 (see python -m imubench.wire.paramstore)")
     ap.add_argument("--no-build", action="store_true", help="do not run `make firmware` first")
     a = ap.parse_args(argv)
     page = Path(a.params).read_bytes() if a.params else None

@@ -24,9 +24,9 @@ from typing import BinaryIO, Iterator
 
 import serial
 
-from . import protocol as P
-from .decoder import DecodedFrame, SampleBlock, StreamDecoder
-from .protocol_gen import (
+from imubench.wire import frame as P
+from imubench.wire.decoder import DecodedFrame, SampleBlock, StreamDecoder
+from imubench.wire.protocol_gen import (
     Ack,
     ClearParams,
     Error,

@@ -2,7 +2,7 @@
 
 The firmware keeps its calibration block in two flash slots (firmware/core/param_store.h).
 This module builds and checks such records in Python, e.g. to preload a parameter page into
-QEMU (`-device loader,file=page.bin,addr=0x0801F800,force-raw=on`, see imubench.qemu) or to
+QEMU (`-device loader,file=page.bin,addr=0x0801F800,force-raw=on`, see imubench.device.qemu) or to
 prepare a factory image. Record layout, store format 1 (all little-endian; a = max(4,
 program_unit)):
 
@@ -21,8 +21,8 @@ program_unit)):
 
 tests/test_qemu.py checks these bytes against the C store (ib_ps_save / ib_ps_load).
 
-    python -m imubench.paramstore --layout qemu-f1 -o page.bin            # identity params
-    python -m imubench.paramstore --layout f4 --params cal.json -o page.bin
+    python -m imubench.wire.paramstore --layout qemu-f1 -o page.bin            # identity params
+    python -m imubench.wire.paramstore --layout f4 --params cal.json -o page.bin
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import crcmod.predefined
 
-from .protocol_gen import PARAM_BLOCK_VERSION, Params
+from imubench.wire.protocol_gen import PARAM_BLOCK_VERSION, Params
 
 MAGIC = 0x53504249
 FORMAT = 1
@@ -208,12 +208,12 @@ def _params_from_json(path: str) -> Params:
 
 
 def _identity() -> Params:
-    from .params import identity
+    from imubench.wire.params import identity
     return identity()
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m imubench.paramstore",
+    ap = argparse.ArgumentParser(prog="python -m imubench.wire.paramstore",
                                  description="build a parameter-store slot image (firmware/core/param_store.h)")
     ap.add_argument("--layout", choices=sorted(LAYOUTS), required=True, help="flash layout of the image")
     ap.add_argument("--params", help="JSON object of protocol_gen.Params fields (default: identity)")

@@ -1,8 +1,8 @@
 """The virtual device: the firmware core built for Linux with register-level sensor models
 (firmware/boards/sim), driven from Python.
 
-    from imubench.sim import VirtualBench
-    from imubench.link import Device
+    from imubench.device.sim import VirtualBench
+    from imubench.device.link import Device
 
     with VirtualBench(speed=20, seed=1) as bench:         # builds and starts imubench-sim
         with Device.open(bench.port_url) as dev:         # socket://127.0.0.1:PORT
@@ -48,8 +48,8 @@ class SimError(RuntimeError):
 
 
 def repo_root() -> Path:
-    """The source checkout this package lives in (host/imubench/sim.py -> repo root)."""
-    root = Path(__file__).resolve().parent.parent.parent
+    """The source checkout this package lives in (host/imubench/device/sim.py -> repo root)."""
+    root = Path(__file__).resolve().parents[3]
     if not (root / "Makefile").is_file() or not (root / "firmware").is_dir():
         raise SimError(f"{root} is not an imubench source checkout: the virtual device is built "
                        "from firmware/ with `make sim`")
@@ -463,8 +463,8 @@ class VirtualBench:
         return self.control("wait_idle", temperature=bool(temperature), timeout=timeout)
 
     def device(self, **kw):
-        """An imubench.link.Device connected to this bench's link."""
-        from .link import Device
+        """An imubench.device.link.Device connected to this bench's link."""
+        from imubench.device.link import Device
         return Device.open(self.port_url, **kw)
 
     def __repr__(self) -> str:

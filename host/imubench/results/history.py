@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import units as U
+from imubench import units as U
 
 SCHEMA_VERSION = 1          # of the database (tables below)
 RECORD_SCHEMA = 1           # of the result record a calibration session produces

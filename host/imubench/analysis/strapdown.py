@@ -1,7 +1,7 @@
-"""Strapdown integration for the closure check (imubench.closure): motion detection, levelling,
+"""Strapdown integration for the closure check (imubench.procedures.closure): motion detection, levelling,
 attitude from the gyros, double integration of the specific force, and the closure error that
 white sensor noise alone would give. Pure numpy: samples in, positions out; nothing here
-touches a device (imubench.closure records, this computes). docs/closure.md.
+touches a device (imubench.procedures.closure records, this computes). docs/closure.md.
 
 Frames (docs/conventions.md): board X forward, Y left, Z up. The navigation frame is the
 level frame at the start: Z up, X the board's X axis projected on the horizontal at the
@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import units as U
-from .attitude import accel_tilt
+from imubench import units as U
+from imubench.procedures.attitude import accel_tilt
 
 __all__ = ["ClosureError", "Integration", "align_level", "motion_flags", "motion_window", "noise_floor",
            "strapdown"]
@@ -120,7 +120,7 @@ def _attitudes(r0: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
     increments composed on the right), through calib.gyro's vectorised quaternion products."""
     from scipy.spatial.transform import Rotation
 
-    from .calib.gyro import _qmul, _quat_matrix, _quat_prefix, _rotvec_quat
+    from imubench.calib.gyro import _qmul, _quat_matrix, _quat_prefix, _rotvec_quat
     x, y, z, w = Rotation.from_matrix(r0).as_quat()
     q0 = np.array([w, x, y, z])
     q = np.empty((4, len(rotvec) + 1))
