@@ -19,7 +19,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "host"))
 
 import numpy as np  # noqa: E402
-
 from imubench.calib import accel as CA  # noqa: E402
 from imubench.calib.static import interval_stats  # noqa: E402
 from imubench.units import G0_MPS2  # noqa: E402

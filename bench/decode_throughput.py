@@ -31,10 +31,14 @@ import sys
 import time
 
 import numpy as np
-
 from imubench.wire import frame as P
 from imubench.wire.decoder import StreamDecoder
-from imubench.wire.protocol_gen import BATCH_HEADER_DTYPE, BatchHeader, MsgType, RawBatch
+from imubench.wire.protocol_gen import (
+    BATCH_HEADER_DTYPE,
+    BatchHeader,
+    MsgType,
+    RawBatch,
+)
 
 RATE_HZ = 4000
 PERIOD_US = 1_000_000 // RATE_HZ

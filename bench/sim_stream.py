@@ -22,7 +22,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "host"))
 
 import numpy as np  # noqa: E402
-
 from imubench.device.link import Device  # noqa: E402
 from imubench.device.sim import VirtualBench, build_sim  # noqa: E402
 

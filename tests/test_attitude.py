@@ -9,7 +9,10 @@ import time
 
 import numpy as np
 import pytest
+from imubench.analysis import tilt as T
+from imubench.cli import main as imubench
 from imubench.procedures import attitude as A
+from imubench.results import attitude as RA
 from imubench.units import G0_MPS2
 
 
@@ -19,37 +22,37 @@ from imubench.units import G0_MPS2
 def test_accel_tilt_closed_form(roll, pitch):
     r, p = math.radians(roll), math.radians(pitch)
     f = G0_MPS2 * np.array([-math.sin(p), math.sin(r) * math.cos(p), math.cos(r) * math.cos(p)])
-    got_r, got_p = A.accel_tilt(f)
+    got_r, got_p = T.accel_tilt(f)
     assert got_r == pytest.approx(roll, abs=1e-9)
     assert got_p == pytest.approx(pitch, abs=1e-9)
     # a block, and scale-free
-    rr, pp = A.accel_tilt(np.stack([f, 0.5 * f]))
+    rr, pp = T.accel_tilt(np.stack([f, 0.5 * f]))
     assert np.allclose(rr, roll) and np.allclose(pp, pitch)
 
 
 def test_accel_tilt_named_vectors():
     g = G0_MPS2
-    assert A.accel_tilt([0, 0, g]) == pytest.approx((0, 0))
-    assert A.accel_tilt([0, g, 0]) == pytest.approx((90, 0))        # left side (+Y) up
-    assert A.accel_tilt([-g, 0, 0]) == pytest.approx((0, 90))       # nose (+X) down: +pitch
-    assert A.accel_tilt([g, 0, 0]) == pytest.approx((0, -90))
-    assert A.accel_tilt([0, 0, -g])[0] == pytest.approx(180)        # upside down
+    assert T.accel_tilt([0, 0, g]) == pytest.approx((0, 0))
+    assert T.accel_tilt([0, g, 0]) == pytest.approx((90, 0))        # left side (+Y) up
+    assert T.accel_tilt([-g, 0, 0]) == pytest.approx((0, 90))       # nose (+X) down: +pitch
+    assert T.accel_tilt([g, 0, 0]) == pytest.approx((0, -90))
+    assert T.accel_tilt([0, 0, -g])[0] == pytest.approx(180)        # upside down
 
 
 def test_euler_rates_single_axis():
     w = np.array([[0.1, 0.0, 0.0], [0.0, 0.2, 0.0]])
-    rr, pr = A.euler_rates(w, np.zeros(2), np.zeros(2))
+    rr, pr = T.euler_rates(w, np.zeros(2), np.zeros(2))
     assert np.allclose(rr, [0.1, 0.0]) and np.allclose(pr, [0.0, 0.2])
 
 
 def test_settling_time():
     t = np.arange(0, 5, 0.01)
     a = 10 * (1 - np.exp(-t / 0.5))
-    st = A.settling_time(t, a, 10.0, 0.1)
+    st = T.settling_time(t, a, 10.0, 0.1)
     assert st == pytest.approx(0.5 * math.log(100), abs=0.011)
-    assert A.settling_time(t, np.full_like(t, 10.0), 10.0, 0.1) == 0.0
-    assert A.settling_time(t, a, 20.0, 0.1) == math.inf
-    assert A.settling_time(t, a, 10.0, 0.1, t_step=1.0) == pytest.approx(st - 1.0, abs=0.011)
+    assert T.settling_time(t, np.full_like(t, 10.0), 10.0, 0.1) == 0.0
+    assert T.settling_time(t, a, 20.0, 0.1) == math.inf
+    assert T.settling_time(t, a, 10.0, 0.1, t_step=1.0) == pytest.approx(st - 1.0, abs=0.011)
 
 
 def _synthetic_step(fs=200.0, n=2000, step_at=400, deg=10.0, rate_dps=20.0, seed=0):
@@ -61,14 +64,14 @@ def _synthetic_step(fs=200.0, n=2000, step_at=400, deg=10.0, rate_dps=20.0, seed
     w[step_at:step_at + move] = math.radians(rate_dps)
     roll = np.concatenate([[0.0], np.cumsum(w[1:]) / fs])
     acc = G0_MPS2 * np.stack([np.zeros(n), np.sin(roll), np.cos(roll)], axis=1)
-    acc += rng.normal(0, A.ACCEL_NOISE_N * math.sqrt(fs), acc.shape)
-    gyr = np.stack([w, np.zeros(n), np.zeros(n)], axis=1) + rng.normal(0, A.GYRO_NOISE_N * math.sqrt(fs), (n, 3))
+    acc += rng.normal(0, T.ACCEL_NOISE_N * math.sqrt(fs), acc.shape)
+    gyr = np.stack([w, np.zeros(n), np.zeros(n)], axis=1) + rng.normal(0, T.GYRO_NOISE_N * math.sqrt(fs), (n, 3))
     return t, acc, gyr, np.degrees(roll)
 
 
 def test_filters_stream_equals_batch_and_track():
     _t, acc, gyr, truth = _synthetic_step()
-    for f in A.make_filters("all", num=20, tau_s=0.5):
+    for f in T.make_filters("all", num=20, tau_s=0.5):
         r_all, p_all = f.run(acc, gyr, 200)
         f.reset()
         parts = [f.update(acc[i:i + 37], gyr[i:i + 37], 1 / 200) for i in range(0, len(acc), 37)]
@@ -76,14 +79,14 @@ def test_filters_stream_equals_batch_and_track():
         assert np.allclose(r_all, r_st, atol=1e-9), f.name
         # settled at the end: mean of the last second near the truth (the complementary
         # filter with tau 0.5 s integrates gyro noise over 0.5 s: looser)
-        tol = 0.03 if isinstance(f, A.Complementary) else 0.01
+        tol = 0.03 if isinstance(f, T.Complementary) else 0.01
         assert abs(np.mean(r_all[-200:]) - truth[-1]) < tol, f.name
         assert abs(np.mean(p_all[-200:])) < tol, f.name
 
 
 def test_rc_settles_slower_with_larger_num():
     t, acc, gyr, _truth = _synthetic_step()
-    times = [A.settling_time(t, A.RCLowPass(n).run(acc, gyr, 200)[0], 10.0, 0.05, t_step=2.0)
+    times = [T.settling_time(t, T.RCLowPass(n).run(acc, gyr, 200)[0], 10.0, 0.05, t_step=2.0)
              for n in (5, 20, 80)]
     assert all(math.isfinite(x) for x in times)
     assert times[0] < times[1] < times[2]
@@ -94,7 +97,7 @@ def test_kalman_speed():
     acc = np.tile([0.0, 0.0, G0_MPS2], (n, 1))
     gyr = np.zeros((n, 3))
     t0 = time.perf_counter()
-    A.KalmanTilt().run(acc, gyr, 200)
+    T.KalmanTilt().run(acc, gyr, 200)
     per_sample = (time.perf_counter() - t0) / n
     print(f"Kalman (roll + pitch): {per_sample * 1e6:.2f} us per sample")
     assert per_sample < 50e-6          # 200 Hz needs < 5000 us per sample
@@ -112,14 +115,14 @@ def bench():
 def test_sign_convention_matches_simulator(bench, roll, pitch):
     bench.set_orientation(roll_deg=roll, pitch_deg=pitch, yaw_deg=0)
     st = bench.status()
-    assert A.accel_tilt(st["specific_force_mps2"]) == pytest.approx((roll, pitch), abs=1e-9)
+    assert T.accel_tilt(st["specific_force_mps2"]) == pytest.approx((roll, pitch), abs=1e-9)
     with bench.device() as dev:
         dev.start_stream(rate_hz=200, calibrated=True)
         try:
             block = dev.read(n_samples=200)
         finally:
             dev.stop_stream()
-    r, p = A.accel_tilt(block.accel_mps2.astype(np.float64).mean(axis=0))
+    r, p = T.accel_tilt(block.accel_mps2.astype(np.float64).mean(axis=0))
     assert r == pytest.approx(roll, abs=0.02)
     assert p == pytest.approx(pitch, abs=0.02)
     bench.set_orientation(roll_deg=0, pitch_deg=0, yaw_deg=0)
@@ -133,7 +136,7 @@ def test_tilt_steps_static_error_and_settling(bench, tmp_path):
     print(f"\ntilt steps on the virtual turntable ({time.perf_counter() - t0:.1f} s wall); settling "
           f"time from the motion start to within +-{res['band_deg']} deg, static error = mean of the "
           f"last 3 s of each dwell minus the simulator's angle:")
-    print(A.summarize(res))
+    print(RA.summarize(res))
     steps = res["steps"]
     assert len(steps) == 10
     assert [s.target_deg for s in steps] == pytest.approx([-20, -10, 0, 10, 20] * 2, abs=1e-6)
@@ -151,7 +154,7 @@ def test_tilt_steps_static_error_and_settling(bench, tmp_path):
         assert s.settle_s["kalman"] <= s.settle_s["rc10"]
         assert s.settle_s["kalman"] < move_s + 0.1
     png = tmp_path / "steps.png"
-    A.plot_steps(res, png)
+    RA.plot_steps(res, png)
     assert png.stat().st_size > 10000
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -159,7 +162,7 @@ def test_tilt_steps_static_error_and_settling(bench, tmp_path):
 def test_main_attitude_records(bench, tmp_path, capsys):
     rec = tmp_path / "att.bin"
     bench.set_orientation(roll_deg=10, pitch_deg=-5, yaw_deg=0)
-    rc = A.main_attitude(["--port", bench.port_url, "--rate", "200", "--duration", "1.0",
+    rc = imubench(["attitude", "--port", bench.port_url, "--rate", "200", "--duration", "1.0",
                           "--record", str(rec), "--filter", "all"])
     bench.set_orientation(roll_deg=0, pitch_deg=0, yaw_deg=0)
     assert rc == 0
@@ -181,5 +184,5 @@ def test_main_attitude_records(bench, tmp_path, capsys):
 
 
 def test_main_attitude_bad_port(capsys):
-    assert A.main_attitude(["--port", "socket://127.0.0.1:1", "--duration", "0.1"]) == 1
+    assert imubench(["attitude", "--port", "socket://127.0.0.1:1", "--duration", "0.1"]) == 1
     assert "imubench attitude" in capsys.readouterr().err

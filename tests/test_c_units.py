@@ -4,7 +4,6 @@ a failure."""
 import subprocess
 
 import pytest
-
 from conftest import HOST_BUILD, ROOT, make
 
 C_TESTS = sorted(p.stem for p in (ROOT / "tests" / "c").glob("test_*.c"))

@@ -11,18 +11,31 @@ import math
 
 import numpy as np
 import pytest
-from scipy.signal import lfilter
-
 from imubench.calib import CalibrationError, NotObservable, TriadFit
 from imubench.calib.accel import (
-    FACES, MULTI_PARAM_NAMES, POSE_PLAN, check_observability, lower_triangular_form, match_plan,
-    multi_params_to_mb, multi_position, pose_table, six_position,
+    FACES,
+    MULTI_PARAM_NAMES,
+    POSE_PLAN,
+    check_observability,
+    lower_triangular_form,
+    match_plan,
+    multi_params_to_mb,
+    multi_position,
+    pose_table,
+    six_position,
 )
 from imubench.calib.static import (
-    NotEnoughStatic, StaticIntervals, StillnessDetector, detect_static, interval_stats,
-    moving_variance, require_static, rest_noise,
+    NotEnoughStatic,
+    StaticIntervals,
+    StillnessDetector,
+    detect_static,
+    interval_stats,
+    moving_variance,
+    require_static,
+    rest_noise,
 )
 from imubench.units import G0_MPS2 as G0
+from scipy.signal import lfilter
 
 N_WHITE = 22.5e-6 * G0          # ADXL355 white noise, m/s²/√Hz
 PLAN_DIRS = np.array([p.direction for p in POSE_PLAN])

@@ -11,12 +11,16 @@ import math
 
 import numpy as np
 import pytest
-from scipy import signal
-
 from imubench.calib import CalibrationError, NotObservable, TriadFit
 from imubench.calib import gyro as G
-from imubench.calib.gyro import (TurntableSegment, gyro_bias, integrate_rotation, rotation_method,
-                                 turntable)
+from imubench.calib.gyro import (
+    TurntableSegment,
+    gyro_bias,
+    integrate_rotation,
+    rotation_method,
+    turntable,
+)
+from scipy import signal
 
 D2R = math.pi / 180.0
 ND = 0.015 * D2R                      # white noise density, rad/s/√Hz

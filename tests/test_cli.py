@@ -8,9 +8,8 @@ import subprocess
 import sys
 
 import numpy as np
-
-from imubench.wire import frame as P
 from imubench.device.fake import FakeDevice
+from imubench.wire import frame as P
 from imubench.wire.protocol_gen import BatchHeader, RawBatch, Stats
 
 
@@ -87,3 +86,78 @@ def test_info_and_missing_port(monkeypatch):
     env = {k: v for k, v in os.environ.items() if k != "IMUBENCH_PORT"}
     r = subprocess.run([sys.executable, "-m", "imubench", "info"], capture_output=True, text=True, env=env)
     assert r.returncode == 2 and "IMUBENCH_PORT" in r.stderr
+
+
+# ----------------------------------------------------------------------- one command line
+def _subparsers():
+    import argparse
+
+    from imubench.cli.main import build_parser
+    ap = build_parser()
+    sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    return ap, sub.choices
+
+
+def test_every_option_has_help_and_shows_its_default():
+    import argparse
+    ap, commands = _subparsers()
+    assert {"calibrate", "history", "report", "closure", "allan", "attitude", "thermal", "decode", "monitor",
+            "info", "sim", "qemu", "fake", "param-page", "flash"} <= set(commands)
+    for name, p in commands.items():
+        assert p.description, f"{name} has no description"
+        for act in p._actions:
+            if isinstance(act, argparse._HelpAction):
+                continue
+            assert act.help and act.help.strip(), f"imubench {name} {act.dest}: no help text"
+            d = act.default
+            if d is None or d is False or d is argparse.SUPPRESS or (isinstance(d, (list, str)) and not d):
+                continue
+            shown = p._get_formatter()._expand_help(act)      # the help text as --help prints it
+            assert "default" in shown, f"imubench {name} {act.dest}: the help does not show the default: {shown}"
+
+
+def test_the_same_options_have_the_same_names():
+    """--port/--baud wherever a device is opened; --sim/--sim-seed/--sim-speed wherever a
+    command can start its own virtual device; --rate is always a protocol stream rate."""
+    from imubench.cli.common import stream_rate
+    _, commands = _subparsers()
+    for name, p in commands.items():
+        opts = {o: a for a in p._actions for o in a.option_strings}
+        if "--port" in opts and name != "flash":
+            assert "--baud" in opts, name
+        if "--sim" in opts:
+            assert {"--sim-seed", "--sim-speed"} <= set(opts), name
+        if "--rate" in opts:
+            assert opts["--rate"].type is stream_rate, name
+    for name in ("calibrate", "closure", "thermal"):
+        assert "--sim" in {o for a in commands[name]._actions for o in a.option_strings}, name
+
+
+def test_version():
+    r = run("--version")
+    assert r.returncode == 0 and r.stdout.startswith("imubench ")
+    from imubench import __version__
+    assert __version__ in r.stdout and __version__ != "0+unknown"
+
+
+def test_ids_one_format_in_info_and_history(tmp_path):
+    """info prints the MCU UID and gyro serial numbers as upper-case hex; history lists and
+    accepts them in exactly that form (a serial number finds its board)."""
+    import re
+
+    from imubench.results.history import History
+    with FakeDevice(seed=2) as fake:
+        r = run("info", "--port", fake.port_url)
+    assert r.returncode == 0, r.stderr
+    uid = re.search(r"MCU UID ([0-9A-F]{24})\b", r.stdout).group(1)
+    sns = re.search(r"SN ([0-9A-F]{8}) ([0-9A-F]{8}) ([0-9A-F]{8})", r.stdout).groups()
+    from test_history import make_result
+    db = tmp_path / "h.sqlite"
+    with History(db) as h:
+        h.record(make_result(uid, gyro_sn=tuple(int(s, 16) for s in sns)))
+    listed = run("history", "--db", str(db))
+    assert uid in listed.stdout
+    for query in (sns[1], sns[1].lower(), "0x" + sns[2], uid[:6], uid):
+        r = run("history", "--db", str(db), query)
+        assert r.returncode == 0, (query, r.stderr)
+        assert f"device {uid}" in r.stdout and " ".join(sns) in r.stdout

@@ -9,12 +9,15 @@ import math
 
 import numpy as np
 import pytest
-from imubench.procedures import closure as CL
-from imubench.wire import params as PR
+from imubench.analysis import closure as ACL
 from imubench.analysis import strapdown as SD
+from imubench.cli import main as imubench
+from imubench.device.sim import VirtualBench
+from imubench.procedures import closure as CL
+from imubench.results import closure as RCL
+from imubench.wire import params as PR
 from imubench.wire.decoder import SampleBlock
 from imubench.wire.protocol_gen import Params
-from imubench.device.sim import VirtualBench
 
 G = CL.G0
 FS = 1000.0
@@ -180,12 +183,12 @@ def _block(n=5000, gap_at=None, calibrated=False):
 def test_closure_refuses_lost_samples_calibrated_data_and_still_recordings():
     p = PR.identity()
     with pytest.raises(SD.ClosureError, match="3 samples were lost"):
-        CL.closure_from_block(_block(gap_at=2500), p)
+        ACL.closure_from_block(_block(gap_at=2500), p)
     with pytest.raises(SD.ClosureError, match="RAW"):
-        CL.closure_from_block(_block(calibrated=True), p)
+        ACL.closure_from_block(_block(calibrated=True), p)
     with pytest.raises(SD.ClosureError, match="no motion"):
-        CL.closure_from_block(_block(), p)
-    assert CL.is_factory(p) and not CL.is_factory(dataclasses.replace(p, gyro_b_rad_s=(0.001, 0.0, 0.0)))
+        ACL.closure_from_block(_block(), p)
+    assert PR.is_factory(p) and not PR.is_factory(dataclasses.replace(p, gyro_b_rad_s=(0.001, 0.0, 0.0)))
 
 
 # ------------------------------------------------------------------ the simulator's paths
@@ -242,7 +245,7 @@ def calibrated_run(tmp_path_factory):
 
 def test_closure_on_the_virtual_device_before_and_after_calibration(calibrated_run):
     res = calibrated_run["res"]
-    print("\n" + CL.summarize(res))
+    print("\n" + RCL.summarize(res))
     floor = res["noise_floor"]["sigma_distance_m"]
     assert np.allclose(calibrated_run["pos"][0], calibrated_run["pos"][1], atol=1e-9)   # the path closes
     assert res["before"].distance_m > 1.0                      # random truth: metres off uncalibrated
@@ -281,7 +284,7 @@ def test_closure_files_and_reanalysis(calibrated_run, capsys):
     assert meta["decoder"]["samples_missing"] == 0
     assert max(abs(v) for v in meta["truth_closure_m"]) < 1e-9          # the bench's own path closed
     # the raw capture alone (with the parameters recorded first) gives the same figures
-    assert CL.main_closure(["--analyse", str(d)]) == 0
+    assert imubench(["closure", "--analyse", str(d)]) == 0
     again = json.loads((d / "closure.json").read_text())
     assert again["before"]["distance_m"] == pytest.approx(meta["before"]["distance_m"], rel=1e-9)
     assert again["after"]["distance_m"] == pytest.approx(meta["after"]["distance_m"], rel=1e-9)
@@ -290,7 +293,7 @@ def test_closure_files_and_reanalysis(calibrated_run, capsys):
 
 def test_closure_refuses_factory_parameters(tmp_path, capsys):
     with VirtualBench(speed=20, seed=6) as vb:
-        rc = CL.main_closure(["--port", vb.port_url, "--out", str(tmp_path / "c")])
+        rc = imubench(["closure", "--port", vb.port_url, "--out", str(tmp_path / "c")])
     assert rc == 1
     assert "factory default" in capsys.readouterr().err
 
@@ -299,5 +302,5 @@ def test_params_file_is_read(tmp_path):
     p = dataclasses.replace(PR.identity(), gyro_b_rad_s=(0.01, 0.0, 0.0))
     f = tmp_path / "p.json"
     f.write_text(json.dumps({"params": PR.to_json(p)}))
-    q = CL._load_params(str(f))
+    q = CL.load_params(str(f))
     assert isinstance(q, Params) and q.gyro_b_rad_s == (0.01, 0.0, 0.0)

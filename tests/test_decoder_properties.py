@@ -26,7 +26,6 @@ import numpy as np
 from cobs import cobs
 from hypothesis import HealthCheck, Phase, event, given, note, settings
 from hypothesis import strategies as st
-
 from imubench.wire import frame as P
 from imubench.wire import protocol_gen as G
 from imubench.wire.decoder import SampleBlock, StreamDecoder, decode_bytes

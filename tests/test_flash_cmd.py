@@ -10,8 +10,7 @@ import os
 from pathlib import Path
 
 import pytest
-
-from imubench.device.flash import main_flash
+from imubench.cli import main as imubench
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -75,7 +74,7 @@ def env(tmp_path, monkeypatch):
 def test_openocd_f103_command_line(env, capsys):
     install, calls, img = env
     install(*TOOLS)
-    assert main_flash(["--board", "f103", "--image", str(img["elf"])]) == 0   # openocd is first
+    assert imubench(["flash", "--board", "f103", "--image", str(img["elf"])]) == 0   # openocd is first
     assert calls() == [["openocd", "-f", "interface/stlink.cfg", "-f", "target/stm32f1x.cfg",
                         "-c", f"program {img['elf']} verify reset exit"]]
     out = capsys.readouterr().out
@@ -85,7 +84,7 @@ def test_openocd_f103_command_line(env, capsys):
 def test_openocd_f4_uses_the_f4_target(env):
     install, calls, img = env
     install("openocd")
-    assert main_flash(["--board", "f4", "--probe", "openocd", "--image", str(img["elf"])]) == 0
+    assert imubench(["flash", "--board", "f4", "--probe", "openocd", "--image", str(img["elf"])]) == 0
     assert calls() == [["openocd", "-f", "interface/stlink.cfg", "-f", "target/stm32f4x.cfg",
                         "-c", f"program {img['elf']} verify reset exit"]]
 
@@ -94,7 +93,7 @@ def test_stlink_writes_then_verifies_by_reading_back(env, monkeypatch, capsys):
     install, calls, img = env
     install("st-flash", "stm32flash")                                       # no openocd: st-flash next
     monkeypatch.setenv("FAKE_READ_SRC", str(img["bin"]))
-    assert main_flash(["--board", "f103", "--image", str(img["bin"])]) == 0
+    assert imubench(["flash", "--board", "f103", "--image", str(img["bin"])]) == 0
     c = calls()
     size = img["bin"].stat().st_size
     assert c[0] == ["st-flash", "--reset", "write", str(img["bin"]), "0x08000000"]
@@ -111,7 +110,7 @@ def test_stlink_verify_mismatch_fails(env, monkeypatch, tmp_path, capsys):
     bad[0x123] ^= 0xFF
     (tmp_path / "bad.bin").write_bytes(bytes(bad))
     monkeypatch.setenv("FAKE_READ_SRC", str(tmp_path / "bad.bin"))
-    assert main_flash(["--board", "f4", "--probe", "stlink", "--image", str(img["bin"])]) == 1
+    assert imubench(["flash", "--board", "f4", "--probe", "stlink", "--image", str(img["bin"])]) == 1
     err = capsys.readouterr().err
     assert "verify failed" in err and "0x123" in err and "0x08000123" in err
     assert [c[1] for c in calls()] == ["--reset", "read"]                   # no reset after a bad verify
@@ -120,7 +119,7 @@ def test_stlink_verify_mismatch_fails(env, monkeypatch, tmp_path, capsys):
 def test_stlink_needs_a_bin_image(env, capsys):
     install, calls, img = env
     install("st-flash")
-    assert main_flash(["--board", "f103", "--probe", "stlink", "--image", str(img["elf"])]) == 2
+    assert imubench(["flash", "--board", "f103", "--probe", "stlink", "--image", str(img["elf"])]) == 2
     assert ".bin" in capsys.readouterr().err
     assert calls() == []
 
@@ -128,22 +127,23 @@ def test_stlink_needs_a_bin_image(env, capsys):
 def test_serial_bootloader_command_line(env):
     install, calls, img = env
     install("stm32flash")
-    assert main_flash(["--board", "f103", "--port", "/dev/ttyUSB7", "--image", str(img["hex"])]) == 0
+    assert imubench(["flash", "--board", "f103", "--port", "/dev/ttyUSB7", "--image", str(img["hex"])]) == 0
     assert calls() == [["stm32flash", "-w", str(img["hex"]), "-v", "-g", "0x0", "/dev/ttyUSB7"]]
 
 
 def test_serial_needs_a_port(env, capsys):
     install, calls, img = env
     install("stm32flash")
-    assert main_flash(["--board", "f4", "--probe", "serial", "--image", str(img["hex"])]) == 2
+    assert imubench(["flash", "--board", "f4", "--probe", "serial", "--image", str(img["hex"])]) == 2
     assert "--port" in capsys.readouterr().err
     assert calls() == []
 
 
 def test_no_tool_found_says_what_to_install(env, capsys):
     _install, calls, img = env
-    assert main_flash(["--board", "f103", "--image", str(img["elf"])]) == 2
+    assert imubench(["flash", "--board", "f103", "--image", str(img["elf"])]) == 1   # the environment lacks it
     err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and err.startswith("imubench flash: error: ")
     for tool, pkg in (("openocd", "openocd"), ("st-flash", "stlink-tools"), ("stm32flash", "stm32flash")):
         assert tool in err and f"apt-get install {pkg}" in err
     assert calls() == []
@@ -152,7 +152,7 @@ def test_no_tool_found_says_what_to_install(env, capsys):
 def test_requested_probe_missing(env, capsys):
     install, _calls, img = env
     install("openocd")
-    assert main_flash(["--board", "f103", "--probe", "stlink", "--image", str(img["bin"])]) == 2
+    assert imubench(["flash", "--board", "f103", "--probe", "stlink", "--image", str(img["bin"])]) == 1
     err = capsys.readouterr().err
     assert "st-flash" in err and "apt-get install stlink-tools" in err
 
@@ -167,7 +167,7 @@ def test_tool_failure_exits_non_zero_with_its_output(env, monkeypatch, capsys, t
     install(*TOOLS)
     monkeypatch.setenv("FAKE_FAIL", tool)
     ext = {"openocd": "elf", "st-flash": "bin", "stm32flash": "hex"}[tool]
-    assert main_flash(["--board", "f103", "--image", str(img[ext]), *args]) == 1
+    assert imubench(["flash", "--board", "f103", "--image", str(img[ext]), *args]) == 1
     cap = capsys.readouterr()
     assert f"{tool} failed (exit 1)" in cap.err
     assert f"Error: {tool} stand-in: no target connected" in cap.out + cap.err
@@ -177,12 +177,12 @@ def test_tool_failure_exits_non_zero_with_its_output(env, monkeypatch, capsys, t
 def test_dry_run_runs_nothing(env, capsys):
     install, calls, img = env
     install(*TOOLS)
-    assert main_flash(["--board", "f4", "--dry-run"]) == 0
+    assert imubench(["flash", "--board", "f4", "--dry-run"]) == 0
     out = capsys.readouterr().out
     elf = ROOT / "build" / "arm" / "f4" / "imubench.elf"
     assert f'openocd -f interface/stlink.cfg -f target/stm32f4x.cfg -c \'program {elf} verify reset exit\'' in out
     assert calls() == []
-    assert main_flash(["--board", "f103", "--probe", "stlink", "--dry-run", "--image", str(img["bin"])]) == 0
+    assert imubench(["flash", "--board", "f103", "--probe", "stlink", "--dry-run", "--image", str(img["bin"])]) == 0
     out = capsys.readouterr().out
     assert f"st-flash --reset write {img['bin']} 0x08000000" in out and "st-flash reset" in out
     assert calls() == []
@@ -190,7 +190,7 @@ def test_dry_run_runs_nothing(env, capsys):
 
 def test_dry_run_with_a_probe_needs_no_tool(env, capsys):
     _install, calls, img = env
-    assert main_flash(["--board", "f103", "--probe", "serial", "--port", "/dev/ttyUSB0", "--dry-run",
+    assert imubench(["flash", "--board", "f103", "--probe", "serial", "--port", "/dev/ttyUSB0", "--dry-run",
                        "--image", str(img["hex"])]) == 0
     assert f"stm32flash -w {img['hex']} -v -g 0x0 /dev/ttyUSB0" in capsys.readouterr().out
 
@@ -198,14 +198,14 @@ def test_dry_run_with_a_probe_needs_no_tool(env, capsys):
 def test_missing_image(env, tmp_path, capsys):
     install, calls, _img = env
     install("openocd")
-    assert main_flash(["--board", "f103", "--image", str(tmp_path / "nope.elf")]) == 2
-    assert "no image" in capsys.readouterr().err
+    assert imubench(["flash", "--board", "f103", "--image", str(tmp_path / "nope.elf")]) == 2   # checked as an argument
+    assert "nope.elf: no such file" in capsys.readouterr().err
     assert calls() == []
 
 
 def test_default_image_is_the_built_one(env, capsys):
     install, calls, _img = env
     install("openocd")
-    assert main_flash(["--board", "f103", "--dry-run"]) == 0
+    assert imubench(["flash", "--board", "f103", "--dry-run"]) == 0
     assert str(ROOT / "build" / "arm" / "f103" / "imubench.elf") in capsys.readouterr().out
     assert os.environ["PATH"].endswith("bin")

@@ -8,14 +8,19 @@ import sqlite3
 
 import numpy as np
 import pytest
-
+from imubench.cli import main as imubench
 from imubench.results import history as H
-from imubench.results.history import AmbiguousDevice, History, SchemaError, UnknownDevice, main_history
+from imubench.results.history import (
+    AmbiguousDevice,
+    History,
+    SchemaError,
+    UnknownDevice,
+)
 
 G0 = 9.80665
-UID_A = "0123456789abcdef01234567"
-UID_B = "0123ffff89abcdef01234567"
-UID_C = "fedcba9876543210fedcba98"
+UID_A = "0123456789ABCDEF01234567"      # upper-case hex, as imubench.wire.ids writes it
+UID_B = "0123FFFF89ABCDEF01234567"
+UID_C = "FEDCBA9876543210FEDCBA98"
 
 
 def make_result(uid=UID_A, started="2026-11-22T06:40:00+00:00", accel_b_mps2=(0.01, -0.02, 0.03),
@@ -101,16 +106,19 @@ def test_gyro_may_be_absent(db):
 
 def test_lookup_by_uid_prefix_and_serial(db):
     with History(db) as h:
-        h.record(make_result(UID_A, gyro_sn=(1001, 1002, 1003)))
-        h.record(make_result(UID_C, gyro_sn=(2001, 2002, 2003)))
+        h.record(make_result(UID_A, gyro_sn=(0x1001, 0x1002, 0x1003)))
+        h.record(make_result(UID_C.lower(), gyro_sn=(0x2001, 0x2002, 0x2003)))   # as older sessions wrote it
         assert h.resolve(UID_A) == UID_A
-        assert h.resolve(UID_A.upper()) == UID_A
+        assert h.resolve(UID_A.lower()) == UID_A         # any case
         assert h.resolve("01234") == UID_A
-        assert h.resolve("FEDC") == UID_C
-        assert h.resolve("1002") == UID_A                # a gyro serial number
+        assert h.resolve("fedc") == UID_C
+        assert h.resolve("00001002") == UID_A            # a gyro serial number, as `imubench info` prints it
         assert h.resolve("2003") == UID_C
-        assert h.resolve(hex(2001)) == UID_C             # ... or in hex with 0x
+        assert h.resolve("0x2001") == UID_C              # ... with 0x
+        assert h.resolve("fedc:ba98") == UID_C           # separators do not matter
         assert [r["mcu_uid"] for r in h.runs("2001")] == [UID_C]
+        with pytest.raises(UnknownDevice, match="not an identifier"):
+            h.resolve("B559-FCF4-X")                     # not hex: says what an identifier looks like
         with pytest.raises(UnknownDevice, match="at least 4 hex digits"):
             h.resolve("012")
         with pytest.raises(UnknownDevice, match="no device 'abcd'"):
@@ -121,9 +129,9 @@ def test_lookup_by_uid_prefix_and_serial(db):
 
 def test_a_serial_from_an_earlier_run_still_finds_the_device(db):
     with History(db) as h:
-        h.record(make_result(gyro_sn=(1001, 1002, 1003)))
-        h.record(make_result(started="2026-12-01T08:00:00+00:00", gyro_sn=(1001, 5555, 1003)))   # gyro Y replaced
-        assert h.devices()[0]["gyro_sn"] == [1001, 5555, 1003]
+        h.record(make_result(gyro_sn=(0x1001, 0x1002, 0x1003)))
+        h.record(make_result(started="2026-12-01T08:00:00+00:00", gyro_sn=(0x1001, 0x5555, 0x1003)))   # gyro Y replaced
+        assert h.devices()[0]["gyro_sn"] == [0x1001, 0x5555, 0x1003]
         assert h.resolve("5555") == UID_A
         assert h.resolve("1002") == UID_A
 
@@ -248,7 +256,7 @@ def test_newer_schema_is_refused(db, capsys):
         History(db)
     with pytest.raises(SchemaError, match="newer imubench"):
         History(db, readonly=True)
-    assert main_history(["--db", str(db)]) == 2
+    assert imubench(["history", "--db", str(db)]) == 1
     assert "newer imubench" in capsys.readouterr().err
 
 
@@ -319,19 +327,19 @@ def test_cli_lists_devices(db, capsys):
         h.record(make_result(UID_A))
         h.record(make_result(UID_A, started="2026-12-01T08:00:00+00:00", passed=False))
         h.record(make_result(UID_C, gyro_sn=(1, 2, 3)))
-    assert main_history(["--db", str(db)]) == 0
+    assert imubench(["history", "--db", str(db)]) == 0
     out = capsys.readouterr().out
     line_a = next(ln for ln in out.splitlines() if ln.startswith(UID_A))
     assert "SIM" in line_a and " 2 " in line_a and "2026-12-01 08:00 UTC" in line_a and "FAILED" in line_a
     assert any(ln.startswith(UID_C) and "2026-11-22 06:40 UTC" in ln for ln in out.splitlines())
-    assert main_history(["--db", str(db), "--json"]) == 0
+    assert imubench(["history", "--db", str(db), "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     assert {d["mcu_uid"]: d["runs"] for d in data["devices"]} == {UID_A: 2, UID_C: 1}
 
 
 def test_cli_device_report_numbers(db, capsys):
     _series(db, [0.3, 5.0 * math.sqrt(2)])
-    assert main_history(["--db", str(db), "0123456"]) == 0
+    assert imubench(["history", "--db", str(db), "0123456"]) == 0
     out = capsys.readouterr().out
     # accel bias 0.01 m/s² = 1.0197 mg ± 2e-5 m/s² = 0.0020 mg; scale 250 ppm ± 3 ppm
     assert "X +1.0197 ± 0.0020" in out and "Y -2.0394 ± 0.0020" in out
@@ -349,7 +357,7 @@ def test_cli_device_report_numbers(db, capsys):
     assert "first -> last (1 -> 3)" in out
     assert "accel bias Z run 2 -> 3" in out and "(5.0σ)" in out
 
-    assert main_history(["--db", str(db), "0123456", "--json"]) == 0
+    assert imubench(["history", "--db", str(db), "0123456", "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     assert data["device"]["mcu_uid"] == UID_A
     assert [r["index"] for r in data["runs"]] == [1, 2, 3]
@@ -368,36 +376,43 @@ def test_cli_json_is_strict_json_with_unestimated_sigmas(db, capsys):
     r["gyro"]["sigma_m"] = [[float("nan")] * 3] * 3
     with History(db) as h:
         h.record(r)
-    assert main_history(["--db", str(db), UID_A, "--json"]) == 0
+    assert imubench(["history", "--db", str(db), UID_A, "--json"]) == 0
     text = capsys.readouterr().out
     assert "NaN" not in text
     assert json.loads(text)["runs"][0]["gyro"]["scale_error_sigma_ppm"] == [None, None, None]
 
 
-def test_cli_errors_exit_2(db, tmp_path, capsys):
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and err.startswith("imubench history: error: "), err
+    return err
+
+
+def test_cli_errors_are_one_line_exit_1(db, tmp_path, capsys):
+    """A device or database that is not there is a failure (exit 1), named in one line."""
     with History(db) as h:
         h.record(make_result())
-    assert main_history(["--db", str(db), "beef"]) == 2
-    assert "no device 'beef'" in capsys.readouterr().err
-    assert main_history(["--db", str(tmp_path / "nope.sqlite")]) == 2
-    assert "no history database" in capsys.readouterr().err
+    assert imubench(["history", "--db", str(db), "beef"]) == 1
+    assert "no device 'beef'" in _one_error_line(capsys)
+    assert imubench(["history", "--db", str(tmp_path / "nope.sqlite")]) == 1
+    assert "no history database" in _one_error_line(capsys)
     assert not (tmp_path / "nope.sqlite").exists()              # reading never creates a database
     junk = tmp_path / "junk.sqlite"
     junk.write_bytes(b"this is not a database" * 100)
-    assert main_history(["--db", str(junk)]) == 2
-    assert "cannot read" in capsys.readouterr().err
+    assert imubench(["history", "--db", str(junk)]) == 1
+    assert "cannot read" in _one_error_line(capsys)
     other = tmp_path / "other.sqlite"
     con = sqlite3.connect(other)
     con.execute("CREATE TABLE t (x)")
     con.commit()
     con.close()
-    assert main_history(["--db", str(other)]) == 2
-    assert "not an imubench history" in capsys.readouterr().err
+    assert imubench(["history", "--db", str(other)]) == 1
+    assert "not an imubench history" in _one_error_line(capsys)
 
 
 def test_cli_without_a_database_yet(tmp_path, monkeypatch, capsys):
     import platformdirs
     monkeypatch.setattr(platformdirs, "user_data_dir", lambda app: str(tmp_path / app))
-    assert main_history([]) == 0
+    assert imubench(["history", ]) == 0
     assert "no calibrations recorded yet" in capsys.readouterr().out
     assert not (tmp_path / "imubench").exists()

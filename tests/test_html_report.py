@@ -8,10 +8,11 @@ import shutil
 
 import numpy as np
 import pytest
-from imubench.results.report import PNG_MAGIC, build_report, main_report
+from imubench.cli import main as imubench
 from imubench.device.link import Device
-from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for
 from imubench.device.sim import VirtualBench
+from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for
+from imubench.results.report import PNG_MAGIC, build_report
 
 NOTE = 'bench A <script>alert("x")</script> & co'
 
@@ -96,7 +97,7 @@ def test_report_with_noise_attitude_and_thermal(session_dir, tmp_path):
     from imubench.results.calibration import plot_pose_residuals
     plot_pose_residuals(json.loads((sd / "session.json").read_text())["result"], sd / "residuals.png")
     out = tmp_path / "full.html"
-    assert main_report([str(sd), "--out", str(out), "--allan", str(nd), "--attitude", str(nd / "allan_gyro.png"),
+    assert imubench(["report", str(sd), "--out", str(out), "--allan", str(nd), "--attitude", str(nd / "allan_gyro.png"),
                         "--thermal", str(thermal)]) == 0
     doc = out.read_text(encoding="utf-8")
     _check_self_contained(doc)
@@ -110,16 +111,20 @@ def test_report_with_noise_attitude_and_thermal(session_dir, tmp_path):
 def test_main_report_default_output_and_errors(session_dir, tmp_path, capsys):
     sd = tmp_path / "s"
     shutil.copytree(session_dir, sd)
-    assert main_report([str(sd)]) == 0
+    assert imubench(["report", str(sd)]) == 0
     assert capsys.readouterr().out.strip() == str(sd / "report.html")
     assert (sd / "report.html").is_file()
     empty = tmp_path / "empty"
     empty.mkdir()
-    assert main_report([str(empty)]) == 2
+    assert imubench(["report", str(empty)]) == 2
     assert "no session.json" in capsys.readouterr().err
-    with pytest.raises(FileNotFoundError):
+    from imubench.results.sessionfile import SessionFileError
+    with pytest.raises(SessionFileError, match="holds no session.json"):
         build_report(empty)
-    assert main_report([str(sd), "--thermal", str(tmp_path / "nope.json")]) == 2
+    (empty / "session.json").write_text('{"schema": 1, "started": 5, "config": {}, "poses": []}')
+    with pytest.raises(SessionFileError, match="'started' must be a str"):   # a wrong type names its field
+        build_report(empty)
+    assert imubench(["report", str(sd), "--thermal", str(tmp_path / "nope.json")]) == 2
 
 
 def test_unfinished_session_is_reported(session_dir, tmp_path):
@@ -137,9 +142,8 @@ def test_unfinished_session_is_reported(session_dir, tmp_path):
 @pytest.fixture(scope="module")
 def thermal_json(tmp_path_factory):
     """thermal.json of a real `imubench thermal --sim --write` run (short: two temperatures)."""
-    from imubench.procedures.thermal import main_thermal
     d = tmp_path_factory.mktemp("thermal") / "t"
-    assert main_thermal(["--sim", "--temps", "10,40", "--samples", "300", "--write", "--ramp", "5",
+    assert imubench(["thermal", "--sim", "--temps", "10,40", "--samples", "300", "--write", "--ramp", "5",
                          "--settle-s", "2", "--out", str(d)]) == 0
     return d / "thermal.json"
 
@@ -196,8 +200,8 @@ def test_report_of_an_interrupted_thermal_run(session_dir, thermal_json, tmp_pat
 def test_report_shows_the_closure_check(session_dir, tmp_path):
     """closure.json + closure.png from imubench.procedures.closure (here from an exact synthetic box path,
     integrated with a biased and a clean accelerometer) become a table and an embedded plot."""
-    from imubench.procedures import closure as CL
     from imubench.analysis import strapdown as SD
+    from imubench.procedures import closure as CL
     from test_closure import synthetic
     t, f, w, _ = synthetic(CL.PATHS["box"])
     i0, i1 = SD.motion_window(t, f, w, rest_s=2.0)

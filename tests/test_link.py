@@ -6,11 +6,16 @@ import os
 
 import numpy as np
 import pytest
-
-from imubench.wire import params as PR
 from imubench.device.fake import FakeDevice
 from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
-from imubench.wire.protocol_gen import Error, MsgType, ParamsWhich, ParamSource, StreamState
+from imubench.wire import params as PR
+from imubench.wire.protocol_gen import (
+    Error,
+    MsgType,
+    ParamSource,
+    ParamsWhich,
+    StreamState,
+)
 
 
 @pytest.fixture

@@ -6,8 +6,10 @@ import json
 
 import numpy as np
 import pytest
-
-from imubench.procedures.allan import allan, main_allan, parse_duration, plot_allan
+from imubench.analysis.allan import allan
+from imubench.cli import main as imubench
+from imubench.cli.allan import parse_duration
+from imubench.results.allan import plot_allan
 
 FS = 100.0
 GYRO_N, GYRO_K = 2.6e-4, 1.0e-4        # rad/s/√Hz, rad/s·√Hz
@@ -72,7 +74,7 @@ def test_virtual_device_readoffs_within_10_percent_of_truth(vb, tmp_path):
     parameters. 4 h of device time at 100 Hz (a few seconds of wall time at speed 0)."""
     truth = vb.get_truth()
     out = tmp_path / "rec"
-    assert main_allan(["--port", vb.port_url, "--duration", f"{HOURS:g}h", "--rate", "100",
+    assert imubench(["allan", "--port", vb.port_url, "--duration", f"{HOURS:g}h", "--rate", "100",
                        "--out", str(out), "--progress", "2"]) == 0
     res = json.loads((out / "allan.json").read_text())
     assert res["decoder"]["samples_missing"] == 0
@@ -93,13 +95,13 @@ def test_virtual_device_readoffs_within_10_percent_of_truth(vb, tmp_path):
 
 def test_main_allan_short_and_truncated_capture(vb, tmp_path, capsys):
     out = tmp_path / "short"
-    assert main_allan(["--port", vb.port_url, "--duration", "10m", "--out", str(out), "--progress", "1"]) == 0
+    assert imubench(["allan", "--port", vb.port_url, "--duration", "10m", "--out", str(out), "--progress", "1"]) == 0
     for f in ("capture.bin", "allan.json", "allan_accel.png", "allan_gyro.png"):
         assert (out / f).stat().st_size > 0, f
     text = capsys.readouterr().out
     assert "samples" in text and "ARW N [°/√h]" in text and "µg/√Hz" in text
     # a second recording into the same directory refuses to overwrite the capture
-    assert main_allan(["--port", vb.port_url, "--duration", "10s", "--out", str(out)]) == 1
+    assert imubench(["allan", "--port", vb.port_url, "--duration", "10s", "--out", str(out)]) == 1
     # simulated crash: the capture ends in the middle of a frame
     data = (out / "capture.bin").read_bytes()
     cut = data[: len(data) // 2]
@@ -108,7 +110,7 @@ def test_main_allan_short_and_truncated_capture(vb, tmp_path, capsys):
     crashed = tmp_path / "crashed.bin"
     crashed.write_bytes(cut)
     out2 = tmp_path / "after-crash"
-    assert main_allan(["--analyse", str(crashed), "--out", str(out2)]) == 0
+    assert imubench(["allan", "--analyse", str(crashed), "--out", str(out2)]) == 0
     res = json.loads((out2 / "allan.json").read_text())
     full = json.loads((out / "allan.json").read_text())
     assert 0.4 * full["samples"] < res["samples"] < 0.6 * full["samples"]
@@ -120,6 +122,6 @@ def test_main_allan_short_and_truncated_capture(vb, tmp_path, capsys):
 def test_analyse_missing_or_empty_file(tmp_path, capsys):
     empty = tmp_path / "empty.bin"
     empty.write_bytes(b"")
-    assert main_allan(["--analyse", str(empty), "--out", str(tmp_path / "o")]) == 1
-    assert main_allan(["--analyse", str(tmp_path / "nope.bin"), "--out", str(tmp_path / "o")]) == 1
+    assert imubench(["allan", "--analyse", str(empty), "--out", str(tmp_path / "o")]) == 1
+    assert imubench(["allan", "--analyse", str(tmp_path / "nope.bin"), "--out", str(tmp_path / "o")]) == 2   # a missing file is a wrong argument
     assert "error" in capsys.readouterr().err

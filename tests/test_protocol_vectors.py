@@ -6,11 +6,9 @@ import subprocess
 
 import numpy as np
 import pytest
-
+from conftest import ROOT
 from imubench.wire import frame as P
 from imubench.wire.protocol_gen import MESSAGES_BY_NAME
-
-from conftest import ROOT
 
 DOC = json.loads((ROOT / "protocol" / "vectors" / "vectors.json").read_text())
 VECTORS = DOC["vectors"]

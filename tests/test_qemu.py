@@ -23,15 +23,22 @@ import time
 from pathlib import Path
 
 import pytest
-
-from imubench.wire import paramstore as PS
-from imubench.wire import frame as P
-from imubench.device.link import Device, DeviceError
-from imubench.wire.protocol_gen import (Board, ClockSource, Error, FaultKind, MsgType, Params, ParamsWhich,
-                                   ParamSource, StreamState)
-from imubench.device.qemu import QemuBoard, build_firmware
-
 from conftest import ROOT
+from imubench.device.link import Device, DeviceError
+from imubench.device.qemu import QemuBoard, build_firmware
+from imubench.wire import frame as P
+from imubench.wire import paramstore as PS
+from imubench.wire.protocol_gen import (
+    Board,
+    ClockSource,
+    Error,
+    FaultKind,
+    MsgType,
+    Params,
+    ParamSource,
+    ParamsWhich,
+    StreamState,
+)
 
 BOARDS = {"f103": (Board.QEMU_F1, "qemu-f1"), "f4": (Board.QEMU_F4, "qemu-f4")}
 ALL_MISSING = 0x0F

@@ -6,7 +6,6 @@ import struct
 
 import numpy as np
 import pytest
-
 from imubench.results.calibration import before_after_table, plot_pose_residuals
 
 SIX = ["+X up", "-X up", "+Y up", "-Y up", "+Z up (level)", "-Z up"]

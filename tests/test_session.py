@@ -6,20 +6,19 @@ import json
 
 import numpy as np
 import pytest
-
-from imubench.wire import params as PR
-from imubench.results.history import History
 from imubench.device.link import Device
-from imubench.wire.protocol_gen import ParamsWhich
+from imubench.device.sim import VirtualBench
 from imubench.procedures.session import (
     Session,
     SessionAborted,
     SessionConfig,
     SimPresenter,
     plan_for,
-    truth_in_fit_frame,
 )
-from imubench.device.sim import VirtualBench
+from imubench.results.calibration import truth_in_fit_frame
+from imubench.results.history import History
+from imubench.wire import params as PR
+from imubench.wire.protocol_gen import ParamsWhich
 
 NO_DRIFT = {"rw_k": 0.0}                    # a fixed truth: the bias does not wander
 
@@ -239,7 +238,7 @@ def test_the_user_can_redo_a_pose_live_and_after_a_resume(tmp_path):
 
 
 def test_human_presenter_tells_what_to_do(capsys):
-    from imubench.procedures.session import HumanPresenter
+    from imubench.cli.terminal import HumanPresenter
     ui = HumanPresenter()
     ui.present_pose("+X up (nose up)", np.array([1.0, 0, 0]), 2, 6)
     ui.progress("+X up (nose up)", 0.5)

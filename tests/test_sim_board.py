@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from imubench.device.sim import SimError, VirtualBench, build_sim, repo_root
 
 ROOT = Path(__file__).resolve().parent.parent

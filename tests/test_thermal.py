@@ -9,11 +9,14 @@ import json
 
 import numpy as np
 import pytest
-from imubench.wire import params as PR
-from imubench.procedures import thermal as TH
 from imubench import units as U
-from imubench.wire.protocol_gen import Params, ParamsWhich
+from imubench.analysis import thermal as ATH
+from imubench.cli import main as imubench
 from imubench.device.sim import VirtualBench
+from imubench.procedures import thermal as TH
+from imubench.results import thermal as RTH
+from imubench.wire import params as PR
+from imubench.wire.protocol_gen import Params, ParamsWhich
 
 TEMPS = [5.0, 25.0, 45.0]
 ACC_BTC = np.array([2e-3, -1.5e-3, 1e-3])          # m/s²/°C
@@ -35,7 +38,7 @@ def test_fit_tempco_recovers_known_coefficients():
     z = []
     for _ in range(50):
         y = icpt + np.outer(t - 20.0, coef) + sig * rng.normal(size=sig.shape)
-        c, _i, cov = TH.fit_tempco(t, y, sig, t_ref_c=20.0)
+        c, _i, cov = ATH.fit_tempco(t, y, sig, t_ref_c=20.0)
         assert cov.shape == (3, 2, 2)
         z.append((c - coef) / np.sqrt(cov[:, 0, 0]))
     z = np.array(z)
@@ -45,20 +48,20 @@ def test_fit_tempco_recovers_known_coefficients():
     # unweighted, per-axis temperatures
     tt = np.column_stack([t, t + 0.3, t - 0.2])
     y = icpt + (tt - 25.0) * coef + 1e-4 * rng.normal(size=tt.shape)
-    c, _, cov = TH.fit_tempco(tt, y, None, 25.0)
+    c, _, cov = ATH.fit_tempco(tt, y, None, 25.0)
     assert np.all(np.abs(c - coef) < 3 * np.sqrt(cov[:, 0, 0]))
     with pytest.raises(ValueError):
-        TH.fit_tempco([25.0, 25.0], np.zeros((2, 3)), None, 25.0)
+        ATH.fit_tempco([25.0, 25.0], np.zeros((2, 3)), None, 25.0)
 
 
 def test_apply_tempcos_validates():
-    f = TH.ThermalFit(30.0, ACC_BTC, 0 * ACC_BTC, ACC_STC, 0 * ACC_STC, GYR_BTC, 0 * GYR_BTC, GYR_STC, 0 * GYR_STC)
-    p = TH.apply_tempcos(PR.identity(), f)
+    f = ATH.ThermalFit(30.0, ACC_BTC, 0 * ACC_BTC, ACC_STC, 0 * ACC_STC, GYR_BTC, 0 * GYR_BTC, GYR_STC, 0 * GYR_STC)
+    p = ATH.apply_tempcos(PR.identity(), f)
     assert p.accel_t_ref_c == p.gyro_t_ref_c == 30.0
     assert np.allclose(p.gyro_bias_tc_rad_s_per_c, GYR_BTC)
     f.accel_scale_tc = np.array([0.0, 0.0, 5e-3])   # above the device's limit
     with pytest.raises(PR.InvalidParams):
-        TH.apply_tempcos(PR.identity(), f, 25.0)
+        ATH.apply_tempcos(PR.identity(), f, 25.0)
 
 
 def test_sweep_on_virtual_device_cuts_drift_10x():
@@ -68,11 +71,11 @@ def test_sweep_on_virtual_device_cuts_drift_10x():
                            for b, s in zip(GYR_BTC, GYR_STC)])
         dev.set_params(PR.identity())
         hooks = TH.sim_hooks(vb)
-        points = TH.sweep(dev, TEMPS, hooks, n=1500, poses=tuple(TH.POSES), turntable=True, settle=FAST)
+        points = TH.sweep(dev, TEMPS, hooks, n=1500, poses=tuple(ATH.POSES), turntable=True, settle=FAST)
         # the models' temperature outputs follow the set point at once (no ramp)
         for p, c in zip(points, TEMPS):
             assert abs(p.accel_temp_c - c) < 0.2 and np.all(np.abs(p.gyro_temp_c - c) < 0.2)
-        fit = TH.fit_sweep(points, 25.0)
+        fit = ATH.fit_sweep(points, 25.0)
         for got, sig, want in ((fit.accel_bias_tc, fit.accel_bias_tc_sigma, ACC_BTC),
                                (fit.accel_scale_tc, fit.accel_scale_tc_sigma, ACC_STC),
                                (fit.gyro_bias_tc, fit.gyro_bias_tc_sigma, GYR_BTC),
@@ -80,13 +83,13 @@ def test_sweep_on_virtual_device_cuts_drift_10x():
             assert np.all(np.abs(got - want) < 5 * sig + 1e-3 * np.abs(want)), (got, sig, want)
 
         before = TH.measure_drift(dev, TEMPS, hooks, n=2000, settle=FAST)
-        new = TH.apply_tempcos(PR.identity(), fit, 25.0)
+        new = ATH.apply_tempcos(PR.identity(), fit, 25.0)
         wb = TH.write_params(dev, new)
         assert wb["verified"] and "rebooted" in wb["steps"]
         back = dev.get_params(ParamsWhich.ACTIVE).params
         assert np.allclose(back.accel_bias_tc_mps2_per_c, fit.accel_bias_tc, rtol=1e-6)
         after = TH.measure_drift(dev, TEMPS, hooks, n=2000, settle=FAST)
-        print(TH.format_drift(before, after))
+        print(RTH.format_drift(before, after))
         ga, gb = after["gyro_drift_rad_s"], before["gyro_drift_rad_s"]
         aa, ab = after["accel_drift_mps2"], before["accel_drift_mps2"]
         assert np.all(gb >= 10 * ga), (gb, ga)           # gyro bias, every axis
@@ -140,13 +143,13 @@ def test_settling_waits_for_the_ramp():
 
 
 def test_write_params_checks_after_reboot_and_restores_on_mismatch(monkeypatch):
-    fit = TH.ThermalFit(25.0, ACC_BTC, 0 * ACC_BTC, ACC_STC, 0 * ACC_STC, GYR_BTC, 0 * GYR_BTC, GYR_STC, 0 * GYR_STC)
+    fit = ATH.ThermalFit(25.0, ACC_BTC, 0 * ACC_BTC, ACC_STC, 0 * ACC_STC, GYR_BTC, 0 * GYR_BTC, GYR_STC, 0 * GYR_STC)
     with VirtualBench(speed=20, seed=7) as vb, vb.device() as dev:
         old = PR.identity()
         old.accel_b_mps2 = (0.01, -0.02, 0.03)
         dev.set_params(old)
         dev.save_params()
-        new = TH.apply_tempcos(old, fit)
+        new = ATH.apply_tempcos(old, fit)
         reboots = vb.status()["reboots"]
         wb = TH.write_params(dev, new)
         assert wb["verified"] and wb["generation"] >= 2 and "rebooted" in wb["steps"]
@@ -157,7 +160,7 @@ def test_write_params_checks_after_reboot_and_restores_on_mismatch(monkeypatch):
 
         # the active parameters after the reboot differ in one bit-ish: detected, `new` restored
         fit.gyro_scale_tc = GYR_STC * 2
-        newer = TH.apply_tempcos(old, fit)
+        newer = ATH.apply_tempcos(old, fit)
         real_get, real_reboot, seen = dev.get_params, dev.reboot, []
 
         def reboot(*a, **k):
@@ -215,13 +218,13 @@ def test_interrupted_sweep_keeps_the_points_measured(tmp_path):
         assert p["t_last_us"] > p["t_first_us"] and p["settle"]["window_s"] == FAST.window_s
     assert "accel_bias_tc_mps2_per_c" not in d and "write" not in d
     with pytest.raises(FileExistsError):                    # never overwrites a run
-        TH.ThermalRecord(out, {})
+        RTH.ThermalRecord(out, {})
 
 
 def test_main_thermal_sim_saves_thermal_json(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     args = ["--sim", "--temps", "10,40", "--samples", "400", "--write", "--ramp", "5", "--settle-s", "2"]
-    assert TH.main_thermal(args) == 0
+    assert imubench(["thermal", *args]) == 0
     out = capsys.readouterr().out
     assert "temperature coefficients" in out and "after" in out and "generation" in out
     dirs = list(tmp_path.glob("imubench-thermal-*"))               # the default: a new timestamped directory
@@ -237,7 +240,7 @@ def test_main_thermal_sim_saves_thermal_json(tmp_path, monkeypatch, capsys):
     for p, ramp_s in zip(d["points"], (15 / 5, 30 / 5)):
         assert abs(p["accel_temp_c"] - p["set_c"]) < 0.2 and np.all(np.abs(np.array(p["gyro_temp_c"]) - p["set_c"]) < 0.2)
         assert p["settle"]["waited_s"] >= 0.9 * ramp_s + 2.0
-        assert sorted(p["accel_mps2"]) == sorted(TH.POSES) and len(p["gyro_turn_rad_s"]) == 3
+        assert sorted(p["accel_mps2"]) == sorted(ATH.POSES) and len(p["gyro_turn_rad_s"]) == 3
         assert np.all(np.array(p["gyro_rest_sigma_rad_s"]) > 0)
     # the fit, with units in the keys, near the virtual device's truth
     truth = {"accel_bias_tc_mps2_per_c": TH.SIM_ACCEL_TRUTH["bias_tc"],
@@ -255,6 +258,6 @@ def test_main_thermal_sim_saves_thermal_json(tmp_path, monkeypatch, capsys):
     assert np.all(np.array(b["accel_drift_mps2"]) > 10 * np.array(a["accel_drift_mps2"]))
     assert np.all(np.array(b["gyro_drift_rad_s"]) > 3 * np.array(a["gyro_drift_rad_s"]))
     # an existing run is never overwritten
-    assert TH.main_thermal(args + ["--out", str(dirs[0])]) == 1
+    assert imubench(["thermal", *args, "--out", str(dirs[0])]) == 1
     assert "exists" in capsys.readouterr().err
     assert json.loads(path.read_text()) == d

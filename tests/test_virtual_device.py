@@ -6,11 +6,11 @@ import time
 
 import numpy as np
 import pytest
-
-from imubench.wire import params as PR
-from imubench.wire import frame as P
 from imubench import units as U
 from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
+from imubench.device.sim import VirtualBench
+from imubench.wire import frame as P
+from imubench.wire import params as PR
 from imubench.wire.protocol_gen import (
     BatchFlags,
     Board,
@@ -18,13 +18,12 @@ from imubench.wire.protocol_gen import (
     FaultKind,
     MsgType,
     Params,
-    ParamsWhich,
     ParamSource,
+    ParamsWhich,
     SampleStatus,
     Sensor,
     StreamState,
 )
-from imubench.device.sim import VirtualBench
 
 
 def _connect(vb: VirtualBench, **kw) -> Device:

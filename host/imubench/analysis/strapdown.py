@@ -16,7 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from imubench import units as U
-from imubench.procedures.attitude import accel_tilt
+from imubench.analysis.tilt import accel_tilt
+from imubench.errors import ImubenchError
 
 __all__ = ["ClosureError", "Integration", "align_level", "motion_flags", "motion_window", "noise_floor",
            "strapdown"]
@@ -24,7 +25,7 @@ __all__ = ["ClosureError", "Integration", "align_level", "motion_flags", "motion
 G0 = U.G0_MPS2
 
 
-class ClosureError(RuntimeError):
+class ClosureError(ImubenchError, RuntimeError):
     """The recording cannot give a closure figure (no motion, lost samples, ...); says why."""
 
 

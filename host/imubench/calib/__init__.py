@@ -15,8 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from imubench.errors import ImubenchError
 
-class CalibrationError(ValueError):
+
+class CalibrationError(ImubenchError, ValueError):
     """The data cannot give a calibration; the message says why and what to do."""
 
 

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import optimize
 
-from imubench.units import G0_MPS2
 from imubench.calib import CalibrationError, NotObservable, TriadFit
+from imubench.units import G0_MPS2
 
 __all__ = [
     "FACES", "POSE_PLAN", "PlannedPose", "MULTI_PARAM_NAMES", "six_position", "multi_position",

@@ -1,7 +1,7 @@
 """`make demo`: a whole guided calibration session on the virtual device.
 
-The virtual device (firmware core + drivers + register-level sensor models, imubench.device.sim) is
-started with random, non-trivial truth errors (scale, misalignment and bias of every sensor).
+The virtual device (firmware core + drivers + register-level sensor models, imubench.device.sim)
+is started with random, non-trivial truth errors (scale, misalignment and bias of every sensor).
 Its virtual bench presents the 26 attitudes of the multi-position plan and turns the table
 at known rates about each axis, both ways, while `imubench calibrate` captures, detects
 stillness and attitude from the data, fits (six-position pre-calibration, then |a| = g;
@@ -18,7 +18,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from imubench.procedures.session import main_calibrate
+from imubench.cli.main import main as imubench
 from imubench.device.sim import build_sim
 
 
@@ -27,9 +27,9 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="imubench-demo-"))
     print("imubench demo: a guided calibration session on the virtual device (random truth errors;")
     print(f"               the virtual bench presents the attitudes and turns the table). Files in {work}\n")
-    return main_calibrate(["--sim", "--sim-seed", "7", "--method", "multi", "--gyro", "turntable",
-                           "--dir", str(work / "session"), "--db", str(work / "history.sqlite"),
-                           "--note", "make demo", "--closure"])
+    return imubench(["calibrate", "--sim", "--sim-seed", "7", "--method", "multi", "--gyro", "turntable",
+                     "--dir", str(work / "session"), "--db", str(work / "history.sqlite"),
+                     "--note", "make demo", "--closure"])
 
 
 if __name__ == "__main__":

@@ -18,8 +18,9 @@ import tty
 
 import numpy as np
 
-from imubench.wire import params as PR
+from imubench.units import G0_MPS2
 from imubench.wire import frame as P
+from imubench.wire import params as PR
 from imubench.wire.protocol_gen import (
     Ack,
     BatchHeader,
@@ -30,15 +31,14 @@ from imubench.wire.protocol_gen import (
     Info,
     MsgType,
     Params,
-    ParamsReadback,
     ParamSource,
+    ParamsReadback,
     RawBatch,
     SelfTestResult,
     Stats,
     StreamMode,
     StreamState,
 )
-from imubench.units import G0_MPS2
 
 ACCEL_NOISE_G_RTHZ = 22.5e-6
 GYRO_NOISE_DPS_RTHZ = 0.015

@@ -25,14 +25,14 @@ error, missing tool or missing image.
 """
 from __future__ import annotations
 
-import argparse
 import shlex
 import shutil
 import subprocess
 import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from imubench.errors import ImubenchError
 
 ROOT = Path(__file__).resolve().parents[3]
 FLASH_BASE = 0x08000000
@@ -48,7 +48,7 @@ PROBES = {
 PROBE_ORDER = ("openocd", "stlink", "serial")
 
 
-class FlashError(Exception):
+class FlashError(ImubenchError):
     def __init__(self, msg: str, code: int = 1):
         super().__init__(msg)
         self.code = code
@@ -80,15 +80,14 @@ def choose_probe(requested: str | None, need_tool: bool = True) -> str:
     if requested:
         tool, pkg, what = PROBES[requested]
         if need_tool and shutil.which(tool) is None:
-            raise FlashError(f"--probe {requested} needs {tool} ({what}), which is not on PATH.\n"
-                             f"Install it: sudo apt-get install {pkg}", 2)
+            raise FlashError(f"--probe {requested} needs {tool} ({what}), which is not on PATH; "
+                             f"install it: sudo apt-get install {pkg}", 1)
         return requested
     for p in PROBE_ORDER:
         if shutil.which(PROBES[p][0]):
             return p
-    lines = [f"  {PROBES[p][0]:<11} {PROBES[p][2]}: sudo apt-get install {PROBES[p][1]}" for p in PROBE_ORDER]
-    raise FlashError("no flashing tool found on PATH (looked for openocd, st-flash, stm32flash).\n"
-                     "Install one of them:\n" + "\n".join(lines), 2)
+    raise FlashError("no flashing tool found on PATH (looked for openocd, st-flash, stm32flash); install one: "
+                     + ", ".join(f"sudo apt-get install {PROBES[p][1]} ({PROBES[p][2]})" for p in PROBE_ORDER), 1)
 
 
 def _tcl_path(p: Path) -> str:
@@ -140,9 +139,9 @@ def _run(step: Step) -> None:
         sys.stdout.flush()
     rc = p.wait()
     if rc != 0:
-        tail = "".join(out[-40:]).rstrip()
-        raise FlashError(f"{step.argv[0]} failed (exit {rc})" + (f"; its output:\n{tail}" if tail else
-                                                                  " and printed nothing"), 1)
+        raise FlashError(f"{step.argv[0]} failed (exit {rc})" + ("; its output is above" if out else
+                                                                  " and printed nothing")
+                         + "; check the probe's cable, the board's power and BOOT0", 1)
     if step.verify_against is not None:
         want = step.verify_against.read_bytes()
         try:
@@ -160,49 +159,6 @@ def _run(step: Step) -> None:
 def build_firmware() -> None:
     r = subprocess.run(["make", "-s", "-C", str(ROOT), "firmware"], capture_output=True, text=True)
     if r.returncode != 0:
-        raise FlashError(f"`make firmware` failed:\n{r.stdout[-3000:]}{r.stderr[-3000:]}", 1)
+        last = (r.stderr.strip() or r.stdout.strip() or "no output").splitlines()[-1]
+        raise FlashError(f"`make firmware` failed ({last}); run `make firmware` in {ROOT} to see the whole output", 1)
     sys.stdout.write(r.stdout)
-
-
-def main_flash(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="imubench flash", description="flash the STM32 firmware onto a board")
-    ap.add_argument("--board", choices=sorted(TARGET_CFG), required=True)
-    ap.add_argument("--probe", choices=PROBE_ORDER, help="default: the first of openocd, st-flash, stm32flash found")
-    ap.add_argument("--port", help="serial device for --probe serial (e.g. /dev/ttyUSB0)")
-    ap.add_argument("--image", help="image to flash (default build/arm/<board>/imubench.elf|.bin|.hex)")
-    ap.add_argument("--no-build", action="store_true", help="do not run `make firmware` first")
-    ap.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
-    a = ap.parse_args(argv)
-    image = Path(a.image).resolve() if a.image else None
-    try:
-        probe = choose_probe(a.probe, need_tool=not a.dry_run)
-        with tempfile.TemporaryDirectory(prefix="imubench-flash-") as tmp:
-            if a.dry_run:
-                p = plan(a.board, probe, image, a.port, Path(tmp))
-                print(f"# {a.board} via {probe} ({PROBES[probe][2]}); image {p.image}"
-                      + ("" if p.image.exists() else " (not built yet)"))
-                for s in p.steps:
-                    print(s.shell())
-                    if s.verify_against is not None:
-                        print(f"# then compare the read-back with {s.verify_against}")
-                return 0
-            if image is None and not a.no_build:
-                build_firmware()
-            p = plan(a.board, probe, image, a.port, Path(tmp))
-            if not p.image.exists():
-                raise FlashError(f"no image {p.image}" + ("" if a.image else ": run `make firmware`"), 2)
-            print(f"flashing {p.image} to the {a.board} via {probe} ({PROBES[probe][2]})", flush=True)
-            for s in p.steps:
-                _run(s)
-        print("done", flush=True)
-        return 0
-    except FlashError as e:
-        print(f"imubench flash: error: {e}", file=sys.stderr)
-        return e.code
-    except KeyboardInterrupt:
-        print("imubench flash: interrupted", file=sys.stderr)
-        return 130
-
-
-if __name__ == "__main__":
-    sys.exit(main_flash())

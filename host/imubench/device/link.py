@@ -59,6 +59,20 @@ class LinkError(IOError):
     """The link itself failed (port closed, device gone)."""
 
 
+class NoPort(LinkError):
+    """No port was given (no --port, no IMUBENCH_PORT): a usage error, not a link failure."""
+
+
+class CaptureError(LinkError):
+    """The capture file could not be written (a full disk, a removed drive): the stream stops
+    rather than go on with bytes that are not on disk. `errno` is the OS error's."""
+
+    def __init__(self, path, err: OSError):
+        super().__init__(f"cannot write the capture file {path}: {err.strerror or err}")
+        self.errno = err.errno
+        self.filename = str(path)
+
+
 class LinkTimeout(TimeoutError):
     """No ack arrived for a command after all retries."""
 
@@ -85,7 +99,7 @@ class DeviceError(RuntimeError):
 def resolve_port(url: str | None) -> str:
     url = url or os.environ.get(PORT_ENV)
     if not url:
-        raise LinkError(f"no port given: pass --port URL or set {PORT_ENV} "
+        raise NoPort(f"no port given; pass --port URL or set {PORT_ENV} "
                         "(a device path like /dev/ttyUSB0, or socket://HOST:PORT, rfc2217://...)")
     return url
 
@@ -145,8 +159,12 @@ class Link:
                     self._wait_readable()
                     continue
                 if self.capture is not None:
-                    self.capture.write(data)
-                    self.capture.flush()
+                    try:
+                        self.capture.write(data)
+                        self.capture.flush()
+                    except OSError as e:
+                        self.error = CaptureError(getattr(self.capture, "name", "?"), e)
+                        break
                 with self._cond:
                     frames = self.decoder.feed(data)
                     if frames:
@@ -161,6 +179,12 @@ class Link:
         finally:
             with self._cond:
                 self._cond.notify_all()
+
+    def _failure(self) -> LinkError:
+        """The error to raise after the reader thread stopped on self.error."""
+        if isinstance(self.error, LinkError):
+            return self.error
+        return LinkError(f"link to {self.url} failed: {self.error}")
 
     def _dispatch(self, f: DecodedFrame) -> None:
         m = f.msg
@@ -203,7 +227,7 @@ class Link:
                             break
                         self._cond.wait(left)
                     if self.error is not None:
-                        raise LinkError(f"link to {self.url} failed: {self.error}")
+                        raise self._failure()
                     if pend.ack is not None:
                         ack = pend.ack
                         if ack.error != Error.OK:
@@ -377,7 +401,7 @@ class Device:
                 blocks.append(b)
                 have += len(b)
             if self.link.error is not None:
-                raise LinkError(f"link failed: {self.link.error}")
+                raise self.link._failure()
             now = time.monotonic()
             if (n_samples is not None and have >= n_samples) or (n_samples is None and now >= t_end):
                 break
@@ -400,7 +424,7 @@ class Device:
         while True:
             self.link.wait_samples(1, cal, timeout=poll_s)
             if self.link.error is not None:
-                raise LinkError(f"link failed: {self.link.error}")
+                raise self.link._failure()
             b = self.link.take_samples(cal)
             if b is not None and len(b):
                 yield b

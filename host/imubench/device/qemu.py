@@ -25,16 +25,16 @@ What QEMU 7.2 models and what the images do about it: docs/firmware.md.
 """
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import signal
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
+
+from imubench.errors import ImubenchError
 
 ROOT = Path(__file__).resolve().parents[3]
 QEMU = "qemu-system-arm"
@@ -47,7 +47,7 @@ BOARDS = {
 BOARD_ALIASES = {"f1": "f103", "qemu-f1": "f103", "f103": "f103", "f4": "f4", "qemu-f4": "f4"}
 
 
-class QemuError(RuntimeError):
+class QemuError(ImubenchError, RuntimeError):
     pass
 
 
@@ -198,43 +198,3 @@ class QemuBoard:
             self._kill()
         except Exception:  # noqa: BLE001
             pass
-
-
-def main_qemu(argv=None) -> int:
-    """`imubench qemu --board f103|f4 [--params FILE]`: run the firmware under QEMU until Ctrl-C."""
-    ap = argparse.ArgumentParser(prog="imubench qemu",
-                                 description="run the STM32 firmware under qemu-system-arm on a TCP port")
-    ap.add_argument("--board", choices=sorted(BOARDS), default="f103")
-    ap.add_argument("--params", help="parameter page to preload into slot 0 (see python -m imubench.wire.paramstore)")
-    ap.add_argument("--no-build", action="store_true", help="do not run `make firmware` first")
-    a = ap.parse_args(argv)
-    page = Path(a.params).read_bytes() if a.params else None
-    stop = {"now": False}
-
-    def on_signal(*_):
-        stop["now"] = True
-
-    old = signal.signal(signal.SIGINT, on_signal)
-    old_term = signal.signal(signal.SIGTERM, on_signal)
-    try:
-        with QemuBoard(a.board, page, build=not a.no_build) as q:
-            print(f"QEMU {q.machine} running {q.elf.relative_to(ROOT) if q.elf.is_relative_to(ROOT) else q.elf}",
-                  flush=True)
-            print(f"device on {q.port_url}  (the guest starts when the first client connects)", flush=True)
-            print(f"try: imubench info --port {q.port_url}; Ctrl-C to stop", flush=True)
-            while not stop["now"]:
-                if not q.alive():
-                    print(f"QEMU exited:\n{q.log()}", file=sys.stderr)
-                    return 1
-                time.sleep(0.2)
-    except QemuError as e:
-        print(f"imubench qemu: error: {e}", file=sys.stderr)
-        return 2
-    finally:
-        signal.signal(signal.SIGINT, old)
-        signal.signal(signal.SIGTERM, old_term)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main_qemu())

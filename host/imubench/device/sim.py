@@ -21,7 +21,6 @@ one and returns the reply as a dict, raising SimError when the simulator refuses
 """
 from __future__ import annotations
 
-import argparse
 import atexit
 import json
 import os
@@ -30,7 +29,6 @@ import shutil
 import signal
 import socket
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -38,12 +36,14 @@ import weakref
 from pathlib import Path
 from typing import Any, Sequence
 
-__all__ = ["SimError", "VirtualBench", "build_sim", "repo_root", "main_cli"]
+from imubench.errors import ImubenchError
+
+__all__ = ["SimError", "VirtualBench", "build_sim", "repo_root"]
 
 SIM_BIN_REL = Path("build") / "host" / "imubench-sim"
 
 
-class SimError(RuntimeError):
+class SimError(ImubenchError, RuntimeError):
     """The virtual device could not be built or started, or refused a control command."""
 
 
@@ -124,7 +124,11 @@ class VirtualBench:
         self._lock = threading.Lock()
         self._closed = False
         if start:
-            self.start()
+            try:
+                self.start()
+            except BaseException:
+                self.close()            # no process, no temporary directory left behind
+                raise
 
     # ------------------------------------------------------------ lifecycle
     @property
@@ -473,49 +477,3 @@ class VirtualBench:
 
 
 # ---------------------------------------------------------------- command line
-def main_cli(argv: Sequence[str] | None = None) -> int:
-    """`imubench sim`: run the virtual device until Ctrl-C."""
-    ap = argparse.ArgumentParser(prog="imubench sim", description="run the virtual device "
-                                 "(firmware core + sensor models) on a TCP port and/or a pty")
-    ap.add_argument("--speed", type=float, default=1.0, help="device time per wall time (default 1; 0 = max)")
-    ap.add_argument("--seed", type=int, default=1, help="seed of the sensor models (default 1)")
-    ap.add_argument("--truth", choices=("default", "random"), default="default",
-                    help="ideal parts (default) or random errors drawn from the seed")
-    ap.add_argument("--flash", help="parameter flash file (default: a temporary file)")
-    ap.add_argument("--pty", action="store_true", help="expose the link on a pseudo-terminal")
-    ap.add_argument("--tcp", type=int, default=None, metavar="PORT",
-                    help="expose the link on TCP 127.0.0.1:PORT (0 = free port; default when no --pty)")
-    ap.add_argument("--control", type=int, default=0, metavar="PORT", help="control channel port (default free)")
-    ap.add_argument("--baud", type=int, default=2000000, help="link speed (default 2000000)")
-    a = ap.parse_args(argv)
-    tcp: bool | int = a.tcp if a.tcp is not None else (False if a.pty else True)
-    try:
-        bench = VirtualBench(speed=a.speed, seed=a.seed, truth=a.truth, flash=a.flash, pty=a.pty,
-                             baud=a.baud, tcp=tcp, control_port=a.control)
-    except SimError as e:
-        print(f"imubench sim: {e}", file=sys.stderr)
-        return 1
-    def _term(signum, frame):              # SIGTERM: leave through the with-block's cleanup
-        raise KeyboardInterrupt
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _term)
-    with bench:
-        print(f"virtual device (firmware core + sensor models, speed {a.speed:g}) on {bench.port_url}", flush=True)
-        if bench.pty and bench.pty != bench.port_url:
-            print(f"  also on the pseudo-terminal {bench.pty}", flush=True)
-        host, port = bench.control_address
-        print(f"control channel (JSON lines): {host}:{port}", flush=True)
-        print(f"flash file: {bench.flash}", flush=True)
-        print(f"try: IMUBENCH_PORT={bench.port_url} imubench monitor", flush=True)
-        try:
-            while bench.running:
-                time.sleep(0.5)
-            print(f"imubench sim: the virtual device exited{bench._log_tail(10)}", file=sys.stderr)
-            return 1
-        except KeyboardInterrupt:
-            pass
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main_cli())

@@ -14,7 +14,6 @@ session itself decides, from the data, when the board is still and which attitud
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import os
 import time
 from dataclasses import asdict, dataclass, field
@@ -23,15 +22,16 @@ from typing import Protocol
 
 import numpy as np
 
-from imubench.wire import params as PR
 from imubench import units as U
-from imubench.results.atomic import write_json_atomic
 from imubench.calib import CalibrationError, TriadFit
+from imubench.device.link import Device
+from imubench.errors import ImubenchError
+from imubench.results.atomic import write_json_atomic
+from imubench.results.sessionfile import SESSION_SCHEMA, SessionFileError, load_state
+from imubench.wire import params as PR
 from imubench.wire.decoder import SampleBlock
-from imubench.device.link import DEFAULT_BAUD, Device
+from imubench.wire.ids import uid_text
 from imubench.wire.protocol_gen import Board, Params, ParamsWhich
-
-SESSION_SCHEMA = 1
 
 
 # ---------------------------------------------------------------- configuration
@@ -74,7 +74,7 @@ class PoseRecord:
     stream: int = 0                  # which continuous stream (capture-<stream>.bin) it is in
 
 
-class SessionAborted(RuntimeError):
+class SessionAborted(ImubenchError, RuntimeError):
     """The session cannot go on; the message says why and what to do."""
 
 
@@ -85,48 +85,6 @@ class Presenter(Protocol):
     def present_turn(self, axis: np.ndarray, rate_dps: float, duration_s: float) -> None: ...
     def progress(self, label: str, fraction: float) -> None: ...
     def keep_pose(self, name: str, summary: str) -> bool: ...   # False: redo this pose
-
-
-class HumanPresenter:
-    """Instructions on the terminal, progress bars with tqdm."""
-
-    def __init__(self):
-        self._bar = None
-        self._label = None
-
-    def say(self, text: str) -> None:
-        self._close_bar()
-        print(text, flush=True)
-
-    def present_pose(self, name, direction, index, total):
-        self.say(f"[{index + 1}/{total}] place the board: {name} "
-                 f"(gravity along board {np.round(direction, 2).tolist()}), then hold it still")
-
-    def present_turn(self, axis, rate_dps, duration_s):
-        self.say(f"turn the table about board axis {np.round(axis, 2).tolist()} at {rate_dps:+.1f} °/s "
-                 f"for {duration_s:.1f} s (start the turn now)")
-
-    def progress(self, label, fraction):
-        from tqdm import tqdm
-        if self._bar is None or self._label != label:
-            self._close_bar()
-            self._bar = tqdm(total=100, desc=label, leave=False, bar_format="{desc} {bar} {percentage:3.0f}%")
-            self._label = label
-        self._bar.n = int(round(100 * min(max(fraction, 0.0), 1.0)))
-        self._bar.refresh()
-
-    def _close_bar(self):
-        if self._bar is not None:
-            self._bar.close()
-            self._bar = None
-
-    def keep_pose(self, name, summary):
-        """On a terminal the user may redo the pose just captured; otherwise keep it."""
-        import sys
-        if not sys.stdin.isatty():
-            return True
-        answer = input(f"  {summary} — Enter to keep, r + Enter to redo: ").strip().lower()
-        return answer != "r"
 
 
 class SimPresenter:
@@ -200,21 +158,19 @@ class Session:
             if self.state_path.exists():
                 raise SessionAborted(f"{self.dir} already holds a session: use --resume {self.dir}, or another --dir")
             self.started = _now()
-            self._save()
+            self.save()
 
     # ------------------------------------------------------------ persistence
-    def _save(self, **extra) -> None:
+    def save(self, **extra) -> None:
         state = {"schema": SESSION_SCHEMA, "started": self.started, "config": _jsonable(asdict(self.cfg)),
                  "rest": self.rest, "poses": [asdict(p) for p in self.poses], **extra}
         write_json_atomic(self.state_path, state)     # a crash leaves the old or the new file
 
     def _load(self) -> None:
         try:
-            state = json.loads(self.state_path.read_text())
-        except FileNotFoundError:
-            raise SessionAborted(f"nothing to resume in {self.dir}: no session.json") from None
-        if state.get("schema") != SESSION_SCHEMA:
-            raise SessionAborted(f"{self.state_path} has session schema {state.get('schema')}, this imubench reads {SESSION_SCHEMA}")
+            state = load_state(self.dir)
+        except SessionFileError as e:
+            raise SessionAborted(f"cannot resume: {e}") from None
         self.started = state["started"]
         self.rest = state.get("rest")
         self.poses = [PoseRecord(**p) for p in state.get("poses", [])]
@@ -231,7 +187,7 @@ class Session:
         if unknown:
             raise SessionAborted(f"cannot redo {', '.join(unknown)}: captured poses are {', '.join(sorted(known))}")
         self.poses = [p for p in self.poses if p.name not in names]
-        self._save()
+        self.save()
 
     # ---------------------------------------------------------------- health
     def check_health(self) -> dict:
@@ -257,7 +213,7 @@ class Session:
             problems.append(f"{rejected} corrupted frames on the link (cable, baud rate, ground)")
         if b.status.any() or problems:
             raise SessionAborted("refusing to calibrate on faulted data: " + "; ".join(problems))
-        return {"board": Board(info.board).name, "uid": bytes(info.mcu_uid).hex()}
+        return {"board": Board(info.board).name, "uid": uid_text(info.mcu_uid)}
 
     # ------------------------------------------------------------- streaming
     def _next_block(self, timeout: float = 10.0) -> SampleBlock:
@@ -283,7 +239,7 @@ class Session:
         self.rest = {"noise_mps2": rest_noise(acc, self.cfg.rate_hz).tolist(),
                      "gyro": gyr.tolist() if self.cfg.gyro in ("bias", "rotation", "turntable") else None,
                      "start_index": int(b.sample_index[0]), "stop_index": int(b.sample_index[-1]) + 1}
-        self._save()
+        self.save()
         return self.rest
 
     # ----------------------------------------------------------------- poses
@@ -443,7 +399,7 @@ class Session:
                     self.dev.discard_buffered()
                     continue
                 self.poses.append(rec)
-                self._save()
+                self.save()
                 todo = [p for p in todo if p[0] != rec.name]
                 self.ui.say(f"  {summary}, {len(todo)} to go")
             segments = self.capture_turntable() if self.cfg.gyro == "turntable" else None
@@ -480,7 +436,7 @@ class Session:
         result["accel_frame"] = accel.extra.get("frame", "board")
         if frame_note:
             result.setdefault("warnings", []).append(frame_note)
-        self._save(result=result)
+        self.save(result=result)
         return result
 
     def _align_frames(self, accel: TriadFit, gyro: TriadFit, bias: TriadFit) -> tuple[TriadFit, str | None]:
@@ -540,7 +496,7 @@ class Session:
         info = self.dev.info()
         return {
             "schema": 1,
-            "device": {"mcu_uid": bytes(info.mcu_uid).hex(), "board": Board(info.board).name,
+            "device": {"mcu_uid": uid_text(info.mcu_uid), "board": Board(info.board).name,
                        "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
                        "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)},
             "started": getattr(self, "run_started", self.started), "session_started": self.started,
@@ -684,7 +640,6 @@ def fit_dict(fit: TriadFit | None, unit: str) -> dict | None:
             "residual_rms": fit.residual_rms, "extra": _jsonable(fit.extra)}
 
 
-# ------------------------------------------------------------------------ CLI
 def plan_for(method: str) -> list[tuple[str, np.ndarray]]:
     """(name, gravity direction) of the attitudes to present: the six faces, or all 26."""
     from imubench.calib.accel import POSE_PLAN
@@ -694,194 +649,39 @@ def plan_for(method: str) -> list[tuple[str, np.ndarray]]:
     return plan
 
 
-def truth_in_fit_frame(result: dict, truth: dict) -> dict:
-    """The virtual device's truth expressed as the session's fit can observe it.
-
-    The multi-position |a| = g model cannot see the accelerometer triad's rotation Q relative
-    to the board (M = L·Q, calib.accel.lower_triangular_form): it returns L, and its calibrated
-    output is in the Q-rotated frame. A rotation-method gyro fit, which matches gravity
-    directions in that frame, then returns M_gyro·Qᵀ. Six-position and the turntable are
-    tied to the board axes and see the truth as it is."""
-    from imubench.calib.accel import lower_triangular_form
-    m_a = np.array(truth["accel"]["m"], dtype=float)
-    m_g = np.array([g["sens"] for g in truth["gyro"]], dtype=float)
-    q = np.eye(3)
-    if result["method"] == "multi" and not str(result.get("accel_frame", "")).startswith("board"):
-        m_a, q = lower_triangular_form(m_a)
-    if result.get("gyro_method") == "rotation":
-        m_g = m_g @ q.T
-    return {"accel_m": m_a, "accel_b_mps2": np.array(truth["accel"]["true_bias_mps2"], dtype=float),
-            "gyro_m": m_g, "gyro_b_rad_s": np.array([g["true_bias_rad_s"] for g in truth["gyro"]], dtype=float)}
-
-
-def truth_table(result: dict, truth: dict) -> str:
-    """Recovered parameters beside the virtual device's truth, with 1-sigma and |error|/sigma."""
-    t = truth_in_fit_frame(result, truth)
-    lines = [f"{'parameter':<14}{'truth':>14}{'recovered':>14}{'1-sigma':>12}{'|err|/σ':>9}"]
-    acc = result["accel"]
-    for i in range(3):
-        for j in range(3):
-            if acc["sigma_m"][i][j] > 0:          # entries the model fixes are not listed
-                lines.append(_row(f"accel M{i}{j}", t["accel_m"][i, j], acc["m"][i][j], acc["sigma_m"][i][j]))
-    for i, ax in enumerate("xyz"):
-        lines.append(_row(f"accel b{ax} mg", t["accel_b_mps2"][i] / U.G0_MPS2 * 1e3, acc["b_mps2"][i] / U.G0_MPS2 * 1e3,
-                          acc["sigma_b_mps2"][i] / U.G0_MPS2 * 1e3))
-    g = result.get("gyro")
-    if g:
-        for i, ax in enumerate("xyz"):
-            lines.append(_row(f"gyro b{ax} °/s", np.degrees(t["gyro_b_rad_s"][i]), np.degrees(g["b_rad_s"][i]),
-                              np.degrees(g["sigma_b_rad_s"][i])))
-        if g["method"] != "bias":
-            for i in range(3):
-                for j in range(3):
-                    lines.append(_row(f"gyro M{i}{j}", t["gyro_m"][i, j], g["m"][i][j], g["sigma_m"][i][j]))
-    if result["method"] == "multi" and not str(result.get("accel_frame", "")).startswith("board"):
-        lines.append("(multi-position: M in the frame of the sensor's X axis and X-Y plane; "
-                     "see docs/calibration.md)")
-    elif result["method"] == "multi":
-        lines.append("(multi-position: M rotated into the gyro turntable's board frame by the rotations "
-                     "between poses; see docs/calibration.md, \"One frame\")")
-    lines.append("(biases: the models' bias random walk moves them during the session; the truth shown is "
-                 "the value at the end, the estimate the mean over the session's rest or poses)")
-    return "\n".join(lines)
-
-
-def params_table(result: dict) -> str:
-    """The fitted parameters with their 1-sigma uncertainties (docs/conventions.md model)."""
-    a = result["accel"]
-    L = [f"accelerometer ({a['method']}): u = M·x + b",
-         "  M = " + "\n      ".join("  ".join(f"{a['m'][i][j]:+.6f}±{a['sigma_m'][i][j]:.6f}" for j in range(3))
-                                   for i in range(3)),
-         "  b = " + "  ".join(f"{v / U.G0_MPS2 * 1e3:+.4f}±{s / U.G0_MPS2 * 1e3:.4f} mg"
-                              for v, s in zip(a["b_mps2"], a["sigma_b_mps2"]))]
-    g = result.get("gyro")
-    if g:
-        L.append(f"gyro ({g['method']}):")
-        if g["method"] != "bias":
-            L.append("  M = " + "\n      ".join("  ".join(f"{g['m'][i][j]:+.6f}±{g['sigma_m'][i][j]:.6f}"
-                                                         for j in range(3)) for i in range(3)))
-        L.append("  b = " + "  ".join(f"{np.degrees(v):+.4f}±{np.degrees(s):.4f} °/s"
-                                      for v, s in zip(g["b_rad_s"], g["sigma_b_rad_s"])))
-    return "\n".join(L)
-
-
-def _row(name, truth, got, sigma):
-    z = abs(got - truth) / sigma if sigma > 0 else float("nan")
-    return f"{name:<14}{truth:>14.6f}{got:>14.6f}{sigma:>12.6f}{z:>9.2f}"
-
-
-def _closure_after_session(dev, vb, out_dir: Path, params: Params) -> dict:
-    """The closure check with the parameters just written (imubench.procedures.closure): a summary for
-    the session's result; the details are in out_dir."""
-    from imubench.procedures import closure as CL
-    print("\nclosure check: integrating a closed path before and after calibration")
-    res = CL.run_closure(dev, out_dir, params, vb, "box")
-    print(CL.summarize(res))
-    print(f"closure details: {out_dir / 'closure.json'}, plot {out_dir / 'closure.png'}")
-    return {"dir": str(out_dir), "before_m": res["before"].distance_m, "after_m": res["after"].distance_m,
-            "after_rest_bias_m": res["after_rest_bias"].distance_m,
-            "noise_floor_m": res["noise_floor"]["sigma_distance_m"]}
-
-
-def main_calibrate(argv=None) -> int:
-    import argparse
-    import sys
-
-    from imubench.results import calibration as report
-    from imubench.results.history import History
-    ap = argparse.ArgumentParser(prog="imubench calibrate", description="guided calibration session")
-    ap.add_argument("--port", help="pyserial URL of the device (default: $IMUBENCH_PORT)")
-    ap.add_argument("--baud", type=int, default=DEFAULT_BAUD, help=f"baud rate for a real UART (default {DEFAULT_BAUD})")
-    ap.add_argument("--method", choices=("six", "multi"), default="six",
-                    help="six faces (linear least squares, full M) or the multi-position |a| = g fit (26 attitudes)")
-    ap.add_argument("--gyro", choices=("turntable", "rotation", "bias", "none"), default="bias")
-    ap.add_argument("--dir", help="session directory (default: ./imubench-session-<time>)")
-    ap.add_argument("--resume", metavar="DIR", help="continue the session in DIR")
-    ap.add_argument("--redo", action="append", default=[], metavar="POSE",
-                    help="with --resume: capture this pose again (repeatable; names as printed)")
-    ap.add_argument("--rate", type=int, default=500, help="sample rate in Hz (default 500)")
-    ap.add_argument("--hold", type=float, default=2.0, help="seconds captured per attitude (default 2)")
-    ap.add_argument("--no-write", action="store_true", help="fit only; do not write the parameters to the device")
-    ap.add_argument("--db", help="history database (default: in the user data directory)")
-    ap.add_argument("--note", default="")
-    ap.add_argument("--sim", action="store_true", help="run on a virtual device whose bench presents the attitudes")
-    ap.add_argument("--sim-speed", type=float, default=20.0, help="virtual device speed factor (default 20)")
-    ap.add_argument("--sim-seed", type=int, default=1)
-    ap.add_argument("--sim-tilt", type=float, default=0.0, help="misalign each virtual attitude by this many degrees")
-    ap.add_argument("--closure", action="store_true",
-                    help="after a verified write-back, run the closure check (imubench closure) into DIR/closure: "
-                         "the virtual bench drives a closed path, or you carry the board around one")
-    a = ap.parse_args(argv)
-    cfg = SessionConfig(method=a.method, gyro=None if a.gyro == "none" else a.gyro, rate_hz=a.rate,
-                        hold_s=a.hold, write=not a.no_write, note=a.note)
-    directory = a.resume or a.dir or f"imubench-session-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
-    vb = None
-    try:
-        if a.sim:
-            from imubench.device.sim import VirtualBench
-            vb = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random")
-            url = vb.port_url
-            ui = SimPresenter(vb, tilt_deg=a.sim_tilt, seed=a.sim_seed)
-            print(f"virtual device with random truth (seed {a.sim_seed}) on {url}")
-        else:
-            url = a.port
-            ui = HumanPresenter()
-        with Device.open(url, baudrate=a.baud, timeout=5.0) as dev:
-            sess = Session(dev, directory, cfg, ui, resume=bool(a.resume))
-            if a.redo:
-                if not a.resume:
-                    raise SessionAborted("--redo goes with --resume DIR")
-                sess.redo(a.redo)
-            print(f"session directory: {sess.dir} (raw captures and state; --resume {sess.dir} continues it)")
-            result = sess.run(plan_for(cfg.method))
-            png = report.plot_pose_residuals(result, sess.dir / "residuals.png")
-            print()
-            print(params_table(result))
-            print()
-            print(report.before_after_table(result))
-            print(f"residual plot: {png}")
-            if vb is not None:
-                print("\nrecovered beside the virtual device's truth:")
-                print(truth_table(result, vb.get_truth()))
-            if result["passed"] and cfg.write:
-                previous = dev.get_params(ParamsWhich.ACTIVE).params
-                wb = sess.write_back(sess.accel_fit, sess.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
-                print(f"written: {', '.join(wb['steps'])}")
-                result["written"] = True
-                verify_plan = plan_for("six")[:cfg.verify_poses]
-                result["verification"] = sess.verify(verify_plan)
-                worst = max(abs(v["after_g"] - 1.0) * 1e3 for v in result["verification"])
-                result["verified"] = worst <= cfg.tolerances.verify_mg
-                print(f"verification of the device's calibrated output: worst | |a| - g | = {worst:.3f} mg "
-                      f"({'within' if result['verified'] else 'OUTSIDE'} {cfg.tolerances.verify_mg} mg)")
-                if not result["verified"]:
-                    sess.restore(previous)
-                    result["written"] = False
-                    print("verification failed: the previous parameters were written back and saved")
-            elif not result["passed"]:
-                print("the fit did not pass its tolerance: nothing was written to the device")
-            if a.closure and result["written"]:
-                from imubench.procedures.closure import ClosureError
-                try:
-                    result["closure"] = _closure_after_session(dev, vb, sess.dir / "closure",
-                                                               dev.get_params(ParamsWhich.ACTIVE).params)
-                except ClosureError as e:       # the calibration stands; say why there is no figure
-                    result["closure"] = {"error": str(e)}
-                    print(f"closure check not possible: {e}", file=sys.stderr)
-            sess._save(result=result)
-            try:
-                with History(a.db) as h:
-                    run_id = h.record(result)
-                print(f"recorded in the history as run {run_id}")
-            except Exception as e:  # noqa: BLE001 - the result is safe in session.json; say why it is not in the history
-                print(f"warning: not recorded in the history ({e}); the result is in {sess.state_path}",
-                      file=sys.stderr)
-            ok = result["passed"] and (result["verified"] or not cfg.write)
-            print("\ncalibration " + ("PASSED" if ok else "FAILED"))
-            return 0 if ok else 1
-    except (SessionAborted, CalibrationError) as e:
-        print(f"imubench calibrate: {e}", file=sys.stderr)
-        return 1
-    finally:
-        if vb is not None:
-            vb.stop()
+def run_session(dev: Device, directory, cfg: SessionConfig, ui: Presenter, *, resume: bool = False,
+                redo: list[str] | None = None, on_start=lambda sess: None,
+                report=lambda result: None) -> tuple[dict, Session]:
+    """A whole guided session on an open device: capture (or resume) and fit; if the fit
+    passes and cfg.write, write back (set, read back, save, reboot, read back), verify the
+    device's calibrated output in cfg.verify_poses attitudes and restore the previous
+    parameters if that fails. report(result) is called once the fit is known (before anything
+    is written); the residual plot (DIR/residuals.png) is drawn at the end, so it shows what
+    was written and verified. Returns (result, session); result is saved in session.json."""
+    from imubench.results.calibration import plot_pose_residuals
+    sess = Session(dev, directory, cfg, ui, resume=resume)
+    if redo:
+        sess.redo(redo)
+    on_start(sess)
+    result = sess.run(plan_for(cfg.method))
+    report(result)
+    if result["passed"] and cfg.write:
+        previous = dev.get_params(ParamsWhich.ACTIVE).params
+        wb = sess.write_back(sess.accel_fit, sess.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
+        ui.say(f"written: {', '.join(wb['steps'])}")
+        result["written"] = True
+        result["verification"] = sess.verify(plan_for("six")[:cfg.verify_poses])
+        worst = max(abs(v["after_g"] - 1.0) * 1e3 for v in result["verification"])
+        result["verified"] = worst <= cfg.tolerances.verify_mg
+        ui.say(f"verification of the device's calibrated output: worst | |a| - g | = {worst:.3f} mg "
+               f"({'within' if result['verified'] else 'OUTSIDE'} {cfg.tolerances.verify_mg} mg)")
+        if not result["verified"]:
+            sess.restore(previous)
+            result["written"] = False
+            ui.say("verification failed: the previous parameters were written back and saved")
+    elif not result["passed"]:
+        ui.say("the fit did not pass its tolerance: nothing was written to the device")
+    sess.save(result=result)
+    png = plot_pose_residuals(result, sess.dir / "residuals.png")
+    ui.say(f"residual plot: {png}")
+    return result, sess

@@ -1,5 +1,6 @@
 """Temperature calibration: sweep the board over temperature, fit the bias and scale
-temperature coefficients, write them to the device (which applies them itself).
+temperature coefficients (imubench.analysis.thermal), write them to the device (which applies
+them itself).
 
 Model (docs/conventions.md), per axis k, ΔT_k = T_k − t_ref:
     v_k = (u_k − b_k − bias_tc_k·ΔT_k) / (1 + scale_tc_k·ΔT_k)        x = M⁻¹·v
@@ -22,100 +23,29 @@ temperature point and every later step, so an interrupted sweep keeps what it me
 """
 from __future__ import annotations
 
-import argparse
 import collections
-import datetime as _dt
-import sys
-import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 
-from imubench.wire import params as PR
 from imubench import units as U
-from imubench.results.atomic import write_json_atomic
+from imubench.analysis.thermal import AXES, POSES, TempPoint, apply_tempcos, fit_sweep
+from imubench.errors import ImubenchError
+from imubench.results.thermal import (
+    ThermalRecord,
+    drift_json,
+    fit_json,
+    format_drift,
+    format_fit,
+)
+from imubench.wire.ids import uid_text
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
-__all__ = [
-    "Hooks",
-    "SettleTimeout",
-    "Settling",
-    "TempPoint",
-    "ThermalFit",
-    "ThermalRecord",
-    "apply_tempcos",
-    "fit_sweep",
-    "fit_tempco",
-    "main_thermal",
-    "measure_drift",
-    "run_thermal",
-    "sim_hooks",
-    "sweep",
-    "wait_settled",
-    "write_params",
-]
-
-AXES = "xyz"
-POSES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0),
-         "+z": (0, 0, 1), "-z": (0, 0, -1)}
-
-
 # ------------------------------------------------------------------ the fit
-def fit_tempco(temps_c, values, sigmas=None, t_ref_c: float = 25.0):
-    """Weighted straight line per axis: values[:, k] = intercept_k + coef_k·(T − t_ref).
-
-    temps_c (k,) or (k, 3) (one temperature per axis), values (k, 3), sigmas (k, 3) 1-sigma
-    of each value or None (unweighted; the scatter about the line sets the sigmas).
-    Returns coef (3,), intercept (3,) (the value at t_ref) and cov (3, 2, 2) of
-    (coef, intercept) per axis; 1-sigma of coef_k is sqrt(cov[k, 0, 0]).
-    With sigmas the covariance is the absolute one, inflated by the reduced chi² when that
-    exceeds 1 (points scattering more than their sigmas say)."""
-    y = np.asarray(values, dtype=np.float64)
-    if y.ndim != 2 or y.shape[1] != 3:
-        raise ValueError("values must be (k, 3)")
-    t = np.asarray(temps_c, dtype=np.float64)
-    if t.ndim == 1:
-        t = np.repeat(t[:, None], 3, axis=1)
-    if t.shape != y.shape:
-        raise ValueError("temps_c must be (k,) or (k, 3) matching values")
-    k = len(y)
-    if k < 2:
-        raise ValueError("need at least two temperatures")
-    coef, icpt, cov = np.zeros(3), np.zeros(3), np.zeros((3, 2, 2))
-    for a in range(3):
-        x = t[:, a] - t_ref_c
-        if np.ptp(x) == 0:
-            raise ValueError(f"axis {AXES[a]}: all points at the same temperature")
-        A = np.column_stack([x, np.ones(k)])
-        w = np.ones(k) if sigmas is None else 1.0 / np.asarray(sigmas, dtype=np.float64)[:, a] ** 2
-        N = A.T @ (A * w[:, None])
-        C = np.linalg.inv(N)
-        p = C @ (A.T @ (w * y[:, a]))
-        r = y[:, a] - A @ p
-        dof = k - 2
-        chi2 = float(np.sum(w * r * r)) / dof if dof > 0 else 0.0
-        if sigmas is None or chi2 > 1.0:
-            C = C * chi2
-        coef[a], icpt[a], cov[a] = p[0], p[1], C
-    return coef, icpt, cov
 
 
 # ------------------------------------------------------------------ measurements
-@dataclass
-class TempPoint:
-    """What one temperature step measured (nominally scaled SI, means and their 1-sigma)."""
-    target_c: float | None
-    accel_temp_c: float
-    gyro_temp_c: np.ndarray                       # (3,)
-    gyro_rest: np.ndarray                         # (3,) rad/s
-    gyro_rest_sigma: np.ndarray                   # (3,)
-    accel: dict = field(default_factory=dict)     # pose name -> (mean (3,), sigma (3,)) m/s²
-    turns: dict = field(default_factory=dict)     # axis index -> (scale (rad/s, at +rate), sigma)
-    t_first_us: int | None = None                 # device time of the first / last sample measured
-    t_last_us: int | None = None
-    settle: dict | None = None                    # what wait_settled returned (None: not waited for)
 
 
 @dataclass
@@ -173,7 +103,7 @@ class Settling:
 DEFAULT_SETTLING = Settling()
 
 
-class SettleTimeout(RuntimeError):
+class SettleTimeout(ImubenchError):
     """The sensors' temperatures did not settle in time; the message says where they were
     and how fast they moved (also as temp_c and rate_c_per_min: ADXL355, gyro X, Y, Z)."""
 
@@ -348,77 +278,6 @@ def sweep(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 2000,
 
 
 # ------------------------------------------------------------------ fitting a sweep
-@dataclass
-class ThermalFit:
-    t_ref_c: float
-    accel_bias_tc: np.ndarray          # m/s²/°C
-    accel_bias_tc_sigma: np.ndarray
-    accel_scale_tc: np.ndarray         # 1/°C
-    accel_scale_tc_sigma: np.ndarray
-    gyro_bias_tc: np.ndarray           # rad/s/°C
-    gyro_bias_tc_sigma: np.ndarray
-    gyro_scale_tc: np.ndarray
-    gyro_scale_tc_sigma: np.ndarray
-    notes: list = field(default_factory=list)
-
-
-def fit_sweep(points: Sequence[TempPoint], t_ref_c: float = 25.0) -> ThermalFit:
-    notes = []
-    ta = np.array([p.accel_temp_c for p in points])
-    tg = np.array([p.gyro_temp_c for p in points])
-    gb, _, gcov = fit_tempco(tg, np.array([p.gyro_rest for p in points]),
-                             np.array([p.gyro_rest_sigma for p in points]), t_ref_c)
-    a_btc, a_btc_s = np.zeros(3), np.zeros(3)
-    a_stc, a_stc_s = np.zeros(3), np.zeros(3)
-    have = set(points[0].accel)
-    for k in range(3):
-        plus, minus = f"+{AXES[k]}", f"-{AXES[k]}"
-        if plus in have and minus in have:
-            up = np.array([p.accel[plus][0][k] for p in points])
-            dn = np.array([p.accel[minus][0][k] for p in points])
-            su = np.array([p.accel[plus][1][k] for p in points])
-            sd = np.array([p.accel[minus][1][k] for p in points])
-            s = np.hypot(su, sd) / 2
-            c, _, cov = fit_tempco(ta, np.tile(((up + dn) / 2)[:, None], 3), np.tile(s[:, None], 3), t_ref_c)
-            a_btc[k], a_btc_s[k] = c[0], np.sqrt(cov[0, 0, 0])
-            c, i, cov = fit_tempco(ta, np.tile(((up - dn) / 2)[:, None], 3), np.tile(s[:, None], 3), t_ref_c)
-            a_stc[k] = c[0] / i[0]
-            a_stc_s[k] = np.sqrt(cov[0, 0, 0]) / abs(i[0])
-        else:
-            m = np.array([p.accel["+z"][0][k] for p in points])
-            s = np.array([p.accel["+z"][1][k] for p in points])
-            c, _, cov = fit_tempco(ta, np.tile(m[:, None], 3), np.tile(s[:, None], 3), t_ref_c)
-            a_btc[k], a_btc_s[k] = c[0], np.sqrt(cov[0, 0, 0])
-            if k == 2:
-                notes.append("accel Z: level only, bias and scale tempco not separated "
-                             "(slope = bias_tc + scale_tc·g put into bias_tc; right at level only)")
-            else:
-                notes.append(f"accel {AXES[k].upper()}: scale tempco not measured (needs ±{AXES[k].upper()} poses)")
-    g_stc, g_stc_s = np.zeros(3), np.zeros(3)
-    if all(len(p.turns) == 3 for p in points):
-        sc = np.array([[p.turns[a][0] for a in range(3)] for p in points])
-        ss = np.array([[p.turns[a][1] for a in range(3)] for p in points])
-        c, i, cov = fit_tempco(tg, sc, ss, t_ref_c)
-        g_stc, g_stc_s = c / i, np.sqrt(cov[:, 0, 0]) / np.abs(i)
-    else:
-        notes.append("gyro scale tempco not measured (no turntable): left at 0")
-    return ThermalFit(t_ref_c, a_btc, a_btc_s, a_stc, a_stc_s, gb, np.sqrt(gcov[:, 0, 0]),
-                      g_stc, g_stc_s, notes)
-
-
-def apply_tempcos(params: Params, fits: ThermalFit, t_ref_c: float | None = None) -> Params:
-    """A copy of params with the temperature coefficients and reference temperatures of fits
-    (t_ref_c overrides fits.t_ref_c), checked with params.validate (raises InvalidParams)."""
-    t_ref = float(fits.t_ref_c if t_ref_c is None else t_ref_c)
-    p = Params.from_values(params.values())
-    p.accel_bias_tc_mps2_per_c = tuple(float(v) for v in fits.accel_bias_tc)
-    p.accel_scale_tc_per_c = tuple(float(v) for v in fits.accel_scale_tc)
-    p.gyro_bias_tc_rad_s_per_c = tuple(float(v) for v in fits.gyro_bias_tc)
-    p.gyro_scale_tc_per_c = tuple(float(v) for v in fits.gyro_scale_tc)
-    p.accel_t_ref_c = t_ref
-    p.gyro_t_ref_c = t_ref
-    PR.validate(p)
-    return p
 
 
 # ------------------------------------------------------------------ drift of the calibrated output
@@ -449,87 +308,6 @@ def measure_drift(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 200
 
 
 # ------------------------------------------------------------------ thermal.json
-THERMAL_SCHEMA = 1
-FIT_KEYS = (("accel_bias_tc", "mps2_per_c"), ("accel_scale_tc", "per_c"),
-            ("gyro_bias_tc", "rad_s_per_c"), ("gyro_scale_tc", "per_c"))
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-def _js(x):
-    """JSON-able copy (numpy arrays and scalars to lists and floats)."""
-    if isinstance(x, dict):
-        return {str(k): _js(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_js(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    return x
-
-
-def point_json(p: TempPoint) -> dict:
-    """One temperature point as stored in thermal.json (SI; the unit ends each key)."""
-    d = {"set_c": p.target_c, "accel_temp_c": p.accel_temp_c, "gyro_temp_c": p.gyro_temp_c,
-         "t_first_us": p.t_first_us, "t_last_us": p.t_last_us, "settle": p.settle,
-         "gyro_rest_rad_s": p.gyro_rest, "gyro_rest_sigma_rad_s": p.gyro_rest_sigma,
-         "accel_mps2": {k: v[0] for k, v in p.accel.items()},
-         "accel_sigma_mps2": {k: v[1] for k, v in p.accel.items()},
-         "gyro_turn_rad_s": None, "gyro_turn_sigma_rad_s": None}
-    if len(p.turns) == 3:
-        d["gyro_turn_rad_s"] = [p.turns[a][0] for a in range(3)]
-        d["gyro_turn_sigma_rad_s"] = [p.turns[a][1] for a in range(3)]
-    return _js(d)
-
-
-def fit_json(f: ThermalFit) -> dict:
-    """The fit's coefficients and 1-sigma, keyed with their units (the params field names)."""
-    d = {"t_ref_c": f.t_ref_c}
-    for key, unit in FIT_KEYS:
-        d[f"{key}_{unit}"] = getattr(f, key)
-        d[f"{key}_sigma_{unit}"] = getattr(f, key + "_sigma")
-    d["notes"] = list(f.notes)
-    return _js(d)
-
-
-def drift_json(d: dict) -> dict:
-    return _js({"set_c": d["set_c"], "accel_temp_c": d["accel_temp_c"],
-                "accel_mean_mps2": d["accel_mean_mps2"], "gyro_mean_rad_s": d["gyro_mean_rad_s"],
-                "accel_drift_mps2": d["accel_drift_mps2"], "gyro_drift_rad_s": d["gyro_drift_rad_s"]})
-
-
-class ThermalRecord:
-    """DIR/thermal.json of one run, rewritten atomically (temp file + os.replace) by every
-    update, so a crash leaves the previous or the new version, never a torn one. A directory
-    that already holds a thermal.json is refused (no --resume: choose another directory)."""
-
-    NAME = "thermal.json"
-
-    def __init__(self, directory, config: dict):
-        self.dir = Path(directory)
-        self.path = self.dir / self.NAME
-        self.dir.mkdir(parents=True, exist_ok=True)
-        if self.path.exists():
-            raise FileExistsError(f"{self.path} exists: choose another --out directory")
-        self.data = {"schema": THERMAL_SCHEMA, "kind": "imubench thermal", "status": "running",
-                     "stage": "start", "error": None, "started": _now(), "updated": None,
-                     "config": _js(config), "device": None, "t_ref_c": None, "points": []}
-        self.save()
-
-    def update(self, **kw) -> None:
-        self.data.update(_js(kw))
-        self.save()
-
-    def add_point(self, p: TempPoint) -> None:
-        self.data["points"].append(point_json(p))
-        self.save()
-
-    def save(self) -> None:
-        self.data["updated"] = _now()
-        write_json_atomic(self.path, self.data)
 
 
 def _device_json(dev) -> dict:
@@ -539,43 +317,11 @@ def _device_json(dev) -> dict:
         board = Board(info.board).name
     except ValueError:
         board = int(info.board)
-    return {"mcu_uid": bytes(info.mcu_uid).hex(), "board": board,
+    return {"mcu_uid": uid_text(info.mcu_uid), "board": board,
             "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build}
 
 
 # ------------------------------------------------------------------ command line
-def format_fit(f: ThermalFit) -> str:
-    L = [f"temperature coefficients (t_ref {f.t_ref_c:g} °C), ± 1 sigma:"]
-    for k in range(3):
-        L.append(f"  accel {AXES[k]}: bias {f.accel_bias_tc[k] / U.G0_MPS2 * 1e6:+9.2f} ± "
-                 f"{f.accel_bias_tc_sigma[k] / U.G0_MPS2 * 1e6:.2f} µg/°C   scale "
-                 f"{f.accel_scale_tc[k] * 1e6:+9.2f} ± {f.accel_scale_tc_sigma[k] * 1e6:.2f} ppm/°C")
-    for k in range(3):
-        L.append(f"  gyro  {AXES[k]}: bias {U.rad_s_to_dps(f.gyro_bias_tc[k]) * 1e3:+9.3f} ± "
-                 f"{U.rad_s_to_dps(f.gyro_bias_tc_sigma[k]) * 1e3:.3f} m°/s/°C   scale "
-                 f"{f.gyro_scale_tc[k] * 1e6:+9.2f} ± {f.gyro_scale_tc_sigma[k] * 1e6:.2f} ppm/°C")
-    L += [f"  note: {n}" for n in f.notes]
-    return "\n".join(L)
-
-
-def format_drift(before: dict, after: dict | None) -> str:
-    L = ["drift of the calibrated output over the sweep (max − min):"]
-    names = ["accel x", "accel y", "accel z", "|accel|"]
-    for i, nm in enumerate(names):
-        b = before["accel_drift_mps2"][i] / U.G0_MPS2 * 1e3
-        s = f"  {nm:8s} before {b:9.4f} mg"
-        if after is not None:
-            a = after["accel_drift_mps2"][i] / U.G0_MPS2 * 1e3
-            s += f"   after {a:9.4f} mg   ({b / max(a, 1e-12):.0f}x)"
-        L.append(s)
-    for k in range(3):
-        b = U.rad_s_to_dps(before["gyro_drift_rad_s"][k])
-        s = f"  gyro {AXES[k]}   before {b:9.4f} °/s"
-        if after is not None:
-            a = U.rad_s_to_dps(after["gyro_drift_rad_s"][k])
-            s += f"  after {a:9.4f} °/s  ({b / max(a, 1e-12):.0f}x)"
-        L.append(s)
-    return "\n".join(L)
 
 
 def write_params(dev, new: Params, say: Callable[[str], None] = lambda s: None) -> dict:
@@ -652,89 +398,3 @@ def run_thermal(dev, out_dir, temps: Sequence[float | None], hooks: Hooks, *, n:
 SIM_ACCEL_TRUTH = {"bias_tc": [2e-3, -1.5e-3, 1e-3], "scale_tc": [0.0, 0.0, 2e-4], "rw_k": [0.0] * 3}
 SIM_GYRO_TRUTH = [{"bias_tempco_rad_s_per_c": v * U.DEG, "scale_tempco_per_c": s, "bias_rw_k": 0.0}
                   for v, s in ((0.01, 1e-4), (-0.008, -5e-5), (0.006, 0.0))]
-
-
-def main_thermal(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="imubench thermal", description="temperature calibration: "
-                                 "sweep, fit bias and scale temperature coefficients, write them")
-    ap.add_argument("--port", help="device URL (default $IMUBENCH_PORT)")
-    ap.add_argument("--temps", default="10,25,40", help="temperatures in °C, comma separated (default 10,25,40)")
-    ap.add_argument("--sim", action="store_true", help="run on a virtual device with temperature "
-                    "coefficients in its truth; it drives temperature, orientation and turntable")
-    ap.add_argument("--write", action="store_true", help="write the coefficients to the device "
-                    "(set, read back, save, reboot, read back) and measure the drift before and after")
-    ap.add_argument("--out", metavar="DIR", help="directory for thermal.json, written after every "
-                    "temperature point (default: ./imubench-thermal-<time>)")
-    ap.add_argument("--t-ref", type=float, default=None, help="reference temperature (default: the device's)")
-    ap.add_argument("--samples", type=int, default=2000, help="samples per measurement (default 2000 at 200 Hz)")
-    ap.add_argument("--settle-rate", type=float, default=0.1, metavar="C_PER_MIN",
-                    help="settled when every sensor's |dT/dt| is below this, in °C/min (default 0.1)")
-    ap.add_argument("--settle-s", type=float, default=None, metavar="S",
-                    help="... over a sliding window of this many seconds of device time "
-                         "(default 300; with --sim 10); 0: do not wait")
-    ap.add_argument("--settle-timeout", type=float, default=7200.0, metavar="S",
-                    help="give up waiting for a temperature after this many seconds (default 7200)")
-    ap.add_argument("--ramp", type=float, default=None, metavar="C_PER_S",
-                    help="--sim: the virtual chamber's ramp in °C/s (default 0.5; 0 = at once)")
-    ap.add_argument("--speed", type=float, default=20, help="--sim: device time per wall time (default 20)")
-    a = ap.parse_args(argv)
-    try:
-        temps = [float(x) for x in a.temps.split(",") if x.strip()]
-    except ValueError:
-        ap.error("--temps: comma separated numbers")
-    if len(temps) < 2:
-        ap.error("--temps: at least two temperatures")
-    if a.ramp is not None and not a.sim:
-        ap.error("--ramp goes with --sim (a real chamber ramps by itself)")
-    ramp = 0.5 if a.ramp is None else a.ramp
-    if ramp < 0:
-        ap.error("--ramp: °C/s, ≥ 0")
-    settle_s = (10.0 if a.sim else 300.0) if a.settle_s is None else a.settle_s
-    settle = None
-    if settle_s > 0:
-        try:
-            settle = Settling(a.settle_rate, settle_s, a.settle_timeout)
-        except ValueError as e:
-            ap.error(str(e))
-    if settle is not None and not a.sim and settle.rate_c_per_min / 60.0 * settle.window_s < 2 * TEMP_RESOLUTION_C:
-        print(f"note: over {settle.window_s:g} s a drift of {settle.rate_c_per_min:g} °C/min stays within "
-              f"{2 * TEMP_RESOLUTION_C:g} °C, about the sensors' temperature resolution: it may pass as settled "
-              "(a longer --settle-s sees it)", flush=True)
-    out = Path(a.out or f"imubench-thermal-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
-    if (out / ThermalRecord.NAME).exists():
-        print(f"imubench thermal: {out / ThermalRecord.NAME} exists: choose another --out directory", file=sys.stderr)
-        return 1
-    say = lambda s: print(s, flush=True)
-    from imubench.device.link import Device
-    vb = None
-    try:
-        if a.sim:
-            from imubench.device.sim import VirtualBench
-            vb = VirtualBench(speed=a.speed)
-            vb.set_truth(accel=SIM_ACCEL_TRUTH, gyro=SIM_GYRO_TRUTH)
-            url, hooks, poses = vb.port_url, sim_hooks(vb, say, ramp_c_per_s=ramp), tuple(POSES)
-        else:
-            url, poses = a.port, ("+z",)
-            def ready(c):
-                input(f"bring the board (still, level, +Z up) to {c:g} °C and press Enter ")
-            hooks = Hooks(ready=ready, say=say)
-        with Device.open(url) as dev:
-            say(f"sweep over {temps} °C ({'virtual bench' if a.sim else 'ambient: you set it'})")
-            t0 = time.monotonic()
-            run_thermal(dev, out, temps, hooks, n=a.samples, poses=poses, turntable=a.sim,
-                        t_ref_c=a.t_ref, write=a.write, settle=settle,
-                        config={"sim": a.sim, "ramp_c_per_s": ramp if a.sim else None})
-            say(f"[{time.monotonic() - t0:.1f} s]")
-            return 0
-    except (PR.InvalidParams, RuntimeError, OSError, ValueError, KeyboardInterrupt) as e:
-        print(f"imubench thermal: {str(e) or 'interrupted'}", file=sys.stderr)
-        if (out / ThermalRecord.NAME).exists():
-            print(f"imubench thermal: what was measured is in {out / ThermalRecord.NAME}", file=sys.stderr)
-        return 130 if isinstance(e, KeyboardInterrupt) else 1
-    finally:
-        if vb is not None:
-            vb.close()
-
-
-if __name__ == "__main__":
-    sys.exit(main_thermal())

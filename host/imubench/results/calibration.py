@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from imubench import units as U
+
 ACCEL_TOL_KEY = "accel_rms_mg"      # RMS of |a| − g over the poses after calibration
 VERIFY_TOL_KEY = "verify_mg"        # each verification pose: | |a| − g | of the device's output
 
@@ -58,7 +60,7 @@ def _tol(result: dict, key: str) -> float | None:
 
 
 def _uid(result: dict) -> str:
-    return str((result.get("device") or {}).get("mcu_uid", "unknown device"))
+    return str((result.get("device") or {}).get("mcu_uid", "unknown device")).upper()
 
 
 def _method(result: dict) -> str:
@@ -216,3 +218,79 @@ def before_after_table(result: dict) -> str:
         lines.append("")
         lines.append(summary)
     return "\n".join(lines)
+
+
+def truth_in_fit_frame(result: dict, truth: dict) -> dict:
+    """The virtual device's truth expressed as the session's fit can observe it.
+
+    The multi-position |a| = g model cannot see the accelerometer triad's rotation Q relative
+    to the board (M = L·Q, calib.accel.lower_triangular_form): it returns L, and its calibrated
+    output is in the Q-rotated frame. A rotation-method gyro fit, which matches gravity
+    directions in that frame, then returns M_gyro·Qᵀ. Six-position and the turntable are
+    tied to the board axes and see the truth as it is."""
+    from imubench.calib.accel import lower_triangular_form
+    m_a = np.array(truth["accel"]["m"], dtype=float)
+    m_g = np.array([g["sens"] for g in truth["gyro"]], dtype=float)
+    q = np.eye(3)
+    if result["method"] == "multi" and not str(result.get("accel_frame", "")).startswith("board"):
+        m_a, q = lower_triangular_form(m_a)
+    if result.get("gyro_method") == "rotation":
+        m_g = m_g @ q.T
+    return {"accel_m": m_a, "accel_b_mps2": np.array(truth["accel"]["true_bias_mps2"], dtype=float),
+            "gyro_m": m_g, "gyro_b_rad_s": np.array([g["true_bias_rad_s"] for g in truth["gyro"]], dtype=float)}
+
+
+def truth_table(result: dict, truth: dict) -> str:
+    """Recovered parameters beside the virtual device's truth, with 1-sigma and |error|/sigma."""
+    t = truth_in_fit_frame(result, truth)
+    lines = [f"{'parameter':<14}{'truth':>14}{'recovered':>14}{'1-sigma':>12}{'|err|/σ':>9}"]
+    acc = result["accel"]
+    for i in range(3):
+        for j in range(3):
+            if acc["sigma_m"][i][j] > 0:          # entries the model fixes are not listed
+                lines.append(_row(f"accel M{i}{j}", t["accel_m"][i, j], acc["m"][i][j], acc["sigma_m"][i][j]))
+    for i, ax in enumerate("xyz"):
+        lines.append(_row(f"accel b{ax} mg", t["accel_b_mps2"][i] / U.G0_MPS2 * 1e3, acc["b_mps2"][i] / U.G0_MPS2 * 1e3,
+                          acc["sigma_b_mps2"][i] / U.G0_MPS2 * 1e3))
+    g = result.get("gyro")
+    if g:
+        for i, ax in enumerate("xyz"):
+            lines.append(_row(f"gyro b{ax} °/s", np.degrees(t["gyro_b_rad_s"][i]), np.degrees(g["b_rad_s"][i]),
+                              np.degrees(g["sigma_b_rad_s"][i])))
+        if g["method"] != "bias":
+            for i in range(3):
+                for j in range(3):
+                    lines.append(_row(f"gyro M{i}{j}", t["gyro_m"][i, j], g["m"][i][j], g["sigma_m"][i][j]))
+    if result["method"] == "multi" and not str(result.get("accel_frame", "")).startswith("board"):
+        lines.append("(multi-position: M in the frame of the sensor's X axis and X-Y plane; "
+                     "see docs/calibration.md)")
+    elif result["method"] == "multi":
+        lines.append("(multi-position: M rotated into the gyro turntable's board frame by the rotations "
+                     "between poses; see docs/calibration.md, \"One frame\")")
+    lines.append("(biases: the models' bias random walk moves them during the session; the truth shown is "
+                 "the value at the end, the estimate the mean over the session's rest or poses)")
+    return "\n".join(lines)
+
+
+def params_table(result: dict) -> str:
+    """The fitted parameters with their 1-sigma uncertainties (docs/conventions.md model)."""
+    a = result["accel"]
+    L = [f"accelerometer ({a['method']}): u = M·x + b",
+         "  M = " + "\n      ".join("  ".join(f"{a['m'][i][j]:+.6f}±{a['sigma_m'][i][j]:.6f}" for j in range(3))
+                                   for i in range(3)),
+         "  b = " + "  ".join(f"{v / U.G0_MPS2 * 1e3:+.4f}±{s / U.G0_MPS2 * 1e3:.4f} mg"
+                              for v, s in zip(a["b_mps2"], a["sigma_b_mps2"]))]
+    g = result.get("gyro")
+    if g:
+        L.append(f"gyro ({g['method']}):")
+        if g["method"] != "bias":
+            L.append("  M = " + "\n      ".join("  ".join(f"{g['m'][i][j]:+.6f}±{g['sigma_m'][i][j]:.6f}"
+                                                         for j in range(3)) for i in range(3)))
+        L.append("  b = " + "  ".join(f"{np.degrees(v):+.4f}±{np.degrees(s):.4f} °/s"
+                                      for v, s in zip(g["b_rad_s"], g["sigma_b_rad_s"])))
+    return "\n".join(L)
+
+
+def _row(name, truth, got, sigma):
+    z = abs(got - truth) / sigma if sigma > 0 else float("nan")
+    return f"{name:<14}{truth:>14.6f}{got:>14.6f}{sigma:>12.6f}{z:>9.2f}"

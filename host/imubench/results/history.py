@@ -19,18 +19,18 @@ the edge (mg, °/s, ppm = 1e-6 of the dimensionless M).
 """
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import json
 import math
 import re
 import sqlite3
-import sys
 from pathlib import Path
 
 import numpy as np
 
 from imubench import units as U
+from imubench.errors import ImubenchError
+from imubench.wire.ids import parse_id, sn_text
 
 SCHEMA_VERSION = 1          # of the database (tables below)
 RECORD_SCHEMA = 1           # of the result record a calibration session produces
@@ -90,7 +90,7 @@ CREATE INDEX IF NOT EXISTS runs_device_started ON runs (device_id, started);
 """
 
 
-class HistoryError(Exception):
+class HistoryError(ImubenchError):
     """The history database cannot be used; the message says why."""
 
 
@@ -432,7 +432,7 @@ class History:
                 n = db.execute("SELECT COUNT(*) FROM runs WHERE device_id = ?", (dev_id,)).fetchone()[0]
                 latest = db.execute("SELECT started, method, gyro_method, passed, written, verified FROM runs "
                                     "WHERE device_id = ? ORDER BY started DESC, id DESC LIMIT 1", (dev_id,)).fetchone()
-                d = {"mcu_uid": uid, "board": board, "accel_ids": _loads(ids), "gyro_pid": _loads(pid),
+                d = {"mcu_uid": uid.upper(), "board": board, "accel_ids": _loads(ids), "gyro_pid": _loads(pid),
                      "gyro_sn": _loads(sn), "first_seen": first, "last_seen": last, "runs": n, "last_run": None}
                 if latest:
                     d["last_run"] = {"started": latest[0], "method": latest[1], "gyro_method": latest[2],
@@ -441,32 +441,25 @@ class History:
         return out
 
     def resolve(self, device: str) -> str:
-        """The full MCU UID of `device`: a full UID, a unique UID prefix (≥ 4 hex digits) or
-        a gyro serial number (decimal, or hex with 0x)."""
-        q = str(device).strip()
-        if not q:
+        """The full MCU UID (upper-case hex) of `device`: a full UID, a unique UID prefix (at
+        least MIN_PREFIX hex digits) or a gyro serial number, all in hex as `imubench info`
+        prints them (imubench.wire.ids: case, 0x and separators do not matter)."""
+        if not str(device).strip():
             raise UnknownDevice("no device given")
+        try:
+            q = parse_id(device)
+        except ValueError as e:
+            raise UnknownDevice(str(e)) from None
         with self._read() as db:
             devs = db.execute("SELECT id, mcu_uid, gyro_sn FROM devices").fetchall()
             run_sns = db.execute("SELECT DISTINCT device_id, gyro_sn FROM runs WHERE gyro_sn IS NOT NULL").fetchall()
-        by_id = {i: uid for i, uid, _ in devs}
-        ql = q.lower()
-        if ql.startswith("0x"):
-            hexq = None
-        else:
-            hexq = ql if re.fullmatch(r"[0-9a-f]+", ql) else None
+        by_id = {i: uid.upper() for i, uid, _ in devs}
+        if q in by_id.values():
+            return q
         matches: set[str] = set()
-        if hexq is not None:
-            exact = [uid for uid in by_id.values() if uid == hexq]
-            if exact:
-                return exact[0]
-            if len(hexq) >= MIN_PREFIX:
-                matches |= {uid for uid in by_id.values() if uid.startswith(hexq)}
-        serial = None
-        try:
-            serial = int(q, 0) if ql.startswith("0x") else (int(q) if q.isdigit() else None)
-        except ValueError:
-            serial = None
+        if len(q) >= MIN_PREFIX:
+            matches |= {uid for uid in by_id.values() if uid.startswith(q)}
+        serial = int(q, 16) if len(q) <= 8 else None
         if serial is not None:
             for i, _uid, sn in devs:
                 if serial in (_loads(sn) or []):
@@ -477,21 +470,18 @@ class History:
         if len(matches) == 1:
             return matches.pop()
         if len(matches) > 1:
-            raise AmbiguousDevice(q, sorted(matches))
+            raise AmbiguousDevice(str(device).strip(), sorted(matches))
         hint = ""
-        if hexq is not None and len(hexq) < MIN_PREFIX:
-            hint = (" (no gyro has that serial number, and" if serial is not None else " (") \
-                + f" a UID prefix needs at least {MIN_PREFIX} hex digits)"
-        elif hexq is None and serial is None:
-            hint = " (give an MCU UID, a prefix of at least 4 hex digits, or a gyro serial number)"
-        raise UnknownDevice(f"no device {q!r} in {self.path}{hint}")
+        if len(q) < MIN_PREFIX:
+            hint = f" (no gyro has that serial number, and a UID prefix needs at least {MIN_PREFIX} hex digits)"
+        raise UnknownDevice(f"no device {str(device).strip()!r} in {self.path}{hint}")
 
     def runs(self, device: str) -> list[dict]:
         """Every run of a device (see resolve()), oldest first."""
         uid = self.resolve(device)
         with self._read() as db:
             cur = db.execute("SELECT r.*, d.mcu_uid, d.board FROM runs r JOIN devices d ON d.id = r.device_id "
-                             "WHERE d.mcu_uid = ? ORDER BY r.started, r.id", (uid,))
+                             "WHERE d.mcu_uid = ? ORDER BY r.started, r.id", (uid.lower(),))
             names = [c[0] for c in cur.description]
             rows = [dict(zip(names, r)) for r in cur.fetchall()]
         return [_run_from_row(r) for r in rows]
@@ -518,7 +508,7 @@ def _run_from_row(r: dict) -> dict:
                 "sigma_m": _loads(r["gyro_sigma_m"]), "sigma_b_rad_s": _loads(r["gyro_sigma_b_rad_s"]),
                 "residual_rms": r["gyro_residual_rms"]}
     return {
-        "run_id": r["id"], "mcu_uid": r["mcu_uid"], "board": r["board"],
+        "run_id": r["id"], "mcu_uid": r["mcu_uid"].upper(), "board": r["board"],
         "started": record["started"], "finished": record["finished"],
         "started_utc": r["started"], "finished_utc": r["finished"],
         "method": r["method"], "gyro_method": r["gyro_method"],
@@ -698,7 +688,7 @@ def format_device_report(rep: dict) -> str:
     runs = rep["runs"]
     sn = dev.get("gyro_sn")
     out = [f"device {dev['mcu_uid']}  board {dev['board'] or '-'}"
-           + (f"  gyro SN {' '.join(str(x) for x in sn)}" if sn else "")
+           + (f"  gyro SN {' '.join(sn_text(x) for x in sn)}" if sn else "")
            + f"  {len(runs)} run{'s' if len(runs) != 1 else ''}"]
     for s in runs:
         out.append("")
@@ -774,56 +764,12 @@ def _format_drift(dr: dict, n_runs: int) -> list[str]:
 
 
 # ------------------------------------------------------------------ CLI
-def _strict_json(x):
+def strict_json(x):
     """NaN/inf → null, so --json output is standard JSON."""
     if isinstance(x, dict):
-        return {k: _strict_json(v) for k, v in x.items()}
+        return {k: strict_json(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_strict_json(v) for v in x]
+        return [strict_json(v) for v in x]
     if isinstance(x, float) and not math.isfinite(x):
         return None
     return x
-
-
-def main_history(argv=None) -> int:
-    """`imubench history [DEVICE] [--db PATH] [--json]`; returns the exit status."""
-    ap = argparse.ArgumentParser(
-        prog="imubench history",
-        description="Calibration history: the known devices, or one device's runs and how its bias and "
-                    "scale drifted between calibrations.")
-    ap.add_argument("device", nargs="?", metavar="DEVICE",
-                    help="MCU UID, a unique prefix of it (at least 4 hex digits) or a gyro serial number")
-    ap.add_argument("--db", help=f"history database (default: {default_path()})")
-    ap.add_argument("--json", action="store_true", help="print the same data as JSON")
-    try:
-        a = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
-    except SystemExit as e:            # --help (0) or a usage error (2, argparse printed why)
-        return int(e.code or 0)
-    path = Path(a.db) if a.db else default_path()
-    if not path.exists() and a.db is None and a.device is None:
-        # the default database does not exist until the first session records into it
-        print(json.dumps({"database": str(path), "devices": []}) if a.json
-              else f"no calibrations recorded yet ({path} does not exist)")
-        return 0
-    try:
-        with History(path, readonly=True) as h:
-            if a.device is None:
-                devs = h.devices()
-                if a.json:
-                    print(json.dumps(_strict_json({"database": str(path), "devices": devs}), indent=1))
-                else:
-                    print(format_devices(devs, path))
-                return 0
-            rep = device_report(h, a.device)
-    except HistoryError as e:
-        print(f"imubench history: error: {e}", file=sys.stderr)
-        return 2
-    if a.json:
-        print(json.dumps(_strict_json({"database": str(path), **rep}), indent=1, allow_nan=False))
-    else:
-        print(format_device_report(rep))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main_history())

@@ -20,18 +20,18 @@ A section without input is shown as "not measured in this session", never silent
 """
 from __future__ import annotations
 
-import argparse
 import base64
 import datetime as _dt
 import html
 import json
 import math
-import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
 from imubench.results.atomic import write_text_atomic
+from imubench.results.sessionfile import load_state
+from imubench.wire.ids import byte_ids_text, pid_text, sn_text
 
 G0 = 9.80665
 RAD2DEG = 180.0 / math.pi
@@ -149,6 +149,17 @@ def _kv(d: dict) -> str:
 
 
 # ------------------------------------------------------------------ calibration
+def _id_text(key: str, v) -> str:
+    """Identifiers in the one format `imubench info` prints (imubench.wire.ids)."""
+    fmt = {"accel_ids": byte_ids_text, "gyro_pid": lambda xs: " ".join(pid_text(x) for x in xs),
+           "gyro_sn": lambda xs: " ".join(sn_text(x) for x in xs)}.get(key)
+    if fmt is not None and isinstance(v, list) and all(isinstance(x, int) for x in v):
+        return fmt(v)
+    if key == "mcu_uid" and isinstance(v, str):
+        return v.upper()
+    return ", ".join(map(str, v)) if isinstance(v, list) else str(v)
+
+
 def _device_section(state: dict, result: dict | None) -> str:
     dev = (result or {}).get("device") or {}
     rows = []
@@ -156,8 +167,8 @@ def _device_section(state: dict, result: dict | None) -> str:
                        ("firmware build", "fw_build"), ("accelerometer IDs", "accel_ids"),
                        ("gyro part IDs", "gyro_pid"), ("gyro serial numbers", "gyro_sn")):
         if key in dev:
-            v = dev[key]
-            rows.append([esc(label), f'<span class="mono">{esc(", ".join(map(str, v)) if isinstance(v, list) else v)}</span>'])
+            v = _id_text(key, dev[key])
+            rows.append([esc(label), f'<span class="mono">{esc(v)}</span>'])
     r = result or {}
     for label, v in (("session started", state.get("started")), ("run started", r.get("started")),
                      ("finished", r.get("finished"))):
@@ -216,7 +227,13 @@ def _fit_table(fit: dict, kind: str) -> str:
 
 def _before_after_html(result: dict) -> str:
     """The before/after table of imubench.results.calibration.before_after_table, as HTML."""
-    from imubench.results.calibration import _poses, _rms, _tol, _verification, before_after_table
+    from imubench.results.calibration import (
+        _poses,
+        _rms,
+        _tol,
+        _verification,
+        before_after_table,
+    )
     names, before, after, sigma = _poses(result)
     temps = [p.get("temp_c") for p in result.get("poses") or []]
     ns = [p.get("n") for p in result.get("poses") or []]
@@ -309,7 +326,7 @@ def _noise_section(allan_dir: Path | None) -> str:
                      "no allan.json; record one with imubench allan and give --allan DIR", out)
     if res is None:
         return "\n".join(out)
-    from imubench.procedures.allan import usual_units
+    from imubench.analysis.allan import usual_units
     dur = _f(res.get("duration_s"))
     out.append(f"<p>{esc(_num(res.get('samples'), '{:.0f}'))} samples at {esc(_num(res.get('rate_hz'), '{:g}'))} Hz = "
                f"{esc(_num(dur / 3600, '{:.3f}'))} h; source {esc(', '.join(map(str, res.get('source') or [])))}</p>")
@@ -542,16 +559,13 @@ def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, 
     """Write the session's report as one self-contained HTML file and return its path
     (default SESSION_DIR/report.html). allan_dir defaults to session_dir (its allan.json is
     used if present), closure_dir to SESSION_DIR/closure (imubench calibrate --closure).
-    Raises FileNotFoundError if session_dir has no session.json."""
+    Raises SessionFileError if session_dir has no readable session.json."""
     session_dir = Path(session_dir)
-    state_path = session_dir / "session.json"
-    if not state_path.is_file():
-        raise FileNotFoundError(f"{session_dir} has no session.json: not a calibration session directory")
-    state = json.loads(state_path.read_text())
+    state = load_state(session_dir)
     result = state.get("result") or {}
     out_path = Path(out_path) if out_path is not None else session_dir / "report.html"
     allan_dir = Path(allan_dir) if allan_dir is not None else session_dir
-    uid = (result.get("device") or {}).get("mcu_uid", "unknown device")
+    uid = str((result.get("device") or {}).get("mcu_uid", "unknown device")).upper()
     when = str(result.get("started") or state.get("started") or "")
 
     sections = [_calibration_section(session_dir, state), _noise_section(allan_dir),
@@ -580,39 +594,3 @@ def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, 
 """
     out_path.parent.mkdir(parents=True, exist_ok=True)
     return write_text_atomic(out_path, doc)
-
-
-def main_report(argv: Sequence[str] | None = None) -> int:
-    """`imubench report SESSION_DIR [--out FILE] [--allan DIR] [--attitude PNG] [--thermal JSON] [--closure DIR]`"""
-    ap = argparse.ArgumentParser(prog="imubench report",
-                                 description="write one self-contained HTML report of a session "
-                                             "(calibration, noise, attitude, temperature; plots embedded)")
-    ap.add_argument("session_dir", metavar="SESSION_DIR", help="the calibration session directory (with session.json)")
-    ap.add_argument("--out", metavar="FILE", help="output HTML file (default SESSION_DIR/report.html)")
-    ap.add_argument("--allan", metavar="DIR", help="directory with allan.json and its plots (default: SESSION_DIR)")
-    ap.add_argument("--attitude", metavar="PNG", help="attitude plot to embed")
-    ap.add_argument("--thermal", metavar="JSON", help="DIR/thermal.json of imubench thermal --out DIR")
-    ap.add_argument("--closure", metavar="DIR", help="output directory of imubench closure "
-                    "(default: SESSION_DIR/closure, written by imubench calibrate --closure)")
-    a = ap.parse_args(argv)
-    sd = Path(a.session_dir)
-    if not (sd / "session.json").is_file():
-        print(f"imubench report: {sd} has no session.json (give the directory of a calibration session, "
-              "e.g. the --dir of imubench calibrate)", file=sys.stderr)
-        return 2
-    for opt, p, is_dir in (("--allan", a.allan, True), ("--attitude", a.attitude, False), ("--thermal", a.thermal, False),
-                           ("--closure", a.closure, True)):
-        if p is not None and not (Path(p).is_dir() if is_dir else Path(p).is_file()):
-            print(f"imubench report: {opt} {p}: no such {'directory' if is_dir else 'file'}", file=sys.stderr)
-            return 2
-    try:
-        path = build_report(sd, a.out, a.allan, a.attitude, a.thermal, a.closure)
-    except (OSError, ValueError) as e:
-        print(f"imubench report: {e}", file=sys.stderr)
-        return 1
-    print(path)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main_report())

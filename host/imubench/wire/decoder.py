@@ -19,8 +19,8 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from cobs import cobs
 
-from imubench.wire import frame as P
 from imubench import units as U
+from imubench.wire import frame as P
 from imubench.wire.protocol_gen import BATCH_HEADER_DTYPE, MsgType
 
 _HDR = struct.Struct("<BBHI")

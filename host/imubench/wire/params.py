@@ -20,14 +20,34 @@ def identity() -> Params:
     return Params(accel_m=eye, gyro_m=eye, accel_t_ref_c=25.0, gyro_t_ref_c=25.0)
 
 
+def is_factory(p: Params) -> bool:
+    """True for parameters that change nothing (identity matrices, zero biases and tempcos):
+    a device with these streams its raw data, scaled, as "calibrated"."""
+    ident = identity()
+    return all(np.allclose(getattr(p, f), getattr(ident, f)) for f in
+               ("accel_m", "accel_b_mps2", "gyro_m", "gyro_b_rad_s", "accel_bias_tc_mps2_per_c",
+                "accel_scale_tc_per_c", "gyro_bias_tc_rad_s_per_c", "gyro_scale_tc_per_c"))
+
+
 def to_json(p: Params) -> dict:
     """The block as a JSON-able dict: field names of the protocol definition, vectors as lists."""
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(p).items()}
 
 
-def from_json(d: dict) -> Params:
-    """The inverse of to_json (unknown keys are an error, as Params itself says)."""
-    return Params(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
+def from_json(d: dict, partial: bool = False) -> Params:
+    """The inverse of to_json. Unknown keys are an error (InvalidParams naming them); with
+    partial=True, fields not given keep their factory value (identity())."""
+    if not isinstance(d, dict):
+        raise InvalidParams(Error.BAD_ARGUMENT, f"parameters must be a JSON object of Params fields, not {type(d).__name__}")
+    base = asdict(identity()) if partial else {}
+    unknown = set(d) - set(Params.__dataclass_fields__)
+    if unknown:
+        raise InvalidParams(Error.BAD_ARGUMENT, f"unknown parameter fields: {', '.join(sorted(unknown))}")
+    missing = set(Params.__dataclass_fields__) - set(d) - set(base)
+    if missing:
+        raise InvalidParams(Error.BAD_ARGUMENT, f"missing parameter fields: {', '.join(sorted(missing))}")
+    kw = {**base, **{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}}
+    return Params(**kw)
 
 
 @dataclass

@@ -26,10 +26,7 @@ tests/test_qemu.py checks these bytes against the C store (ib_ps_save / ib_ps_lo
 """
 from __future__ import annotations
 
-import argparse
-import json
 import struct
-import sys
 from dataclasses import dataclass
 
 import crcmod.predefined
@@ -194,46 +191,3 @@ def parse_record(slot: bytes, *, program_unit: int = 4, slot_size: int | None = 
     if any(slot[crc_off + 4:crc_off + a]) or stored != crc32c(slot[:crc_off]):
         raise InvalidRecord("bad crc")
     return Record(gen, pv, flags, salt, slot[HEADER_SIZE:HEADER_SIZE + n])
-
-
-def _params_from_json(path: str) -> Params:
-    with open(path) as f:
-        d = json.load(f)
-    base = _identity()
-    kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
-    unknown = set(kw) - set(base.__dataclass_fields__)
-    if unknown:
-        raise ValueError(f"unknown parameter fields: {', '.join(sorted(unknown))}")
-    return Params(**{**base.__dict__, **kw})
-
-
-def _identity() -> Params:
-    from imubench.wire.params import identity
-    return identity()
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m imubench.wire.paramstore",
-                                 description="build a parameter-store slot image (firmware/core/param_store.h)")
-    ap.add_argument("--layout", choices=sorted(LAYOUTS), required=True, help="flash layout of the image")
-    ap.add_argument("--params", help="JSON object of protocol_gen.Params fields (default: identity)")
-    ap.add_argument("--generation", type=int, default=1)
-    ap.add_argument("--cleared", action="store_true", help="a factory-reset record instead")
-    ap.add_argument("--fill", type=lambda s: int(s, 0), default=0xFF, help="byte after the record (default 0xFF)")
-    ap.add_argument("-o", "--output", required=True)
-    a = ap.parse_args(argv)
-    lay = LAYOUTS[a.layout]
-    if a.cleared:
-        rec = cleared_record(generation=a.generation, program_unit=lay.program_unit)
-    else:
-        p = _params_from_json(a.params) if a.params else _identity()
-        rec = params_record(p, generation=a.generation, program_unit=lay.program_unit)
-    with open(a.output, "wb") as f:
-        f.write(slot_image(rec, lay.slot_size, a.fill))
-    print(f"{a.output}: {len(rec)}-byte record in a {lay.slot_size}-byte slot; load it at "
-          f"0x{lay.slots[0]:08X} (slot 0) or 0x{lay.slots[1]:08X} (slot 1)")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

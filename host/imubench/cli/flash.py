@@ -1,0 +1,56 @@
+"""`imubench flash`: write the firmware image to a board (openocd, st-flash or stm32flash)."""
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+from imubench.cli.common import existing_file
+
+
+def register(sub) -> None:
+    from imubench.device.flash import PROBE_ORDER, TARGET_CFG
+    p = sub.add_parser("flash", help="write the firmware to a board (openocd, st-flash, stm32flash)",
+                       description="Build (make firmware) and flash the STM32 firmware onto a board, then "
+                                   "verify it (docs/firmware.md, Flashing).")
+    p.add_argument("--board", choices=sorted(TARGET_CFG), required=True, help="which board")
+    p.add_argument("--probe", choices=PROBE_ORDER,
+                   help="programmer (default: the first of openocd, st-flash, stm32flash found)")
+    p.add_argument("--port", metavar="DEV", help="serial device for --probe serial (e.g. /dev/ttyUSB0)")
+    p.add_argument("--image", type=existing_file, metavar="FILE",
+                   help="image to flash (default: build/arm/<board>/imubench.elf|.bin|.hex)")
+    p.add_argument("--no-build", action="store_true", help="do not run `make firmware` first")
+    p.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
+    p.set_defaults(run=run)
+
+
+def run(a) -> int:
+    from imubench.device.flash import (
+        PROBES,
+        FlashError,
+        _run,
+        build_firmware,
+        choose_probe,
+        plan,
+    )
+    image = Path(a.image).resolve() if a.image else None
+    probe = choose_probe(a.probe, need_tool=not a.dry_run)
+    with tempfile.TemporaryDirectory(prefix="imubench-flash-") as tmp:
+        if a.dry_run:
+            p = plan(a.board, probe, image, a.port, Path(tmp))
+            print(f"# {a.board} via {probe} ({PROBES[probe][2]}); image {p.image}"
+                  + ("" if p.image.exists() else " (not built yet)"))
+            for s in p.steps:
+                print(s.shell())
+                if s.verify_against is not None:
+                    print(f"# then compare the read-back with {s.verify_against}")
+            return 0
+        if image is None and not a.no_build:
+            build_firmware()
+        p = plan(a.board, probe, image, a.port, Path(tmp))
+        if not p.image.exists():
+            raise FlashError(f"no image {p.image}" + ("" if a.image else "; run `make firmware`"), 2)
+        print(f"flashing {p.image} to the {a.board} via {probe} ({PROBES[probe][2]})", flush=True)
+        for s in p.steps:
+            _run(s)
+    print("done", flush=True)
+    return 0

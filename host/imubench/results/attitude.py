@@ -1,0 +1,66 @@
+"""What the attitude step test shows: the table of settling times and static errors, and the plot."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def summarize(results: dict) -> str:
+    """Text table of settling times and static errors per step and filter, and RMS errors."""
+    names = ["accel"] + results["filters"]
+    lines = [f"{'axis':5} {'target':>7} | " + " ".join(f"{n:>17}" for n in names),
+             f"{'':5} {'deg':>7} | " + " ".join(f"{'settle s / err °':>17}" for _ in names)]
+    for s in results["steps"]:
+        lines.append(f"{s.axis:5} {s.target_deg:7.2f} | " + " ".join(
+            f"{s.settle_s[n]:7.3f} {s.error_deg[n]:+9.5f}" for n in names))
+    rms = {n: math.sqrt(np.mean([s.error_deg[n] ** 2 for s in results["steps"]])) for n in names}
+    lines.append(f"{'RMS static error (deg)':15} | " + " ".join(f"{rms[n]:17.5f}" for n in names))
+    return "\n".join(lines)
+
+
+def plot_steps(results: dict, path) -> None:
+    """PNG: one panel per axis, angle (deg) vs device time (s) for each filter, with the
+    step targets (simulator truth) as a dashed staircase."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = results["t"]
+    t0 = t[0]
+    axes_used = [a for a in ("roll", "pitch") if any(s.axis == a for s in results["steps"])]
+    fig, axs = plt.subplots(len(axes_used), 2, figsize=(15, 4 * len(axes_used)), squeeze=False,
+                            gridspec_kw={"width_ratios": [3, 2]})
+    band = results.get("band_deg", 0.05)
+    for row, axis in zip(axs, axes_used):
+        ax, ex = row
+        k = 0 if axis == "roll" else 1
+        steps = [s for s in results["steps"] if s.axis == axis]
+        lo, hi = steps[0].t_step - 1.0, steps[-1].t_end + 0.5
+        sel = (t >= lo) & (t <= hi)
+        target = np.full(len(t), np.nan)
+        for s in steps:
+            target[(t >= s.t_step) & (t <= s.t_end)] = s.target_deg
+        ax.plot(t[sel] - t0, results["angles"]["accel"][k][sel], color="0.8", lw=0.5, label="accelerometer")
+        ex.plot(t[sel] - t0, (results["angles"]["accel"][k] - target)[sel], color="0.85", lw=0.5,
+                label="accelerometer")
+        for name in results["filters"]:
+            ax.plot(t[sel] - t0, results["angles"][name][k][sel], lw=1.0, label=name)
+            ex.plot(t[sel] - t0, (results["angles"][name][k] - target)[sel], lw=0.8, label=name)
+        for s in steps:
+            ax.hlines(s.target_deg, s.t_step - t0, s.t_end - t0, colors="k", linestyles="--", lw=0.8)
+        ex.axhspan(-band, band, color="g", alpha=0.08, label=f"settling band ±{band:g}°")
+        ex.set_ylim(-4 * band, 4 * band)
+        ax.set_xlabel("device time (s)")
+        ax.set_ylabel(f"{axis} (deg)")
+        ax.set_title(f"{axis} steps on the virtual turntable (dashed: truth)")
+        ex.set_xlabel("device time (s)")
+        ex.set_ylabel(f"{axis} − target (deg)")
+        ex.set_title(f"{axis} error after each step starts (zoom)")
+        for a_ in (ax, ex):
+            a_.grid(True, alpha=0.3)
+        ax.legend(loc="upper left", fontsize=8)
+        ex.legend(loc="lower right", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

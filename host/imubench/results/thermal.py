@@ -1,0 +1,130 @@
+"""What a thermal run keeps and shows: DIR/thermal.json (rewritten atomically after every point
+and step) and the printed coefficient and drift tables."""
+from __future__ import annotations
+
+import datetime as _dt
+from pathlib import Path
+
+import numpy as np
+
+from imubench import units as U
+from imubench.analysis.thermal import AXES, TempPoint, ThermalFit
+from imubench.results.atomic import write_json_atomic
+
+THERMAL_SCHEMA = 1
+
+
+FIT_KEYS = (("accel_bias_tc", "mps2_per_c"), ("accel_scale_tc", "per_c"),
+            ("gyro_bias_tc", "rad_s_per_c"), ("gyro_scale_tc", "per_c"))
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _js(x):
+    """JSON-able copy (numpy arrays and scalars to lists and floats)."""
+    if isinstance(x, dict):
+        return {str(k): _js(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_js(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    return x
+
+
+def point_json(p: TempPoint) -> dict:
+    """One temperature point as stored in thermal.json (SI; the unit ends each key)."""
+    d = {"set_c": p.target_c, "accel_temp_c": p.accel_temp_c, "gyro_temp_c": p.gyro_temp_c,
+         "t_first_us": p.t_first_us, "t_last_us": p.t_last_us, "settle": p.settle,
+         "gyro_rest_rad_s": p.gyro_rest, "gyro_rest_sigma_rad_s": p.gyro_rest_sigma,
+         "accel_mps2": {k: v[0] for k, v in p.accel.items()},
+         "accel_sigma_mps2": {k: v[1] for k, v in p.accel.items()},
+         "gyro_turn_rad_s": None, "gyro_turn_sigma_rad_s": None}
+    if len(p.turns) == 3:
+        d["gyro_turn_rad_s"] = [p.turns[a][0] for a in range(3)]
+        d["gyro_turn_sigma_rad_s"] = [p.turns[a][1] for a in range(3)]
+    return _js(d)
+
+
+def fit_json(f: ThermalFit) -> dict:
+    """The fit's coefficients and 1-sigma, keyed with their units (the params field names)."""
+    d = {"t_ref_c": f.t_ref_c}
+    for key, unit in FIT_KEYS:
+        d[f"{key}_{unit}"] = getattr(f, key)
+        d[f"{key}_sigma_{unit}"] = getattr(f, key + "_sigma")
+    d["notes"] = list(f.notes)
+    return _js(d)
+
+
+def drift_json(d: dict) -> dict:
+    return _js({"set_c": d["set_c"], "accel_temp_c": d["accel_temp_c"],
+                "accel_mean_mps2": d["accel_mean_mps2"], "gyro_mean_rad_s": d["gyro_mean_rad_s"],
+                "accel_drift_mps2": d["accel_drift_mps2"], "gyro_drift_rad_s": d["gyro_drift_rad_s"]})
+
+
+class ThermalRecord:
+    """DIR/thermal.json of one run, rewritten atomically (temp file + os.replace) by every
+    update, so a crash leaves the previous or the new version, never a torn one. A directory
+    that already holds a thermal.json is refused (no --resume: choose another directory)."""
+
+    NAME = "thermal.json"
+
+    def __init__(self, directory, config: dict):
+        self.dir = Path(directory)
+        self.path = self.dir / self.NAME
+        self.dir.mkdir(parents=True, exist_ok=True)
+        if self.path.exists():
+            raise FileExistsError(f"{self.path} exists: choose another --out directory")
+        self.data = {"schema": THERMAL_SCHEMA, "kind": "imubench thermal", "status": "running",
+                     "stage": "start", "error": None, "started": _now(), "updated": None,
+                     "config": _js(config), "device": None, "t_ref_c": None, "points": []}
+        self.save()
+
+    def update(self, **kw) -> None:
+        self.data.update(_js(kw))
+        self.save()
+
+    def add_point(self, p: TempPoint) -> None:
+        self.data["points"].append(point_json(p))
+        self.save()
+
+    def save(self) -> None:
+        self.data["updated"] = _now()
+        write_json_atomic(self.path, self.data)
+
+
+def format_fit(f: ThermalFit) -> str:
+    L = [f"temperature coefficients (t_ref {f.t_ref_c:g} °C), ± 1 sigma:"]
+    for k in range(3):
+        L.append(f"  accel {AXES[k]}: bias {f.accel_bias_tc[k] / U.G0_MPS2 * 1e6:+9.2f} ± "
+                 f"{f.accel_bias_tc_sigma[k] / U.G0_MPS2 * 1e6:.2f} µg/°C   scale "
+                 f"{f.accel_scale_tc[k] * 1e6:+9.2f} ± {f.accel_scale_tc_sigma[k] * 1e6:.2f} ppm/°C")
+    for k in range(3):
+        L.append(f"  gyro  {AXES[k]}: bias {U.rad_s_to_dps(f.gyro_bias_tc[k]) * 1e3:+9.3f} ± "
+                 f"{U.rad_s_to_dps(f.gyro_bias_tc_sigma[k]) * 1e3:.3f} m°/s/°C   scale "
+                 f"{f.gyro_scale_tc[k] * 1e6:+9.2f} ± {f.gyro_scale_tc_sigma[k] * 1e6:.2f} ppm/°C")
+    L += [f"  note: {n}" for n in f.notes]
+    return "\n".join(L)
+
+
+def format_drift(before: dict, after: dict | None) -> str:
+    L = ["drift of the calibrated output over the sweep (max − min):"]
+    names = ["accel x", "accel y", "accel z", "|accel|"]
+    for i, nm in enumerate(names):
+        b = before["accel_drift_mps2"][i] / U.G0_MPS2 * 1e3
+        s = f"  {nm:8s} before {b:9.4f} mg"
+        if after is not None:
+            a = after["accel_drift_mps2"][i] / U.G0_MPS2 * 1e3
+            s += f"   after {a:9.4f} mg   ({b / max(a, 1e-12):.0f}x)"
+        L.append(s)
+    for k in range(3):
+        b = U.rad_s_to_dps(before["gyro_drift_rad_s"][k])
+        s = f"  gyro {AXES[k]}   before {b:9.4f} °/s"
+        if after is not None:
+            a = U.rad_s_to_dps(after["gyro_drift_rad_s"][k])
+            s += f"  after {a:9.4f} °/s  ({b / max(a, 1e-12):.0f}x)"
+        L.append(s)
+    return "\n".join(L)

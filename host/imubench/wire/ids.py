@@ -1,0 +1,44 @@
+"""Device identifiers in the one format imubench prints and accepts everywhere: upper-case hex,
+no separators (docs/conventions.md, "Identifiers").
+
+    MCU UID        96 bits   24 hex digits        e.g. 1F0027001047333035343733
+    ADXRS450 SN    32 bits    8 hex digits        e.g. B559FCF4
+    ADXRS450 PID   16 bits    4 hex digits        e.g. 5201
+    ADXL355 IDs    4 bytes    2 hex digits each   e.g. AD 1D ED 01
+
+Input is forgiving about case, a leading 0x and separators (spaces, ':' and '-'), never about
+the base: an identifier is always hexadecimal.
+"""
+from __future__ import annotations
+
+import re
+
+
+def uid_text(uid) -> str:
+    """The MCU unique ID (bytes, or the 12 ints of an Info message) as 24 hex digits."""
+    return bytes(uid).hex().upper()
+
+
+def sn_text(sn: int) -> str:
+    return f"{int(sn):08X}"
+
+
+def pid_text(pid: int) -> str:
+    return f"{int(pid):04X}"
+
+
+def byte_ids_text(ids) -> str:
+    return " ".join(f"{int(x):02X}" for x in ids)
+
+
+def parse_id(text: str) -> str:
+    """Normalise an identifier typed by a person: upper-case hex digits, nothing else.
+    Raises ValueError (naming the format) for anything that is not hexadecimal."""
+    s = str(text).strip()
+    if s[:2].lower() == "0x":
+        s = s[2:]
+    s = re.sub(r"[\s:\-]", "", s).upper()
+    if not s or not re.fullmatch(r"[0-9A-F]+", s):
+        raise ValueError(f"{text!r} is not an identifier: give hex digits as `imubench info` prints them "
+                         "(an MCU UID or a unique prefix of it, or a gyro serial number)")
+    return s
