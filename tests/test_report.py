@@ -82,7 +82,7 @@ def test_plot_handles_missing_sigma_and_tolerances(tmp_path):
 def test_table_numbers():
     text = before_after_table(make_result())
     lines = text.splitlines()
-    assert "device 0123456789abcdef01234567" in lines[0] and "six-position" in lines[0]
+    assert "device 0123456789ABCDEF01234567" in lines[0] and "six-position" in lines[0]
     x = next(ln for ln in lines if ln.startswith("+X up "))
     assert "1.02500 g -> 1.00001 g" in x and "-24.990 mg" in x and "+0.010 ± 0.020 mg" in x
     mx = next(ln for ln in lines if ln.startswith("-X up ") and "->" in ln)
