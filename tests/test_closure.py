@@ -304,3 +304,45 @@ def test_params_file_is_read(tmp_path):
     f.write_text(json.dumps({"params": PR.to_json(p)}))
     q = CL.load_params(str(f))
     assert isinstance(q, Params) and q.gyro_b_rad_s == (0.01, 0.0, 0.0)
+
+
+def test_truth_is_drawn_in_the_navigation_frame(tmp_path):
+    """The board need not start level at yaw 0 (after `calibrate --closure` it starts in the
+    last verification attitude): the driven path must be drawn in the integration's frame,
+    where the measured track lies on it, not in the simulator's world frame."""
+    with VirtualBench(speed=20, seed=8) as vb:       # ideal parts: nominal scaling is the truth
+        vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)
+        vb.set_orientation(roll_deg=15, pitch_deg=-60, yaw_deg=130)
+        with vb.device(timeout=5.0) as dev:
+            said = []
+            res = CL.run_closure(dev, tmp_path / "c", PR.identity(), vb, "square", say=said.append)
+    meta = json.loads((tmp_path / "c" / "closure.json").read_text())
+    assert meta["start_attitude_deg"]["yaw"] == pytest.approx(130, abs=1e-6)
+    track = res["after_rest_bias"].pos_m[:, :2]
+
+    def worst_gap(path):             # the largest distance from the track to the path drawn
+        p = np.asarray(path)[:, :2]
+        return float(np.sqrt(((track[:, None, :] - p[None, :, :]) ** 2).sum(-1)).min(axis=1).max())
+    aligned = worst_gap(CL.truth_in_navigation_frame(meta, res))
+    world = worst_gap(meta["truth_path_m"])
+    assert aligned < 0.1 and world > 0.3, (aligned, world)
+    # the person (or the log) is told once to hold still at the start, once at the end
+    assert sum("hold the board still" in s for s in said) == 2
+    assert sum("start mark" in s for s in said) == 2 and any("back at the start mark" in s for s in said)
+
+
+def test_summary_table_is_aligned_and_ends_with_a_verdict(calibrated_run):
+    text = RCL.summarize(calibrated_run["res"])
+    lines = text.splitlines()
+    rows = [ln for ln in lines if ln.startswith(("before calibration", "after calibration", "after, gyro",
+                                                  "white-noise"))]
+    assert len(rows) == 4
+
+    def end_of_first_number(ln):
+        import re
+        m = re.search(r"\s(-?\d+\.\d{4})\b", ln)
+        return m.end(1)
+    assert len({end_of_first_number(r) for r in rows}) == 1, text      # the distance column lines up
+    passed, words = RCL.verdict(calibrated_run["res"])
+    assert lines[-1] == words and words.startswith("PASS" if passed else "ABOVE THE NOISE")
+    assert "white-noise floor" in words

@@ -104,6 +104,24 @@ def motion_window(t_s, accel, gyro, rest_s: float, pad_s: float = 0.25, min_stil
 
 
 # ------------------------------------------------------------------ strapdown
+def yaw_between(r_nav: np.ndarray, r_world: np.ndarray) -> float:
+    """The heading (rad) of the navigation frame in a level world frame, from the same board
+    attitude seen both ways (board -> nav, board -> world): the rotation about the vertical
+    that takes world coordinates into navigation coordinates. Well defined at any attitude,
+    also nose up, where Euler yaw is not."""
+    m = np.asarray(r_nav) @ np.asarray(r_world).T
+    return math.atan2(m[1, 0], m[0, 0])
+
+
+def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
+    """R = Rz(yaw)·Ry(pitch)·Rx(roll), board -> level (docs/attitude.md)."""
+    r, p, y = (math.radians(v) for v in (roll_deg, pitch_deg, yaw_deg))
+    rx = np.array([[1, 0, 0], [0, math.cos(r), -math.sin(r)], [0, math.sin(r), math.cos(r)]])
+    ry = np.array([[math.cos(p), 0, math.sin(p)], [0, 1, 0], [-math.sin(p), 0, math.cos(p)]])
+    rz = np.array([[math.cos(y), -math.sin(y), 0], [math.sin(y), math.cos(y), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
 def align_level(f_mean) -> np.ndarray:
     """Rotation matrix R (board -> level, yaw 0) from the mean specific force at rest, with
     the direction-cosine tilt of docs/attitude.md: R = Ry(pitch)·Rx(roll), so that R·f is
@@ -140,6 +158,7 @@ class Integration:
     pos_m: np.ndarray
     vel_mps: np.ndarray
     heading_deg: np.ndarray
+    r0: np.ndarray | None = None        # board -> navigation frame at the window start (levelling)
 
     @property
     def closure_m(self) -> np.ndarray:
@@ -200,7 +219,7 @@ def strapdown(t_s, accel_mps2, gyro_rad_s, i0: int, i1: int, align_n: int, g_mps
     pos[1:] = np.cumsum(0.5 * (vel[:-1] + vel[1:]) * dt[:, None], axis=0)
     # heading of the board's X axis in the navigation frame
     heading = np.degrees(np.unwrap(np.arctan2(rm[:, 1, 0], rm[:, 0, 0])))
-    return Integration(label, tt - tt[0], pos, vel, heading)
+    return Integration(label, tt - tt[0], pos, vel, heading, r0)
 
 
 def noise_floor(accel_rest_mps2, gyro_rest_rad_s, fs_hz: float, duration_s: float, align_n: int,

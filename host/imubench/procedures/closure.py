@@ -18,7 +18,7 @@ import numpy as np
 
 from imubench import units as U
 from imubench.analysis.closure import closure_from_block
-from imubench.analysis.strapdown import ClosureError
+from imubench.analysis.strapdown import ClosureError, euler_matrix, yaw_between
 from imubench.results.atomic import write_json_atomic
 from imubench.results.closure import plot_closure, result_json
 from imubench.wire import params as PR
@@ -75,7 +75,7 @@ def record_path(dev, start: Callable[[], None], finished: Callable[[list[SampleB
                 raise ClosureError(f"the motion did not end within {max_s:g} s")
             moving.append(dev.read(n_samples=chunk))
         blocks += moving
-        say(f"hold the board still at the start mark ({end_rest_s:g} s)")
+        say(f"back at the start mark: hold the board still again ({end_rest_s:g} s)")
         blocks.append(dev.read(n_samples=int(round(end_rest_s * rate_hz))))
     finally:
         dev.stop_stream()
@@ -140,10 +140,10 @@ def analyse(out_dir: Path, rest_s: float | None = None, g_mps2: float | None = N
     g = float(g_mps2 if g_mps2 is not None else meta.get("g_mps2", G0))
     res = closure_from_block(raw, params, rest, g)
     res["g_mps2"] = g
-    truth = np.asarray(meta["truth_path_m"]) if meta.get("truth_path_m") else None
+    truth = truth_in_navigation_frame(meta, res)
     png = plot_closure(res, out_dir / "closure.png", truth)
     keep = {k: meta[k] for k in ("params", "device", "path", "rest_s", "truth_path_m", "truth_closure_m",
-                                 "started") if k in meta}
+                                 "start_attitude_deg", "started") if k in meta}
     keep["rest_s"] = rest
     keep["decoder"] = stats.as_dict()
     keep["plot"] = png.name
@@ -166,7 +166,11 @@ def run_closure(dev, out_dir: Path, params: Params, vb=None, path: str = "box", 
     if vb is not None:
         legs = PATHS[path]
         meta["truth_path_m"] = sim_truth_path(legs).tolist()
-        pos0 = np.asarray(vb.status()["position_m"])
+        st = vb.status()
+        pos0 = np.asarray(st["position_m"])
+        # the board need not start level at yaw 0 (after a session it is in its last
+        # verification attitude): keep its attitude to put the truth in the navigation frame
+        meta["start_attitude_deg"] = {k: float(st[f"{k}_deg"]) for k in ("roll", "pitch", "yaw")}
 
         def start() -> None:
             vb.path(legs, wait=False)
@@ -192,9 +196,26 @@ def run_closure(dev, out_dir: Path, params: Params, vb=None, path: str = "box", 
     return analyse(out_dir, rest_s, g_mps2)
 
 
+def truth_in_navigation_frame(meta: dict, res: dict) -> np.ndarray | None:
+    """The virtual bench's path (closure.json "truth_path_m", in the simulator's level world
+    frame) in the navigation frame of the integration, whose heading is that of the board's
+    attitude at the start (analysis.strapdown): turned about the vertical by the heading
+    between the two, found from the board's start attitude seen both ways. None without a
+    truth; the world frame as it is for recordings made before the attitude was kept."""
+    if not meta.get("truth_path_m"):
+        return None
+    truth = np.asarray(meta["truth_path_m"], dtype=float)
+    att, r0 = meta.get("start_attitude_deg"), res["after"].r0
+    if not att or r0 is None:
+        return truth
+    psi = yaw_between(r0, euler_matrix(att["roll"], att["pitch"], att["yaw"]))
+    c, s = math.cos(psi), math.sin(psi)
+    return truth @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
+
+
 def sim_truth_path(legs: Sequence[dict], n_per_leg: int = 50) -> np.ndarray:
-    """Positions (level frame, m) along the legs (minimum-jerk), for plots; rotated so that
-    the board's X at the start is the navigation X (the virtual board starts at yaw 0)."""
+    """Positions (the simulator's level world frame, m) along the legs (minimum-jerk), for
+    plots (truth_in_navigation_frame puts them where the integration is)."""
     pos, out = np.zeros(3), [np.zeros(3)]
     s = np.linspace(0.0, 1.0, n_per_leg)[1:]
     h = s ** 3 * (10 - 15 * s + 6 * s ** 2)
@@ -215,7 +236,7 @@ def calibrate_virtual(vb, dev, directory: Path, seed: int = 1, say: Callable[[st
         plan_for,
     )
     cfg = SessionConfig(method="multi", gyro="turntable")
-    sess = Session(dev, directory, cfg, SimPresenter(vb, seed=seed, quiet=True))
+    sess = Session(dev, directory, cfg, SimPresenter(vb, seed=seed, quiet=False))
     say(f"calibrating the virtual device first (multi-position + turntable; session in {directory})")
     result = sess.run(plan_for(cfg.method))
     if not result["passed"]:

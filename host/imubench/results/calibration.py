@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
+from imubench.results.numbers import pm
 
 ACCEL_TOL_KEY = "accel_rms_mg"      # RMS of |a| − g over the poses after calibration
 VERIFY_TOL_KEY = "verify_mg"        # each verification pose: | |a| − g | of the device's output
@@ -272,22 +273,33 @@ def truth_table(result: dict, truth: dict) -> str:
     return "\n".join(lines)
 
 
+def _matrix_lines(m, sigma_m) -> list[str]:
+    """M row by row, each entry ± 1σ to its precision; an entry the model holds fixed is
+    shown as its value with "(fixed)"."""
+    cells = [[pm(m[i][j], sigma_m[i][j], fixed_text=f"{m[i][j]:+.0f} (fixed)") for j in range(3)] for i in range(3)]
+    w = max(len(c) for row in cells for c in row)
+    return ["  ".join(c.rjust(w) for c in row) for row in cells]
+
+
 def params_table(result: dict) -> str:
-    """The fitted parameters with their 1-sigma uncertainties (docs/conventions.md model)."""
+    """The fitted parameters with their 1-sigma uncertainties, each to the precision its
+    uncertainty allows (results.numbers), in the model of docs/conventions.md:
+    u = M·x + b, the device applies x = M⁻¹·(u − b)."""
     a = result["accel"]
-    L = [f"accelerometer ({a['method']}): u = M·x + b",
-         "  M = " + "\n      ".join("  ".join(f"{a['m'][i][j]:+.6f}±{a['sigma_m'][i][j]:.6f}" for j in range(3))
-                                   for i in range(3)),
-         "  b = " + "  ".join(f"{v / U.G0_MPS2 * 1e3:+.4f}±{s / U.G0_MPS2 * 1e3:.4f} mg"
-                              for v, s in zip(a["b_mps2"], a["sigma_b_mps2"]))]
+    rows = _matrix_lines(a["m"], a["sigma_m"])
+    L = [f"accelerometer ({a['method']}): u = M·x + b, the device applies x = M⁻¹·(u − b)",
+         "  M = " + "\n      ".join(rows),
+         "  b = " + "   ".join(f"{ax} {pm(v, s, 'mg', scale=1e3 / U.G0_MPS2)}"
+                              for ax, v, s in zip("xyz", a["b_mps2"], a["sigma_b_mps2"]))]
     g = result.get("gyro")
     if g:
         L.append(f"gyro ({g['method']}):")
         if g["method"] != "bias":
-            L.append("  M = " + "\n      ".join("  ".join(f"{g['m'][i][j]:+.6f}±{g['sigma_m'][i][j]:.6f}"
-                                                         for j in range(3)) for i in range(3)))
-        L.append("  b = " + "  ".join(f"{np.degrees(v):+.4f}±{np.degrees(s):.4f} °/s"
-                                      for v, s in zip(g["b_rad_s"], g["sigma_b_rad_s"])))
+            L.append("  M = " + "\n      ".join(_matrix_lines(g["m"], g["sigma_m"])))
+        else:
+            L.append("  M = identity (not estimated: --gyro bias measures the bias only)")
+        L.append("  b = " + "   ".join(f"{ax} {pm(v, s, '°/s', scale=180.0 / np.pi)}"
+                                      for ax, v, s in zip("xyz", g["b_rad_s"], g["sigma_b_rad_s"])))
     return "\n".join(L)
 
 

@@ -22,31 +22,51 @@ def result_json(res: dict, extra: dict | None = None) -> dict:
     return out
 
 
+VERDICT_FLOORS = 3.0      # closes within this many white-noise floors (1 sigma): consistent with noise
+
+
+def verdict(res: dict) -> tuple[bool, str]:
+    """(passed, words): whether the calibrated integration with the gyro bias zeroed at rest
+    closes within VERDICT_FLOORS white-noise floors, and what that means."""
+    z, floor = res["after_rest_bias"], res["noise_floor"]["sigma_distance_m"]
+    k = z.distance_m / floor if floor > 0 else math.inf
+    if k <= VERDICT_FLOORS:
+        return True, (f"PASS: calibrated, the path closes to {z.distance_m:.2g} m = {k:.1f}x the white-noise floor "
+                      f"({floor:.2g} m): no calibration error shows at this path length")
+    return False, (f"ABOVE THE NOISE: calibrated, the path closes to {z.distance_m:.2g} m = {k:.1f}x the "
+                   f"white-noise floor ({floor:.2g} m): a calibration error or a moving gyro bias remains "
+                   "(docs/closure.md)")
+
+
 def summarize(res: dict) -> str:
-    """A text table: closure before and after calibration."""
+    """A text table: closure before and after calibration, the noise floor, and the verdict."""
     b, a, nf = res["before"], res["after"], res["noise_floor"]
     w = res["window"]
+    rows = [(r.label, r) for r in (b, a, res["after_rest_bias"])]
+    lw = max(len(r.label) for _, r in rows) + 2
     lines = [f"closure check: {w['duration_s']:.2f} s of motion, {w['samples']} samples at {w['fs_hz']:.0f} Hz; "
              f"path length (calibrated) {a.path_length_m:.2f} m",
-             f"{'':32} {'distance m':>11} {'horiz m':>9} {'vert m':>9} {'end speed m/s':>14} "
-             f"{'closure x, y, z (m)':>30}"]
-    for r in (b, a, res["after_rest_bias"]):
+             f"{'':{lw}}{'distance m':>11} {'horiz m':>9} {'vert m':>9} {'end speed m/s':>14}   "
+             f"{'closure x, y, z (m)':>28}"]
+    for label, r in rows:
         cx, cy, cz = r.closure_m
-        lines.append(f"{r.label:32} {r.distance_m:11.4f} {r.horizontal_m:9.4f} {r.vertical_m:9.4f} "
-                     f"{r.end_speed_mps:14.4f} {cx:+10.4f} {cy:+9.4f} {cz:+9.4f}")
-    lines.append(f"{'white-noise floor (1 sigma)':32} {nf['sigma_distance_m']:11.4f} "
+        lines.append(f"{label:{lw}}{r.distance_m:11.4f} {r.horizontal_m:9.4f} {r.vertical_m:9.4f} "
+                     f"{r.end_speed_mps:14.4f}   {cx:+9.4f} {cy:+9.4f} {cz:+9.4f}")
+    lines.append(f"{'white-noise floor (1 sigma)':{lw}}{nf['sigma_distance_m']:11.4f} "
                  f"{math.hypot(nf['sigma_x_m'], nf['sigma_y_m']):9.4f} {nf['sigma_z_m']:9.4f}")
     gb = np.degrees(res["gyro_bias_at_rest_rad_s"])
     lines.append(f"calibrated gyros at the start rest read {gb[0]:+.4f} {gb[1]:+.4f} {gb[2]:+.4f} °/s "
                  "(the bias change since the calibration)")
     lines.append(f"calibration shrinks the closure error {res['improvement']:.0f}x "
                  f"({100 * a.distance_m / max(a.path_length_m, 1e-9):.2f} % of the path length after)")
+    lines.append(verdict(res)[1])
     return "\n".join(lines)
 
 
 def plot_closure(res: dict, path, truth_path_m: np.ndarray | None = None) -> Path:
-    """PNG: top views (navigation X/Y) after and before calibration, and each integration's
-    distance from the start over time (log scale)."""
+    """PNG: top views (navigation X/Y) after calibration (with the driven path, when known, in
+    the same frame) and before, and the distance from the start over time on a linear scale
+    with the white-noise floor, under the verdict."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -64,7 +84,8 @@ def plot_closure(res: dict, path, truth_path_m: np.ndarray | None = None) -> Pat
             ax.plot(z.pos_m[-1, 0], z.pos_m[-1, 1], "x", color="C2", ms=10, mew=2,
                     label=f"end: {z.distance_m:.3g} m from the start")
             if truth_path_m is not None:
-                ax.plot(truth_path_m[:, 0], truth_path_m[:, 1], "k--", lw=0.8, label="path driven (truth)")
+                ax.plot(truth_path_m[:, 0], truth_path_m[:, 1], "k--", lw=0.8,
+                        label="path driven (the virtual bench's truth)")
         ax.set_xlabel("x, initial heading (m)")
         ax.set_ylabel("y, left (m)")
         ax.set_aspect("equal", adjustable="datalim")
@@ -72,14 +93,26 @@ def plot_closure(res: dict, path, truth_path_m: np.ndarray | None = None) -> Pat
         ax.legend(fontsize=8, loc="best")
         ax.set_title(("after" if r is a else "before") + " calibration: top view")
     ax = axs[2]
-    for r, col in ((b, "C3"), (a, "C0"), (res["after_rest_bias"], "C2")):
-        ax.semilogy(r.t_s, np.maximum(np.linalg.norm(r.pos_m - r.pos_m[0], axis=1), 1e-6), color=col,
-                    label=r.label)
+    floor = res["noise_floor"]["sigma_distance_m"]
+    top = 0.0
+    for r, col in ((a, "C0"), (res["after_rest_bias"], "C2")):
+        d = np.linalg.norm(r.pos_m - r.pos_m[0], axis=1)
+        top = max(top, float(d.max()))
+        ax.plot(r.t_s, d, color=col, label=f"{r.label}: {r.distance_m:.2g} m at the end")
+    db = np.linalg.norm(b.pos_m - b.pos_m[0], axis=1)
+    ax.plot(b.t_s, db, color="C3", lw=0.8, label=f"{b.label}: {b.distance_m:.2g} m at the end (off this scale)")
+    t_end = float(a.t_s[-1])
+    for k, ls in ((1, "--"), (VERDICT_FLOORS, ":")):      # the floor is that of the end point
+        ax.hlines(k * floor, 0.75 * t_end, 1.02 * t_end, colors="k", linestyles=ls, lw=1.0,
+                  label=f"white-noise floor at the end: {k:g} sigma = {k * floor:.2g} m")
+    ax.set_xlim(0, t_end * 1.02)
+    ax.set_ylim(0, 1.7 * max(top, VERDICT_FLOORS * floor))
     ax.set_xlabel("time since the motion window start (s)")
     ax.set_ylabel("distance from the start (m)")
-    ax.set_title("distance from the start (the end value is the closure error)", fontsize=10)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.set_title("distance from the start: its end value is the closure error", fontsize=10)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, loc="upper right")
+    fig.suptitle(verdict(res)[1], fontsize=10, color="darkgreen" if verdict(res)[0] else "darkred")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
