@@ -125,3 +125,36 @@ def test_analyse_missing_or_empty_file(tmp_path, capsys):
     assert imubench(["allan", "--analyse", str(empty), "--out", str(tmp_path / "o")]) == 1
     assert imubench(["allan", "--analyse", str(tmp_path / "nope.bin"), "--out", str(tmp_path / "o")]) == 2   # a missing file is a wrong argument
     assert "error" in capsys.readouterr().err
+
+
+def test_a_short_record_withholds_what_it_cannot_support(tmp_path):
+    """17 s of data: the Allan deviation is still falling at the longest τ the record supports,
+    so there is no minimum to read a bias instability from, and no +1/2 region: both are
+    withheld with the reason (on main: B at the last τ, no warning, a plot titled "0.00 h")."""
+    from imubench.results.allan import format_readoffs
+    x = _synthetic(17, [GYRO_N] * 3, [GYRO_K] * 3, seed=9)
+    res = allan(x, FS)
+    for a in "xyz":
+        assert res[a]["B"] is None and res[a]["B_reason"].startswith("record too short for bias instability")
+        assert res[a]["K"] is None and "no rate random walk read-off" in res[a]["K_reason"]
+        assert res[a]["N"] == pytest.approx(GYRO_N, rel=0.3)          # N is still there
+    from imubench.analysis.allan import usual_units
+    summary = {"samples": len(x), "duration_s": 17.0, "rate_hz": FS, "accel": res, "gyro": res,
+               "accel_usual": {a: usual_units(res[a], "accel") for a in "xyz"},
+               "gyro_usual": {a: usual_units(res[a], "gyro") for a in "xyz"}}
+    text = "\n".join(format_readoffs(summary))
+    assert "17 s at 100 Hz" in text and "0.00" not in text.splitlines()[0]
+    assert "withheld" in text and "gyro B withheld: record too short for bias instability" in text
+    plot_allan(res, tmp_path / "a.png", "Gyroscope", "rad/s", "gyro")      # draws without B and K
+
+
+def test_a_long_record_reads_everything_off():
+    res = allan(_synthetic(3 * 3600, [GYRO_N] * 3, [GYRO_K] * 3, seed=4), FS)
+    for a in "xyz":
+        assert res[a]["B"] is not None and res[a]["B_reason"] is None
+        assert res[a]["K"] is not None and res[a]["K_reason"] is None
+
+
+def test_duration_text():
+    from imubench.analysis.allan import duration_text
+    assert duration_text(17) == "17 s" and duration_text(600) == "10 min" and duration_text(7200) == "2 h"

@@ -261,3 +261,17 @@ def test_main_thermal_sim_saves_thermal_json(tmp_path, monkeypatch, capsys):
     assert imubench(["thermal", *args, "--out", str(dirs[0])]) == 1
     assert "exists" in capsys.readouterr().err
     assert json.loads(path.read_text()) == d
+
+
+def test_thermal_says_each_thing_once(tmp_path, capsys):
+    """A fast virtual chamber settles before the first wall-clock progress report: one
+    'settled' line per temperature and stage, each stage named, no stream of repeated
+    'settling' lines (on main: about twenty)."""
+    assert imubench(["thermal", "--sim", "--temps", "10,40", "--samples", "300", "--write", "--ramp", "5",
+                     "--out", str(tmp_path / "t")]) == 0
+    out = capsys.readouterr().out
+    assert out.count("settling:") == 0
+    assert out.count("settled after") == 6                # 2 temperatures × sweep, drift before, drift after
+    assert "before writing" in out and "after writing" in out
+    fit = [ln for ln in out.splitlines() if " bias " in ln and " scale " in ln]
+    assert len(fit) == 6 and all(" ± " in ln and ln.count(".") <= 4 for ln in fit)

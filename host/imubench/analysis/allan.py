@@ -130,14 +130,46 @@ def allan_axis(x: np.ndarray, fs_hz: float) -> dict:
                   "free_slope": s}
             break
 
-    B = devs[i_min] / 0.664
+    duration_s = len(x) / fs_hz
+    last = max(last, 0)
+    # ---- read-offs the record cannot support are withheld, with the reason
+    if not white["ok"]:
+        white["reason"] = (f"no -1/2 slope region before the minimum: N is read from the first two τ "
+                           f"({taus[0]:.3g} s, {taus[1]:.3g} s) and is an upper bound")
+    B, B_reason = float(devs[i_min] / 0.664), None
+    if i_min >= last:
+        B, B_reason = None, (f"record too short for bias instability: the deviation is still falling at "
+                             f"τ = {taus[last]:.3g} s, the longest τ a {duration_text(duration_s)} record supports "
+                             f"(τ ≤ T/{MAX_TAU_FRACTION:g}); its minimum, where B is read, lies beyond: record at least "
+                             "10 times longer")
+    if not rw["ok"]:
+        tail = slice(max(i_min, last - 2), last + 1)
+        end_slope = _free_slope(lt[tail], ld[tail], w[tail]) if last - max(i_min, last - 2) >= 1 else None
+        if i_min >= last:
+            why = "the deviation has not reached its minimum yet"
+        elif end_slope is not None:
+            why = f"the slope after the minimum is {end_slope:+.2f} (not +1/2 ± {SLOPE_TOL:g})"
+        else:
+            why = "too few τ after the minimum"
+        rw["reason"] = (f"no rate random walk read-off: in τ ≤ T/{MAX_TAU_FRACTION:g} = "
+                        f"{duration_s / MAX_TAU_FRACTION:.3g} s {why}; a longer record shows it if it is there")
     return {
         "taus": taus.tolist(), "adev": devs.tolist(), "ci_lo": lo.tolist(), "ci_hi": hi.tolist(),
         "edf": edf.tolist(), "n_pairs": np.asarray(ns).tolist(),
         "N": N, "white": white,
-        "B": float(B), "B_tau": float(taus[i_min]), "B_adev_ci": [float(lo[i_min]), float(hi[i_min])],
-        "K": rw["K"], "rate_rw": rw,
+        "B": B, "B_reason": B_reason, "B_tau": float(taus[i_min]),
+        "B_adev_ci": [float(lo[i_min]), float(hi[i_min])],
+        "K": rw["K"], "K_reason": rw.get("reason"), "rate_rw": rw,
     }
+
+
+def duration_text(seconds: float) -> str:
+    """A record length in the unit a person reads it in: 17 s, 12.5 min, 2.0 h."""
+    if seconds < 120:
+        return f"{seconds:.3g} s"
+    if seconds < 2 * 3600:
+        return f"{seconds / 60:.3g} min"
+    return f"{seconds / 3600:.3g} h"
 
 
 def allan(rates: np.ndarray, fs_hz: float) -> dict:
@@ -158,7 +190,8 @@ def usual_units(res_axis: dict, kind: str) -> dict:
     N, B, K = res_axis["N"], res_axis["B"], res_axis["K"]
     if kind == "accel":
         ug = 1e6 / G0
-        return {"N_ug_per_rtHz": N * ug, "VRW_m_s_per_rth": N * 60.0, "B_ug": B * ug,
+        return {"N_ug_per_rtHz": N * ug, "VRW_m_s_per_rth": N * 60.0, "B_ug": None if B is None else B * ug,
                 "K_ug_rtHz": None if K is None else K * ug}
-    return {"N_deg_per_rth": N * RAD2DEG * 60.0, "N_deg_s_per_rtHz": N * RAD2DEG, "B_deg_h": B * RAD2DEG * 3600.0,
+    return {"N_deg_per_rth": N * RAD2DEG * 60.0, "N_deg_s_per_rtHz": N * RAD2DEG,
+            "B_deg_h": None if B is None else B * RAD2DEG * 3600.0,
             "K_deg_h_per_rth": None if K is None else K * RAD2DEG * 3600.0 ** 1.5}

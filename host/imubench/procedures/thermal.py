@@ -24,6 +24,7 @@ temperature point and every later step, so an interrupted sweep keeps what it me
 from __future__ import annotations
 
 import collections
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -124,12 +125,15 @@ def wait_settled(dev, settle: Settling, rate_hz: int = 200, target_c: float | No
     settle.rate_c_per_min over a full window of settle.window_s (device time). Returns
     {"waited_s", "window_s", "limit_c_per_min", "rate_c_per_min" (4: ADXL355, gyro X, Y, Z),
     "temp_c" (4, the latest readings)}. Raises SettleTimeout after settle.timeout_s of device
-    time, naming the temperatures reached and their rates."""
+    time, naming the temperatures reached and their rates. While it waits it says where the
+    temperatures are every report_every_s of WALL time (a person watching; a fast virtual
+    chamber settles before the first report), and once when they have settled."""
     chunk_s = min(1.0, settle.window_s / 10.0)
     chunk_n = max(1, round(rate_hz * chunk_s))
     dev.discard_buffered()
     win = collections.deque()                     # (t0 s, t_mean s, temps (4,)) per chunk
-    t_begin = t_said = None
+    t_begin = None
+    said_wall = time.monotonic()
     rates = np.full(4, np.nan)
     while True:
         b = dev.read(n_samples=chunk_n)
@@ -138,7 +142,7 @@ def wait_settled(dev, settle: Settling, rate_hz: int = 200, target_c: float | No
         win.append((t[0], t.mean(), np.r_[at, gt]))
         t_now = t[-1]
         if t_begin is None:
-            t_begin = t_said = t[0]
+            t_begin = t[0]
         while len(win) >= 2 and win[1][0] <= t_now - settle.window_s:
             win.popleft()
         covered = t_now - win[0][0] >= settle.window_s * (1 - 1e-6)
@@ -151,7 +155,7 @@ def wait_settled(dev, settle: Settling, rate_hz: int = 200, target_c: float | No
             info = {"waited_s": float(t_now - t_begin), "window_s": settle.window_s,
                     "limit_c_per_min": settle.rate_c_per_min, "rate_c_per_min": [float(r) for r in rates],
                     "temp_c": [float(v) for v in now_c]}
-            say(f"  settled at {_fmt_temps(now_c)} after {t_now - t_begin:.0f} s "
+            say(f"  settled after {t_now - t_begin:.0f} s: {_fmt_temps(now_c)} "
                 f"(|dT/dt| ≤ {np.max(np.abs(rates)):.3f} °C/min over {settle.window_s:g} s)")
             return info
         if t_now - t_begin > settle.timeout_s:
@@ -160,13 +164,13 @@ def wait_settled(dev, settle: Settling, rate_hz: int = 200, target_c: float | No
                 f"temperature not settled{at_c} within {settle.timeout_s:g} s: the sensors reached "
                 f"{_fmt_temps(now_c)}, changing at {_fmt_rates(rates)} (limit {settle.rate_c_per_min:g} °C/min "
                 f"over {settle.window_s:g} s)", target_c, now_c, rates)
-        if t_now - t_said >= report_every_s:
-            t_said = t_now
+        if time.monotonic() - said_wall >= report_every_s:
+            said_wall = time.monotonic()
             say(f"  settling: {_fmt_temps(now_c)}, {_fmt_rates(rates)} after {t_now - t_begin:.0f} s")
 
 
 def _fmt_temps(c) -> str:
-    return ", ".join(f"{n} {v:.2f} °C" for n, v in zip(SENSOR_NAMES, c))
+    return f"ADXL355 {c[0]:.2f} °C, gyros {c[1]:.2f}/{c[2]:.2f}/{c[3]:.2f} °C"
 
 
 def _fmt_rates(r) -> str:
@@ -371,6 +375,7 @@ def run_thermal(dev, out_dir, temps: Sequence[float | None], hooks: Hooks, *, n:
         if write:
             new = apply_tempcos(old, fit, t_ref)
             rec.update(stage="drift before")
+            say("drift of the device's calibrated output before writing (the same temperatures):")
             before = measure_drift(dev, temps, hooks, n=n, rate_hz=rate_hz, settle=settle)
             rec.update(stage="write", drift_before=drift_json(before))
             try:
@@ -381,6 +386,7 @@ def run_thermal(dev, out_dir, temps: Sequence[float | None], hooks: Hooks, *, n:
                 raise
             rec.update(stage="drift after", write=wb)
             say(f"written, read back, saved, rebooted, read back again (generation {wb['generation']})")
+            say("drift of the device's calibrated output after writing:")
             after = measure_drift(dev, temps, hooks, n=n, rate_hz=rate_hz, settle=settle)
             rec.update(drift_after=drift_json(after))
             say(format_drift(before, after))

@@ -3,6 +3,7 @@ and step) and the printed coefficient and drift tables."""
 from __future__ import annotations
 
 import datetime as _dt
+import math
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import numpy as np
 from imubench import units as U
 from imubench.analysis.thermal import AXES, TempPoint, ThermalFit
 from imubench.results.atomic import write_json_atomic
+from imubench.results.numbers import pm
 
 THERMAL_SCHEMA = 1
 
@@ -97,15 +99,18 @@ class ThermalRecord:
 
 
 def format_fit(f: ThermalFit) -> str:
+    """The coefficients ± 1 sigma, each to the precision its sigma allows (results.numbers)."""
+    rows = []
+    for k in range(3):
+        rows.append((f"accel {AXES[k]}", pm(f.accel_bias_tc[k], f.accel_bias_tc_sigma[k], "µg/°C", 1e6 / U.G0_MPS2),
+                     pm(f.accel_scale_tc[k], f.accel_scale_tc_sigma[k], "ppm/°C", 1e6)))
+    for k in range(3):
+        rows.append((f"gyro {AXES[k]}", pm(f.gyro_bias_tc[k], f.gyro_bias_tc_sigma[k], "m°/s/°C",
+                                           1e3 * 180.0 / math.pi),
+                     pm(f.gyro_scale_tc[k], f.gyro_scale_tc_sigma[k], "ppm/°C", 1e6)))
+    w = max(len(r[1]) for r in rows)
     L = [f"temperature coefficients (t_ref {f.t_ref_c:g} °C), ± 1 sigma:"]
-    for k in range(3):
-        L.append(f"  accel {AXES[k]}: bias {f.accel_bias_tc[k] / U.G0_MPS2 * 1e6:+9.2f} ± "
-                 f"{f.accel_bias_tc_sigma[k] / U.G0_MPS2 * 1e6:.2f} µg/°C   scale "
-                 f"{f.accel_scale_tc[k] * 1e6:+9.2f} ± {f.accel_scale_tc_sigma[k] * 1e6:.2f} ppm/°C")
-    for k in range(3):
-        L.append(f"  gyro  {AXES[k]}: bias {U.rad_s_to_dps(f.gyro_bias_tc[k]) * 1e3:+9.3f} ± "
-                 f"{U.rad_s_to_dps(f.gyro_bias_tc_sigma[k]) * 1e3:.3f} m°/s/°C   scale "
-                 f"{f.gyro_scale_tc[k] * 1e6:+9.2f} ± {f.gyro_scale_tc_sigma[k] * 1e6:.2f} ppm/°C")
+    L += [f"  {name:8} bias {b:>{w}}   scale {s}" for name, b, s in rows]
     L += [f"  note: {n}" for n in f.notes]
     return "\n".join(L)
 
