@@ -162,7 +162,7 @@ def test_tilt_steps_static_error_and_settling(bench, tmp_path):
 def test_main_attitude_records(bench, tmp_path, capsys):
     rec = tmp_path / "att.bin"
     bench.set_orientation(roll_deg=10, pitch_deg=-5, yaw_deg=0)
-    rc = imubench(["attitude", "--port", bench.port_url, "--rate", "200", "--duration", "1.0",
+    rc = imubench(["attitude", "--port", bench.port_url, "--rate", "200", "--duration", "5.0",
                           "--record", str(rec), "--filter", "all"])
     bench.set_orientation(roll_deg=0, pitch_deg=0, yaw_deg=0)
     assert rc == 0
@@ -171,7 +171,7 @@ def test_main_attitude_records(bench, tmp_path, capsys):
     assert rec.stat().st_size > 1000
     with open(str(rec) + ".angles.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert len(rows) > 500                                   # ~20 s of device time at speed 20
+    assert 995 <= len(rows) <= 1001                          # 5 s of device time at 200 Hz, at any speed
     assert set(rows[0]) >= {"t_s", "accel_roll_deg", "kalman_roll_deg", "rc20_pitch_deg", "comp0.5s_roll_deg"}
     last = rows[-1]
     for name in ("rc20", "kalman", "comp0.5s"):
@@ -186,3 +186,23 @@ def test_main_attitude_records(bench, tmp_path, capsys):
 def test_main_attitude_bad_port(capsys):
     assert imubench(["attitude", "--port", "socket://127.0.0.1:1", "--duration", "0.1"]) == 1
     assert "imubench attitude" in capsys.readouterr().err
+
+
+def test_attitude_plot_and_numbers_for_the_report(tmp_path, capsys):
+    """`attitude --plot FILE` writes the PNG the report embeds and its numbers beside it; a
+    device with factory parameters is named as uncalibrated (stderr, the plot's title and
+    the numbers)."""
+    import json
+    png = tmp_path / "att.png"
+    assert imubench(["attitude", "--sim", "--duration", "2", "--plot", str(png), "--print-hz", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "factory parameters" in err and "uncalibrated" not in err.splitlines()[-1]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    d = json.loads(png.with_suffix(".json").read_text())
+    assert d["mode"] == "live" and d["device"]["factory_parameters"] is True
+    assert 1.9 <= d["duration_s"] <= 2.01                       # device time, cut at --duration
+    assert abs(d["roll_deg"]["kalman"]["mean"]) < 0.05 and d["roll_deg"]["accel"]["std"] > 0
+
+
+def test_attitude_steps_need_the_virtual_bench():
+    assert imubench(["attitude", "--steps", "--port", "socket://127.0.0.1:1"]) == 2

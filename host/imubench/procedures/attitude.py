@@ -10,7 +10,6 @@ imubench.results.attitude. docs/attitude.md.
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
@@ -104,27 +103,28 @@ def tilt_step_experiment(bench, dev, angles: Sequence[float] = (-20, -10, 0, 10,
     return out
 
 
-# -------------------------------------------------------------------- command line
-
-
 def live(dev, filters: Sequence[_TiltFilter], rate_hz: int, duration_s: float | None = None) -> Iterator[tuple]:
     """Stream the device's calibrated output at rate_hz and run the filters over it, block by
-    block: yields (block, t_s since the first sample, [(roll_deg, pitch_deg) per filter]) until
-    duration_s of wall time has passed (or forever). The stream is stopped at the end, also
-    when the caller stops early or is interrupted."""
+    block: yields (block, t_s since the first sample, [(roll_deg, pitch_deg) per filter])
+    until duration_s of DEVICE time has been received (the last block cut there), or forever:
+    a virtual device at any speed gives as many seconds of data as a real one. The stream is
+    stopped at the end, also when the caller stops early or is interrupted."""
     dt = 1.0 / rate_hz
     dev.start_stream(rate_hz=rate_hz, calibrated=True)
     try:
-        t_start = time.monotonic()
         t0_us = None
         for block in dev.stream():
-            acc = block.accel_mps2.astype(np.float64)
-            gyr = block.rate_rad_s.astype(np.float64)
             if t0_us is None:
                 t0_us = int(block.t_us[0])
-            res = [f.update(acc, gyr, dt) for f in filters]
-            yield block, (block.t_us - t0_us) * 1e-6, res
-            if duration_s is not None and time.monotonic() - t_start >= duration_s:
+            t_s = (block.t_us - t0_us) * 1e-6
+            last = duration_s is not None and t_s[-1] >= duration_s
+            if last:
+                keep = int(np.searchsorted(t_s, duration_s, side="right"))
+                block, t_s = block[:max(keep, 1)], t_s[:max(keep, 1)]
+            acc = block.accel_mps2.astype(np.float64)
+            gyr = block.rate_rad_s.astype(np.float64)
+            yield block, t_s, [f.update(acc, gyr, dt) for f in filters]
+            if last:
                 break
     finally:
         try:

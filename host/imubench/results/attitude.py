@@ -64,3 +64,47 @@ def plot_steps(results: dict, path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def steps_json(results: dict) -> dict:
+    """The numbers of a step test, JSON-able: every step's target, settling time and static
+    error per filter, and the RMS static error per filter (degrees, seconds)."""
+    names = ["accel"] + results["filters"]
+    steps = [{"axis": s.axis, "target_deg": s.target_deg, "settle_s": dict(s.settle_s),
+              "error_deg": dict(s.error_deg)} for s in results["steps"]]
+    rms = {n: math.sqrt(np.mean([s.error_deg[n] ** 2 for s in results["steps"]])) for n in names}
+    return {"mode": "steps", "rate_hz": results.get("rate_hz"), "band_deg": results.get("band_deg"),
+            "filters": names, "steps": steps, "rms_static_error_deg": rms}
+
+
+def live_json(t_s: np.ndarray, angles: dict) -> dict:
+    """The numbers of a live run: per filter the mean and standard deviation of roll and
+    pitch over the run (degrees): a still board's attitude and its noise."""
+    out = {"mode": "live", "duration_s": float(t_s[-1] - t_s[0]) if len(t_s) > 1 else 0.0, "samples": len(t_s),
+           "filters": list(angles), "roll_deg": {}, "pitch_deg": {}}
+    for name, (roll, pitch) in angles.items():
+        out["roll_deg"][name] = {"mean": float(np.mean(roll)), "std": float(np.std(roll, ddof=1))}
+        out["pitch_deg"][name] = {"mean": float(np.mean(pitch)), "std": float(np.std(pitch, ddof=1))}
+    return out
+
+
+def plot_live(t_s: np.ndarray, angles: dict, path, title: str = "") -> None:
+    """PNG: roll and pitch (deg) over time for the accelerometer angle and each filter."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12, 7), dpi=100)
+    FigureCanvasAgg(fig)
+    axs = fig.subplots(2, 1, sharex=True)
+    for k, (ax, what) in enumerate(zip(axs, ("roll", "pitch"))):
+        for name, ang in angles.items():
+            ax.plot(t_s, ang[k], lw=0.6 if name == "accel" else 1.0,
+                    color="0.75" if name == "accel" else None,
+                    label=f"{name}: mean {np.mean(ang[k]):+.3f}°, std {np.std(ang[k], ddof=1):.3f}°")
+        ax.set_ylabel(f"{what} (deg)")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="upper right")
+    axs[0].set_title(title or "roll and pitch from the device's calibrated output", fontsize=10)
+    axs[1].set_xlabel("time since the first sample (s)")
+    fig.tight_layout()
+    fig.savefig(str(path))
