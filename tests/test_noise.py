@@ -113,6 +113,13 @@ def test_main_allan_short_and_truncated_capture(vb, tmp_path, capsys):
     assert imubench(["allan", "--analyse", str(crashed), "--out", str(out2)]) == 0
     res = json.loads((out2 / "allan.json").read_text())
     full = json.loads((out / "allan.json").read_text())
+    # the capture names its device (the recording asks for its info into the file), so does
+    # the analysis of a crashed capture
+    from imubench.device.link import Device
+    from imubench.wire.ids import uid_text
+    with Device.open(vb.port_url) as dev:
+        uid = uid_text(dev.info().mcu_uid)
+    assert full["device"]["mcu_uid"] == uid and res["device"]["mcu_uid"] == uid
     assert 0.4 * full["samples"] < res["samples"] < 0.6 * full["samples"]
     assert res["rate_hz"] == pytest.approx(100.0)
     assert res["gyro"]["x"]["N"] == pytest.approx(GYRO_N, rel=0.10)

@@ -22,13 +22,16 @@ from imubench.errors import NotACapture
 from imubench.results.allan import format_readoffs, plot_allan
 from imubench.results.atomic import write_json_atomic
 from imubench.wire.decoder import decode_bytes
+from imubench.wire.ids import device_identity, uid_text
+from imubench.wire.protocol_gen import MsgType
 
 
 def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=print) -> dict:
     """Decode capture file(s), convert raw counts to SI, run allan() on accel and gyro,
     write allan.json and the two PNGs to out_dir; returns the summary dict."""
     data = b"".join(Path(p).read_bytes() for p in paths)
-    _msgs, raw, _cal, stats = decode_bytes(data)
+    msgs, raw, _cal, stats = decode_bytes(data)
+    infos = [m.msg for m in msgs if m.type == MsgType.INFO]     # record() asks for one into the capture
     if raw is None or len(raw) < 16:
         raise NotACapture(f"{', '.join(map(str, paths))}: no raw samples to analyse "
                           f"({stats.samples} samples, {stats.frames_ok} good and {stats.frames_rejected} "
@@ -38,7 +41,12 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
         rate_hz = float(np.round(rate_hz, 1))
     acc, gyr = raw.si()
     out_dir.mkdir(parents=True, exist_ok=True)
-    res = {"source": [str(p) for p in paths], "samples": len(raw), "rate_hz": rate_hz,
+    devices = {device_identity(i)["mcu_uid"]: device_identity(i) for i in infos}
+    if len(devices) > 1:
+        raise NotACapture(f"{', '.join(map(str, paths))} hold recordings of {len(devices)} devices "
+                          f"({', '.join(devices)}); analyse each device's captures on their own")
+    res = {"source": [str(p) for p in paths], "device": next(iter(devices.values()), None),
+           "samples": len(raw), "rate_hz": rate_hz,
            "duration_s": len(raw) / rate_hz, "decoder": stats.as_dict(),
            "accel": allan(acc, rate_hz), "gyro": allan(gyr, rate_hz)}
     if stats.samples_missing:
@@ -66,6 +74,8 @@ def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int 
     with open(capture_path, "ab", buffering=0) as cap:
         dev = Device.open(port, baudrate=baud, capture=cap, timeout=3.0)   # no port: nothing to record
         with dev:
+            info = dev.info()            # its reply goes into the capture: the file names its device
+            log(f"device {uid_text(info.mcu_uid)}")
             try:
                 dev.start_stream(rate_hz, calibrated=False)
             except (LinkError, LinkTimeout, DeviceError) as e:

@@ -23,7 +23,7 @@ from imubench.results.atomic import write_json_atomic
 from imubench.results.closure import plot_closure, result_json
 from imubench.wire import params as PR
 from imubench.wire.decoder import SampleBlock, decode_bytes
-from imubench.wire.ids import uid_text
+from imubench.wire.ids import device_identity
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
 G0 = U.G0_MPS2
@@ -162,7 +162,7 @@ def run_closure(dev, out_dir: Path, params: Params, vb=None, path: str = "box", 
     info = dev.info()
     meta = {"schema": 1, "started": _dt.datetime.now().isoformat(timespec="seconds"),
             "path": path if vb is not None else "by hand", "rest_s": rest_s, "g_mps2": g_mps2,
-            "params": PR.to_json(params), "device": {"mcu_uid": uid_text(info.mcu_uid), "fw_build": info.fw_build}}
+            "params": PR.to_json(params), "device": device_identity(info)}
     if vb is not None:
         legs = PATHS[path]
         meta["truth_path_m"] = sim_truth_path(legs).tolist()

@@ -40,7 +40,7 @@ from imubench.results.thermal import (
     format_drift,
     format_fit,
 )
-from imubench.wire.ids import uid_text
+from imubench.wire.ids import device_identity
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
 # ------------------------------------------------------------------ the fit
@@ -315,14 +315,7 @@ def measure_drift(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 200
 
 
 def _device_json(dev) -> dict:
-    from imubench.wire.protocol_gen import Board
-    info = dev.info()
-    try:
-        board = Board(info.board).name
-    except ValueError:
-        board = int(info.board)
-    return {"mcu_uid": uid_text(info.mcu_uid), "board": board,
-            "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build}
+    return device_identity(dev.info())
 
 
 # ------------------------------------------------------------------ command line
