@@ -445,11 +445,12 @@ class StreamDecoder:
 def decode_bytes(data: bytes) -> tuple[list[DecodedFrame], SampleBlock | None, SampleBlock | None, DecoderStats]:
     """Decode a whole recording: (messages, raw samples, calibrated samples, stats).
 
-    Memory: the samples of the whole recording come back as arrays, about 49 bytes per raw
-    sample (3 per byte of a raw recording) and 61 per calibrated one; samples are taken from the
-    decoder after every megabyte, so its own queue stays small, and the arrays are joined once at
-    the end (twice their size for a moment). For recordings that do not fit, use StreamDecoder
-    and take_samples() piece by piece (docs/architecture.md)."""
+    Memory grows with the recording: every sample comes back as arrays, 49 bytes per raw
+    sample (3 bytes per byte of a raw recording); the decoder's own queue stays small (samples
+    are taken after every megabyte), and joining the pieces at the end doubles that for a
+    moment: measured peak about 115 bytes per raw sample, 700 MB for a 100 MB recording
+    (bench/decoder_memory.py). For longer recordings, feed a StreamDecoder piece by piece and
+    take_samples() as you go (docs/architecture.md)."""
     dec = StreamDecoder()
     msgs = []
     got: dict[bool, list] = {False: [], True: []}
