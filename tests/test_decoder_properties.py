@@ -110,13 +110,34 @@ def _struct_values(fmt: str, rnd: random.Random, style: str) -> tuple:
     return tuple(vals)
 
 
+def _valid_values(cls, values: tuple) -> tuple:
+    """The values with every field that breaks its rule in the definition (VALUE_RULES: enum,
+    values, min, flags) set to an allowed one, so that the frame is valid."""
+    vals = list(values)
+    mtype = P.MESSAGES_BY_NAME[P.message_name(cls())].id
+    for slot, n, _path, kind, arg in G.VALUE_RULES.get(mtype, ()):
+        for k in range(slot, slot + n):
+            if kind == "enum" and vals[k] not in arg:
+                vals[k] = sorted(arg)[vals[k] % len(arg)]
+            elif kind == "min" and vals[k] < arg:
+                vals[k] = arg
+            elif kind == "flags":
+                vals[k] &= arg
+    if cls is G.Info and vals[0] == 0:
+        vals[0] = 1          # an unsolicited info is the device's boot: not part of a random stream
+    if cls is G.Ack and vals[1] == G.MsgType.START_STREAM:
+        vals[1] = 0x7F       # a start_stream ack starts a stream: streams() does not send one
+    return tuple(vals)
+
+
 def _records(kind: str, n: int, rng, style: str) -> dict:
     if kind == "raw":
         acc = lambda: _ints(rng, -(1 << 19), (1 << 19) - 1, n, style).astype(np.int32)  # noqa: E731
         return {"accel_x_counts": acc(), "accel_y_counts": acc(), "accel_z_counts": acc(),
                 "status": _ints(rng, 0, 15, n, style).astype(np.uint8),
                 "gyro_counts": _ints(rng, -0x8000, 0x7FFF, (n, 3), style).astype(np.int16)}
-    return {"accel_mps2": _f32(rng, (n, 3), style), "rate_rad_s": _f32(rng, (n, 3), style),
+    finite = lambda a: np.where(np.isfinite(a), a, np.float32(0.5)).astype(np.float32)  # noqa: E731
+    return {"accel_mps2": finite(_f32(rng, (n, 3), style)), "rate_rad_s": finite(_f32(rng, (n, 3), style)),
             "status": _ints(rng, 0, 15, n, style).astype(np.uint8)}
 
 
@@ -175,6 +196,9 @@ def streams(draw, min_size=0, max_size=24, kinds=("msg", "raw", "cal"), min_coun
     else:
         t = draw(st.integers(0, 1 << 31))
     next_index = {k: draw(st.integers(0, U32 - 1_000_000)) for k in BATCH_KINDS}
+    # one sample period per stream, as a device sends (an index jump is judged by it)
+    period_us = {k: draw(st.one_of(st.sampled_from([1, 250, 1000, 0xFFFF]), st.integers(1, 0xFFFF)))
+                 for k in BATCH_KINDS}
     items = []
     prev_span = 0
     for k in range(n):
@@ -194,13 +218,17 @@ def streams(draw, min_size=0, max_size=24, kinds=("msg", "raw", "cal"), min_coun
         style = draw(st.sampled_from(STYLES))
         if kind == "msg":
             cls = draw(st.sampled_from(MSG_CLASSES))
-            items.append(_make_item(kind, cls.from_values(_struct_values(cls.FORMAT, rnd, style)), seq, t))
+            items.append(_make_item(kind, cls.from_values(_valid_values(cls, _struct_values(cls.FORMAT, rnd, style))),
+                                    seq, t))
             prev_span = 0
             continue
         count = draw(st.integers(min_count, MAX_RECORDS[kind]))
+        hdr = G.BatchHeader.from_values(_valid_values(G.RawBatch, _struct_values(G.BatchHeader.FORMAT, rnd, style)))
+        hdr = replace(hdr, period_us=period_us[kind])
         if device_drops and draw(st.integers(0, 3)) == 0:
-            next_index[kind] += draw(st.integers(1, 1000))   # the device dropped samples
-        hdr = G.BatchHeader.from_values(_struct_values(G.BatchHeader.FORMAT, rnd, style))
+            dropped = draw(st.integers(1, 1000))
+            next_index[kind] += dropped           # the device dropped samples: their time passed
+            t += dropped * hdr.period_us
         hdr = replace(hdr, sample_index=next_index[kind], count=count)
         next_index[kind] += count
         recs = _records(kind, count, rng, style)
@@ -409,29 +437,92 @@ def reference(data: bytes):
     return frames, rejected
 
 
-def reference_stats(data: bytes, frames, rejected) -> dict:
+REPLAY_WINDOW = 32      # SPEC.md, Streaming: a seq at most this far behind the last is a replay
+JUMP_SLACK = 10         # periods
+
+
+def reference_stats(data: bytes, frames, rejected) -> tuple[dict, dict]:
+    """The spec's receiver after the frame checks, one frame at a time (SPEC.md, "Receiving"
+    and "Streaming"): (expected stats, the batch frames whose samples are delivered per type)."""
     exp = {r.value: rejected[r.value] for r in P.FrameError}
     exp.update(bytes_in=len(data), frames_ok=len(frames), seq_gaps=0, seq_restarts=0, frames_missing=0,
-               sample_gaps=0, samples_missing=0, samples=0)
-    last, nxt = None, {RAW_ID: None, CAL_ID: None}
+               frames_replayed=0, sample_gaps=0, samples_missing=0, samples=0, stream_starts=0,
+               batches_index_backwards=0, batches_time_backwards=0, batches_index_jump=0,
+               samples_rejected=0, samples_overflow=0)
+    delivered = {RAW_ID: [], CAL_ID: []}
+    last, ts_last, off, start_rid = None, None, 0, None
+    fresh = lambda: dict(nxt=None, t_last=None, t_ref=None, first=None)  # noqa: E731
+    streams = {RAW_ID: fresh(), CAL_ID: fresh()}
     for f in frames:
-        if last is not None and f.seq != (last + 1) & 0xFFFF:
-            missing = (f.seq - last - 1) & 0xFFFF
-            if missing >= 0x8000:          # backwards: the device restarted its sequence
+        replay = False
+        if ts_last is None:
+            ts_last = f.timestamp_us
+        if last is not None:
+            ahead = (f.seq - last) & 0xFFFF
+            if ahead == 0 or ahead >= 0x10000 - REPLAY_WINDOW:
+                replay = True
+                exp["frames_replayed"] += 1
+            elif ahead >= 0x8000:          # far behind: the device restarted its sequence
                 exp["seq_restarts"] += 1
-            else:
+            elif ahead > 1:
                 exp["seq_gaps"] += 1
-                exp["frames_missing"] += missing
-        last = f.seq
-        if f.type in nxt:
-            h = np.frombuffer(f.payload[:G.BatchHeader.SIZE], dtype=G.BATCH_HEADER_DTYPE)[0]
-            first, count = int(h["sample_index"]), int(h["count"])
-            if nxt[f.type] is not None and first > nxt[f.type]:
+                exp["frames_missing"] += ahead - 1
+        if not replay:
+            last = f.seq
+            if f.timestamp_us - ts_last < -(1 << 31):
+                off += U32
+            ts_last = f.timestamp_us
+        t = f.timestamp_us + off
+        if f.type not in streams:
+            m = P.decode_message(f.type, f.payload)
+            if f.type == G.MsgType.ACK and m.command == G.MsgType.START_STREAM and m.error == 0 \
+                    and m.request_id != start_rid:
+                start_rid = m.request_id
+                exp["stream_starts"] += 1
+                for s in streams.values():
+                    if s["first"] is not None and s["first"][1] > t:
+                        if s["first"][0] > 0:
+                            exp["sample_gaps"] += 1
+                            exp["samples_missing"] += s["first"][0]
+                    else:
+                        s.update(nxt=0, t_last=None, t_ref=t)
+                    s["first"] = None
+            elif f.type == G.MsgType.INFO and m.request_id == 0 and not replay:
+                start_rid = None
+                for k in streams:
+                    streams[k] = fresh()
+            continue
+        h = np.frombuffer(f.payload[:G.BatchHeader.SIZE], dtype=G.BATCH_HEADER_DTYPE)[0]
+        first, count, per = int(h["sample_index"]), int(h["count"]), int(h["period_us"])
+        s = streams[f.type]
+        if replay:
+            exp["samples_rejected"] += count
+            continue
+        if s["t_last"] is not None and t <= s["t_last"]:
+            exp["batches_time_backwards"] += 1
+            exp["samples_rejected"] += count
+            continue
+        if s["nxt"] is not None:
+            if first < s["nxt"]:
+                exp["batches_index_backwards"] += 1
+                exp["samples_rejected"] += count
+                continue
+            gap = first - s["nxt"]
+            if gap and s["t_ref"] is not None and gap * per > 2 * (t - s["t_ref"]) + JUMP_SLACK * per:
+                exp["batches_index_jump"] += 1
+                exp["samples_rejected"] += count
+                continue
+            if gap:
                 exp["sample_gaps"] += 1
-                exp["samples_missing"] += first - nxt[f.type]
-            nxt[f.type] = first + count
-            exp["samples"] += count
-    return exp
+                exp["samples_missing"] += gap
+        elif s["first"] is None:
+            s["first"] = (first, t)
+        s["nxt"] = first + count
+        if count:
+            s["t_last"] = s["t_ref"] = t + (count - 1) * per
+        exp["samples"] += count
+        delivered[f.type].append(f)
+    return exp, delivered
 
 
 def check_against_reference(data: bytes, out: Decoded):
@@ -446,8 +537,9 @@ def check_against_reference(data: bytes, out: Decoded):
         assert (again.type, again.seq, again.timestamp_us) == (got.type, got.seq, got.timestamp_us)
     # samples: exactly the records of the accepted batch frames (t_us checked modulo 2^32 here;
     # unwrapping is section 5's business)
+    want, delivered = reference_stats(data, frames, rejected)
     for kind, type_ in (("raw", RAW_ID), ("cal", CAL_ID)):
-        batches = [f for f in frames if f.type == type_]
+        batches = delivered[type_]
         block = out.blocks[kind]
         if not batches:
             assert block is None
@@ -474,7 +566,6 @@ def check_against_reference(data: bytes, out: Decoded):
         else:
             assert _same_array(block.accel_mps2, recs["accel_mps2"])
             assert _same_array(block.rate_rad_s, recs["rate_rad_s"])
-    want = reference_stats(data, frames, rejected)
     got = out.stats.as_dict()
     assert {k: got[k] for k in want} == want
 
@@ -700,8 +791,8 @@ def test_seq_and_sample_gap_example():
         recs = {"accel_x_counts": np.zeros(n, np.int32), "accel_y_counts": np.zeros(n, np.int32),
                 "accel_z_counts": np.zeros(n, np.int32), "status": np.zeros(n, np.uint8),
                 "gyro_counts": np.zeros((n, 3), np.int16)}
-        return P.encode(G.RawBatch(G.BatchHeader(sample_index=first, period_us=250, count=n)), seq,
-                        seq * 1000, records=recs)
+        return P.encode(G.RawBatch(G.BatchHeader(sample_index=first, period_us=250, count=n, accel_range_g=2)), seq,
+                        first * 250, records=recs)
     data = batch(65534, 0, 4) + batch(0, 8, 4) + batch(3, 20, 4)
     _, raw, _, s = decode_bytes(data)
     assert (s.seq_gaps, s.frames_missing) == (2, 1 + 2)
@@ -770,11 +861,11 @@ def test_unwrap_of_raw_then_calibrated_batches_across_a_wrap():
     def raw(seq, first, ts):
         recs = {"accel_x_counts": [0], "accel_y_counts": [0], "accel_z_counts": [0], "status": [0],
                 "gyro_counts": [[0, 0, 0]]}
-        return P.encode(G.RawBatch(G.BatchHeader(sample_index=first, period_us=100, count=1)), seq, ts, records=recs)
+        return P.encode(G.RawBatch(G.BatchHeader(sample_index=first, period_us=100, count=1, accel_range_g=2)), seq, ts, records=recs)
 
     def cal(seq, first, ts):
         recs = {"accel_mps2": [[0, 0, 0]], "rate_rad_s": [[0, 0, 0]], "status": [0]}
-        return P.encode(G.CalBatch(G.BatchHeader(sample_index=first, period_us=100, count=1)), seq, ts, records=recs)
+        return P.encode(G.CalBatch(G.BatchHeader(sample_index=first, period_us=100, count=1, accel_range_g=2)), seq, ts, records=recs)
 
     data = raw(0, 0, U32 - 1000) + cal(1, 0, U32 - 500) + raw(2, 1, 100) + cal(3, 1, 600)
     _, r, c, _ = decode_bytes(data)

@@ -52,6 +52,7 @@ class Field:
     unit: str = ""
     enum: str | None = None
     bits: list = field(default_factory=list)
+    spec: dict = field(default_factory=dict)   # the field's entry in the definition (rules)
 
 
 def parse_type(t: str) -> tuple[str, int | None]:
@@ -81,7 +82,7 @@ class Spec:
             if base not in SCALARS and base != "char" and base not in self.structs:
                 raise SystemExit(f"unknown type {f['type']} in {item['name']}.{f['name']}")
             out.append(Field(f["name"], base, n, f.get("doc", ""), f.get("unit", ""),
-                             f.get("enum"), f.get("bits", [])))
+                             f.get("enum"), f.get("bits", []), f))
         return out
 
     def size(self, item: dict) -> int:
@@ -109,6 +110,96 @@ class Spec:
                     yield (prefix + b["name"], "bits", b)
             else:
                 yield (path, f.base, f.count)
+
+
+# ------------------------------------------------------------------ field values
+# What a field may hold (protocol/imubench.toml, top comment). One rule per field at most of
+# each kind; the codecs check the rules of a payload in layout order (fixed part, then each
+# record in turn, its fields in order) and report the first that fails, by reason.
+RULE_REASONS = {"enum": "bad_enum", "min": "out_of_range", "max": "out_of_range",
+                "finite": "not_finite", "flags": "bad_flags"}
+REASONS = ("bad_enum", "out_of_range", "not_finite", "bad_flags")
+
+
+def field_rules(sp: "Spec", f: dict, width_bits: int, is_float: bool) -> list[tuple[str, object]]:
+    """[(kind, argument)] for one leaf field's definition entry. enum: sorted allowed values;
+    min / max: the bound; finite: None; flags: the mask of allowed bits. Rules that no value of
+    the type can break (a 4-bit field whose 4 bits are all defined) are left out."""
+    rules = []
+    full = (1 << width_bits) - 1
+    if f.get("enum"):
+        e = next((e for e in sp.enums if e["name"] == f["enum"]), None)
+        if e is None:
+            raise SystemExit(f"unknown enum {f['enum']} in field {f['name']}")
+        if not e.get("open"):
+            rules.append(("enum", sorted(v["value"] for v in e["values"])))
+    if "values" in f:
+        rules.append(("enum", sorted(f["values"])))
+    if "min" in f and not (f["min"] <= 0 and not is_float and not f.get("signed")):
+        rules.append(("min", f["min"]))
+    if "max" in f:
+        rules.append(("max", f["max"]))
+    if f.get("finite"):
+        if not is_float:
+            raise SystemExit(f"finite on the non-float field {f['name']}")
+        rules.append(("finite", None))
+    if f.get("flags"):
+        b = next((b for b in sp.bitsets if b["name"] == f["flags"]), None)
+        if b is None:
+            raise SystemExit(f"unknown bit set {f['flags']} in field {f['name']}")
+        mask = sum(1 << v["bit"] for v in b["values"])
+        if mask & full != full:
+            rules.append(("flags", mask))
+    return rules
+
+
+def value_leaves(sp: "Spec", item: dict, offset: int = 0, slot: int = 0, prefix: str = ""):
+    """Leaves of a fixed layout with rules: (path, byte offset, STRUCT value slot, count, scalar
+    type, rules); nested structs expanded. Walks every field so offsets and slots add up."""
+    out = []
+    for f in sp.fields(item):
+        if f.base in sp.structs:
+            sub, slot = value_leaves(sp, sp.structs[f.base], offset, slot, prefix + f.name + ".")
+            out += sub
+            offset += sp.size(sp.structs[f.base])
+            continue
+        if f.bits:
+            raise SystemExit("bit fields are only supported in records")
+        n = f.count or 1
+        if f.base == "char":
+            if field_rules(sp, f.spec, 8, False):
+                raise SystemExit(f"rules on the char field {f.name}")
+            offset += f.count
+            slot += 1
+            continue
+        size = SCALARS[f.base][0]
+        rules = field_rules(sp, f.spec, 8 * size, f.base == "f32")
+        if rules:
+            out.append((prefix + f.name, offset, slot, n, f.base, rules))
+        offset += size * n
+        slot += n
+    return out, slot
+
+
+def record_value_leaves(sp: "Spec", rec: dict):
+    """Record leaves with rules: (name, byte offset, count, scalar type or None for a bit field,
+    bit spec or None, rules)."""
+    out = []
+    offset = 0
+    for f in sp.fields(rec):
+        if f.bits:
+            for b in f.bits:
+                rules = field_rules(sp, b, b["width"], False)
+                if rules:
+                    out.append((b["name"], offset, 1, f.base, b, rules))
+        else:
+            if f.base in sp.structs or f.base == "char":
+                raise SystemExit("records hold scalars and bit fields only")
+            rules = field_rules(sp, f.spec, 8 * SCALARS[f.base][0], f.base == "f32")
+            if rules:
+                out.append((f.name, offset, f.count or 1, f.base, None, rules))
+        offset += field_size(sp, f)
+    return out
 
 
 def c_name(s: str) -> str:
@@ -205,6 +296,17 @@ def gen_c_header(sp: Spec) -> str:
           " * message `type` (for batches: the record count field matches the length), -1 for an",
           " * unknown type, -2 for a wrong length. */",
           "int ib_msg_check_length(uint8_t type, const uint8_t *payload, size_t len);", "",
+          "/* What the fields of a payload hold (protocol/imubench.toml: enum, values, min, max, finite,",
+          " * flags), for a payload whose length ib_msg_check_length accepted: IB_VALUE_OK, or the reason",
+          " * of the first field that breaks its rule (fixed part in layout order, then each record). */",
+          "enum ib_value_check {",
+          "    IB_VALUE_OK = 0,",
+          "    IB_VALUE_BAD_ENUM = 1,     /* not one of the enum's (or the field's listed) values */",
+          "    IB_VALUE_OUT_OF_RANGE = 2, /* below min or above max */",
+          "    IB_VALUE_NOT_FINITE = 3,   /* a float that must be finite is NaN or infinite */",
+          "    IB_VALUE_BAD_FLAGS = 4,    /* a bit outside the field's bit set is set */",
+          "};",
+          "int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len);", "",
           "/* Non-zero when `type` is a host-to-device command. */",
           "int ib_msg_is_command(uint8_t type);", "",
           "#endif", ""]
@@ -212,7 +314,7 @@ def gen_c_header(sp: Spec) -> str:
 
 
 def gen_c_source(sp: Spec) -> str:
-    L = [f"/* {BANNER} */", '#include "protocol_gen.h"', '#include "wire.h"', ""]
+    L = [f"/* {BANNER} */", '#include "protocol_gen.h"', "", "#include <string.h>", "", '#include "wire.h"', ""]
 
     def body(item: dict, pack: bool, var: str = "v"):
         out = []
@@ -311,12 +413,74 @@ def gen_c_source(sp: Spec) -> str:
         else:
             L.append(f"    case IB_MSG_{nm}: return len == IB_MSG_{nm}_SIZE ? 0 : -2;")
     L.append("    default:\n        (void)payload;\n        return -1;\n    }\n}\n")
+    gen_c_value_checks(sp, L)
     L.append("int ib_msg_is_command(uint8_t type)\n{\n    switch (type) {")
     for m in sp.messages:
         if m["dir"] == "h2d":
             L.append(f"    case IB_MSG_{c_name(m['name'])}:")
     L.append("        return 1;\n    default:\n        return 0;\n    }\n}\n")
     return "\n".join(L)
+
+
+C_REASON = {"bad_enum": "IB_VALUE_BAD_ENUM", "out_of_range": "IB_VALUE_OUT_OF_RANGE",
+            "not_finite": "IB_VALUE_NOT_FINITE", "bad_flags": "IB_VALUE_BAD_FLAGS"}
+
+
+def c_rule_checks(var: str, ctype: str, rules, indent: str) -> list[str]:
+    """C statements that return the reason when `var` (of C type ctype) breaks a rule."""
+    out = []
+    for kind, arg in rules:
+        reason = C_REASON[RULE_REASONS[kind]]
+        if kind == "enum":
+            cond = " && ".join(f"{var} != {v}" for v in arg)
+        elif kind == "min":
+            cond = f"{var} < {arg}"
+        elif kind == "max":
+            cond = f"{var} > {arg}"
+        elif kind == "finite":
+            cond = f"(ib_f32_bits({var}) & 0x7F800000u) == 0x7F800000u"
+        else:
+            cond = f"({var} & ~0x{arg:X}u) != 0u"
+        out.append(f"{indent}if ({cond}) return {reason};")
+    return out
+
+
+def gen_c_value_checks(sp: Spec, L: list[str]) -> None:
+    L.append("static uint32_t ib_f32_bits(float x)\n{\n    uint32_t u;\n    memcpy(&u, &x, sizeof u);\n    return u;\n}\n")
+    L.append("int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)\n{")
+    L.append("    (void)len;")
+    L.append("    switch (type) {")
+    for m in sp.messages:
+        leaves, _ = value_leaves(sp, m)
+        rec_leaves = record_value_leaves(sp, sp.records[m["records"]["type"]]) if "records" in m else []
+        if not leaves and not rec_leaves:
+            continue
+        L.append(f"    case IB_MSG_{c_name(m['name'])}: {{")
+        for path, off, _slot, n, base, rules in leaves:
+            size, ctype, _, _, suf = SCALARS[base]
+            L.append(f"        for (size_t i = 0; i < {n}u; i++) {{ /* {path} */")
+            L.append(f"            {ctype} x = ib_get_{suf}(payload + {off}u + i * {size}u);")
+            L += c_rule_checks("x", ctype, rules, "            ")
+            L.append("        }")
+        if rec_leaves:
+            rt = m["records"]["type"]
+            L.append(f"        for (size_t r = IB_MSG_{c_name(m['name'])}_SIZE; r + IB_{c_name(rt)}_SIZE <= len; r += IB_{c_name(rt)}_SIZE) {{")
+            for name, off, n, base, bit, rules in rec_leaves:
+                size, ctype, _, _, suf = SCALARS[base]
+                if bit is not None:
+                    mask = (1 << bit["width"]) - 1
+                    L.append(f"            {{ /* {name} */")
+                    L.append(f"                uint32_t x = (uint32_t)((ib_get_{suf}(payload + r + {off}u) >> {bit['lsb']}) & 0x{mask:X}u);")
+                    L += c_rule_checks("x", "uint32_t", rules, "                ")
+                    L.append("            }")
+                else:
+                    L.append(f"            for (size_t i = 0; i < {n}u; i++) {{ /* {name} */")
+                    L.append(f"                {ctype} x = ib_get_{suf}(payload + r + {off}u + i * {size}u);")
+                    L += c_rule_checks("x", ctype, rules, "                ")
+                    L.append("            }")
+            L.append("        }")
+        L.append("        return IB_VALUE_OK;\n    }")
+    L.append("    default:\n        (void)payload;\n        return IB_VALUE_OK;\n    }\n}\n")
 
 
 def field_size(sp: Spec, f: Field) -> int:
@@ -554,7 +718,54 @@ def gen_python(sp: Spec) -> str:
     L.append("}")
     L.append("MESSAGES_BY_NAME = {d.name: d for d in MESSAGES.values()}")
     L.append("")
+    L.append("# What the fields may hold (protocol/imubench.toml: enum, values, min, max, finite, flags),")
+    L.append("# checked in this order after the length (imubench.wire.frame.value_error). Per message id, the")
+    L.append("# fixed part: (first slot in STRUCT.unpack values, number of values, field path, kind, argument);")
+    L.append("# per record type: (leaf field, kind, argument). kind 'enum': allowed values; 'min' / 'max':")
+    L.append("# the bound; 'finite': None; 'flags': mask of the allowed bits.")
+    L.append(f"VALUE_REASONS = {{'enum': 'bad_enum', 'min': 'out_of_range', 'max': 'out_of_range', 'finite': 'not_finite', 'flags': 'bad_flags'}}")
+    L.append("VALUE_RULES = {")
+    for m in sp.messages:
+        leaves, _ = value_leaves(sp, m)
+        rules = [(slot, n, path, kind, arg) for path, _off, slot, n, _b, rs in leaves for kind, arg in rs]
+        if rules:
+            L.append(f"    0x{m['id']:02X}: (" + ", ".join(
+                f"({slot}, {n}, '{path}', '{kind}', {py_arg(kind, arg)})" for slot, n, path, kind, arg in rules) + ",),")
+    L.append("}")
+    L.append("RECORD_RULES = {")
+    for name, r in sp.records.items():
+        rules = [(nm, kind, arg) for nm, _o, _n, _b, _bit, rs in record_value_leaves(sp, r) for kind, arg in rs]
+        if rules:
+            L.append(f"    '{name}': (" + ", ".join(f"('{nm}', '{kind}', {py_arg(kind, arg)})" for nm, kind, arg in rules) + ",),")
+    L.append("}")
+    L.append("")
     return "\n".join(L)
+
+
+def rules_text(sp: Spec, f: dict) -> str:
+    """What the field may hold, for the message reference."""
+    parts = []
+    if f.get("enum") and any(e["name"] == f["enum"] and e.get("open") for e in sp.enums):
+        parts.append("values outside the enum allowed (open enum)")
+    if "values" in f:
+        parts.append("only " + ", ".join(map(str, f["values"])))
+    if "min" in f:
+        parts.append(f"≥ {f['min']}")
+    if "max" in f:
+        parts.append(f"≤ {f['max']}")
+    if f.get("finite"):
+        parts.append("finite (no NaN, no ±Inf)")
+    if f.get("flags"):
+        parts.append(f"only the bits of `{f['flags']}`")
+    return f" ({'; '.join(parts)})" if parts else ""
+
+
+def py_arg(kind: str, arg) -> str:
+    if kind == "enum":
+        return "frozenset({" + ", ".join(map(str, arg)) + "})"
+    if kind == "flags":
+        return f"0x{arg:02X}"
+    return repr(arg)
 
 
 def gen_markdown(sp: Spec) -> str:
@@ -575,9 +786,10 @@ def gen_markdown(sp: Spec) -> str:
         for f in sp.fields(item):
             t = f.base + (f"[{f.count}]" if f.count else "")
             extra = f" (enum `{f.enum}`)" if f.enum else ""
+            extra += rules_text(sp, f.spec)
             if f.bits:
                 bits = "; ".join(f"bits {b['lsb'] + b['width'] - 1}:{b['lsb']} `{b['name']}`"
-                                 f"{' signed' if b['signed'] else ''}" for b in f.bits)
+                                 f"{' signed' if b['signed'] else ''}{rules_text(sp, b)}" for b in f.bits)
                 rows.append(f"| {off} | {f.name} | {t} | | {bits} |")
             else:
                 rows.append(f"| {off} | {f.name} | {t} | {f.unit} | {f.doc}{extra} |")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -188,6 +189,39 @@ def main() -> int:
     zeros = P.HEADER.pack(1, 0x90, 1, 0) + bytes(P.MAX_PAYLOAD + 1)
     V.append(bad("decoded_over_max", frame_of(zeros), "oversize", "encoded length within MAX_ENCODED, decoded frame one byte over MAX_FRAME"))
     V.append(bad("oversize_garbage", bytes([0x11]) * (P.MAX_ENCODED + 1) + b"\0", "oversize", "no delimiter for MAX_ENCODED+1 bytes"))
+
+    # ------------------------------------------- well-formed frames whose fields break their rules
+    def payload_frame(msg, seq, records=None) -> bytes:
+        d = P.MESSAGES_BY_NAME[P.message_name(msg)]
+        return frame_of(P.HEADER.pack(1, d.id, seq, 0) + P.encode_message(msg, records))
+
+    one_raw = {k: v[:1] for k, v in raw_recs.items()}
+    V.append(bad("batch_range_undefined", payload_frame(G.RawBatch(header=replace(hdr1, accel_range_g=7)), 210, one_raw),
+                 "bad_enum", "accel_range_g 7: only 2, 4 or 8 (never scaled with a guessed range)"))
+    V.append(bad("batch_period_zero", payload_frame(G.RawBatch(header=replace(hdr1, period_us=0)), 211, one_raw),
+                 "out_of_range", "period_us 0: the sample period must be at least 1 us"))
+    V.append(bad("batch_flags_undefined_bit", payload_frame(G.RawBatch(header=replace(hdr1, sensor_flags=0x80)), 212, one_raw),
+                 "bad_flags", "sensor_flags bit 7 is not a batch_flags bit"))
+    V.append(bad("batch_period_zero_and_range_undefined",
+                 payload_frame(G.RawBatch(header=replace(hdr1, period_us=0, accel_range_g=7)), 213, one_raw),
+                 "out_of_range", "two broken fields: the first in layout order (period_us) is reported"))
+    nan_recs = {k: np.array(v[:2]) for k, v in cal_recs.items()}
+    nan_recs["rate_rad_s"][1, 2] = np.float32("nan")
+    hdr2 = replace(hdr8, count=2)
+    V.append(bad("cal_sample_nan", payload_frame(G.CalBatch(header=hdr2), 214, nan_recs),
+                 "not_finite", "second sample's rate z is NaN"))
+    inf_recs = {k: np.array(v[:2]) for k, v in cal_recs.items()}
+    inf_recs["accel_mps2"][0, 0] = np.float32("inf")
+    V.append(bad("cal_sample_inf", payload_frame(G.CalBatch(header=hdr2), 215, inf_recs),
+                 "not_finite", "first sample's accel x is +Inf"))
+    st_recs = {k: np.array(v[:2]) for k, v in cal_recs.items()}
+    st_recs["status"][1] = 0x10
+    V.append(bad("cal_status_undefined_bit", payload_frame(G.CalBatch(header=hdr2), 216, st_recs),
+                 "bad_flags", "second sample's status has bit 4, not a sample_status bit"))
+    V.append(bad("start_stream_mode_undefined", payload_frame(G.StartStream(rate_hz=1000, mode=2, batch=0), 217),
+                 "bad_enum", "stream mode 2 is not defined (the device nacks it BAD_ARGUMENT)"))
+    V.append(bad("fault_event_kind_undefined", payload_frame(G.FaultEvent(sensor=1, kind=0, active=1), 218),
+                 "bad_enum", "fault kind 0 is not defined"))
 
     OUT.parent.mkdir(parents=True, exist_ok=True)
     doc = {

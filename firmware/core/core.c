@@ -821,6 +821,14 @@ static void on_frame(ib_core_t *c, int status, const ib_frame_t *f)
     case IB_FRAME_BAD_LENGTH:
         reply(c, f->seq, f->type, IB_ERROR_BAD_LENGTH, (uint32_t)f->payload_len, 0, 0);
         return;
+    case IB_FRAME_BAD_ENUM:
+    case IB_FRAME_OUT_OF_RANGE:
+    case IB_FRAME_NOT_FINITE:
+    case IB_FRAME_BAD_FLAGS:
+        /* readable, but a field holds what the definition does not allow: the value says which
+         * check (the ib_frame_status_t) */
+        reply(c, f->seq, f->type, IB_ERROR_BAD_ARGUMENT, (uint32_t)status, 0, 0);
+        return;
     default:
         c->stats.rx_frame_errors++; /* nothing in it can be trusted: no answer */
         return;

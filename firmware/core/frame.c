@@ -15,6 +15,10 @@ const char *ib_frame_status_name(ib_frame_status_t s)
     case IB_FRAME_BAD_VERSION: return "bad_version";
     case IB_FRAME_UNKNOWN_TYPE: return "unknown_type";
     case IB_FRAME_BAD_LENGTH: return "bad_length";
+    case IB_FRAME_BAD_ENUM: return "bad_enum";
+    case IB_FRAME_OUT_OF_RANGE: return "out_of_range";
+    case IB_FRAME_NOT_FINITE: return "not_finite";
+    case IB_FRAME_BAD_FLAGS: return "bad_flags";
     default: return "?";
     }
 }
@@ -130,7 +134,16 @@ ib_frame_status_t ib_frame_parse(const uint8_t *enc, size_t len, uint8_t *scratc
     if (lc == -1) {
         return IB_FRAME_UNKNOWN_TYPE;
     }
-    return lc == 0 ? IB_FRAME_OK : IB_FRAME_BAD_LENGTH;
+    if (lc != 0) {
+        return IB_FRAME_BAD_LENGTH;
+    }
+    switch (ib_msg_check_values(f->type, f->payload, f->payload_len)) {
+    case IB_VALUE_OK: return IB_FRAME_OK;
+    case IB_VALUE_BAD_ENUM: return IB_FRAME_BAD_ENUM;
+    case IB_VALUE_OUT_OF_RANGE: return IB_FRAME_OUT_OF_RANGE;
+    case IB_VALUE_NOT_FINITE: return IB_FRAME_NOT_FINITE;
+    default: return IB_FRAME_BAD_FLAGS;
+    }
 }
 
 void ib_frame_rx_init(ib_frame_rx_t *rx)

@@ -26,7 +26,13 @@ typedef enum {
     IB_FRAME_CRC,          /* CRC-32C mismatch */
     IB_FRAME_BAD_VERSION,  /* version byte is not IB_PROTOCOL_VERSION */
     IB_FRAME_UNKNOWN_TYPE, /* message type not in the definition */
-    IB_FRAME_BAD_LENGTH    /* payload length or record count wrong for the type */
+    IB_FRAME_BAD_LENGTH,   /* payload length or record count wrong for the type */
+    /* the frame is well formed but a field holds what the definition does not allow
+     * (ib_msg_check_values, generated from protocol/imubench.toml) */
+    IB_FRAME_BAD_ENUM,     /* not one of its enum's values (or of the field's listed values) */
+    IB_FRAME_OUT_OF_RANGE, /* below its min or above its max (e.g. a sample period of 0) */
+    IB_FRAME_NOT_FINITE,   /* a float that must be finite is NaN or infinite */
+    IB_FRAME_BAD_FLAGS     /* a bit outside the field's bit set */
 } ib_frame_status_t;
 
 const char *ib_frame_status_name(ib_frame_status_t s);

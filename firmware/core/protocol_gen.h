@@ -387,7 +387,7 @@ void ib_msg_stats_unpack(const uint8_t *in, ib_msg_stats_t *v);
 typedef struct {
     uint8_t sensor;
     uint8_t kind;
-    uint8_t active;
+    uint8_t active; /* 1 = the fault appeared, 0 = it cleared */
     uint8_t reserved;
     uint32_t detail;
 } ib_msg_fault_event_t;
@@ -434,6 +434,18 @@ void ib_msg_cal_batch_unpack(const uint8_t *in, ib_msg_cal_batch_t *v);
  * message `type` (for batches: the record count field matches the length), -1 for an
  * unknown type, -2 for a wrong length. */
 int ib_msg_check_length(uint8_t type, const uint8_t *payload, size_t len);
+
+/* What the fields of a payload hold (protocol/imubench.toml: enum, values, min, max, finite,
+ * flags), for a payload whose length ib_msg_check_length accepted: IB_VALUE_OK, or the reason
+ * of the first field that breaks its rule (fixed part in layout order, then each record). */
+enum ib_value_check {
+    IB_VALUE_OK = 0,
+    IB_VALUE_BAD_ENUM = 1,     /* not one of the enum's (or the field's listed) values */
+    IB_VALUE_OUT_OF_RANGE = 2, /* below min or above max */
+    IB_VALUE_NOT_FINITE = 3,   /* a float that must be finite is NaN or infinite */
+    IB_VALUE_BAD_FLAGS = 4,    /* a bit outside the field's bit set is set */
+};
+int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len);
 
 /* Non-zero when `type` is a host-to-device command. */
 int ib_msg_is_command(uint8_t type);

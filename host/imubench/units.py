@@ -15,8 +15,12 @@ DEG = np.pi / 180.0
 
 def accel_counts_to_mps2(counts, range_g) -> np.ndarray:
     """ADXL355 counts (any shape, last axis x/y/z) at range ±range_g to m/s²; range_g may be
-    a scalar or an array broadcastable against counts[..., 0]."""
+    a scalar or an array broadcastable against counts[..., 0]. A range other than 2, 4 or 8 g is
+    an error, never scaled as some other range (the decoder lets no other range through)."""
     r = np.asarray(range_g)
+    known = (r == 2) | (r == 4) | (r == 8)
+    if not np.all(known):
+        raise ValueError(f"accel_range_g {np.unique(r[~known] if np.ndim(r) else r).tolist()} is not 2, 4 or 8 g")
     lsb = np.where(r == 8, 64000.0, np.where(r == 4, 128000.0, 256000.0))
     if np.ndim(lsb):
         lsb = lsb[..., None]

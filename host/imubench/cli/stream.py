@@ -18,9 +18,8 @@ from imubench.cli.common import (
 )
 from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
 from imubench.wire.decoder import decode_bytes
-from imubench.wire.ids import byte_ids_text, pid_text, sn_text, uid_text
+from imubench.wire.ids import board_name, byte_ids_text, pid_text, sn_text, uid_text
 from imubench.wire.protocol_gen import (
-    Board,
     ClockSource,
     MsgType,
     ParamSource,
@@ -67,13 +66,6 @@ def _enum_name(enum, value) -> str:
         return f"unknown ({value})"
 
 
-def board_name(code: int) -> str:
-    try:
-        return Board(code).name
-    except ValueError:
-        return f"unknown board code {code} (newer firmware than this imubench?)"
-
-
 def run_decode(a) -> int:
     data = a.file.read_bytes()
     msgs, raw, cal, stats = decode_bytes(data)
@@ -101,7 +93,9 @@ def run_decode(a) -> int:
             "samples_flagged_bad": int(np.count_nonzero(b.status)),
         }
     if a.json:
-        print(json.dumps(summary))
+        # strict JSON: a NaN or infinity (which the decoder does not let through) is an error
+        # here, never a bare NaN that JSON readers refuse
+        print(json.dumps(summary, allow_nan=False))
     else:
         print(f"{a.file}: {len(data)} bytes")
         st = stats

@@ -177,6 +177,9 @@ class FakeDevice:
                 raw = P.cobs.decode(chunk)
                 err = Error.UNKNOWN_COMMAND if e.reason is P.FrameError.UNKNOWN_TYPE else Error.BAD_LENGTH
                 self._reply_all(int.from_bytes(raw[2:4], "little"), raw[1], [], err)
+            elif e.reason in P.VALUE_ERRORS.values():   # readable, a field out of its definition
+                raw = P.cobs.decode(chunk)
+                self._reply_all(int.from_bytes(raw[2:4], "little"), raw[1], [], Error.BAD_ARGUMENT)
             else:
                 self.stats["rx_frame_errors"] += 1
             return

@@ -200,8 +200,7 @@ class Link:
         if f.type == MsgType.FAULT_EVENT:
             self.fault_events.append((time.monotonic(), m))
         elif f.type == MsgType.INFO:            # unsolicited: the device (re)booted
-            self.boot_infos.append(m)
-            self.decoder.reset_sequence()
+            self.boot_infos.append(m)        # the decoder itself forgot the streams on it
         elif f.type == MsgType.STATS:
             self.last_stats = m
 

@@ -30,8 +30,8 @@ from imubench.results.atomic import write_json_atomic
 from imubench.results.sessionfile import SESSION_SCHEMA, SessionFileError, load_state
 from imubench.wire import params as PR
 from imubench.wire.decoder import SampleBlock
-from imubench.wire.ids import uid_text
-from imubench.wire.protocol_gen import Board, Params, ParamsWhich
+from imubench.wire.ids import board_name, uid_text
+from imubench.wire.protocol_gen import Params, ParamsWhich
 
 
 # ---------------------------------------------------------------- configuration
@@ -213,7 +213,7 @@ class Session:
             problems.append(f"{rejected} corrupted frames on the link (cable, baud rate, ground)")
         if b.status.any() or problems:
             raise SessionAborted("refusing to calibrate on faulted data: " + "; ".join(problems))
-        return {"board": Board(info.board).name, "uid": uid_text(info.mcu_uid)}
+        return {"board": board_name(info.board), "uid": uid_text(info.mcu_uid)}
 
     # ------------------------------------------------------------- streaming
     def _next_block(self, timeout: float = 10.0) -> SampleBlock:
@@ -496,7 +496,7 @@ class Session:
         info = self.dev.info()
         return {
             "schema": 1,
-            "device": {"mcu_uid": uid_text(info.mcu_uid), "board": Board(info.board).name,
+            "device": {"mcu_uid": uid_text(info.mcu_uid), "board": board_name(info.board),
                        "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
                        "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)},
             "started": getattr(self, "run_started", self.started), "session_started": self.started,

@@ -28,6 +28,7 @@ _RAW = P.MESSAGES[MsgType.RAW_BATCH]
 _CAL = P.MESSAGES[MsgType.CAL_BATCH]
 _BH = BATCH_HEADER_DTYPE.itemsize
 _COUNT_OFF = _RAW.count_offset
+_BATCH = struct.Struct(P.MESSAGES[MsgType.RAW_BATCH].cls.FORMAT)   # the batch header's values
 # CRC-32C over a frame *including* its little-endian CRC field is this constant when the
 # frame is intact (the CRC's residue), which saves slicing the CRC off every frame.
 _CRC_RESIDUE = P.crc32c(b"\0\0\0\0")
@@ -36,10 +37,12 @@ _CRC_RESIDUE = P.crc32c(b"\0\0\0\0" + _CRC_RESIDUE.to_bytes(4, "little"))
 
 @dataclass
 class DecoderStats:
-    """What the decoder saw. Rejected frames by reason, and gaps in what arrived."""
+    """What the decoder saw: rejected frames by reason, gaps in what arrived, and samples that
+    were received but not delivered, by reason. Every sample of a stream from its first one on
+    is delivered or counted here (samples_missing, samples_rejected or samples_overflow)."""
 
     bytes_in: int = 0
-    frames_ok: int = 0
+    frames_ok: int = 0         # frames that passed every check of SPEC.md, "Receiving"
     oversize: int = 0
     cobs: int = 0
     too_short: int = 0
@@ -47,17 +50,31 @@ class DecoderStats:
     bad_version: int = 0
     unknown_type: int = 0
     bad_length: int = 0
+    bad_enum: int = 0          # a field not one of its defined values (accel_range_g 7, ...)
+    out_of_range: int = 0      # a field below its min or above its max (period_us 0)
+    not_finite: int = 0        # a calibrated sample NaN or infinite
+    bad_flags: int = 0         # status or flag bits that the definition does not have
     seq_gaps: int = 0          # places where the device's frame sequence jumped
     seq_restarts: int = 0      # backward jumps (the device restarted its sequence: a reboot)
     frames_missing: int = 0    # frames lost in those jumps
+    frames_replayed: int = 0   # a frame whose seq was seen just before (the same seq again, or a
+                               # little behind): a sample batch among them is not delivered
     sample_gaps: int = 0       # places where sample_index jumped
-    samples_missing: int = 0   # samples lost in those jumps (link or device drops)
-    samples: int = 0           # samples decoded
+    samples_missing: int = 0   # samples lost in those jumps (link or device drops), also at the
+                               # start of a stream (its first index is 0, SPEC.md)
+    samples: int = 0           # samples accepted for delivery
+    stream_starts: int = 0     # streams begun: a start_stream ack seen, or begin_stream()
+    batches_index_backwards: int = 0  # sample_index behind the stream's (not delivered)
+    batches_time_backwards: int = 0   # first sample not after the stream's last one (not delivered)
+    batches_index_jump: int = 0       # a sample_index jump the elapsed device time cannot explain
+    samples_rejected: int = 0  # samples in batches not delivered for the four reasons above
+    samples_overflow: int = 0  # samples dropped because max_pending_samples were waiting
 
     @property
     def frames_rejected(self) -> int:
         return (self.oversize + self.cobs + self.too_short + self.crc + self.bad_version
-                + self.unknown_type + self.bad_length)
+                + self.unknown_type + self.bad_length + self.bad_enum + self.out_of_range
+                + self.not_finite + self.bad_flags)
 
     def as_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in fields(self)}
@@ -129,29 +146,62 @@ class SampleBlock:
         return cls(**kw)
 
 
+# The decoder's memory bound: samples received and not yet taken wait in the decoder, up to
+# this many per kind (raw, calibrated); a batch that would go over is dropped and counted in
+# samples_overflow. 2^20 raw samples (4.4 min at 4 kHz) hold about 17 MB of frame bytes.
+MAX_PENDING_SAMPLES = 1 << 20
+# feed() works through its input in pieces of this many bytes, so one call with any amount of
+# data holds at most one piece of split frames at a time.
+FEED_PIECE_BYTES = 1 << 16
+# A frame whose seq is the last one seen, or at most this many behind it, is a replay (a
+# retransmission); further behind, the device restarted its sequence (a reboot).
+REPLAY_WINDOW_FRAMES = 32
+# An index jump of more samples than twice the device time elapsed since the stream's last
+# sample (plus this many periods) can hold is not a loss but a bad index: the batch is rejected.
+JUMP_SLACK_PERIODS = 10
+
+
 @dataclass
 class _Pending:
     headers: list = field(default_factory=list)    # batch header bytes
     records: list = field(default_factory=list)    # record bytes
-    ts: list = field(default_factory=list)         # arrays of unwrapped frame timestamps
+    ts: list = field(default_factory=list)         # unwrapped timestamp of each batch
+    n: int = 0                                     # samples held
 
     def clear(self):
         self.headers.clear()
         self.records.clear()
         self.ts.clear()
+        self.n = 0
+
+
+@dataclass
+class _Stream:
+    """Where one kind's (raw or calibrated) sample stream stands."""
+
+    next_index: int | None = None   # the index the next batch should start at (None: unknown)
+    t_last: int | None = None       # unwrapped device time of the last sample delivered
+    t_ref: int | None = None        # time of index next_index - 1 (t_last, or the stream's start)
+    first: tuple | None = None      # (index, time) of the first batch seen without a known start
 
 
 class StreamDecoder:
-    """Incremental decoder of a device-to-host byte stream (see module doc)."""
+    """Incremental decoder of a device-to-host byte stream (see module doc).
 
-    def __init__(self):
+    Memory: at most max_pending_samples undelivered samples per kind (the rest is counted in
+    stats.samples_overflow), one FEED_PIECE_BYTES piece of input at a time inside feed(), and
+    the non-sample frames feed() returns."""
+
+    def __init__(self, max_pending_samples: int = MAX_PENDING_SAMPLES):
         self.stats = DecoderStats()
+        self.max_pending_samples = max_pending_samples
         self._buf = bytearray()
         self._discarding = False     # inside an over-long run with no delimiter
         self._last_seq: int | None = None
         self._raw = _Pending()
         self._cal = _Pending()
-        self._next_index: dict[bool, int | None] = {False: None, True: None}
+        self._streams = {False: _Stream(), True: _Stream()}
+        self._start_rid: int | None = None   # request id of the last start_stream ack acted on
         self._ts_last: int | None = None
         self._ts_offset = 0
         self._crc = P.crc32c
@@ -160,8 +210,15 @@ class StreamDecoder:
     # -------------------------------------------------------------- bytes in
     def feed(self, data: bytes | bytearray | memoryview) -> list[DecodedFrame]:
         """Consume bytes; return the non-sample frames completed by them, in order."""
+        self.stats.bytes_in += len(data)
+        out: list[DecodedFrame] = []
+        mv = memoryview(data).cast("B") if not isinstance(data, bytes) else data
+        for i in range(0, len(mv), FEED_PIECE_BYTES):
+            self._feed_piece(mv[i:i + FEED_PIECE_BYTES], out)
+        return out
+
+    def _feed_piece(self, data, out: list) -> None:
         st = self.stats
-        st.bytes_in += len(data)
         buf = self._buf
         buf += data
         end = buf.rfind(0)
@@ -170,24 +227,18 @@ class StreamDecoder:
                 # no delimiter in sight: drop what we hold, count one oversize at the next 0x00
                 self._discarding = True
                 buf.clear()
-            return []
+            return
         parts = bytes(buf[:end]).split(b"\0")
         del buf[:end + 1]
         if self._discarding:
             st.oversize += 1
             self._discarding = False
             parts = parts[1:]
-        out: list[DecodedFrame] = []
-        seqs: list[int] = []
-        tss: list[int] = []          # timestamps of accepted frames, in arrival order
-        raw_at: list[int] = []       # which of them are raw / calibrated batches
-        cal_at: list[int] = []
         crc = self._crc
         residue = _CRC_RESIDUE
         decode = self._decode
         max_enc = P.MAX_ENCODED
         max_frame = P.MAX_FRAME
-        raw_p, cal_p = self._raw, self._cal
         for chunk in parts:
             if not chunk:
                 continue           # back-to-back delimiters: idle fill, not an error
@@ -224,62 +275,142 @@ class StreamDecoder:
                 if body != count * rsize or count > d.max_records:
                     st.bad_length += 1
                     continue
-                seqs.append(seq)
-                (raw_at if mtype == 0x90 else cal_at).append(len(tss))
-                tss.append(ts)
-                pend = raw_p if mtype == 0x90 else cal_p
-                pend.headers.append(raw[8:8 + _BH])
-                pend.records.append(raw[8 + _BH:-4])
+                hdr = _BATCH.unpack_from(raw, 8)
+                err = P.value_error(mtype, memoryview(raw)[8:-4], hdr)
+                if err is not None:
+                    setattr(st, err.value, getattr(st, err.value) + 1)
+                    continue
+                st.frames_ok += 1
+                replay, t = self._sequence(seq, ts)
+                self._batch(mtype == 0x91, raw, hdr[0], hdr[1], count, t, replay)
                 continue
             payload = raw[8:-4]
             err = P.payload_error(mtype, payload)
+            if err is None:
+                values = P.MESSAGES[mtype].cls.STRUCT.unpack_from(payload, 0)
+                err = P.value_error(mtype, payload, values)
             if err is not None:
-                if err is P.FrameError.UNKNOWN_TYPE:
-                    st.unknown_type += 1
-                else:
-                    st.bad_length += 1
+                setattr(st, err.value, getattr(st, err.value) + 1)
                 continue
-            seqs.append(seq)
-            out.append(DecodedFrame(mtype, seq, ts, P.decode_message(mtype, payload), len(tss)))
-            tss.append(ts)
-        if seqs:
-            self._count_seq_gaps(seqs)
-            t = self._unwrap(np.asarray(tss, dtype=np.int64))
-            if raw_at:
-                raw_p.ts.append(t[raw_at])
-            if cal_at:
-                cal_p.ts.append(t[cal_at])
-            for f in out:
-                f.t_us = int(t[f.t_us])
-        return out
+            st.frames_ok += 1
+            replay, t = self._sequence(seq, ts)
+            msg = P.MESSAGES[mtype].cls.from_values(values)
+            out.append(DecodedFrame(mtype, seq, ts, msg, t))
+            self._marker(mtype, msg, t, replay)
 
-    def _count_seq_gaps(self, seqs: list[int]) -> None:
-        """Frames accepted in one feed() call, in order: count jumps in the 16-bit sequence."""
-        self.stats.frames_ok += len(seqs)
-        a = np.asarray(seqs, dtype=np.int64)
-        prev = np.empty_like(a)
-        prev[0] = a[0] - 1 if self._last_seq is None else self._last_seq
-        prev[1:] = a[:-1]
-        missing = (a - prev - 1) & 0xFFFF
-        # a jump of half the sequence space or more is the device restarting its count
-        # (a reboot), not 30000+ lost frames
-        restart = missing >= 0x8000
-        self.stats.seq_restarts += int(np.count_nonzero(restart))
-        missing = np.where(restart, 0, missing)
-        self.stats.seq_gaps += int(np.count_nonzero(missing))
-        self.stats.frames_missing += int(missing.sum())
-        self._last_seq = int(a[-1])
+    def _sequence(self, seq: int, ts: int) -> tuple[bool, int]:
+        """Count the frame's place in the device's sequence; (is it a replay, its unwrapped
+        time). A replay does not move the sequence or the clock."""
+        st = self.stats
+        if self._ts_last is None:
+            self._ts_last = ts
+        last = self._last_seq
+        if last is not None:
+            ahead = (seq - last) & 0xFFFF
+            if ahead == 0 or ahead >= 0x10000 - REPLAY_WINDOW_FRAMES:
+                st.frames_replayed += 1
+                return True, ts + self._ts_offset
+            if ahead >= 0x8000:
+                # far behind: the device restarted its count (a reboot; its boot info resets the
+                # streams) or resent an old reply; not 30000+ lost frames
+                st.seq_restarts += 1
+            elif ahead > 1:
+                st.seq_gaps += 1
+                st.frames_missing += ahead - 1
+        self._last_seq = seq
+        if ts - self._ts_last < -(1 << 31):      # 32-bit microseconds wrap every 71.6 min
+            self._ts_offset += 1 << 32
+        self._ts_last = ts
+        return False, ts + self._ts_offset
+
+    def _marker(self, mtype: int, msg, t: int, replay: bool) -> None:
+        """Frames that say where a stream starts: a start_stream ack (its first sample index is
+        0, SPEC.md; a resent ack has the old seq and counts once) and the device's unsolicited
+        info at boot (no stream runs)."""
+        if mtype == MsgType.ACK:
+            if msg.command == MsgType.START_STREAM and msg.error == 0 and msg.request_id != self._start_rid:
+                self._start_rid = msg.request_id   # a retried command's ack again: same stream
+                self._begin(0, t)
+        elif mtype == MsgType.INFO and msg.request_id == 0 and not replay:
+            self._reset_streams()
+            self._start_rid = None
+
+    def _reset_streams(self) -> None:
+        for s in self._streams.values():
+            s.next_index = s.t_last = s.t_ref = None
+            s.first = None
+
+    def _begin(self, first_index: int, t: int | None) -> None:
+        self.stats.stream_starts += 1
+        for s in self._streams.values():
+            if t is not None and s.first is not None and s.first[1] > t:
+                # the ack came late (it was lost and resent): this stream's batches were already
+                # taken as a stream of unknown start; the ones before its first are missing
+                if s.first[0] > first_index:
+                    self.stats.sample_gaps += 1
+                    self.stats.samples_missing += s.first[0] - first_index
+                s.first = None
+                continue
+            s.next_index = first_index
+            s.t_last = None        # a new stream (after a reboot the device clock starts again)
+            s.t_ref = t
+            s.first = None
+
+    def begin_stream(self, first_index: int = 0) -> None:
+        """A new stream starts now: every sample from first_index on is delivered or counted
+        (samples_missing and the others). A start_stream ack in the byte stream does this by
+        itself; call it when a stream starts without one."""
+        self._begin(first_index, None)
+
+    def _batch(self, cal: bool, raw: bytes, index: int, period_us: int, n: int, t: int, replay: bool) -> None:
+        st = self.stats
+        s = self._streams[cal]
+        if replay:
+            st.samples_rejected += n
+            return
+        if s.t_last is not None and t <= s.t_last:
+            st.batches_time_backwards += 1
+            st.samples_rejected += n
+            return
+        nxt = s.next_index
+        if nxt is not None:
+            if index < nxt:
+                st.batches_index_backwards += 1
+                st.samples_rejected += n
+                return
+            if index > nxt:
+                gap = index - nxt
+                if s.t_ref is not None and gap * period_us > 2 * (t - s.t_ref) + JUMP_SLACK_PERIODS * period_us:
+                    st.batches_index_jump += 1
+                    st.samples_rejected += n
+                    return
+                st.sample_gaps += 1
+                st.samples_missing += gap
+        elif s.first is None:
+            s.first = (index, t)
+        s.next_index = index + n
+        if n:
+            s.t_last = s.t_ref = t + (n - 1) * period_us
+        st.samples += n
+        p = self._cal if cal else self._raw
+        if p.n + n > self.max_pending_samples:
+            st.samples_overflow += n
+            st.samples -= n
+            return
+        p.headers.append(raw[8:8 + _BH])
+        p.records.append(raw[8 + _BH:-4])
+        p.ts.append(t)
+        p.n += n
 
     def reset_sequence(self) -> None:
-        """Forget the last sequence number and sample index (the device rebooted or a new
-        stream started), so the next ones are not counted as gaps."""
+        """Forget the last sequence number and where the streams stand (the device rebooted),
+        so the next ones are not counted as gaps."""
         self._last_seq = None
-        self._next_index = {False: None, True: None}
+        self._reset_streams()
 
     # ------------------------------------------------------------ samples out
     def pending_samples(self, calibrated: bool = False) -> int:
-        p = self._cal if calibrated else self._raw
-        return sum(len(r) for r in p.records) // (_CAL if calibrated else _RAW).record_dtype.itemsize
+        return (self._cal if calibrated else self._raw).n
 
     def take_samples(self, calibrated: bool = False) -> SampleBlock | None:
         """All samples decoded since the last call (raw or calibrated), or None."""
@@ -289,7 +420,7 @@ class StreamDecoder:
         d = _CAL if calibrated else _RAW
         hdr = np.frombuffer(b"".join(p.headers), dtype=BATCH_HEADER_DTYPE)
         rec_bytes = b"".join(p.records)
-        ts = np.concatenate(p.ts)
+        ts = np.asarray(p.ts, dtype=np.int64)
         p.clear()
         counts = hdr["count"].astype(np.int64)
         per = np.repeat(hdr, counts)                        # batch fields, one row per sample
@@ -297,9 +428,7 @@ class StreamDecoder:
         within = np.arange(len(per), dtype=np.int64) - np.repeat(starts, counts)
         index = per["sample_index"].astype(np.int64) + within
         t_us = np.repeat(ts, counts) + within * per["period_us"].astype(np.int64)
-        self._count_sample_gaps(calibrated, hdr["sample_index"].astype(np.int64), counts)
         recs = P.unpack_record_fields(d, rec_bytes)
-        self.stats.samples += len(per)
         common = dict(
             t_us=t_us, sample_index=index, status=recs["status"].astype(np.uint8),
             sensor_flags=per["sensor_flags"], accel_temp_counts=per["accel_temp_counts"],
@@ -312,34 +441,25 @@ class StreamDecoder:
         accel[:, 0], accel[:, 1], accel[:, 2] = recs["accel_x_counts"], recs["accel_y_counts"], recs["accel_z_counts"]
         return SampleBlock(False, accel_counts=accel, gyro_counts=recs["gyro_counts"], **common)
 
-    def _unwrap(self, ts: np.ndarray) -> np.ndarray:
-        """32-bit microsecond timestamps, in arrival order, to a monotonic int64 (they wrap
-        every 71.6 min)."""
-        if self._ts_last is None:
-            self._ts_last = int(ts[0])
-        prev = np.concatenate(([self._ts_last], ts[:-1]))
-        wraps = np.cumsum((ts - prev) < -(1 << 31)) * (1 << 32)
-        out = ts + wraps + self._ts_offset
-        self._ts_offset += int(wraps[-1])
-        self._ts_last = int(ts[-1])
-        return out
-
-    def _count_sample_gaps(self, calibrated: bool, first: np.ndarray, counts: np.ndarray) -> None:
-        expected_next = first + counts
-        prev = self._next_index[calibrated]
-        exp = np.concatenate(([first[0] if prev is None else prev], expected_next[:-1]))
-        gap = first - exp                       # negative: a new stream started; not a loss
-        jumps = gap[gap > 0]
-        self.stats.sample_gaps += int(len(jumps))
-        self.stats.samples_missing += int(jumps.sum())
-        self._next_index[calibrated] = int(expected_next[-1])
-
 
 def decode_bytes(data: bytes) -> tuple[list[DecodedFrame], SampleBlock | None, SampleBlock | None, DecoderStats]:
-    """Decode a whole recording: (messages, raw samples, calibrated samples, stats)."""
+    """Decode a whole recording: (messages, raw samples, calibrated samples, stats).
+
+    Memory grows with the recording: every sample comes back as arrays, 49 bytes per raw
+    sample (3 bytes per byte of a raw recording); the decoder's own queue stays small (samples
+    are taken after every megabyte), and joining the pieces at the end doubles that for a
+    moment: measured peak about 115 bytes per raw sample, 700 MB for a 100 MB recording
+    (bench/decoder_memory.py). For longer recordings, feed a StreamDecoder piece by piece and
+    take_samples() as you go (docs/architecture.md)."""
     dec = StreamDecoder()
     msgs = []
+    got: dict[bool, list] = {False: [], True: []}
     step = 1 << 20
     for i in range(0, len(data), step):
         msgs += dec.feed(data[i:i + step])
-    return msgs, dec.take_samples(False), dec.take_samples(True), dec.stats
+        for cal in (False, True):
+            b = dec.take_samples(cal)
+            if b is not None:
+                got[cal].append(b)
+    blocks = [SampleBlock.concat(got[cal]) if got[cal] else None for cal in (False, True)]
+    return msgs, blocks[0], blocks[1], dec.stats

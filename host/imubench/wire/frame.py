@@ -58,6 +58,72 @@ class FrameError(enum.Enum):
     BAD_VERSION = "bad_version"    # header version is not PROTOCOL_VERSION
     UNKNOWN_TYPE = "unknown_type"  # message type not in the definition
     BAD_LENGTH = "bad_length"      # payload length (or record count) wrong for the type
+    # a well-formed frame whose fields hold what the definition does not allow (the rules of
+    # protocol/imubench.toml, generated into protocol_gen.VALUE_RULES / RECORD_RULES)
+    BAD_ENUM = "bad_enum"          # not one of its enum's values (or of the field's listed values)
+    OUT_OF_RANGE = "out_of_range"  # below its min or above its max (a sample period of 0)
+    NOT_FINITE = "not_finite"      # a float that must be finite is NaN or infinite
+    BAD_FLAGS = "bad_flags"        # a bit outside the field's bit set
+
+
+VALUE_ERRORS = {kind: FrameError(reason) for kind, reason in gen.VALUE_REASONS.items()}
+
+
+def _rule_fails(kind: str, arg, v) -> bool:
+    if kind == "enum":
+        return v not in arg
+    if kind == "min":
+        return v < arg
+    if kind == "max":
+        return v > arg
+    if kind == "finite":
+        return v != v or v in (float("inf"), float("-inf"))
+    return bool(v & ~arg)
+
+
+def value_error(msg_type: int, payload: bytes | memoryview, values: tuple | None = None) -> FrameError | None:
+    """What the fields of a length-checked payload hold, against the definition's rules: None,
+    or the reason of the first field that breaks its rule (fixed part in layout order, then
+    each record in turn). `values`: the fixed part already unpacked with the message's STRUCT."""
+    d = MESSAGES[msg_type]
+    rules = gen.VALUE_RULES.get(msg_type)
+    if rules:
+        if values is None:
+            values = d.cls.STRUCT.unpack_from(payload, 0)
+        for slot, n, _path, kind, arg in rules:
+            for v in values[slot:slot + n]:
+                if _rule_fails(kind, arg, v):
+                    return VALUE_ERRORS[kind]
+    rec_rules = gen.RECORD_RULES.get(d.record) if d.record is not None else None
+    if rec_rules and len(payload) > d.cls.SIZE:
+        return record_value_error(d, payload[d.cls.SIZE:], rec_rules)
+    return None
+
+
+def record_value_error(d, data: bytes | memoryview, rules=None) -> FrameError | None:
+    """Vectorised rules of concatenated records: the reason of the first failing field of the
+    first failing record, or None."""
+    rules = gen.RECORD_RULES.get(d.record, ()) if rules is None else rules
+    if not rules or not len(data):
+        return None
+    f = unpack_record_fields(d, data)
+    bad = np.empty((len(data) // d.record_dtype.itemsize, len(rules)), dtype=bool)
+    for k, (name, kind, arg) in enumerate(rules):
+        v = f[name]
+        if kind == "enum":
+            b = ~np.isin(v, list(arg))
+        elif kind == "min":
+            b = v < arg
+        elif kind == "max":
+            b = v > arg
+        elif kind == "finite":
+            b = ~np.isfinite(v)
+        else:
+            b = (v.astype(np.int64) & ~arg) != 0
+        bad[:, k] = b.reshape(len(bad), -1).any(axis=1)
+    if not bad.any():
+        return None
+    return VALUE_ERRORS[rules[int(np.argmax(bad.ravel())) % len(rules)][1]]
 
 
 class ProtocolError(ValueError):
@@ -127,6 +193,9 @@ def parse_frame(encoded: bytes | memoryview) -> Frame:
     err = payload_error(msg_type, payload)
     if err is not None:
         raise ProtocolError(err, f"type 0x{msg_type:02X}, {len(payload)} bytes")
+    err = value_error(msg_type, payload)
+    if err is not None:
+        raise ProtocolError(err, f"type 0x{msg_type:02X}")
     return Frame(msg_type, seq, ts, bytes(payload), version)
 
 

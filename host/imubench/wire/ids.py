@@ -13,6 +13,17 @@ from __future__ import annotations
 
 import re
 
+from imubench.wire.protocol_gen import Board
+
+
+def board_name(code: int) -> str:
+    """The name of a board code of an Info message; a code this imubench does not know (a newer
+    firmware) is named by its number, never an error."""
+    try:
+        return Board(code).name
+    except ValueError:
+        return f"unknown board code {int(code)} (firmware newer than this imubench? update imubench)"
+
 
 def uid_text(uid) -> str:
     """The MCU unique ID (bytes, or the 12 ints of an Info message) as 24 hex digits."""

@@ -719,3 +719,22 @@ MESSAGES = {
     0x91: MessageDef('cal_batch', 0x91, 'd2h', CalBatch, 'cal_sample', CAL_SAMPLE_DTYPE, CAL_SAMPLE_BITS, 8, 6, 'header.count'),
 }
 MESSAGES_BY_NAME = {d.name: d for d in MESSAGES.values()}
+
+# What the fields may hold (protocol/imubench.toml: enum, values, min, max, finite, flags),
+# checked in this order after the length (imubench.wire.frame.value_error). Per message id, the
+# fixed part: (first slot in STRUCT.unpack values, number of values, field path, kind, argument);
+# per record type: (leaf field, kind, argument). kind 'enum': allowed values; 'min' / 'max':
+# the bound; 'finite': None; 'flags': mask of the allowed bits.
+VALUE_REASONS = {'enum': 'bad_enum', 'min': 'out_of_range', 'max': 'out_of_range', 'finite': 'not_finite', 'flags': 'bad_flags'}
+VALUE_RULES = {
+    0x03: ((1, 1, 'mode', 'enum', frozenset({0, 1})), (3, 1, 'accel_range_g', 'enum', frozenset({0, 2, 4, 8})),),
+    0x06: ((0, 1, 'which', 'enum', frozenset({0, 1})),),
+    0x81: ((6, 1, 'clock_source', 'enum', frozenset({0, 1, 2, 3})), (21, 1, 'accel_range_g', 'enum', frozenset({2, 4, 8})), (32, 1, 'stream_state', 'enum', frozenset({0, 1, 2})), (33, 1, 'param_source', 'enum', frozenset({0, 1, 2})),),
+    0x82: ((1, 1, 'which', 'enum', frozenset({0, 1})), (2, 1, 'source', 'enum', frozenset({0, 1, 2})),),
+    0x84: ((0, 1, 'sensor', 'enum', frozenset({0, 1, 2, 3})), (1, 1, 'kind', 'enum', frozenset({1, 2, 3, 4, 5, 6, 7})), (2, 1, 'active', 'enum', frozenset({0, 1})),),
+    0x90: ((1, 1, 'header.period_us', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})),),
+    0x91: ((1, 1, 'header.period_us', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})),),
+}
+RECORD_RULES = {
+    'cal_sample': (('accel_mps2', 'finite', None), ('rate_rad_s', 'finite', None), ('status', 'flags', 0x0F),),
+}
