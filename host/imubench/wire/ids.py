@@ -59,11 +59,6 @@ def device_identity(info) -> dict:
     """The identity of a device from its Info message, in the one format: what every result
     file records so that a result can be matched to its device (results.report refuses a
     part from another device)."""
-    from imubench.wire.protocol_gen import Board
-    try:
-        board = Board(info.board).name
-    except ValueError:
-        board = f"unknown ({info.board})"
-    return {"mcu_uid": uid_text(info.mcu_uid), "board": board,
+    return {"mcu_uid": uid_text(info.mcu_uid), "board": board_name(info.board),
             "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
             "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)}
