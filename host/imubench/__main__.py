@@ -1,6 +1,4 @@
 """`python -m imubench` is the `imubench` command."""
-import sys
+from imubench.cli.main import entry
 
-from imubench.cli import main
-
-sys.exit(main())
+entry()

@@ -78,6 +78,28 @@ def main(argv=None) -> int:
         return code
 
 
+def entry() -> None:
+    """The `imubench` executable (and `python -m imubench`): main(), then exit with its code.
+
+    After Ctrl-C the exit must be 130 every time. CPython records a KeyboardInterrupt that
+    passes through a string exec() (scipy and numpy run some on import, and our imports are
+    lazy) as "unhandled", even when main() then handles it, and at exit kills the process
+    with SIGINT instead of returning the code (a shell sees 130, a parent process -2). So an
+    interrupted run flushes, runs the exit handlers itself and leaves with os._exit(130)."""
+    code = main()
+    if code == EXIT_INTERRUPTED:
+        import atexit
+        import os
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        atexit._run_exitfuncs()
+        os._exit(code)
+    sys.exit(code)
+
+
 def _say(line: str) -> None:
     try:
         sys.stdout.flush()
@@ -87,4 +109,4 @@ def _say(line: str) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()
