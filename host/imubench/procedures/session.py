@@ -13,6 +13,7 @@ session itself decides, from the data, when the board is still and which attitud
 """
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import os
 import time
@@ -182,7 +183,13 @@ class Session:
             raise SessionAborted(f"cannot resume: {e}") from None
         self.started = state["started"]
         self.rest = state.get("rest")
-        self.poses = [PoseRecord(**p) for p in state.get("poses", [])]
+        fields = {f.name: f for f in dataclasses.fields(PoseRecord)}
+        for i, p in enumerate(state["poses"]):      # load_state checked the types of those present
+            missing = [k for k, f in fields.items() if k not in p and f.default is dataclasses.MISSING]
+            if missing:
+                raise SessionAborted(f"cannot resume: {self.state_path} is damaged: 'poses[{i}].{missing[0]}' "
+                                     "is missing; restore the file or start a new session")
+        self.poses = [PoseRecord(**{k: v for k, v in p.items() if k in fields}) for p in state["poses"]]
         if state.get("complete") and isinstance(state.get("result"), dict):
             self.finished = state["result"]
         saved = state["config"]
