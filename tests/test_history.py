@@ -219,6 +219,18 @@ def test_recording_twice_is_idempotent_and_a_conflict_is_refused(db):
         assert h.count_runs() == 1
 
 
+def test_record_once_says_whether_the_run_is_new(db):
+    r = make_result() | {"session_started": "2026-11-22T06:30:00+00:00"}
+    with History(db) as h:
+        rid, new = h.record_once(r)
+        assert new is True
+        assert h.record_once(json.loads(json.dumps(r))) == (rid, False)     # as read back from session.json
+        edited = copy.deepcopy(r) | {"note": "edited"}
+        with pytest.raises(ValueError, match="of the same session"):
+            h.record_once(edited)
+        assert h.count_runs() == 1
+
+
 def test_two_devices_and_time_order(db):
     with History(db) as h:
         h.record(make_result(UID_A, started="2026-12-01T08:00:00+00:00", note="second"))

@@ -231,3 +231,107 @@ def test_report_shows_the_closure_check(session_dir, tmp_path):
     (d / "closure.json").write_text("{not json")
     doc = build_report(session_dir, tmp_path / "r3.html", closure_dir=d).read_text(encoding="utf-8")
     assert "closure check data" in doc and "unreadable" in doc
+
+
+# ------------------------------------------------------------------ what the report embeds
+def _report_cli(argv, tmp_path, timeout=60):
+    """`imubench report` in a subprocess, its memory capped (reading /dev/zero must fail fast,
+    not take the machine) and its time limited (a FIFO must not hang the test)."""
+    import os
+    import resource
+    import subprocess
+    import sys
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+    env = {k: v for k, v in os.environ.items() if k != "IMUBENCH_DEBUG"}
+    return subprocess.run([sys.executable, "-m", "imubench", "report", *map(str, argv)], capture_output=True,
+                          text=True, timeout=timeout, env=env, cwd=tmp_path, stdin=subprocess.DEVNULL,
+                          preexec_fn=cap)
+
+
+SECRET = PNG_MAGIC + b"\0\0\0\rIHDR" + b"SECRET-IMAGE-FROM-ELSEWHERE" * 40
+
+
+@pytest.mark.parametrize("case", ["absolute", "dotdot", "symlink", "dev_zero", "fifo", "oversized", "not_a_name"])
+def test_report_embeds_only_regular_plots_inside_the_closure_dir(session_dir, tmp_path, case):
+    import os
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (outside / "private.png").write_bytes(SECRET)
+    sd = tmp_path / "s"
+    shutil.copytree(session_dir, sd)
+    cd = sd / "closure"
+    cd.mkdir()
+    plot = {"absolute": str(outside / "private.png"), "dotdot": "../../elsewhere/private.png",
+            "symlink": "closure.png", "dev_zero": "/dev/zero", "fifo": "closure.png",
+            "oversized": "closure.png", "not_a_name": ["closure.png"]}[case]
+    if case == "symlink":
+        (cd / "closure.png").symlink_to(outside / "private.png")
+    elif case == "fifo":
+        os.mkfifo(cd / "closure.png")
+    elif case == "oversized":
+        with open(cd / "closure.png", "wb") as fh:          # sparse: costs no disk
+            fh.write(SECRET)
+            fh.truncate(64 << 20)
+    (cd / "closure.json").write_text(json.dumps({"schema": 1, "path": "box", "after": {"distance_m": 0.1},
+                                                 "plot": plot}))
+    r = _report_cli([sd, "--out", tmp_path / "r.html"], tmp_path)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    doc = (tmp_path / "r.html").read_text(encoding="utf-8")
+    _check_self_contained(doc)
+    assert base64.b64encode(SECRET[:30]).decode()[:30] not in doc          # nothing from elsewhere
+    assert len(_imgs(doc)) == 1                                              # the residual plot only
+    assert "plot refused, not embedded" in doc and "closure.json names" in doc
+
+
+def test_a_residuals_png_linked_from_elsewhere_is_not_embedded(session_dir, tmp_path):
+    (tmp_path / "private.png").write_bytes(SECRET)
+    sd = tmp_path / "s"
+    shutil.copytree(session_dir, sd)
+    (sd / "residuals.png").symlink_to(tmp_path / "private.png")
+    r = _report_cli([sd, "--out", tmp_path / "r.html"], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = (tmp_path / "r.html").read_text(encoding="utf-8")
+    assert base64.b64encode(SECRET[:30]).decode()[:30] not in doc
+    assert "residuals.png of the session refused" in doc and len(_imgs(doc)) == 1   # drawn again instead
+
+
+# ------------------------------------------------------------------ session.json of wrong types
+def _set(d, path, value):
+    keys = path.replace("]", "").replace("[", ".").split(".")
+    for k in keys[:-1]:
+        d = d[int(k)] if isinstance(d, list) else d[k]
+    last = keys[-1]
+    if isinstance(d, list):
+        d[int(last)] = value
+    else:
+        d[last] = value
+
+
+WRONG_TYPES = [
+    ("config.rate_hz", "500"), ("config.hold_s", [2.0]), ("config.method", 6), ("config.note", {"a": 1}),
+    ("poses[0].name", 3), ("poses[0].n", "2000"), ("poses[0].temp_c", "warm"), ("poses[1].mean_mps2", "up"),
+    ("result.device", "SIM"), ("result.device.mcu_uid", 1234), ("result.device.gyro_sn", "1 2 3"),
+    ("result.started", 20261122), ("result.method", ["six"]), ("result.gyro_method", 1), ("result.note", 5),
+    ("result.passed", "yes"), ("result.written", 1), ("result.accel_rms_after_mg", "0.1"),
+    ("result.tolerances", [1.0]), ("result.tolerances.accel_rms_mg", "1"), ("result.accel", [1, 2]),
+    ("result.accel.m", "identity"), ("result.accel.m[1]", [1.0, 0.0]), ("result.accel.sigma_b_mps2", 0.1),
+    ("result.gyro.b_rad_s[2]", "0"), ("result.gyro.extra", 3), ("result.poses", {"+X": 1}),
+    ("result.poses[2].after_g", "1.0"), ("result.poses[0].n", 2000.5), ("result.verification", "none"),
+    ("result.verification[0]", 1.0), ("result.verification[0].after_g", [1.0]),
+]
+
+
+@pytest.mark.parametrize("field,value", WRONG_TYPES, ids=[f for f, _ in WRONG_TYPES])
+def test_a_session_json_of_wrong_types_is_named_in_one_line(session_dir, tmp_path, field, value):
+    from test_cli_errors import assert_one_error_line
+    sd = tmp_path / "s"
+    shutil.copytree(session_dir, sd)
+    state = json.loads((sd / "session.json").read_text())
+    state["result"].setdefault("verification", []).append({"name": "+Z up (level)", "after_g": 1.0001})
+    _set(state, field, value)
+    (sd / "session.json").write_text(json.dumps(state))
+    r = _report_cli([sd, "--out", tmp_path / "r.html"], tmp_path)
+    line = assert_one_error_line(r, "report", 1, f"'{field}'", "session.json")
+    assert not (tmp_path / "r.html").exists(), line

@@ -143,6 +143,22 @@ def test_lost_ack_is_retried_without_running_the_command_twice(dev, fake):
     assert fake.commands_executed.count(MsgType.SAVE_PARAMS) == before + 1
 
 
+def test_an_ack_whose_data_frame_was_damaged_is_retried(dev, fake):
+    fake.damage_data = 2               # the readback of the first two sends fails its CRC
+    before = fake.commands_executed.count(MsgType.GET_PARAMS)
+    assert dev.get_params().params.accel_m == PR.identity().accel_m
+    assert fake.commands_executed.count(MsgType.GET_PARAMS) == before + 1   # retries, not re-runs
+    assert dev.link.decoder.stats.frames_rejected == 2
+
+
+def test_data_that_never_arrives_intact_fails_after_the_retries(dev, fake):
+    fake.damage_data = 100
+    with pytest.raises(LinkError, match="3 of 3 times"):
+        dev.info()
+    fake.damage_data = 0
+    assert dev.info().fw_build == "python-fake"      # the link itself is fine
+
+
 def test_no_answer_times_out_after_retries(dev, fake):
     fake.drop_acks = 100
     with pytest.raises(LinkTimeout, match="3 tries"):

@@ -266,3 +266,44 @@ def test_calibrate_command_end_to_end(tmp_path):
                          "--resume", str(tmp_path / "s"), "--redo", "+Z up (level)", "--no-write",
                          "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True, timeout=300)
     assert r2.returncode == 0, r2.stdout[-3000:] + r2.stderr[-2000:]
+
+
+_KILL_AFTER_HISTORY = """
+import os, signal, sys
+from imubench.cli.main import main
+from imubench.results import history as H
+_exit = H.History.__exit__
+def _exit_then_die(self, *exc):          # the history write is committed and closed: die now
+    _exit(self, *exc)
+    os.kill(os.getpid(), signal.SIGKILL)
+H.History.__exit__ = _exit_then_die
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_resuming_a_session_killed_after_its_history_write_records_it_once(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    env.pop("IMUBENCH_PORT", None)
+    db, d = tmp_path / "h.sqlite", tmp_path / "s"
+    sim = ["--sim", "--sim-seed", "4", "--db", str(db)]
+    r1 = subprocess.run([sys.executable, "-c", _KILL_AFTER_HISTORY, "calibrate", "--dir", str(d), *sim],
+                        capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    assert r1.returncode == -signal.SIGKILL, r1.stdout[-2000:] + r1.stderr[-2000:]
+    with History(db, readonly=True) as h:
+        assert h.count_runs() == 1                               # written, then killed
+        first = h.devices()[0]
+    r2 = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--resume", str(d), *sim],
+                        capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    assert r2.returncode == 0, r2.stdout[-3000:] + r2.stderr[-2000:]
+    assert "already recorded in the history as run 1" in r2.stdout, r2.stdout[-2000:]
+    assert "Traceback" not in r2.stderr
+    with History(db, readonly=True) as h:
+        assert h.count_runs() == 1                               # not twice
+        runs = h.runs(first["mcu_uid"])
+    state = json.loads((d / "session.json").read_text())
+    assert runs[0]["record"]["started"] == state["result"]["started"]
+    assert runs[0]["record"]["session_started"] == state["started"]

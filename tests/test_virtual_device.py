@@ -457,3 +457,38 @@ def test_a_link_too_slow_for_the_stream_drops_whole_batches_and_says_so():
     # device's drops (drops after the last batch that arrived show in no gap)
     assert host.samples == dev_stats.samples_produced - dev_stats.samples_dropped
     assert host.samples_missing <= dev_stats.samples_dropped
+
+
+@pytest.mark.parametrize("call", ["get_params", "info", "stats"])
+def test_a_damaged_data_frame_is_retried_not_a_failure(vb, dev, call):
+    """The ack of get_params/info/stats arrives but the data frame before it is damaged (one
+    flipped byte at its start): the client asks again with the same request id, and the device
+    resends both stored frames. Five times in a row, each must succeed."""
+    want = {"get_params": lambda: dev.get_params().params.values(),
+            "info": lambda: dev.info().mcu_uid,
+            "stats": lambda: dev.stats().rx_frame_errors}[call]
+    expected = want()
+    rejected = dev.link.decoder.stats.frames_rejected
+    for _ in range(5):
+        vb.inject("link_flip", count=1)
+        assert want() == expected
+    assert dev.link.decoder.stats.frames_rejected >= rejected + 5   # the damage did happen
+
+
+@pytest.mark.parametrize("call", ["get_params", "info", "stats"])
+def test_data_commands_survive_the_link_fault_rates(vb, call):
+    """The rates of test_link_corruption_is_counted_and_never_accepted: 40 flipped bytes on
+    an idle link land on the reply itself; during a stream, 40 flipped and 300 dropped bytes
+    land on batches and replies alike. The default bounded retries (3 sends) get through."""
+    with _connect(vb, timeout=0.5) as d:
+        fn = getattr(d, call)
+        for _ in range(3):
+            vb.inject("link_flip", count=40)
+            assert fn() is not None
+        d.start_stream(1000)
+        d.read(n_samples=200)
+        for _ in range(3):
+            vb.inject("link_flip", count=40)
+            vb.inject("link_drop", count=300)
+            assert fn() is not None
+        d.stop_stream()

@@ -88,9 +88,9 @@ def run(a) -> int:
                                        on_start=lambda s: print(f"session directory: {s.dir} (raw captures and "
                                                                 f"state; --resume {s.dir} continues it)"),
                                        report=_print_fit(vb))
-            if a.closure and result["written"]:
+            if a.closure and result["written"] and "closure" not in result:
                 result["closure"] = _closure_after_session(dev, vb, sess.dir / "closure")
-            sess.save(result=result)
+                sess.finish(result)
     _record_history(result, a.db, sess.state_path)
     ok = result["passed"] and (result["verified"] or not cfg.write)
     print("\ncalibration " + ("PASSED" if ok else "FAILED"))
@@ -145,8 +145,9 @@ def _record_history(result: dict, db, state_path: Path) -> None:
     from imubench.results.history import History
     try:
         with History(db) as h:
-            run_id = h.record(result)
-        print(f"recorded in the history as run {run_id}")
+            run_id, new = h.record_once(result)
+        print(f"recorded in the history as run {run_id}" if new else
+              f"already recorded in the history as run {run_id} (the same run: not recorded twice)")
     except Exception as e:  # noqa: BLE001 - the result is safe in session.json; say why it is not in the history
         print(f"warning: not recorded in the history ({e}); the result is in {state_path}", file=sys.stderr)
 

@@ -58,6 +58,7 @@ class FakeDevice:
         self.port_url = os.ttyname(self.slave)
         # misbehaviour knobs for tests
         self.drop_acks = 0            # swallow the next N acks (the client must retry)
+        self.damage_data = 0          # flip a byte in the next N data frames (info, readback...)
         self.flash_fails = False      # save_params fails with FLASH_ERROR
         self.commands_executed: list[int] = []
         self._lock = threading.Lock()
@@ -208,9 +209,13 @@ class FakeDevice:
             self._maybe_send_ack(fr)
 
     def _maybe_send_ack(self, frame: bytes) -> None:
-        if self.drop_acks and P.parse_frame(frame[:-1]).type == MsgType.ACK:
+        is_ack = P.parse_frame(frame[:-1]).type == MsgType.ACK
+        if self.drop_acks and is_ack:
             self.drop_acks -= 1
             return
+        if self.damage_data and not is_ack:
+            self.damage_data -= 1
+            frame = frame[:3] + bytes([frame[3] ^ 0x40 or 0x40]) + frame[4:]   # CRC now fails
         self._send(frame)
 
     # ----------------------------------------------------------- commands

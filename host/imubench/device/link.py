@@ -10,7 +10,9 @@ A reader thread owns the port's input: it feeds the streaming decoder, matches r
 requests by request id, and (optionally) appends every received byte to a capture file
 as it arrives, so a crash loses nothing that reached the host. Every command gets exactly
 one ack; a missing ack is retried with the same request id (the device answers a repeated
-id without running the command twice), then raises LinkTimeout. A nack raises DeviceError.
+id without running the command twice), then raises LinkTimeout. An ack whose data frame
+(info, params_readback, stats, self_test_result) was damaged is retried the same way.
+A nack raises DeviceError.
 """
 from __future__ import annotations
 
@@ -205,9 +207,15 @@ class Link:
             self.last_stats = m
 
     # ---------------------------------------------------------------- requests
-    def request(self, msg, timeout: float = 1.0, retries: int = 2) -> tuple[Ack, list]:
+    def request(self, msg, timeout: float = 1.0, retries: int = 2, expect: type | None = None) -> tuple[Ack, list]:
         """Send a command, wait for its ack; returns (ack, data messages). Raises
-        DeviceError on a nack, LinkTimeout when no ack came after 1 + retries sends."""
+        DeviceError on a nack, LinkTimeout when no ack came after 1 + retries sends.
+
+        With `expect` (the data message class the command returns), an ack that arrives
+        without that message (its frame was damaged on the way and rejected) counts like a
+        missing ack: the same frame is sent again at once, same request id, and the device
+        resends both stored frames (protocol/SPEC.md, Retries). After 1 + retries sends
+        without the data, LinkError."""
         d = P.MESSAGES_BY_NAME[P.message_name(msg)]
         payload = P.encode_message(msg)
         with self._cond:
@@ -215,6 +223,7 @@ class Link:
             self._next_id = self._next_id % 0xFFFF + 1     # 1..65535; 0 means unsolicited
             pend = self._pending[rid] = _Pending(d.id, None, [])
         frame = P.build_frame(d.id, payload, rid, int(time.monotonic() * 1e6))
+        data_lost = 0
         try:
             for _attempt in range(retries + 1):
                 self._write(frame)
@@ -231,7 +240,14 @@ class Link:
                         ack = pend.ack
                         if ack.error != Error.OK:
                             raise DeviceError(ack.command, ack.error, ack.value)
-                        return ack, pend.data
+                        if expect is None or any(isinstance(m, expect) for m in pend.data):
+                            return ack, pend.data
+                        pend.ack = None          # acked, but its data frame was lost: ask again
+                        data_lost += 1
+            if data_lost:
+                raise LinkError(f"{d.name} (request {rid}) to {self.url}: the device acked "
+                                f"without a readable {expect.__name__} {data_lost} of {retries + 1} "
+                                "times (a damaged link?)")
             raise LinkTimeout(f"no answer to {d.name} (request {rid}) from {self.url} after "
                               f"{retries + 1} tries of {timeout:g} s")
         finally:
@@ -299,15 +315,16 @@ class Device:
     def close(self) -> None:
         self.link.close()
 
-    def _req(self, msg, timeout: float | None = None):
-        return self.link.request(msg, timeout or self.timeout, self.retries)
+    def _req(self, msg, timeout: float | None = None, expect: type | None = None):
+        return self.link.request(msg, timeout or self.timeout, self.retries, expect)
 
-    @staticmethod
-    def _one(data: list, cls):
-        for m in data:
+    def _one(self, msg, cls, timeout: float | None = None):
+        """Send msg and return the cls data message its ack comes with (retried when the
+        ack arrives but the data frame was damaged)."""
+        for m in self._req(msg, timeout, expect=cls)[1]:
             if isinstance(m, cls):
                 return m
-        raise LinkError(f"the device acked without sending {cls.__name__}")
+        raise LinkError(f"the device acked without sending {cls.__name__}")   # not reached
 
     # ---------------------------------------------------------------- commands
     def ping(self, nonce: int = 0x1B3C5D7E) -> float:
@@ -319,7 +336,7 @@ class Device:
         return time.perf_counter() - t0
 
     def info(self) -> Info:
-        return self._one(self._req(GetInfo())[1], Info)
+        return self._one(GetInfo(), Info)
 
     def start_stream(self, rate_hz: int = 1000, calibrated: bool = False, batch: int = 0,
                      accel_range_g: int = 0) -> int:
@@ -339,7 +356,7 @@ class Device:
         self._req(SetParams(params=params))
 
     def get_params(self, which: ParamsWhich = ParamsWhich.ACTIVE) -> ParamsReadback:
-        return self._one(self._req(GetParams(which=which))[1], ParamsReadback)
+        return self._one(GetParams(which=which), ParamsReadback)
 
     def save_params(self) -> int:
         """Write the active parameters to flash; returns the new generation."""
@@ -349,10 +366,10 @@ class Device:
         self._req(ClearParams(), timeout=max(self.timeout, 3.0))
 
     def self_test(self) -> SelfTestResult:
-        return self._one(self._req(SelfTest(), timeout=max(self.timeout, 5.0))[1], SelfTestResult)
+        return self._one(SelfTest(), SelfTestResult, timeout=max(self.timeout, 5.0))
 
     def stats(self, reset: bool = False) -> Stats:
-        return self._one(self._req(GetStats(reset=int(reset)))[1], Stats)
+        return self._one(GetStats(reset=int(reset)), Stats)
 
     def reboot(self, wait_s: float = 5.0) -> Info | None:
         """Reboot; with wait_s > 0, wait for the boot info and return it."""

@@ -13,6 +13,7 @@ session itself decides, from the data, when the board is still and which attitud
 """
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import os
 import time
@@ -150,6 +151,7 @@ class Session:
         self.ui = presenter
         self.poses: list[PoseRecord] = []
         self.rest: dict | None = None
+        self.finished: dict | None = None    # the result of a run that went to its end (finish())
         self.state_path = self.dir / "session.json"
         if resume:
             self._load()
@@ -166,6 +168,14 @@ class Session:
                  "rest": self.rest, "poses": [asdict(p) for p in self.poses], **extra}
         write_json_atomic(self.state_path, state)     # a crash leaves the old or the new file
 
+    def finish(self, result: dict) -> None:
+        """Save the result of a run that went to its end (fit, write-back, verification, and
+        whatever the caller adds). From now on the run is done: resuming this session returns
+        this result, with the same identity (device, session start, run start), instead of
+        starting a new run, so the history recognises it and never records it twice."""
+        self.finished = result
+        self.save(result=result, complete=True)
+
     def _load(self) -> None:
         try:
             state = load_state(self.dir)
@@ -173,8 +183,17 @@ class Session:
             raise SessionAborted(f"cannot resume: {e}") from None
         self.started = state["started"]
         self.rest = state.get("rest")
-        self.poses = [PoseRecord(**p) for p in state.get("poses", [])]
+        fields = {f.name: f for f in dataclasses.fields(PoseRecord)}
+        for i, p in enumerate(state["poses"]):      # load_state checked the types of those present
+            missing = [k for k, f in fields.items() if k not in p and f.default is dataclasses.MISSING]
+            if missing:
+                raise SessionAborted(f"cannot resume: {self.state_path} is damaged: 'poses[{i}].{missing[0]}' "
+                                     "is missing; restore the file or start a new session")
+        self.poses = [PoseRecord(**{k: v for k, v in p.items() if k in fields}) for p in state["poses"]]
+        if state.get("complete") and isinstance(state.get("result"), dict):
+            self.finished = state["result"]
         saved = state["config"]
+        self.saved_write = bool(saved.get("write", self.cfg.write))
         if saved["method"] != self.cfg.method:
             self.ui.say(f"resuming a {saved['method']}-position session (ignoring --method {self.cfg.method})")
             self.cfg.method = saved["method"]
@@ -187,6 +206,7 @@ class Session:
         if unknown:
             raise SessionAborted(f"cannot redo {', '.join(unknown)}: captured poses are {', '.join(sorted(known))}")
         self.poses = [p for p in self.poses if p.name not in names]
+        self.finished = None             # a new run: the finished one stays in the history
         self.save()
 
     # ---------------------------------------------------------------- health
@@ -663,6 +683,17 @@ def run_session(dev: Device, directory, cfg: SessionConfig, ui: Presenter, *, re
     if redo:
         sess.redo(redo)
     on_start(sess)
+    if sess.finished is not None:
+        # stopped after its run went to its end (e.g. killed after the history write): that
+        # run is done; capturing, fitting or writing again would make it a second run
+        result = sess.finished
+        cfg.write = sess.saved_write
+        ui.say(f"this session's run (started {result.get('started')}) already went to its end "
+               f"({'passed' if result.get('passed') else 'FAILED'}, "
+               f"{'written' if result.get('written') else 'not written'}): nothing is captured, fitted or "
+               "written again (--redo POSE calibrates again)")
+        report(result)
+        return result, sess
     result = sess.run(plan_for(cfg.method))
     report(result)
     if result["passed"] and cfg.write:
@@ -681,7 +712,7 @@ def run_session(dev: Device, directory, cfg: SessionConfig, ui: Presenter, *, re
             ui.say("verification failed: the previous parameters were written back and saved")
     elif not result["passed"]:
         ui.say("the fit did not pass its tolerance: nothing was written to the device")
-    sess.save(result=result)
     png = plot_pose_residuals(result, sess.dir / "residuals.png")
     ui.say(f"residual plot: {png}")
+    sess.finish(result)
     return result, sess

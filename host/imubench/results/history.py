@@ -359,6 +359,12 @@ class History:
         stores nothing) when a required key is missing or malformed. Recording the same
         record again returns the existing run's id; a different record for the same device
         and start time is refused."""
+        return self.record_once(result)[0]
+
+    def record_once(self, result: dict) -> tuple[int, bool]:
+        """record(), and whether the run is new: (run id, True) when it was stored now,
+        (run id, False) when this very run (the same device, session start and run start,
+        the same record) was already in the history and nothing was stored."""
         validate_result(result)
         dev = result["device"]
         uid = dev["mcu_uid"].lower()
@@ -405,16 +411,19 @@ class History:
                                       (device_id, started)).fetchone()
                 if existing is not None:
                     if existing[1] == record_json:
-                        return existing[0]
+                        return existing[0], False
+                    same_session = json.loads(existing[1]).get("session_started") == result.get("session_started")
                     raise ValueError(f"device {uid} already has a different run started at {result['started']} "
-                                     f"(run {existing[0]}): not stored")
+                                     f"(run {existing[0]}"
+                                     + (", of the same session: its session.json changed since" if same_session
+                                        and result.get("session_started") else "") + "): not stored")
                 if started >= last_seen:     # the newest run describes the device as it is now
                     db.execute("UPDATE devices SET board = ?, accel_ids = ?, gyro_pid = ?, gyro_sn = ?, last_seen = ? "
                                "WHERE id = ?", (device_row["board"], device_row["accel_ids"], device_row["gyro_pid"],
                                                 device_row["gyro_sn"], started, device_id))
                 if started < first_seen:
                     db.execute("UPDATE devices SET first_seen = ? WHERE id = ?", (started, device_id))
-            return self._insert_run(db, device_id, run)
+            return self._insert_run(db, device_id, run), True
 
     def _insert_run(self, db: sqlite3.Connection, device_id: int, run: dict) -> int:
         cols = ["device_id", *run]

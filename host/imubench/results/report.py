@@ -25,6 +25,8 @@ import datetime as _dt
 import html
 import json
 import math
+import os
+import stat
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -37,6 +39,7 @@ G0 = 9.80665
 RAD2DEG = 180.0 / math.pi
 AXES = ("x", "y", "z")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+MAX_PLOT_BYTES = 16 * 1024 * 1024     # an embedded plot: ours are ~100 kB
 
 CSS = """
 body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;margin:2em auto;max-width:1100px;
@@ -85,18 +88,64 @@ def _pm(v, s, fmt="{:+.6g}", sfmt="{:.2g}", scale=1.0) -> str:
     return out
 
 
-def png_data_uri(path) -> str | None:
-    """The PNG at path as a data URI, or None if it is missing or not a PNG."""
+class Refused(ValueError):
+    """A file the report will not embed; the message says why."""
+
+
+def read_png(path, within=None, max_bytes: int = MAX_PLOT_BYTES) -> bytes | None:
+    """The bytes of the PNG at path; None when there is no such file. Raises Refused for
+    anything else than a regular PNG file of at most max_bytes, or (with `within`) one whose
+    real path (symlinks resolved) is outside the directory `within`: a report is sent on its
+    own, so it carries no file from elsewhere on the disk, and never blocks (a FIFO) or reads
+    without end (a device)."""
+    path = Path(path)
+    if within is not None:
+        base = Path(within).resolve()
+        real = (base / path).resolve() if not path.is_absolute() else path.resolve()
+        if not real.is_relative_to(base):
+            raise Refused(f"{path} is outside {base}")
+        path = real
     try:
-        data = Path(path).read_bytes()
-    except OSError:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+    except FileNotFoundError:
         return None
+    except OSError as e:
+        raise Refused(f"{path}: {e.strerror or e}") from None
+    with os.fdopen(fd, "rb") as fh:
+        st = os.fstat(fh.fileno())
+        if not stat.S_ISREG(st.st_mode):
+            raise Refused(f"{path} is not a regular file")
+        if st.st_size > max_bytes:
+            raise Refused(f"{path} is {st.st_size} bytes, more than the limit of {max_bytes}")
+        data = fh.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise Refused(f"{path} is more than the limit of {max_bytes} bytes")
     if not data.startswith(PNG_MAGIC):
+        raise Refused(f"{path} is not a PNG")
+    return data
+
+
+def png_data_uri(path, within=None) -> str | None:
+    """The PNG at path as a data URI, or None if it is missing or refused (read_png)."""
+    try:
+        data = read_png(path, within)
+    except Refused:
         return None
-    return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
+    return None if data is None else "data:image/png;base64," + base64.b64encode(data).decode("ascii")
 
 
-def _img(uri: str | None, alt: str) -> str:
+def _png(path, within=None) -> tuple[str | None, str | None]:
+    """(data URI, None), (None, None) when there is no file, or (None, why it was refused)."""
+    try:
+        data = read_png(path, within)
+    except Refused as e:
+        return None, str(e)
+    return (None if data is None else "data:image/png;base64," + base64.b64encode(data).decode("ascii")), None
+
+
+def _img(uri: str | None, alt: str, refused: str | None = None) -> str:
+    if refused is not None:
+        return f'<p class="missing">{esc(alt)}: plot refused, not embedded ({esc(refused)})</p>'
     if uri is None:
         return f'<p class="missing">{esc(alt)}: plot not available</p>'
     return f'<p><img src="{uri}" alt="{esc(alt)}"></p>'
@@ -310,12 +359,16 @@ def _calibration_section(session_dir: Path, state: dict) -> str:
         out.append(_before_after_html(result))
     except ValueError as e:
         out.append(f'<p class="missing">{esc(e)}</p>')
-    uri = png_data_uri(session_dir / "residuals.png")
+    uri, refused = _png("residuals.png", within=session_dir)
     if uri is None and result.get("poses"):
         from imubench.results.calibration import plot_pose_residuals
         with tempfile.TemporaryDirectory() as td:
             uri = png_data_uri(plot_pose_residuals(result, Path(td) / "residuals.png"))
-    out.append("<h3>Residual plot</h3>" + _img(uri, "|a| − g per pose, before and after calibration"))
+        if refused is not None:
+            out.append(f'<p class="note">residuals.png of the session refused, not embedded ({esc(refused)}); '
+                       "drawn again from the result</p>")
+            refused = None
+    out.append("<h3>Residual plot</h3>" + _img(uri, "|a| − g per pose, before and after calibration", refused))
     return "\n".join(out)
 
 
@@ -361,7 +414,8 @@ def _noise_section(allan_dir: Path | None) -> str:
                     "B at τ [s]", "K [rad/s·√Hz]", "RRW [°/h/√h]"]
         out.append(f"<h3>{title}</h3>")
         out.append(_table([esc(h) for h in head], rows) if rows else _missing(title, "no axes in allan.json"))
-        out.append(_img(png_data_uri(allan_dir / f"allan_{kind}.png"), f"{title} Allan deviation ({si})"))
+        uri, refused = _png(f"allan_{kind}.png", within=allan_dir)
+        out.append(_img(uri, f"{title} Allan deviation ({si})", refused))
     out.append("<p>N: white noise, ADEV(τ) = N/√τ read at τ = 1 s; B: bias instability = min ADEV / 0.664; "
                "K: rate random walk, ADEV(τ) = K·√(τ/3) read at τ = 3 s; – where not resolved.</p>")
     return "\n".join(out)
@@ -373,9 +427,10 @@ def _attitude_section(png: Path | None) -> str:
     if png is None:
         out.append(_missing("attitude", "no plot given; give --attitude FILE.png from imubench attitude"))
     else:
-        uri = png_data_uri(png)
+        uri, refused = _png(png)        # the file the user named: anywhere, but a regular PNG of limited size
         if uri is None:
-            out.append(f'<p class="missing">attitude plot {esc(png)} is missing or not a PNG.</p>')
+            out.append(f'<p class="missing">attitude plot {esc(png)} is missing or refused'
+                       f'{" (" + esc(refused) + ")" if refused else ""}.</p>')
         else:
             out.append(f"<p>from {esc(png.name)}</p>" + _img(uri, "roll/pitch from the attitude filters"))
     return "\n".join(out)
@@ -547,9 +602,12 @@ def _closure_section(directory: Path | None) -> str:
         out.append(f"<p>calibration shrinks the closure error <b>{esc(_num(data['improvement'], '{:.0f}'))}x</b>.</p>")
     if data.get("truth_closure_m") is not None:
         out.append(f"<p>the virtual bench's own path closes to {esc(_num(max(abs(v) for v in data['truth_closure_m']), '{:.1e}'))} m.</p>")
-    uri = png_data_uri(directory / str(data.get("plot", "closure.png")))
-    if uri is not None:
-        out.append(_img(uri, "top views before and after calibration and the distance from the start over time"))
+    plot = data.get("plot", "closure.png")
+    uri, refused = _png(str(plot), within=directory) if isinstance(plot, str) and plot else \
+        (None, f"the plot field {plot!r} is not a file name")
+    if uri is not None or refused is not None:
+        out.append(_img(uri, "top views before and after calibration and the distance from the start over time",
+                        refused and f"closure.json names {plot!r}: {refused}"))
     return "\n".join(out)
 
 
