@@ -9,8 +9,9 @@ PY     := $(VENV)/bin/python
 BUILD  := build
 HOST   := $(BUILD)/host
 
-# Debian packages the host build and tests need (installed when missing, as root).
-SYSTEM_PKGS := gcc make libc6-dev cppcheck
+# Debian packages the host build and tests need (installed when missing, as root);
+# chromium renders the HTML report in tests/test_html_report.py (headless, nothing downloaded).
+SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium
 
 CC_HOST  ?= gcc
 CFLAGS_HOST := -std=c11 -O2 -g -Wall -Wextra -Werror -Wshadow -Wstrict-prototypes \

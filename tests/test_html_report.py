@@ -5,6 +5,7 @@ import base64
 import json
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +14,8 @@ from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
 from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for
 from imubench.results.report import PNG_MAGIC, build_report
+
+ROOT = Path(__file__).resolve().parent.parent
 
 NOTE = 'bench A <script>alert("x")</script> & co'
 
@@ -35,7 +38,7 @@ def _imgs(doc: str) -> list[str]:
 def _check_self_contained(doc: str) -> None:
     assert "http://" not in doc and "https://" not in doc
     assert 'src="file' not in doc and "<link" not in doc and "<script" not in doc.lower()
-    assert not re.search(r"\b(href|src)\s*=\s*[\"'](?!data:)", doc)
+    assert not re.search(r"\b(href|src)\s*=\s*[\"'](?!data:|#)", doc)          # in-page anchors only
     for tag in _imgs(doc):
         m = re.search(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', tag)
         assert m, tag[:80]
@@ -54,13 +57,16 @@ def test_report_of_a_session(session_dir, tmp_path):
     # identity, method, badges
     assert result["device"]["mcu_uid"] in doc and "six-position" in doc
     assert "passed: yes" in doc and "written: NO" in doc
-    # the parameter values, SI and usual units
+    # the parameter values, SI and usual units, each to the precision its sigma allows
+    from imubench.results.numbers import pm
     a, g = result["accel"], result["gyro"]
     for i in range(3):
-        assert f"{a['m'][i][i]:.7f}" in doc
-        assert f"{a['b_mps2'][i]:+.6f}" in doc
-        assert f"{a['b_mps2'][i] * 1e3 / 9.80665:+.4f}" in doc
-        assert f"{np.degrees(g['b_rad_s'][i]):+.5f}" in doc
+        assert pm(a["m"][i][i], a["sigma_m"][i][i]) in doc
+        assert pm(a["b_mps2"][i], a["sigma_b_mps2"][i]) in doc
+        assert pm(a["b_mps2"][i], a["sigma_b_mps2"][i], scale=1e3 / 9.80665) in doc
+        assert pm(g["b_rad_s"][i], g["sigma_b_rad_s"][i], scale=180 / np.pi) in doc
+    assert "x = M⁻¹·(u − b)" in doc and "M·(raw − b)" not in doc          # the model of docs/conventions.md
+    assert "1.0000000" not in doc and "(not estimated)" in doc           # a bias-only gyro fits no M
     for h in ("b [mg]", "b [°/s]", "b [m/s²]", "b [rad/s]"):
         assert h in doc
     for p in result["poses"]:
@@ -104,8 +110,10 @@ def test_report_with_noise_attitude_and_thermal(session_dir, tmp_path):
     assert len(_imgs(doc)) == 4                  # residuals, accel + gyro Allan, attitude
     for what in ("noise", "attitude", "temperature"):
         assert f"{what}: not measured" not in doc
-    assert f"{res['accel_usual']['x']['N_ug_per_rtHz']:.4g}" in doc and "ARW [°/√h]" in doc
-    assert f"{1e-4 * 1e6 / 9.80665:+.3f}" in doc and "&lt;b&gt;hot&lt;/b&gt;" in doc
+    from imubench.results.numbers import pm
+    n_ug = res["accel_usual"]["x"]["N_ug_per_rtHz"]
+    assert pm(n_ug, n_ug * res["accel"]["x"]["white"]["N_rel_1sigma"]) in doc and "ARW N [°/√h]" in doc
+    assert pm(1e-4, 1e-6, scale=1e6 / 9.80665) in doc and "&lt;b&gt;hot&lt;/b&gt;" in doc
 
 
 def test_main_report_default_output_and_errors(session_dir, tmp_path, capsys):
@@ -143,8 +151,9 @@ def test_unfinished_session_is_reported(session_dir, tmp_path):
 def thermal_json(tmp_path_factory):
     """thermal.json of a real `imubench thermal --sim --write` run (short: two temperatures)."""
     d = tmp_path_factory.mktemp("thermal") / "t"
-    assert imubench(["thermal", "--sim", "--temps", "10,40", "--samples", "300", "--write", "--ramp", "5",
-                         "--settle-s", "2", "--out", str(d)]) == 0
+    # the session's virtual device (seed 5: the same MCU UID), so that the report takes it
+    assert imubench(["thermal", "--sim", "--sim-seed", "5", "--temps", "10,40", "--samples", "300", "--write",
+                     "--ramp", "5", "--settle-s", "2", "--out", str(d)]) == 0
     return d / "thermal.json"
 
 
@@ -155,9 +164,11 @@ def test_report_shows_thermal_points_and_drift(session_dir, thermal_json, tmp_pa
     assert "temperature: not measured" not in doc and "incomplete run" not in doc
     # the coefficients, from the unit-named keys
     assert "reference temperature 25 °C" in doc
-    assert f"{data['accel_bias_tc_mps2_per_c'][0] * 1e6 / 9.80665:+.3f}" in doc
-    assert f"{np.degrees(data['gyro_bias_tc_rad_s_per_c'][2]) * 1e3:+.3f}" in doc
-    assert f"{data['gyro_scale_tc_per_c'][1] * 1e6:+.3f}" in doc
+    from imubench.results.numbers import pm
+    assert pm(data["accel_bias_tc_mps2_per_c"][0], data["accel_bias_tc_sigma_mps2_per_c"][0], scale=1e6 / 9.80665) in doc
+    assert pm(data["gyro_bias_tc_rad_s_per_c"][2], data["gyro_bias_tc_sigma_rad_s_per_c"][2],
+              scale=180e3 / np.pi) in doc
+    assert pm(data["gyro_scale_tc_per_c"][1], data["gyro_scale_tc_sigma_per_c"][1], scale=1e6) in doc
     # the points table, with units
     for h in ("set [°C]", "ADXL355 [°C]", "gyro X / Y / Z [°C]", "settled after [s]", "gyro at rest x [°/s]",
               "x [mg]", "Temperature points", "(ω₊ − ω₋)/2"):
@@ -166,10 +177,11 @@ def test_report_shows_thermal_points_and_drift(session_dir, thermal_json, tmp_pa
         assert f"{p['accel_temp_c']:.2f}" in doc
         assert " / ".join(f"{t:.2f}" for t in p["gyro_temp_c"]) in doc
         for v, s in zip(p["gyro_rest_rad_s"], p["gyro_rest_sigma_rad_s"]):
-            assert f"{np.degrees(v):+.4f} ± {np.degrees(s):.4f}" in doc
-        for v in p["accel_mps2"]["-y"]:
-            assert f"{v * 1e3 / 9.80665:+.3f}" in doc
-        assert f"{np.degrees(p['gyro_turn_rad_s'][0]):+.4f}" in doc
+            assert pm(v, s, scale=180 / np.pi) in doc
+        for v, s in zip(p["accel_mps2"]["-y"], p["accel_sigma_mps2"]["-y"]):
+            assert pm(v, s, scale=1e3 / 9.80665) in doc
+        assert pm(p["gyro_turn_rad_s"][0], p["gyro_turn_sigma_rad_s"][0], scale=180 / np.pi) in doc
+    assert "Bias against temperature" in doc and len(_imgs(doc)) == 2     # residuals + the thermal plot
     # the drift before and after the write-back, with units and the improvement
     assert "before writing" in doc and "accel x [mg]" in doc and "|accel| [mg]" in doc and "gyro z [°/s]" in doc
     b, a = data["drift_before"], data["drift_after"]
@@ -219,7 +231,7 @@ def test_report_shows_the_closure_check(session_dir, tmp_path):
     (d / "closure.json").write_text(json.dumps(CL.result_json(res, {"path": "box <b>", "plot": "closure.png"})))
     doc = build_report(session_dir, tmp_path / "r.html", closure_dir=d).read_text(encoding="utf-8")
     _check_self_contained(doc)
-    assert "<h2>Closure check</h2>" in doc and "closure check: yes" in doc
+    assert '<h2 id="closure">Closure check</h2>' in doc and '<a href="#closure">closure check</a>' in doc
     assert f"{res['before'].distance_m:.4f}" in doc and f"{res['after'].distance_m:.4f}" in doc
     assert "box &lt;b&gt;" in doc and "+0.0057, -0.0115, +0.0000 °/s" in doc
     assert len(_imgs(doc)) == 2                                   # residuals + closure plot
@@ -335,3 +347,61 @@ def test_a_session_json_of_wrong_types_is_named_in_one_line(session_dir, tmp_pat
     r = _report_cli([sd, "--out", tmp_path / "r.html"], tmp_path)
     line = assert_one_error_line(r, "report", 1, f"'{field}'", "session.json")
     assert not (tmp_path / "r.html").exists(), line
+
+
+# ----------------------------------------------------------------------- verdict and devices
+def test_the_report_opens_with_its_verdict(session_dir, tmp_path):
+    """The first thing a reader sees is the verdict and, per part, pass/fail and why in words;
+    then a table of contents (on main the first line listed sections, not a verdict)."""
+    doc = build_report(session_dir, tmp_path / "r.html").read_text(encoding="utf-8")
+    body = doc[doc.index("<body>"):]
+    assert re.search(r"<h1>IMU calibration report: PASSED</h1>\s*<div class=\"verdict pass\">", body)
+    assert body.index("Verdict: PASSED") < body.index("Contents") < body.index('<h2 id="calibration">')
+    box = body[body.index('<div class="verdict'):body.index("</div>")]
+    assert "not written to the device (--no-write)" in box and "RMS of |a| − g after calibration" in box
+    for part in ("calibration", "closure check", "noise", "attitude", "temperature"):
+        assert f'<a href="#{part.split()[0]}">{part}</a>' in box
+    assert box.count("not measured") == 4
+
+
+def test_a_part_from_another_device_is_refused(session_dir, tmp_path):
+    """A thermal sweep of another board is not embedded without a word: it is refused in red,
+    its numbers are not shown, and the verdict fails."""
+    d = tmp_path / "other"
+    assert imubench(["thermal", "--sim", "--sim-seed", "1", "--temps", "10,40", "--samples", "200", "--ramp", "5",
+                     "--settle-s", "2", "--out", str(d)]) == 0
+    other = json.loads((d / "thermal.json").read_text())
+    doc = build_report(session_dir, tmp_path / "r.html", thermal_json=d / "thermal.json").read_text(encoding="utf-8")
+    assert "IMU calibration report: FAILED" in doc
+    assert "refused: from another device" in doc and other["device"]["mcu_uid"] in doc
+    assert "Temperature points" not in doc and "reference temperature" not in doc
+
+
+# ----------------------------------------------------------------------- in a real browser
+CHROMIUM = "/usr/bin/chromium"
+
+
+def test_the_report_in_a_browser_at_laptop_width(session_dir, thermal_json, tmp_path):
+    """Headless Chromium renders the full report at 1366 px: nothing overflows the page's
+    width, the verdict box is drawn at the top in its colour, the plots are there. The
+    screenshot is kept in build/test-artefacts/ to look at."""
+    import os
+    import subprocess
+    assert os.path.exists(CHROMIUM), "Debian's chromium is missing: `make test` installs it (tools/ensure-system-deps.sh)"
+    from PIL import Image
+    report = build_report(session_dir, tmp_path / "r.html", thermal_json=thermal_json)
+    shot = ROOT / "build" / "test-artefacts" / "report-1366.png"
+    shot.parent.mkdir(parents=True, exist_ok=True)
+    r = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+                        "--window-size=1366,6000", f"--screenshot={shot}", report.as_uri()],
+                       capture_output=True, text=True, timeout=120)
+    assert shot.exists(), r.stderr[-2000:]
+    im = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+    assert im.shape[1] == 1366
+    ink = (im < 235).any(axis=2)                         # anything not (near) white
+    rows = np.flatnonzero(ink.any(axis=1))
+    assert rows.max() > 2000                             # a long page was drawn, not an error page
+    assert not ink[:, 1290:].any(), "content overflows the laptop width"
+    top = im[:500]
+    green = (abs(top[..., 0] - 0x2e) < 20) & (abs(top[..., 1] - 0x9e) < 20) & (abs(top[..., 2] - 0x4f) < 20)
+    assert green.sum() > 500, "the verdict box's border is not drawn at the top"

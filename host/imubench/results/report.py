@@ -32,6 +32,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from imubench.results.atomic import write_text_atomic
+from imubench.results.numbers import pm as _pm_sigma
 from imubench.results.sessionfile import load_state
 from imubench.wire.ids import byte_ids_text, pid_text, sn_text
 
@@ -58,6 +59,13 @@ img{max-width:100%;height:auto;border:1px solid #ddd;margin:.4em 0}
 pre{background:#f7f7f7;padding:.6em;overflow-x:auto;font-size:.85em}
 footer{margin-top:3em;border-top:1px solid #ccc;padding-top:.5em;color:#666;font-size:.85em}
 .mono{font-family:monospace}
+.verdict{border:3px solid #888;border-radius:.5em;padding:.6em 1em;margin:1em 0}
+.verdict.pass{border-color:#2e9e4f;background:#f0faf3}.verdict.fail{border-color:#c0392b;background:#fdf1ef}
+.verdict.incomplete{border-color:#e0b84c;background:#fffaf0}
+.verdict h2{border:none;margin:.1em 0 .4em 0;font-size:1.35em}
+.verdict table{margin:.3em 0}
+.foreign{background:#fdecea;border-left:4px solid #c0392b;padding:.4em .8em;margin:.6em 0;color:#8b1a10}
+nav.toc{font-size:.95em}nav.toc ol{margin:.2em 0 .2em 1.2em;padding:0}
 """
 
 
@@ -197,6 +205,28 @@ def _kv(d: dict) -> str:
     return _table(["key", "value"], rows, left=2)
 
 
+def _foreign(data, session_uid: str | None, what: str) -> tuple[str | None, str]:
+    """(refusal HTML or None, state) for a result file checked against the session's device:
+    "same", "foreign" (another MCU UID: refused, its numbers are not shown), "unnamed" (the
+    file names no device: shown with a warning) or "unknown" (the session names none)."""
+    dev = data.get("device") if isinstance(data, dict) else None
+    uid = str(dev.get("mcu_uid", "")).upper() if isinstance(dev, dict) else ""
+    if not session_uid:
+        return None, "unknown"
+    if not uid:
+        return None, "unnamed"
+    if uid != session_uid:
+        return (f'<p class="foreign"><b>refused: from another device.</b> This {esc(what)} was measured on '
+                f'<span class="mono">{esc(uid)}</span>, not on this session\'s device '
+                f'<span class="mono">{esc(session_uid)}</span>; its numbers are not part of this report.</p>'), "foreign"
+    return None, "same"
+
+
+def _unnamed_note(what: str) -> str:
+    return (f'<p class="note">this {esc(what)} does not name its device (recorded by an older imubench): '
+            "it cannot be checked against the session's device.</p>")
+
+
 # ------------------------------------------------------------------ calibration
 def _id_text(key: str, v) -> str:
     """Identifiers in the one format `imubench info` prints (imubench.wire.ids)."""
@@ -228,49 +258,66 @@ def _device_section(state: dict, result: dict | None) -> str:
     return _table(["", "value"], rows, left=2)
 
 
+FIT_METHODS = {"six_position": "six-position least squares (full M and b)",
+               "multi_position": "multi-position |a| = g (3 biases, 3 scales, 3 non-orthogonality angles)",
+               "bias": "bias at rest (scale and misalignment not estimated)",
+               "turntable": "turntable (known rates about each axis, both ways)",
+               "rotation": "rotation method (gyro integrated between attitudes)"}
+
+
 def _fit_table(fit: dict, kind: str) -> str:
-    """M (dimensionless, with the scale error in ppm on the diagonal) and b in SI and usual units."""
+    """M (dimensionless; the scale error M_ii − 1 in ppm) and b in SI and usual units, every
+    estimate ± 1σ to the precision its σ allows; entries the model does not estimate say so."""
     si = "b_mps2" if kind == "accel" else "b_rad_s"
     m, sm = fit.get("m") or [], fit.get("sigma_m") or []
     b, sb = fit.get(si) or [], fit.get("sigma_" + si) or []
+
+    def at(x, i, j=None):
+        try:
+            return x[i] if j is None else x[i][j]
+        except (IndexError, TypeError, KeyError):
+            return None
     rows = []
     for i, ax in enumerate(AXES):
-        mrow = m[i] if i < len(m) else []
-        srow = sm[i] if i < len(sm) else []
         cells = [esc(ax)]
         for j in range(3):
-            v = mrow[j] if j < len(mrow) else None
-            s = srow[j] if j < len(srow) else None
-            cells.append(esc(_pm(v, s, "{:.7f}", "{:.1g}")))
-        diag = mrow[i] if i < len(mrow) else None
-        sdiag = srow[i] if i < len(srow) else None
-        cells.append(esc(_pm(_f(diag) - 1.0, sdiag, "{:+.1f}", "{:.1f}", scale=1e6)))
-        bv = b[i] if i < len(b) else None
-        bs = sb[i] if i < len(sb) else None
+            v = at(m, i, j)
+            cells.append(esc(_pm_sigma(v, at(sm, i, j), fixed_text=f"{_num(v, '{:+.0f}')} (not estimated)")))
+        diag = at(m, i, i)
+        cells.append(esc(_pm_sigma(_f(diag) - 1.0, at(sm, i, i), scale=1e6)))
         if kind == "accel":
-            cells.append(esc(_pm(bv, bs, "{:+.6f}", "{:.2g}")))
-            cells.append(esc(_pm(bv, bs, "{:+.4f}", "{:.2g}", scale=1e3 / G0)))
+            cells.append(esc(_pm_sigma(at(b, i), at(sb, i))))
+            cells.append(esc(_pm_sigma(at(b, i), at(sb, i), scale=1e3 / G0)))
         else:
-            cells.append(esc(_pm(bv, bs, "{:+.3e}", "{:.2g}")))
-            cells.append(esc(_pm(bv, bs, "{:+.5f}", "{:.2g}", scale=RAD2DEG)))
+            cells.append(esc(_pm_sigma(at(b, i), at(sb, i))))
+            cells.append(esc(_pm_sigma(at(b, i), at(sb, i), scale=RAD2DEG)))
         rows.append(cells)
     bu = ("b [m/s²]", "b [mg]") if kind == "accel" else ("b [rad/s]", "b [°/s]")
-    head = ["axis", "M[·,x] ± 1σ", "M[·,y] ± 1σ", "M[·,z] ± 1σ", "scale error M<sub>ii</sub>−1 [ppm]",
+    head = ["axis", "M[·,x] ± 1σ", "M[·,y] ± 1σ", "M[·,z] ± 1σ", "scale error M<sub>ii</sub> − 1 [ppm]",
             esc(bu[0]) + " ± 1σ", esc(bu[1]) + " ± 1σ"]
     out = _table(head, rows)
-    facts = [f"fit method: <b>{esc(fit.get('method', '?'))}</b>"]
-    if kind == "accel":
-        rr = fit.get("residual_rms_mps2", fit.get("residual_rms"))
-        if math.isfinite(_f(rr)):
-            facts.append(f"residual RMS {esc(_num(rr))} m/s² = {esc(_num(_f(rr) * 1e3 / G0, '{:.4f}'))} mg")
-    else:
-        rr = fit.get("residual_rms")
-        if math.isfinite(_f(rr)):
-            facts.append(f"residual RMS {esc(_num(rr))} (fit units)")
+    method = fit.get("method", "?")
+    facts = [f"method: <b>{esc(FIT_METHODS.get(method, method))}</b>"]
+    rr = _f(fit.get("residual_rms_mps2", fit.get("residual_rms")))
+    extra = fit.get("extra") if isinstance(fit.get("extra"), dict) else {}
+    if math.isfinite(rr):
+        if kind == "accel":
+            facts.append(f"residual RMS {esc(_num(rr * 1e3 / G0, '{:.2g}'))} mg")
+        elif method == "turntable":
+            facts.append(f"residual RMS over the turns {esc(_num(rr * RAD2DEG, '{:.2g}'))} °/s")
+        elif method == "rotation":
+            facts.append(f"residual RMS of the gravity directions {esc(_num(rr * RAD2DEG, '{:.2g}'))}°")
+    chi = _f(extra.get("chi2_red", extra.get("reduced_chi2")))
+    if math.isfinite(chi):
+        facts.append(f"χ²/dof {esc(_num(chi, '{:.2g}'))} (1 when the residuals are as large as the noise says)")
+    if extra.get("frame"):
+        facts.append(f"frame: {esc(extra['frame'])}")
+    al, sal = extra.get("alignment_rad"), extra.get("sigma_alignment_rad")
+    if isinstance(al, list) and len(al) == 3:
+        sal = sal if isinstance(sal, list) and len(sal) == 3 else [None] * 3
+        facts.append("rotated into the gyro frame by " + ", ".join(
+            f"{ax} {_pm_sigma(v, s, 'mrad', scale=1e3)}" for ax, v, s in zip(AXES, al, sal)))
     out += "<p>" + "; ".join(facts) + "</p>"
-    extra = fit.get("extra")
-    if extra:
-        out += "<details><summary>fit details (extra)</summary><pre>" + esc(json.dumps(extra, indent=1)) + "</pre></details>"
     return out
 
 
@@ -321,7 +368,7 @@ def _before_after_html(result: dict) -> str:
 def _calibration_section(session_dir: Path, state: dict) -> str:
     cfg = state.get("config") or {}
     result = state.get("result")
-    out = ["<h2>Calibration</h2>"]
+    out = ['<h2 id="calibration">Calibration</h2>']
     out.append("<h3>Device</h3>" + _device_section(state, result))
     method = (result or {}).get("method", cfg.get("method"))
     gyro_method = (result or {}).get("gyro_method", cfg.get("gyro"))
@@ -344,14 +391,21 @@ def _calibration_section(session_dir: Path, state: dict) -> str:
     out.append("<p>" + _badge("passed", result.get("passed")) + _badge("written", result.get("written"))
                + _badge("verified", result.get("verified") if result.get("written") or result.get("verification")
                         else None)
-               + (f" accelerometer RMS after calibration: <b>{esc(_num(rms, '{:.4f}'))} mg</b>" if rms is not None else "")
+               + (f" accelerometer RMS of |a| − g after calibration: <b>{esc(_num(rms, '{:.2g}'))} mg</b>"
+                  if rms is not None else "")
                + "</p>")
     tol = result.get("tolerances") or {}
+    words = {"accel_rms_mg": "RMS of |a| − g over the poses after calibration ≤ {} mg",
+             "verify_mg": "each verification attitude, | |a| − g | of the device's own output ≤ {} mg",
+             "gyro_turntable_rms_dps": "turntable residual RMS ≤ {} °/s",
+             "gyro_rotation_rms_deg": "rotation-method residual RMS ≤ {}°"}
     if tol:
-        out.append("<p>tolerances: " + ", ".join(f"{esc(k)} = {esc(v)}" for k, v in tol.items()) + "</p>")
-    out.append("<h3>Accelerometer parameters (corrected = M·(raw − b))</h3>")
+        out.append("<p>tolerances: " + "; ".join(esc(words.get(k, k + " = {}").format(_num(v, "{:g}")))
+                                                 for k, v in tol.items()) + "</p>")
+    out.append("<h3>Accelerometer parameters</h3><p>model (docs/conventions.md): u = M·x + b, u the measured "
+               "specific force at nominal scale, x the true one; the device applies x = M⁻¹·(u − b)</p>")
     out.append(_fit_table(result["accel"], "accel") if result.get("accel") else _missing("accelerometer fit", "no fit"))
-    out.append("<h3>Gyroscope parameters</h3>")
+    out.append("<h3>Gyroscope parameters</h3><p>the same model for the angular rate</p>")
     out.append(_fit_table(result["gyro"], "gyro") if result.get("gyro")
                else _missing("gyroscope calibration", "no gyro method was chosen"))
     out.append("<h3>|a| per pose, before and after calibration</h3>")
@@ -373,66 +427,116 @@ def _calibration_section(session_dir: Path, state: dict) -> str:
 
 
 # ------------------------------------------------------------------ noise
-def _noise_section(allan_dir: Path | None) -> str:
-    out = ["<h2>Noise (Allan deviation)</h2>"]
+def _noise_section(allan_dir: Path | None, session_uid: str | None = None) -> str:
+    out = ['<h2 id="noise">Noise (Allan deviation)</h2>']
     res = _load_json(allan_dir / "allan.json" if allan_dir is not None else None, "noise",
                      "no allan.json; record one with imubench allan and give --allan DIR", out)
     if res is None:
         return "\n".join(out)
-    from imubench.analysis.allan import usual_units
+    refusal, state = _foreign(res, session_uid, "noise recording")
+    if refusal:
+        return "\n".join(out + [refusal])
+    if state == "unnamed":
+        out.append(_unnamed_note("noise recording"))
+    from imubench.analysis.allan import duration_text, usual_units
     dur = _f(res.get("duration_s"))
-    out.append(f"<p>{esc(_num(res.get('samples'), '{:.0f}'))} samples at {esc(_num(res.get('rate_hz'), '{:g}'))} Hz = "
-               f"{esc(_num(dur / 3600, '{:.3f}'))} h; source {esc(', '.join(map(str, res.get('source') or [])))}</p>")
+    out.append(f"<p>{esc(_num(res.get('samples'), '{:.0f}'))} samples at {esc(_num(res.get('rate_hz'), '{:g}'))} Hz "
+               f"= {esc(duration_text(dur) if math.isfinite(dur) else '?')} at rest</p>")
     dec = res.get("decoder") or {}
     if dec.get("samples_missing"):
         out.append(f'<p class="note">{esc(dec["samples_missing"])} samples were lost in the recording; the '
                    "analysis joins the pieces.</p>")
+    reasons = set()
     for kind, title, si in (("accel", "Accelerometer", "m/s²"), ("gyro", "Gyroscope", "rad/s")):
         r = res.get(kind) or {}
         usual = res.get(kind + "_usual") or {}
         rows = []
         for a in AXES:
-            if a not in r:
+            if a not in r or not isinstance(r[a], dict):
                 continue
             ra = r[a]
             u = usual.get(a) or usual_units(ra, kind)
-            if kind == "accel":
-                rows.append([esc(a), esc(_num(ra.get("N"), "{:.4g}")), esc(_num(u.get("N_ug_per_rtHz"), "{:.4g}")),
-                             esc(_num(u.get("VRW_m_s_per_rth"), "{:.4g}")), esc(_num(ra.get("B"), "{:.4g}")),
-                             esc(_num(u.get("B_ug"), "{:.4g}")), esc(_num(ra.get("B_tau"), "{:.4g}")),
-                             esc(_num(ra.get("K"), "{:.4g}")), esc(_num(u.get("K_ug_rtHz"), "{:.4g}"))])
-            else:
-                rows.append([esc(a), esc(_num(ra.get("N"), "{:.4g}")), esc(_num(u.get("N_deg_per_rth"), "{:.4g}")),
-                             esc(_num(u.get("N_deg_s_per_rtHz"), "{:.4g}")), esc(_num(ra.get("B"), "{:.4g}")),
-                             esc(_num(u.get("B_deg_h"), "{:.4g}")), esc(_num(ra.get("B_tau"), "{:.4g}")),
-                             esc(_num(ra.get("K"), "{:.4g}")), esc(_num(u.get("K_deg_h_per_rth"), "{:.4g}"))])
-        if kind == "accel":
-            head = ["axis", "N [m/s²/√Hz]", "VRW [µg/√Hz]", "VRW [m/s/√h]", "B [m/s²]", "B [µg]",
-                    "B at τ [s]", "K [m/s²·√Hz]", "K [µg·√Hz]"]
-        else:
-            head = ["axis", "N [rad/s/√Hz]", "ARW [°/√h]", "ARW [°/s/√Hz]", "B [rad/s]", "B [°/h]",
-                    "B at τ [s]", "K [rad/s·√Hz]", "RRW [°/h/√h]"]
+            n_rel = _f((ra.get("white") or {}).get("N_rel_1sigma"))
+            k_rel = _f((ra.get("rate_rw") or {}).get("K_rel_1sigma"))
+            nk = ("N_ug_per_rtHz", "B_ug", "K_ug_rtHz") if kind == "accel" else \
+                ("N_deg_per_rth", "B_deg_h", "K_deg_h_per_rth")
+            n_u, b_u, k_u = (u.get(k) for k in nk)
+            cells = [esc(a), esc(_pm_sigma(n_u, _f(n_u) * n_rel) if math.isfinite(n_rel) else _num(n_u, "{:.2g}"))]
+            cells.append(esc(_num(b_u, "{:.2g}")) if b_u is not None else "withheld")
+            cells.append(esc(_num(ra.get("B_tau"), "{:.3g}")) if b_u is not None else "–")
+            cells.append(esc(_pm_sigma(k_u, _f(k_u) * k_rel) if math.isfinite(k_rel) else _num(k_u, "{:.2g}"))
+                         if k_u is not None else "withheld")
+            rows.append(cells)
+            for key in ("B_reason", "K_reason"):
+                if ra.get(key):
+                    reasons.add(f"{kind} {key[0]}: {ra[key]}")
+        head = (["axis", "VRW N [µg/√Hz]", "bias instability B [µg]", "B at τ [s]", "RRW K [µg·√Hz]"]
+                if kind == "accel" else
+                ["axis", "ARW N [°/√h]", "bias instability B [°/h]", "B at τ [s]", "RRW K [°/h/√h]"])
         out.append(f"<h3>{title}</h3>")
         out.append(_table([esc(h) for h in head], rows) if rows else _missing(title, "no axes in allan.json"))
         uri, refused = _png(f"allan_{kind}.png", within=allan_dir)
         out.append(_img(uri, f"{title} Allan deviation ({si})", refused))
+    for rsn in sorted(reasons):
+        out.append(f'<p class="note">withheld, {esc(rsn)}</p>')
     out.append("<p>N: white noise, ADEV(τ) = N/√τ read at τ = 1 s; B: bias instability = min ADEV / 0.664; "
-               "K: rate random walk, ADEV(τ) = K·√(τ/3) read at τ = 3 s; – where not resolved.</p>")
+               "K: rate random walk, ADEV(τ) = K·√(τ/3) read at τ = 3 s (docs/noise.md). A read-off the record "
+               "cannot support is withheld with the reason.</p>")
     return "\n".join(out)
 
 
 # ------------------------------------------------------------------ attitude, thermal
-def _attitude_section(png: Path | None) -> str:
-    out = ["<h2>Attitude</h2>"]
+def _attitude_numbers(png: Path | None) -> dict | None:
+    """The numbers `imubench attitude --plot FILE.png` writes beside its plot (FILE.json)."""
     if png is None:
-        out.append(_missing("attitude", "no plot given; give --attitude FILE.png from imubench attitude"))
+        return None
+    try:
+        data = json.loads(Path(png).with_suffix(".json").read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) and data.get("kind") == "imubench attitude" else None
+
+
+def _attitude_section(png: Path | None, session_uid: str | None = None) -> str:
+    out = ['<h2 id="attitude">Attitude</h2>']
+    if png is None:
+        out.append(_missing("attitude", "no plot given; run imubench attitude --plot FILE.png (or with --sim "
+                            "--steps) and give --attitude FILE.png"))
+        return "\n".join(out)
+    data = _attitude_numbers(png)
+    refusal, state = _foreign(data, session_uid, "attitude result")
+    if refusal:
+        return "\n".join(out + [refusal])
+    if data is None:
+        out.append(f'<p class="note">no numbers beside {esc(png.name)} ({esc(png.with_suffix(".json").name)} '
+                   "from imubench attitude --plot): the plot alone, from an unnamed device.</p>")
     else:
-        uri, refused = _png(png)        # the file the user named: anywhere, but a regular PNG of limited size
-        if uri is None:
-            out.append(f'<p class="missing">attitude plot {esc(png)} is missing or refused'
-                       f'{" (" + esc(refused) + ")" if refused else ""}.</p>')
-        else:
-            out.append(f"<p>from {esc(png.name)}</p>" + _img(uri, "roll/pitch from the attitude filters"))
+        if state == "unnamed":
+            out.append(_unnamed_note("attitude result"))
+        if (data.get("device") or {}).get("factory_parameters"):
+            out.append('<p class="foreign">measured with the device\'s FACTORY parameters: its "calibrated" '
+                       "output was uncalibrated.</p>")
+        if data.get("mode") == "steps":
+            rms = data.get("rms_static_error_deg") or {}
+            rows = [[esc(n), esc(_num(v, "{:.2g}"))] for n, v in rms.items()]
+            out.append("<p>the step test on the virtual turntable (−20° to +20° about X and Y, 10° steps): static "
+                       "error after settling, RMS over the steps</p>")
+            out.append(_table(["filter", "RMS static error [°]"], rows, left=1))
+        elif data.get("mode") == "live":
+            rows = []
+            for n in data.get("filters") or []:
+                r, pt = (data.get("roll_deg") or {}).get(n) or {}, (data.get("pitch_deg") or {}).get(n) or {}
+                rows.append([esc(n), esc(_num(r.get("mean"), "{:+.3f}")), esc(_num(r.get("std"), "{:.2g}")),
+                             esc(_num(pt.get("mean"), "{:+.3f}")), esc(_num(pt.get("std"), "{:.2g}"))])
+            out.append(f"<p>{esc(_num(data.get('duration_s'), '{:.3g}'))} s of the device's calibrated output at "
+                       f"{esc(_num(data.get('rate_hz'), '{:g}'))} Hz; roll and pitch through each filter</p>")
+            out.append(_table(["filter", "roll mean [°]", "roll std [°]", "pitch mean [°]", "pitch std [°]"], rows))
+    uri, refused = _png(png)        # the file the user named: anywhere, but a regular PNG of limited size
+    if uri is None:
+        out.append(f'<p class="missing">attitude plot {esc(png)} is missing or refused'
+                   f'{" (" + esc(refused) + ")" if refused else ""}.</p>')
+    else:
+        out.append(f"<p>from {esc(png.name)}</p>" + _img(uri, "roll/pitch from the attitude filters"))
     return "\n".join(out)
 
 
@@ -445,20 +549,25 @@ THERMAL_FIELDS = (("accel_bias_tc", "mps2_per_c", "accel bias", "µg/°C", 1e6 /
                   ("gyro_scale_tc", "per_c", "gyro scale", "ppm/°C", 1e6))
 
 
-def _thermal_section(path: Path | None) -> str:
-    out = ["<h2>Temperature</h2>"]
+def _thermal_section(path: Path | None, session_uid: str | None = None) -> str:
+    out = ['<h2 id="temperature">Temperature</h2>']
     data = _load_json(path, "temperature", "no thermal data given; run imubench thermal --out DIR and pass "
                       "--thermal DIR/thermal.json", out)
     if data is None:
         return "\n".join(out)
+    refusal, state = _foreign(data, session_uid, "temperature sweep")
+    if refusal:
+        return "\n".join(out + [refusal])
+    if state == "unnamed":
+        out.append(_unnamed_note("temperature sweep"))
     out.append(f"<p>from {esc(Path(path).name)}</p>")
 
     def seq(x, n=3) -> list:
         x = x if isinstance(x, (list, tuple)) else []
         return [x[k] if k < len(x) else None for k in range(n)]
 
-    def pm(v, s, fmt, scale):                  # value ± sigma in display units
-        return esc(_pm(v, s, "{:+" + fmt + "}", "{:" + fmt + "}", scale))
+    def pm(v, s, fmt, scale):                  # value ± sigma in display units, to sigma's precision
+        return esc(_pm_sigma(v, s, scale=scale, fixed_text="not measured"))
 
     fit_keys = {}
     if isinstance(data, dict):
@@ -468,7 +577,8 @@ def _thermal_section(path: Path | None) -> str:
                     fit_keys[key] = (vk, sk)
                     break
     if not (isinstance(data, dict) and (fit_keys or "points" in data)):
-        out.append(_kv(data) if isinstance(data, dict) else "<pre>" + esc(json.dumps(data, indent=1)) + "</pre>")
+        out.append(f'<p class="missing">{esc(Path(path).name)} is not a thermal.json of imubench thermal '
+                   "(no coefficients, no temperature points): not shown.</p>")
         return "\n".join(out)
 
     status = data.get("status")
@@ -558,22 +668,41 @@ def _thermal_section(path: Path | None) -> str:
                         "active", None: "whether the previous parameters are active is unknown"}.get(wb.get("previous_restored"))
             out.append(f'<p class="note">write-back failed: {esc(wb.get("error"))}; {esc(restored)}.</p>')
 
-    known = {k for pair in fit_keys.values() for k in pair} | {
-        "t_ref_c", "notes", "points", "drift_before", "drift_after", "write", "status", "stage", "error", "schema", "kind"}
-    rest = {k: v for k, v in data.items() if k not in known}
-    if rest:
-        out.append(_kv(rest))
+    from imubench.results.thermal import plot_thermal
+    with tempfile.TemporaryDirectory() as td:
+        png = plot_thermal(data, Path(td) / "thermal.png") if isinstance(data, dict) else None
+        if png is not None:
+            out.append("<h3>Bias against temperature</h3>"
+                       + _img(png_data_uri(png), "gyro and accelerometer against temperature, with the fits"))
     return "\n".join(out)
 
 
 # ------------------------------------------------------------------ closure
-def _closure_section(directory: Path | None) -> str:
-    out = ["<h2>Closure check</h2>"]
+def closure_verdict(data: dict) -> tuple[bool, str] | None:
+    """(passed, words) of a closure.json, as results.closure.verdict says it for the console."""
+    from imubench.results.closure import VERDICT_FLOORS
+    z, floor = _f((data.get("after_rest_bias") or {}).get("distance_m")), _f((data.get("noise_floor") or {}).get(
+        "sigma_distance_m"))
+    if not (math.isfinite(z) and math.isfinite(floor) and floor > 0):
+        return None
+    k = z / floor
+    words = (f"calibrated, the path closes to {z:.2g} m = {k:.1f}x the white-noise floor ({floor:.2g} m)")
+    return (k <= VERDICT_FLOORS, words + (": no calibration error shows at this path length" if k <= VERDICT_FLOORS
+                                          else ": a calibration error or a moving gyro bias remains"))
+
+
+def _closure_section(directory: Path | None, session_uid: str | None = None) -> str:
+    out = ['<h2 id="closure">Closure check</h2>']
     path = directory / "closure.json" if directory is not None else None
     data = _load_json(path, "closure check", "run imubench calibrate --closure, or imubench closure --out DIR "
                       "and give --closure DIR", out)
     if data is None:
         return "\n".join(out)
+    refusal, state = _foreign(data, session_uid, "closure check")
+    if refusal:
+        return "\n".join(out + [refusal])
+    if state == "unnamed":
+        out.append(_unnamed_note("closure check"))
     if not isinstance(data, dict) or "after" not in data:
         out.append(f'<p class="missing">{esc(path)} holds no result (the recording did not finish: '
                    f'imubench closure --analyse {esc(directory)} recomputes it from capture.bin).</p>')
@@ -600,6 +729,10 @@ def _closure_section(directory: Path | None) -> str:
                    "at the start rest (their bias change since the calibration).</p>")
     if data.get("improvement"):
         out.append(f"<p>calibration shrinks the closure error <b>{esc(_num(data['improvement'], '{:.0f}'))}x</b>.</p>")
+    v = closure_verdict(data)
+    if v is not None:
+        out.append(f'<p class="{"note" if v[0] else "foreign"}"><b>{"PASS" if v[0] else "ABOVE THE NOISE"}:</b> '
+                   f"{esc(v[1])}</p>")
     if data.get("truth_closure_m") is not None:
         out.append(f"<p>the virtual bench's own path closes to {esc(_num(max(abs(v) for v in data['truth_closure_m']), '{:.1e}'))} m.</p>")
     plot = data.get("plot", "closure.png")
@@ -609,6 +742,129 @@ def _closure_section(directory: Path | None) -> str:
         out.append(_img(uri, "top views before and after calibration and the distance from the start over time",
                         refused and f"closure.json names {plot!r}: {refused}"))
     return "\n".join(out)
+
+
+# ------------------------------------------------------------------ the verdict
+def _calibration_part(state: dict, result: dict) -> tuple[str, str]:
+    """(status, words) of the calibration: pass / fail / incomplete, the reason in words."""
+    if not result:
+        n = len(state.get("poses") or [])
+        return "incomplete", (f"the session stopped before the fit ({n} attitude(s) captured): continue it with "
+                              "imubench calibrate --resume DIR")
+    rms, tol = _f(result.get("accel_rms_after_mg")), _f((result.get("tolerances") or {}).get("accel_rms_mg"))
+    vtol = _f((result.get("tolerances") or {}).get("verify_mg"))
+    fit = f"RMS of |a| − g after calibration {rms:.2g} mg" + (f" (tolerance {tol:g} mg)" if math.isfinite(tol) else "")
+    if not result.get("passed"):
+        why = f"the fit did not pass: {fit}"
+        chi = _f(((result.get("accel") or {}).get("extra") or {}).get("chi2_red"))
+        if result.get("method") == "six" and math.isfinite(chi) and chi > 100:
+            why += (f"; the six faces are not square (χ²/dof {chi:.2g}): use --method multi, which needs no "
+                    "square fixture")
+        return "fail", why + "; nothing was written to the device"
+    ver = [_f(v.get("after_g")) for v in result.get("verification") or [] if isinstance(v, dict)]
+    worst = max((abs(v - 1.0) * 1e3 for v in ver if math.isfinite(v)), default=math.nan)
+    if result.get("written") and result.get("verified"):
+        return "pass", (f"fitted ({fit}), written, read back, saved, rebooted and verified on the device's own "
+                        f"output (worst attitude {worst:.2g} mg" + (f", tolerance {vtol:g} mg)" if math.isfinite(vtol)
+                                                                    else ")"))
+    if ver:
+        return "fail", (f"the device's own output failed verification (worst attitude {worst:.2g} mg"
+                        + (f" > {vtol:g} mg" if math.isfinite(vtol) else "") + "): the previous parameters were "
+                        "written back")
+    return "pass", f"fitted ({fit}); not written to the device (--no-write)"
+
+
+def _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid) -> list[tuple]:
+    """(name, anchor, status, words) of every part of the report: status pass / fail /
+    incomplete / info / foreign (another device: refused) / missing."""
+    parts = [("calibration", "calibration", *_calibration_part(state, result))]
+
+    def load(path):
+        try:
+            return json.loads(Path(path).read_text())
+        except (OSError, ValueError, TypeError):
+            return None
+    c = load(closure_dir / "closure.json") if closure_dir is not None else None
+    if c is None:
+        parts.append(("closure check", "closure", "missing", "give --closure DIR (imubench closure --out DIR, or calibrate --closure)"))
+    elif _foreign(c, uid, "")[1] == "foreign":
+        parts.append(("closure check", "closure", "foreign", "from another device: refused"))
+    elif not isinstance(c, dict) or closure_verdict(c) is None:
+        parts.append(("closure check", "closure", "incomplete", "the recording has no result"))
+    else:
+        ok, words = closure_verdict(c)
+        parts.append(("closure check", "closure", "pass" if ok else "fail", words))
+    a = load(allan_dir / "allan.json") if allan_dir is not None else None
+    if a is None:
+        parts.append(("noise", "noise", "missing", "give --allan DIR (imubench allan --out DIR)"))
+    elif _foreign(a, uid, "")[1] == "foreign":
+        parts.append(("noise", "noise", "foreign", "from another device: refused"))
+    else:
+        from imubench.analysis.allan import duration_text
+        withheld = sorted({k for kind in ("accel", "gyro") for ax in AXES
+                           for k in ("B", "K") if isinstance((a.get(kind) or {}).get(ax), dict)
+                           and a[kind][ax].get(k) is None})
+        parts.append(("noise", "noise", "info",
+                      f"Allan deviation of {duration_text(_f(a.get('duration_s')))} at rest"
+                      + (f"; withheld (record too short): {', '.join(withheld)}" if withheld else "")))
+    if attitude_png is None:
+        parts.append(("attitude", "attitude", "missing", "give --attitude FILE.png (imubench attitude --plot FILE.png)"))
+    else:
+        d = _attitude_numbers(Path(attitude_png))
+        if _foreign(d, uid, "")[1] == "foreign":
+            parts.append(("attitude", "attitude", "foreign", "from another device: refused"))
+        elif d and (d.get("device") or {}).get("factory_parameters"):
+            parts.append(("attitude", "attitude", "fail", "measured with factory parameters: uncalibrated output"))
+        elif d and d.get("mode") == "steps":
+            rms = d.get("rms_static_error_deg") or {}
+            parts.append(("attitude", "attitude", "info", "step test: RMS static error "
+                          + ", ".join(f"{k} {_num(v, '{:.2g}')}°" for k, v in rms.items() if k != "accel")))
+        else:
+            parts.append(("attitude", "attitude", "info", "roll and pitch of the calibrated output"))
+    th = load(thermal_json) if thermal_json is not None else None
+    if th is None:
+        parts.append(("temperature", "temperature", "missing", "give --thermal DIR/thermal.json (imubench thermal --out DIR)"))
+    elif _foreign(th, uid, "")[1] == "foreign":
+        parts.append(("temperature", "temperature", "foreign", "from another device: refused"))
+    elif not isinstance(th, dict) or th.get("status") not in (None, "done"):
+        err = th.get("error") if isinstance(th, dict) else None
+        parts.append(("temperature", "temperature", "fail", "the sweep did not finish" + (f": {err}" if err else "")))
+    else:
+        b, af = th.get("drift_before") or {}, th.get("drift_after") or {}
+
+        def worst_ratio(key, n):
+            rs = [_f(x) / _f(y) for x, y in zip((b.get(key) or [])[:n], (af.get(key) or [])[:n])
+                  if _f(y) > 0]
+            return min(rs) if rs else math.nan
+        ra, rg = worst_ratio("accel_drift_mps2", 3), worst_ratio("gyro_drift_rad_s", 3)
+        wb = th.get("write") if isinstance(th.get("write"), dict) else None
+        if wb and not wb.get("verified"):
+            parts.append(("temperature", "temperature", "fail", f"write-back failed: {wb.get('error')}"))
+        elif math.isfinite(ra) and math.isfinite(rg):
+            parts.append(("temperature", "temperature", "pass",
+                          f"coefficients fitted and written; the drift of the calibrated output falls at least "
+                          f"{ra:.0f}x (accelerometer) and {rg:.0f}x (gyro) over the sweep"))
+        else:
+            parts.append(("temperature", "temperature", "info", "coefficients fitted (not written: no drift measured)"))
+    return parts
+
+
+def _verdict_box(parts: list[tuple], device: dict, uid: str) -> tuple[str, str]:
+    """(overall word, HTML) of the verdict that opens the report."""
+    st = [p[2] for p in parts]
+    overall = "FAILED" if any(s in ("fail", "foreign") for s in st) else \
+        "INCOMPLETE" if "incomplete" in st else "PASSED"
+    cls = {"PASSED": "pass", "FAILED": "fail", "INCOMPLETE": "incomplete"}[overall]
+    badge = {"pass": '<span class="badge ok">pass</span>', "fail": '<span class="badge bad">FAIL</span>',
+             "foreign": '<span class="badge bad">refused</span>', "incomplete": '<span class="badge na">incomplete</span>',
+             "info": '<span class="badge na">measured</span>', "missing": '<span class="badge na">not measured</span>'}
+    rows = [[f'<a href="#{esc(a)}">{esc(n)}</a>', badge[s], esc(w)] for n, a, s, w in parts]
+    dev = ", ".join(x for x in (f"board {device.get('board')}" if device.get("board") else "",
+                                f"firmware {device.get('fw_version')}" if device.get("fw_version") else "") if x)
+    html_ = (f'<div class="verdict {cls}"><h2>Verdict: {overall}</h2>'
+             f'<p>device <b class="mono">{esc(uid or "unknown")}</b>{(", " + esc(dev)) if dev else ""}</p>'
+             + _table(["part", "", "in words"], rows, left=3) + "</div>")
+    return overall, html_
 
 
 # ------------------------------------------------------------------ the report
@@ -623,28 +879,33 @@ def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, 
     result = state.get("result") or {}
     out_path = Path(out_path) if out_path is not None else session_dir / "report.html"
     allan_dir = Path(allan_dir) if allan_dir is not None else session_dir
-    uid = str((result.get("device") or {}).get("mcu_uid", "unknown device")).upper()
+    device = result.get("device") if isinstance(result.get("device"), dict) else {}
+    uid = str(device.get("mcu_uid", "")).upper() or None
     when = str(result.get("started") or state.get("started") or "")
-
-    sections = [_calibration_section(session_dir, state), _noise_section(allan_dir),
-                _attitude_section(Path(attitude_png) if attitude_png else None),
-                _thermal_section(Path(thermal_json) if thermal_json else None)]
     closure_dir = Path(closure_dir) if closure_dir is not None else session_dir / "closure"
-    sections.insert(1, _closure_section(closure_dir))
-    present = {"calibration": bool(result), "closure check": (closure_dir / "closure.json").is_file(),
-               "noise": (allan_dir / "allan.json").is_file(),
-               "attitude": attitude_png is not None, "temperature": thermal_json is not None}
-    summary = ", ".join(f"{esc(k)}: {'yes' if v else 'not measured'}" for k, v in present.items())
+    attitude_png = Path(attitude_png) if attitude_png else None
+    thermal_json = Path(thermal_json) if thermal_json else None
+
+    sections = [_calibration_section(session_dir, state), _closure_section(closure_dir, uid),
+                _noise_section(allan_dir, uid), _attitude_section(attitude_png, uid),
+                _thermal_section(thermal_json, uid)]
+    parts = _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid)
+    overall, verdict = _verdict_box(parts, device, uid or "")
+    toc = ('<nav class="toc"><b>Contents</b><ol>' + "".join(
+        f'<li><a href="#{esc(a)}">{esc(n)}</a>{"" if s != "missing" else " (not measured)"}</li>'
+        for n, a, s, _w in parts) + "</ol></nav>")
     generated = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     doc = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1">
-<title>imubench report: {esc(uid)} {esc(when)}</title>
+<title>imubench report: {esc(overall)}, {esc(uid or "unknown device")} {esc(when)}</title>
 <style>{CSS}</style></head>
 <body>
-<h1>IMU calibration report</h1>
-<p>device <b class="mono">{esc(uid)}</b>, session started {esc(state.get('started', '?'))}</p>
-<p>contents — {summary}</p>
+<h1>IMU calibration report: {esc(overall)}</h1>
+{verdict}
+<p>session started {esc(state.get('started', '?'))}; every estimate is given ± its 1σ uncertainty, rounded to
+two significant digits of the uncertainty</p>
+{toc}
 {chr(10).join(sections)}
 <footer>generated by imubench {esc(_version())} at {esc(generated)} from session directory
 <span class="mono">{esc(session_dir.resolve())}</span></footer>

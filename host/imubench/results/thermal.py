@@ -133,3 +133,59 @@ def format_drift(before: dict, after: dict | None) -> str:
             s += f"  after {a:9.4f} °/s  ({b / max(a, 1e-12):.0f}x)"
         L.append(s)
     return "\n".join(L)
+
+
+def plot_thermal(data: dict, path) -> Path | None:
+    """PNG of a thermal.json: each gyro's rest rate against its own temperature, and the
+    accelerometer's level (+Z up) means against the ADXL355 temperature, with the fitted
+    temperature coefficients as lines through the points' mean. None when there are fewer
+    than two points."""
+    pts = [p for p in data.get("points") or [] if isinstance(p, dict)]
+    if len(pts) < 2:
+        return None
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12, 4.5), dpi=100)
+    FigureCanvasAgg(fig)
+    ax_g, ax_a = fig.subplots(1, 2)
+    colors = ("tab:red", "tab:green", "tab:blue")
+    deg = 180.0 / math.pi
+    for k, ax_name in enumerate(AXES):
+        tg = np.array([p["gyro_temp_c"][k] for p in pts], dtype=float)
+        g = np.array([p["gyro_rest_rad_s"][k] for p in pts], dtype=float) * deg
+        gs = np.array([(p.get("gyro_rest_sigma_rad_s") or [0, 0, 0])[k] for p in pts], dtype=float) * deg
+        ax_g.errorbar(tg, g, yerr=gs, fmt="o", color=colors[k], label=f"gyro {ax_name}")
+        coef = (data.get("gyro_bias_tc_rad_s_per_c") or [None] * 3)[k]
+        if coef is not None:
+            tt = np.array([tg.min(), tg.max()])
+            ax_g.plot(tt, g.mean() + coef * deg * (tt - tg.mean()), "--", color=colors[k], lw=1,
+                      label=f"fit: {coef * deg * 1e3:+.3g} m°/s/°C")
+    ax_g.set_xlabel("gyro temperature (°C, each gyro's own)")
+    ax_g.set_ylabel("rate at rest (°/s, nominal scaling)")
+    ax_g.set_title("gyro bias against temperature", fontsize=10)
+    ta = np.array([p["accel_temp_c"] for p in pts], dtype=float)
+    lvl = [p.get("accel_mps2", {}).get("+z") for p in pts]
+    if all(v is not None for v in lvl):
+        a = np.array(lvl, dtype=float) * 1e3 / U.G0_MPS2
+        for k, ax_name in enumerate(AXES):
+            y = a[:, k] - a[:, k].mean()
+            ax_a.plot(ta, y, "o", color=colors[k], label=f"accel {ax_name} (+Z up) − its mean")
+            coef = (data.get("accel_bias_tc_mps2_per_c") or [None] * 3)[k]
+            if coef is not None:
+                # level, Z reads b_z + (1 + scale_tc_z·ΔT)·g: its slope is bias_tc + scale_tc·g
+                stc = (data.get("accel_scale_tc_per_c") or [0.0] * 3)[k] if k == 2 else 0.0
+                slope = coef + (stc or 0.0) * U.G0_MPS2
+                tt = np.array([ta.min(), ta.max()])
+                ax_a.plot(tt, slope * 1e3 / U.G0_MPS2 * (tt - ta.mean()), "--", color=colors[k], lw=1,
+                          label=(f"fit: bias {coef * 1e6 / U.G0_MPS2:+.3g} µg/°C"
+                                 + (f" + scale {stc * 1e6:+.3g} ppm/°C × 1 g" if k == 2 else "")))
+    ax_a.set_xlabel("ADXL355 temperature (°C)")
+    ax_a.set_ylabel("change of the level mean (mg)")
+    ax_a.set_title("accelerometer, level, against temperature", fontsize=10)
+    for ax in (ax_g, ax_a):
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(str(path))
+    return Path(path)
