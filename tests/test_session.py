@@ -257,7 +257,12 @@ def test_calibrate_command_end_to_end(tmp_path):
                         "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
     assert "calibration PASSED" in r.stdout and "accelerometer (six_position): u = M·x + b" in r.stdout
-    assert (tmp_path / "s" / "residuals.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    png = (tmp_path / "s" / "residuals.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    # the plot says what the run did: drawn after the write-back and verification (on main it
+    # was drawn before and said "written NO, verified NO" under a verified session)
+    title = _png_text(png)["Title"]
+    assert "passed yes, written yes, verified yes" in title, title
     h = subprocess.run([sys.executable, "-m", "imubench", "history", "--db", str(tmp_path / "h.sqlite")],
                        capture_output=True, text=True, timeout=60)
     assert h.returncode == 0 and "SIM" in h.stdout
@@ -266,6 +271,26 @@ def test_calibrate_command_end_to_end(tmp_path):
                          "--resume", str(tmp_path / "s"), "--redo", "+Z up (level)", "--no-write",
                          "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True, timeout=300)
     assert r2.returncode == 0, r2.stdout[-3000:] + r2.stderr[-2000:]
+
+
+def _png_text(png: bytes) -> dict:
+    """The text chunks of a PNG (keyword -> text; tEXt and uncompressed iTXt)."""
+    import struct
+    out, i = {}, 8
+    while i < len(png):
+        n, kind = struct.unpack(">I4s", png[i:i + 8])
+        data = png[i + 8:i + 8 + n]
+        if kind == b"tEXt":
+            key, _, val = data.partition(b"\0")
+            out[key.decode("latin-1")] = val.decode("latin-1")
+        elif kind == b"iTXt":                  # keyword, 0, flag, method, language, 0, keyword, 0, UTF-8 text
+            key, _, rest = data.partition(b"\0")
+            rest = rest[2:]
+            _lang, _, rest = rest.partition(b"\0")
+            _tk, _, val = rest.partition(b"\0")
+            out[key.decode("latin-1")] = val.decode("utf-8")
+        i += 12 + n
+    return out
 
 
 _KILL_AFTER_HISTORY = """

@@ -164,11 +164,12 @@ def plot_pose_residuals(result: dict, path) -> Path:
     when = str(result.get("started", ""))[:16].replace("T", " ")
     status = ", ".join(f"{k} {'yes' if result.get(k) else 'NO'}" for k in ("passed", "written", "verified")
                        if k in result)
-    fig.suptitle(f"Accelerometer |a| − g per pose: {_method(result)} fit\n"
-                 f"device {_uid(result)}" + (f", {when} UTC" if when else "") + (f"; {status}" if status else ""),
-                 fontsize=11)
+    title = (f"Accelerometer |a| − g per pose: {_method(result)} fit\n"
+             f"device {_uid(result)}" + (f", {when} UTC" if when else "") + (f"; {status}" if status else ""))
+    fig.suptitle(title, fontsize=11)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png")
+    # the title also as PNG text, so that what the picture says can be checked without eyes
+    fig.savefig(path, format="png", metadata={"Title": title.replace("\n", " ")})
     return path
 
 
