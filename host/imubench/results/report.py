@@ -222,6 +222,21 @@ def _foreign(data, session_uid: str | None, what: str) -> tuple[str | None, str]
     return None, "same"
 
 
+def _load_part(path: Path | None, what: str, how: str, out: list[str], session_uid: str | None, label: str):
+    """_load_json, then the device check: None (after appending why to out) when the file is
+    missing, unreadable or from another device; a note is appended when it names no device."""
+    data = _load_json(path, what, how, out)
+    if data is None:
+        return None
+    refusal, state = _foreign(data, session_uid, label)
+    if refusal:
+        out.append(refusal)
+        return None
+    if state == "unnamed":
+        out.append(_unnamed_note(label))
+    return data
+
+
 def _unnamed_note(what: str) -> str:
     return (f'<p class="note">this {esc(what)} does not name its device (recorded by an older imubench): '
             "it cannot be checked against the session's device.</p>")
@@ -429,15 +444,11 @@ def _calibration_section(session_dir: Path, state: dict) -> str:
 # ------------------------------------------------------------------ noise
 def _noise_section(allan_dir: Path | None, session_uid: str | None = None) -> str:
     out = ['<h2 id="noise">Noise (Allan deviation)</h2>']
-    res = _load_json(allan_dir / "allan.json" if allan_dir is not None else None, "noise",
-                     "no allan.json; record one with imubench allan and give --allan DIR", out)
+    res = _load_part(allan_dir / "allan.json" if allan_dir is not None else None, "noise",
+                     "no allan.json; record one with imubench allan and give --allan DIR", out, session_uid,
+                     "noise recording")
     if res is None:
         return "\n".join(out)
-    refusal, state = _foreign(res, session_uid, "noise recording")
-    if refusal:
-        return "\n".join(out + [refusal])
-    if state == "unnamed":
-        out.append(_unnamed_note("noise recording"))
     from imubench.analysis.allan import duration_text, usual_units
     dur = _f(res.get("duration_s"))
     out.append(f"<p>{esc(_num(res.get('samples'), '{:.0f}'))} samples at {esc(_num(res.get('rate_hz'), '{:g}'))} Hz "
@@ -551,15 +562,10 @@ THERMAL_FIELDS = (("accel_bias_tc", "mps2_per_c", "accel bias", "µg/°C", 1e6 /
 
 def _thermal_section(path: Path | None, session_uid: str | None = None) -> str:
     out = ['<h2 id="temperature">Temperature</h2>']
-    data = _load_json(path, "temperature", "no thermal data given; run imubench thermal --out DIR and pass "
-                      "--thermal DIR/thermal.json", out)
+    data = _load_part(path, "temperature", "no thermal data given; run imubench thermal --out DIR and pass "
+                      "--thermal DIR/thermal.json", out, session_uid, "temperature sweep")
     if data is None:
         return "\n".join(out)
-    refusal, state = _foreign(data, session_uid, "temperature sweep")
-    if refusal:
-        return "\n".join(out + [refusal])
-    if state == "unnamed":
-        out.append(_unnamed_note("temperature sweep"))
     out.append(f"<p>from {esc(Path(path).name)}</p>")
 
     def seq(x, n=3) -> list:
@@ -694,15 +700,10 @@ def closure_verdict(data: dict) -> tuple[bool, str] | None:
 def _closure_section(directory: Path | None, session_uid: str | None = None) -> str:
     out = ['<h2 id="closure">Closure check</h2>']
     path = directory / "closure.json" if directory is not None else None
-    data = _load_json(path, "closure check", "run imubench calibrate --closure, or imubench closure --out DIR "
-                      "and give --closure DIR", out)
+    data = _load_part(path, "closure check", "run imubench calibrate --closure, or imubench closure --out DIR "
+                      "and give --closure DIR", out, session_uid, "closure check")
     if data is None:
         return "\n".join(out)
-    refusal, state = _foreign(data, session_uid, "closure check")
-    if refusal:
-        return "\n".join(out + [refusal])
-    if state == "unnamed":
-        out.append(_unnamed_note("closure check"))
     if not isinstance(data, dict) or "after" not in data:
         out.append(f'<p class="missing">{esc(path)} holds no result (the recording did not finish: '
                    f'imubench closure --analyse {esc(directory)} recomputes it from capture.bin).</p>')
