@@ -223,6 +223,8 @@ def gen_c_header(sp: Spec) -> str:
          f"#define IB_MAX_FRAME {max_frame}u /* header + payload + CRC, before COBS */",
          f"#define IB_MAX_ENCODED ({max_frame}u + ({max_frame}u / 254u) + 1u) /* COBS, without the 0x00 */",
          f"#define IB_PARAM_BLOCK_VERSION {p['param_block_version']}u",
+         "/* longest command payload (commands have fixed layouts): what the retry cache keeps */",
+         f"#define IB_MAX_COMMAND_PAYLOAD {max(sp.size(m) for m in sp.messages if m['dir'] == 'h2d')}u",
          "/* start_stream rates (SPEC.md, Streaming) */",
          f"#define IB_STREAM_RATES_HZ {{{', '.join(f'{r}u' for r in p['stream_rates_hz'])}}}",
          f"#define IB_STREAM_RATES_COUNT {len(p['stream_rates_hz'])}u", "",

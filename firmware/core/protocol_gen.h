@@ -12,6 +12,8 @@
 #define IB_MAX_FRAME 268u /* header + payload + CRC, before COBS */
 #define IB_MAX_ENCODED (268u + (268u / 254u) + 1u) /* COBS, without the 0x00 */
 #define IB_PARAM_BLOCK_VERSION 1u
+/* longest command payload (commands have fixed layouts): what the retry cache keeps */
+#define IB_MAX_COMMAND_PAYLOAD 160u
 /* start_stream rates (SPEC.md, Streaming) */
 #define IB_STREAM_RATES_HZ {4000u, 2000u, 1000u, 800u, 500u, 400u, 250u, 200u, 160u, 125u, 100u, 80u, 50u, 40u, 25u, 20u}
 #define IB_STREAM_RATES_COUNT 16u
