@@ -75,7 +75,7 @@ static int invert3(const float m[9], float inv[3][3])
     float a = m[0], b = m[1], cc = m[2], d = m[3], e = m[4], f = m[5], g = m[6], h = m[7], i = m[8];
     float A = e * i - f * h, B = -(d * i - f * g), C = d * h - e * g;
     float det = a * A + b * B + cc * C;
-    if (!(fabsf(det) > 1e-6f) || !isfinite(det)) {
+    if (!(fabsf(det) > IB_LIMIT_M_DET_MIN) || !isfinite(det)) {
         return -1;
     }
     float r = 1.0f / det;
