@@ -299,12 +299,29 @@ def test_saved_parameters_survive_a_restart_bit_exactly(vb):
         assert _pack(d.get_params(ParamsWhich.STORED).params) == _pack(p)
 
 
+def test_saving_an_unchanged_block_touches_no_flash(vb, dev):
+    """Flash wear: 1,000 saves of the block already stored perform no flash operation after the
+    first and keep its generation; a changed block is still saved."""
+    p = _params_example()
+    dev.set_params(p)
+    gen = dev.save_params()
+    ops = vb.flash_ops()
+    for _ in range(1000):
+        assert dev.save_params() == gen
+    assert vb.flash_ops() == ops
+    assert _pack(dev.get_params(ParamsWhich.STORED).params) == _pack(p)
+    dev.set_params(_params_example(scale=-1.0))
+    assert dev.save_params() == gen + 1
+    assert vb.flash_ops() > ops
+
+
 def test_power_cut_at_every_step_of_a_save_leaves_a_valid_boot(vb):
     old, new = _params_example(1.0), _params_example(-1.0)
     with _connect(vb) as d:
         d.set_params(old)
         d.save_params()
-        before = vb.flash_ops()
+        d.set_params(new)                          # a different block: a real save (an unchanged
+        before = vb.flash_ops()                    # one touches no flash)
         d.save_params()
         ops_per_save = vb.flash_ops() - before
     assert ops_per_save >= 3
