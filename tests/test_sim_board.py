@@ -452,6 +452,7 @@ def test_device_identity_and_link(bench):
 
 def test_flash_ops_power_cut_and_restart(sim_bin, tmp_path):
     from imubench.device.link import Device, LinkTimeout
+    from imubench.wire import params as PR
     from imubench.wire.protocol_gen import ParamSource
     flash = tmp_path / "flash.bin"
     with VirtualBench(speed=20, flash=flash, binary=sim_bin) as b:
@@ -463,6 +464,9 @@ def test_flash_ops_power_cut_and_restart(sim_bin, tmp_path):
             saved = flash.read_bytes()
             assert saved != b"\xff" * 4096
             boots = b.status()["boots"]
+            changed = PR.identity()
+            changed.cal_id = 7
+            dev.set_params(changed)                             # a different block: a real save
             b.power_cut(after_flash_ops=1)                      # the erase of the next save
             with pytest.raises(LinkTimeout):
                 dev.save_params()

@@ -225,6 +225,66 @@ def test_a_retried_command_is_not_run_twice(vb, dev):
     assert dev.get_params(ParamsWhich.STORED).generation == first.value
 
 
+def _crc_twin(payload: bytes, free_bits: list[int]) -> bytes:
+    """A different payload of the same length and the same CRC-32C, made by flipping a
+    combination of free_bits (bit k = bit k % 8 of byte k // 8). For equal lengths the CRC is
+    linear over GF(2): crc(a ^ d) = crc(a) ^ crc0(d); with more than 32 candidate bits some
+    non-empty combination has crc0 = 0, found by Gaussian elimination."""
+    base = P.crc32c(payload)
+
+    def flipped(k):
+        b = bytearray(payload)
+        b[k // 8] ^= 1 << (k % 8)
+        return bytes(b)
+
+    rows = [(P.crc32c(flipped(k)) ^ base, 1 << i) for i, k in enumerate(free_bits)]
+    pivots = []                                        # (bit, col, comb)
+    for col, comb in rows:
+        for bit, pcol, pcomb in pivots:
+            if col >> bit & 1:
+                col, comb = col ^ pcol, comb ^ pcomb
+        if col == 0:
+            out = bytearray(payload)
+            for i, k in enumerate(free_bits):
+                if comb >> i & 1:
+                    out[k // 8] ^= 1 << (k % 8)
+            return bytes(out)
+        pivots.append((col.bit_length() - 1, col, comb))
+    raise AssertionError("no combination found")
+
+
+def test_a_reused_id_with_an_equal_crc_is_not_taken_for_a_retry(dev):
+    """Two different set_params blocks with one CRC-32C, sent with one request id: the
+    second is applied (or refused), never acked and ignored."""
+    a = _params_example()
+    raw_a = _pack(a)
+    # the 8 low mantissa bits of each accel bias (bytes 36..47) and the bits of cal_id (156..159):
+    # any combination leaves a valid block
+    bits = [(36 + 4 * k) * 8 + j for k in range(3) for j in range(8)] + [156 * 8 + j for j in range(32)]
+    raw_b = _crc_twin(raw_a, bits)
+    assert raw_b != raw_a and P.crc32c(raw_b) == P.crc32c(raw_a)
+    b = Params.from_values(Params.STRUCT.unpack(raw_b))
+    PR.validate(b)
+    assert raw_b[36:48] != raw_a[36:48]                # a float field differs, not only the id
+    first = _raw_command(dev, P.encode(P.gen.SetParams(params=a), seq=4343))
+    second = _raw_command(dev, P.encode(P.gen.SetParams(params=b), seq=4343))
+    assert first.error == Error.OK and second is not None
+    active = _pack(dev.get_params(ParamsWhich.ACTIVE).params)
+    assert active == (raw_b if second.error == Error.OK else raw_a)
+
+
+def test_a_nack_in_between_does_not_answer_a_retry(dev):
+    """A frame nacked before it runs replaces the stored reply; a retry of the command before
+    it gets that command's own reply, not the nack."""
+    ping = P.encode(P.gen.Ping(nonce=0x12345678), seq=5151)
+    assert _raw_command(dev, ping).value == 0x12345678
+    raw = P.HEADER.pack(1, MsgType.PING, 5152, 0) + b"\x01\x02"
+    short = P.cobs.encode(raw + P.crc32c(raw).to_bytes(4, "little")) + b"\0"
+    assert _raw_command(dev, short).error == Error.BAD_LENGTH
+    again = _raw_command(dev, ping)
+    assert again is not None and again.error == Error.OK and again.value == 0x12345678
+
+
 # ---------------------------------------------------------------- parameters
 def test_saved_parameters_survive_a_restart_bit_exactly(vb):
     p = _params_example(scale=2.0)
@@ -239,12 +299,29 @@ def test_saved_parameters_survive_a_restart_bit_exactly(vb):
         assert _pack(d.get_params(ParamsWhich.STORED).params) == _pack(p)
 
 
+def test_saving_an_unchanged_block_touches_no_flash(vb, dev):
+    """Flash wear: 1,000 saves of the block already stored perform no flash operation after the
+    first and keep its generation; a changed block is still saved."""
+    p = _params_example()
+    dev.set_params(p)
+    gen = dev.save_params()
+    ops = vb.flash_ops()
+    for _ in range(1000):
+        assert dev.save_params() == gen
+    assert vb.flash_ops() == ops
+    assert _pack(dev.get_params(ParamsWhich.STORED).params) == _pack(p)
+    dev.set_params(_params_example(scale=-1.0))
+    assert dev.save_params() == gen + 1
+    assert vb.flash_ops() > ops
+
+
 def test_power_cut_at_every_step_of_a_save_leaves_a_valid_boot(vb):
     old, new = _params_example(1.0), _params_example(-1.0)
     with _connect(vb) as d:
         d.set_params(old)
         d.save_params()
-        before = vb.flash_ops()
+        d.set_params(new)                          # a different block: a real save (an unchanged
+        before = vb.flash_ops()                    # one touches no flash)
         d.save_params()
         ops_per_save = vb.flash_ops() - before
     assert ops_per_save >= 3
@@ -301,7 +378,7 @@ def test_invalid_parameters_are_refused_and_never_reach_flash(vb, dev, field, va
         dev.set_params(bad)
     assert e.value.code == code
     assert _pack(dev.get_params(ParamsWhich.ACTIVE).params) == _pack(good)
-    assert dev.save_params() == gen + 1
+    assert dev.save_params() == gen                    # the same block again: nothing written
     assert _pack(dev.get_params(ParamsWhich.STORED).params) == _pack(good)
 
 

@@ -202,6 +202,13 @@ def record_value_leaves(sp: "Spec", rec: dict):
     return out
 
 
+def f32_hex(v) -> str:
+    """The float32 nearest to v (rounded once, from the double), as an exact hexadecimal literal:
+    C reads it into the same float as Python's float.fromhex, so both sides hold one value."""
+    import struct
+    return struct.unpack("<f", struct.pack("<f", float(v)))[0].hex()
+
+
 def c_name(s: str) -> str:
     return s.upper()
 
@@ -223,12 +230,15 @@ def gen_c_header(sp: Spec) -> str:
          f"#define IB_MAX_FRAME {max_frame}u /* header + payload + CRC, before COBS */",
          f"#define IB_MAX_ENCODED ({max_frame}u + ({max_frame}u / 254u) + 1u) /* COBS, without the 0x00 */",
          f"#define IB_PARAM_BLOCK_VERSION {p['param_block_version']}u",
+         "/* longest command payload (commands have fixed layouts): what the retry cache keeps */",
+         f"#define IB_MAX_COMMAND_PAYLOAD {max(sp.size(m) for m in sp.messages if m['dir'] == 'h2d')}u",
          "/* start_stream rates (SPEC.md, Streaming) */",
          f"#define IB_STREAM_RATES_HZ {{{', '.join(f'{r}u' for r in p['stream_rates_hz'])}}}",
          f"#define IB_STREAM_RATES_COUNT {len(p['stream_rates_hz'])}u", "",
          "/* Parameter limits (protocol/imubench.toml [limits]). */"]
     for k, v in sp.limits.items():
-        L.append(f"#define IB_LIMIT_{c_name(k)} {float(v)!r}f")
+        lit = f"{f32_hex(v)}f" if v >= 0 else f"({f32_hex(v)}f)"
+        L.append(f"#define IB_LIMIT_{c_name(k)} {lit} /* {v} as float32 */")
     L.append("")
     for e in sp.enums:
         L.append(f"/* {e.get('doc', e['name'])} */")
@@ -574,7 +584,11 @@ def gen_python(sp: Spec) -> str:
          f"PARAM_BLOCK_VERSION = {p['param_block_version']}",
          f"STREAM_RATES_HZ = {tuple(p['stream_rates_hz'])!r}  # start_stream rates (SPEC.md, Streaming)", "",
          "# Parameter limits (protocol/imubench.toml [limits]); the device enforces the same.",
-         "LIMITS = {" + ", ".join(f"'{k}': {float(v)!r}" for k, v in sp.limits.items()) + "}", ""]
+         "LIMITS = {" + ", ".join(f"'{k}': {float(v)!r}" for k, v in sp.limits.items()) + "}",
+         "# The same limits as the float32 values the device compares with, bit for bit (the C",
+         "# constants are these hexadecimal literals): imubench.wire.params checks in float32 with them.",
+         "LIMITS_F32 = {" + ", ".join(f"'{k}': float.fromhex('{f32_hex(v)}')" for k, v in sp.limits.items()) + "}",
+         ""]
     for e in sp.enums:
         L.append(f"class {camel(e['name'])}(enum.IntEnum):")
         if e.get("doc"):

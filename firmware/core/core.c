@@ -4,7 +4,6 @@
 #include <math.h>
 #include <string.h>
 
-#include "crc32c.h"
 #include "param_store.h"
 #include "wire.h"
 
@@ -76,7 +75,7 @@ static int invert3(const float m[9], float inv[3][3])
     float a = m[0], b = m[1], cc = m[2], d = m[3], e = m[4], f = m[5], g = m[6], h = m[7], i = m[8];
     float A = e * i - f * h, B = -(d * i - f * g), C = d * h - e * g;
     float det = a * A + b * B + cc * C;
-    if (!(fabsf(det) > 1e-6f) || !isfinite(det)) {
+    if (!(fabsf(det) > IB_LIMIT_M_DET_MIN) || !isfinite(det)) {
         return -1;
     }
     float r = 1.0f / det;
@@ -548,6 +547,10 @@ static void reply(ib_core_t *c, uint16_t rid, uint8_t command, uint8_t error, ui
                   uint8_t data_type, size_t data_len)
 {
     c->last_reply_n = 0;
+    /* the stored reply now answers this frame: until on_frame records the command it ran,
+     * nothing may be answered from it (a nacked frame after a command must not make a retry
+     * of that command receive this nack) */
+    c->last_rid_valid = 0;
     if (data_type) {
         c->last_reply_len[c->last_reply_n] = (uint16_t)encode_msg(c, data_type, data_len, c->last_reply[c->last_reply_n]);
         c->last_reply_n++;
@@ -837,16 +840,24 @@ static void on_frame(ib_core_t *c, int status, const ib_frame_t *f)
         reply(c, f->seq, f->type, IB_ERROR_UNKNOWN_COMMAND, 0, 0, 0);
         return;
     }
-    /* a retry is the same frame again (same request id and content): answer, do not run */
-    uint32_t crc = ib_crc32c(0, f->payload, f->payload_len) ^ ((uint32_t)f->type << 24);
-    if (c->last_rid_valid && f->seq == c->last_rid && crc == c->last_cmd_crc) {
+    /* a retry is the same command again: same request id, type and payload byte for byte
+     * (not a checksum of them: two different payloads can share any checksum). Answer it
+     * from the stored reply, do not run it again. */
+    if (c->last_rid_valid && f->seq == c->last_rid && f->type == c->last_cmd_type &&
+        f->payload_len == c->last_cmd_len && memcmp(f->payload, c->last_cmd_payload, f->payload_len) == 0) {
         c->reply_pending = c->last_reply_n;
         return;
     }
     execute(c, f);
-    c->last_rid = f->seq;
-    c->last_cmd_crc = crc;
-    c->last_rid_valid = 1;
+    /* commands have fixed layouts no longer than IB_MAX_COMMAND_PAYLOAD (the length check ran
+     * before); anything longer is not remembered, so it can never be taken for a retry */
+    c->last_rid_valid = f->payload_len <= sizeof c->last_cmd_payload;
+    if (c->last_rid_valid) {
+        c->last_rid = f->seq;
+        c->last_cmd_type = f->type;
+        c->last_cmd_len = (uint16_t)f->payload_len;
+        memcpy(c->last_cmd_payload, f->payload, f->payload_len);
+    }
 }
 
 /* -------------------------------------------------------------------- boot */

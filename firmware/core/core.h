@@ -68,9 +68,13 @@ typedef struct ib_core {
     uint16_t last_reply_len[2];
     uint8_t last_reply_n;
     uint8_t reply_pending;        /* reply frames not yet handed to the link */
+    /* the last executed command, whole, to recognise a retry by content (SPEC.md, Retries):
+     * a checksum would let two different commands with one id pass as the same */
     uint8_t last_rid_valid;
     uint16_t last_rid;            /* request id of the last executed command */
-    uint32_t last_cmd_crc;        /* and a checksum of its type and payload */
+    uint8_t last_cmd_type;        /* its type */
+    uint16_t last_cmd_len;        /* its payload length */
+    uint8_t last_cmd_payload[IB_MAX_COMMAND_PAYLOAD]; /* and its payload, byte for byte */
     uint8_t reboot_pending;
 
     ib_msg_stats_t stats;

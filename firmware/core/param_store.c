@@ -335,6 +335,25 @@ static ib_ps_status_t ps_verify_range(const ib_flash_if_t *fl, uint32_t base, co
     return IB_PS_OK;
 }
 
+/* IB_PS_OK when the payload of the (valid) record in `slot` equals payload[0 .. len),
+ * IB_PS_ERR_VERIFY when it differs, IB_PS_ERR_FLASH_READ when it cannot be read. */
+static ib_ps_status_t ps_same_payload(const ib_flash_if_t *fl, int slot, const uint8_t *payload, size_t len)
+{
+    uint8_t buf[PS_READ_CHUNK];
+    const uint32_t base = fl->slot_addr[slot] + IB_PS_HEADER_SIZE;
+    for (size_t off = 0; off < len;) {
+        size_t n = len - off < sizeof buf ? len - off : sizeof buf;
+        if (fl->read(fl->ctx, base + (uint32_t)off, buf, n) != IB_FLASH_OK) {
+            return IB_PS_ERR_FLASH_READ;
+        }
+        if (memcmp(buf, payload + off, n) != 0) {
+            return IB_PS_ERR_VERIFY;
+        }
+        off += n;
+    }
+    return IB_PS_OK;
+}
+
 /* Make sure a half-written / unverified record in `slot` can never validate: zero its
  * CRC unit (NOR only clears bits); if that is refused or not enough, erase the slot. The
  * other slot, holding the previous record, is not touched. */
@@ -374,7 +393,24 @@ static ib_ps_status_t ps_write(const ib_flash_if_t *fl, uint16_t payload_version
     if ((flags & IB_PS_FLAG_CLEARED) != 0u && sc.newest >= 0 &&
         (sc.hdr[sc.newest].flags & IB_PS_FLAG_CLEARED) != 0u) {
         ps_info_record(info, sc.newest, &sc.hdr[sc.newest]); /* already cleared: no wear */
+        if (info != NULL) {
+            info->unchanged = true;
+        }
         return IB_PS_OK;
+    }
+    if (flags == 0u && sc.newest >= 0 && sc.hdr[sc.newest].flags == 0u &&
+        sc.hdr[sc.newest].payload_version == payload_version && sc.hdr[sc.newest].payload_len == len) {
+        ib_ps_status_t same = ps_same_payload(fl, sc.newest, (const uint8_t *)payload, len);
+        if (same == IB_PS_OK) {
+            ps_info_record(info, sc.newest, &sc.hdr[sc.newest]); /* already stored: no wear */
+            if (info != NULL) {
+                info->unchanged = true;
+            }
+            return IB_PS_OK;
+        }
+        if (same == IB_PS_ERR_FLASH_READ) {
+            return same; /* never overwrite what we cannot see */
+        }
     }
 
     const int target = sc.newest < 0 ? 0 : 1 - sc.newest;

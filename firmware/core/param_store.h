@@ -90,6 +90,8 @@ typedef struct {
     uint16_t payload_version;          /* its payload version */
     uint16_t payload_len;              /* its payload length in bytes */
     bool cleared;                      /* it is a "cleared" (factory reset) record */
+    bool unchanged;                    /* save/clear: the current record already held it;
+                                          nothing was erased or programmed */
     ib_ps_slot_state_t slot_state[2];  /* both slots as found (save/clear: before writing) */
     uint32_t slot_generation[2];       /* generation of each VALID slot, else 0 */
 } ib_ps_info_t;
@@ -115,7 +117,12 @@ ib_ps_status_t ib_ps_load(const ib_flash_if_t *fl, uint16_t expected_version, vo
                           size_t capacity, ib_ps_info_t *info);
 
 /*
- * Store a new record (generation = current + 1) in the slot not holding the current one:
+ * A save whose payload version and payload equal the current record's (byte for byte, read
+ * back from flash) changes nothing: no erase, no program, IB_PS_OK with info.unchanged and the
+ * current record's slot and generation (flash wear: saving the same block again costs nothing).
+ * Likewise a clear when the current record is already a cleared one.
+ *
+ * Otherwise: store a new record (generation = current + 1) in the slot not holding the current one:
  * erase, program header+payload, read back, program the CRC unit, read back the whole
  * record. On any error the previous record stays intact and current (a half-written new
  * record is invalidated). `info` (may be NULL) reports the slot and generation written.

@@ -12,22 +12,25 @@
 #define IB_MAX_FRAME 268u /* header + payload + CRC, before COBS */
 #define IB_MAX_ENCODED (268u + (268u / 254u) + 1u) /* COBS, without the 0x00 */
 #define IB_PARAM_BLOCK_VERSION 1u
+/* longest command payload (commands have fixed layouts): what the retry cache keeps */
+#define IB_MAX_COMMAND_PAYLOAD 160u
 /* start_stream rates (SPEC.md, Streaming) */
 #define IB_STREAM_RATES_HZ {4000u, 2000u, 1000u, 800u, 500u, 400u, 250u, 200u, 160u, 125u, 100u, 80u, 50u, 40u, 25u, 20u}
 #define IB_STREAM_RATES_COUNT 16u
 
 /* Parameter limits (protocol/imubench.toml [limits]). */
-#define IB_LIMIT_M_DIAG_MIN 0.5f
-#define IB_LIMIT_M_DIAG_MAX 1.5f
-#define IB_LIMIT_M_OFFDIAG_MAX 0.2f
-#define IB_LIMIT_M_COND_MAX 6.0f
-#define IB_LIMIT_ACCEL_BIAS_MAX_MPS2 9.80665f
-#define IB_LIMIT_GYRO_BIAS_MAX_RAD_S 0.5236f
-#define IB_LIMIT_ACCEL_BIAS_TC_MAX_MPS2_PER_C 0.01f
-#define IB_LIMIT_GYRO_BIAS_TC_MAX_RAD_S_PER_C 0.001f
-#define IB_LIMIT_SCALE_TC_MAX_PER_C 0.001f
-#define IB_LIMIT_T_REF_MIN_C -40.0f
-#define IB_LIMIT_T_REF_MAX_C 125.0f
+#define IB_LIMIT_M_DIAG_MIN 0x1.0000000000000p-1f /* 0.5 as float32 */
+#define IB_LIMIT_M_DIAG_MAX 0x1.8000000000000p+0f /* 1.5 as float32 */
+#define IB_LIMIT_M_OFFDIAG_MAX 0x1.99999a0000000p-3f /* 0.2 as float32 */
+#define IB_LIMIT_M_DET_MIN 0x1.0c6f7a0000000p-20f /* 1e-06 as float32 */
+#define IB_LIMIT_M_COND_MAX 0x1.8000000000000p+2f /* 6.0 as float32 */
+#define IB_LIMIT_ACCEL_BIAS_MAX_MPS2 0x1.39d0140000000p+3f /* 9.80665 as float32 */
+#define IB_LIMIT_GYRO_BIAS_MAX_RAD_S 0x1.0c154c0000000p-1f /* 0.5236 as float32 */
+#define IB_LIMIT_ACCEL_BIAS_TC_MAX_MPS2_PER_C 0x1.47ae140000000p-7f /* 0.01 as float32 */
+#define IB_LIMIT_GYRO_BIAS_TC_MAX_RAD_S_PER_C 0x1.0624de0000000p-10f /* 0.001 as float32 */
+#define IB_LIMIT_SCALE_TC_MAX_PER_C 0x1.0624de0000000p-10f /* 0.001 as float32 */
+#define IB_LIMIT_T_REF_MIN_C (-0x1.4000000000000p+5f) /* -40.0 as float32 */
+#define IB_LIMIT_T_REF_MAX_C 0x1.f400000000000p+6f /* 125.0 as float32 */
 
 /* Error codes carried in ack.error (0 = acknowledged; anything else is a nack). */
 enum ib_error {

@@ -500,6 +500,40 @@ static void test_generations_alternate(void)
     CHECK_EQ_INT(s->erase_calls, 7);
 }
 
+/* Flash wear: saving the block the store already holds changes nothing (no erase, no
+ * program), says so, and keeps the generation; a different block is still saved; a payload of
+ * another version or length is not taken for the same. */
+static void test_unchanged_save_does_not_touch_flash(void)
+{
+    sim_t *s = &g_sim;
+    sim_init(s, &CFG_F1);
+    ib_flash_if_t f = sim_if(s);
+    ib_ps_info_t info;
+    fill_payload(g_pa, 160u, 7u);
+    fill_payload(g_pb, 160u, 8u);
+    CHECK_EQ_INT(ib_ps_save(&f, VER, g_pa, 160u, &info), IB_PS_OK);
+    CHECK(!info.unchanged);
+    const unsigned long erases = s->erase_calls, programs = s->program_calls;
+    for (int i = 0; i < 1000; i++) {
+        CHECK_EQ_INT(ib_ps_save(&f, VER, g_pa, 160u, &info), IB_PS_OK);
+    }
+    CHECK(info.unchanged);
+    CHECK_EQ_INT(info.generation, 1u);
+    CHECK_EQ_INT(info.slot, 0);
+    CHECK_EQ_INT(s->erase_calls, erases);
+    CHECK_EQ_INT(s->program_calls, programs);
+    CHECK_EQ_INT(ib_ps_save(&f, VER, g_pb, 160u, &info), IB_PS_OK); /* changed: saved */
+    CHECK(!info.unchanged);
+    CHECK_EQ_INT(info.generation, 2u);
+    CHECK_EQ_INT(s->erase_calls, erases + 1u);
+    CHECK_EQ_INT(ib_ps_save(&f, (uint16_t)(VER + 1u), g_pb, 160u, &info), IB_PS_OK); /* other version */
+    CHECK(!info.unchanged);
+    CHECK_EQ_INT(info.generation, 3u);
+    CHECK_EQ_INT(ib_ps_save(&f, VER, g_pb, 159u, &info), IB_PS_OK); /* other length */
+    CHECK(!info.unchanged);
+    CHECK_EQ_INT(info.generation, 4u);
+}
+
 static void test_load_picks_newer(void)
 {
     sim_t *s = &g_sim;
@@ -1142,6 +1176,7 @@ int main(void)
     RUN(test_roundtrip);
     RUN(test_layout_matches_doc);
     RUN(test_generations_alternate);
+    RUN(test_unchanged_save_does_not_touch_flash);
     RUN(test_load_picks_newer);
     RUN(test_generation_wraparound);
     RUN(test_bitflip_falls_back);

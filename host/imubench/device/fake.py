@@ -81,6 +81,7 @@ class FakeDevice:
         self.sample_index = 0
         self.stream_t0 = 0.0
         self.last_rid: int | None = None
+        self.last_command: tuple | None = None   # (request id, type, payload) of the last command run
         self.last_reply: list[bytes] = []
         self.stats = dict(frames_sent=0, frames_dropped=0, samples_produced=0, samples_dropped=0,
                           spi_errors=0, sensor_faults=0, bad_commands=0, rx_frame_errors=0)
@@ -187,14 +188,16 @@ class FakeDevice:
         if f.type not in P.gen.COMMANDS:
             self._reply_all(f.seq, f.type, [], Error.UNKNOWN_COMMAND)
             return
-        if f.seq == self.last_rid and self.last_reply:
-            for fr in self.last_reply:     # a retry: answer again, do not run twice
+        command = (f.seq, f.type, bytes(f.payload))
+        if command == self.last_command and self.last_reply:
+            for fr in self.last_reply:     # a retry (same id, type, payload): answer again, do not run twice
                 self._maybe_send_ack(fr)
             return
         msg = P.decode_message(f.type, f.payload)
         self.commands_executed.append(f.type)
         data, err, value = self._execute(f.type, msg, f.seq)
         self._reply_all(f.seq, f.type, data, err, value)
+        self.last_command = command
         if f.type == MsgType.REBOOT and err == Error.OK:
             self._boot()
             self._send(b"\0" + self._frame(self._info(0)))
@@ -205,6 +208,7 @@ class FakeDevice:
         if err != Error.OK:
             self.stats["bad_commands"] += 1
         self.last_rid, self.last_reply = rid, frames
+        self.last_command = None           # set by the caller once it ran a command
         for fr in frames:
             self._maybe_send_ack(fr)
 

@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from imubench.wire.protocol_gen import LIMITS, Error, Params
+from imubench.wire.protocol_gen import LIMITS, LIMITS_F32, Error, Params
 
 
 def identity() -> Params:
@@ -91,40 +91,77 @@ class InvalidParams(ValueError):
         self.code = code
 
 
-def _check_triad(name: str, t: Triad, bias_max: float, bias_tc_max: float) -> None:
-    """The device's checks, in the device's order: conditioning, then each limit."""
-    L = LIMITS
-    det = np.linalg.det(t.m)
-    if det == 0.0 or not np.isfinite(det):
-        raise InvalidParams(Error.PARAM_ILL_CONDITIONED, f"{name} M is singular")
-    cond = np.linalg.norm(t.m) * np.linalg.norm(np.linalg.inv(t.m))
-    if cond > L["m_cond_max"]:
+_F32 = np.float32
+
+
+def _invert3_f32(m) -> tuple | None:
+    """M⁻¹ of a row-major 3×3 matrix exactly as the device computes it (core.c invert3): the
+    same float32 operations in the same order, so the same roundings, overflows and NaNs.
+    None when the device calls M singular (|det| ≤ m_det_min, or det not finite)."""
+    a, b, cc, d, e, f, g, h, i = m
+    A = e * i - f * h
+    B = -(d * i - f * g)
+    C = d * h - e * g
+    det = a * A + b * B + cc * C
+    if not (abs(det) > _F32(LIMITS_F32["m_det_min"])) or not np.isfinite(det):
+        return None
+    r = _F32(1.0) / det
+    return (A * r, -(b * i - cc * h) * r, (b * f - cc * e) * r,
+            B * r, (a * i - cc * g) * r, -(a * f - cc * d) * r,
+            C * r, -(a * h - b * g) * r, (a * e - b * d) * r)
+
+
+def _check_triad(name: str, m, b, btc, stc, t_ref, bias_max: float, bias_tc_max: float) -> None:
+    """The device's checks of one triad (core.c check_triad), in its order and in float32 with
+    the float32 limits of the definition (LIMITS_F32): conditioning, then each limit."""
+    L = LIMITS_F32
+    inv = _invert3_f32(m)
+    if inv is None:
+        raise InvalidParams(Error.PARAM_ILL_CONDITIONED, f"{name} M is singular (|det M| ≤ {LIMITS['m_det_min']})")
+    fm = fi = _F32(0.0)
+    for k in range(9):
+        fm = fm + m[k] * m[k]
+        fi = fi + inv[k] * inv[k]
+    cond_max = _F32(L["m_cond_max"])
+    if fm * fi > cond_max * cond_max:
         raise InvalidParams(Error.PARAM_ILL_CONDITIONED,
-                            f"{name} M condition ||M||·||M⁻¹|| = {cond:.3g} > {L['m_cond_max']}")
-    d = np.diag(t.m)
-    if np.any(d < L["m_diag_min"]) or np.any(d > L["m_diag_max"]):
-        raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} scale (diagonal of M) {d} outside "
-                            f"[{L['m_diag_min']}, {L['m_diag_max']}]")
-    off = t.m[~np.eye(3, dtype=bool)]
-    if np.any(np.abs(off) > L["m_offdiag_max"]):
-        raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} cross-axis term above {L['m_offdiag_max']}")
-    if np.any(np.abs(t.b) > bias_max):
-        raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} bias {t.b} above {bias_max} per axis")
-    if np.any(np.abs(t.bias_tc) > bias_tc_max):
-        raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} bias temperature coefficient above {bias_tc_max}")
-    if np.any(np.abs(t.scale_tc) > L["scale_tc_max_per_c"]):
-        raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} scale temperature coefficient above {L['scale_tc_max_per_c']}")
-    if not L["t_ref_min_c"] <= t.t_ref_c <= L["t_ref_max_c"]:
-        raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} reference temperature {t.t_ref_c} °C out of range")
+                            f"{name} M condition ||M||·||M⁻¹|| = {float(np.sqrt(fm * fi)):.3g} > {LIMITS['m_cond_max']}")
+    for r in range(3):
+        for k in range(3):
+            v = m[r * 3 + k]
+            if r == k and (v < _F32(L["m_diag_min"]) or v > _F32(L["m_diag_max"])):
+                raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} scale M[{r}][{k}] = {float(v)!r} outside "
+                                    f"[{LIMITS['m_diag_min']}, {LIMITS['m_diag_max']}]")
+            if r != k and abs(v) > _F32(L["m_offdiag_max"]):
+                raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} cross-axis term M[{r}][{k}] = {float(v)!r} "
+                                    f"above {LIMITS['m_offdiag_max']} in magnitude")
+    for k in range(3):
+        if abs(b[k]) > _F32(bias_max):
+            raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} bias[{k}] = {float(b[k])!r} above {bias_max} in magnitude")
+        if abs(btc[k]) > _F32(bias_tc_max):
+            raise InvalidParams(Error.PARAM_OUT_OF_RANGE,
+                                f"{name} bias temperature coefficient[{k}] = {float(btc[k])!r} above {bias_tc_max}")
+        if abs(stc[k]) > _F32(L["scale_tc_max_per_c"]):
+            raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} scale temperature coefficient[{k}] = "
+                                f"{float(stc[k])!r} above {LIMITS['scale_tc_max_per_c']}")
+    if t_ref < _F32(L["t_ref_min_c"]) or t_ref > _F32(L["t_ref_max_c"]):
+        raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} reference temperature {float(t_ref)!r} °C outside "
+                            f"[{LIMITS['t_ref_min_c']}, {LIMITS['t_ref_max_c']}]")
 
 
 def validate(p: Params) -> None:
     """Raise InvalidParams (with the error code the device would nack with) unless the
-    block is acceptable. Checks in the device's order: finite, then each triad."""
-    # values as the device sees them: float32
-    vals = np.array([v for v in p.values() if isinstance(v, float)], dtype=np.float32)
-    if not np.all(np.isfinite(vals)):
+    block is acceptable: the device's checks (core.c ib_core_check_params), in its order, on the
+    values as the device holds them (float32) and in float32 arithmetic, so that host and device
+    give the same verdict and the same code for every block, also at the limits."""
+    with np.errstate(all="ignore"):           # a double beyond float32 becomes ±inf, as on the wire
+        f32 = [_F32(v) for v in p.values()[:38]]
+    if not all(np.isfinite(v) for v in f32):
         raise InvalidParams(Error.PARAM_NOT_FINITE, "a parameter is NaN or infinite")
-    p32 = Params.from_values(Params.STRUCT.unpack(Params.STRUCT.pack(*p.values())))
-    _check_triad("accel", accel(p32), LIMITS["accel_bias_max_mps2"], LIMITS["accel_bias_tc_max_mps2_per_c"])
-    _check_triad("gyro", gyro(p32), LIMITS["gyro_bias_max_rad_s"], LIMITS["gyro_bias_tc_max_rad_s_per_c"])
+    am, ab, gm, gb = f32[0:9], f32[9:12], f32[12:21], f32[21:24]
+    abtc, astc, gbtc, gstc = f32[24:27], f32[27:30], f32[30:33], f32[33:36]
+    with np.errstate(all="ignore"):           # overflow to inf / NaN is part of the device's arithmetic
+        _check_triad("accel", am, ab, abtc, astc, f32[36], LIMITS_F32["accel_bias_max_mps2"],
+                     LIMITS_F32["accel_bias_tc_max_mps2_per_c"])
+        _check_triad("gyro", gm, gb, gbtc, gstc, f32[37], LIMITS_F32["gyro_bias_max_rad_s"],
+                     LIMITS_F32["gyro_bias_tc_max_rad_s_per_c"])

@@ -21,7 +21,10 @@ PARAM_BLOCK_VERSION = 1
 STREAM_RATES_HZ = (4000, 2000, 1000, 800, 500, 400, 250, 200, 160, 125, 100, 80, 50, 40, 25, 20)  # start_stream rates (SPEC.md, Streaming)
 
 # Parameter limits (protocol/imubench.toml [limits]); the device enforces the same.
-LIMITS = {'m_diag_min': 0.5, 'm_diag_max': 1.5, 'm_offdiag_max': 0.2, 'm_cond_max': 6.0, 'accel_bias_max_mps2': 9.80665, 'gyro_bias_max_rad_s': 0.5236, 'accel_bias_tc_max_mps2_per_c': 0.01, 'gyro_bias_tc_max_rad_s_per_c': 0.001, 'scale_tc_max_per_c': 0.001, 't_ref_min_c': -40.0, 't_ref_max_c': 125.0}
+LIMITS = {'m_diag_min': 0.5, 'm_diag_max': 1.5, 'm_offdiag_max': 0.2, 'm_det_min': 1e-06, 'm_cond_max': 6.0, 'accel_bias_max_mps2': 9.80665, 'gyro_bias_max_rad_s': 0.5236, 'accel_bias_tc_max_mps2_per_c': 0.01, 'gyro_bias_tc_max_rad_s_per_c': 0.001, 'scale_tc_max_per_c': 0.001, 't_ref_min_c': -40.0, 't_ref_max_c': 125.0}
+# The same limits as the float32 values the device compares with, bit for bit (the C
+# constants are these hexadecimal literals): imubench.wire.params checks in float32 with them.
+LIMITS_F32 = {'m_diag_min': float.fromhex('0x1.0000000000000p-1'), 'm_diag_max': float.fromhex('0x1.8000000000000p+0'), 'm_offdiag_max': float.fromhex('0x1.99999a0000000p-3'), 'm_det_min': float.fromhex('0x1.0c6f7a0000000p-20'), 'm_cond_max': float.fromhex('0x1.8000000000000p+2'), 'accel_bias_max_mps2': float.fromhex('0x1.39d0140000000p+3'), 'gyro_bias_max_rad_s': float.fromhex('0x1.0c154c0000000p-1'), 'accel_bias_tc_max_mps2_per_c': float.fromhex('0x1.47ae140000000p-7'), 'gyro_bias_tc_max_rad_s_per_c': float.fromhex('0x1.0624de0000000p-10'), 'scale_tc_max_per_c': float.fromhex('0x1.0624de0000000p-10'), 't_ref_min_c': float.fromhex('-0x1.4000000000000p+5'), 't_ref_max_c': float.fromhex('0x1.f400000000000p+6')}
 
 class Error(enum.IntEnum):
     """Error codes carried in ack.error (0 = acknowledged; anything else is a nack)."""
