@@ -56,3 +56,15 @@ def test_python_names_in_docs_exist(doc, name):
 @pytest.mark.parametrize("doc,path", sorted(set(_paths())))
 def test_paths_in_docs_exist(doc, path):
     assert (ROOT / path).exists(), f"{doc} names {path}, which does not exist"
+
+
+WORDS_NOBODY_CAN_LOOK_UP = ("seed paper", "spanish seed", "portuguese seed", "chinese seed", "thai seed",
+                            "the brief", "the anchors", "anchors'")
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=[d.name for d in DOCS])
+def test_docs_cite_works_not_our_private_names(doc):
+    """A reader cannot look up 'the seed paper' or 'the brief': cite authors, title and year."""
+    text = doc.read_text().lower()
+    found = [w for w in WORDS_NOBODY_CAN_LOOK_UP if w in text]
+    assert not found, f"{doc.name} says {found}"

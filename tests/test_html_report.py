@@ -67,6 +67,9 @@ def test_report_of_a_session(session_dir, tmp_path):
         assert pm(g["b_rad_s"][i], g["sigma_b_rad_s"][i], scale=180 / np.pi) in doc
     assert "x = M⁻¹·(u − b)" in doc and "M·(raw − b)" not in doc          # the model of docs/conventions.md
     assert "1.0000000" not in doc and "(not estimated)" in doc           # a bias-only gyro fits no M
+    # no internal names or raw JSON for a reader (on main: "accel_rms_mg = 1.0", "fit units", a JSON blob)
+    for internal in ("accel_rms_mg", "verify_mg", "fit units", "chi2_red", "(extra)", '{"'):
+        assert internal not in doc, internal
     for h in ("b [mg]", "b [°/s]", "b [m/s²]", "b [rad/s]"):
         assert h in doc
     for p in result["poses"]:
