@@ -30,6 +30,7 @@ import numpy as np
 
 from imubench import units as U
 from imubench.errors import ImubenchError
+from imubench.results.numbers import pm
 from imubench.wire.ids import parse_id, sn_text
 
 SCHEMA_VERSION = 1          # of the database (tables below)
@@ -646,9 +647,13 @@ def device_report(h: History, device: str) -> dict:
 
 # ------------------------------------------------------------------ text
 def _pm(v, s, dec: int, width: int = 0) -> str:
+    """value ± sigma to sigma's precision (results.numbers; `dec` decimals where no sigma)."""
     if v is None:
         return "-".rjust(width)
-    txt = f"{v:+.{dec}f}" + (f" ± {s:.{dec}f}" if s is not None and math.isfinite(s) else " (not estimated)")
+    if s is not None and math.isfinite(s) and s > 0:
+        txt = pm(v, s)
+    else:
+        txt = f"{v:+.{dec}f} (not estimated)"
     return txt.ljust(width)
 
 
