@@ -202,12 +202,14 @@ def test_bad_frames_are_nacked_or_counted(dev):
         raw = P.HEADER.pack(version, mtype, seq, 0) + payload
         return cobs.encode(raw + P.crc32c(raw).to_bytes(4, "little")) + b"\0"
 
-    assert _raw_command(dev, frame(1, 0x7E, 900, b"")).error == Error.UNKNOWN_COMMAND
-    assert _raw_command(dev, frame(1, 0x01, 901, b"\x01\x02")).error == Error.BAD_LENGTH
-    assert _raw_command(dev, frame(2, 0x01, 902, b"\0\0\0\0")).error == Error.BAD_VERSION
-    assert _raw_command(dev, frame(1, MsgType.ACK, 903, bytes(8))).error == Error.UNKNOWN_COMMAND
+    v = P.PROTOCOL_VERSION
+    assert _raw_command(dev, frame(v, 0x7E, 900, b"")).error == Error.UNKNOWN_COMMAND
+    assert _raw_command(dev, frame(v, 0x01, 901, b"\x01\x02")).error == Error.BAD_LENGTH
+    assert _raw_command(dev, frame(v + 1, 0x01, 902, b"\0\0\0\0")).error == Error.BAD_VERSION
+    assert _raw_command(dev, frame(v - 1, 0x01, 905, b"\0\0\0\0")).error == Error.BAD_VERSION   # version 1
+    assert _raw_command(dev, frame(v, MsgType.ACK, 903, bytes(8))).error == Error.UNKNOWN_COMMAND
     before = dev.stats().rx_frame_errors
-    bad = bytearray(frame(1, 0x01, 904, b"\0\0\0\0"))
+    bad = bytearray(frame(v, 0x01, 904, b"\0\0\0\0"))
     bad[5] ^= 0x10                                    # CRC no longer matches: no answer, counted
     dev.link._write(bytes(bad) + b"\x55" * 10 + b"\0")
     time.sleep(0.2)
@@ -278,7 +280,7 @@ def test_a_nack_in_between_does_not_answer_a_retry(dev):
     it gets that command's own reply, not the nack."""
     ping = P.encode(P.gen.Ping(nonce=0x12345678), seq=5151)
     assert _raw_command(dev, ping).value == 0x12345678
-    raw = P.HEADER.pack(1, MsgType.PING, 5152, 0) + b"\x01\x02"
+    raw = P.HEADER.pack(P.PROTOCOL_VERSION, MsgType.PING, 5152, 0) + b"\x01\x02"
     short = P.cobs.encode(raw + P.crc32c(raw).to_bytes(4, "little")) + b"\0"
     assert _raw_command(dev, short).error == Error.BAD_LENGTH
     again = _raw_command(dev, ping)
@@ -308,11 +310,53 @@ def test_saving_an_unchanged_block_touches_no_flash(vb, dev):
     ops = vb.flash_ops()
     for _ in range(1000):
         assert dev.save_params() == gen
+        assert dev.last_save_unchanged                       # the reply says so (protocol v2)
     assert vb.flash_ops() == ops
     assert _pack(dev.get_params(ParamsWhich.STORED).params) == _pack(p)
     dev.set_params(_params_example(scale=-1.0))
-    assert dev.save_params() == gen + 1
+    assert dev.save_params() == gen + 1 and not dev.last_save_unchanged
     assert vb.flash_ops() > ops
+
+
+def test_erases_per_slot_are_reported_and_survive_a_reboot(vb):
+    """stats.param_slot_erases: every real save erases the slot not holding the current block,
+    so the two counts grow alternately and add up to the generation; they are derived from
+    the stored generation, so a reboot keeps them; an unchanged save adds nothing."""
+    with _connect(vb) as d:
+        g0 = d.info().param_generation
+        e0 = list(d.stats().param_slot_erases)
+        assert sum(e0) == g0
+        for k in range(1, 6):
+            d.set_params(_params_example(scale=1.0 + 0.01 * k))
+            assert d.save_params() == g0 + k
+            e = list(d.stats().param_slot_erases)
+            assert sum(e) == g0 + k and abs(e[0] - e[1]) <= 1
+        d.save_params()                                       # unchanged: nothing erased
+        assert list(d.stats().param_slot_erases) == e
+        d.reboot(wait_s=5.0)
+        d.discard_buffered()
+        assert list(d.stats().param_slot_erases) == e
+
+
+def test_the_host_warns_before_a_save_that_wears_a_slot_out(vb):
+    """write_verified warns (naming the counts, the rating and the fraction) once a save would
+    take a slot past the warning fraction of its rated erase cycles."""
+    from imubench.procedures.session import wear_warning, write_verified
+    with _connect(vb) as d:
+        rated = min(d.stats().param_slot_erases) + 1           # the next save reaches it
+        assert wear_warning(d) is None                         # far below 10 000 cycles
+        assert wear_warning(d, endurance=10 * rated) is None   # below 80 % of a small rating too
+        w = wear_warning(d, endurance=rated)
+        assert w is not None and "erase cycles the flash is rated for" in w and "%" in w
+        said = []
+        import imubench.procedures.session as S
+        old = S.ERASE_ENDURANCE.copy()
+        try:
+            S.ERASE_ENDURANCE["SIM"] = rated
+            write_verified(d, _params_example(scale=1.5), say=said.append)
+        finally:
+            S.ERASE_ENDURANCE.update(old)
+        assert any(s.startswith("warning: flash wear") for s in said), said
 
 
 def test_power_cut_at_every_step_of_a_save_leaves_a_valid_boot(vb):

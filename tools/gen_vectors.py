@@ -113,7 +113,7 @@ def main() -> int:
     V.append(good("ack_ok", G.Ack(request_id=41, command=0x05, error=0, value=0), 100, 123456))
     V.append(good("ack_nack_ill_conditioned", G.Ack(request_id=42, command=0x05, error=7, value=3), 101, 123500))
     V.append(good("info", G.Info(
-        request_id=0, protocol_version=1, board=2, fw_version=(0, 3, 12), clock_source=2,
+        request_id=0, protocol_version=P.PROTOCOL_VERSION, board=2, fw_version=(0, 3, 12), clock_source=2,
         fw_build="v0.3.12-4-gabcdef0", mcu_uid=tuple(range(0x30, 0x3C)), sensors_present=0b1101,
         accel_range_g=4, accel_ids=(0xAD, 0x1D, 0xED, 0x01), gyro_pid=(0x5201, 0x5202, 0),
         gyro_sn=(0x12345678, 0x9ABCDEF0, 0), stream_state=1, param_source=1, stream_rate_hz=4000,
@@ -153,7 +153,7 @@ def main() -> int:
 
     # ---------------------------------------------------------------- bad frames
     ping = P.encode(G.Ping(nonce=0x12345678), 7, 99)
-    raw = bytearray(P.HEADER.pack(1, 0x01, 7, 99) + (0x12345678).to_bytes(4, "little"))
+    raw = bytearray(P.HEADER.pack(P.PROTOCOL_VERSION, 0x01, 7, 99) + (0x12345678).to_bytes(4, "little"))
     crc_ok = P.crc32c(bytes(raw))
 
     def frame_of(raw_bytes: bytes, crc: int | None = None) -> bytes:
@@ -178,22 +178,23 @@ def main() -> int:
     V.append(bad("too_short", frame_of(b"\x01\x01\x07"), "too_short", "3 bytes + CRC: shorter than header + CRC"))
     V.append(bad("empty_after_cobs", b"\x01\0", "too_short", "a lone COBS code byte decodes to nothing"))
     V.append(bad("cobs_code_overruns", b"\x09\x01\x02\0", "cobs", "COBS code byte points past the end"))
-    V.append(bad("unknown_type", frame_of(P.HEADER.pack(1, 0x7E, 1, 0) + b"\x00\x00\x00\x00"), "unknown_type", "type 0x7E is not defined"))
-    V.append(bad("wrong_version", frame_of(P.HEADER.pack(2, 0x01, 1, 0) + b"\x00\x00\x00\x00"), "bad_version", "version 2"))
-    V.append(bad("bad_length_ping", frame_of(P.HEADER.pack(1, 0x01, 1, 0) + b"\x01\x02\x03"), "bad_length", "ping with a 3-byte payload"))
+    V.append(bad("unknown_type", frame_of(P.HEADER.pack(P.PROTOCOL_VERSION, 0x7E, 1, 0) + b"\x00\x00\x00\x00"), "unknown_type", "type 0x7E is not defined"))
+    V.append(bad("wrong_version", frame_of(P.HEADER.pack(P.PROTOCOL_VERSION + 1, 0x01, 1, 0) + b"\x00\x00\x00\x00"),
+                 "bad_version", f"version {P.PROTOCOL_VERSION + 1}"))
+    V.append(bad("bad_length_ping", frame_of(P.HEADER.pack(P.PROTOCOL_VERSION, 0x01, 1, 0) + b"\x01\x02\x03"), "bad_length", "ping with a 3-byte payload"))
     b16 = bytearray(P.parse_frame(P.encode(G.RawBatch(header=hdr), 1, 0, records=raw_recs)[:-1]).payload)
     b16[6] = 15
-    V.append(bad("batch_count_mismatch", frame_of(P.HEADER.pack(1, 0x90, 1, 0) + bytes(b16)), "bad_length", "count says 15, 16 records follow"))
-    over = P.HEADER.pack(1, 0x90, 1, 0) + bytes([0x55]) * (P.MAX_PAYLOAD + 1)
+    V.append(bad("batch_count_mismatch", frame_of(P.HEADER.pack(P.PROTOCOL_VERSION, 0x90, 1, 0) + bytes(b16)), "bad_length", "count says 15, 16 records follow"))
+    over = P.HEADER.pack(P.PROTOCOL_VERSION, 0x90, 1, 0) + bytes([0x55]) * (P.MAX_PAYLOAD + 1)
     V.append(bad("payload_over_max", frame_of(over), "oversize", "payload of MAX_PAYLOAD+1 bytes: encoded length above MAX_ENCODED"))
-    zeros = P.HEADER.pack(1, 0x90, 1, 0) + bytes(P.MAX_PAYLOAD + 1)
+    zeros = P.HEADER.pack(P.PROTOCOL_VERSION, 0x90, 1, 0) + bytes(P.MAX_PAYLOAD + 1)
     V.append(bad("decoded_over_max", frame_of(zeros), "oversize", "encoded length within MAX_ENCODED, decoded frame one byte over MAX_FRAME"))
     V.append(bad("oversize_garbage", bytes([0x11]) * (P.MAX_ENCODED + 1) + b"\0", "oversize", "no delimiter for MAX_ENCODED+1 bytes"))
 
     # ------------------------------------------- well-formed frames whose fields break their rules
     def payload_frame(msg, seq, records=None) -> bytes:
         d = P.MESSAGES_BY_NAME[P.message_name(msg)]
-        return frame_of(P.HEADER.pack(1, d.id, seq, 0) + P.encode_message(msg, records))
+        return frame_of(P.HEADER.pack(P.PROTOCOL_VERSION, d.id, seq, 0) + P.encode_message(msg, records))
 
     one_raw = {k: v[:1] for k, v in raw_recs.items()}
     V.append(bad("batch_range_undefined", payload_frame(G.RawBatch(header=replace(hdr1, accel_range_g=7)), 210, one_raw),

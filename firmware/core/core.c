@@ -197,6 +197,7 @@ static void load_params(ib_core_t *c)
 {
     set_factory(c);
     c->param_generation = 0;
+    c->param_slot = -1;
     if (!c->board->flash) {
         return;
     }
@@ -204,6 +205,7 @@ static void load_params(ib_core_t *c)
     ib_ps_info_t info;
     ib_ps_status_t st = ib_ps_load(c->board->flash, IB_PARAM_BLOCK_VERSION, blob, sizeof blob, &info);
     c->param_generation = info.generation;
+    c->param_slot = (int8_t)info.slot;
     if (st != IB_PS_OK || info.payload_len != IB_PARAMS_SIZE) {
         return; /* none, cleared, other version: factory defaults, flagged in info */
     }
@@ -750,8 +752,9 @@ static void execute(ib_core_t *c, const ib_frame_t *f)
                                             : IB_PS_ERR_BAD_ARG;
         if (st == IB_PS_OK) {
             c->param_generation = info.generation;
+            c->param_slot = (int8_t)info.slot;
             c->param_source = IB_PARAM_SOURCE_FLASH;
-            value = info.generation;
+            value = (info.generation & ~IB_SAVE_UNCHANGED_FLAG) | (info.unchanged ? IB_SAVE_UNCHANGED_FLAG : 0u);
         } else {
             err = IB_ERROR_FLASH_ERROR;
             value = (uint32_t)(int32_t)st;
@@ -768,6 +771,7 @@ static void execute(ib_core_t *c, const ib_frame_t *f)
         if (st == IB_PS_OK || st == IB_PS_CLEARED) {
             set_factory(c);
             c->param_generation = info.generation;
+            c->param_slot = (int8_t)info.slot;
         } else {
             err = IB_ERROR_FLASH_ERROR;
             value = (uint32_t)(int32_t)st;
@@ -796,6 +800,14 @@ static void execute(ib_core_t *c, const ib_frame_t *f)
         ib_msg_stats_t s = c->stats;
         s.request_id = rid;
         s.uptime_ms = c->uptime_ms;
+        /* Every record written (save or clear) takes the next generation and goes into the
+         * slot not holding the current one, erasing it first: after generation G the slot
+         * holding it was erased (G + 1) / 2 times and the other G / 2 times. A lower bound:
+         * erases of interrupted saves and of a chip erase are not counted (SPEC.md). */
+        if (c->param_slot == 0 || c->param_slot == 1) {
+            s.param_slot_erases[c->param_slot] = (c->param_generation + 1u) / 2u;
+            s.param_slot_erases[1 - c->param_slot] = c->param_generation / 2u;
+        }
         data_type = IB_MSG_STATS;
         data_len = ib_msg_stats_pack(&s, out);
         if (m.reset) {

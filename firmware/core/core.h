@@ -41,6 +41,7 @@ typedef struct ib_core {
     ib_triad_corr_t corr_accel, corr_gyro;
     uint8_t param_source;         /* enum ib_param_source */
     uint32_t param_generation;    /* of the stored block, 0 = none */
+    int8_t param_slot;            /* flash slot holding it, -1 = none */
 
     /* stream */
     uint8_t stream_state;         /* enum ib_stream_state */

@@ -489,6 +489,7 @@ size_t ib_msg_stats_pack(const ib_msg_stats_t *v, uint8_t *out)
     n += 4;
     ib_put_u32(out + n, v->uptime_ms);
     n += 4;
+    for (size_t i = 0; i < 2u; i++, n += 4) ib_put_u32(out + n, v->param_slot_erases[i]);
     return n;
 }
 
@@ -517,6 +518,7 @@ void ib_msg_stats_unpack(const uint8_t *in, ib_msg_stats_t *v)
     n += 4;
     v->uptime_ms = ib_get_u32(in + n);
     n += 4;
+    for (size_t i = 0; i < 2u; i++, n += 4) v->param_slot_erases[i] = ib_get_u32(in + n);
     (void)n;
 }
 

@@ -5,7 +5,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#define IB_PROTOCOL_VERSION 1u
+#define IB_PROTOCOL_VERSION 2u
+#define IB_SAVE_UNCHANGED_FLAG 0x80000000u  /* save_params ack value: already stored */
 #define IB_MAX_PAYLOAD 256u
 #define IB_HEADER_SIZE 8u
 #define IB_CRC_SIZE 4u
@@ -268,7 +269,7 @@ typedef struct {
 size_t ib_msg_get_params_pack(const ib_msg_get_params_t *v, uint8_t *out);
 void ib_msg_get_params_unpack(const uint8_t *in, ib_msg_get_params_t *v);
 
-/* Write the active parameters to flash (two slots, power-cut safe). Ack value = new generation. */
+/* Write the active parameters to flash (two slots, power-cut safe). Ack value: bits 0-30 the stored generation, bit 31 set when that block was already stored and nothing was written (SAVE_UNCHANGED). */
 typedef struct {
     uint8_t unused_; /* no fields */
 } ib_msg_save_params_t;
@@ -380,9 +381,10 @@ typedef struct {
     uint32_t bad_commands; /* commands nacked */
     uint32_t rx_frame_errors; /* received frames dropped: COBS, CRC, length */
     uint32_t uptime_ms; /* [ms] */
+    uint32_t param_slot_erases[2]; /* [erases] erases of each parameter slot so far: a lower bound derived from the stored generation (SPEC.md, Parameters on the device) */
 } ib_msg_stats_t;
 
-#define IB_MSG_STATS_SIZE 40u /* fixed part of the payload */
+#define IB_MSG_STATS_SIZE 48u /* fixed part of the payload */
 size_t ib_msg_stats_pack(const ib_msg_stats_t *v, uint8_t *out);
 void ib_msg_stats_unpack(const uint8_t *in, ib_msg_stats_t *v);
 

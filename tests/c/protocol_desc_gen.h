@@ -154,6 +154,7 @@ static const ib_desc_field_t ib_msg_stats_desc[] = {
     {"bad_commands", 'u', offsetof(ib_msg_stats_t, bad_commands), 1, 4},
     {"rx_frame_errors", 'u', offsetof(ib_msg_stats_t, rx_frame_errors), 1, 4},
     {"uptime_ms", 'u', offsetof(ib_msg_stats_t, uptime_ms), 1, 4},
+    {"param_slot_erases", 'u', offsetof(ib_msg_stats_t, param_slot_erases), 2, 4},
     {NULL, 0, 0, 0, 0}
 };
 

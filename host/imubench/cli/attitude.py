@@ -10,7 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
-from imubench.cli.common import UsageError, add_port, add_sim, new_file, positive_float, stream_rate
+from imubench.cli.common import (
+    UsageError,
+    add_port,
+    add_sim,
+    new_file,
+    positive_float,
+    stream_rate,
+)
 
 
 def register(sub) -> None:

@@ -29,6 +29,7 @@ import serial
 from imubench.wire import frame as P
 from imubench.wire.decoder import DecodedFrame, SampleBlock, StreamDecoder
 from imubench.wire.protocol_gen import (
+    SAVE_UNCHANGED_FLAG,
     Ack,
     ClearParams,
     Error,
@@ -359,8 +360,12 @@ class Device:
         return self._one(GetParams(which=which), ParamsReadback)
 
     def save_params(self) -> int:
-        """Write the active parameters to flash; returns the new generation."""
-        return self._req(SaveParams(), timeout=max(self.timeout, 3.0))[0].value
+        """Write the active parameters to flash; returns the stored generation. When the block
+        was already stored the device writes nothing (no flash wear) and says so: then
+        `last_save_unchanged` is True and the generation is the one it had."""
+        value = self._req(SaveParams(), timeout=max(self.timeout, 3.0))[0].value
+        self.last_save_unchanged = bool(value & SAVE_UNCHANGED_FLAG)
+        return value & ~SAVE_UNCHANGED_FLAG
 
     def clear_params(self) -> None:
         self._req(ClearParams(), timeout=max(self.timeout, 3.0))

@@ -579,6 +579,30 @@ class Session:
         return write_verified(self.dev, new, previous=old.params, say=self.ui.say)
 
 
+# Rated erase cycles of a flash page/sector per board (the parameter slots): STM32F103 datasheet
+# (DS5319, "Flash memory endurance: 10 kcycles"); STM32F405/407 datasheet (DS8626: 10 kcycles,
+# not checked against the datasheet here); the virtual device models the F103's.
+ERASE_ENDURANCE = {"STM32F103": 10_000, "STM32F4": 10_000, "SIM": 10_000}
+WEAR_WARN_FRACTION = 0.8        # warn before a save that takes a slot past 80 % of its rating
+
+
+def wear_warning(dev: Device, fraction: float = WEAR_WARN_FRACTION, endurance: int | None = None) -> str | None:
+    """The warning to give before a save, or None: a save erases the slot not holding the
+    current block; if that takes it past `fraction` of the rated erase cycles, say so with the
+    slot, its erase count (the device's lower bound, stats.param_slot_erases) and the rating."""
+    from imubench.wire.ids import board_name
+    stats = dev.stats()
+    info = dev.info()
+    rated = endurance or ERASE_ENDURANCE.get(board_name(info.board), 10_000)
+    erases = [int(e) for e in stats.param_slot_erases]
+    after = min(erases) + 1            # the next save erases the slot not holding the current block
+    if after <= fraction * rated:
+        return None
+    return (f"flash wear: saving a changed block erases a parameter slot for at least the {after}th time (slots erased "
+            f"{erases[0]} and {erases[1]} times so far), {100 * after / rated:.0f} % of the {rated} erase cycles "
+            f"the flash is rated for (warning from {100 * fraction:.0f} %); save only when the parameters changed")
+
+
 def write_verified(dev: Device, new: Params, previous: Params | None = None,
                    say=lambda s: None, reboot_wait_s: float = 10.0) -> dict:
     """Write a parameter block and prove it took: set_params, read back bit-exactly, save,
@@ -596,8 +620,12 @@ def write_verified(dev: Device, new: Params, previous: Params | None = None,
         if _pack(dev.get_params(ParamsWhich.ACTIVE).params) != _pack(new):
             raise SessionAborted("read-back after set_params differs from what was written")
         steps.append("read back")
+        warning = wear_warning(dev)
+        if warning:
+            say(f"warning: {warning}")
         gen = dev.save_params()
-        steps.append(f"saved (generation {gen})")
+        steps.append(f"already stored, flash untouched (generation {gen})" if getattr(dev, "last_save_unchanged", False)
+                     else f"saved (generation {gen})")
         info = dev.reboot(wait_s=reboot_wait_s)
         dev.discard_buffered()
         steps.append("rebooted")

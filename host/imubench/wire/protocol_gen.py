@@ -10,8 +10,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 MAX_PAYLOAD = 256
+SAVE_UNCHANGED_FLAG = 0x80000000  # save_params ack value: the block was already stored
 HEADER_SIZE = 8
 CRC_SIZE = 4
 CRC_NAME = "crc-32c"
@@ -370,7 +371,7 @@ GetParams.STRUCT = struct.Struct(GetParams.FORMAT)
 
 @dataclass
 class SaveParams:
-    """Write the active parameters to flash (two slots, power-cut safe). Ack value = new generation."""
+    """Write the active parameters to flash (two slots, power-cut safe). Ack value: bits 0-30 the stored generation, bit 31 set when that block was already stored and nothing was written (SAVE_UNCHANGED)."""
     FORMAT = "<"
     SIZE = 0
     NVALUES = 0
@@ -580,12 +581,13 @@ class Stats:
     bad_commands: int = 0
     rx_frame_errors: int = 0
     uptime_ms: int = 0  # [ms]
-    FORMAT = "<HHIIIIIIIII"
-    SIZE = 40
-    NVALUES = 11
+    param_slot_erases: tuple = (0,) * 2  # [erases]
+    FORMAT = "<HHIIIIIIIII2I"
+    SIZE = 48
+    NVALUES = 13
 
     def values(self) -> tuple:
-        return (self.request_id, self.reserved, self.frames_sent, self.frames_dropped, self.samples_produced, self.samples_dropped, self.spi_errors, self.sensor_faults, self.bad_commands, self.rx_frame_errors, self.uptime_ms)
+        return (self.request_id, self.reserved, self.frames_sent, self.frames_dropped, self.samples_produced, self.samples_dropped, self.spi_errors, self.sensor_faults, self.bad_commands, self.rx_frame_errors, self.uptime_ms, *self.param_slot_erases)
 
     @classmethod
     def from_values(cls, v, i: int = 0) -> "Stats":
@@ -600,7 +602,8 @@ class Stats:
         bad_commands = v[i]; i += 1
         rx_frame_errors = v[i]; i += 1
         uptime_ms = v[i]; i += 1
-        return cls(request_id=request_id, reserved=reserved, frames_sent=frames_sent, frames_dropped=frames_dropped, samples_produced=samples_produced, samples_dropped=samples_dropped, spi_errors=spi_errors, sensor_faults=sensor_faults, bad_commands=bad_commands, rx_frame_errors=rx_frame_errors, uptime_ms=uptime_ms)
+        param_slot_erases = tuple(v[i:i + 2]); i += 2
+        return cls(request_id=request_id, reserved=reserved, frames_sent=frames_sent, frames_dropped=frames_dropped, samples_produced=samples_produced, samples_dropped=samples_dropped, spi_errors=spi_errors, sensor_faults=sensor_faults, bad_commands=bad_commands, rx_frame_errors=rx_frame_errors, uptime_ms=uptime_ms, param_slot_erases=param_slot_erases)
 
 Stats.STRUCT = struct.Struct(Stats.FORMAT)
 
