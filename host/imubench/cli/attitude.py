@@ -100,7 +100,7 @@ def _live(a, dev, device: dict) -> int:
         print("warning: this device has factory parameters: its \"calibrated\" output is the raw data at "
               "nominal scale (calibrate it first: imubench calibrate)", file=sys.stderr, flush=True)
     keep = a.plot is not None
-    t_all, ang_all = [], {f.name: ([], []) for f in [type("A", (), {"name": "accel"})] + filters}
+    t_all, ang_all = [], {name: ([], []) for name in ["accel"] + [f.name for f in filters]}
     n_total, t_s = 0, 0.0
     with open(a.record, "ab", buffering=0) if a.record else nullcontext() as capture, \
             open(csv_path, "w", newline="") if csv_path else nullcontext() as csv_file:

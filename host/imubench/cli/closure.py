@@ -61,8 +61,9 @@ def run(a) -> int:
     if (out / "capture.bin").exists():
         raise CommandError(f"{out / 'capture.bin'} exists",
                            f"imubench closure --analyse {out} recomputes it, or choose another --out")
-    a.on_interrupt = lambda: (f"the recording in {out} is incomplete; drive the path again with another --out"
-                              if (out / "capture.bin").exists() else "nothing was recorded")
+    recording_hint = (lambda: f"the recording in {out} is incomplete; drive the path again with another --out"
+                      if (out / "capture.bin").exists() else "nothing was recorded")
+    a.on_interrupt = recording_hint
     if a.sim:
         from imubench.device.sim import VirtualBench
         bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random")
@@ -78,8 +79,7 @@ def run(a) -> int:
             if is_factory(params):
                 raise ClosureError("the calibration to apply is the factory default (it changes nothing); "
                                    "calibrate the device first (imubench calibrate) or give --params FILE")
-            a.on_interrupt = lambda: (f"the recording in {out} is incomplete; drive the path again with another --out"
-                                      if (out / "capture.bin").exists() else "nothing was recorded")
+            a.on_interrupt = recording_hint
             res = run_closure(dev, out, params, vb, a.path, a.rest, a.rate, a.g, a.max_s)
     print(summarize(res))
     print(f"results: {out / 'closure.json'}, plot: {out / 'closure.png'}, raw capture: {out / 'capture.bin'}")

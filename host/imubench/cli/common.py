@@ -206,7 +206,7 @@ def explain(e: BaseException, cmd: str) -> tuple[str, int]:
     if kind("HistoryError"):
         return line(e, "imubench history --db PATH lists the devices a database holds"), EXIT_FAILED
     if kind("InvalidParams"):
-        return line(f"invalid parameters: {e}", "nothing was written to the device"), EXIT_FAILED
+        return line(f"invalid parameters: {e}", "nothing was written"), EXIT_FAILED
     if kind("SimError", "QemuError"):
         return line(e, "run `make sim` / `make firmware` in the source checkout, or rerun with --debug"), \
             EXIT_FAILED

@@ -105,8 +105,8 @@ def run_sim(a) -> int:
         try:
             return _until_stopped(lambda: bench.running, "the virtual device")
         except CommandError as e:
-            raise CommandError(f"the virtual device exited: {bench.log_tail(5)}",
-                               "rerun with --debug, or see its log") from e
+            last = (bench.log.strip().splitlines() or ["no log"])[-1]
+            raise CommandError(f"the virtual device exited ({last})", f"see its log {bench.log_path}") from e
 
 
 def run_qemu(a) -> int:
@@ -120,8 +120,8 @@ def run_qemu(a) -> int:
         try:
             return _until_stopped(q.alive, "QEMU")
         except CommandError as e:
-            raise CommandError(f"QEMU exited: {q.log().strip().splitlines()[-1:] or ''}",
-                               "rerun with --debug") from e
+            last = (q.log().strip().splitlines() or ["no output"])[-1]
+            raise CommandError(f"QEMU exited ({last})", "rerun with --debug") from e
 
 
 def run_fake(a) -> int:

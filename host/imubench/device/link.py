@@ -301,6 +301,7 @@ class Device:
         self.timeout = timeout
         self.retries = retries
         self._stream_mode: StreamMode | None = None
+        self.last_save_unchanged = False      # the last save_params found the block already stored
         self._leftover: dict[bool, SampleBlock] = {}
 
     @classmethod

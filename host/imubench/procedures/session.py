@@ -624,7 +624,7 @@ def write_verified(dev: Device, new: Params, previous: Params | None = None,
         if warning:
             say(f"warning: {warning}")
         gen = dev.save_params()
-        steps.append(f"already stored, flash untouched (generation {gen})" if getattr(dev, "last_save_unchanged", False)
+        steps.append(f"already stored, flash untouched (generation {gen})" if dev.last_save_unchanged
                      else f"saved (generation {gen})")
         info = dev.reboot(wait_s=reboot_wait_s)
         dev.discard_buffered()

@@ -25,17 +25,20 @@ def result_json(res: dict, extra: dict | None = None) -> dict:
 VERDICT_FLOORS = 3.0      # closes within this many white-noise floors (1 sigma): consistent with noise
 
 
-def verdict(res: dict) -> tuple[bool, str]:
-    """(passed, words): whether the calibrated integration with the gyro bias zeroed at rest
-    closes within VERDICT_FLOORS white-noise floors, and what that means."""
-    z, floor = res["after_rest_bias"], res["noise_floor"]["sigma_distance_m"]
-    k = z.distance_m / floor if floor > 0 else math.inf
+def verdict_of(distance_m: float, floor_m: float) -> tuple[bool, str]:
+    """(passed, words): whether a calibrated integration (gyro bias zeroed at rest) that ends
+    distance_m from the start closes within VERDICT_FLOORS white-noise floors (floor_m, 1 sigma),
+    and what that means. The console and the HTML report both say it this way."""
+    k = distance_m / floor_m if floor_m > 0 else math.inf
+    words = f"calibrated, the path closes to {distance_m:.2g} m = {k:.1f}x the white-noise floor ({floor_m:.2g} m)"
     if k <= VERDICT_FLOORS:
-        return True, (f"PASS: calibrated, the path closes to {z.distance_m:.2g} m = {k:.1f}x the white-noise floor "
-                      f"({floor:.2g} m): no calibration error shows at this path length")
-    return False, (f"ABOVE THE NOISE: calibrated, the path closes to {z.distance_m:.2g} m = {k:.1f}x the "
-                   f"white-noise floor ({floor:.2g} m): a calibration error or a moving gyro bias remains "
-                   "(docs/closure.md)")
+        return True, f"PASS: {words}: no calibration error shows at this path length"
+    return False, f"ABOVE THE NOISE: {words}: a calibration error or a moving gyro bias remains (docs/closure.md)"
+
+
+def verdict(res: dict) -> tuple[bool, str]:
+    """verdict_of a closure_from_block result."""
+    return verdict_of(res["after_rest_bias"].distance_m, res["noise_floor"]["sigma_distance_m"])
 
 
 def summarize(res: dict) -> str:

@@ -86,16 +86,6 @@ def _num(x, fmt="{:.6g}") -> str:
     return "–" if not math.isfinite(v) else fmt.format(v)
 
 
-def _pm(v, s, fmt="{:+.6g}", sfmt="{:.2g}", scale=1.0) -> str:
-    v, s = _f(v) * scale, _f(s) * scale
-    if not math.isfinite(v):
-        return "–"
-    out = fmt.format(v)
-    if math.isfinite(s):
-        out += " ± " + sfmt.format(abs(s))
-    return out
-
-
 class Refused(ValueError):
     """A file the report will not embed; the message says why."""
 
@@ -197,12 +187,6 @@ def _version() -> str:
         return version("imubench")
     except Exception:  # noqa: BLE001 - not installed as a distribution
         return "unknown"
-
-
-def _kv(d: dict) -> str:
-    rows = [[esc(k), f'<span class="mono">{esc(json.dumps(v) if not isinstance(v, str) else v)}</span>']
-            for k, v in d.items()]
-    return _table(["key", "value"], rows, left=2)
 
 
 def _foreign(data, session_uid: str | None, what: str) -> tuple[str | None, str]:
@@ -353,7 +337,7 @@ def _before_after_html(result: dict) -> str:
         rows.append([esc(n), esc(_num(ns[k] if k < len(ns) else None, "{:.0f}")),
                      esc(f"{1 + b / 1000:.5f}") if math.isfinite(b) else "–",
                      esc(f"{1 + a / 1000:.5f}") if math.isfinite(a) else "–",
-                     esc(_num(a - b, "{:+.3f}")), esc(_pm(a, s, "{:+.4f}", "{:.4f}")),
+                     esc(_num(a - b, "{:+.3f}")), esc(_pm_sigma(a, s)),
                      esc(_num(temps[k] if k < len(temps) else None, "{:.2f}"))])
     out = _table(["pose", "samples", "|a| before [g]", "|a| after [g]", "Δ after − before [mg]",
                   "after: |a| − g ± 1σ [mg]", "temp [°C]"], rows)
@@ -369,7 +353,7 @@ def _before_after_html(result: dict) -> str:
         for n, a, v in zip(vnames, vafter, result.get("verification") or []):
             ok = "" if vtol is None or not math.isfinite(a) else ("ok" if abs(a) <= vtol else "FAIL")
             vrows.append([esc(n), esc(f"{1 + a / 1000:.5f}") if math.isfinite(a) else "–",
-                          esc(_num(a, "{:+.4f}")), esc(_num(v.get("angle_from_plan_deg"), "{:.2f}")), esc(ok)])
+                          esc(_num(a + 0.0 if round(a, 4) else 0.0, "{:+.4f}")), esc(_num(v.get("angle_from_plan_deg"), "{:.2f}")), esc(ok)])
         out += "<h4>Verification: the device's own calibrated output after write-back</h4>"
         out += _table(["pose", "|a| [g]", "|a| − g [mg]", "angle from plan [°]",
                        f"within ±{vtol:g} mg" if vtol else "verdict"], vrows)
@@ -685,16 +669,13 @@ def _thermal_section(path: Path | None, session_uid: str | None = None) -> str:
 
 # ------------------------------------------------------------------ closure
 def closure_verdict(data: dict) -> tuple[bool, str] | None:
-    """(passed, words) of a closure.json, as results.closure.verdict says it for the console."""
-    from imubench.results.closure import VERDICT_FLOORS
+    """(passed, words) of a closure.json, as the console says it (results.closure.verdict_of)."""
+    from imubench.results.closure import verdict_of
     z, floor = _f((data.get("after_rest_bias") or {}).get("distance_m")), _f((data.get("noise_floor") or {}).get(
         "sigma_distance_m"))
     if not (math.isfinite(z) and math.isfinite(floor) and floor > 0):
         return None
-    k = z / floor
-    words = (f"calibrated, the path closes to {z:.2g} m = {k:.1f}x the white-noise floor ({floor:.2g} m)")
-    return (k <= VERDICT_FLOORS, words + (": no calibration error shows at this path length" if k <= VERDICT_FLOORS
-                                          else ": a calibration error or a moving gyro bias remains"))
+    return verdict_of(z, floor)
 
 
 def _closure_section(directory: Path | None, session_uid: str | None = None) -> str:
@@ -732,8 +713,7 @@ def _closure_section(directory: Path | None, session_uid: str | None = None) -> 
         out.append(f"<p>calibration shrinks the closure error <b>{esc(_num(data['improvement'], '{:.0f}'))}x</b>.</p>")
     v = closure_verdict(data)
     if v is not None:
-        out.append(f'<p class="{"note" if v[0] else "foreign"}"><b>{"PASS" if v[0] else "ABOVE THE NOISE"}:</b> '
-                   f"{esc(v[1])}</p>")
+        out.append(f'<p class="{"note" if v[0] else "foreign"}">{esc(v[1])}</p>')
     if data.get("truth_closure_m") is not None:
         out.append(f"<p>the virtual bench's own path closes to {esc(_num(max(abs(v) for v in data['truth_closure_m']), '{:.1e}'))} m.</p>")
     plot = data.get("plot", "closure.png")
