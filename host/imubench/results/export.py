@@ -25,7 +25,7 @@ import json
 import math
 import xml.etree.ElementTree as ET
 
-from imubench.results.numbers import value as fmt_value
+from imubench.results.numbers import significant
 
 RAD_TO_DEG = 180.0 / math.pi
 
@@ -90,7 +90,7 @@ def measurement_text(m: dict) -> str:
     elif unit == "bool":
         vt = "yes" if v >= 1 else "no"
     else:
-        vt = fmt_value(v, unit=unit, digits=3)
+        vt = significant(v, 3, unit)
     return f"{vt} (limit {_limits_text(m)}): {'pass' if m.get('passed') else 'FAIL'}"
 
 

@@ -30,7 +30,7 @@ from sqlalchemy import bindparam, text
 
 from imubench import units as U
 from imubench.results import db as DB
-from imubench.results.export import measurements_of
+from imubench.results.export import measurement_text, measurements_of
 from imubench.results.numbers import pm
 from imubench.wire.ids import parse_id, sn_text
 
@@ -610,8 +610,9 @@ def _triad_summary(t: dict | None, b_key: str, to_user, bias_unit: str) -> dict 
 def run_summary(run: dict, index: int) -> dict:
     """One run in user units (mg, °/s, ppm), as `imubench history DEVICE` shows it."""
     acc = _triad_summary(run["accel"], "b_mps2", U.mps2_to_mg, "mg")
-    rr = run["accel"].get("residual_rms_mps2")
-    acc["residual_rms_mg"] = _fin(U.mps2_to_mg(rr)) if rr is not None else None
+    if acc is not None:
+        rr = run["accel"].get("residual_rms_mps2")
+        acc["residual_rms_mg"] = _fin(U.mps2_to_mg(rr)) if rr is not None else None
     gyr = _triad_summary(run["gyro"], "b_rad_s", U.rad_s_to_dps, "dps")
     if gyr is not None:
         gyr["residual_rms"] = _fin(run["gyro"].get("residual_rms"))
@@ -625,6 +626,9 @@ def run_summary(run: dict, index: int) -> dict:
                           else [_fin(v) for v in run["temperature_c"]["gyro"]]},
         "passed": run["passed"], "written": run["written"], "verified": run["verified"],
         "note": run["note"] or "", "capture_dir": run["capture_dir"],
+        **{k: run.get(k) for k in ("station_id", "operator", "fixture", "slot", "port", "host_version",
+                                   "session_id", "capture_sha256", "capture_uri", "failed_stage", "failure")},
+        "measurements": run.get("measurements") or [],
     }
 
 
@@ -745,8 +749,12 @@ def format_device_report(rep: dict) -> str:
         gm = f", gyro {s['gyro_method']}" if s["gyro_method"] else ", no gyro calibration"
         out.append(f"run {s['index']} (id {s['run_id']})  {_when(s['started'])}  method {s['method']}{gm}  "
                    f"fw {s['fw_version']} ({s['fw_build']})")
-        out += _triad_lines(s["accel"], "accel", "mg", "mg", 4)
-        if s["accel"]["residual_rms_mg"] is not None:
+        out += _station_lines(s)
+        if s["accel"] is None:
+            out.append("  accel".ljust(_LABEL_W) + "no fit (the board failed before it)")
+        else:
+            out += _triad_lines(s["accel"], "accel", "mg", "mg", 4)
+        if s["accel"] is not None and s["accel"]["residual_rms_mg"] is not None:
             out.append("  accel fit residual".ljust(_LABEL_W) + f"{s['accel']['residual_rms_mg']:.4f} mg RMS")
         if s["gyro"] is not None:
             out += _triad_lines(s["gyro"], "gyro", "dps", "°/s", 5)
@@ -759,11 +767,94 @@ def format_device_report(rep: dict) -> str:
         out.append("  temperature".ljust(_LABEL_W) + (", ".join(temp) or "-"))
         out.append("  status".ljust(_LABEL_W) + f"passed {_yes(s['passed'])}, written {_yes(s['written'])}, "
                    f"verified {_yes(s['verified'])}")
+        if s.get("failure"):
+            out.append("  failed".ljust(_LABEL_W) + f"at {s['failed_stage']}: {s['failure']}")
+        for m in s.get("measurements") or []:
+            out.append("  measured".ljust(_LABEL_W) + f"{m['name']} = {measurement_text(m)}")
         if s["note"]:
             out.append("  note".ljust(_LABEL_W) + s["note"])
     out.append("")
     out += _format_drift(rep["drift"], len(runs))
     return "\n".join(out)
+
+
+def _station_lines(s: dict) -> list[str]:
+    """Where and by whom a run was made, and where its raw capture is (schema-2 runs)."""
+    out = []
+    if s.get("station_id") or s.get("operator") or s.get("fixture"):
+        parts = [f"station {s.get('station_id') or '-'}" + (f" slot {s['slot']}" if s.get("slot") is not None else "")]
+        if s.get("operator"):
+            parts.append(f"operator {s['operator']}")
+        if s.get("fixture"):
+            parts.append(f"fixture {s['fixture']}")
+        if s.get("host_version"):
+            parts.append(f"host {s['host_version']}")
+        if s.get("session_id"):
+            parts.append(f"session {s['session_id']}")
+        out.append("  where".ljust(_LABEL_W) + ", ".join(parts))
+    if s.get("capture_sha256"):
+        out.append("  raw capture".ljust(_LABEL_W) + f"capture sha256 {s['capture_sha256']}"
+                   + (f" at {s['capture_uri']}" if s.get("capture_uri") else ""))
+    return out
+
+
+# ------------------------------------------------------------------ production queries, as text
+def _pct(x) -> str:
+    return "-" if x is None else f"{100.0 * x:.1f} %"
+
+
+def format_yield(rows: list[dict], by: str, path) -> str:
+    """First-pass yield per station and/or day (a percentage of counted runs: one decimal,
+    the resolution of 1 in 1000 runs)."""
+    if not rows:
+        return f"no runs in {path} match"
+    keys = {"station": ["station"], "day": ["day"], "station_day": ["station", "day"]}[by]
+    w = {"station": max(8, *(len(str(r["station"])) for r in rows)) if "station" in keys else 0, "day": 10}
+    head = "".join(f"{k:<{w[k]}}  " for k in keys) + f"{'runs':>5} {'passed':>6} {'failed':>6} {'yield':>8}  boards"
+    lines = [head]
+    for r in rows:
+        lines.append("".join(f"{str(r[k]):<{w[k]}}  " for k in keys)
+                     + f"{r['runs']:>5} {r['passed']:>6} {r['failed']:>6} {_pct(r['yield']):>8}  {r['devices']}")
+    n = sum(r["runs"] for r in rows)
+    p = sum(r["passed"] for r in rows)
+    lines.append("".join(f"{('total' if i == 0 else ''):<{w[k]}}  " for i, k in enumerate(keys))
+                 + f"{n:>5} {p:>6} {n - p:>6} {_pct(p / n if n else None):>8}")
+    lines.append(f"(first-pass yield = passed runs / runs, from {path}; `--failed` lists why the others failed)")
+    return "\n".join(lines)
+
+
+def format_failures(runs: list[dict], path) -> str:
+    """The boards that failed and why: the stage and reason, or the measurements out of limits."""
+    if not runs:
+        return f"no failed runs in {path}"
+    lines = []
+    for r in runs:
+        who = r["mcu_uid"] or f"unidentified board (port {r.get('port') or '-'})"
+        where = f"station {r.get('station_id') or '-'}" + (f" slot {r['slot']}" if r.get("slot") is not None else "")
+        lines.append(f"{_when(r['started'])}  {who}  {where}  run {r['run_id']}"
+                     + (f"  session {r['session_id']}" if r.get("session_id") else ""))
+        reasons = []
+        if r.get("failure"):
+            reasons.append(f"failed at {r.get('failed_stage') or '?'}: {r['failure']}")
+        for m in r.get("measurements") or []:
+            if not m.get("passed"):
+                reasons.append(f"{m['name']} = {measurement_text(m)}")
+        if not reasons:
+            reasons.append("did not pass" + (f" ({r['note']})" if r.get("note") else ""))
+        lines += [f"    {x}" for x in reasons]
+    lines.append(f"({len(runs)} failed run{'s' if len(runs) != 1 else ''} in {path}, newest first)")
+    return "\n".join(lines)
+
+
+def format_sessions(rows: list[dict], path) -> str:
+    if not rows:
+        return f"no station sessions in {path}"
+    lines = [f"{'session':<36}  {'station':<10} {'operator':<10} {'started':<20} boards passed"]
+    for r in rows:
+        lines.append(f"{r['session_id']:<36}  {r['station_id'] or '-':<10} {r['operator'] or '-':<10} "
+                     f"{_when(r['started']):<20} {r['boards']:>6} {r['passed']:>6}")
+    lines.append("(`imubench history --export SESSION --format junit|json` writes one as a test record)")
+    return "\n".join(lines)
 
 
 _DRIFT_LABELS = {"accel_bias_mg": ("accel bias [mg]", 4), "accel_scale_ppm": ("accel scale [ppm]", 1),
