@@ -16,6 +16,7 @@ Measurements (all with units in the name, docs/conventions.md):
     gyro_turntable_rms_dps         turntable fit residual RMS                    ≤ tolerance
     gyro_rotation_rms_deg          rotation-method residual RMS                  ≤ tolerance
     verify_<pose>_mg               | |a| − g | of the device's own output        ≤ tolerance
+                                   (pose as plus_z_up, minus_x_up, ...)
     params_written                 1 when written, read back, saved, rebooted    ≥ 1
     samples_lost                   samples missing from the raw capture          ≤ 0
 """
@@ -34,6 +35,12 @@ def _meas(name: str, value, unit: str, low=None, high=None) -> dict:
     v = None if value is None else float(value)
     ok = v is not None and math.isfinite(v) and (low is None or v >= low) and (high is None or v <= high)
     return {"name": name, "value": v, "unit": unit, "low": low, "high": high, "passed": bool(ok)}
+
+
+def _slug(pose: str) -> str:
+    """'+Z up (level)' -> 'plus_z_up': the pose's name without its gloss, signs as words."""
+    base = pose.split("(")[0].replace("+", " plus ").replace("-", " minus ")
+    return "_".join("".join(c if c.isalnum() else " " for c in base).lower().split())
 
 
 def measurements_of(result: dict) -> list[dict]:
@@ -56,8 +63,8 @@ def measurements_of(result: dict) -> list[dict]:
                          high=tol.get("gyro_rotation_rms_deg")))
     for v in result.get("verification") or []:
         if v.get("after_g") is not None:
-            name = "verify_" + "".join(c if c.isalnum() else "_" for c in v["name"]).strip("_").lower() + "_mg"
-            out.append(_meas(name, abs(v["after_g"] - 1.0) * 1e3, "mg", high=tol.get("verify_mg")))
+            out.append(_meas(f"verify_{_slug(v['name'])}_mg", abs(v["after_g"] - 1.0) * 1e3, "mg",
+                             high=tol.get("verify_mg")))
     if result.get("accel") is not None and result.get("failure") is None:
         wanted = result.get("write_requested", True)
         if wanted:
