@@ -443,7 +443,7 @@ class FixtureRun:
                             "fixture": self.station.fixture, "slot": slot, "port": st.port,
                             "host_version": self.station.host_version},
                 "params_before": PR.to_json(params_before) if params_before is not None else None,
-                "capture": _capture_ref(self.dir / f"slot-{slot}")}
+                "capture": capture_ref(self.dir / f"slot-{slot}")}
         if link_stats is not None:
             base["link"] = {"samples_missing": int(link_stats.samples_missing),
                             "frames_rejected": int(link_stats.frames_rejected)}
@@ -509,7 +509,7 @@ def _device_ident(info) -> dict:
             "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)}
 
 
-def _capture_ref(d: Path) -> dict:
+def capture_ref(d: Path) -> dict:
     """SHA-256 of the raw capture (the capture files in stream order, as one byte sequence),
     the files, and where they are: a file:// URI naming this station's host."""
     files = sorted(d.glob("capture-*.bin"), key=lambda p: int(p.stem.split("-")[1]) if p.stem.split("-")[1].isdigit() else 0)

@@ -96,6 +96,8 @@ def measurement_text(m: dict) -> str:
         vt = "not measured"
     elif unit == "bool":
         vt = "yes" if v >= 1 else "no"
+    elif unit == "samples":                  # a count
+        vt = f"{int(round(v))} samples"
     else:
         vt = significant(v, 3, unit)
     return f"{vt} (limit {_limits_text(m)}): {'pass' if m.get('passed') else 'FAIL'}"
