@@ -119,6 +119,9 @@ def run(a) -> int:
         raise UsageError("--dir and --resume exclude each other", "--resume DIR continues the session in DIR")
     if a.db and Path(a.db).is_dir():
         raise UsageError(f"--db {a.db} is a directory", f"give the database file, e.g. {Path(a.db) / 'history.sqlite'}")
+    if a.resume and _station_session(a):
+        raise UsageError("--resume continues a one-board session; a station session with several boards is "
+                         "started afresh", "run it again with --dir NEW_DIR (each board's captures stay in DIR/slot-K)")
     if a.resume:
         from imubench.results.sessionfile import load_state
         load_state(a.resume)            # a damaged or foreign session.json is named before a device is opened

@@ -153,8 +153,9 @@ class Plate:
 class BoardPresenter:
     """One board's Presenter: instructions go to its status, moves to the shared plate."""
 
-    def __init__(self, run: "FixtureRun", slot: int):
+    def __init__(self, run: "FixtureRun", slot: int, discard=lambda: None):
         self.run, self.slot = run, slot
+        self.discard = discard          # drop what the board sent while it waited for the plate
 
     def say(self, text: str) -> None:
         self.run._update(self.slot, message=text)
@@ -164,11 +165,15 @@ class BoardPresenter:
         stage = "verify" if st.stage in ("write", "verify") else "poses"
         self.run._update(self.slot, stage=stage, message=f"[{index + 1}/{total}] {name}", progress=index / max(total, 1))
         self.run.plate.request(self.slot, "pose", name, (name, np.asarray(direction, float), index, total))
+        # while this board waited for the others, its samples of the old attitude piled up: they
+        # are in the raw capture, but the session's wait for the new attitude starts now
+        self.discard()
 
     def present_turn(self, axis, rate_dps, duration_s):
         self.run._update(self.slot, stage="turntable", message=f"turn {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()}")
         key = (tuple(np.round(np.asarray(axis, float), 6)), float(rate_dps))
         self.run.plate.request(self.slot, "turn", key, (np.asarray(axis, float), rate_dps, duration_s))
+        self.discard()
 
     def progress(self, label, fraction):
         self.run._update(self.slot, progress=float(fraction), publish=False)
@@ -247,18 +252,42 @@ class BoardSession(Session):
         self._stage("rest")
         return super().capture_rest()
 
+    link_lost: str | None = None
+
+    def _stop_stream(self) -> None:
+        """As the session's, but after a lost link only the capture file is closed: asking a
+        silent device to stop would just wait out the retries and hide why the board failed."""
+        if self.link_lost is None:
+            try:
+                return super()._stop_stream()
+            except (LinkError, TimeoutError) as e:
+                self.link_lost = str(e)
+        cap, self.dev.link.capture = self.dev.link.capture, None
+        if cap is not None:
+            cap.close()
+
+    def _leave_plate(self) -> None:
+        """Stop holding the plate at once (the session's clean-up may still take a while)."""
+        if self.board_run is not None:
+            self.board_run.plate.leave(self.slot)
+
     def _next_block(self, timeout: float = 10.0):
         try:
             b = self.dev.read(duration_s=0.05, timeout=min(timeout, self.link_timeout_s))
         except LinkTimeout:
-            raise BoardFailed("link", f"link lost: no data from the device for {self.link_timeout_s:g} s") from None
+            self._leave_plate()
+            self.link_lost = f"link lost: no data from the device for {self.link_timeout_s:g} s"
+            raise BoardFailed("link", self.link_lost) from None
         except LinkError as e:
+            self._leave_plate()
+            self.link_lost = f"link lost: {e}"
             raise BoardFailed("link", f"link lost: {e}") from None
         bad = int(np.bitwise_or.reduce(b.status)) if len(b) else 0
         if bad:
             names = [n for bit, n in ((SampleStatus.ACCEL_BAD, "accelerometer"), (SampleStatus.GYRO_X_BAD, "gyro X"),
                                       (SampleStatus.GYRO_Y_BAD, "gyro Y"), (SampleStatus.GYRO_Z_BAD, "gyro Z"))
                      if bad & bit]
+            self._leave_plate()
             raise BoardFailed("sensor", f"{', '.join(names)} flagged bad during capture "
                                         f"({int(np.count_nonzero(b.status))} of {len(b)} samples): a faulted sensor; "
                                         "nothing is calibrated on faulted data")
@@ -367,7 +396,8 @@ class FixtureRun:
             info_dev = _device_ident(info)
             self._update(slot, uid=info_dev["mcu_uid"], message=f"{info_dev['board']} {info_dev['mcu_uid']}")
             params_before = dev.get_params(ParamsWhich.ACTIVE).params
-            sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg), BoardPresenter(self, slot))
+            sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
+                                BoardPresenter(self, slot, discard=dev.discard_buffered))
             sess.board_run, sess.slot, sess.link_timeout_s = self, slot, self.link_timeout_s
             try:
                 result = sess.run(plan_for(self.cfg.method))
@@ -467,7 +497,7 @@ class FixtureRun:
         # failed before or during the run: what is known, the stage and the reason
         rec = {**base, "device": ident, "started": started, "finished": _now(), "passed": False,
                "written": bool(result and result.get("written")), "verified": False,
-               "failure": {"stage": st.stage, "reason": st.reason or "failed"},
+               "failure": {"stage": st.stage, "reason": st.reason or "failed"}, "params_after": None,
                "method": self.cfg.method, "gyro_method": self.cfg.gyro, "note": self.cfg.note,
                "capture_dir": str((self.dir / f"slot-{slot}").resolve())}
         if result is not None:      # fitted, then failed (write-back, verification): keep the fit
