@@ -145,9 +145,19 @@ def session_dict(runs: list[dict]) -> dict:
     }
 
 
+def _strict(x):
+    """NaN/inf -> null: standard JSON for other tools."""
+    if isinstance(x, dict):
+        return {k: _strict(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_strict(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
 def session_json(runs: list[dict]) -> str:
-    from imubench.results.history import strict_json
-    return json.dumps(strict_json(session_dict(runs)), indent=1, sort_keys=False, allow_nan=False)
+    return json.dumps(_strict(session_dict(runs)), indent=1, allow_nan=False)
 
 
 def _seconds(a: str | None, b: str | None) -> float:
