@@ -374,6 +374,14 @@ class FixtureRun:
             t.start()
         for t in threads:
             t.join()
+        if self.plots:                  # after the boards: the plots take CPU the live streams need
+            from imubench.results.calibration import plot_pose_residuals
+            for slot, rec in sorted(self.results.items()):
+                if rec.get("accel") is not None and rec.get("poses"):
+                    try:
+                        plot_pose_residuals(rec, self.dir / f"slot-{slot}" / "residuals.png")
+                    except Exception as e:  # noqa: BLE001 - a plot is not worth a board's verdict
+                        self.say(f"warning: slot {slot}: no residual plot ({e})")
         self._save_station(finished=True)
         return FixtureResult(self.session_id, self.dir, [self.boards[s] for s in sorted(self.boards)],
                              dict(self.results), time.monotonic() - t0)
@@ -476,7 +484,8 @@ class FixtureRun:
                 "capture": capture_ref(self.dir / f"slot-{slot}")}
         if link_stats is not None:
             base["link"] = {"samples_missing": int(link_stats.samples_missing),
-                            "frames_rejected": int(link_stats.frames_rejected)}
+                            "frames_rejected": int(link_stats.frames_rejected),
+                            "samples_overflow": int(getattr(link_stats, "samples_overflow", 0))}
         if result is not None and st.state != "failed":
             rec = {**result, **base, "schema": RECORD_SCHEMA}
             from imubench.results.export import measurements_of
