@@ -23,6 +23,16 @@ def _db_target(s: str):
     return p
 
 
+def _since(s: str) -> str:
+    """A day (YYYY-MM-DD, UTC) or an ISO 8601 time."""
+    import datetime as dt
+    try:
+        dt.datetime.fromisoformat(s.replace("Z", "+00:00"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not a date: give YYYY-MM-DD (UTC) or an ISO 8601 time") from None
+    return s
+
+
 def register(sub) -> None:
     from imubench.results.db import ENV_DB
     from imubench.results.history import default_path
@@ -49,7 +59,7 @@ def register(sub) -> None:
                                                           "(versioned migrations; a newer database is refused)")
     p.add_argument("--format", choices=("json", "junit"), default="json", help="with --export: JSON or JUnit XML")
     p.add_argument("--out", metavar="FILE", type=Path, help="with --export: write to FILE instead of printing")
-    p.add_argument("--since", metavar="DATE", help="with --yield, --failed, --sessions: runs started from DATE "
+    p.add_argument("--since", metavar="DATE", type=_since, help="with --yield, --failed, --sessions: runs started from DATE "
                                                    "(YYYY-MM-DD, UTC)")
     p.add_argument("--station", metavar="ID", help="with --yield, --failed, --sessions: one station only")
     p.set_defaults(run=run)
