@@ -248,3 +248,20 @@ def test_cli_station_file(tmp_path, capsys):
     assert set(runs) == {1, 2}
     assert all(r["mcu_uid"] is None and r["station_id"] == "S3" and r["operator"] == "cy" and
                r["fixture"] == "plate-9" and r["failed_stage"] == "connect" for r in runs.values())
+
+
+def test_a_one_board_session_records_the_production_fields_too(tmp_path, capsys):
+    db = tmp_path / "one.sqlite"
+    assert imubench(["calibrate", "--sim", "--sim-seed", "61", "--dir", str(tmp_path / "s"), "--db", str(db),
+                     "--station", "S5", "--operator", "di", "--fixture", "cube-2"]) == 0
+    capsys.readouterr()
+    with History(db, readonly=True) as h:
+        (dev,) = h.devices()
+        (run,) = h.runs(dev["mcu_uid"])
+    assert (run["station_id"], run["operator"], run["fixture"], run["slot"]) == ("S5", "di", "cube-2", 1)
+    assert run["host_version"] and run["params_before"]["accel_m"] == [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]
+    assert run["params_after"]["accel_m"] != run["params_before"]["accel_m"]          # what was written
+    cap = tmp_path / "s" / "capture-1.bin"
+    assert run["capture_sha256"] == hashlib.sha256(cap.read_bytes()).hexdigest()
+    assert run["capture_uri"].endswith(str(cap.resolve()))
+    assert {m["name"] for m in run["measurements"]} >= {"accel_fit_rms_mg", "params_written"}
