@@ -68,3 +68,12 @@ def reader(target: str, stop_at: float, expected: int, out) -> None:
                     bad.append((rid, nm))
             time.sleep(0.01)
     out.put({"bad": bad[:10], "seen": seen, "polls": polls})
+
+
+def opener(target: str, barrier, writer_no: int) -> None:
+    """Open a database that may still be empty (or old) at the same moment as other stations,
+    and record one run."""
+    from imubench.results.history import History
+    barrier.wait(timeout=60)
+    with History(target, timeout_s=60) as h:
+        h.record(production_result(f"{writer_no:024X}", "2026-11-20T08:00:00+00:00", station=f"S{writer_no}"))

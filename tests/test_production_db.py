@@ -330,3 +330,47 @@ def test_env_names_the_database(target, monkeypatch, capsys):
     monkeypatch.setenv("IMUBENCH_DB", target)
     assert imubench(["history"]) == 0
     assert UID_A in capsys.readouterr().out
+
+
+def _open_at_once(target: str, n: int = 4) -> None:
+    from dbwriters import opener
+    ctx = mp.get_context("spawn")
+    barrier = ctx.Barrier(n)
+    procs = [ctx.Process(target=opener, args=(target, barrier, w)) for w in range(n)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(120)
+    assert [p.exitcode for p in procs] == [0] * n
+
+
+def test_stations_opening_an_empty_database_at_once(target):
+    """Four stations start at the same moment on a database nobody has created: the tables
+    are created once, and every station's record arrives."""
+    _open_at_once(target)
+    with History(target, readonly=True) as h:
+        assert h.count_runs() == 4
+        with h._read() as db:
+            assert db.execute(DB.schema_version.select()).all() == [(DB.SCHEMA_VERSION,)]
+
+
+def test_stations_opening_a_schema_1_file_at_once(tmp_path):
+    """... and on a file of the previous imubench (schema 1 existed only as SQLite files): it
+    is upgraded once, the old runs kept."""
+    db = tmp_path / "h.sqlite"
+    shutil.copy(V1_FILE, db)
+    _open_at_once(str(db))
+    with History(db, readonly=True) as h:
+        assert h.count_runs() == 3 + 4
+        assert [r["note"] for r in h.runs(UID_A)] == ["v1 first", "v1 second"]
+        with h._read() as d:
+            assert d.execute(DB.schema_version.select()).all() == [(DB.SCHEMA_VERSION,)]
+
+
+def test_a_session_id_with_underscores_and_percent_is_matched_literally(target):
+    with History(target) as h:
+        h.record(production_result(UID_A, "2026-11-20T08:00:00+00:00") | {"session_id": "line_1%-a"})
+        h.record(production_result(UID_B, "2026-11-20T08:00:00+00:00") | {"session_id": "lineX1Z-b"})
+        assert [r["mcu_uid"] for r in h.session_runs("line_1%")] == [UID_A]
+        with pytest.raises(H.UnknownDevice, match="no session"):
+            h.session_runs("line_1_")

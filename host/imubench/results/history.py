@@ -452,8 +452,9 @@ class History:
         in fixture-slot order."""
         sid = str(session_id).strip()
         with self._read() as db:
-            ids = [r[0] for r in db.execute(text("SELECT DISTINCT session_id FROM runs WHERE session_id LIKE :p"),
-                                            {"p": sid.replace("%", "").replace("_", r"\_") + "%"})
+            like = sid.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
+            ids = [r[0] for r in db.execute(text("SELECT DISTINCT session_id FROM runs WHERE session_id LIKE :p "
+                                                 "ESCAPE '\\'"), {"p": like})
                    if r[0] is not None]
         if not ids:
             raise UnknownDevice(f"no session {sid!r} in {self.path} (`imubench history --sessions` lists them)")
