@@ -42,7 +42,9 @@ def register(sub) -> None:
     p.add_argument("--rate", type=stream_rate, metavar="HZ", default=500, help="sample rate in Hz")
     p.add_argument("--hold", type=positive_float, default=2.0, metavar="S", help="seconds captured per attitude")
     p.add_argument("--no-write", action="store_true", help="fit only; do not write the parameters to the device")
-    p.add_argument("--db", metavar="PATH", help="history database (default: in the user data directory)")
+    p.add_argument("--db", metavar="PATH|URL", help="history database: an SQLite file or a postgresql:// URL shared by "
+                                                     "several stations (default: $IMUBENCH_DB, else a file in the user "
+                                                     "data directory)")
     p.add_argument("--note", default="", help="a note kept with the run in the history")
     add_sim(p, "run on a virtual device (random truth errors) whose bench presents the attitudes")
     p.add_argument("--sim-tilt", type=float, default=0.0, metavar="DEG",
