@@ -309,7 +309,7 @@ def _station_table(res) -> str:
         if b.state == "passed":
             parts = []
             if "accel_fit_rms_mg" in meas:
-                parts.append("fit " + measurement_text(meas["accel_fit_rms_mg"]).split(" (")[0])
+                parts.append("fit RMS " + measurement_text(meas["accel_fit_rms_mg"]).split(" (")[0])
             ver = [m for k, m in meas.items() if k.startswith("verify_")]
             if ver:
                 worst = max(ver, key=lambda m: m["value"] or 0)
