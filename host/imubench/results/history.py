@@ -1,18 +1,28 @@
-"""Calibration history: every finished session's result record, per device, in SQLite.
+"""Calibration history: every finished session's result record, per device, in SQLite or in
+a PostgreSQL database several stations share (imubench.results.db).
 
-    imubench history [DEVICE] [--db PATH] [--json]
+    imubench history [DEVICE] [--db PATH|URL] [--json]
+    imubench history --yield [station|day|station_day] | --failed | --sessions | --export SESSION
 
 Without DEVICE: the devices the database knows (MCU UID, board, number of runs, last
 calibration). With DEVICE (the full MCU UID, a unique prefix of it of at least 4 hex
 digits, or one of its gyro serial numbers): every run in time order, then how bias and
 scale moved from session to session, flagged where a change is larger than 3 combined
-sigmas (a real drift, not the noise of the two fits).
+sigmas (a real drift, not the noise of the two fits). For a production line: first-pass
+yield per station and day, the failed runs with their stage and reason or the measurements
+out of their limits, the station sessions, and one session exported (results.export).
 
-The database lives in the user's data directory (platformdirs:
-`user_data_dir("imubench")/history.sqlite`) unless a path is given (`History(path)`,
-`--db`). It runs in WAL mode, so readers (another `imubench history`) never block a
-session that is recording, and every write is one transaction: a crash or an exception
-leaves either the whole run or nothing.
+The database is $IMUBENCH_DB (a path or a postgresql:// URL) or, without it, a file in the
+user's data directory (platformdirs: `user_data_dir("imubench")/history.sqlite`), unless one
+is given (`History(path_or_url)`, `--db`). SQLite runs in WAL mode, so readers (another
+`imubench history`) never block a session that is recording; every write is one
+transaction on either database: a crash or an exception leaves either the whole run (with
+its device row and measurements) or nothing, and concurrent stations never see half a run.
+
+Records: schema 1 (a one-board session before the production line) and schema 2 (adds
+station, operator, fixture, slot, port, host version, session id, parameters before and
+after, measurements with limits, the raw capture's SHA-256 and location, and, for a board
+that failed before it was fitted, "failure": {stage, reason} instead of the fit).
 
 Units as docs/conventions.md: stored parameters are SI (m/s², rad/s); the report converts at
 the edge (mg, °/s, ppm = 1e-6 of the dimensionless M).
