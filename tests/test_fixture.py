@@ -265,3 +265,14 @@ def test_a_one_board_session_records_the_production_fields_too(tmp_path, capsys)
     assert run["capture_sha256"] == hashlib.sha256(cap.read_bytes()).hexdigest()
     assert run["capture_uri"].endswith(str(cap.resolve()))
     assert {m["name"] for m in run["measurements"]} >= {"accel_fit_rms_mg", "params_written"}
+
+
+def test_boards_out_of_step_get_one_move_and_a_warning():
+    mover, said = _Mover(), []
+    plate = Plate(mover, [1, 2], say=said.append)
+    t = threading.Thread(target=plate.request, args=(2, "pose", "b", ("b", None, 1, 6)))
+    t.start()
+    plate.request(1, "pose", "a", ("a", None, 0, 6))
+    t.join(5)
+    assert not t.is_alive() and mover.moves == ["a"]           # the first slot's move, once
+    assert said and "asked for different moves" in said[0] and "pose a" in said[0] and "pose b" in said[0]
