@@ -52,9 +52,8 @@ def writer(target: str, writer_no: int, n: int, barrier, shared_uid: str) -> int
 
 def reader(target: str, stop_at: float, expected: int, out) -> None:
     """While the writers write: every run visible has all its measurements (never half a record)."""
-    from sqlalchemy import text
-
     from imubench.results.history import History
+    from sqlalchemy import text
     bad, seen, polls = [], 0, 0
     with History(target, readonly=True, timeout_s=60) as h:
         while time.monotonic() < stop_at:

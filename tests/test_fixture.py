@@ -53,7 +53,7 @@ def _run(benches, tmp_path, on_event=None, **kw):
 def test_a_healthy_set_each_board_fitted_on_its_own(tmp_path):
     benches = _benches(3, 301)
     try:
-        run, res, events = _run(benches, tmp_path)
+        _, res, events = _run(benches, tmp_path)
         truths = [vb.get_truth() for vb in benches]
         actives = []
         for vb in benches:
@@ -109,7 +109,7 @@ def test_a_board_losing_its_link_half_way_does_not_stop_the_others(tmp_path):
             cut.set()
             benches[1].inject("link_drop", count=10**9)
     try:
-        run, res, events = _run(benches, tmp_path, on_event=on_event)
+        _, res, _ = _run(benches, tmp_path, on_event=on_event)
     finally:
         for vb in benches:
             vb.close()
@@ -142,7 +142,7 @@ def test_faulted_gyros_among_healthy_boards(tmp_path):
             hit.set()
             benches[2].inject("gyro_fault_bits", sensor="gyro_z", bits=0x10, persistent=True)
     try:
-        run, res, events = _run(benches, tmp_path, on_event=on_event)
+        _, res, _ = _run(benches, tmp_path, on_event=on_event)
     finally:
         for vb in benches:
             vb.close()

@@ -34,9 +34,9 @@ import threading
 import time
 import traceback
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -48,7 +48,6 @@ from imubench.procedures.session import (
     SessionConfig,
     SimPresenter,
     plan_for,
-    write_verified,
 )
 from imubench.results.atomic import write_json_atomic
 from imubench.wire import params as PR
