@@ -276,3 +276,28 @@ def test_boards_out_of_step_get_one_move_and_a_warning():
     t.join(5)
     assert not t.is_alive() and mover.moves == ["a"]           # the first slot's move, once
     assert said and "asked for different moves" in said[0] and "pose a" in said[0] and "pose b" in said[0]
+
+
+def test_a_refused_fit_fails_that_board_only(tmp_path, monkeypatch):
+    """The fit of slot 2 is refused (here: the fit says its poses cannot constrain the model);
+    slot 1 is written and verified, slot 2 is recorded as failed at fit, nothing written to it."""
+    import imubench.calib.accel as CA
+    from imubench.calib import CalibrationError
+    real = CA.six_position
+
+    def six_position(*a, **k):
+        if threading.current_thread().name == "board-2":
+            raise CalibrationError("the poses do not constrain the scale of Y (test)")
+        return real(*a, **k)
+    monkeypatch.setattr(CA, "six_position", six_position)
+    benches = _benches(2, 331)
+    try:
+        _, res, _ = _run(benches, tmp_path)
+        with Device.open(benches[1].port_url, timeout=5.0) as dev:
+            untouched = PR.is_factory(dev.get_params(ParamsWhich.ACTIVE).params)
+    finally:
+        for vb in benches:
+            vb.close()
+    assert [(b.state, b.stage) for b in res.boards] == [("passed", "done"), ("failed", "fit")]
+    assert res.boards[1].reason == "fit refused: the poses do not constrain the scale of Y (test)"
+    assert untouched and res.results[2]["written"] is False
