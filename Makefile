@@ -10,8 +10,10 @@ BUILD  := build
 HOST   := $(BUILD)/host
 
 # Debian packages the host build and tests need (installed when missing, as root);
-# chromium renders the HTML report in tests/test_html_report.py (headless, nothing downloaded).
-SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium
+# chromium renders the HTML report in tests/test_html_report.py (headless, nothing downloaded);
+# postgresql is the server tests/test_production_db.py starts in a temporary directory (the shared
+# history database of a production line).
+SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium postgresql
 
 CC_HOST  ?= gcc
 CFLAGS_HOST := -std=c11 -O2 -g -Wall -Wextra -Werror -Wshadow -Wstrict-prototypes \
@@ -88,3 +90,4 @@ bench: venv
 	$(PY) bench/sim_stream.py
 	$(PY) bench/core_instructions.py
 	$(PY) bench/calib_solve.py
+	$(PY) bench/multi_dut.py

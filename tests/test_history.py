@@ -183,7 +183,7 @@ def test_several_missing_keys_are_all_named(db):
     (lambda r: r["accel"].__setitem__("b_mps2", [0.0, float("nan"), 0.0]), "accel.b_mps2 must be 3 finite"),
     (lambda r: r["device"].__setitem__("mcu_uid", "xyz"), "24 hex digits"),
     (lambda r: r.__setitem__("started", "yesterday"), "ISO 8601"),
-    (lambda r: r.__setitem__("schema", 2), "schema"),
+    (lambda r: r.__setitem__("schema", 3), "schema"),
     (lambda r: r.__setitem__("poses", []), "non-empty"),
 ])
 def test_malformed_records_are_refused(db, mutate, words):
@@ -250,7 +250,7 @@ def test_a_reader_is_not_blocked_by_an_open_write(db):
     with History(db) as w:
         w.record(make_result())
         with w._write() as con:                     # a session in the middle of recording
-            con.execute("UPDATE runs SET note = 'changing'")
+            con.exec_driver_sql("UPDATE runs SET note = 'changing'")
             with History(db, readonly=True, timeout_s=0.5) as r:
                 assert r.runs(UID_A)[0]["note"] == "bench A"     # the last committed state
         with History(db, readonly=True) as r:

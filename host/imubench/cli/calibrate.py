@@ -27,7 +27,7 @@ def register(sub) -> None:
                                    "the parameters to the device, read them back, save, reboot, verify the "
                                    "device's own output and record the run in the history (docs/calibration.md). "
                                    "Everything captured is on disk as it arrives: --resume DIR continues.")
-    add_port(p)
+    add_port(p, many=True)
     p.add_argument("--method", choices=METHODS, default="six",
                    help="accelerometer model: six faces (linear least squares, full M) or the multi-position "
                         "|a| = g fit (26 attitudes)")
@@ -42,7 +42,9 @@ def register(sub) -> None:
     p.add_argument("--rate", type=stream_rate, metavar="HZ", default=500, help="sample rate in Hz")
     p.add_argument("--hold", type=positive_float, default=2.0, metavar="S", help="seconds captured per attitude")
     p.add_argument("--no-write", action="store_true", help="fit only; do not write the parameters to the device")
-    p.add_argument("--db", metavar="PATH", help="history database (default: in the user data directory)")
+    p.add_argument("--db", metavar="PATH|URL", help="history database: an SQLite file or a postgresql:// URL shared by "
+                                                     "several stations (default: $IMUBENCH_DB, else a file in the user "
+                                                     "data directory)")
     p.add_argument("--note", default="", help="a note kept with the run in the history")
     add_sim(p, "run on a virtual device (random truth errors) whose bench presents the attitudes")
     p.add_argument("--sim-tilt", type=float, default=0.0, metavar="DEG",
@@ -50,7 +52,63 @@ def register(sub) -> None:
     p.add_argument("--closure", action="store_true",
                    help="after a verified write-back, run the closure check (imubench closure) into DIR/closure: "
                         "the virtual bench drives a closed path, or you carry the board around one")
+    p.add_argument("--sim-boards", type=_board_count, default=1, metavar="N",
+                   help="with --sim: N virtual devices on one virtual fixture (each its own random truth and serial "
+                        "numbers, seeds --sim-seed, --sim-seed + 1, ...): one station session")
+    p.add_argument("--station-file", type=_station_file, metavar="FILE",
+                   help="a TOML file describing this station: station, operator, fixture, db and ports = [URL, ...] "
+                        "(the boards on its fixture); options given on the command line win (docs/production.md)")
+    p.add_argument("--station", metavar="ID", help="station id kept with every record (default: the host name)")
+    p.add_argument("--operator", metavar="NAME", default="", help="who runs the station, kept with every record")
+    p.add_argument("--fixture", metavar="NAME", default="", help="the fixture (plate, turntable) in use, kept with "
+                                                                 "every record")
+    p.add_argument("--link-timeout", type=positive_float, default=10.0, metavar="S",
+                   help="with several boards: a board that sends nothing for S seconds has lost its link and "
+                        "is marked failed (the others go on)")
     p.set_defaults(run=run)
+
+
+def _board_count(s: str) -> int:
+    import argparse
+    try:
+        n = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not a number of boards") from None
+    if not 1 <= n <= 64:
+        raise argparse.ArgumentTypeError(f"{n} boards: give 1 to 64")
+    return n
+
+
+STATION_KEYS = {"station", "operator", "fixture", "db", "ports", "baud"}
+
+
+def _station_file(s: str) -> dict:
+    """A station file (TOML), checked for what it holds before anything is opened."""
+    import argparse
+    try:
+        import tomllib
+    except ImportError:                     # Python 3.10
+        import tomli as tomllib
+    path = Path(s)
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"{s} is not a file")
+    try:
+        d = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise argparse.ArgumentTypeError(f"{s} is not a TOML station file: {e}") from None
+    unknown = set(d) - STATION_KEYS
+    if unknown:
+        raise argparse.ArgumentTypeError(f"{s}: unknown key{'s' if len(unknown) > 1 else ''} "
+                                         f"{', '.join(sorted(unknown))} (known: {', '.join(sorted(STATION_KEYS))})")
+    ports = d.get("ports", [])
+    if not (isinstance(ports, list) and all(isinstance(x, str) and x for x in ports)):
+        raise argparse.ArgumentTypeError(f"{s}: ports must be a list of port URLs, e.g. ports = [\"/dev/ttyUSB0\"]")
+    if len(set(ports)) != len(ports):
+        raise argparse.ArgumentTypeError(f"{s}: a port is listed twice: one board per port")
+    for k in ("station", "operator", "fixture", "db"):
+        if k in d and not isinstance(d[k], str):
+            raise argparse.ArgumentTypeError(f"{s}: {k} must be text")
+    return d
 
 
 def run(a) -> int:
@@ -63,11 +121,16 @@ def run(a) -> int:
         raise UsageError("--dir and --resume exclude each other", "--resume DIR continues the session in DIR")
     if a.db and Path(a.db).is_dir():
         raise UsageError(f"--db {a.db} is a directory", f"give the database file, e.g. {Path(a.db) / 'history.sqlite'}")
+    if a.resume and _station_session(a):
+        raise UsageError("--resume continues a one-board session; a station session with several boards is "
+                         "started afresh", "run it again with --dir NEW_DIR (each board's captures stay in DIR/slot-K)")
     if a.resume:
         from imubench.results.sessionfile import load_state
         load_state(a.resume)            # a damaged or foreign session.json is named before a device is opened
     cfg = SessionConfig(method=a.method, gyro=None if a.gyro == "none" else a.gyro, rate_hz=a.rate,
                         hold_s=a.hold, write=not a.no_write, note=a.note)
+    if _station_session(a):
+        return _run_station(a, cfg)
     directory = Path(a.resume or a.dir or f"imubench-session-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: (f"everything captured is kept in {directory}; continue with: "
                               f"imubench calibrate --resume {directory}" + (" --sim" if a.sim else "")
@@ -84,6 +147,7 @@ def run(a) -> int:
             from imubench.cli.terminal import HumanPresenter
             url, ui = a.port, HumanPresenter()
         with Device.open(url, baudrate=a.baud, timeout=5.0) as dev:
+            params_before = _params_or_none(dev)        # for the record: the block before anything is written
             result, sess = run_session(dev, directory, cfg, ui, resume=bool(a.resume), redo=a.redo,
                                        on_start=lambda s: print(f"session directory: {s.dir} (raw captures and "
                                                                 f"state; --resume {s.dir} continues it)"),
@@ -91,7 +155,10 @@ def run(a) -> int:
             if a.closure and result["written"] and "closure" not in result:
                 result["closure"] = _closure_after_session(dev, vb, sess.dir / "closure")
                 sess.finish(result)
-    _record_history(result, a.db, sess.state_path)
+            if "station" not in result:     # a run finished before (resumed) keeps what it recorded
+                _add_station_fields(result, a, sess.dir, params_before, _params_or_none(dev), url)
+                sess.finish(result)
+    _record_history(result, a.db or (getattr(a, "station_file", None) or {}).get("db"), sess.state_path)
     ok = result["passed"] and (result["verified"] or not cfg.write)
     print("\ncalibration " + ("PASSED" if ok else "FAILED"))
     if not ok:
@@ -151,3 +218,130 @@ def _record_history(result: dict, db, state_path: Path) -> None:
     except Exception as e:  # noqa: BLE001 - the result is safe in session.json; say why it is not in the history
         print(f"warning: not recorded in the history ({e}); the result is in {state_path}", file=sys.stderr)
 
+
+
+# ------------------------------------------------------------------ several boards: a station session
+def _station_session(a) -> bool:
+    """Several boards on one fixture (procedures.fixture) rather than the one-board session."""
+    sf = getattr(a, "station_file", None) or {}
+    return len(getattr(a, "ports", None) or []) > 1 or getattr(a, "sim_boards", 1) > 1 or bool(sf.get("ports"))
+
+
+def _run_station(a, cfg) -> int:
+    """`imubench calibrate` with several boards: one station session, a verdict per board."""
+    from contextlib import ExitStack
+
+    from imubench.procedures.fixture import PlatePresenter, Station, run_fixture
+    sf = a.station_file or {}
+    ports = list(a.ports or sf.get("ports") or [])
+    if a.resume:
+        raise UsageError("--resume continues a one-board session; a station session with several boards is "
+                         "started afresh", "run it again with --dir NEW_DIR (each board's captures stay in DIR/slot-K)")
+    if a.closure:
+        raise UsageError("--closure goes with a one-board session", "run `imubench closure --port URL` per board")
+    if a.sim and ports:
+        raise UsageError("--sim and --port (or a station file's ports) exclude each other",
+                         "--sim --sim-boards N starts N virtual devices on one virtual fixture")
+    if a.sim_boards > 1 and not a.sim:
+        raise UsageError("--sim-boards goes with --sim", "give --sim --sim-boards N, or --port URL once per board")
+    station = Station(station_id=a.station or sf.get("station", ""), operator=a.operator or sf.get("operator", ""),
+                      fixture=a.fixture or sf.get("fixture", ""))
+    db = a.db or sf.get("db") or None
+    if db is None:
+        from imubench.results.history import default_target
+        db = default_target()
+    directory = Path(a.dir or f"imubench-station-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    if (directory / "station.json").exists():
+        raise UsageError(f"{directory} already holds a station session", "give another --dir")
+    a.on_interrupt = lambda: (f"what was captured is kept in {directory}/slot-K; boards already finished are "
+                              "recorded; run the station session again for the others")
+    with ExitStack() as stack:
+        if a.sim:
+            from imubench.device.sim import VirtualBench
+            benches = [stack.enter_context(VirtualBench(speed=a.sim_speed, seed=a.sim_seed + k, truth="random"))
+                       for k in range(a.sim_boards)]
+            ports = [vb.port_url for vb in benches]
+            mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed)
+            print(f"{len(benches)} virtual devices with random truth (seeds {a.sim_seed}..{a.sim_seed + len(benches) - 1}) "
+                  "on one virtual fixture")
+        else:
+            from imubench.cli.terminal import HumanPresenter
+            mover = HumanPresenter()
+            mover.say(f"{len(ports)} boards on the fixture: every instruction is for the whole plate")
+        print(f"station {station.station_id}, session directory {directory} (DIR/slot-K per board); "
+              f"records go to {_shown(db)}")
+        last: dict[int, tuple] = {}
+        import threading
+        lock = threading.Lock()
+
+        def on_event(st: dict) -> None:         # one line per board and stage (called from the boards' threads)
+            key = (st["stage"], st["state"])
+            with lock:
+                if last.get(st["slot"]) != key:
+                    last[st["slot"]] = key
+                    who = st["uid"] or st["port"]
+                    print(f"  slot {st['slot']} {who}: {st['state'] if st['state'] != 'running' else st['stage']}"
+                          + (f" ({st['reason']})" if st["reason"] else ""), flush=True)
+        res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
+                          link_timeout_s=a.link_timeout, baudrate=a.baud)
+    print()
+    print(_station_table(res))
+    print(f"station session {res.session_id}: {len(res.passed)} of {len(res.boards)} boards passed "
+          f"({res.wall_s:.0f} s); `imubench history --export {res.session_id} --format junit` exports it")
+    if res.failed:
+        raise CommandError(f"{len(res.failed)} of {len(res.boards)} boards failed: "
+                           + "; ".join(f"slot {b.slot} at {b.stage}" for b in res.boards if b.state != "passed"),
+                           "see the table above; the boards that passed are written and recorded")
+    return 0
+
+
+def _shown(db) -> str:
+    from imubench.results.db import describe
+    return describe(db)
+
+
+def _station_table(res) -> str:
+    from imubench.results.export import measurement_text
+    lines = [f"{'slot':>4}  {'MCU UID':<24}  {'verdict':<7}  {'run':>5}  details"]
+    for b in res.boards:
+        rec = res.results.get(b.slot) or {}
+        meas = {m["name"]: m for m in rec.get("measurements") or []}
+        if b.state == "passed":
+            parts = []
+            if "accel_fit_rms_mg" in meas:
+                parts.append("fit RMS " + measurement_text(meas["accel_fit_rms_mg"]).split(" (")[0])
+            ver = [m for k, m in meas.items() if k.startswith("verify_")]
+            if ver:
+                worst = max(ver, key=lambda m: m["value"] or 0)
+                parts.append("worst verification " + measurement_text(worst).split(" (")[0])
+            detail = ", ".join(parts) + ", written and verified" if rec.get("written") else ", ".join(parts)
+        else:
+            detail = f"at {b.stage}: {b.reason}"
+        lines.append(f"{b.slot:>4}  {b.uid or '(no answer)':<24}  {'PASSED' if b.state == 'passed' else 'FAILED':<7}  "
+                     f"{b.run_id if b.run_id is not None else '-':>5}  {detail}")
+    return "\n".join(lines)
+
+
+def _params_or_none(dev):
+    from imubench.wire.protocol_gen import ParamsWhich
+    try:
+        return dev.get_params(ParamsWhich.ACTIVE).params
+    except Exception:  # noqa: BLE001 - the record says "unknown" rather than failing the session
+        return None
+
+
+def _add_station_fields(result: dict, a, directory: Path, before, after, url) -> None:
+    """What a one-board session's record carries for the production database (schema 2):
+    station, operator, fixture, host version, parameters before and after, raw capture hash."""
+    from imubench.procedures.fixture import Station, capture_ref
+    from imubench.wire import params as PR
+    sf = getattr(a, "station_file", None) or {}
+    st = Station(station_id=getattr(a, "station", None) or sf.get("station", ""),
+                 operator=getattr(a, "operator", "") or sf.get("operator", ""),
+                 fixture=getattr(a, "fixture", "") or sf.get("fixture", ""))
+    result["schema"] = 2
+    result["station"] = {"id": st.station_id, "operator": st.operator, "fixture": st.fixture, "slot": 1,
+                         "port": url, "host_version": st.host_version}
+    result["params_before"] = PR.to_json(before) if before is not None else None
+    result["params_after"] = PR.to_json(after) if after is not None and result.get("written") else None
+    result["capture"] = capture_ref(directory)

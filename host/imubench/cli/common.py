@@ -68,11 +68,29 @@ class Parser(argparse.ArgumentParser):
 
 
 # ------------------------------------------------------------------ shared options
-def add_port(p: argparse.ArgumentParser) -> None:
-    """--port and --baud, the same in every command that talks to a device."""
-    p.add_argument("--port", metavar="URL",
+class _PortsAction(argparse.Action):
+    """--port given once or more: `port` is the first URL (as for every command), `ports` all of them."""
+
+    def __call__(self, parser, ns, value, option_string=None):
+        ports = list(getattr(ns, "ports", None) or [])
+        if value in ports:
+            raise argparse.ArgumentError(self, f"{value} is given twice: one board per port")
+        ports.append(value)
+        ns.ports = ports
+        if getattr(ns, "port", None) is None:
+            ns.port = value
+
+
+def add_port(p: argparse.ArgumentParser, many: bool = False) -> None:
+    """--port and --baud, the same in every command that talks to a device. With many=True
+    --port may be repeated (several boards on one fixture): args.port is the first, args.ports
+    the list (None when not given)."""
+    p.add_argument("--port", metavar="URL", **({"action": _PortsAction} if many else {}),
                    help=f"pyserial URL of the device: /dev/ttyUSB0, socket://HOST:PORT, rfc2217://HOST:PORT "
-                        f"(default: the environment variable {PORT_ENV})")
+                        f"(default: the environment variable {PORT_ENV})"
+                        + ("; repeat it for several boards on one fixture (one station session)" if many else ""))
+    if many:
+        p.set_defaults(ports=None)
     p.add_argument("--baud", type=baud, default=DEFAULT_BAUD, help="baud rate of a real UART")
 
 

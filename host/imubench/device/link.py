@@ -425,10 +425,13 @@ class Device:
             if self.link.error is not None:
                 raise self.link._failure()
             now = time.monotonic()
-            if (n_samples is not None and have >= n_samples) or (n_samples is None and now >= t_end):
+            # with duration_s: at least one sample, however late (a busy host may see a quiet
+            # window longer than duration_s); only `timeout` says the samples stopped coming
+            if (n_samples is not None and have >= n_samples) or (n_samples is None and now >= t_end and have):
                 break
             if now > limit:
-                raise LinkTimeout(f"{have} of {n_samples} samples arrived before the timeout")
+                raise LinkTimeout(f"{have} of {n_samples} samples arrived before the timeout" if n_samples is not None
+                                  else f"no samples arrived for {limit - t_end + (duration_s or 0):.3g} s")
         if not blocks:
             raise LinkTimeout("no samples arrived")
         out = SampleBlock.concat(blocks)

@@ -1,18 +1,28 @@
-"""Calibration history: every finished session's result record, per device, in SQLite.
+"""Calibration history: every finished session's result record, per device, in SQLite or in
+a PostgreSQL database several stations share (imubench.results.db).
 
-    imubench history [DEVICE] [--db PATH] [--json]
+    imubench history [DEVICE] [--db PATH|URL] [--json]
+    imubench history --yield [station|day|station_day] | --failed | --sessions | --export SESSION
 
 Without DEVICE: the devices the database knows (MCU UID, board, number of runs, last
 calibration). With DEVICE (the full MCU UID, a unique prefix of it of at least 4 hex
 digits, or one of its gyro serial numbers): every run in time order, then how bias and
 scale moved from session to session, flagged where a change is larger than 3 combined
-sigmas (a real drift, not the noise of the two fits).
+sigmas (a real drift, not the noise of the two fits). For a production line: first-pass
+yield per station and day, the failed runs with their stage and reason or the measurements
+out of their limits, the station sessions, and one session exported (results.export).
 
-The database lives in the user's data directory (platformdirs:
-`user_data_dir("imubench")/history.sqlite`) unless a path is given (`History(path)`,
-`--db`). It runs in WAL mode, so readers (another `imubench history`) never block a
-session that is recording, and every write is one transaction: a crash or an exception
-leaves either the whole run or nothing.
+The database is $IMUBENCH_DB (a path or a postgresql:// URL) or, without it, a file in the
+user's data directory (platformdirs: `user_data_dir("imubench")/history.sqlite`), unless one
+is given (`History(path_or_url)`, `--db`). SQLite runs in WAL mode, so readers (another
+`imubench history`) never block a session that is recording; every write is one
+transaction on either database: a crash or an exception leaves either the whole run (with
+its device row and measurements) or nothing, and concurrent stations never see half a run.
+
+Records: schema 1 (a one-board session before the production line) and schema 2 (adds
+station, operator, fixture, slot, port, host version, session id, parameters before and
+after, measurements with limits, the raw capture's SHA-256 and location, and, for a board
+that failed before it was fitted, "failure": {stage, reason} instead of the fit).
 
 Units as docs/conventions.md: stored parameters are SI (m/s², rad/s); the report converts at
 the edge (mg, °/s, ppm = 1e-6 of the dimensionless M).
@@ -23,80 +33,26 @@ import datetime as _dt
 import json
 import math
 import re
-import sqlite3
 from pathlib import Path
 
 import numpy as np
+from sqlalchemy import bindparam, text
 
 from imubench import units as U
-from imubench.errors import ImubenchError
+from imubench.results import db as DB
+from imubench.results.export import measurement_text, measurements_of
 from imubench.results.numbers import pm
 from imubench.wire.ids import parse_id, sn_text
 
-SCHEMA_VERSION = 1          # of the database (tables below)
-RECORD_SCHEMA = 1           # of the result record a calibration session produces
+SCHEMA_VERSION = DB.SCHEMA_VERSION   # of the database (results.db: the tables and their migrations)
+RECORD_SCHEMA = 2           # of the result record a calibration session produces (1: before the production line)
+RECORD_SCHEMAS = (1, 2)     # records this imubench stores
 DRIFT_SIGMAS = 3.0          # a change is flagged when |change| > DRIFT_SIGMAS * combined sigma
 MIN_PREFIX = 4              # hex digits of an MCU UID prefix
 _AXES = ("x", "y", "z")
 
-_DDL = """
-CREATE TABLE IF NOT EXISTS schema_version (
-    version     INTEGER NOT NULL
-);
-CREATE TABLE IF NOT EXISTS devices (
-    id          INTEGER PRIMARY KEY,
-    mcu_uid     TEXT NOT NULL UNIQUE,       -- lower-case hex
-    board       TEXT,
-    accel_ids   TEXT,                       -- JSON, as of the latest run
-    gyro_pid    TEXT,                       -- JSON
-    gyro_sn     TEXT,                       -- JSON
-    first_seen  TEXT NOT NULL,              -- UTC ISO 8601 of the first run's start
-    last_seen   TEXT NOT NULL               -- ... of the latest run's start
-);
-CREATE TABLE IF NOT EXISTS runs (
-    id                        INTEGER PRIMARY KEY,
-    device_id                 INTEGER NOT NULL REFERENCES devices(id),
-    started                   TEXT NOT NULL,    -- UTC, fixed width: sorts as text
-    finished                  TEXT,             -- UTC
-    method                    TEXT NOT NULL,
-    gyro_method               TEXT,
-    accel_m                   TEXT NOT NULL,    -- JSON 3x3
-    accel_b_mps2              TEXT NOT NULL,    -- JSON [3]
-    accel_sigma_m             TEXT,
-    accel_sigma_b_mps2        TEXT,
-    accel_residual_rms_mps2   REAL,
-    gyro_m                    TEXT,
-    gyro_b_rad_s              TEXT,
-    gyro_sigma_m              TEXT,
-    gyro_sigma_b_rad_s        TEXT,
-    gyro_residual_rms         REAL,
-    poses                     TEXT NOT NULL,    -- JSON: per-pose |a| before/after, sigma, temperature
-    verification              TEXT,             -- JSON
-    temp_accel_c              REAL,
-    temp_gyro_c               TEXT,             -- JSON [3]
-    tolerances                TEXT,             -- JSON
-    fw_version                TEXT,
-    fw_build                  TEXT,
-    gyro_sn                   TEXT,             -- JSON: the gyros fitted in this run
-    passed                    INTEGER NOT NULL,
-    written                   INTEGER NOT NULL,
-    verified                  INTEGER NOT NULL,
-    note                      TEXT,
-    capture_dir               TEXT,
-    recorded_at               TEXT NOT NULL,
-    record                    TEXT NOT NULL,    -- the whole result record, JSON (sorted keys)
-    UNIQUE (device_id, started)
-);
-CREATE INDEX IF NOT EXISTS runs_device_started ON runs (device_id, started);
-"""
-
-
-class HistoryError(ImubenchError):
-    """The history database cannot be used; the message says why."""
-
-
-class SchemaError(HistoryError):
-    """The database was written by a newer imubench (or is not an imubench history)."""
+HistoryError = DB.DatabaseError     # the history database cannot be used; the message says why
+SchemaError = DB.SchemaError        # written by a newer imubench, or not an imubench history
 
 
 class UnknownDevice(HistoryError, LookupError):
@@ -115,6 +71,14 @@ class AmbiguousDevice(HistoryError, LookupError):
 def default_path() -> Path:
     import platformdirs
     return Path(platformdirs.user_data_dir("imubench")) / "history.sqlite"
+
+
+def default_target() -> str | Path:
+    """The database to use when none is given: $IMUBENCH_DB (a path or a postgresql:// URL),
+    else default_path()."""
+    import os
+    env = os.environ.get(DB.ENV_DB, "").strip()
+    return env if DB.is_url(env) else Path(env) if env else default_path()
 
 
 # ------------------------------------------------------------------ validation
@@ -172,20 +136,37 @@ def validate_result(result) -> None:
     if not isinstance(result, dict):
         raise ValueError(f"a result record is a dict, got {type(result).__name__}")
     missing, bad = [], []
-    for k in ("schema", "device", "started", "finished", "method", "gyro_method", "accel", "gyro",
-              "poses", "passed", "written", "verified"):
+    # a board that failed before it was fitted (schema 2: "failure" says where and why) has
+    # no fit, maybe no poses and, when its link never answered, no identity
+    failed = result.get("schema") == 2 and result.get("failure") is not None
+    required = (("schema", "device", "started", "finished", "passed", "failure") if failed else
+                ("schema", "device", "started", "finished", "method", "gyro_method", "accel", "gyro",
+                 "poses", "passed", "written", "verified"))
+    for k in required:
         if k not in result:
             missing.append(k)
-    if "schema" in result and result["schema"] != RECORD_SCHEMA:
-        bad.append(f"schema is {result['schema']!r}, this imubench records schema {RECORD_SCHEMA}")
+    if "schema" in result and result["schema"] not in RECORD_SCHEMAS:
+        bad.append(f"schema is {result['schema']!r}, this imubench records schema "
+                   + " and ".join(map(str, RECORD_SCHEMAS)))
+    if failed:
+        f = result["failure"]
+        if not (isinstance(f, dict) and isinstance(f.get("stage"), str) and isinstance(f.get("reason"), str)):
+            bad.append("failure must be an object with stage and reason (text)")
+        if result.get("passed"):
+            bad.append("a record with a failure cannot have passed")
+    meas = result.get("measurements")
+    if meas is not None and not (isinstance(meas, list) and all(isinstance(m, dict) and "name" in m for m in meas)):
+        bad.append("measurements must be a list of objects with a name")
     dev = result.get("device")
     if "device" in result:
         if not isinstance(dev, dict):
             bad.append("device must be an object")
         else:
-            missing += [f"device.{k}" for k in ("mcu_uid", "board", "fw_version", "fw_build") if k not in dev]
+            missing += [f"device.{k}" for k in ("mcu_uid", "board", "fw_version", "fw_build")
+                        if k not in dev and not failed]
             uid = dev.get("mcu_uid")
-            if "mcu_uid" in dev and not (isinstance(uid, str) and re.fullmatch(r"[0-9a-fA-F]{24}", uid)):
+            if (uid is not None or not failed) and "mcu_uid" in dev and \
+                    not (isinstance(uid, str) and re.fullmatch(r"[0-9a-fA-F]{24}", uid)):
                 bad.append(f"device.mcu_uid must be 24 hex digits, got {uid!r}")
             sn = dev.get("gyro_sn")
             if sn is not None and not (isinstance(sn, list) and all(isinstance(v, int) for v in sn)):
@@ -193,11 +174,12 @@ def validate_result(result) -> None:
     for k in ("started", "finished"):
         if k in result and _parse_time(result[k]) is None:
             bad.append(f"{k} must be an ISO 8601 time, got {result[k]!r}")
-    if "method" in result and not (isinstance(result["method"], str) and result["method"]):
+    if "method" in result and not (isinstance(result["method"], str) and result["method"]) \
+            and not (failed and result["method"] is None):
         bad.append("method must be a non-empty string")
     if "gyro_method" in result and not (result["gyro_method"] is None or isinstance(result["gyro_method"], str)):
         bad.append("gyro_method must be a string or null")
-    if "accel" in result:
+    if "accel" in result and not (failed and result["accel"] is None):
         mi, ba = _triad_problems(result["accel"], "accel", "b_mps2", ("residual_rms_mps2", "residual_rms"))
         missing += mi
         bad += ba
@@ -205,7 +187,7 @@ def validate_result(result) -> None:
         mi, ba = _triad_problems(result["gyro"], "gyro", "b_rad_s", ("residual_rms",))
         missing += mi
         bad += ba
-    if "poses" in result:
+    if "poses" in result and not (failed and not result["poses"]):
         poses = result["poses"]
         if not isinstance(poses, list) or not poses:
             bad.append("poses must be a non-empty list")
@@ -248,105 +230,42 @@ def _loads(s):
 
 
 # ------------------------------------------------------------------ database
+def _device_id_sql(conn):
+    return text("SELECT id, first_seen, last_seen FROM devices WHERE mcu_uid = :uid"
+                + (" FOR UPDATE" if DB.is_pg(conn) else ""))
+
+
 class History:
-    """The calibration history database. `History()` opens (creating) the one in the user's
-    data directory; `History(path)` another; `readonly=True` never creates or changes it."""
+    """The calibration history database. `History()` opens (creating) the one named by
+    IMUBENCH_DB or, without it, the SQLite file in the user's data directory; `History(path)`
+    another file, `History("postgresql://...")` a PostgreSQL database (results.db);
+    `readonly=True` never creates or changes it."""
 
     def __init__(self, path: str | Path | None = None, *, readonly: bool = False, timeout_s: float = 10.0):
-        self.path = Path(path) if path is not None else default_path()
+        target = default_target() if path is None else path
+        self.url = target if DB.is_url(target) else None
+        self.path = target if self.url else Path(target)       # what messages name (a URL has no password here)
+        if self.url:
+            self.path = DB.describe(target)
         self.readonly = readonly
-        if readonly:
-            if not self.path.is_file():
-                raise HistoryError(f"no history database at {self.path}")
-            target, uri = self.path.resolve().as_uri() + "?mode=ro", True
-        else:
-            if self.path.exists() and not self.path.is_file():
-                raise HistoryError(f"{self.path} is not a file")
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            target, uri = str(self.path), False
-        try:
-            self._db = sqlite3.connect(target, uri=uri, timeout=timeout_s, isolation_level=None)
-        except sqlite3.Error as e:
-            raise HistoryError(f"cannot open {self.path}: {e}") from None
-        try:
-            self._open()
-        except sqlite3.DatabaseError as e:
-            self._db.close()
-            raise HistoryError(f"cannot read {self.path} as an imubench history database: {e}") from None
-        except Exception:
-            self._db.close()
-            raise
+        self._engine, self._db = DB.connect(target, readonly=readonly, timeout_s=timeout_s)
 
-    def _open(self) -> None:
-        db = self._db
-        db.execute("PRAGMA foreign_keys = ON")
-        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-        version = None
-        if "schema_version" in tables:
-            row = db.execute("SELECT MAX(version) FROM schema_version").fetchone()
-            version = row[0]
-        if version is not None and version > SCHEMA_VERSION:
-            raise SchemaError(f"{self.path} was written by a newer imubench (history schema {version}; "
-                              f"this one reads up to {SCHEMA_VERSION}): upgrade imubench to read it")
-        if version is None and tables - {"schema_version"}:
-            raise SchemaError(f"{self.path} is an SQLite database but not an imubench history "
-                              f"(tables: {', '.join(sorted(tables))})")
-        if self.readonly:
-            if version is None:
-                raise SchemaError(f"{self.path} is empty: not an imubench history database")
-            return
-        db.execute("PRAGMA journal_mode = WAL")     # concurrent readers while a session records
-        db.execute("PRAGMA synchronous = FULL")     # a run reported as recorded survives a power cut too
-        # executescript() would commit an open transaction, so the tables are created one by one
-        # (the DDL has no ';' other than between statements).
-        with self._write():
-            for stmt in _DDL.split(";"):
-                if stmt.strip():
-                    db.execute(stmt)
-            row = db.execute("SELECT MAX(version) FROM schema_version").fetchone()
-            if row[0] is None:
-                db.execute("INSERT INTO schema_version (version) VALUES (?)", (SCHEMA_VERSION,))
-            elif row[0] > SCHEMA_VERSION:       # another writer upgraded it meanwhile
-                raise SchemaError(f"{self.path} was written by a newer imubench (history schema {row[0]})")
+    @property
+    def dialect(self) -> str:
+        return self._db.dialect.name
 
     # ------------------------------------------------------------ transactions
-    class _Txn:
-        def __init__(self, db: sqlite3.Connection, mode: str):
-            self.db, self.mode = db, mode
-
-        def __enter__(self):
-            try:
-                self.db.execute(f"BEGIN {self.mode}")
-            except sqlite3.OperationalError as e:      # e.g. another writer held the lock past the timeout
-                raise HistoryError(f"history database busy or unavailable: {e}") from None
-            return self.db
-
-        def __exit__(self, et, ev, tb):
-            if et is None:
-                try:
-                    self.db.execute("COMMIT")
-                    return False
-                except sqlite3.Error:
-                    if self.db.in_transaction:
-                        self.db.execute("ROLLBACK")
-                    raise
-            if self.db.in_transaction:
-                self.db.execute("ROLLBACK")
-            return False
-
     def _write(self):
-        if self.readonly:
-            raise HistoryError(f"{self.path} is open read-only")
-        return self._Txn(self._db, "IMMEDIATE")
+        return DB.write(self._db)
 
     def _read(self):
-        return self._Txn(self._db, "DEFERRED")     # one snapshot for a multi-statement read
+        return DB.read(self._db)       # one snapshot for a multi-statement read
 
     # ------------------------------------------------------------ API
     def close(self) -> None:
         if self._db is not None:
-            self._db.close()
-            self._db = None
+            DB.close(self._engine, self._db)
+            self._db = self._engine = None
 
     def __enter__(self):
         return self
@@ -365,51 +284,63 @@ class History:
     def record_once(self, result: dict) -> tuple[int, bool]:
         """record(), and whether the run is new: (run id, True) when it was stored now,
         (run id, False) when this very run (the same device, session start and run start,
-        the same record) was already in the history and nothing was stored."""
+        the same record) was already in the history and nothing was stored. The run, its
+        device row and its measurements are one transaction: another station writing at
+        the same time never sees half of it, and a failure leaves nothing."""
         validate_result(result)
-        dev = result["device"]
-        uid = dev["mcu_uid"].lower()
+        dev = result.get("device") or {}
+        uid = dev["mcu_uid"].lower() if dev.get("mcu_uid") else None
         started = _utc_text(_parse_time(result["started"]))
         finished = _utc_text(_parse_time(result["finished"]))
+        meas = result.get("measurements")
+        if meas is None:
+            meas = measurements_of(result)
         record_json = _dumps(result)          # everything serialised before the transaction starts
-        acc = result["accel"]
+        acc = result.get("accel")
         gyr = result.get("gyro")
         temps = result.get("temperature_c") or {}
         sn = dev.get("gyro_sn")
+        station = result.get("station") or {}
+        capture = result.get("capture") or {}
+        failure = result.get("failure") or {}
         run = {
-            "started": started, "finished": finished, "method": result["method"],
-            "gyro_method": result["gyro_method"],
-            "accel_m": _dumps(acc["m"]), "accel_b_mps2": _dumps(acc["b_mps2"]),
-            "accel_sigma_m": _dumps(acc["sigma_m"]), "accel_sigma_b_mps2": _dumps(acc["sigma_b_mps2"]),
-            "accel_residual_rms_mps2": _float_or_none(acc.get("residual_rms_mps2", acc.get("residual_rms"))),
+            "started": started, "finished": finished, "method": result.get("method"),
+            "gyro_method": result.get("gyro_method"),
+            "accel_m": _dumps(acc["m"]) if acc else None, "accel_b_mps2": _dumps(acc["b_mps2"]) if acc else None,
+            "accel_sigma_m": _dumps(acc["sigma_m"]) if acc else None,
+            "accel_sigma_b_mps2": _dumps(acc["sigma_b_mps2"]) if acc else None,
+            "accel_residual_rms_mps2": _float_or_none(acc.get("residual_rms_mps2", acc.get("residual_rms")))
+            if acc else None,
             "gyro_m": _dumps(gyr["m"]) if gyr else None,
             "gyro_b_rad_s": _dumps(gyr["b_rad_s"]) if gyr else None,
             "gyro_sigma_m": _dumps(gyr["sigma_m"]) if gyr else None,
             "gyro_sigma_b_rad_s": _dumps(gyr["sigma_b_rad_s"]) if gyr else None,
             "gyro_residual_rms": _float_or_none(gyr.get("residual_rms")) if gyr else None,
-            "poses": _dumps(result["poses"]), "verification": _dumps(result.get("verification")),
+            "poses": _dumps(result.get("poses")), "verification": _dumps(result.get("verification")),
             "temp_accel_c": _float_or_none(temps.get("accel")), "temp_gyro_c": _dumps(temps.get("gyro")),
             "tolerances": _dumps(result.get("tolerances")),
             "fw_version": dev.get("fw_version"), "fw_build": dev.get("fw_build"), "gyro_sn": _dumps(sn),
-            "passed": int(bool(result["passed"])), "written": int(bool(result["written"])),
-            "verified": int(bool(result["verified"])), "note": result.get("note"),
+            "passed": int(bool(result["passed"])), "written": int(bool(result.get("written"))),
+            "verified": int(bool(result.get("verified"))), "note": result.get("note"),
             "capture_dir": None if result.get("capture_dir") is None else str(result["capture_dir"]),
             "recorded_at": _utc_text(_dt.datetime.now(_dt.timezone.utc)), "record": record_json,
+            "station_id": station.get("id"), "operator": station.get("operator"),
+            "fixture": station.get("fixture"), "slot": station.get("slot"), "port": station.get("port"),
+            "host_version": station.get("host_version"), "session_id": result.get("session_id"),
+            "params_before": _dumps(result.get("params_before")), "params_after": _dumps(result.get("params_after")),
+            "capture_sha256": capture.get("sha256"), "capture_uri": capture.get("uri"),
+            "failed_stage": failure.get("stage"), "failure": failure.get("reason"),
         }
         device_row = {"board": dev.get("board"), "accel_ids": _dumps(dev.get("accel_ids")),
                       "gyro_pid": _dumps(dev.get("gyro_pid")), "gyro_sn": _dumps(sn)}
         with self._write() as db:
-            row = db.execute("SELECT id, first_seen, last_seen FROM devices WHERE mcu_uid = ?", (uid,)).fetchone()
-            if row is None:
-                cur = db.execute("INSERT INTO devices (mcu_uid, board, accel_ids, gyro_pid, gyro_sn, first_seen, last_seen) "
-                                 "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                                 (uid, device_row["board"], device_row["accel_ids"], device_row["gyro_pid"],
-                                  device_row["gyro_sn"], started, started))
-                device_id = cur.lastrowid
-            else:
-                device_id, first_seen, last_seen = row
-                existing = db.execute("SELECT id, record FROM runs WHERE device_id = ? AND started = ?",
-                                      (device_id, started)).fetchone()
+            device_id = None
+            if uid is not None:
+                db.execute(_insert_ignore(db, DB.devices).values(
+                    mcu_uid=uid, first_seen=started, last_seen=started, **device_row))
+                device_id, first_seen, last_seen = db.execute(_device_id_sql(db), {"uid": uid}).one()
+                existing = db.execute(text("SELECT id, record FROM runs WHERE device_id = :d AND started = :s"),
+                                      {"d": device_id, "s": started}).first()
                 if existing is not None:
                     if existing[1] == record_json:
                         return existing[0], False
@@ -419,29 +350,40 @@ class History:
                                      + (", of the same session: its session.json changed since" if same_session
                                         and result.get("session_started") else "") + "): not stored")
                 if started >= last_seen:     # the newest run describes the device as it is now
-                    db.execute("UPDATE devices SET board = ?, accel_ids = ?, gyro_pid = ?, gyro_sn = ?, last_seen = ? "
-                               "WHERE id = ?", (device_row["board"], device_row["accel_ids"], device_row["gyro_pid"],
-                                                device_row["gyro_sn"], started, device_id))
+                    db.execute(text("UPDATE devices SET board = :board, accel_ids = :accel_ids, gyro_pid = :gyro_pid, "
+                                    "gyro_sn = :gyro_sn, last_seen = :s WHERE id = :d"),
+                               {**device_row, "s": started, "d": device_id})
                 if started < first_seen:
-                    db.execute("UPDATE devices SET first_seen = ? WHERE id = ?", (started, device_id))
-            return self._insert_run(db, device_id, run), True
+                    db.execute(text("UPDATE devices SET first_seen = :s WHERE id = :d"), {"s": started, "d": device_id})
+            else:                           # an unidentified board: the same record twice is one run
+                existing = db.execute(text("SELECT id FROM runs WHERE device_id IS NULL AND started = :s "
+                                           "AND record = :r"), {"s": started, "r": record_json}).first()
+                if existing is not None:
+                    return existing[0], False
+            run_id = self._insert_run(db, device_id, run)
+            if meas:
+                db.execute(DB.measurements.insert(), [
+                    {"run_id": run_id, "seq": i, "name": str(m["name"]), "value": _float_or_none(m.get("value")),
+                     "unit": str(m.get("unit") or ""), "low": _float_or_none(m.get("low")),
+                     "high": _float_or_none(m.get("high")), "passed": int(bool(m.get("passed")))}
+                    for i, m in enumerate(meas)])
+            return run_id, True
 
-    def _insert_run(self, db: sqlite3.Connection, device_id: int, run: dict) -> int:
-        cols = ["device_id", *run]
-        cur = db.execute(f"INSERT INTO runs ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})",
-                         (device_id, *run.values()))
-        return cur.lastrowid
+    def _insert_run(self, db, device_id: int | None, run: dict) -> int:
+        res = db.execute(DB.runs.insert().values(device_id=device_id, **run))
+        return int(res.inserted_primary_key[0])
 
     def devices(self) -> list[dict]:
         """Every known device, most recently calibrated first."""
         with self._read() as db:
-            rows = db.execute("SELECT id, mcu_uid, board, accel_ids, gyro_pid, gyro_sn, first_seen, last_seen "
-                              "FROM devices ORDER BY last_seen DESC, mcu_uid").fetchall()
+            rows = db.execute(text("SELECT id, mcu_uid, board, accel_ids, gyro_pid, gyro_sn, first_seen, last_seen "
+                                   "FROM devices ORDER BY last_seen DESC, mcu_uid")).all()
             out = []
             for (dev_id, uid, board, ids, pid, sn, first, last) in rows:
-                n = db.execute("SELECT COUNT(*) FROM runs WHERE device_id = ?", (dev_id,)).fetchone()[0]
-                latest = db.execute("SELECT started, method, gyro_method, passed, written, verified FROM runs "
-                                    "WHERE device_id = ? ORDER BY started DESC, id DESC LIMIT 1", (dev_id,)).fetchone()
+                n = db.execute(text("SELECT COUNT(*) FROM runs WHERE device_id = :d"), {"d": dev_id}).scalar()
+                latest = db.execute(text("SELECT started, method, gyro_method, passed, written, verified FROM runs "
+                                         "WHERE device_id = :d ORDER BY started DESC, id DESC LIMIT 1"),
+                                    {"d": dev_id}).first()
                 d = {"mcu_uid": uid.upper(), "board": board, "accel_ids": _loads(ids), "gyro_pid": _loads(pid),
                      "gyro_sn": _loads(sn), "first_seen": first, "last_seen": last, "runs": n, "last_run": None}
                 if latest:
@@ -461,8 +403,9 @@ class History:
         except ValueError as e:
             raise UnknownDevice(str(e)) from None
         with self._read() as db:
-            devs = db.execute("SELECT id, mcu_uid, gyro_sn FROM devices").fetchall()
-            run_sns = db.execute("SELECT DISTINCT device_id, gyro_sn FROM runs WHERE gyro_sn IS NOT NULL").fetchall()
+            devs = db.execute(text("SELECT id, mcu_uid, gyro_sn FROM devices")).all()
+            run_sns = db.execute(text("SELECT DISTINCT device_id, gyro_sn FROM runs "
+                                      "WHERE gyro_sn IS NOT NULL AND device_id IS NOT NULL")).all()
         by_id = {i: uid.upper() for i, uid, _ in devs}
         if q in by_id.values():
             return q
@@ -486,19 +429,114 @@ class History:
             hint = f" (no gyro has that serial number, and a UID prefix needs at least {MIN_PREFIX} hex digits)"
         raise UnknownDevice(f"no device {str(device).strip()!r} in {self.path}{hint}")
 
+    def _select_runs(self, where: str, params: dict, order: str = "r.started, r.id") -> list[dict]:
+        with self._read() as db:
+            res = db.execute(text("SELECT r.*, d.mcu_uid, d.board FROM runs r LEFT JOIN devices d ON d.id = r.device_id "
+                                  f"WHERE {where} ORDER BY {order}"), params)
+            rows = [dict(r._mapping) for r in res]
+            ids = [r["id"] for r in rows]
+            meas: dict[int, list] = {}
+            for k in range(0, len(ids), 500):
+                chunk = ids[k:k + 500]
+                q = text("SELECT run_id, name, value, unit, low, high, passed FROM measurements "
+                         "WHERE run_id IN :ids ORDER BY run_id, seq").bindparams(bindparam("ids", expanding=True))
+                for m in db.execute(q, {"ids": chunk}):
+                    meas.setdefault(m[0], []).append({"name": m[1], "value": m[2], "unit": m[3], "low": m[4],
+                                                      "high": m[5], "passed": bool(m[6])})
+        return [_run_from_row(r, meas.get(r["id"], [])) for r in rows]
+
     def runs(self, device: str) -> list[dict]:
         """Every run of a device (see resolve()), oldest first."""
         uid = self.resolve(device)
+        return self._select_runs("d.mcu_uid = :uid", {"uid": uid.lower()})
+
+    def run(self, run_id: int) -> dict:
+        """One run by its id."""
+        got = self._select_runs("r.id = :i", {"i": int(run_id)})
+        if not got:
+            raise UnknownDevice(f"no run {run_id} in {self.path}")
+        return got[0]
+
+    def session_runs(self, session_id: str) -> list[dict]:
+        """Every board's run of one station session (a unique prefix of its id is enough),
+        in fixture-slot order."""
+        sid = str(session_id).strip()
         with self._read() as db:
-            cur = db.execute("SELECT r.*, d.mcu_uid, d.board FROM runs r JOIN devices d ON d.id = r.device_id "
-                             "WHERE d.mcu_uid = ? ORDER BY r.started, r.id", (uid.lower(),))
-            names = [c[0] for c in cur.description]
-            rows = [dict(zip(names, r)) for r in cur.fetchall()]
-        return [_run_from_row(r) for r in rows]
+            like = sid.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
+            ids = [r[0] for r in db.execute(text("SELECT DISTINCT session_id FROM runs WHERE session_id LIKE :p "
+                                                 "ESCAPE '\\'"), {"p": like})
+                   if r[0] is not None]
+        if not ids:
+            raise UnknownDevice(f"no session {sid!r} in {self.path} (`imubench history --sessions` lists them)")
+        if len(ids) > 1 and sid not in ids:
+            raise UnknownDevice(f"session {sid!r} is ambiguous: {', '.join(sorted(ids)[:5])}: give more of it")
+        sid = sid if sid in ids else ids[0]
+        return self._select_runs("r.session_id = :s", {"s": sid}, order="r.slot, r.id")
+
+    def sessions(self, since: str | None = None, station: str | None = None, limit: int = 50) -> list[dict]:
+        """The latest station sessions: id, station, operator, fixture, start, boards, passed."""
+        where, params = _filters(since, station)
+        with self._read() as db:
+            rows = db.execute(text(
+                "SELECT session_id, MIN(station_id), MIN(operator), MIN(fixture), MIN(started), COUNT(*), "
+                "SUM(passed) FROM runs r WHERE session_id IS NOT NULL" + where
+                + " GROUP BY session_id ORDER BY MIN(started) DESC LIMIT :lim"), {**params, "lim": int(limit)}).all()
+        return [{"session_id": r[0], "station_id": r[1], "operator": r[2], "fixture": r[3], "started": r[4],
+                 "boards": int(r[5]), "passed": int(r[6] or 0)} for r in rows]
+
+    def yield_table(self, by: str = "station_day", since: str | None = None, station: str | None = None) -> list[dict]:
+        """First-pass yield: runs and passed runs grouped by station, by UTC day or both."""
+        keys = {"station": ["station"], "day": ["day"], "station_day": ["station", "day"]}[by]
+        expr = {"station": "COALESCE(r.station_id, '-')", "day": "SUBSTR(r.started, 1, 10)"}
+        where, params = _filters(since, station)
+        cols = ", ".join(f"{expr[k]} AS {k}" for k in keys)
+        with self._read() as db:
+            rows = db.execute(text(
+                f"SELECT {cols}, COUNT(*) AS runs, SUM(r.passed) AS passed, "
+                "COUNT(DISTINCT r.device_id) AS devices FROM runs r WHERE 1 = 1" + where
+                + f" GROUP BY {', '.join(keys)} ORDER BY {', '.join(keys)}"), params).all()
+        out = []
+        for r in rows:
+            m = dict(r._mapping)
+            m["runs"], m["passed"] = int(m["runs"]), int(m["passed"] or 0)
+            m["devices"] = int(m["devices"])
+            m["failed"] = m["runs"] - m["passed"]
+            m["yield"] = m["passed"] / m["runs"] if m["runs"] else None
+            out.append(m)
+        return out
+
+    def failures(self, since: str | None = None, station: str | None = None) -> list[dict]:
+        """Every failed run: the board, where and why it failed, the measurements out of
+        their limits; newest first."""
+        where, params = _filters(since, station)
+        return self._select_runs("r.passed = 0" + where, params, order="r.started DESC, r.id DESC")
 
     def count_runs(self) -> int:
         with self._read() as db:
-            return db.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+            return db.execute(text("SELECT COUNT(*) FROM runs")).scalar()
+
+
+def _filters(since: str | None, station: str | None) -> tuple[str, dict]:
+    where, params = "", {}
+    if since:
+        t = _parse_time(since if "T" in since else since + "T00:00:00+00:00")
+        if t is None:
+            raise HistoryError(f"--since {since!r} is not a date: give YYYY-MM-DD or an ISO 8601 time")
+        where += " AND r.started >= :since"
+        params["since"] = _utc_text(t)
+    if station:
+        where += " AND r.station_id = :station"
+        params["station"] = station
+    return where, params
+
+
+def _insert_ignore(conn, table):
+    """INSERT ... ON CONFLICT DO NOTHING in the connection's dialect."""
+    if DB.is_pg(conn):
+        from sqlalchemy.dialects.postgresql import insert
+    else:
+        from sqlalchemy.dialects.sqlite import insert
+    return insert(table).on_conflict_do_nothing()
 
 
 def _float_or_none(x):
@@ -510,21 +548,24 @@ def _float_or_none(x):
         return None
 
 
-def _run_from_row(r: dict) -> dict:
+def _run_from_row(r: dict, measurements: list | None = None) -> dict:
     record = json.loads(r["record"])
     gyro = None
     if r["gyro_m"] is not None:
         gyro = {"m": _loads(r["gyro_m"]), "b_rad_s": _loads(r["gyro_b_rad_s"]),
                 "sigma_m": _loads(r["gyro_sigma_m"]), "sigma_b_rad_s": _loads(r["gyro_sigma_b_rad_s"]),
                 "residual_rms": r["gyro_residual_rms"]}
+    accel = None
+    if r["accel_m"] is not None:
+        accel = {"m": _loads(r["accel_m"]), "b_mps2": _loads(r["accel_b_mps2"]),
+                 "sigma_m": _loads(r["accel_sigma_m"]), "sigma_b_mps2": _loads(r["accel_sigma_b_mps2"]),
+                 "residual_rms_mps2": r["accel_residual_rms_mps2"]}
     return {
-        "run_id": r["id"], "mcu_uid": r["mcu_uid"].upper(), "board": r["board"],
+        "run_id": r["id"], "mcu_uid": r["mcu_uid"].upper() if r.get("mcu_uid") else None, "board": r.get("board"),
         "started": record["started"], "finished": record["finished"],
         "started_utc": r["started"], "finished_utc": r["finished"],
         "method": r["method"], "gyro_method": r["gyro_method"],
-        "accel": {"m": _loads(r["accel_m"]), "b_mps2": _loads(r["accel_b_mps2"]),
-                  "sigma_m": _loads(r["accel_sigma_m"]), "sigma_b_mps2": _loads(r["accel_sigma_b_mps2"]),
-                  "residual_rms_mps2": r["accel_residual_rms_mps2"]},
+        "accel": accel,
         "gyro": gyro,
         "poses": _loads(r["poses"]), "verification": _loads(r["verification"]) or [],
         "temperature_c": {"accel": r["temp_accel_c"], "gyro": _loads(r["temp_gyro_c"])},
@@ -532,6 +573,12 @@ def _run_from_row(r: dict) -> dict:
         "fw_version": r["fw_version"], "fw_build": r["fw_build"], "gyro_sn": _loads(r["gyro_sn"]),
         "passed": bool(r["passed"]), "written": bool(r["written"]), "verified": bool(r["verified"]),
         "note": r["note"], "capture_dir": r["capture_dir"], "recorded_at": r["recorded_at"],
+        "station_id": r.get("station_id"), "operator": r.get("operator"), "fixture": r.get("fixture"),
+        "slot": r.get("slot"), "port": r.get("port"), "host_version": r.get("host_version"),
+        "session_id": r.get("session_id"), "params_before": _loads(r.get("params_before")),
+        "params_after": _loads(r.get("params_after")), "capture_sha256": r.get("capture_sha256"),
+        "capture_uri": r.get("capture_uri"), "failed_stage": r.get("failed_stage"), "failure": r.get("failure"),
+        "measurements": measurements if measurements is not None else [],
         "record": record,
     }
 
@@ -574,8 +621,9 @@ def _triad_summary(t: dict | None, b_key: str, to_user, bias_unit: str) -> dict 
 def run_summary(run: dict, index: int) -> dict:
     """One run in user units (mg, °/s, ppm), as `imubench history DEVICE` shows it."""
     acc = _triad_summary(run["accel"], "b_mps2", U.mps2_to_mg, "mg")
-    rr = run["accel"].get("residual_rms_mps2")
-    acc["residual_rms_mg"] = _fin(U.mps2_to_mg(rr)) if rr is not None else None
+    if acc is not None:
+        rr = run["accel"].get("residual_rms_mps2")
+        acc["residual_rms_mg"] = _fin(U.mps2_to_mg(rr)) if rr is not None else None
     gyr = _triad_summary(run["gyro"], "b_rad_s", U.rad_s_to_dps, "dps")
     if gyr is not None:
         gyr["residual_rms"] = _fin(run["gyro"].get("residual_rms"))
@@ -589,6 +637,9 @@ def run_summary(run: dict, index: int) -> dict:
                           else [_fin(v) for v in run["temperature_c"]["gyro"]]},
         "passed": run["passed"], "written": run["written"], "verified": run["verified"],
         "note": run["note"] or "", "capture_dir": run["capture_dir"],
+        **{k: run.get(k) for k in ("station_id", "operator", "fixture", "slot", "port", "host_version",
+                                   "session_id", "capture_sha256", "capture_uri", "failed_stage", "failure")},
+        "measurements": run.get("measurements") or [],
     }
 
 
@@ -709,8 +760,12 @@ def format_device_report(rep: dict) -> str:
         gm = f", gyro {s['gyro_method']}" if s["gyro_method"] else ", no gyro calibration"
         out.append(f"run {s['index']} (id {s['run_id']})  {_when(s['started'])}  method {s['method']}{gm}  "
                    f"fw {s['fw_version']} ({s['fw_build']})")
-        out += _triad_lines(s["accel"], "accel", "mg", "mg", 4)
-        if s["accel"]["residual_rms_mg"] is not None:
+        out += _station_lines(s)
+        if s["accel"] is None:
+            out.append("  accel".ljust(_LABEL_W) + "no fit (the board failed before it)")
+        else:
+            out += _triad_lines(s["accel"], "accel", "mg", "mg", 4)
+        if s["accel"] is not None and s["accel"]["residual_rms_mg"] is not None:
             out.append("  accel fit residual".ljust(_LABEL_W) + f"{s['accel']['residual_rms_mg']:.4f} mg RMS")
         if s["gyro"] is not None:
             out += _triad_lines(s["gyro"], "gyro", "dps", "°/s", 5)
@@ -723,11 +778,94 @@ def format_device_report(rep: dict) -> str:
         out.append("  temperature".ljust(_LABEL_W) + (", ".join(temp) or "-"))
         out.append("  status".ljust(_LABEL_W) + f"passed {_yes(s['passed'])}, written {_yes(s['written'])}, "
                    f"verified {_yes(s['verified'])}")
+        if s.get("failure"):
+            out.append("  failed".ljust(_LABEL_W) + f"at {s['failed_stage']}: {s['failure']}")
+        for m in s.get("measurements") or []:
+            out.append("  measured".ljust(_LABEL_W) + f"{m['name']} = {measurement_text(m)}")
         if s["note"]:
             out.append("  note".ljust(_LABEL_W) + s["note"])
     out.append("")
     out += _format_drift(rep["drift"], len(runs))
     return "\n".join(out)
+
+
+def _station_lines(s: dict) -> list[str]:
+    """Where and by whom a run was made, and where its raw capture is (schema-2 runs)."""
+    out = []
+    if s.get("station_id") or s.get("operator") or s.get("fixture"):
+        parts = [f"station {s.get('station_id') or '-'}" + (f" slot {s['slot']}" if s.get("slot") is not None else "")]
+        if s.get("operator"):
+            parts.append(f"operator {s['operator']}")
+        if s.get("fixture"):
+            parts.append(f"fixture {s['fixture']}")
+        if s.get("host_version"):
+            parts.append(f"host {s['host_version']}")
+        if s.get("session_id"):
+            parts.append(f"session {s['session_id']}")
+        out.append("  where".ljust(_LABEL_W) + ", ".join(parts))
+    if s.get("capture_sha256"):
+        out.append("  raw capture".ljust(_LABEL_W) + f"capture sha256 {s['capture_sha256']}"
+                   + (f" at {s['capture_uri']}" if s.get("capture_uri") else ""))
+    return out
+
+
+# ------------------------------------------------------------------ production queries, as text
+def _pct(x) -> str:
+    return "-" if x is None else f"{100.0 * x:.1f} %"
+
+
+def format_yield(rows: list[dict], by: str, path) -> str:
+    """First-pass yield per station and/or day (a percentage of counted runs: one decimal,
+    the resolution of 1 in 1000 runs)."""
+    if not rows:
+        return f"no runs in {path} match"
+    keys = {"station": ["station"], "day": ["day"], "station_day": ["station", "day"]}[by]
+    w = {"station": max(8, *(len(str(r["station"])) for r in rows)) if "station" in keys else 0, "day": 10}
+    head = "".join(f"{k:<{w[k]}}  " for k in keys) + f"{'runs':>5} {'passed':>6} {'failed':>6} {'yield':>8}  boards"
+    lines = [head]
+    for r in rows:
+        lines.append("".join(f"{str(r[k]):<{w[k]}}  " for k in keys)
+                     + f"{r['runs']:>5} {r['passed']:>6} {r['failed']:>6} {_pct(r['yield']):>8}  {r['devices']}")
+    n = sum(r["runs"] for r in rows)
+    p = sum(r["passed"] for r in rows)
+    lines.append("".join(f"{('total' if i == 0 else ''):<{w[k]}}  " for i, k in enumerate(keys))
+                 + f"{n:>5} {p:>6} {n - p:>6} {_pct(p / n if n else None):>8}")
+    lines.append(f"(first-pass yield = passed runs / runs, from {path}; `--failed` lists why the others failed)")
+    return "\n".join(lines)
+
+
+def format_failures(runs: list[dict], path) -> str:
+    """The boards that failed and why: the stage and reason, or the measurements out of limits."""
+    if not runs:
+        return f"no failed runs in {path}"
+    lines = []
+    for r in runs:
+        who = r["mcu_uid"] or f"unidentified board (port {r.get('port') or '-'})"
+        where = f"station {r.get('station_id') or '-'}" + (f" slot {r['slot']}" if r.get("slot") is not None else "")
+        lines.append(f"{_when(r['started'])}  {who}  {where}  run {r['run_id']}"
+                     + (f"  session {r['session_id']}" if r.get("session_id") else ""))
+        reasons = []
+        if r.get("failure"):
+            reasons.append(f"failed at {r.get('failed_stage') or '?'}: {r['failure']}")
+        for m in r.get("measurements") or []:
+            if not m.get("passed"):
+                reasons.append(f"{m['name']} = {measurement_text(m)}")
+        if not reasons:
+            reasons.append("did not pass" + (f" ({r['note']})" if r.get("note") else ""))
+        lines += [f"    {x}" for x in reasons]
+    lines.append(f"({len(runs)} failed run{'s' if len(runs) != 1 else ''} in {path}, newest first)")
+    return "\n".join(lines)
+
+
+def format_sessions(rows: list[dict], path) -> str:
+    if not rows:
+        return f"no station sessions in {path}"
+    lines = [f"{'session':<36}  {'station':<10} {'operator':<10} {'started':<20} boards passed"]
+    for r in rows:
+        lines.append(f"{r['session_id']:<36}  {r['station_id'] or '-':<10} {r['operator'] or '-':<10} "
+                     f"{_when(r['started']):<20} {r['boards']:>6} {r['passed']:>6}")
+    lines.append("(`imubench history --export SESSION --format junit|json` writes one as a test record)")
+    return "\n".join(lines)
 
 
 _DRIFT_LABELS = {"accel_bias_mg": ("accel bias [mg]", 4), "accel_scale_ppm": ("accel scale [ppm]", 1),

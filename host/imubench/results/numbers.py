@@ -76,3 +76,17 @@ def value(v, sigma=None, unit: str = "", scale: float = 1.0, digits: int = 2) ->
     else:
         vt = f"{x * scale:.{digits}g}"
     return vt + (f" {unit}" if unit else "")
+
+
+def significant(v, digits: int = 3, unit: str = "") -> str:
+    """A measured figure with no uncertainty of its own (a limit check's value) to `digits`
+    significant digits, trailing zeros kept: significant(3.0) -> '3.00', 0.01234 -> '0.0123'."""
+    x = _finite(v)
+    if x is None:
+        return "–"
+    if x == 0.0:
+        t = f"{0.0:.{digits - 1}f}"
+    else:
+        d = digits - 1 - int(math.floor(math.log10(abs(x))))
+        t = f"{round(x, d):.{max(d, 0)}f}"
+    return t + (f" {unit}" if unit else "")

@@ -1,0 +1,584 @@
+"""Many boards on one fixture: one station session calibrates every board on the plate.
+
+    imubench calibrate --port URL1 --port URL2 ... [--station-file FILE] [--station ID] [--operator NAME]
+    imubench calibrate --sim --sim-boards 4
+
+The boards are mounted on one plate, so they see the same attitudes and the same turntable
+motion. Each board runs the ordinary guided session (imubench.procedures.session: health
+check, rest, poses, turns, fit, write-back, verification) in its own thread on its own link,
+in its own session directory (DIR/slot-K). The plate is shared: a board's session that asks
+for the next attitude or turn waits at the Plate until every board still running has asked
+for it, then the plate is moved once (by the operator, or on the virtual bench by a
+PlatePresenter that moves every virtual device) and all of them go on. A board that fails
+(its link lost, a sensor faulted, its fit refused or out of tolerance, its write-back or
+verification failed) leaves the plate with its stage and reason, and the others carry on:
+the verdict is per board.
+
+Every board gets a record (schema 2, results.history) with the station, operator, fixture,
+slot and port, firmware and host versions, the parameter block before and after, the
+measurements with their limits, and the SHA-256 of its raw capture with where it is stored;
+a board that failed before it was fitted gets a record with the stage and reason. They are
+recorded as each board finishes (the database may be shared with other stations).
+
+Per-board state is published as it changes: `on_event(status)` is called with a dict
+(slot, port, uid, stage, state running/passed/failed, message, progress, reason) for a
+station page or a log; `FixtureRun.snapshot()` gives all of them at once.
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import hashlib
+import socket
+import threading
+import time
+import traceback
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from imubench.calib import CalibrationError
+from imubench.device.link import Device, LinkError, LinkTimeout
+from imubench.procedures.session import (
+    Session,
+    SessionAborted,
+    SessionConfig,
+    SimPresenter,
+    plan_for,
+)
+from imubench.results.atomic import write_json_atomic
+from imubench.wire import params as PR
+from imubench.wire.ids import board_name, uid_text
+from imubench.wire.protocol_gen import ParamsWhich, SampleStatus
+
+RECORD_SCHEMA = 2
+
+
+@dataclass
+class Station:
+    """Who and where: goes into every board's record."""
+    station_id: str = ""
+    operator: str = ""
+    fixture: str = ""
+    host_version: str = ""
+
+    def __post_init__(self):
+        if not self.station_id:
+            self.station_id = socket.gethostname()
+        if not self.host_version:
+            from imubench import __version__
+            self.host_version = __version__
+
+
+@dataclass
+class BoardStatus:
+    slot: int
+    port: str
+    uid: str | None = None
+    stage: str = "waiting"          # connect, health, rest, poses, turntable, fit, write, verify, record, done
+    state: str = "running"          # running | passed | failed
+    message: str = ""
+    progress: float = 0.0
+    reason: str | None = None
+    run_id: int | None = None
+    directory: str = ""
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class BoardFailed(Exception):
+    """One board cannot go on; the fixture marks it failed and the others carry on."""
+
+    def __init__(self, stage: str, reason: str):
+        super().__init__(reason)
+        self.stage, self.reason = stage, reason
+
+
+# ---------------------------------------------------------------- the plate
+class Plate:
+    """The fixture all boards share. Each board's session asks for a move (an attitude or a
+    turn); the move is made once, when every board still running has asked for it. A board
+    that stops leaves, and the plate no longer waits for it."""
+
+    def __init__(self, mover, slots: list[int], say=lambda s: None):
+        self.mover = mover
+        self.live = set(slots)
+        self.asked: dict[int, tuple] = {}
+        self.moves = 0
+        self.say = say
+        self._cv = threading.Condition()
+
+    def request(self, slot: int, kind: str, key, args: tuple) -> None:
+        with self._cv:
+            if slot not in self.live:
+                return
+            gen = self.moves
+            self.asked[slot] = (kind, key, args)
+            self._move_if_all_asked()
+            while self.moves == gen and slot in self.live:
+                self._cv.wait(0.2)
+
+    def leave(self, slot: int) -> None:
+        with self._cv:
+            self.live.discard(slot)
+            self.asked.pop(slot, None)
+            self._move_if_all_asked()
+            self._cv.notify_all()
+
+    def _move_if_all_asked(self) -> None:
+        if not self.live or not set(self.asked) >= self.live:
+            return
+        requests = [self.asked[s] for s in sorted(self.live)]
+        kinds = {(k, key) for k, key, _ in requests}
+        if len(kinds) > 1:      # boards out of step: move for the first; the others wait past it
+            self.say("warning: the boards asked for different moves ("
+                     + ", ".join(sorted(f"{k} {key}" for k, key in kinds)) + f"); presenting {requests[0][1]}")
+        kind, _, args = requests[0]
+        try:
+            if kind == "pose":
+                self.mover.present_pose(*args)
+            else:
+                self.mover.present_turn(*args)
+        finally:
+            self.asked.clear()
+            self.moves += 1
+            self._cv.notify_all()
+
+
+class BoardPresenter:
+    """One board's Presenter: instructions go to its status, moves to the shared plate."""
+
+    def __init__(self, run: "FixtureRun", slot: int, discard=lambda: None):
+        self.run, self.slot = run, slot
+        self.discard = discard          # drop what the board sent while it waited for the plate
+
+    def say(self, text: str) -> None:
+        self.run._update(self.slot, message=text)
+
+    def present_pose(self, name, direction, index, total):
+        st = self.run.boards[self.slot]
+        stage = "verify" if st.stage in ("write", "verify") else "poses"
+        self.run._update(self.slot, stage=stage, message=f"[{index + 1}/{total}] {name}", progress=index / max(total, 1))
+        self.run.plate.request(self.slot, "pose", name, (name, np.asarray(direction, float), index, total))
+        # while this board waited for the others, its samples of the old attitude piled up: they
+        # are in the raw capture, but the session's wait for the new attitude starts now
+        self.discard()
+
+    def present_turn(self, axis, rate_dps, duration_s):
+        self.run._update(self.slot, stage="turntable", message=f"turn {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()}")
+        key = (tuple(np.round(np.asarray(axis, float), 6)), float(rate_dps))
+        self.run.plate.request(self.slot, "turn", key, (np.asarray(axis, float), rate_dps, duration_s))
+        self.discard()
+
+    def progress(self, label, fraction):
+        self.run._update(self.slot, progress=float(fraction), publish=False)
+
+    def keep_pose(self, name, summary):
+        return True
+
+
+class PlatePresenter(SimPresenter):
+    """The virtual fixture: one plate carrying several virtual devices. Every attitude and
+    every turn is made on all of them at once (each simulator's own rotation, so each board's
+    gyros see the motion); a bench whose simulator is gone is left out."""
+
+    def __init__(self, benches: list, rate_dps: float = 90.0, tilt_deg: float = 0.0, seed: int = 0,
+                 quiet: bool = False):
+        super().__init__(benches[0], rate_dps=rate_dps, tilt_deg=tilt_deg, seed=seed, quiet=quiet)
+        self.benches = list(benches)
+
+    def _alive(self) -> list:
+        return [b for b in self.benches if b.running]
+
+    def _rotate_to(self, target: np.ndarray) -> None:
+        alive = self._alive()
+        if not alive:
+            return
+        self.vb = alive[0]
+        cur = np.asarray(self.vb.status()["gravity_board"], dtype=float)
+        cur /= np.linalg.norm(cur)
+        target = target / np.linalg.norm(target)
+        axis = np.cross(target, cur)
+        s, c = np.linalg.norm(axis), float(np.clip(cur @ target, -1.0, 1.0))
+        angle = np.degrees(np.arctan2(s, c))
+        if s < 1e-9:
+            if c > 0:
+                return
+            axis = np.cross(cur, [1.0, 0.0, 0.0] if abs(cur[0]) < 0.9 else [0.0, 1.0, 0.0])
+        ax = list(axis / np.linalg.norm(axis))
+        self._each(lambda b: b.rotate(ax, rate_dps=self.rate_dps, duration_s=angle / self.rate_dps, wait=False))
+        self._each(lambda b: b.wait_idle(timeout=b._wait_timeout(angle / self.rate_dps)))
+
+    def present_turn(self, axis, rate_dps, duration_s):
+        self.say(f"virtual turntable: {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()} for {duration_s:g} s")
+        self._each(lambda b: b.rotate(list(axis), rate_dps=rate_dps, duration_s=duration_s, wait=False))
+
+    def _each(self, fn) -> None:
+        from imubench.device.sim import SimError
+        for b in self._alive():
+            try:
+                fn(b)
+            except SimError:        # that board's simulator died: the plate carries the others
+                pass
+
+
+# ---------------------------------------------------------------- one board's session
+class BoardSession(Session):
+    """The ordinary session with the stages published and two production rules: no data for
+    link_timeout_s is a lost link, and a sample flagged bad (a sensor fault, parity or SPI
+    error) during capture stops the board, naming the sensor."""
+
+    link_timeout_s: float = 10.0
+    board_run: "FixtureRun | None" = None
+    slot: int = 0
+
+    def _stage(self, stage: str) -> None:
+        if self.board_run is not None:
+            self.board_run._update(self.slot, stage=stage)
+
+    def check_health(self) -> dict:
+        self._stage("health")
+        try:
+            return super().check_health()
+        except SessionAborted as e:
+            raise BoardFailed("health", str(e)) from None
+
+    def capture_rest(self) -> dict:
+        self._stage("rest")
+        return super().capture_rest()
+
+    link_lost: str | None = None
+
+    def _stop_stream(self) -> None:
+        """As the session's, but after a lost link only the capture file is closed: asking a
+        silent device to stop would just wait out the retries and hide why the board failed."""
+        if self.link_lost is None:
+            try:
+                return super()._stop_stream()
+            except (LinkError, TimeoutError) as e:
+                self.link_lost = str(e)
+        cap, self.dev.link.capture = self.dev.link.capture, None
+        if cap is not None:
+            cap.close()
+
+    def _leave_plate(self) -> None:
+        """Stop holding the plate at once (the session's clean-up may still take a while)."""
+        if self.board_run is not None:
+            self.board_run.plate.leave(self.slot)
+
+    def _next_block(self, timeout: float = 10.0):
+        try:
+            b = self.dev.read(duration_s=0.05, timeout=min(timeout, self.link_timeout_s))
+        except LinkTimeout:
+            self._leave_plate()
+            self.link_lost = f"link lost: no data from the device for {self.link_timeout_s:g} s"
+            raise BoardFailed("link", self.link_lost) from None
+        except LinkError as e:
+            self._leave_plate()
+            self.link_lost = f"link lost: {e}"
+            raise BoardFailed("link", f"link lost: {e}") from None
+        bad = int(np.bitwise_or.reduce(b.status)) if len(b) else 0
+        if bad:
+            names = [n for bit, n in ((SampleStatus.ACCEL_BAD, "accelerometer"), (SampleStatus.GYRO_X_BAD, "gyro X"),
+                                      (SampleStatus.GYRO_Y_BAD, "gyro Y"), (SampleStatus.GYRO_Z_BAD, "gyro Z"))
+                     if bad & bit]
+            self._leave_plate()
+            raise BoardFailed("sensor", f"{', '.join(names)} flagged bad during capture "
+                                        f"({int(np.count_nonzero(b.status))} of {len(b)} samples): a faulted sensor; "
+                                        "nothing is calibrated on faulted data")
+        return b
+
+
+# ---------------------------------------------------------------- the station session
+@dataclass
+class FixtureResult:
+    session_id: str
+    directory: Path
+    boards: list[BoardStatus]
+    results: dict[int, dict] = field(default_factory=dict)      # slot -> the board's record
+    wall_s: float = 0.0
+
+    @property
+    def passed(self) -> list[int]:
+        return [b.slot for b in self.boards if b.state == "passed"]
+
+    @property
+    def failed(self) -> list[int]:
+        return [b.slot for b in self.boards if b.state != "passed"]
+
+
+class FixtureRun:
+    """One station session over several boards (see the module's doc)."""
+
+    def __init__(self, ports: list[str], directory, cfg: SessionConfig, mover, station: Station | None = None,
+                 db=None, on_event: Callable[[dict], None] | None = None, link_timeout_s: float = 10.0,
+                 baudrate: int | None = None, say=print, plots: bool = True):
+        if not ports:
+            raise ValueError("no boards: give at least one port")
+        self.ports = list(ports)
+        self.dir = Path(directory)
+        self.cfg = cfg
+        self.station = station or Station()
+        self.db = db
+        self.on_event = on_event
+        self.link_timeout_s = link_timeout_s
+        self.baudrate = baudrate
+        self.say = say
+        self.plots = plots
+        self.session_id = (f"{self.station.station_id}-{_dt.datetime.now(_dt.timezone.utc):%Y%m%dT%H%M%SZ}-"
+                           f"{uuid.uuid4().hex[:6]}")
+        self.boards = {k + 1: BoardStatus(slot=k + 1, port=p, directory=str(self.dir / f"slot-{k + 1}"))
+                       for k, p in enumerate(self.ports)}
+        self.plate = Plate(mover, list(self.boards), say=say)
+        self.results: dict[int, dict] = {}
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------ state
+    def _update(self, slot: int, publish: bool = True, **kw) -> None:
+        with self._lock:
+            st = self.boards[slot]
+            for k, v in kw.items():
+                setattr(st, k, v)
+            snap = st.as_dict()
+        if publish and self.on_event is not None:
+            try:
+                self.on_event(snap)
+            except Exception:  # noqa: BLE001 - a broken listener must not fail a board
+                pass
+
+    def snapshot(self) -> list[dict]:
+        with self._lock:
+            return [b.as_dict() for b in self.boards.values()]
+
+    def _save_station(self, finished: bool = False) -> None:
+        write_json_atomic(self.dir / "station.json", {
+            "schema": 1, "session_id": self.session_id, "station": dataclasses.asdict(self.station),
+            "config": _jsonable(dataclasses.asdict(self.cfg)), "ports": self.ports, "finished": finished,
+            "boards": self.snapshot()})
+
+    # ------------------------------------------------------------ run
+    def run(self) -> FixtureResult:
+        t0 = time.monotonic()
+        self.dir.mkdir(parents=True, exist_ok=True)
+        if (self.dir / "station.json").exists():
+            raise SessionAborted(f"{self.dir} already holds a station session: give another --dir")
+        self._save_station()
+        threads = [threading.Thread(target=self._board, args=(slot,), name=f"board-{slot}", daemon=True)
+                   for slot in self.boards]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        if self.plots:                  # after the boards: the plots take CPU the live streams need
+            from imubench.results.calibration import plot_pose_residuals
+            for slot, rec in sorted(self.results.items()):
+                if rec.get("accel") is not None and rec.get("poses"):
+                    try:
+                        plot_pose_residuals(rec, self.dir / f"slot-{slot}" / "residuals.png")
+                    except Exception as e:  # noqa: BLE001 - a plot is not worth a board's verdict
+                        self.say(f"warning: slot {slot}: no residual plot ({e})")
+        self._save_station(finished=True)
+        return FixtureResult(self.session_id, self.dir, [self.boards[s] for s in sorted(self.boards)],
+                             dict(self.results), time.monotonic() - t0)
+
+    def _board(self, slot: int) -> None:
+        st = self.boards[slot]
+        started = _now()
+        dev = None
+        result: dict | None = None
+        info_dev: dict = {"mcu_uid": None}
+        params_before = None
+        try:
+            self._update(slot, stage="connect", message=f"opening {st.port}")
+            try:
+                kw = {"timeout": 5.0} | ({"baudrate": self.baudrate} if self.baudrate else {})
+                dev = Device.open(st.port, **kw)
+                info = dev.info()
+            except (OSError, LinkError, TimeoutError) as e:
+                raise BoardFailed("connect", f"no answer from the device on {st.port}: {e}") from None
+            info_dev = _device_ident(info)
+            self._update(slot, uid=info_dev["mcu_uid"], message=f"{info_dev['board']} {info_dev['mcu_uid']}")
+            params_before = dev.get_params(ParamsWhich.ACTIVE).params
+            sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
+                                BoardPresenter(self, slot, discard=dev.discard_buffered))
+            sess.board_run, sess.slot, sess.link_timeout_s = self, slot, self.link_timeout_s
+            try:
+                result = sess.run(plan_for(self.cfg.method))
+            except CalibrationError as e:
+                raise BoardFailed("fit", f"fit refused: {e}") from None
+            except (LinkTimeout, LinkError) as e:
+                raise BoardFailed("link", f"link lost: {e}") from None
+            except SessionAborted as e:
+                raise BoardFailed(self.boards[slot].stage, str(e)) from None
+            self._update(slot, stage="fit", message=f"fit: |a| − g RMS {result['accel_rms_after_mg']:.3f} mg")
+            result["write_requested"] = bool(self.cfg.write)
+            if result["passed"] and self.cfg.write:
+                self._write_and_verify(slot, sess, result, params_before)
+            elif not result["passed"]:
+                self.plate.leave(slot)
+            result["params_after"] = PR.to_json(dev.get_params(ParamsWhich.ACTIVE).params)
+            sess.finish(result)
+        except BoardFailed as e:
+            self._fail(slot, e.stage, e.reason)
+        except Exception as e:  # noqa: BLE001 - a bug on one board must not stop the others; it is named
+            self._fail(slot, self.boards[slot].stage, f"{type(e).__name__}: {e}")
+            (self.dir / f"slot-{slot}").mkdir(parents=True, exist_ok=True)
+            (self.dir / f"slot-{slot}" / "error.txt").write_text(traceback.format_exc())
+        finally:
+            self.plate.leave(slot)
+            try:
+                link_stats = dev.link.decoder.stats if dev is not None else None
+                if dev is not None:
+                    dev.close()
+            except Exception:  # noqa: BLE001
+                link_stats = None
+        rec = self._record_for(slot, started, result, info_dev, params_before, link_stats)
+        self.results[slot] = rec
+        self._record(slot, rec)
+
+    def _write_and_verify(self, slot: int, sess: BoardSession, result: dict, previous) -> None:
+        self._update(slot, stage="write", message="writing, reading back, saving, rebooting")
+        try:
+            wb = sess.write_back(sess.accel_fit, sess.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
+        except (PR.InvalidParams, SessionAborted, LinkError, TimeoutError) as e:
+            self.plate.leave(slot)
+            raise BoardFailed("write", f"write-back failed: {e}") from None
+        result["written"] = True
+        result["write_steps"] = wb["steps"]
+        self._update(slot, stage="verify", message="verifying the device's calibrated output")
+        try:
+            result["verification"] = sess.verify(plan_for("six")[:self.cfg.verify_poses])
+        except (BoardFailed, SessionAborted, LinkError, TimeoutError) as e:
+            reason = e.reason if isinstance(e, BoardFailed) else str(e)
+            self.plate.leave(slot)
+            try:
+                sess.restore(previous)
+                reason += "; the previous parameters were restored"
+            except Exception as e2:  # noqa: BLE001
+                reason += f"; restoring the previous parameters failed too ({e2})"
+            result["written"] = False
+            raise BoardFailed("verify", f"verification failed: {reason}") from None
+        worst = max(abs(v["after_g"] - 1.0) * 1e3 for v in result["verification"])
+        result["verified"] = worst <= self.cfg.tolerances.verify_mg
+        if not result["verified"]:
+            sess.restore(previous)
+            result["written"] = False
+
+    def _fail(self, slot: int, stage: str, reason: str) -> None:
+        self.plate.leave(slot)
+        self._update(slot, state="failed", stage=stage or "connect", reason=reason, message=f"FAILED: {reason}")
+        self.say(f"slot {slot} ({self.boards[slot].port}) FAILED at {stage}: {reason}")
+
+    def _record_for(self, slot: int, started: str, result: dict | None, ident: dict, params_before, link_stats) -> dict:
+        st = self.boards[slot]
+        base = {"schema": RECORD_SCHEMA, "session_id": self.session_id,
+                "station": {"id": self.station.station_id, "operator": self.station.operator,
+                            "fixture": self.station.fixture, "slot": slot, "port": st.port,
+                            "host_version": self.station.host_version},
+                "params_before": PR.to_json(params_before) if params_before is not None else None,
+                "capture": capture_ref(self.dir / f"slot-{slot}")}
+        if link_stats is not None:
+            base["link"] = {"samples_missing": int(link_stats.samples_missing),
+                            "frames_rejected": int(link_stats.frames_rejected),
+                            "samples_overflow": int(getattr(link_stats, "samples_overflow", 0))}
+        if result is not None and st.state != "failed":
+            rec = {**result, **base, "schema": RECORD_SCHEMA}
+            from imubench.results.export import measurements_of
+            rec["measurements"] = measurements_of(rec)
+            ok = rec["passed"] and (rec["verified"] or not self.cfg.write) and all(m["passed"] for m in rec["measurements"])
+            if not ok:
+                why = [f"{m['name']} = {m['value']:.4g} {m['unit']} outside its limit" for m in rec["measurements"]
+                       if not m["passed"] and m["value"] is not None]
+                if not rec["passed"]:
+                    why.insert(0, f"fit out of tolerance: |a| − g RMS {rec['accel_rms_after_mg']:.3f} mg > "
+                                  f"{self.cfg.tolerances.accel_rms_mg:g} mg")
+                rec["passed"] = False
+                self._update(slot, state="failed", stage=st.stage, reason="; ".join(why) or "did not pass",
+                             message="FAILED: " + ("; ".join(why) or "did not pass"))
+            else:
+                self._update(slot, state="passed", stage="done", progress=1.0, message="PASSED")
+            return rec
+        # failed before or during the run: what is known, the stage and the reason
+        rec = {**base, "device": ident, "started": started, "finished": _now(), "passed": False,
+               "written": bool(result and result.get("written")), "verified": False,
+               "failure": {"stage": st.stage, "reason": st.reason or "failed"}, "params_after": None,
+               "method": self.cfg.method, "gyro_method": self.cfg.gyro, "note": self.cfg.note,
+               "capture_dir": str((self.dir / f"slot-{slot}").resolve())}
+        if result is not None:      # fitted, then failed (write-back, verification): keep the fit
+            rec.update({k: result[k] for k in ("accel", "gyro", "poses", "tolerances", "accel_rms_after_mg",
+                                               "temperature_c", "verification") if k in result})
+            rec["params_after"] = result.get("params_after")
+        from imubench.results.export import measurements_of
+        rec["measurements"] = measurements_of(rec)
+        return rec
+
+    def _record(self, slot: int, rec: dict) -> None:
+        if self.db is None:
+            return
+        from imubench.results.history import History
+        self._update(slot, message=self.boards[slot].message, publish=False)
+        try:
+            with History(self.db) as h:
+                run_id, _ = h.record_once(rec)
+            self._update(slot, run_id=run_id)
+        except Exception as e:  # noqa: BLE001 - the record is safe on disk; say why it is not in the database
+            self.say(f"warning: slot {slot} not recorded in the history ({e}); its record is in "
+                     f"{self.dir / f'slot-{slot}' / 'record.json'}")
+        finally:
+            try:
+                write_json_atomic(self.dir / f"slot-{slot}" / "record.json", _jsonable(rec))
+            except OSError:
+                pass
+
+
+def run_fixture(ports: list[str], directory, cfg: SessionConfig, mover, **kw) -> FixtureResult:
+    """One station session over the boards on `ports` (see FixtureRun)."""
+    return FixtureRun(ports, directory, cfg, mover, **kw).run()
+
+
+# ------------------------------------------------------------------- helpers
+def _device_ident(info) -> dict:
+    return {"mcu_uid": uid_text(info.mcu_uid), "board": board_name(info.board),
+            "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
+            "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)}
+
+
+def capture_ref(d: Path) -> dict:
+    """SHA-256 of the raw capture (the capture files in stream order, as one byte sequence),
+    the files, and where they are: a file:// URI naming this station's host."""
+    files = sorted(d.glob("capture-*.bin"), key=lambda p: int(p.stem.split("-")[1]) if p.stem.split("-")[1].isdigit() else 0)
+    h = hashlib.sha256()
+    listed = []
+    for p in files:
+        fh = hashlib.sha256()
+        with open(p, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+                fh.update(chunk)
+        listed.append({"name": p.name, "bytes": p.stat().st_size, "sha256": fh.hexdigest()})
+    host = socket.gethostname()
+    return {"sha256": h.hexdigest() if files else None,
+            "uri": f"file://{host}{(files[0] if len(files) == 1 else d).resolve()}" if files else None,
+            "files": listed}
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="microseconds")
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    if isinstance(x, Path):
+        return str(x)
+    return x
