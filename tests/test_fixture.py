@@ -82,7 +82,7 @@ def test_a_healthy_set_each_board_fitted_on_its_own(tmp_path):
         cap = Path("/" + host_and_path.split("/", 1)[1])
         assert hashlib.sha256(cap.read_bytes()).hexdigest() == rec["capture"]["sha256"]
         assert all(m["passed"] for m in rec["measurements"])
-        assert {m["name"] for m in rec["measurements"]} >= {"accel_fit_rms_mg", "params_written", "samples_lost"}
+        assert {m["name"] for m in rec["measurements"]} >= {"accel_norm_rms_mg", "params_written", "samples_lost"}
     # the truths differ between boards by much more than the fits' sigma: the fits are not shared
     b1, b2 = (np.array(res.results[s]["accel"]["b_mps2"]) for s in (1, 2))
     assert np.abs(b1 - b2).max() > 100 * max(res.results[1]["accel"]["sigma_b_mps2"])
@@ -264,7 +264,7 @@ def test_a_one_board_session_records_the_production_fields_too(tmp_path, capsys)
     cap = tmp_path / "s" / "capture-1.bin"
     assert run["capture_sha256"] == hashlib.sha256(cap.read_bytes()).hexdigest()
     assert run["capture_uri"].endswith(str(cap.resolve()))
-    assert {m["name"] for m in run["measurements"]} >= {"accel_fit_rms_mg", "params_written"}
+    assert {m["name"] for m in run["measurements"]} >= {"accel_norm_rms_mg", "params_written"}
 
 
 def test_boards_out_of_step_get_one_move_and_a_warning():

@@ -77,7 +77,7 @@ def test_production_record_round_trip(target):
     assert got["capture_sha256"] == "0" * 64 and got["capture_uri"].startswith("file:///data/S7/")
     assert [m["name"] for m in got["measurements"]] == [m["name"] for m in measurements_of(r)]
     acc = got["measurements"][0]
-    assert acc == {"name": "accel_fit_rms_mg", "value": 0.01, "unit": "mg", "low": None, "high": 1.0, "passed": True}
+    assert acc == {"name": "accel_norm_rms_mg", "value": 0.01, "unit": "mg", "low": None, "high": 1.0, "passed": True}
     assert dev["mcu_uid"] == UID_A and dev["runs"] == 1
 
 
@@ -259,7 +259,7 @@ def test_failed_boards_and_why(target, capsys):
     _line(target)
     assert imubench(["history", "--db", target, "--failed"]) == 0
     out = capsys.readouterr().out
-    assert out.count("accel_fit_rms_mg = 3.00 mg (limit ≤ 1 mg): FAIL") == 2
+    assert out.count("accel_norm_rms_mg = 3.00 mg (limit ≤ 1 mg): FAIL") == 2
     assert "AAAA00000000000000000005" in out and "AAAA00000000000000000002" in out
     assert "2 failed runs" in out
     assert imubench(["history", "--db", target, "--failed", "--station", "S1"]) == 0
@@ -286,7 +286,7 @@ def test_export_json_and_junit(target, tmp_path, capsys):
         assert int(s.get("tests")) == len(cases) == n_meas
         props = {p.get("name"): p.get("value") for p in s.find("properties")}
         assert props["station_id"] == "S2" and props["operator"] == "ana" and len(props["capture_sha256"]) == 64
-        fit = next(c for c in cases if c.get("name") == "accel_fit_rms_mg")
+        fit = next(c for c in cases if c.get("name") == "accel_norm_rms_mg")
         fp = {p.get("name"): p.get("value") for p in fit.find("properties")}
         assert fp["unit"] == "mg" and float(fp["high"]) == 1.0
         failed = props["verdict"] == "failed"
@@ -297,7 +297,7 @@ def test_export_json_and_junit(target, tmp_path, capsys):
     assert imubench(["history", "--db", target, "--export", "S2-21", "--format", "json"]) == 0
     js = json.loads(capsys.readouterr().out)
     assert [b["verdict"] for b in js["boards"]] == [b["verdict"] for b in d["boards"]]
-    assert js["boards"][0]["measurements"][0]["name"] == "accel_fit_rms_mg"
+    assert js["boards"][0]["measurements"][0]["name"] == "accel_norm_rms_mg"
 
 
 def test_junit_of_a_board_that_never_answered():
@@ -321,7 +321,7 @@ def test_device_records_show_station_and_failure(target, capsys):
     assert "station S1 slot 2, operator ana, fixture plate-4, host 0.1.0" in out
     assert "station S2 slot 1" in out
     assert "capture sha256 " + "0" * 64 in out
-    assert "accel_fit_rms_mg = 3.00 mg (limit ≤ 1 mg): FAIL" in out
+    assert "accel_norm_rms_mg = 3.00 mg (limit ≤ 1 mg): FAIL" in out
 
 
 def test_env_names_the_database(target, monkeypatch, capsys):

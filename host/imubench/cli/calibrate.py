@@ -308,8 +308,8 @@ def _station_table(res) -> str:
         meas = {m["name"]: m for m in rec.get("measurements") or []}
         if b.state == "passed":
             parts = []
-            if "accel_fit_rms_mg" in meas:
-                parts.append("fit RMS " + measurement_text(meas["accel_fit_rms_mg"]).split(" (")[0])
+            if "accel_norm_rms_mg" in meas:
+                parts.append("|a| − g RMS " + measurement_text(meas["accel_norm_rms_mg"]).split(" (")[0])
             ver = [m for k, m in meas.items() if k.startswith("verify_")]
             if ver:
                 worst = max(ver, key=lambda m: m["value"] or 0)
