@@ -29,7 +29,7 @@ from scipy import integrate, stats
 
 from imubench.calib import CalibrationError, NotObservable, TriadFit
 
-__all__ = ["Turn", "detect_turns", "known_angle_turns", "combine_fits", "TURN_DEG",
+__all__ = ["Turn", "detect_turns", "split_by_rotation", "known_angle_turns", "combine_fits", "TURN_DEG",
            "ANGLE_SIGMA_DEG", "AXIS_SIGMA_DEG"]
 
 TURN_DEG = 360.0            # one full turn
@@ -156,6 +156,37 @@ def detect_turns(gyro, fs_hz: float, intervals, up_dirs, *, turn_deg: float = TU
             t.reason = (f"the turn's axis was {t.off_axis_deg:.1f}° off the vertical (limit "
                         f"{math.degrees(math.atan(MAX_OFF_AXIS)):.0f}°): keep the board flat on the table")
         out.append(t)
+    return out
+
+
+def split_by_rotation(acc, gyro, fs_hz: float, intervals, *, moving_dps: float = 5.0,
+                      min_duration_s: float = 1.0, guard_s: float = 0.25) -> list:
+    """Still intervals that are also still for the gyro: each interval of calib.static
+    (found on the accelerometer alone) is cut where the rate departs from the interval's median
+    by more than moving_dps (± guard_s); pieces shorter than min_duration_s are dropped. A turn
+    about the vertical without any acceleration (a smooth hand, a simulated bench) leaves the
+    accelerometer still: only the gyro shows it."""
+    from imubench.calib.static import StaticInterval, interval_stats
+    a = np.asarray(acc, dtype=np.float64)
+    u = np.asarray(gyro, dtype=np.float64)
+    thr = math.radians(moving_dps)
+    guard = int(round(guard_s * fs_hz))
+    min_n = max(2, int(math.ceil(min_duration_s * fs_hz)))
+    out = []
+    for iv in intervals:
+        seg = u[iv.start:iv.stop]
+        moving = np.max(np.abs(seg - np.median(seg, axis=0)), axis=1) > thr
+        if not moving.any():
+            out.append(iv)
+            continue
+        if guard:
+            moving = np.convolve(moving.astype(float), np.ones(2 * guard + 1), mode="same") > 0
+        edges = np.flatnonzero(np.diff(np.concatenate([[1], moving.astype(np.int8), [1]])))
+        for s0, s1 in zip(edges[::2], edges[1::2]):
+            if s1 - s0 >= min_n:
+                mean, std, sig = interval_stats(a[iv.start + s0:iv.start + s1])
+                out.append(StaticInterval(start=iv.start + s0, stop=iv.start + s1, n=s1 - s0, mean=mean, std=std,
+                                          sigma_mean=sig, fs_hz=fs_hz))
     return out
 
 

@@ -277,6 +277,9 @@ def _run_from_file(a) -> int:
             import numpy as np
             print(f"\n{key.split('_')[0]} M in {unit} (no nominal scale was declared):")
             print("\n".join("  " + "  ".join(f"{v:12.6g}" for v in row) for row in np.asarray(result[key])))
+    gyro = result.get("gyro") or {}
+    for w in (gyro.get("extra") or {}).get("warnings", []):
+        print(f"  gyro note: {w}")
     for kind, files in result.get("exports", {}).items():
         if files:
             print(f"{kind}: {', '.join(files)}")

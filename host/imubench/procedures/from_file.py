@@ -199,6 +199,13 @@ class FileAnalysis:
         ivs = detect_static(acc, fs, window_s=cfg.window_s, min_duration_s=cfg.min_still_s)
         dropped = [i for i in ivs if not i.clean]
         keep = [i for i in ivs if i.clean]
+        if rec.gyro_scaled:          # a turn the accelerometer did not see (smooth, about the vertical)
+            from imubench.calib.turns import split_by_rotation
+            n0 = len(keep)
+            keep = split_by_rotation(acc, rec.gyro * rec.gyro_factor(), fs, keep, min_duration_s=cfg.min_still_s)
+            if len(keep) != n0:
+                self._note(f"{len(keep) - n0:+d} still intervals after cutting where the gyro turned "
+                           "(the accelerometer alone did not show it)")
         for i in dropped:
             self._note(f"still interval at {i.t_start_s:.1f} s ({i.duration_s:.1f} s) not used: its mean moved "
                        f"within it ({i.drift_z:.1f} σ)")
