@@ -29,7 +29,7 @@ from scipy import integrate, stats
 
 from imubench.calib import CalibrationError, NotObservable, TriadFit
 
-__all__ = ["Turn", "detect_turns", "split_by_rotation", "known_angle_turns", "combine_fits", "TURN_DEG",
+__all__ = ["Turn", "detect_turns", "split_by_rotation", "turn_in_window", "known_angle_turns", "combine_fits", "TURN_DEG",
            "ANGLE_SIGMA_DEG", "AXIS_SIGMA_DEG"]
 
 TURN_DEG = 360.0            # one full turn
@@ -157,6 +157,30 @@ def detect_turns(gyro, fs_hz: float, intervals, up_dirs, *, turn_deg: float = TU
                         f"{math.degrees(math.atan(MAX_OFF_AXIS)):.0f}°): keep the board flat on the table")
         out.append(t)
     return out
+
+
+def turn_in_window(gyro, fs_hz: float, start: int, stop: int, up, bias_rad_s, bias_sigma_rad_s, *,
+                   turn_deg: float = TURN_DEG, label: str = "") -> Turn:
+    """A turn over a given window of samples [start, stop) (e.g. a file cut into named parts
+    around each turn, with no rest on both sides to find it by): integral of (u − bias) over the
+    window; the known angle is the whole number of turn_deg nearest to it (at least one)."""
+    u = np.asarray(gyro, dtype=np.float64)[start:stop]
+    h = 1.0 / fs_hz
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    b = np.asarray(bias_rad_s, float)
+    x = u - b
+    integ = integrate.trapezoid(x, dx=h, axis=0)
+    simp = integrate.simpson(x, dx=h, axis=0)
+    meas = float(integ @ up)
+    n_turns = max(1, int(round(abs(meas) / math.radians(turn_deg))))
+    t = Turn(start=start, stop=stop - 1, rest_before=-1, rest_after=-1, up=up, integral_rad=integ,
+             integration_err_rad=np.abs(integ - simp), bias_rad_s=b, bias_sigma_rad_s=np.asarray(bias_sigma_rad_s, float),
+             duration_s=(stop - 1 - start) * h, angle_rad=math.copysign(n_turns * math.radians(turn_deg), meas),
+             label=label or f"turn about {_axis_label(up)}")
+    if t.off_axis_deg > math.degrees(math.atan(MAX_OFF_AXIS)):
+        t.usable = False
+        t.reason = f"the turn's axis was {t.off_axis_deg:.1f}° off the vertical"
+    return t
 
 
 def split_by_rotation(acc, gyro, fs_hz: float, intervals, *, moving_dps: float = 5.0,

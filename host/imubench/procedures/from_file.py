@@ -242,7 +242,8 @@ class FileAnalysis:
         rest_raw = rec.gyro[keep[longest].start:keep[longest].stop]
         if fg is None:
             cand = detect_turns(rec.gyro, fs, keep, up, turn_deg=cfg.turn_deg, breaks=brk, scale_known=False)
-            good = [t for t in cand if t.usable]
+            good = [t for t in cand if t.usable] or [t for t in self._part_turns(rec.gyro, acc, keep, up, accel)
+                                                     if t.usable]
             if not good:
                 raise CalibrationError("the gyro is in counts without a nominal scale and the recording has no turn "
                                        "about the vertical between two rests to scale it by: give --gyro-scale "
@@ -265,6 +266,12 @@ class FileAnalysis:
             self.say(f"gyro bias from the longest still interval ({keep[longest].t_start_s:.1f} s, "
                      f"{keep[longest].duration_s:.1f} s)")
         self.turns = detect_turns(gyr, fs, keep, up, turn_deg=cfg.turn_deg, breaks=brk, clip_rad_s=clip)
+        if not any(t.usable for t in self.turns) and rec.parts:
+            self.turns = self._part_turns(gyr, acc, keep, up, accel)
+            if self.turns:
+                self._note(f"no turn with a rest on both sides was found; the file is cut into named parts: the "
+                           f"{len(self.turns)} parts named *_rot are taken as the turns (integrated from cut to cut, "
+                           "bias from the still interval of the same attitude)")
         for t in self.turns:
             if not t.usable:
                 self._note(f"{t.label} at {t.start / fs:.1f} s not used: {t.reason}")
@@ -276,6 +283,24 @@ class FileAnalysis:
             gyro = self._gyro_fit(gyr, fs, keep, up, bias, brk, clip)
         self.gyro = gyro
         return self._result(means, sigmas)
+
+    def _part_turns(self, gyr, acc, keep, up, accel) -> list:
+        """Turns from the file's named parts (*_rot), for files cut tightly around each turn."""
+        from imubench.calib.turns import turn_in_window
+        out = []
+        fs = self.rec.fs_hz
+        for name, s0, s1 in self.rec.parts or []:
+            if not name.endswith("_rot") or s1 - s0 < 3:
+                continue
+            d = accel.correct(acc[s0:s1].mean(axis=0)[None, :])[0]
+            d /= np.linalg.norm(d)
+            k = int(np.argmax(up @ d))               # the still interval of the same attitude
+            rest = gyr[keep[k].start:keep[k].stop]
+            b = rest.mean(axis=0)
+            bs = rest.std(axis=0, ddof=1) / math.sqrt(len(rest))
+            out.append(turn_in_window(gyr, fs, s0, s1, d, b, bs, turn_deg=self.cfg.turn_deg,
+                                      label=f"turn about {_face(d)} (part {name})"))
+        return out
 
     def _gyro_fit(self, gyr, fs, keep, up, bias, brk, clip) -> TriadFit:
         from imubench.calib import gyro as CG
