@@ -184,16 +184,17 @@ def turn_in_window(gyro, fs_hz: float, start: int, stop: int, up, bias_rad_s, bi
 
 
 def split_by_rotation(acc, gyro, fs_hz: float, intervals, *, moving_dps: float = 5.0,
-                      min_duration_s: float = 1.0, guard_s: float = 0.25) -> list:
+                      min_duration_s: float = 1.0, guard_s: float = 0.25, threshold: float | None = None) -> list:
     """Still intervals that are also still for the gyro: each interval of calib.static
     (found on the accelerometer alone) is cut where the rate departs from the interval's median
-    by more than moving_dps (± guard_s); pieces shorter than min_duration_s are dropped. A turn
+    by more than moving_dps (or `threshold`, in the gyro's own unit, e.g. raw counts) (± guard_s);
+    pieces shorter than min_duration_s are dropped. A turn
     about the vertical without any acceleration (a smooth hand, a simulated bench) leaves the
     accelerometer still: only the gyro shows it."""
     from imubench.calib.static import StaticInterval, interval_stats
     a = np.asarray(acc, dtype=np.float64)
     u = np.asarray(gyro, dtype=np.float64)
-    thr = math.radians(moving_dps)
+    thr = math.radians(moving_dps) if threshold is None else float(threshold)
     guard = int(round(guard_s * fs_hz))
     min_n = max(2, int(math.ceil(min_duration_s * fs_hz)))
     out = []

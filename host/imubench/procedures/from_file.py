@@ -199,10 +199,20 @@ class FileAnalysis:
         ivs = detect_static(acc, fs, window_s=cfg.window_s, min_duration_s=cfg.min_still_s)
         dropped = [i for i in ivs if not i.clean]
         keep = [i for i in ivs if i.clean]
-        if rec.gyro_scaled:          # a turn the accelerometer did not see (smooth, about the vertical)
+        if keep:
+            check_accel_unit(rec, np.linalg.norm([i.mean for i in keep], axis=1) / fa)
+            longest0 = max(keep, key=lambda i: i.n)
+            if rec.gyro_scaled:      # median: robust to a smooth turn inside an accelerometer-still interval
+                check_gyro_unit(rec, np.median(rec.gyro[longest0.start:longest0.stop], axis=0), rec.gyro_factor())
+        if keep:                     # a turn the accelerometer did not see (smooth, about the vertical)
             from imubench.calib.turns import split_by_rotation
             n0 = len(keep)
-            keep = split_by_rotation(acc, rec.gyro * rec.gyro_factor(), fs, keep, min_duration_s=cfg.min_still_s)
+            if rec.gyro_scaled:
+                keep = split_by_rotation(acc, rec.gyro * rec.gyro_factor(), fs, keep, min_duration_s=cfg.min_still_s)
+            else:                    # raw counts: 20 × the typical rest noise, in counts
+                noise = float(np.median([np.max(np.std(rec.gyro[i.start:i.stop], axis=0)) for i in keep]))
+                keep = split_by_rotation(acc, rec.gyro, fs, keep, min_duration_s=cfg.min_still_s,
+                                         threshold=20.0 * max(noise, 1e-12))
             if len(keep) != n0:
                 self._note(f"{len(keep) - n0:+d} still intervals after cutting where the gyro turned "
                            "(the accelerometer alone did not show it)")
@@ -214,7 +224,6 @@ class FileAnalysis:
         self.intervals = keep
         means = np.array([i.mean for i in keep])
         sigmas = np.array([i.sigma_mean for i in keep])
-        check_accel_unit(rec, np.linalg.norm(means, axis=1) / fa)
         self.faces = [_face(m) for m in means]
         self.say(f"still intervals: {len(keep)} found by the data (window {cfg.window_s:g} s, k = {ivs.k:g} × the "
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
@@ -239,7 +248,6 @@ class FileAnalysis:
         clip = None if cfg.gyro_range_dps is None else math.radians(cfg.gyro_range_dps)
         turn_rad = math.radians(cfg.turn_deg)
         longest = max(range(len(keep)), key=lambda k: keep[k].n)
-        rest_raw = rec.gyro[keep[longest].start:keep[longest].stop]
         if fg is None:
             cand = detect_turns(rec.gyro, fs, keep, up, turn_deg=cfg.turn_deg, breaks=brk, scale_known=False)
             good = [t for t in cand if t.usable] or [t for t in self._part_turns(rec.gyro, acc, keep, up, accel)
@@ -252,7 +260,6 @@ class FileAnalysis:
             self._note(f"gyro in counts without a nominal scale: scaled provisionally by the turns "
                        f"({1 / math.degrees(fg):.5g} counts per °/s); M is reported in counts per °/s")
         else:
-            check_gyro_unit(rec, rest_raw.mean(axis=0), fg)
             cand = detect_turns(rec.gyro * fg, fs, keep, up, turn_deg=cfg.turn_deg, breaks=brk,
                                 scale_known=False)
             big = [t.measured_rad for t in cand if t.usable]

@@ -146,7 +146,8 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
 
     Returns (t, accel, gyro, fs_hz, breaks, timing): timestamps that go backwards are refused
     (RecordingError naming the row); samples with the same timestamp as the one before are
-    dropped (counted); a step longer than gap_factor × the median step is a gap (a break,
+    dropped (counted); a step longer than gap_factor × the median step (and than the median plus
+    6 robust sigmas of the steps, for a jittery clock) is a gap (a break,
     with its length and the samples missing); when steps off the median by more than
     JITTER_RESAMPLE of it remain outside the gaps, each continuous piece is resampled onto a
     uniform grid at the median rate by linear interpolation (numpy.interp) — the integrals of
@@ -180,7 +181,9 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
     if not med > 0:
         raise RecordingError("the timestamps do not advance (median step 0); check the time column and its unit")
     fs = 1.0 / med
-    gaps = np.flatnonzero(dt > gap_factor * med)
+    mad = 1.4826 * float(np.median(np.abs(dt - med)))
+    gap_dt = max(gap_factor * med, med + 6.0 * mad)       # jittery clocks: beyond their own spread
+    gaps = np.flatnonzero(dt > gap_dt)
     inside = np.ones(len(dt), bool)
     inside[gaps] = False
     dev = np.abs(dt[inside] - med) / med if inside.any() else np.zeros(1)
