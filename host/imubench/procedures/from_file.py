@@ -89,7 +89,8 @@ def check_accel_unit(rec: Recording, still_norm: np.ndarray) -> None:
             f"if these are raw counts, declare --accel-unit counts (and --accel-scale {raw:.0f} counts per g, "
             "or the datasheet's)")
     raise RecordingError(
-        f"the declared accelerometer unit ({rec.unit_text().split(',')[0]}) is implausible: the "
+        f"the declared accelerometer unit ({rec.unit_text().split(', ')[0].replace('accelerometer ', '')}) is "
+        f"implausible: the "
         f"{len(still_norm)} still intervals read |a| = {raw:.6g} in the file (median; range "
         f"{still_norm.min():.6g} … {still_norm.max():.6g}), i.e. {med:.4g} g, far from 1 g; {hint}")
 
@@ -103,7 +104,7 @@ def check_gyro_unit(rec: Recording, rest_rate: np.ndarray, factor: float) -> Non
     hint = ("the data look like °/s: declare --gyro-unit dps" if rec.gyro_unit == "rad_s" and raw < GYRO_REST_MAX_DPS
             else "if these are raw counts, declare --gyro-unit counts (with --gyro-scale COUNTS_PER_DPS if known)")
     raise RecordingError(
-        f"the declared gyro unit ({rec.unit_text().split(', ')[1]}) is implausible: at rest (the longest still "
+        f"the declared gyro unit ({rec.unit_text().split(', ')[1].replace('gyro ', '')}) is implausible: at rest (the longest still "
         f"interval) the gyro reads up to {raw:.4g} in the file, i.e. {dps:.4g} °/s, where a MEMS gyro at rest "
         f"reads less than {GYRO_REST_MAX_DPS:g} °/s; {hint}")
 
@@ -117,7 +118,7 @@ def check_turn_scale(measured_rad: list[float], turn_rad: float, rec: Recording)
     if 0.75 <= r <= 4.25 and abs(r - round(r)) <= 0.25:
         return
     raise RecordingError(
-        f"the declared gyro unit ({rec.unit_text().split(', ')[1]}) is implausible: the motions about the vertical "
+        f"the declared gyro unit ({rec.unit_text().split(', ')[1].replace('gyro ', '')}) is implausible: the motions about the vertical "
         f"between rests of the same attitude integrate to {', '.join(f'{math.degrees(abs(m)):.0f}°' for m in measured_rad)} "
         f"(median {r:.3g} turns of {math.degrees(turn_rad):g}°), not whole turns; "
         + ("°/s read as rad/s gives 57× the angle: declare --gyro-unit dps" if r > 20 else
