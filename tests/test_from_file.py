@@ -187,6 +187,21 @@ def test_rosbag_without_the_extra_says_how_to_install(tmp_path, monkeypatch):
         read(tmp_path / "x.bag")
 
 
+def test_turns_and_rotation_method_combined_when_both_are_present():
+    ua, ug, truth, _ = ferraris_session(fs=FS, seed=5, both_ways=True)
+    rec = from_arrays(ua, ug, rate_hz=FS)
+    fa, res = _analyse(rec)
+    parts = res["gyro_parts"]
+    assert set(parts["fits"]) == {"turns", "rotation"} and not parts["refused"]
+    assert fa.gyro.method == "turns+rotation" and fa.gyro.extra["consistent"]
+    turns_sigma = np.asarray(parts["fits"]["turns"]["sigma_m"])
+    assert np.all(fa.gyro.sigma_m <= turns_sigma + 1e-12)       # the combination is at least as good
+    assert np.abs((fa.gyro.m - truth["gyro_m"]) / fa.gyro.sigma_m).max() < 4
+    # asked for the rotation method, the turns join in the same way
+    fa2, _ = _analyse(rec, gyro="rotation")
+    assert fa2.gyro.method == "turns+rotation" and np.allclose(fa2.gyro.m, fa.gyro.m)
+
+
 # ------------------------------------------------------------------ units
 def test_implausible_units_are_refused_with_the_numbers(session):
     ua, ug, _, _ = session
@@ -353,3 +368,10 @@ def test_guided_session_known_angle_turns_on_the_virtual_bench(tmp_path):
     m_true = np.array([gg["sens"] for gg in truth["gyro"]])
     err = np.abs(np.asarray(g["m"]) - m_true) / np.asarray(g["sigma_m"])
     assert err.max() < 3, err
+    # the session's own capture, calibrated from the file: the same poses, the same turns
+    rec = read(tmp_path / "s" / "capture-1.bin")
+    assert rec.fmt == "capture" and rec.accel_unit == "mps2" and abs(rec.fs_hz - 500) < 1
+    fa, res = _analyse(rec)
+    assert [t["label"] for t in res["turns"] if t["usable"]] == ["turn about +X", "turn about +Y", "turn about +Z"]
+    assert np.abs(fa.gyro.m - np.asarray(g["m"])).max() < 1e-3
+    assert np.abs((fa.accel.m - np.asarray(result["accel"]["m"])) / fa.accel.sigma_m).max() < 3
