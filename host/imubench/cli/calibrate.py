@@ -22,6 +22,12 @@ METHODS = ("six", "multi")
 GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "none")
 
 
+def rate_hz(s: str) -> float:
+    """calibrate's --rate: a positive number here; a protocol stream rate (common.stream_rate)
+    when a device is calibrated, any rate when it is a file's (--from) — checked in run()."""
+    return positive_float(s)
+
+
 def register(sub) -> None:
     p = sub.add_parser("calibrate", help="guided calibration session, write-back and verification",
                        description="Guided calibration session: capture the attitudes (and turns), fit, write "
@@ -41,7 +47,7 @@ def register(sub) -> None:
     p.add_argument("--resume", type=existing_dir, metavar="DIR", help="continue the session in DIR")
     p.add_argument("--redo", action="append", default=[], metavar="POSE",
                    help="with --resume: capture this pose again (repeatable; names as printed)")
-    p.add_argument("--rate", type=positive_float, metavar="HZ", default=None,
+    p.add_argument("--rate", type=rate_hz, metavar="HZ", default=None,
                    help="sample rate in Hz: the device's stream rate (default 500), or with --from the file's "
                         "rate when it has no time column")
     p.add_argument("--hold", type=positive_float, default=2.0, metavar="S", help="seconds captured per attitude")

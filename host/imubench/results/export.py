@@ -95,7 +95,7 @@ def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> s
              "# ArduPilot: corrected = INS_ACCSCAL * (raw - INS_ACCOFFS), per axis, m/s² (AP_InertialSensor)",
              f"# ArduPilot has no cross-axis terms: dropped off-diagonal of M up to {worst:.2e} "
              f"(≈ {err_mg:.2f} mg at 1 g); frame: the axes of the recording (ArduPilot applies these after "
-             "rotating to the board frame: record in that frame)"]
+             "rotating the sensor into the autopilot board's axes, before AHRS_ORIENTATION: record in those axes)"]
     for i, ax in enumerate("XYZ"):
         lines.append(f"INS_ACCOFFS_{ax},{off[i]:.9g}")
     for i, ax in enumerate("XYZ"):
