@@ -345,6 +345,18 @@ def test_cli_mistakes_give_one_line(session, tmp_path, args, code, needle):
     assert err[0].startswith("imubench calibrate: error: ") and needle in err[0], err[0]
 
 
+def test_cli_names_the_formats_and_writers_of_the_library_without_importing_it():
+    """Every command's parser is built at start-up: the --from options must not load the readers."""
+    import imubench.cli.calibrate as C
+    from imubench.recordings import FORMATS
+    assert C.FORMATS == FORMATS and C.WRITERS == export.WRITERS
+    r = subprocess.run([sys.executable, "-c", "import sys, importlib; importlib.import_module("
+                        "'imubench.cli.main').build_parser(); print('imubench.recordings' in sys.modules "
+                        "or 'imubench.results.export' in sys.modules or 'scipy' in sys.modules)"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == "False", r.stdout + r.stderr
+
+
 def test_cli_file_options_without_from_are_refused(tmp_path):
     r = _cli(["--accel-unit", "g", "--sim"], tmp_path)
     assert r.returncode == 2 and "--accel-unit goes with --from FILE" in r.stderr

@@ -20,6 +20,10 @@ from imubench.cli.common import (
 
 METHODS = ("six", "multi")
 GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "none")
+# imubench.recordings.FORMATS and imubench.results.export.WRITERS, named here so that building
+# the parser loads neither (tests/test_from_file.py checks they agree)
+FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
+WRITERS = ("params", "imutk", "imucal", "ardupilot")
 
 
 def rate_hz(s: str) -> float:
@@ -66,8 +70,6 @@ def register(sub) -> None:
 
 def _add_from_file(p) -> None:
     """--from FILE and what reading a recording needs (imubench.procedures.from_file)."""
-    from imubench.recordings import FORMATS
-    from imubench.results.export import WRITERS
     g = p.add_argument_group("calibrate from a recording (any 6-axis IMU; docs/calibration.md, From files)")
     g.add_argument("--from", dest="from_file", metavar="FILE",
                    help="calibrate from a recording instead of a device: the same analysis, report and history")
