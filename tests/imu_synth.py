@@ -29,7 +29,7 @@ def ferraris_truth(seed=0):
 
 
 def ferraris_session(fs=100.0, seed=0, truth=None, rest_s=4.0, turn_s=4.0, accel_noise=0.004,
-                     gyro_noise=np.radians(0.05), both_ways=False):
+                     gyro_noise=np.radians(0.05), both_ways=False, edges=False):
     """(accel m/s², gyro rad/s (n, 3) each, truth dict, events): the measured u of both triads."""
     truth = truth or ferraris_truth(seed)
     rng = np.random.default_rng(seed + 1)
@@ -59,6 +59,12 @@ def ferraris_session(fs=100.0, seed=0, truth=None, rest_s=4.0, turn_s=4.0, accel
         events.append(("rot", sum(len(a) for a in acc) - n, sum(len(a) for a in acc)))
 
     rest(rest_s)                 # +Z
+    if edges:                    # attitudes between the faces (cube edges and corners), for --method multi
+        for ax, ang in (([1, 0, 0], 45), ([1, 0, 0], -90), ([1, 0, 0], 45), ([0, 1, 0], 45), ([0, 1, 0], -90),
+                        ([0, 1, 0], 45), ([1, 1, 0], 55), ([1, 1, 0], -55), ([1, -1, 0], 55), ([1, -1, 0], -55),
+                        ([1, 0, 0], 135), ([1, 0, 0], -135), ([0, 1, 0], 135), ([0, 1, 0], -135)):
+            rot(ax, ang, 1.5)
+            rest(rest_s / 2)
     if both_ways:                # each axis turned both ways while horizontal: the rotation method sees M
         for ax in ([1, 0, 0], [0, 1, 0]):
             for ang in (-90, 90, 90, -90):

@@ -202,6 +202,18 @@ def test_turns_and_rotation_method_combined_when_both_are_present():
     assert fa2.gyro.method == "turns+rotation" and np.allclose(fa2.gyro.m, fa.gyro.m)
 
 
+def test_multi_position_from_a_file_with_edges_and_corners():
+    ua, ug, truth, _ = ferraris_session(fs=FS, seed=7, edges=True)
+    fa, res = _analyse(from_arrays(ua, ug, rate_hz=FS), method="multi")
+    assert fa.accel.method == "multi_position"
+    # multi-position's frame: M = L·Q, lower triangular; compare what |a| = g can see
+    from imubench.calib.accel import lower_triangular_form
+    l_true, _ = lower_triangular_form(truth["accel_m"])
+    est = fa.accel.m
+    assert np.abs(est - l_true).max() < 5 * np.nanmax(fa.accel.sigma_m) + 1e-4
+    assert res["accel_rms_after_mg"] < 0.5
+
+
 # ------------------------------------------------------------------ units
 def test_implausible_units_are_refused_with_the_numbers(session):
     ua, ug, _, _ = session
