@@ -5,7 +5,6 @@ the command line end to end and the guided session's known-angle turn step."""
 from __future__ import annotations
 
 import json
-import math
 import sqlite3
 import subprocess
 import sys
@@ -16,7 +15,7 @@ import pytest
 
 from imu_synth import G0, ferraris_session, write_csv
 from imubench.calib import NotObservable
-from imubench.procedures.from_file import FileAnalysis, FileConfig, calibrate_recording
+from imubench.procedures.from_file import FileAnalysis, FileConfig
 from imubench.recordings import RecordingError, from_arrays, read
 from imubench.results import export
 
@@ -326,8 +325,8 @@ def test_cli_end_to_end(session, tmp_path):
     assert lines[-1] == "calibration PASSED (fitted from a file; nothing is written to a device)"
     d = tmp_path / "out"
     for f in ("session.json", "residuals.png", "segmentation.png", "report.html", "calibration-board_7_acc.calib",
-              "calibration-board_7_gyro.calib", "calibration-board_7.imucal.json", "calibration-board_7.ardupilot.param",
-              "calibration-board_7.params.json"):
+              "calibration-board_7_gyro.calib", "calibration-board_7.imucal.json",
+              "calibration-board_7.ardupilot.param", "calibration-board_7.params.json"):
         assert (d / f).is_file(), f
     html = (d / "report.html").read_text()
     assert "<h3>Recording</h3>" in html and "known-angle turns" in html and "data:image/png;base64" in html

@@ -29,8 +29,8 @@ from scipy import integrate, stats
 
 from imubench.calib import CalibrationError, NotObservable, TriadFit
 
-__all__ = ["Turn", "detect_turns", "split_by_rotation", "turn_in_window", "known_angle_turns", "combine_fits", "TURN_DEG",
-           "ANGLE_SIGMA_DEG", "AXIS_SIGMA_DEG"]
+__all__ = ["Turn", "detect_turns", "split_by_rotation", "turn_in_window", "known_angle_turns", "combine_fits",
+           "TURN_DEG",           "ANGLE_SIGMA_DEG", "AXIS_SIGMA_DEG"]
 
 TURN_DEG = 360.0            # one full turn
 ANGLE_SIGMA_DEG = 1.0       # 1-sigma of where a hand puts the board back (against an edge or mark)
@@ -174,7 +174,8 @@ def turn_in_window(gyro, fs_hz: float, start: int, stop: int, up, bias_rad_s, bi
     meas = float(integ @ up)
     n_turns = max(1, int(round(abs(meas) / math.radians(turn_deg))))
     t = Turn(start=start, stop=stop - 1, rest_before=-1, rest_after=-1, up=up, integral_rad=integ,
-             integration_err_rad=np.abs(integ - simp), bias_rad_s=b, bias_sigma_rad_s=np.asarray(bias_sigma_rad_s, float),
+             integration_err_rad=np.abs(integ - simp), bias_rad_s=b,
+             bias_sigma_rad_s=np.asarray(bias_sigma_rad_s, float),
              duration_s=(stop - 1 - start) * h, angle_rad=math.copysign(n_turns * math.radians(turn_deg), meas),
              label=label or f"turn about {_axis_label(up)}")
     if t.off_axis_deg > math.degrees(math.atan(MAX_OFF_AXIS)):
@@ -292,7 +293,7 @@ def known_angle_turns(turns, bias: TriadFit | None = None, *, noise_density_rad_
     Minv = np.linalg.inv(M)
     table = []
     resid = []
-    for t, (A, Ci, C) in zip(use, covs):
+    for t, (A, _, C) in zip(use, covs):
         after = Minv @ t.integral_rad
         e = t.integral_rad - A @ mvec
         resid.append(float(np.linalg.norm(e)))

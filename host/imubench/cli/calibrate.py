@@ -74,7 +74,8 @@ def _add_from_file(p) -> None:
     g.add_argument("--from", dest="from_file", metavar="FILE",
                    help="calibrate from a recording instead of a device: the same analysis, report and history")
     g.add_argument("--format", choices=FORMATS, help="the recording's format (default: from its name and header)")
-    g.add_argument("--gyro-file", type=existing_file, metavar="FILE", help="with --format imutk: the gyro file (--from is the accelerometer's)")
+    g.add_argument("--gyro-file", type=existing_file, metavar="FILE",
+                   help="with --format imutk: the gyro file (--from is the accelerometer's)")
     g.add_argument("--accel-unit", metavar="UNIT", help="accelerometer unit in the file: mps2, g, mg or counts")
     g.add_argument("--gyro-unit", metavar="UNIT", help="gyro unit in the file: rad_s, dps or counts")
     g.add_argument("--accel-scale", type=positive_float, metavar="COUNTS_PER_G",
@@ -85,7 +86,8 @@ def _add_from_file(p) -> None:
                    help="CSV columns: ax=...,ay=...,az=...,gx=...,gy=...,gz=...[,t=...] (default: common names)")
     g.add_argument("--time-column", metavar="NAME", help="CSV: the time column")
     g.add_argument("--time-unit", choices=("s", "ms", "us", "ns"), help="CSV: the time column's unit")
-    g.add_argument("--profile", type=existing_file, metavar="TOML", help="a file with the columns, units and rate of a CSV layout")
+    g.add_argument("--profile", type=existing_file, metavar="TOML",
+                   help="a file with the columns, units and rate of a CSV layout")
     g.add_argument("--topic", metavar="TOPIC", help="ROS bag: the sensor_msgs/Imu topic (needed when there are several)")
     g.add_argument("--device", metavar="NAME", help="a name for the IMU: the history groups its runs by it "
                                                     "(default: the file's name)")
@@ -93,7 +95,8 @@ def _add_from_file(p) -> None:
                    help="--gyro turns: the known angle of one turn")
     g.add_argument("--gyro-range", type=positive_float, metavar="DPS",
                    help="the gyro's range: a turn reaching it is clipped and not used")
-    g.add_argument("--annotation", type=existing_file, metavar="JSON", help="imucal's section list, to compare the segmentation with")
+    g.add_argument("--annotation", type=existing_file, metavar="JSON",
+                   help="imucal's section list, to compare the segmentation with")
     g.add_argument("--export", action="append", default=[], choices=WRITERS, metavar="|".join(WRITERS),
                    help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON or ArduPilot's "
                         "parameters (repeatable)")

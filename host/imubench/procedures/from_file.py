@@ -71,6 +71,11 @@ def _face(d: np.ndarray) -> str:
 
 
 # ------------------------------------------------------------------ units
+def _unit(rec: Recording, k: int) -> str:
+    """The declared unit of the accelerometer (k = 0) or gyro (k = 1), as said to a person."""
+    return rec.unit_text().split(", ")[k].split(" ", 1)[1]
+
+
 def check_accel_unit(rec: Recording, still_norm: np.ndarray) -> None:
     """Refuse a declared accelerometer unit the still intervals contradict (|a| far from 1 g)."""
     f = rec.accel_factor()
@@ -82,15 +87,14 @@ def check_accel_unit(rec: Recording, still_norm: np.ndarray) -> None:
     if lo <= med <= hi:
         return
     raw = float(np.median(still_norm))
-    fits = [name for name, fac in (("mps2", 1.0), ("g", U.G0_MPS2), ("mg", U.G0_MPS2 / 1000))
-            if lo <= raw * fac / U.G0_MPS2 <= hi]
-    hint = (f"read as {fits[0]} they would be {raw * {'mps2': 1.0, 'g': U.G0_MPS2, 'mg': U.G0_MPS2 / 1000}[fits[0]] / U.G0_MPS2:.4f} g: "
+    factors = {"mps2": 1.0, "g": U.G0_MPS2, "mg": U.G0_MPS2 / 1000}
+    fits = [name for name, fac in factors.items() if lo <= raw * fac / U.G0_MPS2 <= hi]
+    hint = (f"read as {fits[0]} they would be {raw * factors[fits[0]] / U.G0_MPS2:.4f} g: "
             f"declare --accel-unit {fits[0]}" if fits else
             f"if these are raw counts, declare --accel-unit counts (and --accel-scale {raw:.0f} counts per g, "
             "or the datasheet's)")
     raise RecordingError(
-        f"the declared accelerometer unit ({rec.unit_text().split(', ')[0].replace('accelerometer ', '')}) is "
-        f"implausible: the "
+        f"the declared accelerometer unit ({_unit(rec, 0)}) is implausible: the "
         f"{len(still_norm)} still intervals read |a| = {raw:.6g} in the file (median; range "
         f"{still_norm.min():.6g} … {still_norm.max():.6g}), i.e. {med:.4g} g, far from 1 g; {hint}")
 
@@ -104,7 +108,7 @@ def check_gyro_unit(rec: Recording, rest_rate: np.ndarray, factor: float) -> Non
     hint = ("the data look like °/s: declare --gyro-unit dps" if rec.gyro_unit == "rad_s" and raw < GYRO_REST_MAX_DPS
             else "if these are raw counts, declare --gyro-unit counts (with --gyro-scale COUNTS_PER_DPS if known)")
     raise RecordingError(
-        f"the declared gyro unit ({rec.unit_text().split(', ')[1].replace('gyro ', '')}) is implausible: at rest (the longest still "
+        f"the declared gyro unit ({_unit(rec, 1)}) is implausible: at rest (the longest still "
         f"interval) the gyro reads up to {raw:.4g} in the file, i.e. {dps:.4g} °/s, where a MEMS gyro at rest "
         f"reads less than {GYRO_REST_MAX_DPS:g} °/s; {hint}")
 
@@ -118,7 +122,7 @@ def check_turn_scale(measured_rad: list[float], turn_rad: float, rec: Recording)
     if 0.75 <= r <= 4.25 and abs(r - round(r)) <= 0.25:
         return
     raise RecordingError(
-        f"the declared gyro unit ({rec.unit_text().split(', ')[1].replace('gyro ', '')}) is implausible: the motions about the vertical "
+        f"the declared gyro unit ({_unit(rec, 1)}) is implausible: the motions about the vertical "
         f"between rests of the same attitude integrate to {', '.join(f'{math.degrees(abs(m)):.0f}°' for m in measured_rad)} "
         f"(median {r:.3g} turns of {math.degrees(turn_rad):g}°), not whole turns; "
         + ("°/s read as rad/s gives 57× the angle: declare --gyro-unit dps" if r > 20 else
@@ -356,8 +360,9 @@ class FileAnalysis:
         rms_after_mg = float(np.sqrt(np.mean((after - U.G0_MPS2) ** 2)) / U.G0_MPS2 * 1e3)
         name = cfg.device or rec.device or Path(rec.source.split(" + ")[0]).stem
         fs = rec.fs_hz
-        poses = [{"name": f"{self.faces[i]} @{iv.t_start_s:.1f}s", "n": int(iv.n), "before_g": float(before[i] / U.G0_MPS2),
-                  "after_g": float(after[i] / U.G0_MPS2), "sigma_g": float(sig_g[i]), "temp_c": None}
+        poses = [{"name": f"{self.faces[i]} @{iv.t_start_s:.1f}s", "n": int(iv.n),
+                  "before_g": float(before[i] / U.G0_MPS2), "after_g": float(after[i] / U.G0_MPS2),
+                  "sigma_g": float(sig_g[i]), "temp_c": None}
                  for i, iv in enumerate(self.intervals)]
         source = {"file": rec.source, "format": rec.fmt, "units": rec.unit_text(), "rate_hz": fs,
                   "samples": len(rec), "duration_s": rec.duration_s, "timing": timing_lines(rec),

@@ -187,7 +187,8 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
     inside = np.ones(len(dt), bool)
     inside[gaps] = False
     dev = np.abs(dt[inside] - med) / med if inside.any() else np.zeros(1)
-    timing.update({"median_dt_s": med, "fs_hz": fs, "jitter_rel": float(np.std(dt[inside]) / med) if inside.any() else 0.0,
+    jitter = float(np.std(dt[inside]) / med) if inside.any() else 0.0
+    timing.update({"median_dt_s": med, "fs_hz": fs, "jitter_rel": jitter,
                    "max_step_dev_rel": float(dev.max()) if dev.size else 0.0,
                    "gaps": [{"index": int(k + 1), "t_s": float(t[k]), "duration_s": float(dt[k]),
                              "missing": int(round(dt[k] / med)) - 1} for k in gaps]})

@@ -375,7 +375,8 @@ def load_profile(path) -> dict:
     known = {"columns", "units", "rate_hz", "format", "device"}
     extra = set(d) - known
     if extra:
-        raise RecordingError(f"profile {path}: unknown key(s) {', '.join(sorted(extra))}; known: {', '.join(sorted(known))}")
+        raise RecordingError(f"profile {path}: unknown key(s) {', '.join(sorted(extra))}; "
+                             f"known: {', '.join(sorted(known))}")
     u = d.get("units", {})
     out = {"columns": {k: v for k, v in d.get("columns", {}).items() if k != "t"},
            "time_column": d.get("columns", {}).get("t"), "time_unit": u.get("time"),

@@ -34,7 +34,8 @@ def plot_segmentation(rec, result: dict, path, *, accel_factor: float, gyro_fact
         ax2.plot(t[::step], gyr[::step, k], lw=0.6, color=c, label="xyz"[k])
     for seg in result.get("segmentation", []):
         for ax in (ax1, ax2):
-            ax.axvspan(seg["start"] / fs, seg["stop"] / fs, color=_FACE_COLOURS.get(seg["face"], "#bbb"), alpha=0.35, lw=0)
+            ax.axvspan(seg["start"] / fs, seg["stop"] / fs, color=_FACE_COLOURS.get(seg["face"], "#bbb"),
+                       alpha=0.35, lw=0)
         ax1.text((seg["start"] + seg["stop"]) / 2 / fs, 0.97, seg["face"], ha="center", va="top", fontsize=8,
                  transform=ax1.get_xaxis_transform())
     for tr in result.get("turns", []):
