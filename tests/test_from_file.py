@@ -54,6 +54,9 @@ def test_csv_by_common_names_with_time_in_ms(session, tmp_path):
     _check_truth(fa, truth)
     assert [t["label"] for t in res["turns"]] == ["turn about +X", "turn about +Y", "turn about +Z"]
     assert sorted(set(fa.faces)) == ["+X", "+Y", "+Z", "-X", "-Y", "-Z"]
+    # a better declared hand (a stop to turn against) gives smaller sigmas, in proportion
+    fa2, _ = _analyse(rec, angle_sigma_deg=0.25)
+    assert np.allclose(np.diag(fa2.gyro.sigma_m) / np.diag(fa.gyro.sigma_m), 0.25, rtol=0.05)
 
 
 def test_csv_columns_mapped_by_option_and_by_profile(session, tmp_path):

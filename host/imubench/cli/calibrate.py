@@ -93,6 +93,11 @@ def _add_from_file(p) -> None:
                                                     "(default: the file's name)")
     g.add_argument("--turn-angle", type=positive_float, default=360.0, metavar="DEG",
                    help="--gyro turns: the known angle of one turn")
+    g.add_argument("--turn-sigma", type=positive_float, default=1.0, metavar="DEG",
+                   help="--gyro turns: 1σ of where the hand puts the board back after a turn (a stop or a "
+                        "marked edge does better than a free hand)")
+    g.add_argument("--turn-axis-sigma", type=positive_float, default=0.5, metavar="DEG",
+                   help="--gyro turns: 1σ of the turn axis off the measured vertical (table not level, board lifted)")
     g.add_argument("--gyro-range", type=positive_float, metavar="DPS",
                    help="the gyro's range: a turn reaching it is clipped and not used")
     g.add_argument("--annotation", type=existing_file, metavar="JSON",
@@ -270,6 +275,7 @@ def _run_from_file(a) -> int:
     except RecordingError as e:
         raise UsageError(str(e), "give imucal's section list (JSON)") from None
     cfg = FileConfig(method=a.method, gyro=None if a.gyro == "none" else a.gyro, turn_deg=a.turn_angle,
+                     angle_sigma_deg=a.turn_sigma, axis_sigma_deg=a.turn_axis_sigma,
                      gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
                      writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol)
     directory = Path(a.dir or f"imubench-file-{path.stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
