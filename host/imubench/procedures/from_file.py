@@ -375,6 +375,11 @@ class FileAnalysis:
                   "duration_s": t.duration_s, "known_deg": math.degrees(t.angle_rad),
                   "before_deg": math.degrees(t.measured_rad), "off_axis_deg": t.off_axis_deg,
                   "usable": t.usable, "reason": t.reason} for t in self.turns]
+        fitted = {row["start"]: row for row in ((self.gyro_parts.get("fits", {}).get("turns") or {}).get("extra")
+                                                 or {}).get("turns", [])}
+        for row in turns:
+            if row["start"] in fitted:
+                row["sigma_deg"] = fitted[row["start"]]["sigma_deg"]
         if self.gyro is not None and self.gyro.method != "bias":
             minv = np.linalg.inv(self.gyro.m)
             for row, t in zip(turns, self.turns):

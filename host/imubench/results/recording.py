@@ -78,11 +78,13 @@ def turns_table(result: dict) -> str:
     if not turns:
         return "turns: none found (a turn is a motion about the vertical between two rests of the same attitude)"
     rows = ["turns found by the data (integrated, bias-corrected rate along the vertical):",
-            f"  {'turn':<14} {'start [s]':>9} {'length [s]':>10} {'known':>7} {'before':>9} {'after':>9}  off-axis"]
+            f"  {'turn':<14} {'start [s]':>9} {'length [s]':>10} {'known':>7} {'before':>9} {'after':>9} "
+            f"{'σ':>6}  off-axis   (degrees; σ: the turn's error budget along the vertical)"]
     for tr in turns:
         after = f"{tr['after_deg']:9.2f}" if "after_deg" in tr else f"{'-':>9}"
+        sig = f"{tr['sigma_deg']:6.2f}" if "sigma_deg" in tr else f"{'-':>6}"
         rows.append(f"  {tr['label']:<14} {tr['t_start_s']:9.2f} {tr['duration_s']:10.2f} {tr['known_deg']:7.0f} "
-                    f"{tr['before_deg']:9.2f} {after}  {tr['off_axis_deg']:.2f}°"
+                    f"{tr['before_deg']:9.2f} {after} {sig}  {tr['off_axis_deg']:.2f}°"
                     + ("" if tr["usable"] else f"  NOT USED: {tr['reason']}"))
     return "\n".join(rows)
 
