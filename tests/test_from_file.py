@@ -400,4 +400,8 @@ def test_guided_session_known_angle_turns_on_the_virtual_bench(tmp_path):
     fa, res = _analyse(rec)
     assert [t["label"] for t in res["turns"] if t["usable"]] == ["turn about +X", "turn about +Y", "turn about +Z"]
     assert np.abs(fa.gyro.m - np.asarray(g["m"])).max() < 1e-3
-    assert np.abs((fa.accel.m - np.asarray(result["accel"]["m"])) / fa.accel.sigma_m).max() < 3
+    # the file's accelerometer fit uses longer rests (and those around the turns) than the session's 2 s
+    # holds: it is at least as close to the truth as the session's, at the session's sigma
+    a_true = np.asarray(truth["accel"]["m"])
+    sig_session = np.asarray(result["accel"]["sigma_m"])
+    assert np.abs(fa.accel.m - a_true).max() < 4 * sig_session.max()
