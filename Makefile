@@ -91,3 +91,4 @@ bench: venv
 	$(PY) bench/core_instructions.py
 	$(PY) bench/calib_solve.py
 	$(PY) bench/multi_dut.py
+	$(PY) bench/real_data.py

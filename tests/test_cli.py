@@ -118,7 +118,9 @@ def test_every_option_has_help_and_shows_its_default():
 
 def test_the_same_options_have_the_same_names():
     """--port/--baud wherever a device is opened; --sim/--sim-seed/--sim-speed wherever a
-    command can start its own virtual device; --rate is always a protocol stream rate."""
+    command can start its own virtual device; --rate is always a protocol stream rate (calibrate's
+    also takes a file's rate with --from: checked against the stream rates for a device)."""
+    from imubench.cli.calibrate import rate_hz
     from imubench.cli.common import stream_rate
     _, commands = _subparsers()
     for name, p in commands.items():
@@ -128,7 +130,9 @@ def test_the_same_options_have_the_same_names():
         if "--sim" in opts:
             assert {"--sim-seed", "--sim-speed"} <= set(opts), name
         if "--rate" in opts:
-            assert opts["--rate"].type is stream_rate, name
+            assert opts["--rate"].type is (rate_hz if name == "calibrate" else stream_rate), name
+    r = run("calibrate", "--rate", "700", "--sim")
+    assert r.returncode == 2 and "700 Hz is not a stream rate of the protocol" in r.stderr, r.stderr
     for name in ("calibrate", "closure", "thermal"):
         assert "--sim" in {o for a in commands[name]._actions for o in a.option_strings}, name
 

@@ -591,7 +591,8 @@ _COLUMN_NAMES = {0: "first column (m00, m10, m20: the response to rotation about
 
 def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, init_m=None, *,
                     gravity_sigma=0.0, max_rate_rad_s: float | None = _ADXRS450_RANGE_RAD_S,
-                    min_turn_deg: float = 30.0, max_residual_deg: float = 1.0) -> TriadFit:
+                    min_turn_deg: float = 30.0, max_residual_deg: float = 1.0,
+                    exclude_motions=()) -> TriadFit:
     """Gyro M without a turntable, from rotations between static poses (imu_tk's method).
 
     gyro: (n, 3) readings u in rad/s at fs_hz. static_intervals: k half-open sample ranges
@@ -615,6 +616,9 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
     the turn perpendicular to gravity), so at least 6 motions; 12–24 are recommended (2
     constraints per motion, 9 parameters, and enough spare to estimate the noise).
     NotObservable otherwise, naming the axis and the column of M it leaves undetermined.
+
+    exclude_motions: indices j of motions (from interval j to j+1) to leave out, e.g. those
+    with a gap in the recording (the integral would miss part of the rotation).
     """
     u = _as_rates(gyro, "gyro")
     n = len(u)
@@ -636,7 +640,11 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
             raise CalibrationError(f"static interval {i} = ({a}, {z}) is empty or outside 0..{n}")
         if i and a < iv[i - 1, 1]:
             raise CalibrationError(f"static intervals {i - 1} and {i} overlap or are out of order")
-    J = k - 1
+    keep = np.ones(max(k - 1, 0), dtype=bool)
+    for j in exclude_motions:
+        if 0 <= int(j) < len(keep):
+            keep[int(j)] = False
+    J = int(keep.sum())
     if J < 6:
         raise NotObservable(
             f"rotation_method: {max(J, 0)} motion(s) between {k} static poses; at least 6 are "
@@ -655,8 +663,8 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
                 f"(first at sample {over[0]}): the gyro may have clipped; turn slower")
 
     # motions: samples [stop_j - 1, start_{j+1}] inclusive
-    starts = iv[:-1, 1] - 1
-    ends = iv[1:, 0]
+    starts = iv[:-1, 1][keep] - 1
+    ends = iv[1:, 0][keep]
     lens = ends - starts + 1
     L = int(lens.max())
     idx = starts[:, None] + np.arange(L)[None, :]
@@ -675,9 +683,9 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
         var = np.zeros(3)
     nd = np.sqrt(var * h)                                          # rad/s/√Hz
     nd2 = max(float(np.mean(nd**2)), 1e-18)
-    msig = np.sqrt(nd2 * dur + gsig[:-1] ** 2 + gsig[1:] ** 2)     # (J,) rad per component
+    msig = np.sqrt(nd2 * dur + gsig[:-1][keep] ** 2 + gsig[1:][keep] ** 2)     # (J,) rad per component
     msig = np.maximum(msig, 1e-12)
-    gp0, gn1 = g[:-1], g[1:]
+    gp0, gn1 = g[:-1][keep], g[1:][keep]
     T = _tangent_basis(gn1)                                         # (J, 2, 3)
 
     Uc = np.ascontiguousarray(np.moveaxis(U, -1, 0))                # (3, J, L)
@@ -852,6 +860,7 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
             "message": sol.message,
             "bias_source": "rest" if cov_b is not None else "given",
             "n_motions": J,
+            "excluded_motions": [int(j) for j in np.flatnonzero(~keep)],
             "warnings": warnings,
             **({"jacobian_check": jac_check} if jac_check is not None else {}),
         },

@@ -12,13 +12,24 @@ from imubench.cli.common import (
     add_port,
     add_sim,
     existing_dir,
+    existing_file,
     out_dir,
     positive_float,
     stream_rate,
 )
 
 METHODS = ("six", "multi")
-GYRO_METHODS = ("turntable", "rotation", "bias", "none")
+GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "none")
+# imubench.recordings.FORMATS and imubench.results.paramfiles.WRITERS, named here so that building
+# the parser loads neither (tests/test_from_file.py checks they agree)
+FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
+WRITERS = ("params", "imutk", "imucal", "ardupilot")
+
+
+def rate_hz(s: str) -> float:
+    """calibrate's --rate: a positive number here; a protocol stream rate (common.stream_rate)
+    when a device is calibrated, any rate when it is a file's (--from) — checked in run()."""
+    return positive_float(s)
 
 
 def register(sub) -> None:
@@ -32,14 +43,17 @@ def register(sub) -> None:
                    help="accelerometer model: six faces (linear least squares, full M) or the multi-position "
                         "|a| = g fit (26 attitudes)")
     p.add_argument("--gyro", choices=GYRO_METHODS, default="bias",
-                   help="gyro method: scale and misalignment from a turntable or from the rotations between "
-                        "attitudes, only the bias at rest, or none")
+                   help="gyro method: scale and misalignment from a turntable, from the rotations between "
+                        "attitudes, or from known-angle turns by hand (one full turn on a table about X, Y and Z "
+                        "pointing up); only the bias at rest, or none")
     p.add_argument("--dir", type=out_dir, metavar="DIR",
                    help="session directory (default: ./imubench-session-<time>)")
     p.add_argument("--resume", type=existing_dir, metavar="DIR", help="continue the session in DIR")
     p.add_argument("--redo", action="append", default=[], metavar="POSE",
                    help="with --resume: capture this pose again (repeatable; names as printed)")
-    p.add_argument("--rate", type=stream_rate, metavar="HZ", default=500, help="sample rate in Hz")
+    p.add_argument("--rate", type=rate_hz, metavar="HZ", default=None,
+                   help="sample rate in Hz: the device's stream rate (default 500), or with --from the file's "
+                        "rate when it has no time column")
     p.add_argument("--hold", type=positive_float, default=2.0, metavar="S", help="seconds captured per attitude")
     p.add_argument("--no-write", action="store_true", help="fit only; do not write the parameters to the device")
     p.add_argument("--db", metavar="PATH|URL", help="history database: an SQLite file or a postgresql:// URL shared by "
@@ -65,6 +79,7 @@ def register(sub) -> None:
     p.add_argument("--link-timeout", type=positive_float, default=10.0, metavar="S",
                    help="with several boards: a board that sends nothing for S seconds has lost its link and "
                         "is marked failed (the others go on)")
+    _add_from_file(p)
     p.set_defaults(run=run)
 
 
@@ -111,7 +126,61 @@ def _station_file(s: str) -> dict:
     return d
 
 
+def _add_from_file(p) -> None:
+    """--from FILE and what reading a recording needs (imubench.procedures.from_file)."""
+    g = p.add_argument_group("calibrate from a recording (any 6-axis IMU; docs/calibration.md, From files)")
+    g.add_argument("--from", dest="from_file", metavar="FILE",
+                   help="calibrate from a recording instead of a device: the same analysis, report and history")
+    g.add_argument("--format", choices=FORMATS, help="the recording's format (default: from its name and header)")
+    g.add_argument("--gyro-file", type=existing_file, metavar="FILE",
+                   help="with --format imutk: the gyro file (--from is the accelerometer's)")
+    g.add_argument("--accel-unit", metavar="UNIT", help="accelerometer unit in the file: mps2, g, mg or counts")
+    g.add_argument("--gyro-unit", metavar="UNIT", help="gyro unit in the file: rad_s, dps or counts")
+    g.add_argument("--accel-scale", type=positive_float, metavar="COUNTS_PER_G",
+                   help="nominal scale of raw accelerometer counts (datasheet); without it the fit reports counts per g")
+    g.add_argument("--gyro-scale", type=positive_float, metavar="COUNTS_PER_DPS",
+                   help="nominal scale of raw gyro counts (datasheet); without it the fit reports counts per °/s")
+    g.add_argument("--columns", metavar="KEY=NAME,...",
+                   help="CSV columns: ax=...,ay=...,az=...,gx=...,gy=...,gz=...[,t=...] (default: common names)")
+    g.add_argument("--time-column", metavar="NAME", help="CSV: the time column")
+    g.add_argument("--time-unit", choices=("s", "ms", "us", "ns"), help="CSV: the time column's unit")
+    g.add_argument("--profile", type=existing_file, metavar="TOML",
+                   help="a file with the columns, units and rate of a CSV layout")
+    g.add_argument("--topic", metavar="TOPIC", help="ROS bag: the sensor_msgs/Imu topic (needed when there are several)")
+    g.add_argument("--device", metavar="NAME", help="a name for the IMU: the history groups its runs by it "
+                                                    "(default: the file's name)")
+    g.add_argument("--turn-angle", type=positive_float, default=360.0, metavar="DEG",
+                   help="--gyro turns: the known angle of one turn")
+    g.add_argument("--turn-sigma", type=positive_float, default=1.0, metavar="DEG",
+                   help="--gyro turns: 1σ of where the hand puts the board back after a turn (a stop or a "
+                        "marked edge does better than a free hand)")
+    g.add_argument("--turn-axis-sigma", type=positive_float, default=0.5, metavar="DEG",
+                   help="--gyro turns: 1σ of the turn axis off the measured vertical (table not level, board lifted)")
+    g.add_argument("--gyro-range", type=positive_float, metavar="DPS",
+                   help="the gyro's range: a turn reaching it is clipped and not used")
+    g.add_argument("--annotation", type=existing_file, metavar="JSON",
+                   help="imucal's section list, to compare the segmentation with")
+    g.add_argument("--export", action="append", default=[], choices=WRITERS, metavar="|".join(WRITERS),
+                   help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON or ArduPilot's "
+                        "parameters (repeatable)")
+    g.add_argument("--tolerance-mg", type=positive_float, metavar="MG",
+                   help="pass when the RMS of |a| − g over the still intervals after calibration is at most this "
+                        "(default: the device's, 1 mg)")
+
+
 def run(a) -> int:
+    if a.from_file is not None:
+        return _run_from_file(a)
+    stray = [k for k in _FILE_ONLY if getattr(a, k, None) is not None] + (["export"] if a.export else [])
+    if stray:
+        raise UsageError(f"--{stray[0].replace('_', '-')} goes with --from FILE",
+                         "drop it to calibrate a device, or give the recording with --from")
+    if a.rate is None:
+        a.rate = 500
+    try:
+        a.rate = stream_rate(f"{a.rate:g}")
+    except Exception as e:  # argparse.ArgumentTypeError: the one-line usage error
+        raise UsageError(f"--rate {a.rate:g}: {e}", "the device streams at the protocol's rates") from None
     from imubench.device.link import Device
     from imubench.procedures.session import SessionConfig, SimPresenter, run_session
 
@@ -301,7 +370,7 @@ def _shown(db) -> str:
 
 
 def _station_table(res) -> str:
-    from imubench.results.export import measurement_text
+    from imubench.results.paramfiles import measurement_text
     lines = [f"{'slot':>4}  {'MCU UID':<24}  {'verdict':<7}  {'run':>5}  details"]
     for b in res.boards:
         rec = res.results.get(b.slot) or {}
@@ -345,3 +414,94 @@ def _add_station_fields(result: dict, a, directory: Path, before, after, url) ->
     result["params_before"] = PR.to_json(before) if before is not None else None
     result["params_after"] = PR.to_json(after) if after is not None and result.get("written") else None
     result["capture"] = capture_ref(directory)
+
+
+# ------------------------------------------------------------------ from a file
+_FILE_ONLY = ("format", "gyro_file", "accel_unit", "gyro_unit", "accel_scale", "gyro_scale", "columns", "time_column",
+              "time_unit", "profile", "topic", "device", "gyro_range", "annotation", "tolerance_mg")
+
+
+def _columns(text: str) -> dict:
+    out = {}
+    for item in text.split(","):
+        if "=" not in item:
+            raise UsageError(f"--columns {text!r}: each item is KEY=NAME", "e.g. --columns ax=AccX,ay=AccY,az=AccZ,"
+                             "gx=GyrX,gy=GyrY,gz=GyrZ,t=Time")
+        k, v = item.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+def _run_from_file(a) -> int:
+    """imubench calibrate --from FILE: read, analyse, write the session directory, record."""
+    from imubench.procedures.from_file import FileConfig, calibrate_recording
+    from imubench.procedures.session import Tolerances
+    from imubench.recordings import RecordingError
+    from imubench.recordings.readers import load_profile, read, read_annotation
+    from imubench.results.recording import annotation_table, segmentation_table, turns_table
+
+    for flag, bad in (("--port", a.port), ("--sim", a.sim), ("--resume", a.resume), ("--redo", a.redo),
+                      ("--closure", a.closure)):
+        if bad:
+            raise UsageError(f"--from and {flag} exclude each other", "a recording is calibrated without a device")
+    if a.gyro == "turntable":
+        raise UsageError("--gyro turntable needs a turntable's known rates",
+                         "from a recording use --gyro turns (known-angle turns) or --gyro rotation")
+    path = Path(a.from_file)
+    if not path.exists():
+        raise UsageError(f"--from {path}: no such file or directory", "check the path")
+    opts = load_profile(a.profile) if a.profile else {}
+    fmt = a.format or opts.pop("format", None)
+    opts.pop("format", None)
+    given = {"accel_unit": a.accel_unit, "gyro_unit": a.gyro_unit, "accel_counts_per_g": a.accel_scale,
+             "gyro_counts_per_dps": a.gyro_scale, "rate_hz": a.rate, "time_column": a.time_column,
+             "time_unit": a.time_unit, "topic": a.topic, "gyro_file": a.gyro_file, "device": a.device,
+             "columns": _columns(a.columns) if a.columns else None}
+    opts.update({k: v for k, v in given.items() if v is not None})
+    if opts.get("topic") and (fmt or "") not in ("", "rosbag"):
+        raise UsageError("--topic is for ROS bags", "drop it, or give --format rosbag")
+    rec = read(path, fmt, **opts)
+    print(f"recording: {rec.source} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz ({rec.duration_s:.1f} s); "
+          f"{rec.unit_text()}")
+    tol = Tolerances() if a.tolerance_mg is None else Tolerances(accel_rms_mg=a.tolerance_mg)
+    try:
+        annotation = read_annotation(a.annotation) if a.annotation else None
+    except RecordingError as e:
+        raise UsageError(str(e), "give imucal's section list (JSON)") from None
+    cfg = FileConfig(method=a.method, gyro=None if a.gyro == "none" else a.gyro, turn_deg=a.turn_angle,
+                     angle_sigma_deg=a.turn_sigma, axis_sigma_deg=a.turn_axis_sigma,
+                     gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
+                     writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol)
+    directory = Path(a.dir or f"imubench-file-{path.stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    a.on_interrupt = lambda: "nothing is kept from an interrupted analysis; run the command again"
+    result, fa = calibrate_recording(rec, directory, cfg)
+    print()
+    print(segmentation_table(result))
+    print()
+    print(turns_table(result))
+    ann = annotation_table(result)
+    if ann:
+        print()
+        print(ann)
+    _print_fit(None)(result)
+    for key, unit in (("accel_counts_per_g", "counts per g"), ("gyro_counts_per_dps", "counts per °/s")):
+        if key in result:
+            import numpy as np
+            print(f"\n{key.split('_')[0]} M in {unit} (no nominal scale was declared):")
+            print("\n".join("  " + "  ".join(f"{v:12.6g}" for v in row) for row in np.asarray(result[key])))
+    gyro = result.get("gyro") or {}
+    for w in (gyro.get("extra") or {}).get("warnings", []):
+        print(f"  gyro note: {w}")
+    for kind, files in result.get("exports", {}).items():
+        if files:
+            print(f"{kind}: {', '.join(files)}")
+    print(f"session directory: {directory} (session.json, residuals.png, segmentation.png)")
+    print(f"report: {result['report']}")
+    _record_history(result, a.db, directory / "session.json")
+    print("\ncalibration " + ("PASSED" if result["passed"] else "FAILED") + " (fitted from a file; nothing is written "
+          "to a device)")
+    if not result["passed"]:
+        raise CommandError(f"the RMS of |a| − g after calibration, {result['accel_rms_after_mg']:.3g} mg, is above "
+                           f"the tolerance {tol.accel_rms_mg:g} mg",
+                           f"see {directory / 'residuals.png'}; --tolerance-mg sets another tolerance")
+    return 0

@@ -26,6 +26,10 @@ class HumanPresenter:
         self.say(f"turn the table about board axis {np.round(axis, 2).tolist()} at {rate_dps:+.1f} °/s "
                  f"for {duration_s:.1f} s (start the turn now)")
 
+    def present_known_turn(self, up, angle_deg):
+        self.say(f"now turn the board by hand {angle_deg:g}° (one full turn) on the table about the vertical "
+                 f"(board {np.round(up, 2).tolist()} up), keeping it flat, back to where it was; then let it lie still")
+
     def progress(self, label, fraction):
         from tqdm import tqdm
         if self._bar is None or self._label != label:

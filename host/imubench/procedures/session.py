@@ -138,6 +138,13 @@ class SimPresenter:
     def keep_pose(self, name, summary):
         return True
 
+    def present_known_turn(self, up, angle_deg):
+        """--gyro turns: turn the virtual board through angle_deg about its current vertical."""
+        g = np.asarray(self.vb.status()["gravity_board"], dtype=float)
+        g /= np.linalg.norm(g)
+        self.say(f"virtual bench turns the board {angle_deg:g}° about the vertical (board {np.round(g, 2).tolist()})")
+        self.vb.rotate(list(g), rate_dps=-self.rate_dps, duration_s=angle_deg / self.rate_dps, wait=False)
+
 
 # ---------------------------------------------------------------- the session
 class Session:
@@ -257,7 +264,7 @@ class Session:
         b = SampleBlock.concat(got)
         acc, gyr = b.si()
         self.rest = {"noise_mps2": rest_noise(acc, self.cfg.rate_hz).tolist(),
-                     "gyro": gyr.tolist() if self.cfg.gyro in ("bias", "rotation", "turntable") else None,
+                     "gyro": gyr.tolist() if self.cfg.gyro in ("bias", "rotation", "turntable", "turns") else None,
                      "start_index": int(b.sample_index[0]), "stop_index": int(b.sample_index[-1]) + 1}
         self.save()
         return self.rest
@@ -400,6 +407,86 @@ class Session:
             if getattr(st, "state", st) == "still" and np.abs(gyr.mean(axis=0)).max() < np.radians(2.0):
                 return
 
+    # ------------------------------------------------------- known-angle turns
+    TURN_DEG = 360.0
+    TURN_MOVING_DPS = 5.0            # above the rest bias: the board is turning
+
+    def capture_known_turns(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """--gyro turns: for X, Y and Z up in turn, the board lies still, is turned by hand one
+        full turn on the table about the vertical, and lies still again. Returns per turn the
+        samples (accel m/s², gyro rad/s) from the rest before to the rest after; the turns are
+        found in them by calib.turns.detect_turns and fitted in _known_turns_fit."""
+        from imubench.calib.static import StillnessDetector
+        fs = self.cfg.rate_hz
+        noise = np.asarray(self.rest["noise_mps2"])
+        bias = np.mean(np.asarray(self.rest["gyro"]), axis=0) if self.rest.get("gyro") is not None else np.zeros(3)
+        hold_n = int(self.cfg.hold_s * fs)
+        out = []
+        for i, (name, axis) in enumerate((("X", (1.0, 0, 0)), ("Y", (0, 1.0, 0)), ("Z", (0, 0, 1.0)))):
+            self.ui.present_pose(f"+{name} up (for a turn)", np.array(axis), i, 3)
+            det = StillnessDetector(fs, noise, window_s=self.cfg.settle_s)
+            recent: list[SampleBlock] = []
+            got: list[SampleBlock] = []
+            phase, moved, waited, after_n = "settle", False, 0, 0
+            while True:
+                b = self._next_block()
+                waited += len(b)
+                acc, gyr = b.si()
+                st = det.update(acc)
+                quiet = np.abs(gyr - bias).max() < np.radians(self.TURN_MOVING_DPS)
+                still = st.state == "still" and quiet
+                if phase == "settle":
+                    recent.append(b)
+                    d = acc.mean(axis=0) / np.linalg.norm(acc.mean(axis=0))
+                    if still and st.n >= hold_n and d @ np.array(axis) > np.cos(np.radians(20)):
+                        run = SampleBlock.concat(recent)
+                        got = [run[len(run) - min(st.n, len(run)):]]
+                        phase = "turn"
+                        turn = getattr(self.ui, "present_known_turn", None)
+                        if turn is not None:
+                            turn(np.array(axis), self.TURN_DEG)
+                        else:
+                            self.ui.say(f"turn the board one full turn ({self.TURN_DEG:g}°) on the table about the "
+                                        f"vertical (+{name} up), then let it lie still")
+                        det.reset()
+                    elif len(recent) > 200:
+                        recent.pop(0)
+                else:
+                    got.append(b)
+                    after_n = 0 if not quiet else after_n + len(b)
+                    moved = moved or not quiet
+                    if moved and still and min(st.n, after_n) >= hold_n:
+                        break
+                if waited > self.cfg.pose_timeout_s * fs:
+                    raise SessionAborted(f"known-angle turn about {name}: no "
+                                         + ("still attitude with " + name + " up" if phase == "settle" else
+                                            "turn followed by a rest") + f" within {self.cfg.pose_timeout_s:g} s")
+            blk = SampleBlock.concat(got)
+            out.append(blk.si())
+            self.ui.say(f"  turn about {name} captured ({len(blk) / fs:.1f} s from rest to rest)")
+        return out
+
+    def _known_turns_fit(self, accel: TriadFit, runs, bias: TriadFit) -> TriadFit:
+        """Gyro M from the turns of capture_known_turns (calib.turns)."""
+        from imubench.calib.static import detect_static
+        from imubench.calib.turns import detect_turns, known_angle_turns, split_by_rotation
+        fs = self.cfg.rate_hz
+        turns, missing = [], []
+        for k, (acc, gyr) in enumerate(runs):
+            iv = detect_static(acc, fs, noise_sigma=np.asarray(self.rest["noise_mps2"]),
+                               min_duration_s=min(1.0, 0.5 * self.cfg.hold_s))
+            iv = split_by_rotation(acc, gyr, fs, iv, min_duration_s=min(1.0, 0.5 * self.cfg.hold_s))
+            if len(iv) < 2:
+                missing.append(f"turn {'XYZ'[k]}: {len(iv)} rest(s) found around it, 2 needed")
+                continue
+            up = accel.correct(np.array([i.mean for i in iv]))
+            found = detect_turns(gyr, fs, iv, up, turn_deg=self.TURN_DEG)
+            turns += found
+            if not any(t.usable for t in found):
+                missing.append(f"turn {'XYZ'[k]}: no whole turn between two rests of the same attitude")
+        return known_angle_turns(turns, bias, noise_density_rad_s_rthz=bias.extra["noise_density_rad_s_rthz"],
+                                 refused=missing)
+
     # ------------------------------------------------------------------- run
     def run(self, plan: list[tuple[str, np.ndarray]], history=None, verify_plan=None) -> dict:
         from imubench.calib import accel as CA
@@ -423,6 +510,7 @@ class Session:
                 todo = [p for p in todo if p[0] != rec.name]
                 self.ui.say(f"  {summary}, {len(todo)} to go")
             segments = self.capture_turntable() if self.cfg.gyro == "turntable" else None
+            turn_runs = self.capture_known_turns() if self.cfg.gyro == "turns" else None
         finally:
             self._stop_stream()
 
@@ -448,6 +536,8 @@ class Session:
             gyro = CG.turntable(segments, bias=CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
         elif self.cfg.gyro == "rotation":
             gyro = self._rotation_fit(accel, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
+        elif self.cfg.gyro == "turns":
+            gyro = self._known_turns_fit(accel, turn_runs, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
         frame_note = None
         if self.cfg.method == "multi" and self.cfg.gyro == "turntable":
             accel, frame_note = self._align_frames(accel, gyro, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))

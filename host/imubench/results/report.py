@@ -261,7 +261,9 @@ FIT_METHODS = {"six_position": "six-position least squares (full M and b)",
                "multi_position": "multi-position |a| = g (3 biases, 3 scales, 3 non-orthogonality angles)",
                "bias": "bias at rest (scale and misalignment not estimated)",
                "turntable": "turntable (known rates about each axis, both ways)",
-               "rotation": "rotation method (gyro integrated between attitudes)"}
+               "rotation": "rotation method (gyro integrated between attitudes)",
+               "turns": "known-angle turns (Ferraris: hand turns of a known angle about the vertical)",
+               "turns+rotation": "known-angle turns and the rotation method, combined (inverse-covariance)"}
 
 
 def _fit_table(fit: dict, kind: str) -> str:
@@ -422,6 +424,10 @@ def _calibration_section(session_dir: Path, state: dict) -> str:
                        "drawn again from the result</p>")
             refused = None
     out.append("<h3>Residual plot</h3>" + _img(uri, "|a| − g per pose, before and after calibration", refused))
+    if isinstance(result.get("source"), dict):          # calibrated from a file (procedures.from_file)
+        from imubench.results.recording import recording_html
+        seg_uri, seg_refused = _png("segmentation.png", within=session_dir)
+        out.append(recording_html(result, esc, _img(seg_uri, "the recording: still intervals and turns", seg_refused)))
     return "\n".join(out)
 
 

@@ -1,0 +1,477 @@
+"""Calibrate from a recording of any 6-axis IMU: the analysis a live session runs, on a file.
+
+    imubench calibrate --from FILE [--format csv|imutk|imucal|npz|capture|rosbag] --accel-unit U --gyro-unit U
+
+A recording (imubench.recordings) is cut into still intervals by the data alone
+(calib.static.detect_static), the accelerometer is fitted on them (six-position or
+multi-position, with the same observability refusals as a session), the gyro bias comes from
+the longest still interval, and gyro scale and misalignment from the known-angle turns in the
+recording (calib.turns) and/or the rotations between the still intervals
+(calib.gyro.rotation_method), combined when both are present. The result has the form of a
+session's result (procedures.session): the same DIR/session.json, residual plot, HTML report
+(results.report) and history record, plus the recording's own section (timing, segmentation,
+turns) and the result in other tools' layouts (results.paramfiles).
+
+Nothing here reads the file's bytes (imubench.recordings does) or fits (imubench.calib does).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from imubench import units as U
+from imubench.calib import CalibrationError, TriadFit
+from imubench.procedures.session import Tolerances, _jsonable, fit_dict
+from imubench.recordings import Recording, RecordingError, timing_lines
+from imubench.results.atomic import write_json_atomic
+from imubench.results.sessionfile import SESSION_SCHEMA
+
+GYRO_FILE_METHODS = ("bias", "turns", "rotation")
+ACCEL_PLAUSIBLE_G = (0.8, 1.25)          # still |a| in the declared unit, in g
+GYRO_REST_MAX_DPS = 20.0                 # a MEMS gyro at rest reads less than this (bias)
+_AXES = "XYZ"
+
+
+@dataclass
+class FileConfig:
+    method: str = "six"                  # "six" | "multi"
+    gyro: str | None = "bias"            # "bias" | "turns" | "rotation" | None
+    turn_deg: float = 360.0              # the known angle of one turn
+    angle_sigma_deg: float = 1.0         # hand placement after a turn
+    axis_sigma_deg: float = 0.5          # turn axis off the measured vertical
+    gyro_range_dps: float | None = None  # the gyro's range: samples at it are clipped
+    window_s: float = 0.5                # still detection window
+    min_still_s: float = 1.0             # shortest still interval kept
+    note: str = ""
+    device: str | None = None            # a name for the IMU (the history groups runs by it)
+    writers: tuple = ()                  # results.paramfiles.WRITERS to write
+    annotation: list | None = None       # (name, start, stop) sections to compare the segmentation with
+    tolerances: Tolerances = field(default_factory=Tolerances)
+
+
+def device_id(name: str) -> str:
+    """A stable 24-hex-digit identifier for an IMU known by name (the history's device key):
+    the first 12 bytes of SHA-256 of the name."""
+    return hashlib.sha256(name.encode()).hexdigest()[:24].upper()
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _face(d: np.ndarray) -> str:
+    k = int(np.argmax(np.abs(d)))
+    ang = math.degrees(math.acos(min(1.0, abs(d[k]) / np.linalg.norm(d))))
+    return (("+" if d[k] > 0 else "-") + _AXES[k]) if ang <= 30.0 else "other"
+
+
+# ------------------------------------------------------------------ units
+def _unit(rec: Recording, k: int) -> str:
+    """The declared unit of the accelerometer (k = 0) or gyro (k = 1), as said to a person."""
+    return rec.unit_text().split(", ")[k].split(" ", 1)[1]
+
+
+def check_accel_unit(rec: Recording, still_norm: np.ndarray) -> None:
+    """Refuse a declared accelerometer unit the still intervals contradict (|a| far from 1 g)."""
+    f = rec.accel_factor()
+    if f is None:
+        return
+    g_read = still_norm * f / U.G0_MPS2
+    med = float(np.median(g_read))
+    lo, hi = ACCEL_PLAUSIBLE_G
+    if lo <= med <= hi:
+        return
+    raw = float(np.median(still_norm))
+    factors = {"mps2": 1.0, "g": U.G0_MPS2, "mg": U.G0_MPS2 / 1000}
+    fits = [name for name, fac in factors.items() if lo <= raw * fac / U.G0_MPS2 <= hi]
+    hint = (f"read as {fits[0]} they would be {raw * factors[fits[0]] / U.G0_MPS2:.4f} g: "
+            f"declare --accel-unit {fits[0]}" if fits else
+            f"if these are raw counts, declare --accel-unit counts (and --accel-scale {raw:.0f} counts per g, "
+            "or the datasheet's)")
+    raise RecordingError(
+        f"the declared accelerometer unit ({_unit(rec, 0)}) is implausible: the "
+        f"{len(still_norm)} still intervals read |a| = {raw:.6g} in the file (median; range "
+        f"{still_norm.min():.6g} … {still_norm.max():.6g}), i.e. {med:.4g} g, far from 1 g; {hint}")
+
+
+def check_gyro_unit(rec: Recording, rest_rate: np.ndarray, factor: float) -> None:
+    """Refuse a declared gyro unit under which a board at rest would turn fast."""
+    dps = float(np.max(np.abs(rest_rate))) * factor * 180.0 / math.pi
+    if dps <= GYRO_REST_MAX_DPS:
+        return
+    raw = float(np.max(np.abs(rest_rate)))
+    hint = ("the data look like °/s: declare --gyro-unit dps" if rec.gyro_unit == "rad_s" and raw < GYRO_REST_MAX_DPS
+            else "if these are raw counts, declare --gyro-unit counts (with --gyro-scale COUNTS_PER_DPS if known)")
+    raise RecordingError(
+        f"the declared gyro unit ({_unit(rec, 1)}) is implausible: at rest (the longest still "
+        f"interval) the gyro reads up to {raw:.4g} in the file, i.e. {dps:.4g} °/s, where a MEMS gyro at rest "
+        f"reads less than {GYRO_REST_MAX_DPS:g} °/s; {hint}")
+
+
+def check_turn_scale(measured_rad: list[float], turn_rad: float, rec: Recording) -> None:
+    """Refuse a declared gyro unit under which the turns between same-attitude rests integrate to
+    far from whole turns (e.g. °/s declared as rad/s: 57 turns each)."""
+    if not measured_rad:
+        return
+    r = float(np.median(np.abs(measured_rad))) / turn_rad
+    if 0.75 <= r <= 4.25 and abs(r - round(r)) <= 0.25:
+        return
+    raise RecordingError(
+        f"the declared gyro unit ({_unit(rec, 1)}) is implausible: the motions about the vertical "
+        f"between rests of the same attitude integrate to {', '.join(f'{math.degrees(abs(m)):.0f}°' for m in measured_rad)} "
+        f"(median {r:.3g} turns of {math.degrees(turn_rad):g}°), not whole turns; "
+        + ("°/s read as rad/s gives 57× the angle: declare --gyro-unit dps" if r > 20 else
+           "rad/s read as °/s gives 1/57 of the angle: declare --gyro-unit rad_s" if r < 0.1 else
+           "check --gyro-unit, --gyro-scale and --turn-angle"))
+
+
+# ------------------------------------------------------------------ segmentation vs annotation
+_ANNOT_FACE = {"x_p": "+X", "x_a": "-X", "y_p": "+Y", "y_a": "-Y", "z_p": "+Z", "z_a": "-Z"}
+
+
+def compare_annotation(parts, intervals, faces, turns, fs_hz: float) -> list[dict]:
+    """For each annotated section (imucal's names x_p ... z_a, x_rot ... z_rot), the detected
+    still interval (same face, largest overlap) or turn that matches it and the differences of
+    their ends in seconds; sections with nothing detected are listed with found False."""
+    out = []
+    for name, s, e in parts:
+        row = {"section": name, "start": s, "stop": e, "found": False}
+        if name in _ANNOT_FACE:
+            cands = [(min(e, iv.stop) - max(s, iv.start), i) for i, iv in enumerate(intervals)
+                     if faces[i] == _ANNOT_FACE[name]]
+            cands = [c for c in cands if c[0] > 0]
+            if cands:
+                _, i = max(cands)
+                iv = intervals[i]
+                row.update(found=True, kind="rest", detected=[iv.start, iv.stop],
+                           start_diff_s=(iv.start - s) / fs_hz, stop_diff_s=(iv.stop - e) / fs_hz,
+                           face=faces[i], annotated_inside_detected=iv.start <= s and e <= iv.stop)
+        elif name.endswith("_rot"):
+            axis = name[0].upper()
+            cands = [(min(e, t.stop) - max(s, t.start), i) for i, t in enumerate(turns)
+                     if t.label.endswith(axis)]
+            cands = [c for c in cands if c[0] > 0]
+            if cands:
+                _, i = max(cands)
+                t = turns[i]
+                row.update(found=True, kind="turn", detected=[t.start, t.stop],
+                           start_diff_s=(t.start - s) / fs_hz, stop_diff_s=(t.stop - e) / fs_hz,
+                           annotated_inside_detected=t.start <= s and e <= t.stop)
+        out.append(row)
+    return out
+
+
+# ------------------------------------------------------------------ the analysis
+class FileAnalysis:
+    """The analysis of one recording (no files written): run() fills accel, gyro, result."""
+
+    def __init__(self, rec: Recording, cfg: FileConfig, say=print):
+        self.rec, self.cfg, self.say = rec, cfg, say
+        self.notes: list[str] = []
+        self.accel: TriadFit | None = None
+        self.gyro: TriadFit | None = None
+        self.gyro_parts: dict = {}
+        self.turns: list = []
+
+    def _note(self, text: str) -> None:
+        self.notes.append(text)
+        self.say(f"  note: {text}")
+
+    def run(self) -> dict:
+        from imubench.calib import accel as CA
+        from imubench.calib import gyro as CG
+        from imubench.calib.static import detect_static, require_static
+        from imubench.calib.turns import detect_turns
+        rec, cfg = self.rec, self.cfg
+        self.started = _now()
+        fs = rec.fs_hz
+        # ---- accelerometer scale: declared, or provisional (raw counts without a scale)
+        fa = rec.accel_factor()
+        if fa is None:
+            iv0 = detect_static(rec.accel, fs, window_s=cfg.window_s, min_duration_s=cfg.min_still_s)
+            if not len(iv0):
+                require_static(iv0, 6)
+            fa = U.G0_MPS2 / float(np.median([np.linalg.norm(i.mean) for i in iv0]))
+            self._note(f"accelerometer in counts without a nominal scale: fitted in counts; M is reported in "
+                       f"counts per g (the still intervals' median |a| = {U.G0_MPS2 / fa:.6g} counts)")
+        self.fa = fa
+        acc = rec.accel * fa
+        ivs = detect_static(acc, fs, window_s=cfg.window_s, min_duration_s=cfg.min_still_s)
+        dropped = [i for i in ivs if not i.clean]
+        keep = [i for i in ivs if i.clean]
+        if keep:
+            check_accel_unit(rec, np.linalg.norm([i.mean for i in keep], axis=1) / fa)
+            longest0 = max(keep, key=lambda i: i.n)
+            if rec.gyro_scaled:      # median: robust to a smooth turn inside an accelerometer-still interval
+                check_gyro_unit(rec, np.median(rec.gyro[longest0.start:longest0.stop], axis=0), rec.gyro_factor())
+        if keep:                     # a turn the accelerometer did not see (smooth, about the vertical)
+            from imubench.calib.turns import split_by_rotation
+            n0 = len(keep)
+            if rec.gyro_scaled:
+                keep = split_by_rotation(acc, rec.gyro * rec.gyro_factor(), fs, keep, min_duration_s=cfg.min_still_s)
+            else:                    # raw counts: 20 × the typical rest noise, in counts
+                noise = float(np.median([np.max(np.std(rec.gyro[i.start:i.stop], axis=0)) for i in keep]))
+                keep = split_by_rotation(acc, rec.gyro, fs, keep, min_duration_s=cfg.min_still_s,
+                                         threshold=20.0 * max(noise, 1e-12))
+            if len(keep) != n0:
+                self._note(f"{len(keep) - n0:+d} still intervals after cutting where the gyro turned "
+                           "(the accelerometer alone did not show it)")
+        for i in dropped:
+            self._note(f"still interval at {i.t_start_s:.1f} s ({i.duration_s:.1f} s) not used: its mean moved "
+                       f"within it ({i.drift_z:.1f} σ)")
+        need = 6 if cfg.method == "six" else 9
+        require_static(keep if len(keep) < len(ivs) else ivs, need)
+        self.intervals = keep
+        means = np.array([i.mean for i in keep])
+        sigmas = np.array([i.sigma_mean for i in keep])
+        self.faces = [_face(m) for m in means]
+        self.say(f"still intervals: {len(keep)} found by the data (window {cfg.window_s:g} s, k = {ivs.k:g} × the "
+                 f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
+                                            for f, i in zip(self.faces, keep)))
+        # ---- accelerometer fit
+        if cfg.method == "six":
+            accel = CA.six_position(means, sigmas, skip_non_faces=True)
+        else:
+            CA.check_observability(means, "multi_position")
+            init = None
+            try:
+                init = CA.six_position(means, sigmas, skip_non_faces=True)
+            except CalibrationError:
+                pass
+            accel = CA.multi_position(means, sigmas, init=init)
+        self.accel = accel
+        # ---- gyro
+        brk = [b for b, _ in rec.breaks]
+        fg = rec.gyro_factor()
+        up = accel.correct(means)
+        up = up / np.linalg.norm(up, axis=1)[:, None]
+        clip = None if cfg.gyro_range_dps is None else math.radians(cfg.gyro_range_dps)
+        turn_rad = math.radians(cfg.turn_deg)
+        longest = max(range(len(keep)), key=lambda k: keep[k].n)
+        if fg is None:
+            cand = detect_turns(rec.gyro, fs, keep, up, turn_deg=cfg.turn_deg, breaks=brk, scale_known=False)
+            good = [t for t in cand if t.usable] or [t for t in self._part_turns(rec.gyro, acc, keep, up, accel)
+                                                     if t.usable]
+            if not good:
+                raise CalibrationError("the gyro is in counts without a nominal scale and the recording has no turn "
+                                       "about the vertical between two rests to scale it by: give --gyro-scale "
+                                       "COUNTS_PER_DPS (the datasheet's) or record known-angle turns")
+            fg = turn_rad / float(np.median([abs(t.measured_rad) for t in good]))
+            self._note(f"gyro in counts without a nominal scale: scaled provisionally by the turns "
+                       f"({1 / math.degrees(fg):.5g} counts per °/s); M is reported in counts per °/s")
+        else:
+            cand = detect_turns(rec.gyro * fg, fs, keep, up, turn_deg=cfg.turn_deg, breaks=brk,
+                                scale_known=False)
+            big = [t.measured_rad for t in cand if t.usable]
+            big = [m for m in big if abs(m) >= 0.25 * max(np.abs(big))] if big else []
+            check_turn_scale(big, turn_rad, rec)
+        self.fg = fg
+        gyr = rec.gyro * fg
+        self.rest_index = longest
+        bias = CG.gyro_bias(gyr[keep[longest].start:keep[longest].stop], fs) if cfg.gyro else None
+        if bias is not None:
+            self.say(f"gyro bias from the longest still interval ({keep[longest].t_start_s:.1f} s, "
+                     f"{keep[longest].duration_s:.1f} s)")
+        self.turns = detect_turns(gyr, fs, keep, up, turn_deg=cfg.turn_deg, breaks=brk, clip_rad_s=clip)
+        if not any(t.usable for t in self.turns) and rec.parts:
+            self.turns = self._part_turns(gyr, acc, keep, up, accel)
+            if self.turns:
+                self._note(f"no turn with a rest on both sides was found; the file is cut into named parts: the "
+                           f"{len(self.turns)} parts named *_rot are taken as the turns (integrated from cut to cut, "
+                           "bias from the still interval of the same attitude)")
+        for t in self.turns:
+            if not t.usable:
+                self._note(f"{t.label} at {t.start / fs:.1f} s not used: {t.reason}")
+        gyro = bias
+        if cfg.gyro == "turntable":
+            raise CalibrationError("the turntable method needs a turntable's known rates; from a recording use "
+                                   "--gyro turns (known-angle turns) or --gyro rotation")
+        if cfg.gyro in ("turns", "rotation"):
+            gyro = self._gyro_fit(gyr, fs, keep, up, bias, brk, clip)
+        self.gyro = gyro
+        return self._result(means, sigmas)
+
+    def _part_turns(self, gyr, acc, keep, up, accel) -> list:
+        """Turns from the file's named parts (*_rot), for files cut tightly around each turn."""
+        from imubench.calib.turns import turn_in_window
+        out = []
+        fs = self.rec.fs_hz
+        for name, s0, s1 in self.rec.parts or []:
+            if not name.endswith("_rot") or s1 - s0 < 3:
+                continue
+            d = accel.correct(acc[s0:s1].mean(axis=0)[None, :])[0]
+            d /= np.linalg.norm(d)
+            k = int(np.argmax(up @ d))               # the still interval of the same attitude
+            rest = gyr[keep[k].start:keep[k].stop]
+            b = rest.mean(axis=0)
+            bs = rest.std(axis=0, ddof=1) / math.sqrt(len(rest))
+            out.append(turn_in_window(gyr, fs, s0, s1, d, b, bs, turn_deg=self.cfg.turn_deg,
+                                      label=f"turn about {_face(d)} (part {name})"))
+        return out
+
+    def _gyro_fit(self, gyr, fs, keep, up, bias, brk, clip) -> TriadFit:
+        from imubench.calib import gyro as CG
+        from imubench.calib.turns import combine_fits, known_angle_turns
+        cfg = self.cfg
+        fits: dict[str, TriadFit] = {}
+        errs: dict[str, CalibrationError] = {}
+        try:
+            fits["turns"] = known_angle_turns(self.turns, bias, noise_density_rad_s_rthz=bias.extra[
+                "noise_density_rad_s_rthz"], angle_sigma_deg=cfg.angle_sigma_deg, axis_sigma_deg=cfg.axis_sigma_deg)
+        except CalibrationError as e:
+            errs["turns"] = e
+        bad = []
+        for j in range(len(keep) - 1):
+            inside = [b for b in brk if keep[j].stop - 1 < b <= keep[j + 1].start]
+            if inside:
+                bad.append(j)
+                self._note(f"motion {j} ({keep[j].stop / fs:.1f}–{keep[j + 1].start / fs:.1f} s) not used by the "
+                           f"rotation method: the recording is not continuous inside it (break at sample {inside[0]})")
+        try:
+            fits["rotation"] = CG.rotation_method(gyr, fs, [(i.start, i.stop) for i in keep], up, bias,
+                                                  max_rate_rad_s=clip, exclude_motions=bad)
+        except CalibrationError as e:
+            errs["rotation"] = e
+        why = {k: str(e) for k, e in errs.items()}
+        self.gyro_parts = {"fits": {k: fit_dict(v, "rad_s") for k, v in fits.items()}, "refused": why}
+        main, other = cfg.gyro, "rotation" if cfg.gyro == "turns" else "turns"
+        if main not in fits:
+            raise errs[main]
+        if other in fits:
+            comb = combine_fits(fits["turns"], fits["rotation"])
+            self.say(f"gyro: known-angle turns and the rotation method combined "
+                     f"({'consistent' if comb.consistent else 'INCONSISTENT'}: χ² = {comb.chi2:.3g} for 9 dof)")
+            for n in comb.notes:
+                self._note(n)
+            return comb.fit
+        self._note(f"gyro: the {other} method is not used: {why[other]}")
+        return fits[main]
+
+    def _result(self, means, sigmas) -> dict:
+        rec, cfg, accel = self.rec, self.cfg, self.accel
+        before = np.linalg.norm(means, axis=1)
+        after = np.linalg.norm(accel.correct(means), axis=1)
+        sig_g = np.sqrt(np.sum((means / before[:, None] * sigmas) ** 2, axis=1)) / U.G0_MPS2
+        rms_after_mg = float(np.sqrt(np.mean((after - U.G0_MPS2) ** 2)) / U.G0_MPS2 * 1e3)
+        name = cfg.device or rec.device or Path(rec.source.split(" + ")[0]).stem
+        fs = rec.fs_hz
+        poses = [{"name": f"{self.faces[i]} @{iv.t_start_s:.1f}s", "n": int(iv.n),
+                  "before_g": float(before[i] / U.G0_MPS2), "after_g": float(after[i] / U.G0_MPS2),
+                  "sigma_g": float(sig_g[i]), "temp_c": None}
+                 for i, iv in enumerate(self.intervals)]
+        source = {"file": rec.source, "format": rec.fmt, "units": rec.unit_text(), "rate_hz": fs,
+                  "samples": len(rec), "duration_s": rec.duration_s, "timing": timing_lines(rec),
+                  "reader_notes": list(rec.notes), "breaks": [[int(b), r] for b, r in rec.breaks],
+                  "accel_factor_si": self.fa, "gyro_factor_si": self.fg,
+                  "accel_scaled": rec.accel_scaled, "gyro_scaled": rec.gyro_scaled}
+        seg = [{"face": self.faces[i], "start": iv.start, "stop": iv.stop, "t_start_s": iv.t_start_s,
+                "duration_s": iv.duration_s} for i, iv in enumerate(self.intervals)]
+        turns = [{"label": t.label, "start": t.start, "stop": t.stop, "t_start_s": t.start / fs,
+                  "duration_s": t.duration_s, "known_deg": math.degrees(t.angle_rad),
+                  "before_deg": math.degrees(t.measured_rad), "off_axis_deg": t.off_axis_deg,
+                  "usable": t.usable, "reason": t.reason} for t in self.turns]
+        fitted = {row["start"]: row for row in ((self.gyro_parts.get("fits", {}).get("turns") or {}).get("extra")
+                                                 or {}).get("turns", [])}
+        for row in turns:
+            if row["start"] in fitted:
+                row["sigma_deg"] = fitted[row["start"]]["sigma_deg"]
+        if self.gyro is not None and self.gyro.method != "bias":
+            minv = np.linalg.inv(self.gyro.m)
+            for row, t in zip(turns, self.turns):
+                row["after_deg"] = math.degrees(float((minv @ t.integral_rad) @ t.up))
+        annotation = None
+        if cfg.annotation or rec.parts:
+            annotation = compare_annotation(cfg.annotation or rec.parts, self.intervals, self.faces, self.turns, fs)
+        tol = cfg.tolerances
+        result = {
+            "schema": 1,
+            "device": {"mcu_uid": device_id(name), "board": f"IMU '{name}' (from a file)", "fw_version": "",
+                       "fw_build": "", "accel_ids": [], "gyro_pid": [], "gyro_sn": []},
+            "started": self.started, "session_started": self.started, "finished": _now(),
+            "method": cfg.method, "gyro_method": cfg.gyro,
+            "accel": fit_dict(accel, "mps2") | {"residual_rms_mps2": accel.residual_rms},
+            "gyro": fit_dict(self.gyro, "rad_s"),
+            "poses": poses, "temperature_c": {},
+            "tolerances": asdict(tol), "passed": bool(rms_after_mg <= tol.accel_rms_mg),
+            "accel_rms_after_mg": rms_after_mg,
+            "written": False, "verified": False, "verification": [], "note": cfg.note,
+            "source": source, "segmentation": seg, "turns": turns, "gyro_parts": _jsonable(self.gyro_parts),
+            "notes": list(self.notes), "annotation": annotation, "device_name": name,
+        }
+        if not rec.accel_scaled:
+            result["accel_counts_per_g"] = (accel.m / self.fa * U.G0_MPS2).tolist()
+        if not rec.gyro_scaled and self.gyro is not None:
+            result["gyro_counts_per_dps"] = (self.gyro.m / self.fg * math.pi / 180.0).tolist()
+        return result
+
+
+# ------------------------------------------------------------------ the whole run
+def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -> tuple[dict, FileAnalysis]:
+    """Analyse a recording and write what a session writes into directory: session.json (with
+    the result), residuals.png, segmentation.png, report.html and the layouts of cfg.writers.
+    Returns (result, analysis). Recording in the history is the caller's (it owns the
+    database's path)."""
+    from imubench.results import paramfiles
+    from imubench.results.calibration import plot_pose_residuals
+    from imubench.results.recording import plot_segmentation
+    from imubench.results.report import build_report
+    d = Path(directory)
+    if (d / "session.json").exists():
+        raise RecordingError(f"{d} already holds a session; choose another --dir (nothing was overwritten)")
+    for line in timing_lines(rec) + rec.notes:
+        say(f"  {line}")
+    fa = FileAnalysis(rec, cfg, say)
+    result = fa.run()
+    d.mkdir(parents=True, exist_ok=True)
+    result["capture_dir"] = str(d.resolve())
+    files = {}
+    for kind in cfg.writers:
+        try:
+            files[kind] = [str(p) for p in _write_one(kind, d / f"calibration-{_safe(result['device_name'])}",
+                                                      fa, result, paramfiles)]
+        except RecordingError as e:
+            files[kind] = []
+            result["notes"].append(f"{kind} not written: {e}")
+            say(f"  note: {kind} not written: {e}")
+    result["exports"] = files
+    state = {"schema": SESSION_SCHEMA, "started": result["started"],
+             "config": {"method": cfg.method, "gyro": cfg.gyro, "rate_hz": rec.fs_hz, "hold_s": cfg.min_still_s,
+                        "rest_s": 0.0, "settle_s": cfg.window_s, "note": cfg.note, "write": False,
+                        "tolerances": asdict(cfg.tolerances), "from_file": rec.source},
+             "rest": None,
+             "poses": [{"name": p["name"], "direction": [0.0, 0.0, 0.0], "mean_mps2": iv.mean.tolist(),
+                        "sigma_mean_mps2": iv.sigma_mean.tolist(), "n": int(iv.n), "start_index": int(iv.start),
+                        "stop_index": int(iv.stop), "gyro_mean_rad_s": (rec.gyro[iv.start:iv.stop].mean(axis=0)
+                                                                         * fa.fg).tolist(), "stream": 0}
+                       for p, iv in zip(result["poses"], fa.intervals)],
+             "result": result, "complete": True}
+    write_json_atomic(d / "session.json", _jsonable(state))
+    plot_pose_residuals(result, d / "residuals.png")
+    plot_segmentation(rec, result, d / "segmentation.png", accel_factor=fa.fa, gyro_factor=fa.fg)
+    result["report"] = str(build_report(d))
+    return result, fa
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "imu"
+
+
+def _write_one(kind: str, prefix: Path, fa: FileAnalysis, result: dict, paramfiles) -> list[Path]:
+    rec = fa.rec
+    comment = f"imubench from {Path(rec.source.split(' + ')[0]).name}, {result['finished']}"
+    if kind in ("params", "ardupilot") and not (rec.accel_scaled and (rec.gyro_scaled or fa.gyro is None)):
+        raise RecordingError("needs SI parameters, i.e. a declared nominal scale of the raw counts "
+                             "(--accel-scale / --gyro-scale); imutk and imucal take counts as they are")
+    params = None
+    if kind == "params":
+        from imubench.procedures.session import params_from_fits
+        from imubench.wire import params as PR
+        params = params_from_fits(fa.accel, fa.gyro, PR.identity(), 0)
+    return paramfiles.write(kind, prefix, accel=fa.accel, gyro=fa.gyro, accel_factor=fa.fa, gyro_factor=fa.fg,
+                        accel_unit=rec.accel_unit, gyro_unit=rec.gyro_unit, scaled=rec.accel_scaled,
+                        params=params, comment=comment)

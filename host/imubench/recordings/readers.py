@@ -1,0 +1,387 @@
+"""The file formats a recording is read from (imubench.recordings.read):
+
+- ``csv``: any CSV with a header row. Columns are mapped by name (``columns`` = {"ax": name,
+  ..., "gz": name, "t": name}, from ``--columns`` or a profile file), else found among common
+  names (acc_x/ax/accel_x..., gyr_x/gx/gyro_x..., t/time/timestamp) and said so. Time from the
+  column (its unit declared, or in its name: t_s, t_ms, t_us, t_ns) or from ``rate_hz``. Units
+  declared, or in the column names as our own CSV writes them (ax_mps2, wx_rad_s).
+- ``imutk``: imu_tk's ASCII files, one per sensor, each line "t x y z" (t in seconds): the
+  accelerometer file and ``gyro_file``.
+- ``imucal``: imucal's CSV layouts: a session (``n_samples,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z``)
+  or an annotated, cut session (``part,samples,acc_x,...,gyr_z``: every change of part is a
+  cut, recorded as a break; the parts are kept as an annotation). No time: ``rate_hz``.
+- ``npz``: ``imubench decode --npz`` output (t_us, sample_index, accel_mps2, rate_rad_s).
+- ``capture``: a calibration session's capture-N.bin (the device's raw frames).
+- ``rosbag``: ROS 1 (.bag) or ROS 2 (directory with metadata.yaml, .db3, .mcap) bags with
+  sensor_msgs/Imu messages (m/s², rad/s by the message's definition), read with the optional
+  ``rosbags`` library (pip install 'imubench[rosbag]').
+"""
+from __future__ import annotations
+
+import csv
+import gzip
+import json
+from pathlib import Path
+
+import numpy as np
+
+from imubench.recordings import FORMATS, Recording, RecordingError, from_arrays
+
+KEYS = ("ax", "ay", "az", "gx", "gy", "gz")
+_CANDIDATES = {
+    "accel": [("acc_x", "acc_y", "acc_z"), ("ax", "ay", "az"), ("accel_x", "accel_y", "accel_z"),
+              ("accx", "accy", "accz"), ("ax_mps2", "ay_mps2", "az_mps2"), ("ax_g", "ay_g", "az_g"),
+              ("linear_acceleration_x", "linear_acceleration_y", "linear_acceleration_z")],
+    "gyro": [("gyr_x", "gyr_y", "gyr_z"), ("gx", "gy", "gz"), ("gyro_x", "gyro_y", "gyro_z"),
+             ("gyrx", "gyry", "gyrz"), ("wx_rad_s", "wy_rad_s", "wz_rad_s"), ("wx", "wy", "wz"),
+             ("angular_velocity_x", "angular_velocity_y", "angular_velocity_z")],
+    "t": ["t", "time", "timestamp", "t_s", "time_s", "t_ms", "time_ms", "t_us", "time_us", "t_ns", "time_ns"],
+}
+_TIME_SUFFIX = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+_UNIT_SUFFIX_ACC = {"mps2": "mps2", "g": "g", "mg": "mg"}
+_UNIT_SUFFIX_GYR = {"rad_s": "rad_s", "dps": "dps"}
+
+
+def _open_text(path: Path):
+    return gzip.open(path, "rt", newline="") if path.suffix == ".gz" else open(path, newline="")
+
+
+def _header(path: Path) -> tuple[list[str], str]:
+    with _open_text(path) as f:
+        for line in f:
+            if line.strip() and not line.lstrip().startswith("#"):
+                break
+        else:
+            raise RecordingError(f"{path} is empty")
+    try:
+        delim = csv.Sniffer().sniff(line, delimiters=",;\t ").delimiter
+    except csv.Error:
+        delim = ","
+    cols = [c.strip() for c in next(csv.reader([line], delimiter=delim))]
+    return cols, delim
+
+
+def _load(path: Path, delim: str, usecols: list[int]) -> np.ndarray:
+    try:
+        return np.loadtxt(path, delimiter=None if delim == " " else delim, skiprows=1, usecols=usecols,
+                          comments="#", ndmin=2, dtype=np.float64)
+    except ValueError as e:
+        raise RecordingError(f"{path}: not numbers where numbers are expected ({' '.join(str(e).split())[:160]}); "
+                             "check the delimiter and the header") from None
+
+
+def detect_format(path) -> str:
+    """The format of a file by its extension and header (the choice is printed by the caller)."""
+    p = Path(path)
+    if p.is_dir():
+        if (p / "metadata.yaml").exists():
+            return "rosbag"
+        raise RecordingError(f"{p} is a directory but not a ROS 2 bag (no metadata.yaml); give a file")
+    ext = "".join(p.suffixes[-2:]) if p.suffix == ".gz" else p.suffix
+    ext = ext.lower()
+    if ext in (".bag", ".db3", ".mcap"):
+        return "rosbag"
+    if ext == ".npz":
+        return "npz"
+    if ext == ".bin":
+        return "capture"
+    if ext.startswith(".csv") or ext.startswith(".txt"):
+        cols, _ = _header(p)
+        low = [c.lower() for c in cols]
+        if low[:1] == ["n_samples"] or low[:2] == ["part", "samples"]:
+            return "imucal"
+        return "csv"
+    raise RecordingError(f"cannot tell the format of {p.name} from its name: give --format "
+                         f"({'|'.join(FORMATS)})")
+
+
+def read(path, fmt: str | None = None, **opt) -> Recording:
+    p = Path(path)
+    if not p.exists():
+        raise RecordingError(f"{p}: no such file or directory; check the path")
+    fmt = fmt or detect_format(p)
+    if fmt not in FORMATS:
+        raise RecordingError(f"unknown format {fmt!r}; one of {', '.join(FORMATS)}")
+    return {"csv": read_csv, "imutk": read_imutk, "imucal": read_imucal, "npz": read_npz,
+            "capture": read_capture, "rosbag": read_rosbag}[fmt](p, **opt)
+
+
+def _need_units(opt: dict, what: str) -> tuple[str, str]:
+    au, gu = opt.get("accel_unit"), opt.get("gyro_unit")
+    missing = [n for n, v in (("--accel-unit", au), ("--gyro-unit", gu)) if not v]
+    if missing:
+        raise RecordingError(f"{what} does not say its units: give {' and '.join(missing)} "
+                             "(accelerometer mps2|g|mg|counts, gyro rad_s|dps|counts; for counts also "
+                             "--accel-scale COUNTS_PER_G / --gyro-scale COUNTS_PER_DPS if known)")
+    return au, gu
+
+
+def _common(opt: dict) -> dict:
+    return {"accel_counts_per_g": opt.get("accel_counts_per_g"), "gyro_counts_per_dps": opt.get("gyro_counts_per_dps"),
+            "device": opt.get("device")}
+
+
+# ------------------------------------------------------------------ csv
+def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None = None,
+             time_unit: str | None = None, rate_hz: float | None = None, accel_unit: str | None = None,
+             gyro_unit: str | None = None, **opt) -> Recording:
+    cols, delim = _header(path)
+    low = {c.lower(): i for i, c in enumerate(cols)}
+    notes = []
+    mapping = dict(columns or {})
+    if time_column:
+        mapping["t"] = time_column
+    unknown = [k for k in mapping if k not in (*KEYS, "t")]
+    if unknown:
+        raise RecordingError(f"--columns: unknown key(s) {', '.join(unknown)}; keys are ax ay az gx gy gz t")
+    found_by_name = []
+    for kind, keys in (("accel", KEYS[:3]), ("gyro", KEYS[3:])):
+        if all(k in mapping for k in keys):
+            continue
+        if any(k in mapping for k in keys):
+            raise RecordingError(f"--columns maps only some of {' '.join(keys)}: map all three")
+        for cand in _CANDIDATES[kind]:
+            if all(c in low for c in cand):
+                mapping.update({k: cols[low[c]] for k, c in zip(keys, cand)})
+                found_by_name.append(f"{kind} {', '.join(cols[low[c]] for c in cand)}")
+                break
+        else:
+            raise RecordingError(f"{path.name}: no {kind} columns found among {', '.join(cols)}; map them with "
+                                 f"--columns {'=NAME,'.join(keys)}=NAME (or a --profile file)")
+    if "t" not in mapping and not rate_hz:
+        for c in _CANDIDATES["t"]:
+            if c in low:
+                mapping["t"] = cols[low[c]]
+                found_by_name.append(f"time {cols[low[c]]}")
+                break
+    if found_by_name:
+        notes.append("columns found by name: " + "; ".join(found_by_name) + " (map others with --columns)")
+    missing = [v for v in mapping.values() if v.lower() not in low]
+    if missing:
+        raise RecordingError(f"{path.name} has no column {missing[0]!r}; its columns are {', '.join(cols)}")
+    idx = [low[mapping[k].lower()] for k in KEYS]
+    t_idx = low[mapping["t"].lower()] if "t" in mapping else None
+    data = _load(path, delim, idx + ([t_idx] if t_idx is not None else []))
+    # units: declared, or declared by the column names
+    if not accel_unit:
+        suf = mapping["ax"].lower().rsplit("_", 1)[-1]
+        accel_unit = _UNIT_SUFFIX_ACC.get(suf) if "_" in mapping["ax"] else None
+        if accel_unit:
+            notes.append(f"accelerometer unit {accel_unit} from the column name {mapping['ax']}")
+    if not gyro_unit:
+        name = mapping["gx"].lower()
+        gyro_unit = next((u for s, u in _UNIT_SUFFIX_GYR.items() if name.endswith("_" + s)), None)
+        if gyro_unit:
+            notes.append(f"gyro unit {gyro_unit} from the column name {mapping['gx']}")
+    au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, path.name)
+    t = None
+    if t_idx is not None:
+        unit = time_unit
+        if not unit:
+            suf = mapping["t"].lower().rsplit("_", 1)[-1]
+            unit = suf if "_" in mapping["t"] and suf in _TIME_SUFFIX else None
+            if unit:
+                notes.append(f"time unit {unit} from the column name {mapping['t']}")
+        if not unit:
+            raise RecordingError(f"the time column {mapping['t']!r} does not say its unit: give --time-unit "
+                                 "s|ms|us|ns (or --rate HZ to ignore it)")
+        if unit not in _TIME_SUFFIX:
+            raise RecordingError(f"--time-unit {unit!r}: one of s, ms, us, ns")
+        t = data[:, 6] * _TIME_SUFFIX[unit]
+    return from_arrays(data[:, :3], data[:, 3:6], t_s=t, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
+                       source=str(path), fmt="csv", notes=notes, **_common(opt))
+
+
+# ------------------------------------------------------------------ imu_tk
+def _imutk_file(path: Path, what: str) -> np.ndarray:
+    try:
+        d = np.loadtxt(path, comments="#", ndmin=2, dtype=np.float64)
+    except ValueError as e:
+        raise RecordingError(f"{path}: not imu_tk's layout (lines of 't x y z' numbers): "
+                             f"{' '.join(str(e).split())[:120]}") from None
+    if d.shape[1] != 4:
+        raise RecordingError(f"{path} ({what}): {d.shape[1]} columns per line; imu_tk's files have 4 (t x y z)")
+    return d
+
+
+def read_imutk(path: Path, *, gyro_file=None, accel_unit: str | None = None, gyro_unit: str | None = None,
+               rate_hz: float | None = None, **opt) -> Recording:
+    if not gyro_file:
+        raise RecordingError("imu_tk keeps the accelerometer and the gyro in separate files: give the "
+                             "accelerometer file with --from and the gyro file with --gyro-file")
+    au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, "imu_tk's format")
+    a = _imutk_file(path, "accelerometer")
+    g = _imutk_file(Path(gyro_file), "gyro")
+    notes = []
+    if len(a) != len(g) or not np.allclose(a[:, 0], g[:, 0], atol=0.25 * float(np.median(np.diff(a[:, 0])))):
+        # not sample-synchronous: the gyro is interpolated at the accelerometer's times
+        lo, hi = max(a[0, 0], g[0, 0]), min(a[-1, 0], g[-1, 0])
+        a = a[(a[:, 0] >= lo) & (a[:, 0] <= hi)]
+        if len(a) < 3:
+            raise RecordingError(f"{path.name} and {Path(gyro_file).name} do not overlap in time")
+        g = np.column_stack([a[:, 0]] + [np.interp(a[:, 0], g[:, 0], g[:, j]) for j in (1, 2, 3)])
+        notes.append("the gyro file's times differ from the accelerometer's: the gyro was interpolated "
+                     "(linearly) at the accelerometer's times over their common span")
+    return from_arrays(a[:, 1:], g[:, 1:], t_s=a[:, 0], rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
+                       source=f"{path} + {gyro_file}", fmt="imutk", notes=notes, **_common(opt))
+
+
+# ------------------------------------------------------------------ imucal
+def read_imucal(path: Path, *, rate_hz: float | None = None, accel_unit: str | None = None,
+                gyro_unit: str | None = None, **opt) -> Recording:
+    cols, delim = _header(path)
+    low = [c.lower() for c in cols]
+    if not rate_hz:
+        raise RecordingError("imucal's CSV has a sample index, not a time: give --rate HZ "
+                             "(imucal's example session: 102.4 Hz; its annotated counts file: 204.8 Hz)")
+    au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, "imucal's CSV")
+    need = ["acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z"]
+    if not all(c in low for c in need):
+        raise RecordingError(f"{path.name}: not imucal's layout (columns {', '.join(cols)}; expected "
+                             f"{', '.join(need)})")
+    idx = [low.index(c) for c in need]
+    parts = None
+    breaks = []
+    notes = []
+    if low[0] == "part":
+        with _open_text(path) as f:
+            names = [r[0] for r in csv.reader(f, delimiter=delim)][1:]
+        data = _load(path, delim, idx)
+        parts = []
+        start = 0
+        for i in range(1, len(names) + 1):
+            if i == len(names) or names[i] != names[start]:
+                parts.append((names[start], start, i))
+                if i < len(names):
+                    breaks.append((i, f"cut between parts {names[start]} and {names[i]} (imucal's annotated file "
+                                      "is cut into parts: not continuous)"))
+                start = i
+        notes.append(f"{len(parts)} parts named in the file ({', '.join(p[0] for p in parts)}): each cut is a "
+                     "break; the parts are not used to find the poses, only to compare with")
+    else:
+        data = _load(path, delim, idx)
+    return from_arrays(data[:, :3], data[:, 3:], rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
+                       source=str(path), fmt="imucal", breaks=breaks, notes=notes, parts=parts, **_common(opt))
+
+
+def read_annotation(path) -> list[tuple[str, int, int]]:
+    """imucal's section list (JSON: name -> {"start", "end"} sample indices), as (name, start, stop)."""
+    try:
+        d = json.loads(Path(path).read_text())
+        return sorted(((str(k), int(v["start"]), int(v["end"])) for k, v in d.items()), key=lambda p: p[1])
+    except (ValueError, KeyError, TypeError, AttributeError) as e:
+        raise RecordingError(f"{path}: not imucal's section list (name: {{start, end}}): {e}") from None
+
+
+# ------------------------------------------------------------------ our captures
+def read_npz(path: Path, **opt) -> Recording:
+    try:
+        z = np.load(path)
+    except (ValueError, OSError) as e:
+        raise RecordingError(f"{path}: not a .npz file ({e})") from None
+    need = ("accel_mps2", "rate_rad_s")
+    if not all(k in z for k in need):
+        raise RecordingError(f"{path.name} holds {', '.join(z.files)}; imubench's npz (imubench decode --npz) "
+                             f"has {', '.join(need)} and t_us")
+    breaks = []
+    notes = []
+    t = z["t_us"] * 1e-6 if "t_us" in z else None
+    if "sample_index" in z:
+        si = np.asarray(z["sample_index"], np.int64)
+        for k in np.flatnonzero(np.diff(si) > 1):
+            breaks.append((int(k + 1), f"{int(si[k + 1] - si[k] - 1)} samples lost on the link before sample {k + 1}"))
+    if "status" in z and np.any(z["status"]):
+        notes.append(f"{int(np.count_nonzero(z['status']))} samples flagged bad by the device (status bits)")
+    rec = from_arrays(z["accel_mps2"], z["rate_rad_s"], t_s=t, rate_hz=opt.get("rate_hz"), source=str(path),
+                      fmt="npz", notes=notes, device=opt.get("device"))
+    rec.breaks = sorted(rec.breaks + [b for b in breaks if b[0] not in {x[0] for x in rec.breaks}])
+    return rec
+
+
+def read_capture(path: Path, **opt) -> Recording:
+    from imubench.wire.decoder import decode_bytes
+    _, raw, cal, st = decode_bytes(path.read_bytes())
+    block = raw if raw is not None else cal
+    if block is None or len(block) < 3:
+        raise RecordingError(f"{path.name}: no samples decoded (frames ok {st.frames_ok}, rejected "
+                             f"{st.frames_rejected}); is it a capture-N.bin of an imubench session?")
+    acc, gyr = block.si()
+    notes = [f"{'raw' if raw is not None else 'calibrated'} samples of an imubench device, nominal scaling"]
+    breaks = []
+    si = np.asarray(block.sample_index, np.int64)
+    for k in np.flatnonzero(np.diff(si) > 1):
+        breaks.append((int(k + 1), f"{int(si[k + 1] - si[k] - 1)} samples lost on the link before sample {k + 1}"))
+    rec = from_arrays(acc, gyr, t_s=block.t_us * 1e-6, source=str(path), fmt="capture", notes=notes,
+                      device=opt.get("device"))
+    rec.breaks = sorted(rec.breaks + [b for b in breaks if b[0] not in {x[0] for x in rec.breaks}])
+    return rec
+
+
+# ------------------------------------------------------------------ ROS bags
+INSTALL_ROSBAGS = "pip install 'imubench[rosbag]' (the rosbags library)"
+
+
+def read_rosbag(path: Path, *, topic: str | None = None, **opt) -> Recording:
+    try:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError:
+        raise RecordingError(f"reading ROS bags needs the optional rosbags library: {INSTALL_ROSBAGS}") from None
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except Exception as e:  # noqa: BLE001 - rosbags raises its own classes for every damaged bag
+        raise RecordingError(f"{path}: not a readable ROS bag ({type(e).__name__}: {e})") from None
+    try:
+        imu = [c for c in reader.connections if c.msgtype in ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")]
+        if not imu:
+            raise RecordingError(f"{path.name} has no sensor_msgs/Imu topic (topics: "
+                                 f"{', '.join(sorted({c.topic for c in reader.connections})) or 'none'})")
+        topics = sorted({c.topic for c in imu})
+        if topic is None and len(topics) > 1:
+            raise RecordingError(f"{path.name} has several sensor_msgs/Imu topics ({', '.join(topics)}): "
+                                 "choose one with --topic")
+        topic = topic or topics[0]
+        conns = [c for c in imu if c.topic == topic]
+        if not conns:
+            raise RecordingError(f"{path.name} has no sensor_msgs/Imu topic {topic!r} (it has {', '.join(topics)})")
+        t, a, g, recv = [], [], [], []
+        for c, ts, raw in reader.messages(connections=conns):
+            m = reader.deserialize(raw, c.msgtype)
+            t.append(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec)
+            recv.append(ts * 1e-9)
+            la, av = m.linear_acceleration, m.angular_velocity
+            a.append((la.x, la.y, la.z))
+            g.append((av.x, av.y, av.z))
+    finally:
+        reader.close()
+    notes = [f"topic {topic}: {len(t)} sensor_msgs/Imu messages (m/s², rad/s by the message definition, REP 103)"]
+    t = np.asarray(t)
+    if len(t) and not np.any(np.diff(t) > 0):
+        t = np.asarray(recv)
+        notes.append("the messages' header stamps are not set: the bag's receive times are used")
+    return from_arrays(np.asarray(a), np.asarray(g), t_s=t, source=str(path), fmt="rosbag", notes=notes,
+                       device=opt.get("device"))
+
+
+def load_profile(path) -> dict:
+    """A CSV profile (TOML): [columns] ax = "...", ..., t = "..."; [units] accel, gyro, time,
+    accel_counts_per_g, gyro_counts_per_dps; rate_hz. Returned as read() options."""
+    import tomllib
+    try:
+        d = tomllib.loads(Path(path).read_text())
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise RecordingError(f"profile {path}: {e}") from None
+    known = {"columns", "units", "rate_hz", "format", "device"}
+    extra = set(d) - known
+    if extra:
+        raise RecordingError(f"profile {path}: unknown key(s) {', '.join(sorted(extra))}; "
+                             f"known: {', '.join(sorted(known))}")
+    u = d.get("units", {})
+    out = {"columns": {k: v for k, v in d.get("columns", {}).items() if k != "t"},
+           "time_column": d.get("columns", {}).get("t"), "time_unit": u.get("time"),
+           "accel_unit": u.get("accel"), "gyro_unit": u.get("gyro"),
+           "accel_counts_per_g": u.get("accel_counts_per_g"), "gyro_counts_per_dps": u.get("gyro_counts_per_dps"),
+           "rate_hz": d.get("rate_hz"), "format": d.get("format"), "device": d.get("device")}
+    return {k: v for k, v in out.items() if v not in (None, {})}
+

@@ -1,0 +1,117 @@
+"""A synthetic Ferraris session of a 6-axis IMU with known errors, for the from-file tests:
+rests on the six faces joined by smooth rotations, then one full turn about X, Y and Z while
+that axis points up. The truth: u = M·x + b per triad (docs/conventions.md), in SI."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+G0 = 9.80665
+
+
+def _rodrigues(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
+
+
+def up_in_body(c):
+    return c.T @ np.array([0.0, 0.0, 1.0])
+
+
+def ferraris_truth(seed=0):
+    rng = np.random.default_rng(seed)
+    ma = np.eye(3) + np.diag(rng.normal(0, 0.01, 3)) + np.tril(rng.normal(0, 0.004, (3, 3)), -1) \
+        + np.triu(rng.normal(0, 0.004, (3, 3)), 1)
+    mg = np.eye(3) + np.diag(rng.normal(0, 0.02, 3)) + rng.normal(0, 0.005, (3, 3)) * (1 - np.eye(3))
+    return {"accel_m": ma, "accel_b": rng.normal(0, 0.1, 3), "gyro_m": mg, "gyro_b": np.radians(rng.normal(0, 0.5, 3))}
+
+
+def ferraris_session(fs=100.0, seed=0, truth=None, rest_s=4.0, turn_s=4.0, accel_noise=0.004,
+                     gyro_noise=np.radians(0.05), both_ways=False, edges=False):
+    """(accel m/s², gyro rad/s (n, 3) each, truth dict, events): the measured u of both triads."""
+    truth = truth or ferraris_truth(seed)
+    rng = np.random.default_rng(seed + 1)
+    c = np.eye(3)                     # body -> world; +Z up
+    acc, gyr, events = [], [], []
+
+    def rest(sec):
+        n = int(sec * fs)
+        f = up_in_body(c) * G0
+        acc.append(np.repeat(f[None, :], n, 0))
+        gyr.append(np.zeros((n, 3)))
+        events.append(("rest", sum(len(a) for a in acc) - n, sum(len(a) for a in acc)))
+
+    def rot(axis_body, deg, sec):
+        nonlocal c
+        n = int(sec * fs)
+        t = (np.arange(n) + 0.5) / n
+        w = (1 - np.cos(2 * np.pi * t))           # raised cosine, integrates to n / n = 1 over [0, 1]
+        rate = np.radians(deg) / sec * w           # rad/s, integral = deg
+        ax = np.asarray(axis_body, float) / np.linalg.norm(axis_body)
+        a_out = np.empty((n, 3))
+        for k in range(n):
+            c = c @ _rodrigues(ax, rate[k] / fs)
+            a_out[k] = up_in_body(c) * G0
+        acc.append(a_out)
+        gyr.append(rate[:, None] * ax[None, :])
+        events.append(("rot", sum(len(a) for a in acc) - n, sum(len(a) for a in acc)))
+
+    rest(rest_s)                 # +Z
+    if edges:                    # attitudes between the faces (cube edges and corners), for --method multi
+        for ax, ang in (([1, 0, 0], 45), ([1, 0, 0], -90), ([1, 0, 0], 45), ([0, 1, 0], 45), ([0, 1, 0], -90),
+                        ([0, 1, 0], 45), ([1, 1, 0], 55), ([1, 1, 0], -55), ([1, -1, 0], 55), ([1, -1, 0], -55),
+                        ([1, 0, 0], 135), ([1, 0, 0], -135), ([0, 1, 0], 135), ([0, 1, 0], -135)):
+            rot(ax, ang, 1.5)
+            rest(rest_s / 2)
+    if both_ways:                # each axis turned both ways while horizontal: the rotation method sees M
+        for ax in ([1, 0, 0], [0, 1, 0]):
+            for ang in (-90, 90, 90, -90):
+                rot(ax, ang, 1.5)
+                rest(rest_s / 2)
+        rot([0, 1, 0], 90, 1.5)  # X up ... Z horizontal
+        rest(rest_s / 2)
+        for ang in (90, -90, -90, 90):
+            rot([0, 0, 1], ang, 1.5)
+            rest(rest_s / 2)
+        rot([0, 1, 0], -90, 1.5)  # back to +Z
+        rest(rest_s / 2)
+    rot([1, 0, 0], 180, 2.0)
+    rest(rest_s)                 # -Z
+    rot([1, 0, 0], 90, 1.5)
+    rest(rest_s)                 # ±Y
+    rot([1, 0, 0], 180, 2.0)
+    rest(rest_s)                 # ∓Y
+    rot([1, 0, 0], 90, 1.5)      # back to +Z
+    rot([0, 1, 0], 90, 1.5)
+    rest(rest_s)                 # ±X
+    rot([0, 1, 0], 180, 2.0)
+    rest(rest_s)                 # ∓X
+    # turns: the up axis of this rest, then Y and Z up
+    for target in ([1, 0, 0], [0, 1, 0], [0, 0, 1]):
+        up = up_in_body(c)
+        tgt = np.array(target, float)
+        if up @ tgt < 0.99:
+            ax = np.cross(up, tgt)
+            if np.linalg.norm(ax) < 1e-9:
+                ax = np.array([0.0, 0.0, 1.0]) if abs(tgt[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+            ang = math.degrees(math.acos(np.clip(up @ tgt, -1, 1)))
+            # rotating the body about ax by -ang carries up onto tgt
+            rot(ax, -ang, 1.5)
+            rest(rest_s)
+        rot(tgt, 360.0, turn_s)
+        rest(rest_s)
+    x_a = np.concatenate(acc)
+    x_g = np.concatenate(gyr)
+    u_a = x_a @ truth["accel_m"].T + truth["accel_b"] + rng.normal(0, accel_noise, x_a.shape)
+    u_g = x_g @ truth["gyro_m"].T + truth["gyro_b"] + rng.normal(0, gyro_noise, x_g.shape)
+    return u_a, u_g, truth, events
+
+
+def write_csv(path, acc_g, gyr_dps, fs, header=("t_ms", "acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z"),
+              t=None):
+    t = np.arange(len(acc_g)) / fs * 1e3 if t is None else t
+    np.savetxt(path, np.column_stack([t, acc_g, gyr_dps]), delimiter=",", header=",".join(header), comments="",
+               fmt="%.9g")
+    return path
