@@ -438,6 +438,19 @@ static int cmd_status(req_t *q)
         inj[i] = (double)s->spi_faults.errors_injected[i];
     }
     put_vec(r, "spi_errors_injected", inj, IB_CS_COUNT);
+    sj_key(r, "target");
+    sj_str(r, s->target[0] ? s->target : "host");
+    if (s->target[0]) { /* the exact ARM image under the emulator (host/imubench/device/arm) */
+        sj_key(r, "arm");
+        sj_raw(r, "{");
+        put_u64(r, "instructions", s->arm_instructions);
+        put_u64(r, "faults", s->arm_faults);
+        put_u64(r, "unmodelled_accesses", s->arm_unmodelled);
+        put_u64(r, "spi_peek_mismatches", s->arm_spi_mismatch);
+        put_num(r, "idle_s", s->arm_idle_s);
+        put_num(r, "sysclk_hz", s->arm_sysclk_hz);
+        sj_raw(r, "}");
+    }
     sim_link_t *l = &s->link;
     sj_key(r, "link");
     sj_raw(r, "{");

@@ -1,0 +1,210 @@
+"""The Cortex-M CPU of the emulated board: the Unicorn engine (PyPI `unicorn`, QEMU's ARM
+core as a library) in Thumb/M-profile mode as a Cortex-M3 (F103) or Cortex-M4 (F4), loaded
+with the exact image (PT_LOAD segments of the ELF at their load addresses).
+
+Unicorn executes instructions; it has no NVIC, so exception entry and return are done here,
+the way Qiling's MCU support does it (qiling/arch/cortex_m.py: push the 8-word frame, set
+IPSR, LR = EXC_RETURN, jump to the vector; catch the exception-exit Unicorn raises when the
+handler branches to EXC_RETURN and unstack the frame by hand). We do the same steps rather
+than depend on Qiling: it does not run with Unicorn 2.1 (docs/firmware.md) and single-steps
+the CPU. Differences from hardware, all invisible to these images (no FPU use in handlers, no
+PSP, no faults expected): the F4's caller-saved FP registers are saved by the emulator, not
+in an extended frame; no tail-chaining or late-arrival timing; no fault escalation (a CPU
+fault ends in the image's own HardFault handler, which resets the MCU).
+
+Instructions are counted by a C block hook of libimumodels.so (simlib_block_hook), which also
+stops the emulation at the instruction count of the next event; device time is derived from
+the count (clock.py).
+"""
+from __future__ import annotations
+
+import ctypes
+import struct
+
+from elftools.elf.elffile import ELFFile
+from elftools.elf.sections import SymbolTableSection
+from unicorn import (UC_ARCH_ARM, UC_HOOK_BLOCK, UC_HOOK_CODE, UC_HOOK_INTR, UC_MODE_MCLASS, UC_MODE_THUMB,
+                     UC_PROT_ALL, UC_PROT_EXEC, UC_PROT_READ, Uc)
+from unicorn import arm_const as A
+
+try:  # the raw library handle of the binding (unicorn >= 2.1 layout)
+    from unicorn.unicorn_py3.unicorn import uc_hook_h, uclib
+except ImportError:  # pragma: no cover - older layout
+    from unicorn.unicorn import uc_hook_h, uclib  # type: ignore
+
+EXC_RETURN_THREAD_MSP = 0xFFFFFFF9
+EXCP_EXCEPTION_EXIT = 8      # QEMU's EXCP_EXCEPTION_EXIT, reported through UC_HOOK_INTR
+FRAME_REGS = (A.UC_ARM_REG_R0, A.UC_ARM_REG_R1, A.UC_ARM_REG_R2, A.UC_ARM_REG_R3, A.UC_ARM_REG_R12,
+              A.UC_ARM_REG_LR, A.UC_ARM_REG_PC, A.UC_ARM_REG_XPSR)
+FP_REGS = tuple(getattr(A, f"UC_ARM_REG_S{i}") for i in range(16))
+
+
+class ElfImage:
+    """Segments and symbols of the image."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self.segments: list[tuple[int, bytes]] = []
+        self.symbols: dict[str, int] = {}
+        self.func_sizes: dict[int, tuple[str, int]] = {}
+        with open(path, "rb") as f:
+            elf = ELFFile(f)
+            for seg in elf.iter_segments():
+                if seg["p_type"] == "PT_LOAD" and seg["p_filesz"] > 0:
+                    self.segments.append((seg["p_paddr"], seg.data()[: seg["p_filesz"]]))
+            for sec in elf.iter_sections():
+                if isinstance(sec, SymbolTableSection):
+                    for sym in sec.iter_symbols():
+                        if sym.name and sym["st_info"]["type"] in ("STT_FUNC", "STT_OBJECT", "STT_NOTYPE"):
+                            addr = sym["st_value"]
+                            if sym["st_info"]["type"] == "STT_FUNC":
+                                addr &= ~1
+                                self.func_sizes[addr] = (sym.name, sym["st_size"])
+                            self.symbols.setdefault(sym.name, addr)
+
+    def sym(self, name: str) -> int:
+        try:
+            return self.symbols[name]
+        except KeyError:
+            raise KeyError(f"{self.path} has no symbol {name!r}: not an imubench image?") from None
+
+
+class Cpu:
+    def __init__(self, machine, target, image: ElfImage, lib):
+        self.m = machine
+        self.t = target
+        self.img = image
+        self.lib = lib
+        uc = Uc(UC_ARCH_ARM, UC_MODE_THUMB | UC_MODE_MCLASS)
+        uc.ctl_set_cpu_model(A.UC_CPU_ARM_CORTEX_M3 if target.cpu == "cortex-m3" else A.UC_CPU_ARM_CORTEX_M4)
+        self.uc = uc
+        self.exc_exit = False
+        self.wfi = False
+        self.fp_saved: list[list[int]] = []
+        self._hooks = []
+
+    # ---------------------------------------------------------------- memory
+    def map_memory(self, mmio_regions: list[tuple[int, int, object, object]]) -> None:
+        t, uc = self.t, self.uc
+        code_size = t.param_base - t.flash_base
+        uc.mem_map(t.flash_base, code_size, UC_PROT_READ | UC_PROT_EXEC)
+        uc.mem_map(t.ram_base, t.ram_size, UC_PROT_ALL)
+        for base, size, rd, wr in mmio_regions:
+            uc.mmio_map(base, size, rd, None, wr, None)
+        for addr, data in self.img.segments:
+            if t.flash_base <= addr < t.param_base or t.ram_base <= addr < t.ram_base + t.ram_size:
+                uc.mem_write(addr, data)
+            else:
+                raise ValueError(f"{self.img.path}: segment at 0x{addr:08X} outside the {t.name} memory map")
+        # the code as half-words for the instruction counter
+        raw = bytes(uc.mem_read(t.flash_base, code_size))
+        self.code = (ctypes.c_uint16 * (code_size // 2)).from_buffer_copy(raw)
+        self.code_bytes = raw
+
+    def install_counter(self, regions: bytearray) -> None:
+        self.region_map = (ctypes.c_uint8 * len(regions)).from_buffer(regions)
+        stop = ctypes.cast(uclib.uc_emu_stop, ctypes.c_void_p)
+        self.lib.simlib_counter_setup(stop, self.code, self.t.flash_base, len(self.code), self.region_map)
+        handle = uc_hook_h()
+        cb = ctypes.cast(self.lib.simlib_block_hook, ctypes.c_void_p)
+        err = uclib.uc_hook_add(self.uc._uch, ctypes.byref(handle), UC_HOOK_BLOCK, cb, None,
+                                ctypes.c_uint64(1), ctypes.c_uint64(0))
+        if err != 0:
+            raise RuntimeError(f"uc_hook_add(UC_HOOK_BLOCK) failed: {err}")
+        self.uc.hook_add(UC_HOOK_INTR, self._on_intr)
+
+    def hook_at(self, addr: int, fn) -> None:
+        """fn() when the instruction at addr is about to execute."""
+        self._hooks.append(self.uc.hook_add(UC_HOOK_CODE, lambda uc, a, s, d: fn(), None, addr, addr))
+
+    def wfi_addresses(self) -> list[int]:
+        """Half-words that encode WFI (0xBF30) in the code; a hook there only fires if one is
+        executed as an instruction."""
+        out = []
+        raw = self.code_bytes
+        for i in range(0, len(raw) - 1, 2):
+            if raw[i] == 0x30 and raw[i + 1] == 0xBF:
+                out.append(self.t.flash_base + i)
+        return out
+
+    def _on_intr(self, uc, intno, data) -> None:
+        if intno == EXCP_EXCEPTION_EXIT:
+            self.exc_exit = True
+        else:
+            self.m.cpu_fault(f"CPU exception {intno} at pc 0x{uc.reg_read(A.UC_ARM_REG_PC):08X}")
+        uc.emu_stop()
+
+    def on_wfi(self) -> None:
+        self.wfi = True
+        self.uc.emu_stop()
+
+    # ------------------------------------------------------------- registers
+    def reset(self) -> None:
+        uc = self.uc
+        vec = self.t.flash_base
+        sp, pc = struct.unpack("<II", bytes(uc.mem_read(vec, 8)))
+        for r in range(13):
+            uc.reg_write(getattr(A, f"UC_ARM_REG_R{r}"), 0)
+        uc.reg_write(A.UC_ARM_REG_PRIMASK, 0)
+        uc.reg_write(A.UC_ARM_REG_BASEPRI, 0)
+        uc.reg_write(A.UC_ARM_REG_CONTROL, 0)
+        uc.reg_write(A.UC_ARM_REG_IPSR, 0)
+        uc.reg_write(A.UC_ARM_REG_MSP, sp)
+        uc.reg_write(A.UC_ARM_REG_SP, sp)
+        uc.reg_write(A.UC_ARM_REG_LR, 0xFFFFFFFF)
+        uc.reg_write(A.UC_ARM_REG_PC, pc & ~1)
+        self.exc_exit = False
+        self.wfi = False
+        self.fp_saved = []
+
+    def pc(self) -> int:
+        return self.uc.reg_read(A.UC_ARM_REG_PC)
+
+    def primask(self) -> int:
+        return self.uc.reg_read(A.UC_ARM_REG_PRIMASK) & 1
+
+    def run(self) -> None:
+        """Run from the current PC until the block hook's limit, emu_stop or an error."""
+        self.uc.emu_start(self.pc() | 1, 0xFFFFFFFE)
+
+    # ------------------------------------------------------------ exceptions
+    def enter_exception(self, exc: int, vtor: int) -> None:
+        """Exception entry (ARMv7-M ARM B1.5.6 PushStack + ExceptionTaken)."""
+        uc = self.uc
+        vals = [uc.reg_read(r) for r in FRAME_REGS]
+        sp = uc.reg_read(A.UC_ARM_REG_SP)
+        xpsr = vals[7]
+        if sp & 4:                       # CCR.STKALIGN: 8-byte aligned frame, flag in xPSR[9]
+            sp -= 4
+            xpsr |= 1 << 9
+        sp -= 32
+        vals[7] = xpsr
+        uc.mem_write(sp, struct.pack("<8I", *[v & 0xFFFFFFFF for v in vals]))
+        if self.t.cpu == "cortex-m4":
+            self.fp_saved.append([uc.reg_read(r) for r in FP_REGS] + [uc.reg_read(A.UC_ARM_REG_FPSCR)])
+        uc.reg_write(A.UC_ARM_REG_SP, sp)
+        handler = struct.unpack("<I", bytes(uc.mem_read(vtor + 4 * exc, 4)))[0]
+        uc.reg_write(A.UC_ARM_REG_IPSR, exc)
+        uc.reg_write(A.UC_ARM_REG_LR, EXC_RETURN_THREAD_MSP)
+        uc.reg_write(A.UC_ARM_REG_PC, handler & ~1)
+
+    def exit_exception(self) -> None:
+        """Exception return through EXC_RETURN (B1.5.8 ExceptionReturn + PopStack)."""
+        uc = self.uc
+        self.exc_exit = False
+        sp = uc.reg_read(A.UC_ARM_REG_SP)
+        vals = struct.unpack("<8I", bytes(uc.mem_read(sp, 32)))
+        sp += 32
+        if vals[7] & (1 << 9):
+            sp += 4
+        for r, v in zip(FRAME_REGS[:7], vals[:7]):
+            uc.reg_write(r, v)
+        uc.reg_write(A.UC_ARM_REG_SP, sp)
+        uc.reg_write(A.UC_ARM_REG_XPSR, vals[7] & ~(1 << 9))
+        uc.reg_write(A.UC_ARM_REG_IPSR, vals[7] & 0x1FF)
+        uc.reg_write(A.UC_ARM_REG_PC, vals[6] & ~1)
+        if self.fp_saved:
+            fp = self.fp_saved.pop()
+            for r, v in zip(FP_REGS, fp[:16]):
+                uc.reg_write(r, v)
+            uc.reg_write(A.UC_ARM_REG_FPSCR, fp[16])
