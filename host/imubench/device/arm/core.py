@@ -32,6 +32,9 @@ try:  # the raw library handle of the binding (unicorn >= 2.1 layout)
 except ImportError:  # pragma: no cover - older layout
     from unicorn.unicorn import uc_hook_h, uclib  # type: ignore
 
+_MMIO_READ = ctypes.CFUNCTYPE(ctypes.c_uint64, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_uint, ctypes.c_void_p)
+_MMIO_WRITE = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_uint, ctypes.c_uint64, ctypes.c_void_p)
+
 EXC_RETURN_THREAD_MSP = 0xFFFFFFF9
 EXCP_EXCEPTION_EXIT = 8      # QEMU's EXCP_EXCEPTION_EXIT, reported through UC_HOOK_INTR
 FRAME_REGS = (A.UC_ARM_REG_R0, A.UC_ARM_REG_R1, A.UC_ARM_REG_R2, A.UC_ARM_REG_R3, A.UC_ARM_REG_R12,
@@ -62,6 +65,27 @@ class ElfImage:
                                 self.func_sizes[addr] = (sym.name, sym["st_size"])
                             self.symbols.setdefault(sym.name, addr)
 
+    def struct_members(self, cu_suffix: str, struct: str) -> dict[str, int]:
+        """Byte offsets of a struct's members, from the image's DWARF (the compilation unit
+        whose name ends with cu_suffix)."""
+        out: dict[str, int] = {}
+        with open(self.path, "rb") as f:
+            dw = ELFFile(f).get_dwarf_info()
+            for cu in dw.iter_CUs():
+                top = cu.get_top_DIE()
+                name = top.attributes.get("DW_AT_name")
+                if name is None or not name.value.decode().endswith(cu_suffix):
+                    continue
+                for die in top.iter_children():
+                    n = die.attributes.get("DW_AT_name")
+                    if die.tag == "DW_TAG_structure_type" and n is not None and n.value.decode() == struct:
+                        for mem in die.iter_children():
+                            if mem.tag == "DW_TAG_member" and "DW_AT_data_member_location" in mem.attributes:
+                                out[mem.attributes["DW_AT_name"].value.decode()] = \
+                                    mem.attributes["DW_AT_data_member_location"].value
+                        return out
+        raise KeyError(f"{self.path}: no struct {struct} in {cu_suffix} (built without -g?)")
+
     def sym(self, name: str) -> int:
         try:
             return self.symbols[name]
@@ -89,8 +113,19 @@ class Cpu:
         code_size = t.param_base - t.flash_base
         uc.mem_map(t.flash_base, code_size, UC_PROT_READ | UC_PROT_EXEC)
         uc.mem_map(t.ram_base, t.ram_size, UC_PROT_ALL)
+        # Raw ctypes callbacks (not Uc.mmio_map's wrappers): an MMIO access is the hot path
+        # of the emulation (~200 per sample), every Python frame counts. The callbacks get
+        # (offset, size[, value]); an exception in one is a bug in a peripheral model: it is
+        # logged and the access reads 0.
+        self._mmio_refs = []
         for base, size, rd, wr in mmio_regions:
-            uc.mmio_map(base, size, rd, None, wr, None)
+            rcb = _MMIO_READ(lambda _uc, off, sz, _ud, rd=rd: self._guard_rd(rd, off, sz))
+            wcb = _MMIO_WRITE(lambda _uc, off, sz, val, _ud, wr=wr: self._guard_wr(wr, off, sz, val))
+            self._mmio_refs += [rcb, wcb]
+            err = uclib.uc_mmio_map(uc._uch, base, size, ctypes.cast(rcb, ctypes.c_void_p), None,
+                                    ctypes.cast(wcb, ctypes.c_void_p), None)
+            if err != 0:
+                raise RuntimeError(f"uc_mmio_map(0x{base:08X}) failed: {err}")
         for addr, data in self.img.segments:
             if t.flash_base <= addr < t.param_base or t.ram_base <= addr < t.ram_base + t.ram_size:
                 uc.mem_write(addr, data)
@@ -100,6 +135,19 @@ class Cpu:
         raw = bytes(uc.mem_read(t.flash_base, code_size))
         self.code = (ctypes.c_uint16 * (code_size // 2)).from_buffer_copy(raw)
         self.code_bytes = raw
+
+    def _guard_rd(self, rd, off, size):
+        try:
+            return rd(off, size)
+        except Exception as e:  # noqa: BLE001 - keep the CPU running, report the model bug
+            self.m.model_error(e)
+            return 0
+
+    def _guard_wr(self, wr, off, size, value):
+        try:
+            wr(off, size, value)
+        except Exception as e:  # noqa: BLE001
+            self.m.model_error(e)
 
     def install_counter(self, regions: bytearray) -> None:
         self.region_map = (ctypes.c_uint8 * len(regions)).from_buffer(regions)

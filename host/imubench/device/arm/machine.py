@@ -49,6 +49,8 @@ from .systick import SysTick
 from .targets import Target
 from .uid import UniqueId
 
+import os
+DEBUG_IDLE = bool(os.environ.get('IMUBENCH_ARM_DEBUG_IDLE'))
 REGION_NAMES = ("other", "core", "drivers", "board", "lib")
 INF = float("inf")
 MAX_LAG_WALL_S = 0.2
@@ -147,53 +149,66 @@ class Machine:
         self._map(map_path)
         self._sym = {n: self.img.sym(n) for n in ("g_ms", "g_tick_period_us", "g_tick_next_us",
                                                   "g_systick_load", "g_cycles_per_us", "_sdata", "_ebss")}
+        tick_syms = [self._sym[n] for n in ("g_ms", "g_tick_period_us", "g_tick_next_us", "g_systick_load",
+                                             "g_cycles_per_us")]
+        self._tick_lo, self._tick_len = min(tick_syms), max(tick_syms) + 4 - min(tick_syms)
         self._ram_lo = self._sym["_sdata"]
         self._ram_len = self._sym["_ebss"] - self._sym["_sdata"]
+        # The core's time bookkeeping (uptime, last time seen) changes on every pass of the
+        # main loop, as a function of time only: left out of the idle comparison.
+        members = self.img.struct_members("core/core.c", "ib_core")
+        core = self.img.sym("g_core")
+        self._ram_excl = [(core + members[k] - self._ram_lo, 4) for k in ("uptime_ms", "uptime_us_rem",
+                                                                           "last_time_us")]
+        self._stream_state_addr = core + members["stream_state"]
         self.power_on()
 
     # ------------------------------------------------------------------ wiring
     def _map(self, map_path: str | None) -> None:
         t = self.target
         regions = []
+        self._gates: dict[str, bool] = {}
 
         def periph(name, obj, timed):
             base = t.periph[name]
+            gate = self._gates
+            gate[name] = self.rcc.clock_on(name)
 
             if timed:
-                def rd(uc, off, size, _d, obj=obj, name=name):
+                def rd(off, size, obj=obj, name=name):
                     if self.dead:
                         return 0
-                    if not self.rcc.clock_on(name):
+                    if not gate[name]:
                         return self._clock_off(name, off, size, None)
-                    now = self.now()
+                    now = self.clock.now()
                     if now >= self.next_ev:
                         self._process(now)
                     return obj.read(off, size, now)
 
-                def wr(uc, off, size, value, _d, obj=obj, name=name):
+                def wr(off, size, value, obj=obj, name=name):
                     if self.dead:
                         return
                     self.effects += 1
-                    if not self.rcc.clock_on(name):
+                    if not gate[name]:
                         self._clock_off(name, off, size, value)
                         return
-                    now = self.now()
+                    now = self.clock.now()
                     if now >= self.next_ev:
                         self._process(now)
                     obj.write(off, size, value, now)
             else:
-                def rd(uc, off, size, _d, obj=obj, name=name):
+                def rd(off, size, obj=obj, name=name):
                     if self.dead:
                         return 0
-                    if not self.rcc.clock_on(name):
+                    if not gate[name]:
                         return self._clock_off(name, off, size, None)
                     return obj.read(off, size)
 
-                def wr(uc, off, size, value, _d, obj=obj, name=name):
+                def wr(off, size, value, obj=obj, name=name):
                     if self.dead:
                         return
                     self.effects += 1
-                    if not self.rcc.clock_on(name):
+                    if not gate[name]:
                         self._clock_off(name, off, size, value)
                         return
                     obj.write(off, size, value)
@@ -214,7 +229,7 @@ class Machine:
         periph("USART1", self.usart, True)
         periph("DMA", self.dma, True)
 
-        def scs_rd(uc, off, size, _d):
+        def scs_rd(off, size):
             if self.dead:
                 return 0
             now = self.now()
@@ -224,7 +239,7 @@ class Machine:
                 return self.systick.read(off - 0x10, now)
             return self.nvic.read(off, size)
 
-        def scs_wr(uc, off, size, value, _d):
+        def scs_wr(off, size, value):
             if self.dead:
                 return
             self.effects += 1
@@ -235,20 +250,20 @@ class Machine:
                 self.nvic.write(off, size, value)
         regions.append((0xE000E000, 0x1000, scs_rd, scs_wr))
 
-        def fl_rd(uc, off, size, _d):
+        def fl_rd(off, size):
             return self.flash.read_mem(off, size)
 
-        def fl_wr(uc, off, size, value, _d):
+        def fl_wr(off, size, value):
             if self.dead:
                 return
             self.effects += 1
             self.flash.program(off, size, value)
         regions.append((t.param_base, t.param_size, fl_rd, fl_wr))
 
-        def uid_rd(uc, off, size, _d):
+        def uid_rd(off, size):
             return self.uid.read(off, size)
 
-        def uid_wr(uc, off, size, value, _d):
+        def uid_wr(off, size, value):
             self.unmodelled("system memory", off, size, value)
         regions.append((t.sysmem_page, 0x400, uid_rd, uid_wr))
 
@@ -295,18 +310,30 @@ class Machine:
         self._recompute_next()
         if self.running:
             self.lib.simlib_set_limit(self.clock.limit_for(min(self.next_ev, self.t_stop)))
+            if self.nvic.pending:
+                self.exception_maybe_ready()
 
     def _recompute_next(self) -> None:
         self.next_ev = min(self.systick.next_event(), self.dma.next_event(), self.usart.next_event(),
-                           self.spi.next_event(), self.ext_deadline)
+                           self.ext_deadline)
 
     ext_deadline = INF   # control-channel / physics deadline (device s)
 
+    MASKED_POLL = 16   # instructions between checks while an exception waits for PRIMASK
+
     def exception_maybe_ready(self) -> None:
-        if self.running and self.nvic.next_exception(self.cpu.primask()) is not None:
+        if not self.running:
+            return
+        if self.nvic.next_exception(self.cpu.primask()) is not None:
             self.cpu.uc.emu_stop()
+        elif self.nvic.next_exception(0) is not None:
+            # masked by PRIMASK: clearing it is an instruction, not an access we see, so
+            # look again every few instructions until the exception has been taken
+            self.lib.simlib_set_limit(self.clock.instructions() + self.MASKED_POLL)
 
     def clock_changed(self) -> None:
+        for name in self._gates:
+            self._gates[name] = self.rcc.clock_on(name)
         f = self.rcc.sysclk_hz()
         if f != self.clock.f_hz:
             now = self.now()
@@ -320,6 +347,8 @@ class Machine:
             self._process(now)
         if self.running:
             self.lib.simlib_set_limit(self.clock.limit_for(min(self.next_ev, self.t_stop)))
+            if self.nvic.pending:
+                self.exception_maybe_ready()
 
     def busy_wait_until(self, t: float) -> None:
         self.clock.skip(t - self.now(), "busy")
@@ -335,6 +364,12 @@ class Machine:
         self.dead = True
         if self.running:
             self.cpu.uc.emu_stop()
+
+    def model_error(self, e: Exception) -> None:
+        import traceback
+        self.faults += 1
+        self.log("peripheral model error (a bug in the emulator, not the image):\n" + "".join(
+            traceback.format_exception(type(e), e, e.__traceback__)))
 
     def cpu_fault(self, msg: str) -> None:
         self.faults += 1
@@ -369,15 +404,19 @@ class Machine:
     def _tick_due(self) -> float:
         """Device time at which the image's main loop sees its sample tick due (inf: no
         tick; <= now: due)."""
-        uc = self.cpu.uc
+        lo, raw = self._tick_lo, self.cpu.uc.mem_read(self._tick_lo, self._tick_len)
         s = self._sym
-        period = int.from_bytes(uc.mem_read(s["g_tick_period_us"], 4), "little")
+
+        def word(name):
+            o = s[name] - lo
+            return int.from_bytes(raw[o:o + 4], "little")
+        period = word("g_tick_period_us")
         if period == 0:
             return INF
-        nxt = int.from_bytes(uc.mem_read(s["g_tick_next_us"], 4), "little")
-        ms = int.from_bytes(uc.mem_read(s["g_ms"], 4), "little")
-        load = int.from_bytes(uc.mem_read(s["g_systick_load"], 4), "little")
-        cpu_us = int.from_bytes(uc.mem_read(s["g_cycles_per_us"], 4), "little") or 1
+        nxt = word("g_tick_next_us")
+        ms = word("g_ms")
+        load = word("g_systick_load")
+        cpu_us = word("g_cycles_per_us") or 1
         now = self.now()
         val = self.systick.value(now)
         if 15 in self.nvic.pending:
@@ -390,9 +429,22 @@ class Machine:
 
     def _on_main_loop(self) -> None:
         uc = self.cpu.uc
-        ram = bytes(uc.mem_read(self._ram_lo, self._ram_len))
+        ram = uc.mem_read(self._ram_lo, self._ram_len)
+        for o, n in self._ram_excl:
+            ram[o:o + n] = b"\0\0\0\0"
         sig = (self.effects, self.exceptions)
         idle = ram == self._prev_ram and sig == self._prev_sig
+        if DEBUG_IDLE and self._prev_ram is not None:
+            import collections
+            c = self.__dict__.setdefault("_dbg", collections.Counter())
+            c["iter"] += 1
+            if sig != self._prev_sig:
+                c["sig"] += 1
+            for i in range(len(ram)):
+                if ram[i] != self._prev_ram[i]:
+                    c[hex(self._ram_lo + i)] += 1
+            if c["iter"] % 2000 == 0:
+                self.log(f"idle debug {c.most_common(12)}")
         self._prev_ram, self._prev_sig = ram, sig
         if not idle:
             return
@@ -501,7 +553,10 @@ class Machine:
                     self.clock.skip(target - now, "idle")
                     continue
             self.t_stop = t_stop
-            self.lib.simlib_set_limit(self.clock.limit_for(min(self.next_ev, t_stop)))
+            limit = self.clock.limit_for(min(self.next_ev, t_stop))
+            if self.nvic.pending and self.nvic.next_exception(0) is not None:   # waiting for PRIMASK
+                limit = min(limit, self.clock.instructions() + self.MASKED_POLL)
+            self.lib.simlib_set_limit(limit)
             self.running = True
             try:
                 cpu.run()
@@ -515,6 +570,13 @@ class Machine:
             if cpu.exc_exit:
                 cpu.exit_exception()
                 self.nvic.deactivate()
+            if DEBUG_IDLE:
+                self._dbg_runs = getattr(self, "_dbg_runs", 0) + 1
+                w = time.monotonic()
+                if w - getattr(self, "_dbg_wall", 0.0) > 1.0:
+                    self._dbg_wall = w
+                    self.log(f"runs {self._dbg_runs} instr {self.clock.instructions()} skipped {self.clock.skipped} "
+                             f"jumps {self.idle_jumps} rx {self.usart.rx_bytes} ore {self.usart.rx_overruns} rxnext {self.usart.rx_next} next_ev {self.next_ev:.6f} t_stop {t_stop:.6f} exc {self.exceptions}")
 
     def instructions_by_region(self) -> dict[str, int]:
         out = (c_uint64 * 8)()
@@ -530,7 +592,8 @@ class Machine:
 
     def publish(self) -> None:
         """What the control channel's status reports about the firmware side."""
-        self.lib.simlib_set_state(1 if self.streaming() else 0, self.tick_hz(), 0, 0, self.boots,
+        state = self.cpu.uc.mem_read(self._stream_state_addr, 1)[0]
+        self.lib.simlib_set_state(state, self.tick_hz(), 0, 0, self.boots,
                                   self.power_cuts, self.reboots)
         self.lib.simlib_set_target(self.target.name.encode(), self.clock.instructions(), self.faults,
                                    self.unmodelled_count, self.spi.mismatches, self.clock.skipped["idle"],
@@ -580,10 +643,16 @@ class Server:
                 target = now + 0.05
                 if lib.simlib_link_blocked() and lib.simlib_link_staged() > 32768:
                     target = now
+                    if DEBUG_IDLE:
+                        self.m.log(f"back-pressure: staged {lib.simlib_link_staged()}")
             else:
                 idle = now + (wall - last_wall)
                 target = m.ext_deadline if m.ext_deadline != INF and m.ext_deadline > idle else idle
             last_wall = wall
+            if DEBUG_IDLE and wall - getattr(self, "_dbgw", 0) > 1.0:
+                self._dbgw = wall
+                m.log(f"serve: now {now:.6f} target {target:.6f} streaming {m.streaming()} speed {self.speed} "
+                      f"wfi {m.cpu.wfi} pc {m.cpu.pc():08x} dead {m.dead} reset {m.reset_req} next_ev {m.next_ev}")
             if target > now:
                 m.run_until(target, 0.02)
             now = m.now()
@@ -639,6 +708,9 @@ class Server:
             elif fd == cfd.value:
                 if ev & (select.POLLIN | select.POLLHUP | select.POLLERR):
                     lib.simlib_link_receive()
+                    if DEBUG_IDLE:
+                        self.m.log(f"link readable: rx pending {lib.simlib_link_rx_pending()} "
+                                   f"usart rx_next {self.m.usart.rx_next} cr1 {self.m.usart.cr1:x}")
                 if ev & select.POLLOUT:
                     lib.simlib_link_flush()
             elif fd in slot:

@@ -63,8 +63,6 @@ class Spi:
                 self.rxne = True
             self.frame_rx = None
 
-    def next_event(self) -> float:
-        return self.busy_until if self.frame_rx is not None else float("inf")
 
     # ------------------------------------------------------ chip selects
     def select(self, cs: int | None, t: float) -> None:
@@ -164,7 +162,8 @@ class Spi:
             self.frame_rx = rx
             self.bytes += 1
             self.bus_time += dt
-            self.m.events_changed()
+            # not an event: the frame's end is seen when SR or DR is read (nothing else
+            # looks at it; the images use no SPI interrupt)
         elif off == 0x10:
             self.crcpr = value & 0xFFFF
         elif off == 0x8:

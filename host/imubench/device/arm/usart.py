@@ -148,10 +148,8 @@ class Usart:
         self.m.events_changed()
 
     def next_event(self) -> float:
-        t = self.rx_next[0] if self.rx_next is not None else float("inf")
-        if self.out:
-            t = min(t, self.out[0][0])
-        return t
+        """The next received byte (bytes leaving are handed over lazily, not as events)."""
+        return self.rx_next[0] if self.rx_next is not None else float("inf")
 
     def _irq_check(self) -> None:
         if (self.cr1 & CR1_RXNEIE and (self.rxne or self.ore)):
