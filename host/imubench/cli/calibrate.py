@@ -74,7 +74,7 @@ def run(a) -> int:
                               if (directory / "session.json").exists() else "nothing was captured")
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random")
+        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random", target=a.target)
     with bench if a.sim else nullcontext() as vb:
         if vb is not None:
             url = vb.port_url

@@ -184,7 +184,7 @@ class Cpu:
 
     def on_wfi(self) -> None:
         self.wfi = True
-        self.uc.emu_stop()
+        self.m.stop_soon()
 
     # ------------------------------------------------------------- registers
     def reset(self) -> None:

@@ -319,13 +319,19 @@ class Machine:
 
     ext_deadline = INF   # control-channel / physics deadline (device s)
 
+    def stop_soon(self) -> None:
+        """Stop the CPU at the next block boundary. Not uc.emu_stop(): called from an MMIO
+        callback that makes the access be executed again on resume (a register write would
+        happen twice)."""
+        self.lib.simlib_set_limit(0)
+
     MASKED_POLL = 16   # instructions between checks while an exception waits for PRIMASK
 
     def exception_maybe_ready(self) -> None:
         if not self.running:
             return
         if self.nvic.next_exception(self.cpu.primask()) is not None:
-            self.cpu.uc.emu_stop()
+            self.stop_soon()
         elif self.nvic.next_exception(0) is not None:
             # masked by PRIMASK: clearing it is an instruction, not an access we see, so
             # look again every few instructions until the exception has been taken
@@ -363,7 +369,7 @@ class Machine:
             self.reset_req = (kind, why)
         self.dead = True
         if self.running:
-            self.cpu.uc.emu_stop()
+            self.stop_soon()
 
     def model_error(self, e: Exception) -> None:
         import traceback
@@ -454,7 +460,7 @@ class Machine:
             self.clock.skip(target - now, "idle")
             self.idle_jumps += 1
             self._after_skip()
-            uc.emu_stop()
+            self.stop_soon()
 
     def _on_delay(self) -> None:
         us = self.cpu.uc.reg_read(__import__("unicorn").arm_const.UC_ARM_REG_R1)
@@ -475,7 +481,7 @@ class Machine:
         if target > now:
             self.clock.skip(target - now, "busy")
             self._after_skip()
-            self.cpu.uc.emu_stop()
+            self.stop_soon()
 
     # ------------------------------------------------------------------- reset
     def power_on(self) -> None:
