@@ -183,6 +183,9 @@ typedef struct sim {
     char target[16];
     uint64_t arm_instructions, arm_faults, arm_unmodelled, arm_spi_mismatch;
     double arm_idle_s, arm_sysclk_hz;
+    uint64_t arm_regions[5];      /* instructions by code range: other, core, drivers, board, lib */
+    uint64_t arm_idle_instructions, arm_spi_bytes, arm_spi_transactions;
+    double arm_busy_s, arm_stall_s, arm_spi_bus_s, arm_cpi;
 
     /* control */
     int control_listen;

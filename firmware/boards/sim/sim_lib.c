@@ -147,6 +147,20 @@ void simlib_set_target(const char *name, uint64_t instructions, uint64_t faults,
     s->arm_sysclk_hz = sysclk_hz;
 }
 
+void simlib_set_arm_detail(const uint64_t regions[5], uint64_t idle_instructions, double busy_s, double stall_s,
+                           double spi_bus_s, uint64_t spi_bytes, uint64_t spi_transactions, double cpi)
+{
+    sim_t *s = &g_sim;
+    memcpy(s->arm_regions, regions, sizeof s->arm_regions);
+    s->arm_idle_instructions = idle_instructions;
+    s->arm_busy_s = busy_s;
+    s->arm_stall_s = stall_s;
+    s->arm_spi_bus_s = spi_bus_s;
+    s->arm_spi_bytes = spi_bytes;
+    s->arm_spi_transactions = spi_transactions;
+    s->arm_cpi = cpi;
+}
+
 /* Next device time (us) the world or a control-channel wait needs the device to reach. */
 uint64_t simlib_next_event(void)
 {

@@ -42,6 +42,32 @@ FRAME_REGS = (A.UC_ARM_REG_R0, A.UC_ARM_REG_R1, A.UC_ARM_REG_R2, A.UC_ARM_REG_R3
 FP_REGS = tuple(getattr(A, f"UC_ARM_REG_S{i}") for i in range(16))
 
 
+class RegBatch:
+    """Read/write a fixed list of 32-bit registers in one libunicorn call (the binding's
+    per-register path costs several Python frames each; exception entry/return needs ~20)."""
+
+    def __init__(self, uc, regs):
+        self.uch = uc._uch
+        self.n = len(regs)
+        self.ids = (ctypes.c_int * self.n)(*regs)
+        self.vals = (ctypes.c_uint64 * self.n)()
+        base = ctypes.addressof(self.vals)
+        self.ptrs = (ctypes.c_void_p * self.n)(*[base + 8 * i for i in range(self.n)])
+
+    def read(self) -> list[int]:
+        err = uclib.uc_reg_read_batch(self.uch, self.ids, self.ptrs, self.n)
+        if err:
+            raise RuntimeError(f"uc_reg_read_batch failed: {err}")
+        return [v & 0xFFFFFFFF for v in self.vals]
+
+    def write(self, values) -> None:
+        for i, v in enumerate(values):
+            self.vals[i] = v & 0xFFFFFFFF
+        err = uclib.uc_reg_write_batch(self.uch, self.ids, self.ptrs, self.n)
+        if err:
+            raise RuntimeError(f"uc_reg_write_batch failed: {err}")
+
+
 class ElfImage:
     """Segments and symbols of the image."""
 
@@ -104,8 +130,16 @@ class Cpu:
         self.uc = uc
         self.exc_exit = False
         self.wfi = False
-        self.fp_saved: list[list[int]] = []
+        self.fp_saved: list[list[int] | None] = []
         self._hooks = []
+        # exception entry reads the frame + SP + CONTROL, writes SP, IPSR, LR, PC
+        self._rd_entry = RegBatch(uc, list(FRAME_REGS) + [A.UC_ARM_REG_SP, A.UC_ARM_REG_CONTROL])
+        self._wr_entry = RegBatch(uc, [A.UC_ARM_REG_SP, A.UC_ARM_REG_IPSR, A.UC_ARM_REG_LR, A.UC_ARM_REG_PC])
+        self._rd_sp = RegBatch(uc, [A.UC_ARM_REG_SP])
+        self._wr_exit = RegBatch(uc, list(FRAME_REGS[:7]) + [A.UC_ARM_REG_SP, A.UC_ARM_REG_XPSR, A.UC_ARM_REG_IPSR,
+                                                             A.UC_ARM_REG_PC])
+        self._fp = RegBatch(uc, list(FP_REGS) + [A.UC_ARM_REG_FPSCR]) if target.cpu == "cortex-m4" else None
+        self._ctrl = RegBatch(uc, [A.UC_ARM_REG_CONTROL])
 
     # ---------------------------------------------------------------- memory
     def map_memory(self, mmio_regions: list[tuple[int, int, object, object]]) -> None:
@@ -219,40 +253,38 @@ class Cpu:
     def enter_exception(self, exc: int, vtor: int) -> None:
         """Exception entry (ARMv7-M ARM B1.5.6 PushStack + ExceptionTaken)."""
         uc = self.uc
-        vals = [uc.reg_read(r) for r in FRAME_REGS]
-        sp = uc.reg_read(A.UC_ARM_REG_SP)
-        xpsr = vals[7]
+        vals = self._rd_entry.read()
+        sp, control = vals[8], vals[9]
+        frame = vals[:8]
+        xpsr = frame[7]
         if sp & 4:                       # CCR.STKALIGN: 8-byte aligned frame, flag in xPSR[9]
             sp -= 4
             xpsr |= 1 << 9
         sp -= 32
-        vals[7] = xpsr
-        uc.mem_write(sp, struct.pack("<8I", *[v & 0xFFFFFFFF for v in vals]))
-        if self.t.cpu == "cortex-m4":
-            self.fp_saved.append([uc.reg_read(r) for r in FP_REGS] + [uc.reg_read(A.UC_ARM_REG_FPSCR)])
-        uc.reg_write(A.UC_ARM_REG_SP, sp)
+        frame[7] = xpsr
+        uc.mem_write(sp, struct.pack("<8I", *frame))
+        if self._fp is not None and control & 4:
+            # CONTROL.FPCA: the interrupted code has an active FP context. Hardware would
+            # stack s0-s15/FPSCR in an extended frame (EXC_RETURN 0xFFFFFFE9); we keep them
+            # aside and restore them on return, which no handler can tell apart.
+            self.fp_saved.append(self._fp.read() + [control])
+            self._ctrl.write([control & ~4])
+        else:
+            self.fp_saved.append(None)
         handler = struct.unpack("<I", bytes(uc.mem_read(vtor + 4 * exc, 4)))[0]
-        uc.reg_write(A.UC_ARM_REG_IPSR, exc)
-        uc.reg_write(A.UC_ARM_REG_LR, EXC_RETURN_THREAD_MSP)
-        uc.reg_write(A.UC_ARM_REG_PC, handler & ~1)
+        self._wr_entry.write([sp, exc, EXC_RETURN_THREAD_MSP, handler & ~1])
 
     def exit_exception(self) -> None:
         """Exception return through EXC_RETURN (B1.5.8 ExceptionReturn + PopStack)."""
         uc = self.uc
         self.exc_exit = False
-        sp = uc.reg_read(A.UC_ARM_REG_SP)
+        sp = self._rd_sp.read()[0]
         vals = struct.unpack("<8I", bytes(uc.mem_read(sp, 32)))
         sp += 32
         if vals[7] & (1 << 9):
             sp += 4
-        for r, v in zip(FRAME_REGS[:7], vals[:7]):
-            uc.reg_write(r, v)
-        uc.reg_write(A.UC_ARM_REG_SP, sp)
-        uc.reg_write(A.UC_ARM_REG_XPSR, vals[7] & ~(1 << 9))
-        uc.reg_write(A.UC_ARM_REG_IPSR, vals[7] & 0x1FF)
-        uc.reg_write(A.UC_ARM_REG_PC, vals[6] & ~1)
-        if self.fp_saved:
-            fp = self.fp_saved.pop()
-            for r, v in zip(FP_REGS, fp[:16]):
-                uc.reg_write(r, v)
-            uc.reg_write(A.UC_ARM_REG_FPSCR, fp[16])
+        self._wr_exit.write(list(vals[:7]) + [sp, vals[7] & ~(1 << 9), vals[7] & 0x1FF, vals[6] & ~1])
+        fp = self.fp_saved.pop() if self.fp_saved else None
+        if fp is not None:
+            self._fp.write(fp[:17])
+            self._ctrl.write([fp[17]])

@@ -133,6 +133,8 @@ class Machine:
         self.power_cuts = 0
         self.exceptions = 0
         self.idle_jumps = 0
+        self.idle_instructions = 0  # instructions of main-loop passes that did nothing
+        self._prev_ic = 0
         self.effects = 0            # peripheral writes and side-effect reads (idle detection)
 
         # run state
@@ -440,6 +442,10 @@ class Machine:
             ram[o:o + n] = b"\0\0\0\0"
         sig = (self.effects, self.exceptions)
         idle = ram == self._prev_ram and sig == self._prev_sig
+        ic = self.clock.instructions()
+        if idle:
+            self.idle_instructions += ic - self._prev_ic   # that pass did nothing
+        self._prev_ic = ic
         if DEBUG_IDLE and self._prev_ram is not None:
             import collections
             c = self.__dict__.setdefault("_dbg", collections.Counter())
@@ -604,6 +610,11 @@ class Machine:
         self.lib.simlib_set_target(self.target.name.encode(), self.clock.instructions(), self.faults,
                                    self.unmodelled_count, self.spi.mismatches, self.clock.skipped["idle"],
                                    self.rcc.sysclk_hz())
+        regions = (c_uint64 * 8)()
+        self.lib.simlib_region_counts(regions)
+        sk = self.clock.skipped
+        self.lib.simlib_set_arm_detail(regions, self.idle_instructions, sk["busy"], sk["stall"], self.spi.bus_time,
+                                       self.spi.bytes, self.spi.transactions, self.clock.cpi)
 
 
 class Server:
@@ -619,6 +630,7 @@ class Server:
         self.anchor_dev = 0.0
         self.slips = 0
         self.quit = False
+        self._bp_since: float | None = None
 
     def _pace_target(self, wall: float) -> float:
         return self.anchor_dev + (wall - self.anchor_wall) * (self.speed if self.speed > 0 else 1.0)
@@ -646,9 +658,16 @@ class Server:
                     target = now
                     self.slips += 1
             elif m.streaming():
+                # as fast as it goes; when the host does not read, wait up to 50 ms for it
+                # (as imubench-sim does), then run on
                 target = now + 0.05
                 if lib.simlib_link_blocked() and lib.simlib_link_staged() > 32768:
-                    target = now
+                    if self._bp_since is None:
+                        self._bp_since = wall
+                    if wall - self._bp_since < 0.05:
+                        target = now
+                else:
+                    self._bp_since = None
                     if DEBUG_IDLE:
                         self.m.log(f"back-pressure: staged {lib.simlib_link_staged()}")
             else:
@@ -658,7 +677,7 @@ class Server:
             if DEBUG_IDLE and wall - getattr(self, "_dbgw", 0) > 1.0:
                 self._dbgw = wall
                 m.log(f"serve: now {now:.6f} target {target:.6f} streaming {m.streaming()} speed {self.speed} "
-                      f"wfi {m.cpu.wfi} pc {m.cpu.pc():08x} dead {m.dead} reset {m.reset_req} next_ev {m.next_ev}")
+                      f"wfi {m.cpu.wfi} pc {m.cpu.pc():08x} staged {lib.simlib_link_staged()} blocked {lib.simlib_link_blocked()} usart_out {len(m.usart.out)} tx {m.usart.tx_bytes} dma {m.dma.transfers} next_ev {m.next_ev}")
             if target > now:
                 m.run_until(target, 0.02)
             now = m.now()

@@ -38,6 +38,8 @@ _SIGNATURES = {
     "simlib_set_state": (None, [c_int, c_uint32, c_uint64, c_uint64, c_uint32, c_uint32, c_uint32]),
     "simlib_set_target": (None, [c_char_p, c_uint64, c_uint64, c_uint64, c_uint64, c_double, c_double]),
     "simlib_take_reset": (c_int, []),
+    "simlib_set_arm_detail": (None, [POINTER(c_uint64), c_uint64, c_double, c_double, c_double, c_uint64, c_uint64,
+                                     c_double]),
     "simlib_spi_peek": (c_int, [c_int, c_char_p, POINTER(c_uint8), c_size_t]),
     "simlib_spi_commit": (c_int, [c_int, c_char_p, POINTER(c_uint8), c_size_t]),
     "simlib_power_cycle_models": (None, []),
