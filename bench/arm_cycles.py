@@ -39,8 +39,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "host"))
 
-from imubench.device.link import Device  # noqa: E402
-from imubench.device.sim import VirtualBench  # noqa: E402
+from imubench.device.link import Device
+from imubench.device.sim import VirtualBench
 
 CONFIGS = [(4000, False), (1000, False), (1000, True), (4000, True)]
 CLOCK_HZ = {"f103": 72e6, "f4": 168e6}

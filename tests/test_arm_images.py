@@ -24,6 +24,7 @@ from imubench.wire.protocol_gen import (
     ParamSource,
     ParamsWhich,
     SampleStatus,
+    SaveParams,
     Sensor,
 )
 
@@ -192,7 +193,7 @@ def test_power_cut_at_every_flash_operation_of_a_save(target):
                 d.set_params(new)
                 vb.power_cut(after_flash_ops=k)
                 with pytest.raises((LinkTimeout, LinkError, DeviceError)):
-                    d.save_params()
+                    d._req(SaveParams(), timeout=0.6)      # save_params() would wait 3 s for it
             with _connect(vb, timeout=0.5, retries=20) as d:     # bytes sent while it boots are lost
                 info = d.info()
                 active = _pack(d.get_params(ParamsWhich.ACTIVE).params)

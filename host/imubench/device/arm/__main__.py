@@ -12,6 +12,7 @@ It exits on SIGTERM/SIGINT/SIGHUP, on the control command "quit" and when its pa
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import os
 import signal
@@ -87,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"imubench-arm: {e}", file=sys.stderr)
         return 2
     server = Server(machine, lib, a.speed)
-    uidb = (__import__("ctypes").c_uint8 * 12)()
+    uidb = (ctypes.c_uint8 * 12)()
     lib.simlib_uid(uidb)
     port = lib.simlib_tcp_port()
     ctl = lib.simlib_control_port()

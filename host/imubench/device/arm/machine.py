@@ -35,6 +35,7 @@ import time
 from ctypes import byref, c_int, c_uint8, c_uint64
 
 from unicorn import UcError
+from unicorn.arm_const import UC_ARM_REG_PC, UC_ARM_REG_R1
 
 from . import simlib
 from .clock import Clock
@@ -48,9 +49,8 @@ from .spi import Spi
 from .systick import SysTick
 from .targets import Target
 from .uid import UniqueId
+from .usart import Usart
 
-import os
-DEBUG_IDLE = bool(os.environ.get('IMUBENCH_ARM_DEBUG_IDLE'))
 REGION_NAMES = ("other", "core", "drivers", "board", "lib")
 INF = float("inf")
 MAX_LAG_WALL_S = 0.2
@@ -113,7 +113,6 @@ class Machine:
         else:
             self.gpio = {"GPIOA": GpioF4(self, "GPIOA"), "GPIOB": GpioF4(self, "GPIOB")}
             self.afio = None
-        from .usart import Usart
         self.spi = Spi(self, lib)
         self.usart = Usart(self, lib, target.irq_usart1)
         usart_dr = target.periph["USART1"] + 4
@@ -446,17 +445,6 @@ class Machine:
         if idle:
             self.idle_instructions += ic - self._prev_ic   # that pass did nothing
         self._prev_ic = ic
-        if DEBUG_IDLE and self._prev_ram is not None:
-            import collections
-            c = self.__dict__.setdefault("_dbg", collections.Counter())
-            c["iter"] += 1
-            if sig != self._prev_sig:
-                c["sig"] += 1
-            for i in range(len(ram)):
-                if ram[i] != self._prev_ram[i]:
-                    c[hex(self._ram_lo + i)] += 1
-            if c["iter"] % 2000 == 0:
-                self.log(f"idle debug {c.most_common(12)}")
         self._prev_ram, self._prev_sig = ram, sig
         if not idle:
             return
@@ -469,7 +457,7 @@ class Machine:
             self.stop_soon()
 
     def _on_delay(self) -> None:
-        us = self.cpu.uc.reg_read(__import__("unicorn").arm_const.UC_ARM_REG_R1)
+        us = self.cpu.uc.reg_read(UC_ARM_REG_R1)
         self.delay = [us, None]
 
     def _on_time_read(self) -> None:
@@ -534,8 +522,10 @@ class Machine:
             self._reset_all()
 
     # --------------------------------------------------------------------- run
-    def run_until(self, t_stop: float, wall_budget_s: float = 0.01) -> None:
-        """Run the board until device time t_stop (or the wall budget is used up)."""
+    def run_until(self, t_stop: float, wall_budget_s: float = 0.01, idle_cap: float = INF) -> None:
+        """Run the board until device time t_stop (or the wall budget is used up). A core
+        sleeping in WFI does not sleep past idle_cap (speed 0: idle device time follows the
+        wall clock, as imubench-sim's does)."""
         wall_end = time.monotonic() + wall_budget_s
         cpu = self.cpu
         while True:
@@ -552,16 +542,18 @@ class Machine:
                     break
                 if cpu.wfi:
                     cpu.wfi = False
-                    cpu.uc.reg_write(__import__("unicorn").arm_const.UC_ARM_REG_PC, cpu.wfi_pc + 2)
+                    cpu.uc.reg_write(UC_ARM_REG_PC, cpu.wfi_pc + 2)
                 self.nvic.activate(exc)
                 cpu.enter_exception(exc, self.nvic.vtor or self.target.flash_base)
                 self.exceptions += 1
             if cpu.wfi:
                 if self.nvic.wakeable():
                     cpu.wfi = False
-                    cpu.uc.reg_write(__import__("unicorn").arm_const.UC_ARM_REG_PC, cpu.wfi_pc + 2)
+                    cpu.uc.reg_write(UC_ARM_REG_PC, cpu.wfi_pc + 2)
                 else:
-                    target = min(self.next_ev, t_stop)
+                    if now >= idle_cap:
+                        return
+                    target = min(self.next_ev, t_stop, idle_cap)
                     self.clock.skip(target - now, "idle")
                     continue
             self.t_stop = t_stop
@@ -582,13 +574,6 @@ class Machine:
             if cpu.exc_exit:
                 cpu.exit_exception()
                 self.nvic.deactivate()
-            if DEBUG_IDLE:
-                self._dbg_runs = getattr(self, "_dbg_runs", 0) + 1
-                w = time.monotonic()
-                if w - getattr(self, "_dbg_wall", 0.0) > 1.0:
-                    self._dbg_wall = w
-                    self.log(f"runs {self._dbg_runs} instr {self.clock.instructions()} skipped {self.clock.skipped} "
-                             f"jumps {self.idle_jumps} rx {self.usart.rx_bytes} ore {self.usart.rx_overruns} rxnext {self.usart.rx_next} next_ev {self.next_ev:.6f} t_stop {t_stop:.6f} exc {self.exceptions}")
 
     def instructions_by_region(self) -> dict[str, int]:
         out = (c_uint64 * 8)()
@@ -657,7 +642,7 @@ class Server:
                     self.anchor_dev, self.anchor_wall = now, wall
                     target = now
                     self.slips += 1
-            elif m.streaming():
+            else:
                 # as fast as it goes; when the host does not read, wait up to 50 ms for it
                 # (as imubench-sim does), then run on
                 target = now + 0.05
@@ -668,18 +653,13 @@ class Server:
                         target = now
                 else:
                     self._bp_since = None
-                    if DEBUG_IDLE:
-                        self.m.log(f"back-pressure: staged {lib.simlib_link_staged()}")
-            else:
+            idle_cap = INF
+            if self.speed == 0:
                 idle = now + (wall - last_wall)
-                target = m.ext_deadline if m.ext_deadline != INF and m.ext_deadline > idle else idle
+                idle_cap = m.ext_deadline if m.ext_deadline != INF and m.ext_deadline > idle else idle
             last_wall = wall
-            if DEBUG_IDLE and wall - getattr(self, "_dbgw", 0) > 1.0:
-                self._dbgw = wall
-                m.log(f"serve: now {now:.6f} target {target:.6f} streaming {m.streaming()} speed {self.speed} "
-                      f"wfi {m.cpu.wfi} pc {m.cpu.pc():08x} staged {lib.simlib_link_staged()} blocked {lib.simlib_link_blocked()} usart_out {len(m.usart.out)} tx {m.usart.tx_bytes} dma {m.dma.transfers} next_ev {m.next_ev}")
             if target > now:
-                m.run_until(target, 0.02)
+                m.run_until(target, 0.02, idle_cap)
             now = m.now()
             m.usart.drain(now)
             m.set_model_time(now)
@@ -697,7 +677,8 @@ class Server:
                 if ahead <= 0 and nxt > now:
                     timeout = min((nxt - now) / self.speed, 0.02) if nxt != INF else 0.02
             else:
-                timeout = 0.0 if (m.streaming() or m.ext_deadline != INF) else 0.002
+                asleep = m.cpu.wfi and not m.streaming() and m.ext_deadline == INF
+                timeout = 0.002 if asleep else 0.0
             self._io(pfd, timeout)
             k = lib.simlib_take_reset()
             if k == RESET_POWER_CUT:
@@ -733,9 +714,6 @@ class Server:
             elif fd == cfd.value:
                 if ev & (select.POLLIN | select.POLLHUP | select.POLLERR):
                     lib.simlib_link_receive()
-                    if DEBUG_IDLE:
-                        self.m.log(f"link readable: rx pending {lib.simlib_link_rx_pending()} "
-                                   f"usart rx_next {self.m.usart.rx_next} cr1 {self.m.usart.cr1:x}")
                 if ev & select.POLLOUT:
                     lib.simlib_link_flush()
             elif fd in slot:

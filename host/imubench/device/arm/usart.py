@@ -52,7 +52,7 @@ class Usart:
         self.rx_line_free = 0.0
 
     def frame_time(self) -> float:
-        brr = self.brr if self.brr >= 16 else 16
+        brr = max(self.brr, 16)
         div = brr / 16.0
         over8 = self.cr1 & (1 << 15)
         baud = self.m.rcc.pclk2_hz() / ((8 if over8 else 16) * div)
