@@ -224,15 +224,6 @@ def _z_scores(result: dict, truth: dict) -> np.ndarray:
     return np.array(z)
 
 
-class _DeviceTimeSession(Session):
-    """The session reads the stream in windows of 50 ms of HOST time; the emulated image runs
-    at about real time on this machine, so such a window can hold no batch at all. Read the
-    same 50 ms of DEVICE time instead (everything else is the real session)."""
-
-    def _next_block(self, timeout: float = 10.0):
-        return self.dev.read(n_samples=max(1, self.cfg.rate_hz // 20), timeout=timeout)
-
-
 def test_whole_calibration_session_on_the_image(target, tmp_path):
     """Multi-position (26 attitudes) + turntable (both ways about each axis at 90 deg/s) at
     100 Hz, with short holds (the figures are not the point, the path is): capture, fit, write-back with bit-exact read-back, save through the image's
@@ -242,7 +233,7 @@ def test_whole_calibration_session_on_the_image(target, tmp_path):
         cfg = SessionConfig(method="multi", gyro="turntable", rate_hz=100, rest_s=0.5, settle_s=0.1, hold_s=0.25,
                             turntable_s=0.8, turntable_rates_dps=(90.0,))
         with _connect(vb, timeout=10.0) as dev:
-            s = _DeviceTimeSession(dev, tmp_path / "s", cfg, SimPresenter(vb, rate_dps=1000, quiet=True))
+            s = Session(dev, tmp_path / "s", cfg, SimPresenter(vb, rate_dps=1000, quiet=True))
             result = s.run(plan_for("multi"))
             assert result["passed"], result
             wb = s.write_back(s.accel_fit, s.gyro_fit, cal_id=7)
