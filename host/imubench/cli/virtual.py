@@ -13,6 +13,7 @@ from pathlib import Path
 
 from imubench.cli.common import (
     CommandError,
+    UsageError,
     add_target,
     baud,
     existing_file,
@@ -97,11 +98,11 @@ def run_sim(a) -> int:
     tcp: bool | int = a.tcp if a.tcp is not None else (False if a.pty else True)
     if a.target != "host":
         if a.pty:
-            raise CommandError(f"--pty is not available with --target {a.target}",
-                               "use the TCP endpoint (socket://...) it prints")
+            raise UsageError(f"--pty is not available with --target {a.target}",
+                             "use the TCP endpoint (socket://...) it prints")
         if a.baud != 2000000:
-            raise CommandError(f"--baud cannot change the {a.target} image's baud rate (2000000)",
-                               "leave --baud out")
+            raise UsageError(f"--baud cannot change the {a.target} image's baud rate (2000000)",
+                             "leave --baud out")
     with VirtualBench(speed=a.speed, seed=a.seed, truth=a.truth, flash=a.flash, pty=a.pty,
                       baud=a.baud, tcp=tcp, control_port=a.control, target=a.target) as bench:
         what = ("firmware core + sensor models" if a.target == "host" else
