@@ -97,3 +97,5 @@ bench: venv
 	$(PY) bench/sim_stream.py
 	$(PY) bench/core_instructions.py
 	$(PY) bench/calib_solve.py
+	@$(MAKE) --no-print-directory sim firmware
+	$(PY) bench/arm_cycles.py

@@ -187,11 +187,12 @@ def test_power_cut_at_every_flash_operation_of_a_save(target):
         assert ops_per_save >= 3
         seen = set()
         for k in range(1, ops_per_save + 1):
-            with _connect(vb, retries=0, timeout=0.6) as d:
+            with _connect(vb, retries=3, timeout=1.0) as d:
                 d.set_params(old)
                 d.save_params()
                 d.set_params(new)
                 vb.power_cut(after_flash_ops=k)
+                d.retries = 0
                 with pytest.raises((LinkTimeout, LinkError, DeviceError)):
                     d._req(SaveParams(), timeout=0.6)      # save_params() would wait 3 s for it
             with _connect(vb, timeout=0.5, retries=20) as d:     # bytes sent while it boots are lost
