@@ -254,3 +254,35 @@ def test_whole_calibration_session_on_the_image(target, tmp_path):
     before = max(abs(p["before_g"] - 1) for p in result["poses"])
     assert before > 5e-3                                          # the random truth was visibly off
     assert all(abs(v["after_g"] - 1.0) < 2e-3 for v in verification)   # the device's own output
+
+
+@pytest.mark.parametrize("image,sysclk_hz", [("f103", 64e6), ("f4", 168e6)])
+def test_a_crystal_that_does_not_start_falls_back_to_hsi(image, sysclk_hz):
+    """The clock start-up's fallback path (HSERDY never sets): HSI through the PLL, reported."""
+    import json
+    import subprocess
+
+    from imubench.device.sim import arm_command
+    import socket
+    p = subprocess.Popen(arm_command(image) + ["--no-hse", "--speed", "0"], stdout=subprocess.PIPE,
+                         stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        line = json.loads(p.stdout.readline())
+        with Device.open(line["port_url"], timeout=0.5, retries=20) as d:
+            d.ping()
+            info = d.info()
+            assert info.clock_source == 2                  # IB_CLOCK_SOURCE_HSI_FALLBACK
+            assert info.baud == 2000000 and info.sensors_present == 0b1111
+            d.start_stream(1000)
+            b = d.read(n_samples=200)
+            d.stop_stream()
+            assert not b.status.any()
+            assert np.all(np.abs(np.diff(b.t_us) - 1000) <= 50)   # SysTick from the fallback clock
+        with socket.create_connection(("127.0.0.1", line["control_port"]), timeout=5) as c:
+            c.sendall(b'{"cmd": "status"}\n')
+            st = json.loads(c.makefile().readline())
+        assert st["arm"]["sysclk_hz"] == sysclk_hz
+        assert st["arm"]["faults"] == 0 and st["arm"]["unmodelled_accesses"] == 0
+    finally:
+        p.terminate()
+        p.wait(timeout=10)
