@@ -260,10 +260,10 @@ def test_whole_calibration_session_on_the_image(target, tmp_path):
 def test_a_crystal_that_does_not_start_falls_back_to_hsi(image, sysclk_hz):
     """The clock start-up's fallback path (HSERDY never sets): HSI through the PLL, reported."""
     import json
+    import socket
     import subprocess
 
     from imubench.device.sim import arm_command
-    import socket
     p = subprocess.Popen(arm_command(image) + ["--no-hse", "--speed", "0"], stdout=subprocess.PIPE,
                          stderr=subprocess.DEVNULL, start_new_session=True)
     try:
