@@ -35,7 +35,7 @@ class GpioF1:
         v = 0
         for pin in range(16):
             mode = self._mode(pin)
-            if mode & 3 or mode == 0x8:          # output (general purpose or alternate function)
+            if mode & 3 or mode == 0x8:   # an output, or an input with pull-up/-down (ODR selects)
                 v |= (self.odr >> pin & 1) << pin
         return v
 
