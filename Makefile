@@ -58,12 +58,21 @@ c-tests: system-deps $(C_TEST_BIN)
 
 # The virtual device: the firmware core and drivers built for Linux, with the sensor models
 # behind the simulator board's SPI (firmware/boards/sim).
-SIM_SRC := $(wildcard firmware/boards/sim/*.c)
+SIM_SRC := $(filter-out firmware/boards/sim/sim_lib.c,$(wildcard firmware/boards/sim/*.c))
 SIM_BIN := $(HOST)/imubench-sim
 $(SIM_BIN): $(SIM_SRC) $(HOST)/libfw.a $(wildcard firmware/boards/sim/*.h)
 	$(CC_HOST) $(CFLAGS_HOST) -Ifirmware/boards/sim $(SIM_SRC) $(HOST)/libfw.a -lm -o $@
 
-sim: system-deps $(SIM_BIN)
+# The same models, physics, control channel and serial endpoint as a shared library for the
+# ARM emulator (host/imubench/device/arm: the exact STM32 images under Unicorn), called
+# through ctypes: one set of models for both targets (firmware/boards/sim/sim_lib.c).
+SIM_LIB := $(HOST)/libimumodels.so
+SIM_LIB_SRC := $(filter-out firmware/boards/sim/sim_main.c,$(SIM_SRC)) firmware/boards/sim/sim_lib.c $(wildcard firmware/boards/sim/models/*.c)
+$(SIM_LIB): $(SIM_LIB_SRC) $(wildcard firmware/boards/sim/*.h firmware/boards/sim/models/*.h firmware/core/*.h)
+	@mkdir -p $(dir $@)
+	$(CC_HOST) $(CFLAGS_HOST) -fPIC -shared -Wl,--no-undefined -Ifirmware/boards/sim $(SIM_LIB_SRC) -lm -o $@
+
+sim: system-deps $(SIM_BIN) $(SIM_LIB)
 
 # Static analysis of every firmware C file (portable code, drivers, boards).
 CPPCHECK_DIRS := $(wildcard firmware/core firmware/drivers firmware/boards/sim firmware/boards/stm32f1 firmware/boards/stm32f4 firmware/boards/common_arm)
@@ -90,5 +99,7 @@ bench: venv
 	$(PY) bench/sim_stream.py
 	$(PY) bench/core_instructions.py
 	$(PY) bench/calib_solve.py
+	@$(MAKE) --no-print-directory sim firmware
 	$(PY) bench/multi_dut.py
 	$(PY) bench/real_data.py
+	$(PY) bench/arm_cycles.py

@@ -178,6 +178,15 @@ typedef struct sim {
     uint8_t uid[12];
     int truth_random;
 
+    /* the target the firmware runs on: "" = this host build; set by the ARM emulator
+     * (sim_lib.c) with its own figures, reported by status */
+    char target[16];
+    uint64_t arm_instructions, arm_faults, arm_unmodelled, arm_spi_mismatch;
+    double arm_idle_s, arm_sysclk_hz;
+    uint64_t arm_regions[5];      /* instructions by code range: other, core, drivers, board, lib */
+    uint64_t arm_idle_instructions, arm_spi_bytes, arm_spi_transactions;
+    double arm_busy_s, arm_stall_s, arm_spi_bus_s, arm_cpi;
+
     /* control */
     int control_listen;
     int control_port;
@@ -207,6 +216,7 @@ void sim_model_world(int cs, sim_world_t *w); /* world for advancing model cs to
 void sim_seed_models(uint64_t seed, int random_truth);
 void sim_randomize_truth(uint64_t seed);
 void sim_spin_reset(void);
+int sim_spi_exchange(uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len);
 
 /* ---- sim_link.c ---- */
 int sim_listen_tcp(int port, int *bound_port); /* 127.0.0.1, non-blocking; -1 on error */

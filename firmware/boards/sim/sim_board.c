@@ -170,15 +170,17 @@ void sim_power_cycle_models(void)
 
 /* ---- ib_spi_bus_t ---- */
 
-static int spi_transfer(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len)
+/* One SPI transaction against the addressed model at the current device time, with the
+ * injected bus faults applied (shared with the ARM emulator's SPI peripheral through
+ * sim_lib.c). Returns 0, or -1 when an injected bus error ate it (rx all 0xFF). Does not
+ * advance device time: the caller charges the transfer time. */
+int sim_spi_exchange(uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len)
 {
-    sim_t *s = ctx;
-    s->spin = 0;
+    sim_t *s = &g_sim;
     s->spi_transfers++;
     if (cs >= IB_CS_COUNT) {
         return -1;
     }
-    uint64_t t_end = s->t_us + (uint64_t)len * SIM_SPI_US_PER_BYTE + SIM_SPI_CS_US;
     int fail = 0;
     if (s->spi_faults.error_count[cs] > 0) {
         s->spi_faults.error_count[cs]--;
@@ -192,7 +194,6 @@ static int spi_transfer(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, s
         if (rx != NULL) {
             memset(rx, 0xFF, len);
         }
-        sim_advance_to(t_end);
         return -1;
     }
     sim_model_advance(cs);
@@ -203,8 +204,21 @@ static int spi_transfer(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, s
          * (not a bus error), so the return value is not passed on. */
         (void)sim_adxrs450_spi(&s->gyro[cs - 1], tx, rx, len);
     }
-    sim_advance_to(t_end);
     return 0;
+}
+
+static int spi_transfer(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len)
+{
+    sim_t *s = ctx;
+    s->spin = 0;
+    if (cs >= IB_CS_COUNT) {
+        s->spi_transfers++;
+        return -1;
+    }
+    uint64_t t_end = s->t_us + (uint64_t)len * SIM_SPI_US_PER_BYTE + SIM_SPI_CS_US;
+    int rc = sim_spi_exchange(cs, tx, rx, len);
+    sim_advance_to(t_end);
+    return rc;
 }
 
 static void spi_delay_us(void *ctx, uint32_t us)

@@ -42,6 +42,7 @@
  *                     {fault: "link_flip", count}   flip a random bit in each of the next
  *                                                   count bytes sent
  *                     {fault: "accel_stuck", on}  {fault: "accel_shadow", on}
+ *                     {fault: "accel_wrong_id", on}  the ADXL355 answers PARTID 0xEE
  *                     {fault: "clear"}  everything off (also an armed power cut)
  *   power_cut         {after_flash_ops: N}  during the N-th next flash op (N >= 1);
  *                     omitted, null or 0: now
@@ -438,6 +439,33 @@ static int cmd_status(req_t *q)
         inj[i] = (double)s->spi_faults.errors_injected[i];
     }
     put_vec(r, "spi_errors_injected", inj, IB_CS_COUNT);
+    sj_key(r, "target");
+    sj_str(r, s->target[0] ? s->target : "host");
+    if (s->target[0]) { /* the exact ARM image under the emulator (host/imubench/device/arm) */
+        sj_key(r, "arm");
+        sj_raw(r, "{");
+        put_u64(r, "instructions", s->arm_instructions);
+        put_u64(r, "faults", s->arm_faults);
+        put_u64(r, "unmodelled_accesses", s->arm_unmodelled);
+        put_u64(r, "spi_peek_mismatches", s->arm_spi_mismatch);
+        put_num(r, "idle_s", s->arm_idle_s);
+        put_num(r, "sysclk_hz", s->arm_sysclk_hz);
+        put_num(r, "cpi", s->arm_cpi);
+        put_u64(r, "idle_loop_instructions", s->arm_idle_instructions);
+        put_num(r, "busy_wait_s", s->arm_busy_s);
+        put_num(r, "flash_stall_s", s->arm_stall_s);
+        put_num(r, "spi_bus_s", s->arm_spi_bus_s);
+        put_u64(r, "spi_bytes", s->arm_spi_bytes);
+        put_u64(r, "spi_transactions", s->arm_spi_transactions);
+        sj_key(r, "instructions_by_range");
+        sj_raw(r, "{");
+        static const char *const names[5] = {"other", "core", "drivers", "board", "lib"};
+        for (int i = 0; i < 5; i++) {
+            put_u64(r, names[i], s->arm_regions[i]);
+        }
+        sj_raw(r, "}");
+        sj_raw(r, "}");
+    }
     sim_link_t *l = &s->link;
     sj_key(r, "link");
     sj_raw(r, "{");
@@ -994,11 +1022,19 @@ static int cmd_inject(req_t *q)
         } else {
             adxl355_model_set_shadow_corrupt(&s->accel, on);
         }
+    } else if (!strcmp(f, "accel_wrong_id")) {
+        /* a part that answers with another PARTID (0xEE instead of 0xED): a different or
+         * counterfeit chip; takes effect at the driver's next probe (power cut / reboot) */
+        if (check_keys(q, q->root, "cmd,id,fault,on") != 0 || opt_bool(q, q->root, "on", 1, &on) != 0) {
+            return -1;
+        }
+        s->accel.id[2] = on ? 0xEE : 0xED;
     } else if (!strcmp(f, "clear")) {
         if (check_keys(q, q->root, "cmd,id,fault") != 0) {
             return -1;
         }
         s->accel.fault.missing = s->accel.fault.stuck_data = s->accel.fault.shadow_corrupt = 0;
+        s->accel.id[2] = 0xED;
         for (int i = 0; i < 3; i++) {
             sim_adxrs450_set_persistent_faults(&s->gyro[i], 0);
             sim_adxrs450_corrupt_responses(&s->gyro[i], 0, 0);
@@ -1010,7 +1046,7 @@ static int cmd_inject(req_t *q)
         s->flash.cut_after = 0;
     } else {
         return fail("unknown fault '%s' (gyro_fault_bits, gyro_parity, missing, spi_error, "
-                    "link_drop, link_flip, accel_stuck, accel_shadow, clear)", f);
+                    "link_drop, link_flip, accel_stuck, accel_shadow, accel_wrong_id, clear)", f);
     }
     sj_key(q->r, "fault");
     sj_str(q->r, f);

@@ -206,7 +206,7 @@ def run(a) -> int:
                               if (directory / "session.json").exists() else "nothing was captured")
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random")
+        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random", target=a.target)
     with bench if a.sim else nullcontext() as vb:
         if vb is not None:
             url = vb.port_url
@@ -370,7 +370,7 @@ def _shown(db) -> str:
 
 
 def _station_table(res) -> str:
-    from imubench.results.paramfiles import measurement_text
+    from imubench.results.export import measurement_text
     lines = [f"{'slot':>4}  {'MCU UID':<24}  {'verdict':<7}  {'run':>5}  details"]
     for b in res.boards:
         rec = res.results.get(b.slot) or {}

@@ -100,6 +100,14 @@ def add_sim(p: argparse.ArgumentParser, what: str, speed: float = 20.0) -> None:
     p.add_argument("--sim-seed", type=int, default=1, metavar="N", help="random seed of the virtual device's truth")
     p.add_argument("--sim-speed", type=positive_float, default=speed, metavar="X",
                    help="virtual device time per wall-clock time (1 = real time)")
+    add_target(p)
+
+
+def add_target(p: argparse.ArgumentParser) -> None:
+    """--target: what runs the virtual device's firmware (imubench.device.sim.TARGETS)."""
+    p.add_argument("--target", choices=("host", "f103", "f4"), default="host",
+                   help="host: the firmware core built for Linux (fast); f103 / f4: the exact STM32 image "
+                        "under the ARM emulator against the same sensor models (docs/firmware.md)")
 
 
 # ------------------------------------------------------------------ argument types

@@ -98,7 +98,7 @@ def run(a) -> int:
 
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed)
+        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, target=a.target)
     with bench if a.sim else nullcontext() as vb:
         if vb is not None:
             vb.set_truth(accel=SIM_ACCEL_TRUTH, gyro=SIM_GYRO_TRUTH)

@@ -13,6 +13,8 @@ from pathlib import Path
 
 from imubench.cli.common import (
     CommandError,
+    UsageError,
+    add_target,
     baud,
     existing_file,
     new_file,
@@ -37,6 +39,7 @@ def register(sub) -> None:
                    help="expose the link on TCP 127.0.0.1:PORT (0 = a free port; the default without --pty)")
     p.add_argument("--control", type=int, default=0, metavar="PORT", help="control channel port (0 = a free port)")
     p.add_argument("--baud", type=baud, default=2000000, help="link speed the device reports")
+    add_target(p)
     p.set_defaults(run=run_sim)
 
     from imubench.device.qemu import BOARDS
@@ -93,9 +96,18 @@ def _until_stopped(alive, what: str) -> int:
 def run_sim(a) -> int:
     from imubench.device.sim import VirtualBench
     tcp: bool | int = a.tcp if a.tcp is not None else (False if a.pty else True)
+    if a.target != "host":
+        if a.pty:
+            raise UsageError(f"--pty is not available with --target {a.target}",
+                             "use the TCP endpoint (socket://...) it prints")
+        if a.baud != 2000000:
+            raise UsageError(f"--baud cannot change the {a.target} image's baud rate (2000000)",
+                             "leave --baud out")
     with VirtualBench(speed=a.speed, seed=a.seed, truth=a.truth, flash=a.flash, pty=a.pty,
-                      baud=a.baud, tcp=tcp, control_port=a.control) as bench:
-        print(f"virtual device (firmware core + sensor models, speed {a.speed:g}) on {bench.port_url}", flush=True)
+                      baud=a.baud, tcp=tcp, control_port=a.control, target=a.target) as bench:
+        what = ("firmware core + sensor models" if a.target == "host" else
+                f"the exact {a.target} image under the ARM emulator + sensor models")
+        print(f"virtual device ({what}, speed {a.speed:g}) on {bench.port_url}", flush=True)
         if bench.pty and bench.pty != bench.port_url:
             print(f"  also on the pseudo-terminal {bench.pty}", flush=True)
         host, port = bench.control_address

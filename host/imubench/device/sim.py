@@ -38,9 +38,39 @@ from typing import Any, Sequence
 
 from imubench.errors import ImubenchError
 
-__all__ = ["SimError", "VirtualBench", "build_sim", "repo_root"]
+__all__ = ["SimError", "TARGETS", "VirtualBench", "arm_command", "build_sim", "repo_root"]
 
 SIM_BIN_REL = Path("build") / "host" / "imubench-sim"
+
+# What runs the firmware: "host" = the core and drivers built for Linux (imubench-sim);
+# "f103" / "f4" = the exact STM32 image under the ARM emulator (imubench.device.arm), against
+# the same sensor models, serial endpoint and control channel.
+TARGETS = ("host", "f103", "f4")
+
+
+def arm_command(target: str) -> list[str]:
+    """Build what the ARM emulator needs (`make sim firmware`) and return the command that
+    starts it for `target` (the options are imubench-sim's)."""
+    import sys
+    root = repo_root()
+    if target not in _ARM_BUILT:
+        try:
+            r = subprocess.run(["make", "-s", "-C", str(root), "sim", f"arm-{target}"], capture_output=True,
+                               text=True)
+        except FileNotFoundError as e:
+            raise SimError("`make` not found: install make and a C compiler (gcc) to build the "
+                           "virtual device") from e
+        if r.returncode != 0:
+            raise SimError(f"building the {target} image and the models library failed (exit "
+                           f"{r.returncode}):\n{r.stdout}{r.stderr}".rstrip())
+        _ARM_BUILT.add(target)
+    host = str(Path(__file__).resolve().parents[2])   # this imubench package, not another one
+    code = (f"import sys; sys.path.insert(0, {host!r}); "
+            "from imubench.device.arm.__main__ import main; sys.exit(main())")
+    return [sys.executable, "-c", code, "--target", target]
+
+
+_ARM_BUILT: set[str] = set()
 
 
 class SimError(ImubenchError, RuntimeError):
@@ -99,7 +129,10 @@ class VirtualBench:
                  flash: str | os.PathLike | None = None, pty: bool = False,
                  baud: int = 2000000, *, tcp: bool | int = True, control_port: int = 0,
                  uid: str | None = None, binary: str | os.PathLike | None = None,
-                 startup_timeout: float = 15.0, start: bool = True):
+                 startup_timeout: float = 15.0, start: bool = True, target: str = "host"):
+        if target not in TARGETS:
+            raise ValueError(f"target must be one of {', '.join(TARGETS)}")
+        self.target = target
         if truth not in ("default", "random"):
             raise ValueError("truth must be 'default' or 'random'")
         if not pty and tcp is False:
@@ -144,7 +177,8 @@ class VirtualBench:
         return self
 
     def _start(self, tcp_port: int | None, control_port: int) -> None:
-        args = [str(self.binary), "--speed", repr(float(self.speed)), "--seed", str(self.seed),
+        prefix = [str(self.binary)] if self.target == "host" else arm_command(self.target)
+        args = [*prefix, "--speed", repr(float(self.speed)), "--seed", str(self.seed),
                 "--truth", self.truth, "--flash", self.flash, "--baud", str(self.baud),
                 "--control", str(control_port)]
         if self.pty_enabled:

@@ -12,7 +12,7 @@ outside its limits is a <failure>, a board that stopped before it was measured a
 naming the stage and the reason.
 
 Measurements (all with units in the name, docs/conventions.md):
-    accel_fit_rms_mg               RMS of |a| − g over the poses after the fit   ≤ tolerance
+    accel_norm_rms_mg              RMS of |a| − g over the poses after the fit   ≤ tolerance
     gyro_turntable_rms_dps         turntable fit residual RMS                    ≤ tolerance
     gyro_rotation_rms_deg          rotation-method residual RMS                  ≤ tolerance
     verify_<pose>_mg               | |a| − g | of the device's own output        ≤ tolerance
@@ -52,7 +52,7 @@ def measurements_of(result: dict) -> list[dict]:
         after = [p.get("after_g") for p in result["poses"] if p.get("after_g") is not None]
         rms = math.sqrt(sum((a - 1.0) ** 2 for a in after) / len(after)) * 1e3 if after else None
     if rms is not None:
-        out.append(_meas("accel_fit_rms_mg", rms, "mg", high=tol.get("accel_rms_mg")))
+        out.append(_meas("accel_norm_rms_mg", rms, "mg", high=tol.get("accel_rms_mg")))
     g = result.get("gyro") or {}
     gm = g.get("method") or result.get("gyro_method")
     if g.get("residual_rms") is not None and gm == "turntable":

@@ -1,0 +1,97 @@
+"""ctypes binding of build/host/libimumodels.so (firmware/boards/sim/sim_lib.c): the virtual
+device's sensor models, physics, control channel and serial endpoint, shared with the ARM
+emulator so both targets run against ONE set of models.
+
+The library keeps its state in C globals (one world per process): the emulator runs in its
+own process (`python -m imubench.device.arm`), one device per process, like imubench-sim.
+"""
+from __future__ import annotations
+
+import ctypes
+from ctypes import (
+    POINTER,
+    c_char_p,
+    c_double,
+    c_int,
+    c_size_t,
+    c_uint8,
+    c_uint16,
+    c_uint32,
+    c_uint64,
+    c_void_p,
+)
+from pathlib import Path
+
+from imubench.errors import ImubenchError
+
+LIB_REL = Path("build") / "host" / "libimumodels.so"
+
+
+class SimLibError(ImubenchError, RuntimeError):
+    """The models library is missing or could not be loaded."""
+
+
+class PollFd(ctypes.Structure):
+    _fields_ = [("fd", c_int), ("events", ctypes.c_short), ("revents", ctypes.c_short)]
+
+
+_SIGNATURES = {
+    "simlib_open": (c_int, [c_uint64, c_int, c_char_p, c_int, c_int, c_double]),
+    "simlib_close": (None, []),
+    "simlib_set_log": (None, [c_int]),
+    "simlib_tcp_port": (c_int, []),
+    "simlib_control_port": (c_int, []),
+    "simlib_uid": (None, [POINTER(c_uint8)]),
+    "simlib_speed": (c_double, []),
+    "simlib_quit": (c_int, []),
+    "simlib_set_time": (None, [c_uint64]),
+    "simlib_time": (c_uint64, []),
+    "simlib_set_state": (None, [c_int, c_uint32, c_uint64, c_uint64, c_uint32, c_uint32, c_uint32]),
+    "simlib_set_target": (None, [c_char_p, c_uint64, c_uint64, c_uint64, c_uint64, c_double, c_double]),
+    "simlib_take_reset": (c_int, []),
+    "simlib_set_arm_detail": (None, [POINTER(c_uint64), c_uint64, c_double, c_double, c_double, c_uint64, c_uint64,
+                                     c_double]),
+    "simlib_spi_peek": (c_int, [c_int, c_char_p, POINTER(c_uint8), c_size_t]),
+    "simlib_spi_commit": (c_int, [c_int, c_char_p, POINTER(c_uint8), c_size_t]),
+    "simlib_power_cycle_models": (None, []),
+    "simlib_flash_op": (c_int, []),
+    "simlib_flash_boot": (None, []),
+    "simlib_link_fds": (None, [POINTER(c_int), POINTER(c_int)]),
+    "simlib_link_accept": (c_int, []),
+    "simlib_link_receive": (None, []),
+    "simlib_link_flush": (None, []),
+    "simlib_link_staged": (c_size_t, []),
+    "simlib_link_blocked": (c_int, []),
+    "simlib_link_push": (c_size_t, [c_char_p, c_size_t]),
+    "simlib_link_rx_pending": (c_size_t, []),
+    "simlib_link_pull": (c_size_t, [POINTER(c_uint8), c_size_t]),
+    "simlib_link_reset": (None, []),
+    "simlib_counter_setup": (None, [c_void_p, POINTER(c_uint16), c_uint32, c_uint32, POINTER(c_uint8)]),
+    "simlib_icount": (c_uint64, []),
+    "simlib_set_limit": (None, [c_uint64]),
+    "simlib_region_counts": (None, [POINTER(c_uint64)]),
+    "sim_control_pollfds": (c_int, [POINTER(PollFd), c_int]),
+    "sim_control_handle": (None, [POINTER(PollFd), c_int]),
+    "sim_control_check_waits": (None, []),
+    "sim_control_next_deadline": (c_uint64, []),
+    "simlib_next_event": (c_uint64, []),
+}
+
+
+def lib_path(root: Path) -> Path:
+    return root / LIB_REL
+
+
+def load(path: Path) -> ctypes.CDLL:
+    """Load the library and declare every entry point's signature."""
+    if not path.is_file():
+        raise SimLibError(f"{path} is missing: build it with `make sim`")
+    try:
+        lib = ctypes.CDLL(str(path))
+    except OSError as e:
+        raise SimLibError(f"cannot load {path}: {e}") from e
+    for name, (res, args) in _SIGNATURES.items():
+        fn = getattr(lib, name)
+        fn.restype = res
+        fn.argtypes = args
+    return lib
