@@ -327,7 +327,8 @@ def _run_station(a, cfg) -> int:
     with ExitStack() as stack:
         if a.sim:
             from imubench.device.sim import VirtualBench
-            benches = [stack.enter_context(VirtualBench(speed=a.sim_speed, seed=a.sim_seed + k, truth="random"))
+            benches = [stack.enter_context(VirtualBench(speed=a.sim_speed, seed=a.sim_seed + k, truth="random",
+                                                        target=a.target))
                        for k in range(a.sim_boards)]
             ports = [vb.port_url for vb in benches]
             mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed)
