@@ -19,8 +19,50 @@ class HumanPresenter:
         print(text, flush=True)
 
     def present_pose(self, name, direction, index, total):
-        self.say(f"[{index + 1}/{total}] place the board: {name} "
-                 f"(gravity along board {np.round(direction, 2).tolist()}), then hold it still")
+        from imubench.procedures.poses import pose_words
+        from imubench.results.boardpic import board_text
+        self.say(f"[{index + 1}/{total}] place the board: {name}: {pose_words(direction)} "
+                 f"(up along board {np.round(direction, 2).tolist()}), then hold it still\n"
+                 + _indent(board_text(direction)))
+
+    def present_rest(self, duration_s):
+        self.say(f"put the board down (or hold it) and keep it still for {duration_s:g} s: "
+                 "the session measures the noise that sets its stillness threshold")
+
+    def present_todo(self, todo, done, total):
+        """The attitudes still missing, in words: present any of them, in any order."""
+        from imubench.procedures.poses import pose_words
+        self._todo = {n for n, _ in todo}
+        lines = [f"[{len(done)}/{total} captured] present any missing attitude, in any order, and hold it still:"]
+        for n, d in todo:
+            lines.append(f"    {n:22s} {pose_words(d)}")
+        self.say("\n".join(lines))
+        self._last_attitude = None
+
+    def live(self, st):
+        """Name the attitude the board is in as soon as it changes (and the hint, if any)."""
+        from imubench.procedures.poses import pose_words  # noqa: F401 - words come with st
+        att = st.get("attitude")
+        key = (att, bool(st.get("hint")))
+        if key == getattr(self, "_last_attitude", None) or st.get("state") == "moving":
+            return
+        self._last_attitude = key
+        if att is None:
+            return                                   # the session says the hint itself when still
+        from imubench.calib.accel import POSE_PLAN
+        d = next((p.vector for p in POSE_PLAN if p.name == att), None)
+        if d is None:
+            return
+        from imubench.results.boardpic import board_text
+        where = "already captured" if st.get("captured") else "capturing, hold still"
+        self.say(f"  the board is in {att}: {st.get('words')} ({where})\n" + _indent(board_text(d)))
+
+    def pose_event(self, name, state, detail):
+        if state == "rejected":
+            self.say(f"  {name} rejected: {detail.get('why')}")
+
+    def targets(self, sigmas, targets, reached):
+        pass                                          # the session says the line
 
     def present_turn(self, axis, rate_dps, duration_s):
         self.say(f"turn the table about board axis {np.round(axis, 2).tolist()} at {rate_dps:+.1f} °/s "
@@ -46,3 +88,7 @@ class HumanPresenter:
             return True
         answer = input(f"  {summary} — Enter to keep, r + Enter to redo: ").strip().lower()
         return answer != "r"
+
+
+def _indent(text: str, pad: str = "      ") -> str:
+    return "\n".join(pad + line for line in text.splitlines())
