@@ -100,7 +100,15 @@ class SimPerson(SimPresenter):
         return _tilted(direction, self.rng.uniform(lo, hi), self.rng)
 
     def _off_plan(self, direction) -> np.ndarray:
-        return _tilted(direction, 27.0, self.rng)     # between planned attitudes (neighbours 35–45° apart)
+        """An attitude between planned ones: of a few hundred random directions, the farthest
+        from every planned attitude (the plan leaves gaps of up to 27° between them)."""
+        from imubench.calib.accel import POSE_PLAN
+        plan = np.array([p.vector for p in POSE_PLAN], float)
+        plan /= np.linalg.norm(plan, axis=1)[:, None]
+        c = self.rng.normal(size=(500, 3))
+        c /= np.linalg.norm(c, axis=1)[:, None]
+        nearest = np.max(c @ plan.T, axis=1)             # cosine to the nearest planned attitude
+        return c[int(np.argmin(nearest))]
 
     def _move_to(self, target, wrong: bool = False) -> None:
         cur = np.asarray(self.vb.status()["gravity_board"], dtype=float)

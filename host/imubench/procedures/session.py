@@ -113,6 +113,12 @@ class Presenter(Protocol):
     def keep_pose(self, name: str, summary: str) -> bool: ...   # False: redo this pose
 
 
+def _pieces(b: SampleBlock, n: int):
+    """A block in consecutive pieces of at most n samples."""
+    for i in range(0, len(b), n):
+        yield b[i:i + n]
+
+
 def _hook(ui, name: str, *args) -> None:
     """Call an optional presenter method if this presenter has it."""
     f = getattr(ui, name, None)
@@ -350,85 +356,89 @@ class Session:
         live_every = max(1, fs // 8)
         live_due = 0
         while True:
-            b = self._next_block()
-            waited += len(b)
-            recent.append(b)
-            recent_n += len(b)
-            acc = b.si()[0]
-            st = det.update(acc)
-            still = st.state == "still"
-            # the still run restarted inside this block if it is shorter than before + the block
-            restarted = still and (not was_still or st.n < prev_n + len(b))
-            if not still or restarted:
-                if was_still and not judged and (st.state == "moving" or restarted):
-                    last_msg = self._tell("detected motion, hold still", last_msg)
-                if capturing is not None:
-                    _hook(self.ui, "pose_event", capturing, "todo", {"why": "moved"})
-                    capturing = None
-                judged = False
-                sigma_g, next_sigma = float("inf"), 0
-            was_still, prev_n = still, (st.n if still else 0)
-            # which attitude the board is in now (the hold's mean when still, else the last block's)
-            now_dir = st.mean if still else acc.mean(axis=0)
-            k, ang = detect_attitude(now_dir, full_plan)
-            now_name = full_plan[k][0] if k is not None else None
-            hint = ""
-            if k is None:
-                near = full_plan[int(np.argmin([angle_deg(now_dir, v) for _, v in full_plan]))]
-                hint = (f"the board is in no planned attitude: {ang:.0f}° from the nearest, "
-                        f"{near[0]} ({pose_words(near[1])}); turn it until it is within "
-                        f"{20:.0f}° of a missing one")
-            elif now_name not in todo_names:
-                hint = f"{now_name} is already captured: present one of the {len(plan)} missing"
-            if still and not judged:
-                if hint:
-                    last_msg = self._tell(hint, last_msg)
-                    judged = True        # wait for the board to move before judging again
-                else:
-                    if capturing != now_name:
-                        capturing = now_name
-                    if self.cfg.adaptive and st.n >= max(hold_min, next_sigma):
-                        run = SampleBlock.concat(recent)
-                        sigma_g = hold_sigma_g(run.si()[0][len(run) - min(st.n, len(run)):])
-                        next_sigma = st.n + max(1, fs // 10)
-                    if self.cfg.adaptive:
-                        # sigma of the mean falls as 1/sqrt(n): (need/sigma)^2 is the fraction held
-                        need = t.pose_sigma_mg * 1e-3
-                        by_sigma = min(1.0, (need / sigma_g) ** 2) if np.isfinite(sigma_g) else 0.0
-                        frac = max(st.n / hold_n, min(st.n / hold_min, by_sigma) if by_sigma else 0.5 * st.n / hold_min)
-                        enough = st.n >= hold_n or (st.n >= hold_min and sigma_g <= need)
-                    else:
-                        frac = st.n / hold_n
-                        enough = st.n >= hold_n
-                    self.ui.progress(now_name, min(frac, 1.0))
-                    _hook(self.ui, "pose_event", now_name, "capturing", {"progress": min(float(frac), 1.0)})
-                    if enough:
-                        # exactly the samples of this still run: the last st.n received (at most the hold)
-                        run = SampleBlock.concat(recent)
-                        rec = self._pose_from(run[len(run) - min(st.n, hold_n, len(run)):], plan)
-                        if isinstance(rec, PoseRecord):
-                            return rec
-                        _hook(self.ui, "pose_event", now_name, "rejected", {"why": rec})
+            # a block read after a pause (a virtual bench far ahead of the session) can hold
+            # seconds of data: judge it in pieces of 1/20 s, as a live stream would come
+            for b in _pieces(self._next_block(), max(1, fs // 20)):
+                waited += len(b)
+                recent.append(b)
+                recent_n += len(b)
+                acc = b.si()[0]
+                st = det.update(acc)
+                still = st.state == "still"
+                # the still run restarted inside this block if it is shorter than before + the block
+                restarted = still and (not was_still or st.n < prev_n + len(b))
+                if not still or restarted:
+                    if was_still and not judged and (st.state == "moving" or restarted):
+                        last_msg = self._tell("detected motion, hold still", last_msg)
+                    if capturing is not None:
+                        _hook(self.ui, "pose_event", capturing, "todo", {"why": "moved"})
                         capturing = None
-                        last_msg = self._tell(rec, last_msg)
-                        judged = True
-            if waited >= live_due:
-                live_due = waited + live_every
-                _hook(self.ui, "live", {
-                    "a_g": float(np.linalg.norm(acc.mean(axis=0)) / U.G0_MPS2), "ratio": float(st.ratio),
-                    "k": float(det.k), "k_move": float(det.k_move), "state": st.state,
-                    "attitude": now_name, "words": pose_words(full_plan[k][1]) if k is not None else None,
-                    "angle_deg": ang, "captured": bool(now_name and now_name not in todo_names),
-                    "hold": float(min(st.n / hold_n, 1.0)) if still else 0.0,
-                    "sigma_mg": (sigma_g * 1e3 if np.isfinite(sigma_g) else None),
-                    "target_mg": t.pose_sigma_mg if self.cfg.adaptive else None, "hint": hint,
-                    "device_s": float(b.sample_index[-1]) / fs})
-            while len(recent) > 1 and recent_n - len(recent[0]) >= max(st.n, hold_n) + fs:
-                recent_n -= len(recent.pop(0))
-            if self.cfg.pose_timeout_s is not None and waited > self.cfg.pose_timeout_s * fs:
-                raise SessionAborted(f"no still attitude from the plan within {self.cfg.pose_timeout_s:g} s "
-                                     f"(expected {name}); the board must stay still for "
-                                     f"{self.cfg.settle_s + self.cfg.hold_s:g} s in each attitude")
+                    judged = False
+                    sigma_g, next_sigma = float("inf"), 0
+                was_still, prev_n = still, (st.n if still else 0)
+                # which attitude the board is in now (the hold's mean when still, else the last block's)
+                now_dir = st.mean if still else acc.mean(axis=0)
+                k, ang = detect_attitude(now_dir, full_plan)
+                now_name = full_plan[k][0] if k is not None else None
+                hint = ""
+                if st.state == "moving":
+                    pass                             # no hint while the person is still turning it
+                elif k is None:
+                    near = full_plan[int(np.argmin([angle_deg(now_dir, v) for _, v in full_plan]))]
+                    hint = (f"the board is in no planned attitude: {ang:.0f}° from the nearest, "
+                            f"{near[0]} ({pose_words(near[1])}); turn it until it is within "
+                            f"{20:.0f}° of a missing one")
+                elif now_name not in todo_names:
+                    hint = f"{now_name} is already captured: present one of the {len(plan)} missing"
+                if still and not judged:
+                    if hint:
+                        last_msg = self._tell(hint, last_msg)
+                        judged = True        # wait for the board to move before judging again
+                    else:
+                        if capturing != now_name:
+                            capturing = now_name
+                        if self.cfg.adaptive and st.n >= max(hold_min, next_sigma):
+                            run = SampleBlock.concat(recent)
+                            sigma_g = hold_sigma_g(run.si()[0][len(run) - min(st.n, len(run)):])
+                            next_sigma = st.n + max(1, fs // 10)
+                        if self.cfg.adaptive:
+                            # sigma of the mean falls as 1/sqrt(n): (need/sigma)^2 is the fraction held
+                            need = t.pose_sigma_mg * 1e-3
+                            by_sigma = min(1.0, (need / sigma_g) ** 2) if np.isfinite(sigma_g) else 0.0
+                            frac = max(st.n / hold_n, min(st.n / hold_min, by_sigma) if by_sigma else 0.5 * st.n / hold_min)
+                            enough = st.n >= hold_n or (st.n >= hold_min and sigma_g <= need)
+                        else:
+                            frac = st.n / hold_n
+                            enough = st.n >= hold_n
+                        self.ui.progress(now_name, min(frac, 1.0))
+                        _hook(self.ui, "pose_event", now_name, "capturing", {"progress": min(float(frac), 1.0)})
+                        if enough:
+                            # exactly the samples of this still run: the last st.n received (at most the hold)
+                            run = SampleBlock.concat(recent)
+                            rec = self._pose_from(run[len(run) - min(st.n, hold_n, len(run)):], plan)
+                            if isinstance(rec, PoseRecord):
+                                return rec
+                            _hook(self.ui, "pose_event", now_name, "rejected", {"why": rec})
+                            capturing = None
+                            last_msg = self._tell(rec, last_msg)
+                            judged = True
+                if waited >= live_due:
+                    live_due = waited + live_every
+                    _hook(self.ui, "live", {
+                        "a_g": float(np.linalg.norm(acc.mean(axis=0)) / U.G0_MPS2), "ratio": float(st.ratio),
+                        "k": float(det.k), "k_move": float(det.k_move), "state": st.state,
+                        "attitude": now_name, "words": pose_words(full_plan[k][1]) if k is not None else None,
+                        "angle_deg": ang, "captured": bool(now_name and now_name not in todo_names),
+                        "hold": float(min(st.n / hold_n, 1.0)) if still else 0.0,
+                        "sigma_mg": (sigma_g * 1e3 if np.isfinite(sigma_g) else None),
+                        "target_mg": t.pose_sigma_mg if self.cfg.adaptive else None, "hint": hint,
+                        "device_s": float(b.sample_index[-1]) / fs})
+                while len(recent) > 1 and recent_n - len(recent[0]) >= max(st.n, hold_n) + fs:
+                    recent_n -= len(recent.pop(0))
+                if self.cfg.pose_timeout_s is not None and waited > self.cfg.pose_timeout_s * fs:
+                    raise SessionAborted(f"no still attitude from the plan within {self.cfg.pose_timeout_s:g} s "
+                                         f"(expected {name}); the board must stay still for "
+                                         f"{self.cfg.settle_s + self.cfg.hold_s:g} s in each attitude")
 
     def _tell(self, msg: str, last: str) -> str:
         if msg != last:
