@@ -172,3 +172,16 @@ def test_any_order_with_a_hint_no_timeout_and_adaptive_stop(tmp_path):
     done = [n for n, s in person.events if s == "done"]
     assert done == names
     assert result["bench_time_s"] > 0 and result["passed"]
+
+
+def test_station_commands_fail_in_one_line(tmp_path):
+    import os
+    import subprocess
+    import sys
+    env = {k: v for k, v in os.environ.items() if k != "IMUBENCH_PORT"}
+    r = subprocess.run([sys.executable, "-m", "imubench", "station", "--http-port", "70000"],
+                       capture_output=True, text=True, timeout=60, env=env)
+    assert r.returncode == 2 and "70000 is not a TCP port" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--ui", "web", "--dir", str(tmp_path / "s")],
+                       capture_output=True, text=True, timeout=60, env=env)
+    assert r.returncode == 2 and "no device: give --port URL" in r.stderr and "Traceback" not in r.stderr

@@ -104,8 +104,10 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
         href = col.locator("a.report-link").get_attribute("href")
         rep = page.request.get(server.url.rstrip("/") + href)
         assert rep.status == 200 and "IMU calibration report" in rep.text()
-        # the watcher saw the end too
+        # the watcher saw the end too, and neither page's event stream ever broke
         wcol.locator(".verdict", has_text="PASSED").wait_for()
+        assert page.evaluate("window.__streamErrors") == 0 and watcher.evaluate("window.__streamErrors") == 0
+        assert page.locator("#conn").text_content() == "live"
 
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         shot = ARTIFACTS / "station-finished.png"

@@ -396,6 +396,8 @@ class Session:
                         judged = True        # wait for the board to move before judging again
                     else:
                         if capturing != now_name:
+                            if capturing is not None:     # drifted into another attitude while still
+                                _hook(self.ui, "pose_event", capturing, "todo", {"why": "left"})
                             capturing = now_name
                         if self.cfg.adaptive and st.n >= max(hold_min, next_sigma):
                             run = SampleBlock.concat(recent)

@@ -131,6 +131,9 @@ class WebPresenter:
             if kind == "fit":
                 for t in b.turns:
                     t["state"] = "done"
+                for c in b.plan:                 # the attitudes are over: nothing is being captured
+                    if c["state"] == "capturing":
+                        c["state"], c["progress"] = "todo", 0.0
             for s in b.steps:
                 if s["kind"] == kind:
                     s.update(text=text, state=state)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import threading
 import time
 from functools import lru_cache
@@ -42,7 +43,7 @@ def create_app(station: Station) -> Starlette:
                         media_type="text/html; charset=utf-8", headers={"Cache-Control": "no-store"})
 
     async def snapshot(request: Request):
-        return JSONResponse(state.snapshot(request.query_params.get("token")))
+        return JSONResponse(_finite(state.snapshot(request.query_params.get("token"))))
 
     async def events(request: Request):
         token = request.query_params.get("token")
@@ -64,7 +65,7 @@ def create_app(station: Station) -> Starlette:
                 snap = state.snapshot(token)
                 version = snap["version"]
                 last_send = time.monotonic()
-                yield f"data: {json.dumps(snap, allow_nan=False, default=_num)}\n\n"
+                yield f"data: {json.dumps(_finite(snap), allow_nan=False, default=_num)}\n\n"
 
         return StreamingResponse(stream(), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
@@ -154,11 +155,23 @@ def _vector(text) -> tuple:
     return v
 
 
+def _finite(x):
+    """JSON has no NaN or infinity: a number not known (NaN) or unbounded is sent as null."""
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
+
+
 def _num(x):
     try:
-        return float(x)
+        v = float(x)
     except (TypeError, ValueError):
         return str(x)
+    return v if math.isfinite(v) else None
 
 
 class Server:

@@ -5,7 +5,8 @@
   let token = sessionStorage.getItem("imubench-token") || "";
   const cols = {};                 // device key -> column element
   const cardStates = {};           // key/name -> last state seen (for the transition log)
-  window.__transitions = [];       // [key, pose name, state] as the page saw them (tests read it)
+  window.__transitions = [];
+  window.__streamErrors = 0;       // event stream failures (a healthy session has none)       // [key, pose name, state] as the page saw them (tests read it)
   let last = null;
 
   const $ = (sel, el) => (el || document).querySelector(sel);
@@ -31,7 +32,7 @@
     if (es) es.close();
     es = new EventSource("/api/events?token=" + encodeURIComponent(token));
     es.onopen = () => { $("#conn").textContent = "live"; };
-    es.onerror = () => { $("#conn").textContent = "reconnecting…"; };
+    es.onerror = () => { window.__streamErrors += 1; $("#conn").textContent = "reconnecting…"; };
     es.onmessage = (ev) => { last = JSON.parse(ev.data); render(last); };
   }
 
