@@ -88,3 +88,4 @@ bench: venv
 	$(PY) bench/sim_stream.py
 	$(PY) bench/core_instructions.py
 	$(PY) bench/calib_solve.py
+	$(PY) bench/session_time.py

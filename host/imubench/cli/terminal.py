@@ -41,10 +41,9 @@ class HumanPresenter:
 
     def live(self, st):
         """Name the attitude the board is in as soon as it changes (and the hint, if any)."""
-        from imubench.procedures.poses import pose_words  # noqa: F401 - words come with st
         att = st.get("attitude")
         key = (att, bool(st.get("hint")))
-        if key == getattr(self, "_last_attitude", None) or st.get("state") == "moving":
+        if key == getattr(self, "_last_attitude", None) or st.get("state") != "still":
             return
         self._last_attitude = key
         if att is None:
