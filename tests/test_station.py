@@ -185,3 +185,13 @@ def test_station_commands_fail_in_one_line(tmp_path):
     r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--ui", "web", "--dir", str(tmp_path / "s")],
                        capture_output=True, text=True, timeout=60, env=env)
     assert r.returncode == 2 and "no device: give --port URL" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_the_verdict_says_in_words_why_six_faces_failed():
+    from imubench.results.report import calibration_verdict
+    result = {"passed": False, "method": "six", "accel_rms_after_mg": 3.2, "tolerances": {"accel_rms_mg": 1.0},
+              "accel": {"extra": {"chi2_red": 5.5e6}}, "faces_off_square_deg": 1.3}
+    status, words = calibration_verdict(result)
+    assert status == "fail"
+    assert "the six faces are 1.3° off square (χ²/dof 5.5e+06): use --method multi" in words
+    assert "nothing was written to the device" in words

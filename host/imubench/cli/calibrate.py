@@ -82,7 +82,7 @@ def run(a) -> int:
                         hold_s=a.hold, write=not a.no_write, note=a.note, adaptive=a.capture == "adaptive",
                         pose_timeout_s=a.pose_timeout)
     if a.method == "six" and not a.resume:
-        print(SIX_WARNING, file=sys.stderr)
+        print(SIX_WARNING)
     directory = Path(a.resume or a.dir or f"imubench-session-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: (f"everything captured is kept in {directory}; continue with: "
                               f"imubench calibrate --resume {directory}" + (" --sim" if a.sim else "")
