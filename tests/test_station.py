@@ -74,6 +74,8 @@ def test_human_presenter_lists_missing_attitudes_and_names_the_one_held(capsys):
     ui.live({"attitude": plan[2][0], "words": pose_words(plan[2][1]), "state": "still", "captured": False, "hint": ""})
     out = capsys.readouterr().out
     assert "[2/26 captured] present any missing attitude, in any order" in out
+    ui.present_todo(plan[3:], plan[:3], 26)                           # later: the names only
+    assert "missing: -X up (nose down), +Y up" in " ".join(capsys.readouterr().out.split())
     assert "X up, connector to the floor" in out and "-X+Y+Z corner" in out and "+Z up (level)" not in out
     assert f"the board is in {plan[2][0]}: X up, connector to the floor (capturing, hold still)" in out
     assert "@" in out and "‾" in out                                   # the drawing

@@ -25,18 +25,19 @@ class HumanPresenter:
                  f"(up along board {np.round(direction, 2).tolist()}), then hold it still\n"
                  + _indent(board_text(direction)))
 
-    def present_rest(self, duration_s):
-        self.say(f"put the board down (or hold it) and keep it still for {duration_s:g} s: "
-                 "the session measures the noise that sets its stillness threshold")
-
     def present_todo(self, todo, done, total):
-        """The attitudes still missing, in words: present any of them, in any order."""
+        """The attitudes still missing: the first time each with its words, then their names."""
+        import textwrap
+
         from imubench.procedures.poses import pose_words
-        self._todo = {n for n, _ in todo}
-        lines = [f"[{len(done)}/{total} captured] present any missing attitude, in any order, and hold it still:"]
-        for n, d in todo:
-            lines.append(f"    {n:22s} {pose_words(d)}")
-        self.say("\n".join(lines))
+        head = f"[{len(done)}/{total} captured] present any missing attitude, in any order, and hold it still"
+        if not getattr(self, "_listed", False):
+            self._listed = True
+            width = max(len(n) for n, _ in todo) + 2
+            self.say(head + ":\n" + "\n".join(f"    {n:{width}s}{pose_words(d)}" for n, d in todo))
+        else:
+            self.say(textwrap.fill(f"{head}; missing: " + ", ".join(n for n, _ in todo), width=110,
+                                   subsequent_indent="    "))
         self._last_attitude = None
 
     def live(self, st):

@@ -58,8 +58,6 @@ class WebPresenter:
 
     def present_rest(self, duration_s) -> None:
         self._upd(lambda b: setattr(b, "phase", "rest"))
-        self.say(f"put the board down (or hold it) and keep it still for {duration_s:g} s: the noise measured "
-                 "now sets the stillness threshold")
 
     def present_todo(self, todo, done, total) -> None:
         self._check_stop()
