@@ -162,8 +162,8 @@ def turn_svg(axis, rate_dps: float | None = None, angle_deg: float | None = None
     base = board_svg(up, size_px)
     sign = 1.0 if (rate_dps or angle_deg or 1.0) >= 0 else -1.0
     sign *= 1.0 if np.allclose(up, axis) else -1.0
-    cx, cy = size_px / 2, size_px * 0.2
-    r = size_px * 0.16
+    cx, cy = size_px / 2, size_px * 0.24
+    r = size_px * 0.2
     sweep = 1 if sign < 0 else 0                     # counter-clockwise seen from above: + about up
     label = f"{rate_dps:+.0f} °/s" if rate_dps is not None else f"{angle_deg:+.0f}°" if angle_deg is not None else ""
     name = "XYZ"[int(np.argmax(np.abs(axis)))]
@@ -171,7 +171,7 @@ def turn_svg(axis, rate_dps: float | None = None, angle_deg: float | None = None
            f'stroke="#7c3aed" stroke-width="2.5" marker-end="url(#ahturn)"/>'
            f'<defs><marker id="ahturn" viewBox="0 0 10 10" refX="8" refY="5" markerWidth="5" markerHeight="5" '
            f'orient="auto-start-reverse"><path d="M0,0 L10,5 L0,10 z" fill="#7c3aed"/></marker></defs>'
-           f'<text x="{cx:.1f}" y="{cy - r * 0.6:.1f}" font-size="{size_px / 11:.0f}" text-anchor="middle" '
+           f'<text x="4" y="{size_px - 4:.1f}" font-size="{size_px / 11:.0f}" text-anchor="start" '
            f'fill="#7c3aed" font-family="sans-serif">about {name}: {label}</text>')
     return base.replace("</svg>", arc + "</svg>")
 

@@ -76,7 +76,8 @@ class WebPresenter:
             for t in b.turns:
                 t["state"] = "done"
             b.turns.append({"axis": [float(x) for x in axis], "rate_dps": float(rate_dps),
-                            "duration_s": float(duration_s), "state": "running"})
+                            "duration_s": float(duration_s), "state": "running",
+                            "total": getattr(self, "turns_total", 0) or None})
             b.phase = "turns"
         self._upd(f)
 

@@ -157,6 +157,7 @@ class Station:
             cfg = SessionConfig(method=o["method"], gyro=None if o["gyro"] == "none" else o["gyro"],
                                 rate_hz=o["rate_hz"], write=o["write"], note=o["note"],
                                 adaptive=o["capture"] == "adaptive", pose_timeout_s=None)
+            ui.turns_total = 6 * len(cfg.turntable_rates_dps) if cfg.gyro == "turntable" else 0
             if o["method"] == "six":
                 ui.say("warning: six-position needs a square fixture (a machined cube against a square); held by "
                        "hand its faces are degrees off square and the fit fails: use multi")

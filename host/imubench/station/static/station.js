@@ -106,12 +106,17 @@
   }
 
   function renderLive(el, b) {
-    const L = b.status === "running" ? b.live || {} : {};
+    const posing = b.status === "running" && (b.phase === "poses" || b.phase === "rest");
+    const L = posing ? b.live || {} : {};
     $(".live", el).classList.toggle("idle", b.status !== "running");
     $(".a-g", el).textContent = L.a_g == null ? "–" : Number(L.a_g).toFixed(4);
     const att = $(".attitude", el);
     if (b.phase === "rest") att.textContent = "hold still: measuring the noise" + (L.rest != null ? ` (${fmt(100 * L.rest, 0)} %)` : "");
     else if (L.attitude) att.innerHTML = `the board is in <b>${esc(L.attitude)}</b>: ${esc(L.words)}${L.captured ? " (already captured)" : ""}`;
+    else if (b.status === "running" && !posing) att.textContent = {
+      turns: "the turntable turns the board: keep it mounted, hands off", fit: "fitting…",
+      write: "writing the parameters to the device…", verify: "verifying: present the attitude asked for below",
+      start: "starting…"}[b.phase] || b.phase;
     else if (b.status !== "running") att.textContent = b.status === "done" ? "session finished" : b.status === "idle" ? "–" : "session " + b.status;
     else att.textContent = L.state ? (L.state === "moving" ? "moving…" : "in no planned attitude") : "–";
     const k = L.k || 3, km = L.k_move || 6, r = L.ratio || 0;
@@ -140,7 +145,7 @@
       ? "<tr><td>the parameters' σ appear once 12 attitudes are captured</td></tr>" : "";
     $(".steps", el).innerHTML = b.steps.map((s) => `<div class="step ${esc(s.state)}" data-kind="${esc(s.kind)}">${esc(s.text)}</div>`).join("");
     $(".turns", el).innerHTML = b.turns.map((t, i) =>
-      `<div class="step ${esc(t.state)}"><img alt="turn" src="/turn.svg?axis=${t.axis.join(",")}&rate=${t.rate_dps}"> turn ${i + 1}: ` +
+      `<div class="step ${esc(t.state)}"><img alt="turn" src="/turn.svg?axis=${t.axis.join(",")}&rate=${t.rate_dps}"> turn ${i + 1}${t.total ? " of " + t.total : ""}: ` +
       `${fmt(t.rate_dps, 0)} °/s about board [${t.axis.map((x) => fmt(x, 0)).join(", ")}] for ${fmt(t.duration_s, 1)} s</div>`).join("");
   }
 
