@@ -197,3 +197,17 @@ def test_the_verdict_says_in_words_why_six_faces_failed():
     assert status == "fail"
     assert "the six faces are 1.3° off square (χ²/dof 5.5e+06): use --method multi" in words
     assert "nothing was written to the device" in words
+
+
+def test_the_suggested_next_attitude_helps_the_fit_most():
+    from imubench.calib.accel import dilution
+    from imubench.procedures.poses import suggest_next
+    plan = [(p.name, p.vector) for p in POSE_PLAN]
+    assert suggest_next([[0, 0, 1]], plan[1:]) == "-Z up (upside down)"       # spread first
+    done = [v for _, v in plan[:6] + plan[18:22]]           # the faces and four corners
+    todo = plan[6:18] + plan[22:]
+    best = suggest_next(done, todo)
+    after = {n: dilution(np.array(done + [v])) for n, v in todo}
+    worst_after = {n: float(np.max(s)) for n, s in after.items() if s is not None}
+    assert worst_after[best] == min(worst_after.values()) < max(worst_after.values())
+    assert suggest_next(done, []) is None

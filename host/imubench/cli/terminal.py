@@ -38,6 +38,11 @@ class HumanPresenter:
         else:
             self.say(textwrap.fill(f"{head}; missing: " + ", ".join(n for n, _ in todo), width=110,
                                    subsequent_indent="    "))
+        sug = getattr(self, "_suggested", None)
+        if sug and sug in {n for n, _ in todo}:
+            from imubench.calib.accel import POSE_PLAN
+            d = next(p.vector for p in POSE_PLAN if p.name == sug)
+            self.say(f"  suggested next (helps the fit most): {sug}: {pose_words(d)}")
         self._last_attitude = None
 
     def live(self, st):
@@ -56,6 +61,9 @@ class HumanPresenter:
         from imubench.results.boardpic import board_text
         where = "already captured" if st.get("captured") else "capturing, hold still"
         self.say(f"  the board is in {att}: {st.get('words')} ({where})\n" + _indent(board_text(d)))
+
+    def suggest(self, name):
+        self._suggested = name
 
     def pose_event(self, name, state, detail):
         if state == "rejected":

@@ -7,6 +7,7 @@ captured enough: the pose logic of the guided session (imubench.procedures.sessi
     hold_sigma_g(acc_mps2)               sigma of the mean of |a| over a hold, in g
     accel_sigmas(fit)                    the accelerometer parameters' sigmas in target units
     enough_attitudes(means, ...)         has an adaptive multi-position session reached its targets?
+    suggest_next(done, todo)             the missing attitude that helps the fit most
 
 The board's connector is on its rear (−X) edge (docs/conventions.md, "Pictures of the board"):
 with X up the connector points to the floor.
@@ -70,9 +71,19 @@ def angle_deg(a, b) -> float:
 def detect_attitude(mean, plan, tol_deg: float = DETECT_TOL_DEG) -> tuple[int | None, float]:
     """(index into `plan` of the planned attitude nearest the measured mean specific force,
     angle to it in degrees); index None when even the nearest is more than tol_deg away."""
-    angles = [angle_deg(mean, v) for _, v in plan]
+    angles = plan_angles_deg(mean, plan)
     k = int(np.argmin(angles))
     return (k if angles[k] <= tol_deg else None), float(angles[k])
+
+
+def plan_angles_deg(mean, plan) -> np.ndarray:
+    """Angle in degrees between a measured direction and each planned attitude (vectorised:
+    the session asks 20 times a second of device time)."""
+    d = np.asarray(mean, float)
+    d = d / np.linalg.norm(d)
+    v = np.array([np.asarray(p, float) for _, p in plan])
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    return np.degrees(np.arccos(np.clip(v @ d, -1.0, 1.0)))
 
 
 # ------------------------------------------------------------------------- targets
@@ -147,3 +158,25 @@ def enough_attitudes(means, sigmas, t: Targets) -> tuple[bool, dict | None, str]
         return False, sig, (f"{len(over)} parameters above target, worst {worst} = {sig[worst]:.3g} "
                             f"{PARAM_UNITS[worst[0]]} (target {target_of(worst, t):g})")
     return True, sig, "every parameter at its target"
+
+
+def suggest_next(done_dirs, todo) -> str | None:
+    """The name of the attitude in `todo` [(name, direction)] that helps the |a| = g fit most
+    after the attitudes in `done_dirs`: the one that lowers the worst parameter's sigma most
+    (calib.accel.dilution); while the attitudes so far cannot constrain every parameter, the
+    one farthest from all of them. A suggestion: the person may present any."""
+    from imubench.calib.accel import dilution
+    if not todo:
+        return None
+    done = [np.asarray(d, float) / np.linalg.norm(d) for d in done_dirs]
+    cands = [(n, np.asarray(v, float) / np.linalg.norm(v)) for n, v in todo]
+    best, best_score = None, None
+    for n, v in cands:
+        sig = dilution(np.array(done + [v])) if len(done) >= 8 else None
+        if sig is not None:
+            score = (0, float(np.max(sig)))
+        else:      # spread first: the farthest from what is there (the largest smallest angle)
+            score = (1, -min((angle_deg(v, d) for d in done), default=180.0))
+        if best_score is None or score < best_score:
+            best, best_score = n, score
+    return best

@@ -1,6 +1,6 @@
 """The guided calibration session: capture, fit, write back, verify, record.
 
-    imubench calibrate --port URL [--method six|multi] [--gyro turntable|rotation|bias]
+    imubench calibrate --port URL [--method multi|six] [--capture adaptive|plan] [--gyro turntable|rotation|bias]
 
 One continuous raw stream runs for the whole session; every received byte is appended to
 `capture.bin` in the session directory as it arrives, and `session.json` is rewritten
@@ -29,7 +29,15 @@ from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
 from imubench.device.link import Device
 from imubench.errors import ImubenchError
-from imubench.procedures.poses import Targets, angle_deg, detect_attitude, enough_attitudes, hold_sigma_g, pose_words
+from imubench.procedures.poses import (
+    Targets,
+    detect_attitude,
+    enough_attitudes,
+    hold_sigma_g,
+    plan_angles_deg,
+    pose_words,
+    suggest_next,
+)
 from imubench.results.atomic import write_json_atomic
 from imubench.results.sessionfile import SESSION_SCHEMA, SessionFileError, load_state
 from imubench.wire import params as PR
@@ -104,6 +112,7 @@ class Presenter(Protocol):
       pose_event(name, state, detail: dict)            "capturing" (progress) / "done" (before_g,
                                                        after_g later) / "rejected" (why) / "todo"
       targets(sigmas: dict, targets: dict, reached)    an adaptive session's parameter sigmas
+      suggest(name)                                    the missing attitude that helps the fit most
       step(kind, text, state)                          fit / write-back / verification steps
     """
     def say(self, text: str) -> None: ...
@@ -334,6 +343,8 @@ class Session:
         todo_names = {n for n, _ in plan}
         done = [(n, v) for n, v in full_plan if n not in todo_names]
         name, direction = plan[0]
+        if self.cfg.method == "multi":
+            _hook(self.ui, "suggest", suggest_next([v for _, v in done], plan))
         if hasattr(self.ui, "present_todo"):
             self.ui.present_todo(list(plan), done, total)
         else:
@@ -357,8 +368,8 @@ class Session:
         live_due = 0
         while True:
             # a block read after a pause (a virtual bench far ahead of the session) can hold
-            # seconds of data: judge it in pieces of 1/20 s, as a live stream would come
-            for b in _pieces(self._next_block(), max(1, fs // 20)):
+            # seconds of data: judge it in pieces of 1/10 s, as a live stream would come
+            for b in _pieces(self._next_block(), max(1, fs // 10)):
                 waited += len(b)
                 recent.append(b)
                 recent_n += len(b)
@@ -384,7 +395,7 @@ class Session:
                 if st.state == "moving":
                     pass                             # no hint while the person is still turning it
                 elif k is None:
-                    near = full_plan[int(np.argmin([angle_deg(now_dir, v) for _, v in full_plan]))]
+                    near = full_plan[int(np.argmin(plan_angles_deg(now_dir, full_plan)))]
                     hint = (f"the board is in no planned attitude: {ang:.0f}° from the nearest, "
                             f"{near[0]} ({pose_words(near[1])}); turn it until it is within "
                             f"{20:.0f}° of a missing one")
@@ -439,7 +450,7 @@ class Session:
                     recent_n -= len(recent.pop(0))
                 if self.cfg.pose_timeout_s is not None and waited > self.cfg.pose_timeout_s * fs:
                     raise SessionAborted(f"no still attitude from the plan within {self.cfg.pose_timeout_s:g} s "
-                                         f"(expected {name}); the board must stay still for "
+                                         f"({len(plan)} missing, e.g. {name}); the board must stay still for "
                                          f"{self.cfg.settle_s + self.cfg.hold_s:g} s in each attitude")
 
     def _tell(self, msg: str, last: str) -> str:
@@ -455,7 +466,8 @@ class Session:
         k = int(np.argmin(angles))
         done = {p.name for p in self.poses}
         if angles[k] > 20.0:
-            return f"the board is not in a planned attitude (gravity along {np.round(d, 2).tolist()}); expected {plan[0][0]}"
+            return (f"the board is not in a missing attitude (up along board {np.round(d, 2).tolist()}); "
+                    f"{len(plan)} missing, e.g. {plan[0][0]}")
         name, direction = plan[k]
         if name in done:
             return f"{name} is already captured: present another attitude"

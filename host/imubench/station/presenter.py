@@ -119,6 +119,9 @@ class WebPresenter:
                     c["state"] = state
         self._upd(f)
 
+    def suggest(self, name) -> None:
+        self._upd(lambda b: setattr(b, "suggested", name))
+
     def targets(self, sigmas, targets, reached) -> None:
         self._upd(lambda b: setattr(b, "targets", {"sigmas": sigmas, "targets": targets, "reached": bool(reached)}))
 

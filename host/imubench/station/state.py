@@ -31,6 +31,7 @@ class DeviceBoard:
     error: str | None = None
     resumable: bool = False
     done_seq: int = 0                                 # how many poses are done (order of capture)
+    suggested: str | None = None                      # the missing attitude that helps the fit most
     owner: str | None = field(default=None, repr=False)
     owner_seen: float = 0.0
 

@@ -171,9 +171,11 @@
       card.dataset.state = c.state;
       card.dataset.seq = c.seq == null ? "" : c.seq;
       card.className = "card " + c.state + (c.name === here && b.status === "running" ? " here" : "") +
-        (b.status === "done" && c.state === "todo" ? " unneeded" : "");
+        (b.status === "done" && c.state === "todo" ? " unneeded" : "") +
+        (b.status === "running" && c.state === "todo" && c.name === b.suggested ? " suggested" : "");
       $(".seq", card).textContent = c.seq == null ? "" : "#" + c.seq;
-      $(".state", card).textContent = c.state === "todo" ? (b.status === "done" ? "not needed" : "to do") :
+      $(".state", card).textContent = c.state === "todo" ? (b.status === "done" ? "not needed" :
+        c.name === b.suggested && b.status === "running" ? "to do — suggested next" : "to do") :
         c.state === "capturing" ? "capturing — hold still" : c.state;
       $(".bar-fill", card).style.width = fmt(100 * (c.progress || 0), 0) + "%";
       let d = "";
