@@ -88,6 +88,9 @@ def run(a) -> int:
                               f"imubench calibrate --resume {directory}" + (" --sim" if a.sim else "")
                               if (directory / "session.json").exists() else "nothing was captured")
     if a.ui == "web":
+        if a.redo or a.closure:
+            raise UsageError(f"{'--redo' if a.redo else '--closure'} is a terminal option",
+                             "run it without --ui web (the page resumes a session with its Resume button)")
         return _run_web(a, cfg, directory)
     if a.sim:
         from imubench.device.sim import VirtualBench

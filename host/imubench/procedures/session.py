@@ -30,6 +30,7 @@ from imubench.calib import CalibrationError, TriadFit
 from imubench.device.link import Device
 from imubench.errors import ImubenchError
 from imubench.procedures.poses import (
+    DETECT_TOL_DEG,
     Targets,
     detect_attitude,
     enough_attitudes,
@@ -392,13 +393,14 @@ class Session:
                 k, ang = detect_attitude(now_dir, full_plan)
                 now_name = full_plan[k][0] if k is not None else None
                 hint = ""
+                frac = 0.0
                 if st.state == "moving":
                     pass                             # no hint while the person is still turning it
                 elif k is None:
                     near = full_plan[int(np.argmin(plan_angles_deg(now_dir, full_plan)))]
                     hint = (f"the board is in no planned attitude: {ang:.0f}° from the nearest, "
                             f"{near[0]} ({pose_words(near[1])}); turn it until it is within "
-                            f"{20:.0f}° of a missing one")
+                            f"{DETECT_TOL_DEG:.0f}° of a missing one")
                 elif now_name not in todo_names:
                     hint = f"{now_name} is already captured: present one of the {len(plan)} missing"
                 if still and not judged:
@@ -442,7 +444,7 @@ class Session:
                         "k": float(det.k), "k_move": float(det.k_move), "state": st.state,
                         "attitude": now_name, "words": pose_words(full_plan[k][1]) if k is not None else None,
                         "angle_deg": ang, "captured": bool(now_name and now_name not in todo_names),
-                        "hold": float(min(st.n / hold_n, 1.0)) if still else 0.0,
+                        "hold": float(min(frac, 1.0)) if still else 0.0,
                         "sigma_mg": (sigma_g * 1e3 if np.isfinite(sigma_g) else None),
                         "target_mg": t.pose_sigma_mg if self.cfg.adaptive else None, "hint": hint,
                         "device_s": float(b.sample_index[-1]) / fs})
