@@ -52,7 +52,8 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
         col.locator(".status", has_text="running").wait_for()
         # the live |a| while the person holds the board
         page.wait_for_function(
-            "() => /^[01]\\.\\d{4}$/.test((document.querySelector('.board-col .a-g') || {}).textContent || '')")
+            "() => /^[01]\\.\\d{4}$/.test((document.querySelector('.board-col .a-g') || {}).textContent || '')",
+            polling=20)
         a_g = float(col.locator(".a-g").text_content())
         assert 0.9 < a_g < 1.1
 
@@ -66,9 +67,11 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
                                        headers={"X-Station-Token": "not-the-owner"})
         assert refused.status == 409 and "another page" in refused.json()["error"]
         assert col.locator(".owner", has_text="you drive").is_visible()
+        page.bring_to_front()              # a page in the background gets no animation frames
 
         # stop after three attitudes, then resume from the page
-        page.wait_for_function("() => document.querySelectorAll('.card[data-state=done]').length >= 3")
+        # (polled on a timer: the page is in the background now, where animation frames stop)
+        page.wait_for_function("() => document.querySelectorAll('.card[data-state=done]').length >= 3", polling=50)
         col.locator("button.stop").click()
         col.locator(".status", has_text="interrupted").wait_for()
         first_person = station.persons[SIM_KEY]
@@ -105,6 +108,7 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
         rep = page.request.get(server.url.rstrip("/") + href)
         assert rep.status == 200 and "IMU calibration report" in rep.text()
         # the watcher saw the end too, and neither page's event stream ever broke
+        watcher.bring_to_front()
         wcol.locator(".verdict", has_text="PASSED").wait_for()
         assert page.evaluate("window.__streamErrors") == 0 and watcher.evaluate("window.__streamErrors") == 0
         assert page.locator("#conn").text_content() == "live"
