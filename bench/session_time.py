@@ -39,6 +39,11 @@ def one(vb, adaptive: bool, seed: int, workdir: Path) -> dict:
     return {"result": result, "order": person.order, "moves_s": person.moves_s, "wall_s": wall}
 
 
+def _mean_hold_s(result: dict) -> float:
+    poses = result["poses"]
+    return sum(p["n"] for p in poses) / SessionConfig().rate_hz / len(poses)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seed", type=int, default=7, help="virtual device and person seed")
@@ -56,7 +61,7 @@ def main() -> int:
     rows = [("bench time (device s)", lambda r: f"{r['result']['bench_time_s']:.1f}"),
             ("  of which hand moves (s)", lambda r: f"{r['moves_s']:.1f}"),
             ("attitudes used", lambda r: f"{len(r['result']['poses'])}"),
-            ("mean hold per attitude (s)", lambda r: f"{sum(p['n'] for p in r['result']['poses']) / SessionConfig().rate_hz / len(r['result']['poses']):.2f}"),
+            ("mean hold per attitude (s)", lambda r: f"{_mean_hold_s(r['result']):.2f}"),
             ("RMS |a| - g after (mg)", lambda r: f"{r['result']['accel_rms_after_mg']:.3f}")]
     for label, f in rows:
         print(f"{label:28s}{f(fixed):>{w + 10}s}{f(adapt):>{w}s}")

@@ -194,7 +194,8 @@ class Station:
             except Exception as e:  # noqa: BLE001 - the result is safe in session.json
                 recorded = f"not recorded in the history ({_one_line(e)}); the result is in {d / 'session.json'}"
         report = build_report(d)
-        summary = {"status": status, "verdict": words, "parameters": [r for r in parameter_rows(result) if r[1] != "not estimated"],
+        params = [r for r in parameter_rows(result) if r[1] != "not estimated"]
+        summary = {"status": status, "verdict": words, "parameters": params,
                    "accel_rms_after_mg": result.get("accel_rms_after_mg"), "bench_time_s": result.get("bench_time_s"),
                    "attitudes": len(result.get("poses") or []), "passed": bool(result.get("passed")),
                    "written": bool(result.get("written")), "verified": bool(result.get("verified")),
