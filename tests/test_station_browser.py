@@ -56,6 +56,8 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
             polling=20)
         a_g = float(col.locator(".a-g").text_content())
         assert 0.9 < a_g < 1.1
+        # one missing attitude is suggested (the one that helps the fit most)
+        page.wait_for_function("() => !!document.querySelector('.card.suggested[data-state=todo]')", polling=20)
 
         # a second page sees the same device, read-only: no stop, no resume, refused if it tries
         watcher = browser.new_page()
@@ -71,7 +73,13 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
 
         # stop after three attitudes, then resume from the page
         # (polled on a timer: the page is in the background now, where animation frames stop)
-        page.wait_for_function("() => document.querySelectorAll('.card[data-state=done]').length >= 3", polling=50)
+        try:
+            page.wait_for_function("() => document.querySelectorAll('.card[data-state=done]').length >= 3",
+                                   polling=50)
+        except Exception:
+            b = station.state.boards[SIM_KEY]
+            raise AssertionError(f"no three attitudes on the page: {b.status} {b.phase} {b.error} done {b.done_seq}; "
+                                 f"page shows {page.locator('.card[data-state=done]').count()}; log {b.log[-5:]}") from None
         col.locator("button.stop").click()
         col.locator(".status", has_text="interrupted").wait_for()
         first_person = station.persons[SIM_KEY]

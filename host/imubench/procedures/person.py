@@ -49,7 +49,7 @@ class SimPerson(SimPresenter):
     # everything the session says or shows also goes to the forwarded presenter
     def __getattr__(self, name):
         fwd = self.__dict__.get("forward")
-        if fwd is not None and name in ("present_plan", "live", "pose_event", "targets", "step"):
+        if fwd is not None and name in ("present_plan", "live", "pose_event", "targets", "step", "suggest"):
             return getattr(fwd, name)
         raise AttributeError(name)
 

@@ -285,7 +285,17 @@ class Session:
 
     # ------------------------------------------------------------- streaming
     def _next_block(self, timeout: float = 10.0) -> SampleBlock:
-        b = self.dev.read(duration_s=0.05, timeout=timeout)
+        """The samples of the next 1/20 s (at least one): a pause of the stream shorter than
+        `timeout` (a busy host, the buffer just discarded) is waited out, not an error."""
+        from imubench.device.link import LinkTimeout
+        t_end = time.monotonic() + timeout
+        while True:
+            try:
+                b = self.dev.read(duration_s=0.05, timeout=timeout)
+                break
+            except LinkTimeout:
+                if time.monotonic() > t_end:
+                    raise
         if getattr(self, "_first_index", None) is None:
             self._first_index = int(b.sample_index[0])
         self._last_index = int(b.sample_index[-1]) + 1
@@ -350,6 +360,10 @@ class Session:
             self.ui.present_todo(list(plan), done, total)
         else:
             self.ui.present_pose(name, direction, index, total)
+        # only what comes after the prompt counts: samples that waited in the buffer (behind a
+        # question on the terminal, or a reader behind the device) show the board before the
+        # person acted. The capture file on disk keeps every sample (the rotation method's).
+        self.dev.discard_buffered()
         det = StillnessDetector(fs, noise, window_s=self.cfg.settle_s)
         if self.cfg.adaptive:
             hold_min, hold_n = int(t.hold_min_s * fs), int(t.hold_max_s * fs)
@@ -403,6 +417,15 @@ class Session:
                             f"{DETECT_TOL_DEG:.0f}° of a missing one")
                 elif now_name not in todo_names:
                     hint = f"{now_name} is already captured: present one of the {len(plan)} missing"
+                if (st.state == "settling" and not hint and k is not None and st.still_s > 0
+                        and not judged):
+                    # quiet, not yet for settle_s: the first half of the card's bar
+                    if capturing not in (None, now_name):
+                        _hook(self.ui, "pose_event", capturing, "todo", {"why": "left"})
+                    capturing = now_name
+                    frac = 0.5 * min(1.0, st.still_s / self.cfg.settle_s)
+                    self.ui.progress(now_name, frac)
+                    _hook(self.ui, "pose_event", now_name, "capturing", {"progress": frac})
                 if still and not judged:
                     if hint:
                         last_msg = self._tell(hint, last_msg)
@@ -425,8 +448,9 @@ class Session:
                         else:
                             frac = st.n / hold_n
                             enough = st.n >= hold_n
-                        self.ui.progress(now_name, min(frac, 1.0))
-                        _hook(self.ui, "pose_event", now_name, "capturing", {"progress": min(float(frac), 1.0)})
+                        frac = 0.5 + 0.5 * min(float(frac), 1.0)     # settled: the second half of the bar
+                        self.ui.progress(now_name, frac)
+                        _hook(self.ui, "pose_event", now_name, "capturing", {"progress": frac})
                         if enough:
                             # exactly the samples of this still run: the last st.n received (at most the hold)
                             run = SampleBlock.concat(recent)
@@ -444,7 +468,7 @@ class Session:
                         "k": float(det.k), "k_move": float(det.k_move), "state": st.state,
                         "attitude": now_name, "words": pose_words(full_plan[k][1]) if k is not None else None,
                         "angle_deg": ang, "captured": bool(now_name and now_name not in todo_names),
-                        "hold": float(min(frac, 1.0)) if still else 0.0,
+                        "hold": float(min(frac, 1.0)),
                         "sigma_mg": (sigma_g * 1e3 if np.isfinite(sigma_g) else None),
                         "target_mg": t.pose_sigma_mg if self.cfg.adaptive else None, "hint": hint,
                         "device_s": float(b.sample_index[-1]) / fs})
