@@ -80,13 +80,17 @@ class SimPerson(SimPresenter):
         if self.forward is not None and hasattr(self.forward, "present_todo"):
             self.forward.present_todo(todo, done, total)
         name, direction = todo[int(self.rng.integers(len(todo)))]
-        if self.wrong_first:
-            self.wrong_first = False
-            self._move_to(self._off_plan(direction), wrong=True)
-            # then, after a while, the one meant (the session hints in between)
-            self.vb.wait(4.0)
         self.order.append(name)
         self.say(f"simulated person presents {name}")
+        if self.wrong_first:
+            # first between two planned attitudes, held there ~4 s (the session hints), then
+            # on to the one meant: one path, so the session sees it as it happens
+            self.wrong_first = False
+            cur = self._gravity()
+            off = self._off_plan(direction)
+            legs = self._legs(cur, off) + self._tremor_legs()[:26] + self._legs(off, self._placed(direction))
+            self.vb.path(legs + self._tremor_legs()[:32 - len(legs)], wait=False)
+            return
         self._move_to(self._placed(direction))
 
     def present_pose(self, name, direction, index, total):
@@ -110,9 +114,13 @@ class SimPerson(SimPresenter):
         nearest = np.max(c @ plan.T, axis=1)             # cosine to the nearest planned attitude
         return c[int(np.argmin(nearest))]
 
-    def _move_to(self, target, wrong: bool = False) -> None:
+    def _gravity(self) -> np.ndarray:
         cur = np.asarray(self.vb.status()["gravity_board"], dtype=float)
-        cur /= np.linalg.norm(cur)
+        return cur / np.linalg.norm(cur)
+
+    def _legs(self, cur, target) -> list[dict]:
+        """One hand move (a random 3-8 s, minimum jerk) turning gravity direction cur into target."""
+        cur = np.asarray(cur, float) / np.linalg.norm(cur)
         target = np.asarray(target, float) / np.linalg.norm(target)
         axis = np.cross(target, cur)
         s, c = float(np.linalg.norm(axis)), float(np.clip(cur @ target, -1.0, 1.0))
@@ -122,10 +130,10 @@ class SimPerson(SimPresenter):
         axis /= np.linalg.norm(axis)
         t = float(self.rng.uniform(*self.move_s))
         self.moves_s += t
-        legs = [{"duration_s": t, "axis": axis.tolist(), "turn_deg": angle}] if angle > 1e-6 else []
-        self.vb.path(legs + self._tremor_legs(), wait=False)
-        if wrong:
-            self.vb.wait(t)
+        return [{"duration_s": t, "axis": axis.tolist(), "turn_deg": angle}] if angle > 1e-6 else []
+
+    def _move_to(self, target) -> None:
+        self.vb.path(self._legs(self._gravity(), target) + self._tremor_legs(), wait=False)
 
     def _tremor_legs(self) -> list[dict]:
         if not self.tremor_deg:
