@@ -103,3 +103,4 @@ bench: venv
 	$(PY) bench/multi_dut.py
 	$(PY) bench/real_data.py
 	$(PY) bench/arm_cycles.py
+	$(PY) bench/session_time.py

@@ -257,6 +257,7 @@ def test_calibrate_command_end_to_end(tmp_path):
                         "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
     assert "calibration PASSED" in r.stdout and "accelerometer (six_position): u = M·x + b" in r.stdout
+    assert "--method six needs a square fixture" in r.stdout          # multi is the default for a person
     png = (tmp_path / "s" / "residuals.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     # the plot says what the run did: drawn after the write-back and verification (on main it

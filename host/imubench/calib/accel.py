@@ -424,6 +424,14 @@ def _obs_jacobian(d: np.ndarray) -> np.ndarray:
     return J
 
 
+def dilution(directions) -> np.ndarray | None:
+    """Per parameter of the |a| = g model (MULTI_PARAM_NAMES), its 1-sigma from poses in these
+    directions (m, 3) with unit noise on |a|, at the nominal point (M = I, b = 0; biases per
+    g); None when the directions leave a parameter unconstrained. What an attitude adds to a
+    session can be judged from it before the attitude is presented."""
+    return _param_sigmas_unit(_obs_jacobian(_units(directions)))
+
+
 def _param_sigmas_unit(J: np.ndarray) -> np.ndarray | None:
     N = J.T @ J
     try:

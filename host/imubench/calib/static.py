@@ -23,7 +23,7 @@ from imubench.calib import CalibrationError
 __all__ = [
     "StaticInterval", "StaticIntervals", "NotEnoughStatic", "StillnessDetector", "StillnessState",
     "rest_noise", "detect_static", "require_static", "interval_stats", "window_length",
-    "noise_floor", "moving_variance", "k_min_for_window", "K_GRID",
+    "noise_floor", "moving_variance", "sigma_of_mean", "k_min_for_window", "K_GRID",
 ]
 
 # Candidate threshold factors k (window std / rest noise sigma), as imu_tk's 2..10, finer.
@@ -171,6 +171,16 @@ def interval_stats(samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     std = x.std(axis=0, ddof=1)
     tau = _tau_int(x)
     return mean, std, std * np.sqrt(tau / n)
+
+
+def sigma_of_mean(x) -> float:
+    """1-sigma uncertainty of the mean of one series x (n,): std·√(τ/n), τ the integrated
+    autocorrelation time (as interval_stats), never less than std/√n."""
+    x = np.asarray(x, dtype=np.float64).reshape(-1, 1)
+    n = len(x)
+    if n < 2:
+        raise ValueError("need at least 2 samples")
+    return float(x.std(ddof=1) * math.sqrt(_tau_int(x)[0] / n))
 
 
 # --------------------------------------------------------------------------------------------

@@ -17,8 +17,12 @@ from imubench.cli.common import (
     positive_float,
     stream_rate,
 )
+from imubench.cli.station import add_web
 
-METHODS = ("six", "multi")
+METHODS = ("multi", "six")
+CAPTURES = ("adaptive", "plan")
+SIX_WARNING = ("warning: --method six needs a square fixture (a machined cube against a square): held by hand the "
+               "faces are degrees off square and the fit fails; --method multi needs none")
 GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "none")
 # imubench.recordings.FORMATS and imubench.results.paramfiles.WRITERS, named here so that building
 # the parser loads neither (tests/test_from_file.py checks they agree)
@@ -39,9 +43,17 @@ def register(sub) -> None:
                                    "device's own output and record the run in the history (docs/calibration.md). "
                                    "Everything captured is on disk as it arrives: --resume DIR continues.")
     add_port(p, many=True)
-    p.add_argument("--method", choices=METHODS, default="six",
-                   help="accelerometer model: six faces (linear least squares, full M) or the multi-position "
-                        "|a| = g fit (26 attitudes)")
+    p.add_argument("--method", choices=METHODS, default="multi",
+                   help="accelerometer model: the multi-position |a| = g fit (any attitudes, by hand) or six faces "
+                        "(linear least squares, full M; needs a square fixture)")
+    p.add_argument("--capture", choices=CAPTURES, default="adaptive",
+                   help="adaptive: hold each attitude until its |a| is known, stop when every parameter's sigma is "
+                        "at its target (docs/calibration.md); plan: every planned attitude, --hold seconds each")
+    p.add_argument("--pose-timeout", type=positive_float, default=None, metavar="S",
+                   help="give up when no planned attitude is held still within S seconds (default: wait)")
+    p.add_argument("--ui", choices=("terminal", "web"), default="terminal",
+                   help="terminal prompts, or the station page in the browser (imubench station)")
+    add_web(p)
     p.add_argument("--gyro", choices=GYRO_METHODS, default="bias",
                    help="gyro method: scale and misalignment from a turntable, from the rotations between "
                         "attitudes, or from known-angle turns by hand (one full turn on a table about X, Y and Z "
@@ -197,13 +209,24 @@ def run(a) -> int:
         from imubench.results.sessionfile import load_state
         load_state(a.resume)            # a damaged or foreign session.json is named before a device is opened
     cfg = SessionConfig(method=a.method, gyro=None if a.gyro == "none" else a.gyro, rate_hz=a.rate,
-                        hold_s=a.hold, write=not a.no_write, note=a.note)
+                        hold_s=a.hold, write=not a.no_write, note=a.note, adaptive=a.capture == "adaptive",
+                        pose_timeout_s=a.pose_timeout)
+    if a.method == "six" and not a.resume:
+        print(SIX_WARNING)
     if _station_session(a):
+        if a.ui == "web":
+            raise UsageError("--ui web drives one board; a station session with several boards runs in the terminal",
+                             "drop --ui web, or give one --port")
         return _run_station(a, cfg)
     directory = Path(a.resume or a.dir or f"imubench-session-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: (f"everything captured is kept in {directory}; continue with: "
                               f"imubench calibrate --resume {directory}" + (" --sim" if a.sim else "")
                               if (directory / "session.json").exists() else "nothing was captured")
+    if a.ui == "web":
+        if a.redo or a.closure:
+            raise UsageError(f"{'--redo' if a.redo else '--closure'} is a terminal option",
+                             "run it without --ui web (the page resumes a session with its Resume button)")
+        return _run_web(a, cfg, directory)
     if a.sim:
         from imubench.device.sim import VirtualBench
         bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random", target=a.target)
@@ -236,6 +259,53 @@ def run(a) -> int:
                            + (" (verification failed; the previous parameters were restored)"
                               if result["passed"] and cfg.write and not result["verified"] else ""),
                            f"see the tables above and {directory / 'residuals.png'}")
+    return 0
+
+
+def _run_web(a, cfg, directory: Path) -> int:
+    """The session on the station page: served until Ctrl-C, so that a failed or stopped
+    session can be resumed there; the exit code is the last session's verdict."""
+    from imubench.cli.station import serve_forever
+    from imubench.station.runner import SIM_KEY, Station
+    from imubench.station.server import Server
+    station = Station(workdir=directory.parent, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed,
+                      allow_sim=a.sim, person={"offset_deg": (a.sim_tilt, a.sim_tilt)} if a.sim_tilt else None)
+    station.state.mode = "session"
+    key = SIM_KEY if a.sim else a.port
+    if not key:
+        raise UsageError("no device: give --port URL (or set IMUBENCH_PORT), or --sim")
+    options = {"port": key, "method": cfg.method, "gyro": a.gyro, "capture": a.capture, "write": cfg.write,
+               "note": cfg.note, "rate_hz": cfg.rate_hz}
+    reported = []
+
+    def ended() -> bool:
+        b = station.state.boards.get(key)
+        if b is not None and b.status in ("done", "failed", "interrupted") and not station.running(key) \
+                and reported[-1:] != [id(b.result) if b.result else b.error]:
+            reported.append(id(b.result) if b.result else b.error)
+            if b.result:
+                print(f"calibration {'PASSED' if b.result['status'] == 'pass' else 'FAILED'}: {b.result['verdict']}\n"
+                      f"report: {b.result['report_path']}  (the page stays up until Ctrl-C)", flush=True)
+            else:
+                print(f"session {b.status}: {b.error} (resume it on the page, or Ctrl-C)", flush=True)
+        return False
+
+    try:
+        server = Server(station, port=a.http_port)
+        station.start(options, None, directory=directory, resume=bool(a.resume))
+        serve_forever(server, a.open, until=ended)
+    except KeyboardInterrupt:
+        pass
+    except OSError as e:
+        raise CommandError(f"cannot serve on 127.0.0.1:{a.http_port}: {e.strerror or e}",
+                           "give another --http-port, or 0 for any free port") from None
+    finally:
+        station.close()
+    b = station.state.boards.get(key)
+    if b is None or not b.result or b.result["status"] != "pass":
+        raise CommandError("the calibration did not pass" if b is not None and b.result else
+                           "the session did not finish", f"everything captured is kept in {directory}; "
+                           f"continue with: imubench calibrate --resume {directory} --ui web")
     return 0
 
 

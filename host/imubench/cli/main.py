@@ -22,6 +22,7 @@ from imubench.cli import (
     flash,
     history,
     report,
+    station,
     stream,
     thermal,
     virtual,
@@ -29,7 +30,7 @@ from imubench.cli import (
 from imubench.cli.common import EXIT_INTERRUPTED, Parser, debug_enabled, explain
 
 # the order of `imubench --help`: a session first, then what follows it, then the tools
-MODULES = (calibrate, history, report, closure, allan, attitude, thermal, stream, virtual, flash)
+MODULES = (calibrate, station, history, report, closure, allan, attitude, thermal, stream, virtual, flash)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -19,8 +19,58 @@ class HumanPresenter:
         print(text, flush=True)
 
     def present_pose(self, name, direction, index, total):
-        self.say(f"[{index + 1}/{total}] place the board: {name} "
-                 f"(gravity along board {np.round(direction, 2).tolist()}), then hold it still")
+        from imubench.procedures.poses import pose_words
+        from imubench.results.boardpic import board_text
+        self.say(f"[{index + 1}/{total}] place the board: {name}: {pose_words(direction)} "
+                 f"(up along board {np.round(direction, 2).tolist()}), then hold it still\n"
+                 + _indent(board_text(direction)))
+
+    def present_todo(self, todo, done, total):
+        """The attitudes still missing: the first time each with its words, then their names."""
+        import textwrap
+
+        from imubench.procedures.poses import pose_words
+        head = f"[{len(done)}/{total} captured] present any missing attitude, in any order, and hold it still"
+        if not getattr(self, "_listed", False):
+            self._listed = True
+            width = max(len(n) for n, _ in todo) + 2
+            self.say(head + ":\n" + "\n".join(f"    {n:{width}s}{pose_words(d)}" for n, d in todo))
+        else:
+            self.say(textwrap.fill(f"{head}; missing: " + ", ".join(n for n, _ in todo), width=110,
+                                   subsequent_indent="    "))
+        sug = getattr(self, "_suggested", None)
+        if sug and sug in {n for n, _ in todo}:
+            from imubench.calib.accel import POSE_PLAN
+            d = next(p.vector for p in POSE_PLAN if p.name == sug)
+            self.say(f"  suggested next (helps the fit most): {sug}: {pose_words(d)}")
+        self._last_attitude = None
+
+    def live(self, st):
+        """Name the attitude the board is in as soon as it changes (and the hint, if any)."""
+        att = st.get("attitude")
+        key = (att, bool(st.get("hint")))
+        if key == getattr(self, "_last_attitude", None) or st.get("state") != "still":
+            return
+        self._last_attitude = key
+        if att is None:
+            return                                   # the session says the hint itself when still
+        from imubench.calib.accel import POSE_PLAN
+        d = next((p.vector for p in POSE_PLAN if p.name == att), None)
+        if d is None:
+            return
+        from imubench.results.boardpic import board_text
+        where = "already captured" if st.get("captured") else "capturing, hold still"
+        self.say(f"  the board is in {att}: {st.get('words')} ({where})\n" + _indent(board_text(d)))
+
+    def suggest(self, name):
+        self._suggested = name
+
+    def pose_event(self, name, state, detail):
+        if state == "rejected":
+            self.say(f"  {name} rejected: {detail.get('why')}")
+
+    def targets(self, sigmas, targets, reached):
+        pass                                          # the session says the line
 
     def present_turn(self, axis, rate_dps, duration_s):
         self.say(f"turn the table about board axis {np.round(axis, 2).tolist()} at {rate_dps:+.1f} °/s "
@@ -50,3 +100,7 @@ class HumanPresenter:
             return True
         answer = input(f"  {summary} — Enter to keep, r + Enter to redo: ").strip().lower()
         return answer != "r"
+
+
+def _indent(text: str, pad: str = "      ") -> str:
+    return "\n".join(pad + line for line in text.splitlines())

@@ -1,6 +1,6 @@
 """The guided calibration session: capture, fit, write back, verify, record.
 
-    imubench calibrate --port URL [--method six|multi] [--gyro turntable|rotation|bias]
+    imubench calibrate --port URL [--method multi|six] [--capture adaptive|plan] [--gyro turntable|rotation|bias]
 
 One continuous raw stream runs for the whole session; every received byte is appended to
 `capture.bin` in the session directory as it arrives, and `session.json` is rewritten
@@ -8,8 +8,10 @@ One continuous raw stream runs for the whole session; every received byte is app
 `--resume DIR` continues where the session stopped. The algorithms (imubench.calib) never
 see the serial port: this module feeds them arrays.
 
-A Presenter tells the user (or the virtual bench) which attitude to present next; the
-session itself decides, from the data, when the board is still and which attitude it is in.
+A Presenter tells the user (or the virtual bench) which attitudes are still missing; the
+session itself decides, from the data, when the board is still and which attitude it is in,
+and captures the attitudes in whatever order they are presented (procedures.poses names them
+in words and says when an adaptive session has enough).
 """
 from __future__ import annotations
 
@@ -27,6 +29,16 @@ from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
 from imubench.device.link import Device
 from imubench.errors import ImubenchError
+from imubench.procedures.poses import (
+    DETECT_TOL_DEG,
+    Targets,
+    detect_attitude,
+    enough_attitudes,
+    hold_sigma_g,
+    plan_angles_deg,
+    pose_words,
+    suggest_next,
+)
 from imubench.results.atomic import write_json_atomic
 from imubench.results.sessionfile import SESSION_SCHEMA, SessionFileError, load_state
 from imubench.wire import params as PR
@@ -52,13 +64,18 @@ class SessionConfig:
     rest_s: float = 5.0              # still at the start: noise and gyro bias
     settle_s: float = 0.5            # still this long before a pose is captured
     hold_s: float = 2.0              # captured per pose
-    pose_timeout_s: float = 120.0    # waiting for an attitude, in device time
+    pose_timeout_s: float | None = 120.0   # waiting for an attitude, in device time; None: wait
     turntable_rates_dps: tuple = (30.0, 90.0)
     turntable_s: float = 3.0
     verify_poses: int = 3
     write: bool = True               # write the parameters back if the fit passes
     note: str = ""
     tolerances: Tolerances = field(default_factory=Tolerances)
+    # adaptive capture (procedures.poses.Targets): each attitude held until its |a| is known to
+    # targets.pose_sigma_mg; a multi-position session stops adding attitudes when every
+    # parameter's sigma is at its target. False: hold_s per attitude, every planned attitude.
+    adaptive: bool = False
+    targets: Targets = field(default_factory=Targets)
 
 
 @dataclass
@@ -73,6 +90,8 @@ class PoseRecord:
     temp_c: float
     gyro_mean_rad_s: list
     stream: int = 0                  # which continuous stream (capture-<stream>.bin) it is in
+    sigma_norm_g: float | None = None      # 1-sigma of the mean |a| over the hold, g
+    angle_from_plan_deg: float | None = None   # measured gravity direction vs the planned one
 
 
 class SessionAborted(ImubenchError, RuntimeError):
@@ -81,11 +100,40 @@ class SessionAborted(ImubenchError, RuntimeError):
 
 # ---------------------------------------------------------------- presenters
 class Presenter(Protocol):
+    """What a session needs from its face (terminal, station page, virtual bench).
+
+    Optional, called when the presenter has them (see _hook):
+      present_plan(plan, method)                       the attitudes planned, before anything
+      present_rest(duration_s)                         hold still at the start
+      present_todo(todo, done, total)                  attitudes still missing, in any order:
+                                                       todo/done are [(name, direction)]
+      live(state: dict)                                a few times a second while waiting for a pose:
+                                                       a_g, ratio, k, k_move, state, attitude,
+                                                       angle_deg, hold, sigma_mg, hint
+      pose_event(name, state, detail: dict)            "capturing" (progress) / "done" (before_g,
+                                                       after_g later) / "rejected" (why) / "todo"
+      targets(sigmas: dict, targets: dict, reached)    an adaptive session's parameter sigmas
+      suggest(name)                                    the missing attitude that helps the fit most
+      step(kind, text, state)                          fit / write-back / verification steps
+    """
     def say(self, text: str) -> None: ...
     def present_pose(self, name: str, direction: np.ndarray, index: int, total: int) -> None: ...
     def present_turn(self, axis: np.ndarray, rate_dps: float, duration_s: float) -> None: ...
     def progress(self, label: str, fraction: float) -> None: ...
     def keep_pose(self, name: str, summary: str) -> bool: ...   # False: redo this pose
+
+
+def _pieces(b: SampleBlock, n: int):
+    """A block in consecutive pieces of at most n samples."""
+    for i in range(0, len(b), n):
+        yield b[i:i + n]
+
+
+def _hook(ui, name: str, *args) -> None:
+    """Call an optional presenter method if this presenter has it."""
+    f = getattr(ui, name, None)
+    if f is not None:
+        f(*args)
 
 
 class SimPresenter:
@@ -244,7 +292,33 @@ class Session:
 
     # ------------------------------------------------------------- streaming
     def _next_block(self, timeout: float = 10.0) -> SampleBlock:
-        return self.dev.read(duration_s=0.05, timeout=timeout)
+        """The samples of the next 1/20 s (at least one): a pause of the stream shorter than
+        `timeout` (a busy host, the buffer just discarded) is waited out, not an error."""
+        from imubench.device.link import LinkTimeout
+        t_end = time.monotonic() + timeout
+        while True:
+            try:
+                b = self.dev.read(duration_s=0.05, timeout=timeout)
+                break
+            except LinkTimeout:
+                if time.monotonic() > t_end:
+                    raise
+        if getattr(self, "_first_index", None) is None:
+            self._first_index = int(b.sample_index[0])
+        self._last_index = int(b.sample_index[-1]) + 1
+        return b
+
+    def _fit_inputs(self) -> tuple[np.ndarray, np.ndarray]:
+        """(means, sigmas) of the captured poses for the accelerometer fit. An adaptive
+        multi-position session weights each pose by the sigma of its mean |a| (what that fit
+        uses; a hand's tremor tilts the axes, not |a|), the same on every axis."""
+        means = np.array([p.mean_mps2 for p in self.poses])
+        sigmas = np.array([p.sigma_mean_mps2 for p in self.poses])
+        if self.cfg.adaptive and self.cfg.method == "multi":
+            sn = [p.sigma_norm_g for p in self.poses]
+            if all(v is not None for v in sn):
+                sigmas = np.repeat(np.array(sn, float)[:, None] * U.G0_MPS2, 3, axis=1)
+        return means, sigmas
 
     # ------------------------------------------------------------------ rest
     def capture_rest(self) -> dict:
@@ -270,17 +344,38 @@ class Session:
         return self.rest
 
     # ----------------------------------------------------------------- poses
-    def capture_pose(self, plan: list[tuple[str, np.ndarray]], index: int, total: int) -> PoseRecord:
-        """Wait until the board is still in one of the `plan` attitudes not yet captured,
-        capture hold_s of it, and return it. Motion restarts the capture; an attitude that
-        is not in the plan, or already captured, is named and waited past."""
+    def capture_pose(self, plan: list[tuple[str, np.ndarray]], index: int, total: int,
+                     full_plan: list[tuple[str, np.ndarray]] | None = None) -> PoseRecord:
+        """Wait until the board is still in one of the `plan` attitudes (those not yet
+        captured), in whatever order they come, capture it and return it. The attitude the
+        board is in is detected live (from the direction of the specific force) and told to
+        the presenter; one that is not planned, or already captured, is named with a hint and
+        waited past. Motion restarts the capture. The hold is cfg.hold_s, or with cfg.adaptive
+        until the mean |a| is known to targets.pose_sigma_mg (hold_min_s .. hold_max_s). No
+        timeout unless cfg.pose_timeout_s is set."""
         from imubench.calib.static import StillnessDetector
         fs = self.cfg.rate_hz
+        t = self.cfg.targets
         noise = np.asarray(self.rest["noise_mps2"])
+        full_plan = full_plan or plan
+        todo_names = {n for n, _ in plan}
+        done = [(n, v) for n, v in full_plan if n not in todo_names]
         name, direction = plan[0]
-        self.ui.present_pose(name, direction, index, total)
+        if self.cfg.method == "multi":
+            _hook(self.ui, "suggest", suggest_next([v for _, v in done], plan))
+        if hasattr(self.ui, "present_todo"):
+            self.ui.present_todo(list(plan), done, total)
+        else:
+            self.ui.present_pose(name, direction, index, total)
+        # only what comes after the prompt counts: samples that waited in the buffer (behind a
+        # question on the terminal, or a reader behind the device) show the board before the
+        # person acted. The capture file on disk keeps every sample (the rotation method's).
+        self.dev.discard_buffered()
         det = StillnessDetector(fs, noise, window_s=self.cfg.settle_s)
-        hold_n = int(self.cfg.hold_s * fs)
+        if self.cfg.adaptive:
+            hold_min, hold_n = int(t.hold_min_s * fs), int(t.hold_max_s * fs)
+        else:
+            hold_min = hold_n = int(self.cfg.hold_s * fs)
         recent: list[SampleBlock] = []   # enough trailing blocks to cover the still run
         recent_n = 0
         waited = 0
@@ -288,36 +383,108 @@ class Session:
         was_still = False
         prev_n = 0
         judged = False                   # this still run was already judged (wrong attitude)
+        capturing = None                 # the planned attitude being held now
+        sigma_g = float("inf")
+        next_sigma = 0                   # st.n at which sigma is computed next
+        live_every = max(1, fs // 8)
+        live_due = 0
         while True:
-            b = self._next_block()
-            waited += len(b)
-            recent.append(b)
-            recent_n += len(b)
-            st = det.update(b.si()[0])
-            still = st.state == "still"
-            # the still run restarted inside this block if it is shorter than before + the block
-            restarted = still and (not was_still or st.n < prev_n + len(b))
-            if not still or restarted:
-                if was_still and not judged and (st.state == "moving" or restarted):
-                    last_msg = self._tell("detected motion, hold still", last_msg)
-                judged = False
-            was_still, prev_n = still, (st.n if still else 0)
-            if still and not judged:
-                self.ui.progress(name, st.n / hold_n)
-                if st.n >= hold_n:
-                    # exactly the samples of this still run: the last st.n received
-                    run = SampleBlock.concat(recent)       # the still run is its last st.n samples
-                    rec = self._pose_from(run[len(run) - min(st.n, hold_n, len(run)):], plan)
-                    if isinstance(rec, PoseRecord):
-                        return rec
-                    last_msg = self._tell(rec, last_msg)
-                    judged = True        # wait for the board to move before judging again
-            while len(recent) > 1 and recent_n - len(recent[0]) >= max(st.n, hold_n) + fs:
-                recent_n -= len(recent.pop(0))
-            if waited > self.cfg.pose_timeout_s * fs:
-                raise SessionAborted(f"no still attitude from the plan within {self.cfg.pose_timeout_s:g} s "
-                                     f"(expected {name}); the board must stay still for "
-                                     f"{self.cfg.settle_s + self.cfg.hold_s:g} s in each attitude")
+            # a block read after a pause (a virtual bench far ahead of the session) can hold
+            # seconds of data: judge it in pieces of 1/10 s, as a live stream would come
+            for b in _pieces(self._next_block(), max(1, fs // 10)):
+                waited += len(b)
+                recent.append(b)
+                recent_n += len(b)
+                acc = b.si()[0]
+                st = det.update(acc)
+                still = st.state == "still"
+                # the still run restarted inside this block if it is shorter than before + the block
+                restarted = still and (not was_still or st.n < prev_n + len(b))
+                if not still or restarted:
+                    if was_still and not judged and (st.state == "moving" or restarted):
+                        last_msg = self._tell("detected motion, hold still", last_msg)
+                    if capturing is not None:
+                        _hook(self.ui, "pose_event", capturing, "todo", {"why": "moved"})
+                        capturing = None
+                    judged = False
+                    sigma_g, next_sigma = float("inf"), 0
+                was_still, prev_n = still, (st.n if still else 0)
+                # which attitude the board is in now (the hold's mean when still, else the last block's)
+                now_dir = st.mean if still else acc.mean(axis=0)
+                k, ang = detect_attitude(now_dir, full_plan)
+                now_name = full_plan[k][0] if k is not None else None
+                hint = ""
+                frac = 0.0
+                if st.state == "moving":
+                    pass                             # no hint while the person is still turning it
+                elif k is None:
+                    near = full_plan[int(np.argmin(plan_angles_deg(now_dir, full_plan)))]
+                    hint = (f"the board is in no planned attitude: {ang:.0f}° from the nearest, "
+                            f"{near[0]} ({pose_words(near[1])}); turn it until it is within "
+                            f"{DETECT_TOL_DEG:.0f}° of a missing one")
+                elif now_name not in todo_names:
+                    hint = f"{now_name} is already captured: present one of the {len(plan)} missing"
+                if (st.state == "settling" and not hint and k is not None and st.still_s > 0
+                        and not judged):
+                    # quiet, not yet for settle_s: the first half of the card's bar
+                    if capturing not in (None, now_name):
+                        _hook(self.ui, "pose_event", capturing, "todo", {"why": "left"})
+                    capturing = now_name
+                    frac = 0.5 * min(1.0, st.still_s / self.cfg.settle_s)
+                    self.ui.progress(now_name, frac)
+                    _hook(self.ui, "pose_event", now_name, "capturing", {"progress": frac})
+                if still and not judged:
+                    if hint:
+                        last_msg = self._tell(hint, last_msg)
+                        judged = True        # wait for the board to move before judging again
+                    else:
+                        if capturing != now_name:
+                            if capturing is not None:     # drifted into another attitude while still
+                                _hook(self.ui, "pose_event", capturing, "todo", {"why": "left"})
+                            capturing = now_name
+                        if self.cfg.adaptive and st.n >= max(hold_min, next_sigma):
+                            run = SampleBlock.concat(recent)
+                            sigma_g = hold_sigma_g(run.si()[0][len(run) - min(st.n, len(run)):])
+                            next_sigma = st.n + max(1, fs // 10)
+                        if self.cfg.adaptive:
+                            # sigma of the mean falls as 1/sqrt(n): (need/sigma)^2 is the fraction held
+                            need = t.pose_sigma_mg * 1e-3
+                            by_sigma = min(1.0, (need / sigma_g) ** 2) if np.isfinite(sigma_g) else 0.0
+                            frac = max(st.n / hold_n, min(st.n / hold_min, by_sigma) if by_sigma else 0.5 * st.n / hold_min)
+                            enough = st.n >= hold_n or (st.n >= hold_min and sigma_g <= need)
+                        else:
+                            frac = st.n / hold_n
+                            enough = st.n >= hold_n
+                        frac = 0.5 + 0.5 * min(float(frac), 1.0)     # settled: the second half of the bar
+                        self.ui.progress(now_name, frac)
+                        _hook(self.ui, "pose_event", now_name, "capturing", {"progress": frac})
+                        if enough:
+                            # exactly the samples of this still run: the last st.n received (at most the hold)
+                            run = SampleBlock.concat(recent)
+                            rec = self._pose_from(run[len(run) - min(st.n, hold_n, len(run)):], plan)
+                            if isinstance(rec, PoseRecord):
+                                return rec
+                            _hook(self.ui, "pose_event", now_name, "rejected", {"why": rec})
+                            capturing = None
+                            last_msg = self._tell(rec, last_msg)
+                            judged = True
+                if waited >= live_due:
+                    live_due = waited + live_every
+                    _hook(self.ui, "live", {
+                        "a_g": float(np.linalg.norm(acc.mean(axis=0)) / U.G0_MPS2), "ratio": float(st.ratio),
+                        "k": float(det.k), "k_move": float(det.k_move), "state": st.state,
+                        "attitude": now_name, "words": pose_words(full_plan[k][1]) if k is not None else None,
+                        "angle_deg": ang, "captured": bool(now_name and now_name not in todo_names),
+                        "hold": float(min(frac, 1.0)),
+                        "sigma_mg": (sigma_g * 1e3 if np.isfinite(sigma_g) else None),
+                        "target_mg": t.pose_sigma_mg if self.cfg.adaptive else None, "hint": hint,
+                        "device_s": float(b.sample_index[-1]) / fs})
+                while len(recent) > 1 and recent_n - len(recent[0]) >= max(st.n, hold_n) + fs:
+                    recent_n -= len(recent.pop(0))
+                if self.cfg.pose_timeout_s is not None and waited > self.cfg.pose_timeout_s * fs:
+                    raise SessionAborted(f"no still attitude from the plan within {self.cfg.pose_timeout_s:g} s "
+                                         f"({len(plan)} missing, e.g. {name}); the board must stay still for "
+                                         f"{self.cfg.settle_s + self.cfg.hold_s:g} s in each attitude")
 
     def _tell(self, msg: str, last: str) -> str:
         if msg != last:
@@ -332,19 +499,25 @@ class Session:
         k = int(np.argmin(angles))
         done = {p.name for p in self.poses}
         if angles[k] > 20.0:
-            return f"the board is not in a planned attitude (gravity along {np.round(d, 2).tolist()}); expected {plan[0][0]}"
+            return (f"the board is not in a missing attitude (up along board {np.round(d, 2).tolist()}); "
+                    f"{len(plan)} missing, e.g. {plan[0][0]}")
         name, direction = plan[k]
         if name in done:
             return f"{name} is already captured: present another attitude"
+        a_g = float(np.linalg.norm(mean)) / U.G0_MPS2
+        if abs(a_g - 1.0) > 0.1:
+            return (f"{name}: |a| = {a_g:.3f} g, more than 10 % from 1 g: the board was being moved or shaken; "
+                    "hold it still")
         from imubench.calib.static import detect_static
         iv = detect_static(acc, self.cfg.rate_hz, noise_sigma=np.asarray(self.rest["noise_mps2"]),
-                           min_duration_s=min(1.0, 0.5 * self.cfg.hold_s))
+                           min_duration_s=min(1.0, 0.5 * len(acc) / self.cfg.rate_hz))
         sigma = (max(iv, key=lambda i: i.n).sigma_mean if iv else acc.std(axis=0) / np.sqrt(len(acc)))
         temp = float(np.mean(U.accel_temp_counts_to_c(b.accel_temp_counts)))
         return PoseRecord(name=name, direction=np.asarray(direction, float).tolist(), mean_mps2=mean.tolist(),
                           sigma_mean_mps2=np.asarray(sigma, float).tolist(), n=len(acc),
                           start_index=int(b.sample_index[0]), stop_index=int(b.sample_index[-1]) + 1,
-                          temp_c=temp, gyro_mean_rad_s=gyr.mean(axis=0).tolist(), stream=self.stream_no)
+                          temp_c=temp, gyro_mean_rad_s=gyr.mean(axis=0).tolist(), stream=self.stream_no,
+                          sigma_norm_g=hold_sigma_g(acc), angle_from_plan_deg=float(angles[k]))
 
     # ---------------------------------------------------------------- stream
     def _start_stream(self) -> None:
@@ -492,30 +665,53 @@ class Session:
         from imubench.calib import accel as CA
         from imubench.calib import gyro as CG
         self.run_started = _now()
+        self._first_index = None
         ident = self.check_health()
         self._start_stream()
         try:
+            _hook(self.ui, "present_plan", list(plan), self.cfg.method)
+            for p in self.poses:
+                _hook(self.ui, "pose_event", p.name, "done", {"before_g": float(np.linalg.norm(p.mean_mps2)) / U.G0_MPS2})
+            if self.rest is None:
+                _hook(self.ui, "present_rest", self.cfg.rest_s)
             self.capture_rest()
             todo = [p for p in plan if p[0] not in {q.name for q in self.poses}]
             total = len(plan)
-            while todo:
-                rec = self.capture_pose(todo, total - len(todo), total)
-                summary = f"captured {rec.name}: |a| = {np.linalg.norm(rec.mean_mps2) / U.G0_MPS2:.5f} g ({rec.n} samples)"
+            if self.cfg.adaptive and self.cfg.method == "multi":
+                self.ui.say(self.cfg.targets.describe())
+            reached = False
+            while todo and not reached:
+                rec = self.capture_pose(todo, total - len(todo), total, full_plan=list(plan))
+                a_g = np.linalg.norm(rec.mean_mps2) / U.G0_MPS2
+                summary = (f"captured {rec.name} ({pose_words(rec.direction)}): |a| = {a_g:.5f} g "
+                           f"({rec.n} samples, {rec.n / self.cfg.rate_hz:.1f} s"
+                           + (f", σ {rec.sigma_norm_g * 1e6:.0f} µg" if rec.sigma_norm_g is not None else "") + ")")
                 if not self.ui.keep_pose(rec.name, summary):
                     self.ui.say(f"  {rec.name} discarded: present it again")
+                    _hook(self.ui, "pose_event", rec.name, "rejected", {"why": "discarded by you: present it again"})
                     self.dev.discard_buffered()
                     continue
                 self.poses.append(rec)
                 self.save()
                 todo = [p for p in todo if p[0] != rec.name]
+                _hook(self.ui, "pose_event", rec.name, "done",
+                      {"before_g": float(a_g), "n": rec.n, "sigma_mg": (rec.sigma_norm_g or float("nan")) * 1e3,
+                       "angle_from_plan_deg": rec.angle_from_plan_deg})
                 self.ui.say(f"  {summary}, {len(todo)} to go")
+                if self.cfg.adaptive and self.cfg.method == "multi":
+                    reached, sig, why = enough_attitudes(*self._fit_inputs(), self.cfg.targets)
+                    _hook(self.ui, "targets", sig, self.cfg.targets.as_dict(), reached)
+                    self.ui.say(f"  {why}" + ("" if not reached else
+                                              f": done after {len(self.poses)} attitudes, {len(todo)} not needed"))
+            # device time from the first prompt to the last pose: the person's moves included
+            self.bench_time_s = (self._last_index - self._first_index) / self.cfg.rate_hz
             segments = self.capture_turntable() if self.cfg.gyro == "turntable" else None
             turn_runs = self.capture_known_turns() if self.cfg.gyro == "turns" else None
         finally:
             self._stop_stream()
 
-        means = np.array([p.mean_mps2 for p in self.poses])
-        sigmas = np.array([p.sigma_mean_mps2 for p in self.poses])
+        means, sigmas = self._fit_inputs()
+        _hook(self.ui, "step", "fit", f"fitting {self.cfg.method}-position to {len(means)} attitudes", "running")
         if self.cfg.method == "six":
             accel = CA.six_position(means, sigmas)
         else:
@@ -544,6 +740,16 @@ class Session:
         self.accel_fit, self.gyro_fit = accel, gyro
         result = self._result(ident, accel, gyro)
         result["accel_frame"] = accel.extra.get("frame", "board")
+        result["bench_time_s"] = getattr(self, "bench_time_s", None)
+        result["adaptive"] = bool(self.cfg.adaptive)
+        if self.cfg.method == "six":
+            off = [p.angle_from_plan_deg for p in self.poses if p.angle_from_plan_deg is not None]
+            if off:
+                result["faces_off_square_deg"] = float(max(off))
+        if accel.method == "multi_position":
+            from imubench.procedures.poses import accel_sigmas
+            result["accel_sigmas"] = accel_sigmas(accel)
+        _hook(self.ui, "step", "fit", f"fitted: RMS of |a| − g after {result['accel_rms_after_mg']:.3g} mg", "done")
         if frame_note:
             result.setdefault("warnings", []).append(frame_note)
         self.save(result=result)
@@ -644,7 +850,7 @@ class Session:
                     if st.state == "still" and st.n >= hold_n:
                         run = np.concatenate(recent)[-hold_n:]
                         break
-                    if waited > self.cfg.pose_timeout_s * fs:
+                    if self.cfg.pose_timeout_s is not None and waited > self.cfg.pose_timeout_s * fs:
                         raise SessionAborted(f"verification: no still attitude for {name}")
                 a = run.mean(axis=0)
                 d = a / np.linalg.norm(a)
@@ -813,23 +1019,39 @@ def run_session(dev: Device, directory, cfg: SessionConfig, ui: Presenter, *, re
         report(result)
         return result, sess
     result = sess.run(plan_for(cfg.method))
+    for p in result["poses"]:
+        _hook(ui, "pose_event", p["name"], "done", {"before_g": p["before_g"], "after_g": p["after_g"],
+                                                    "sigma_mg": p["sigma_g"] * 1e3})
     report(result)
     if result["passed"] and cfg.write:
         previous = dev.get_params(ParamsWhich.ACTIVE).params
-        wb = sess.write_back(sess.accel_fit, sess.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
+        _hook(ui, "step", "write", "writing the parameters: set, read back, save, reboot, read back", "running")
+        try:
+            wb = sess.write_back(sess.accel_fit, sess.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
+        except Exception as e:
+            _hook(ui, "step", "write", f"write-back failed: {e}; the previous parameters were put back", "failed")
+            raise
         ui.say(f"written: {', '.join(wb['steps'])}")
+        _hook(ui, "step", "write", f"written: {', '.join(wb['steps'])}", "done")
         result["written"] = True
+        _hook(ui, "step", "verify", f"verifying the device's own output in {cfg.verify_poses} attitudes", "running")
         result["verification"] = sess.verify(plan_for("six")[:cfg.verify_poses])
         worst = max(abs(v["after_g"] - 1.0) * 1e3 for v in result["verification"])
         result["verified"] = worst <= cfg.tolerances.verify_mg
         ui.say(f"verification of the device's calibrated output: worst | |a| - g | = {worst:.3f} mg "
                f"({'within' if result['verified'] else 'OUTSIDE'} {cfg.tolerances.verify_mg} mg)")
+        _hook(ui, "step", "verify", f"worst | |a| − g | = {worst:.3f} mg "
+              f"({'within' if result['verified'] else 'OUTSIDE'} {cfg.tolerances.verify_mg} mg)",
+              "done" if result["verified"] else "failed")
         if not result["verified"]:
             sess.restore(previous)
             result["written"] = False
             ui.say("verification failed: the previous parameters were written back and saved")
     elif not result["passed"]:
         ui.say("the fit did not pass its tolerance: nothing was written to the device")
+        _hook(ui, "step", "write", "the fit did not pass its tolerance: nothing was written to the device", "skipped")
+    else:
+        _hook(ui, "step", "write", "not written to the device (--no-write)", "skipped")
     png = plot_pose_residuals(result, sess.dir / "residuals.png")
     ui.say(f"residual plot: {png}")
     sess.finish(result)

@@ -31,6 +31,8 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from imubench.results.atomic import write_text_atomic
 from imubench.results.numbers import pm as _pm_sigma
 from imubench.results.sessionfile import load_state
@@ -759,6 +761,40 @@ def _calibration_part(state: dict, result: dict) -> tuple[str, str]:
                         + (f" > {vtol:g} mg" if math.isfinite(vtol) else "") + "): the previous parameters were "
                         "written back")
     return "pass", f"fitted ({fit}); not written to the device (--no-write)"
+
+
+def calibration_verdict(result: dict, state: dict | None = None) -> tuple[str, str]:
+    """(status, words) of a calibration session's result, as the report says it (pass /
+    fail / incomplete and why); a six-position fit on faces that are not square says by how
+    many degrees (the worst face's angle from its plan) and to use --method multi."""
+    status, words = _calibration_part(state or {}, result or {})
+    off = _f((result or {}).get("faces_off_square_deg"))
+    chi = _f((((result or {}).get("accel") or {}).get("extra") or {}).get("chi2_red"))
+    if status == "fail" and math.isfinite(off) and "not square" in words:
+        words = words.replace(f"the six faces are not square (χ²/dof {chi:.2g})",
+                              f"the six faces are {off:.1f}° off square (χ²/dof {chi:.2g})")
+    return status, words
+
+
+def parameter_rows(result: dict) -> list[tuple[str, str]]:
+    """(name, value ± sigma with unit) of the accelerometer's (and gyro's) parameters, each to
+    the precision of its sigma (results.numbers): scale and cross terms of M in ppm, biases
+    in mg (accelerometer) or °/s (gyro)."""
+    from imubench.results.numbers import pm
+    rows = []
+    for kind, unit, bkey, bscale in (("accel", "mg", "b_mps2", 1e3 / 9.80665), ("gyro", "°/s", "b_rad_s", 180 / math.pi)):
+        fit = (result or {}).get(kind)
+        if not isinstance(fit, dict):
+            continue
+        m, sm = np.asarray(fit["m"], float), np.asarray(fit["sigma_m"], float)
+        b, sb = np.asarray(fit[bkey], float), np.asarray(fit[f"sigma_{bkey}"], float)
+        for i in range(3):
+            for j in range(3):
+                v = (m[i, j] - (1.0 if i == j else 0.0)) * 1e6
+                rows.append((f"{kind} M{'xyz'[i]}{'xyz'[j]}" + (" − 1" if i == j else ""), pm(v, sm[i, j] * 1e6, "ppm")))
+        for i in range(3):
+            rows.append((f"{kind} b{'xyz'[i]}", pm(b[i] * bscale, sb[i] * bscale, unit)))
+    return rows
 
 
 def _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid) -> list[tuple]:

@@ -1,0 +1,71 @@
+"""`imubench station`: the calibration station page, idle (the person chooses the device,
+method and options on the page); and the web face of `imubench calibrate --ui web`."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from imubench.cli.common import CommandError, add_sim, out_dir
+
+
+def _http_port(s: str) -> int:
+    import argparse
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not a port number") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"{v} is not a TCP port (0..65535; 0 = any free port)")
+    return v
+
+
+def add_web(p) -> None:
+    """--http-port and --open, the same for `station` and `calibrate --ui web`."""
+    p.add_argument("--http-port", type=_http_port, default=0, metavar="N",
+                   help="port of the station page on 127.0.0.1 (0: any free port; the address is printed)")
+    p.add_argument("--open", action="store_true", help="open the page in the default browser")
+
+
+def register(sub) -> None:
+    p = sub.add_parser("station", help="the calibration station page in the browser (idle: choose on the page)",
+                       description="Serve the calibration station on 127.0.0.1: a page that guides a person through "
+                                   "a session (pictures of every attitude, any order, live stillness, verdict, "
+                                   "report). Choose the device, method and options on the page. Works offline.")
+    add_web(p)
+    p.add_argument("--dir", type=out_dir, metavar="DIR", default=Path("."),
+                   help="where the session directories are made")
+    p.add_argument("--db", metavar="PATH", help="history database (default: in the user data directory)")
+    add_sim(p, "offer the virtual bench on the page (a simulated person presents the attitudes)")
+    p.set_defaults(run=run)
+
+
+def serve_forever(server, open_browser: bool, until=None) -> None:
+    """Print the address, open the browser if asked, and serve until Ctrl-C (or until()
+    returns true)."""
+    import time
+    server.start()
+    print(f"station page: {server.url}  (127.0.0.1 only; Ctrl-C stops it)", flush=True)
+    if open_browser:
+        import webbrowser
+        if not webbrowser.open(server.url):
+            print(f"could not start a browser: open {server.url} yourself", file=sys.stderr)
+    try:
+        while until is None or not until():
+            time.sleep(0.2)
+    finally:
+        server.stop()
+
+
+def run(a) -> int:
+    from imubench.station.runner import Station
+    from imubench.station.server import Server
+    station = Station(workdir=a.dir, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed, allow_sim=a.sim)
+    try:
+        server = Server(station, port=a.http_port)
+        serve_forever(server, a.open)
+    except OSError as e:
+        raise CommandError(f"cannot serve on 127.0.0.1:{a.http_port}: {e.strerror or e}",
+                           "give another --http-port, or 0 for any free port") from None
+    finally:
+        station.close()
+    return 0

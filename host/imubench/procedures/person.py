@@ -1,0 +1,162 @@
+"""A simulated person at the virtual bench: presents the attitudes a session asks for in a
+random order, each by hand (a 3–8 s move, placed within ±5–10° of the plan) and holds the
+board with a hand's tremor (a few hundredths of a degree RMS) while "still".
+
+    person = SimPerson(bench, seed=1)
+    run_session(dev, directory, cfg, person)       # any presenter hooks are passed on
+
+Used by bench/session_time.py and the station page's browser test (tests/test_station_browser.py).
+The moves and the tremor are paths on the virtual bench's control channel (device/sim.py):
+each leg a body-fixed turn on a minimum-jerk profile, which is how a hand moves.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from imubench.procedures.session import SimPresenter
+
+#: tremor: legs of this length, each turning by a random angle of this RMS about a random
+#: axis and back (a few hundredths of a degree RMS of attitude, a few Hz)
+TREMOR_LEG_S = 0.15
+TREMOR_RMS_DEG = 0.04
+TREMOR_LEGS = 30      # the simulator's path takes at most 32 legs (SIM_PATH_MAX_LEGS)
+
+
+class SimPerson(SimPresenter):
+    """A SimPresenter that behaves like a person: any order, hand moves, tremor.
+
+    move_s       (min, max) duration of a move between attitudes, device seconds
+    offset_deg   (min, max) how far from the planned attitude the board is placed
+    tremor_deg   RMS of the tremor's turns (0: a fixture)
+    wrong_first  present one attitude that is in no plan first (to see the session's hint), then
+                 the right one
+    forward      another presenter (e.g. the station page's) that also gets every call
+    """
+
+    def __init__(self, vb, seed: int = 0, move_s=(3.0, 8.0), offset_deg=(5.0, 10.0),
+                 tremor_deg: float = TREMOR_RMS_DEG, wrong_first: bool = False, forward=None, quiet: bool = True):
+        super().__init__(vb, seed=seed, quiet=quiet)
+        self.move_s = move_s
+        self.offset_deg = offset_deg
+        self.tremor_deg = tremor_deg
+        self.wrong_first = wrong_first
+        self.forward = forward
+        self.order: list[str] = []          # attitudes in the order presented
+        self.moves_s = 0.0                  # device time spent moving
+
+    # everything the session says or shows also goes to the forwarded presenter
+    def __getattr__(self, name):
+        fwd = self.__dict__.get("forward")
+        if fwd is not None and name in ("present_plan", "live", "pose_event", "targets", "step", "suggest"):
+            return getattr(fwd, name)
+        raise AttributeError(name)
+
+    def say(self, text):
+        super().say(text)
+        if self.forward is not None:
+            self.forward.say(text)
+
+    def progress(self, label, fraction):
+        if self.forward is not None:
+            self.forward.progress(label, fraction)
+
+    def keep_pose(self, name, summary):
+        return True if self.forward is None else self.forward.keep_pose(name, summary)
+
+    def present_turn(self, axis, rate_dps, duration_s):
+        if self.forward is not None:
+            self.forward.present_turn(axis, rate_dps, duration_s)
+        super().present_turn(axis, rate_dps, duration_s)
+
+    # ------------------------------------------------------------------ the person
+    def present_rest(self, duration_s):
+        if self.forward is not None and hasattr(self.forward, "present_rest"):
+            self.forward.present_rest(duration_s)
+        self._tremor()
+
+    def present_todo(self, todo, done, total):
+        if self.forward is not None and hasattr(self.forward, "present_todo"):
+            self.forward.present_todo(todo, done, total)
+        name, direction = todo[int(self.rng.integers(len(todo)))]
+        self.order.append(name)
+        self.say(f"simulated person presents {name}")
+        if self.wrong_first:
+            # first between two planned attitudes, held there ~4 s (the session hints), then
+            # on to the one meant: one path, so the session sees it as it happens
+            self.wrong_first = False
+            cur = self._gravity()
+            off = self._off_plan(direction)
+            legs = self._legs(cur, off) + self._tremor_legs()[:26] + self._legs(off, self._placed(direction))
+            self.vb.path(legs + self._tremor_legs()[:32 - len(legs)], wait=False)
+            return
+        self._move_to(self._placed(direction))
+
+    def present_pose(self, name, direction, index, total):
+        """Verification (and presenters without present_todo): the attitude asked for."""
+        if self.forward is not None:
+            self.forward.present_pose(name, direction, index, total)
+        self._move_to(self._placed(direction))
+
+    def _placed(self, direction) -> np.ndarray:
+        lo, hi = self.offset_deg
+        return _tilted(direction, self.rng.uniform(lo, hi), self.rng)
+
+    def _off_plan(self, direction) -> np.ndarray:
+        """An attitude between planned ones: of a few hundred random directions, the farthest
+        from every planned attitude (the plan leaves gaps of up to 27° between them)."""
+        from imubench.calib.accel import POSE_PLAN
+        plan = np.array([p.vector for p in POSE_PLAN], float)
+        plan /= np.linalg.norm(plan, axis=1)[:, None]
+        c = self.rng.normal(size=(500, 3))
+        c /= np.linalg.norm(c, axis=1)[:, None]
+        nearest = np.max(c @ plan.T, axis=1)             # cosine to the nearest planned attitude
+        return c[int(np.argmin(nearest))]
+
+    def _gravity(self) -> np.ndarray:
+        cur = np.asarray(self.vb.status()["gravity_board"], dtype=float)
+        return cur / np.linalg.norm(cur)
+
+    def _legs(self, cur, target) -> list[dict]:
+        """One hand move (a random 3-8 s, minimum jerk) turning gravity direction cur into target."""
+        cur = np.asarray(cur, float) / np.linalg.norm(cur)
+        target = np.asarray(target, float) / np.linalg.norm(target)
+        axis = np.cross(target, cur)
+        s, c = float(np.linalg.norm(axis)), float(np.clip(cur @ target, -1.0, 1.0))
+        angle = math.degrees(math.atan2(s, c))
+        if s < 1e-9:
+            axis = np.cross(cur, [1.0, 0.0, 0.0] if abs(cur[0]) < 0.9 else [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        t = float(self.rng.uniform(*self.move_s))
+        self.moves_s += t
+        return [{"duration_s": t, "axis": axis.tolist(), "turn_deg": angle}] if angle > 1e-6 else []
+
+    def _move_to(self, target) -> None:
+        self.vb.path(self._legs(self._gravity(), target) + self._tremor_legs(), wait=False)
+
+    def _tremor_legs(self) -> list[dict]:
+        if not self.tremor_deg:
+            return []
+        legs = []
+        for _ in range(TREMOR_LEGS // 2):
+            ax = self.rng.normal(size=3)
+            ax /= np.linalg.norm(ax)
+            a = float(self.rng.normal(0.0, self.tremor_deg))
+            legs += [{"duration_s": TREMOR_LEG_S, "axis": ax.tolist(), "turn_deg": a},
+                     {"duration_s": TREMOR_LEG_S, "axis": ax.tolist(), "turn_deg": -a}]
+        return legs
+
+    def _tremor(self) -> None:
+        legs = self._tremor_legs()
+        if legs:
+            self.vb.path(legs, wait=False)
+
+
+def _tilted(direction, deg: float, rng) -> np.ndarray:
+    d = np.asarray(direction, float)
+    d = d / np.linalg.norm(d)
+    perp = np.cross(d, rng.normal(size=3))
+    perp /= np.linalg.norm(perp)
+    t = math.radians(deg)
+    return math.cos(t) * d + math.sin(t) * perp

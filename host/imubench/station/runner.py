@@ -1,0 +1,222 @@
+"""Station: runs guided sessions (procedures.session.run_session) for the station page, one
+per device, each in its own thread; stops them on request and resumes them in their
+directory. The page's options become a SessionConfig here."""
+from __future__ import annotations
+
+import datetime as _dt
+import threading
+from pathlib import Path
+
+from imubench.errors import ImubenchError
+from imubench.station.presenter import SessionStopped, WebPresenter
+from imubench.station.state import StationState
+
+SIM_KEY = "sim"
+METHODS = ("multi", "six")
+GYRO_METHODS = ("bias", "turntable", "rotation", "none")
+CAPTURES = ("adaptive", "plan")
+
+
+class StationError(ImubenchError, ValueError):
+    """A request the station cannot do (bad option, device busy, not yours); says why."""
+
+
+class Station:
+    """The sessions of one station.
+
+    workdir     where session directories are made (session-<device>-<time>)
+    db          history database (None: the user's default, as `imubench calibrate`)
+    sim_speed, sim_seed, person   the virtual bench ("sim" device): its speed, seed, and the
+                SimPerson's keyword arguments (procedures.person) who presents the attitudes
+    """
+
+    def __init__(self, state: StationState | None = None, workdir: str | Path = ".", db=None,
+                 sim_speed: float = 20.0, sim_seed: int = 1, person: dict | None = None, history: bool = True,
+                 allow_sim: bool = True):
+        self.state = state or StationState()
+        self.state.sim_available = allow_sim
+        self.workdir = Path(workdir)
+        self.db = db
+        self.history = history
+        self.sim_speed = sim_speed
+        self.sim_seed = sim_seed
+        self.person_kw = dict(person or {})
+        self._threads: dict[str, threading.Thread] = {}
+        self._ui: dict[str, WebPresenter] = {}
+        self._bench = None
+        self._lock = threading.Lock()
+        self.persons: dict[str, object] = {}          # the SimPerson of the last sim run (tests read its order)
+
+    # ----------------------------------------------------------------- requests
+    def options(self, raw: dict) -> dict:
+        """The page's options, checked: a StationError names the first bad one."""
+        o = {"port": str(raw.get("port") or "").strip(), "method": raw.get("method") or "multi",
+             "gyro": raw.get("gyro") or "bias", "capture": raw.get("capture") or "adaptive",
+             "write": bool(raw.get("write", True)), "note": str(raw.get("note") or "")[:500],
+             "rate_hz": int(raw.get("rate_hz") or 500)}
+        if o["port"] == SIM_KEY and not self.state.sim_available:
+            raise StationError("the virtual bench is not offered: start the station with --sim")
+        if not o["port"]:
+            raise StationError("give the device's port (e.g. /dev/ttyUSB0, socket://HOST:PORT) or choose the virtual bench")
+        for k, allowed in (("method", METHODS), ("gyro", GYRO_METHODS), ("capture", CAPTURES)):
+            if o[k] not in allowed:
+                raise StationError(f"{k} must be one of {', '.join(allowed)}, not {o[k]!r}")
+        return o
+
+    def start(self, raw: dict, token: str | None, directory: str | Path | None = None, resume: bool = False) -> str:
+        """Start a session with the page's options on their device; returns the device key.
+        token None: started by the command (`imubench calibrate --ui web`); the first page to
+        open then owns the device."""
+        o = self.options(raw)
+        key = o["port"]
+        if token is not None and self.state.claim(key, token) != token:
+            raise StationError(f"{key} is driven from another page: this page only watches it")
+        with self._lock:
+            if self.running(key):
+                raise StationError(f"a session is already running on {key}")
+            stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+            d = Path(directory) if directory else self.workdir / f"imubench-session-{_safe(key)}-{stamp}"
+
+            def f(b):
+                b.status, b.config, b.session_dir, b.error, b.result = "running", o, str(d), None, None
+                b.plan, b.steps, b.turns, b.log, b.live, b.targets, b.done_seq = [], [], [], [], {}, {}, 0
+                b.resumable = False
+                b.phase = "start"
+            self.state.update(key, f)
+            self._launch(key, o, d, resume=resume)
+        return key
+
+    def resume(self, key: str, token: str | None) -> None:
+        if not self.state.owns(key, token):
+            raise StationError(f"{key} is driven from another page: this page only watches it")
+        with self._lock:
+            if self.running(key):
+                raise StationError(f"a session is already running on {key}")
+            b = self.state.board(key)
+            if not b.session_dir or not (Path(b.session_dir) / "session.json").is_file():
+                raise StationError(f"nothing to resume on {key}: start a new session")
+
+            def f(b):
+                b.status, b.error, b.resumable, b.result = "running", None, False, None
+                b.steps = []
+                b.turns = []
+            self.state.update(key, f)
+            self._launch(key, dict(b.config), Path(b.session_dir), resume=True)
+
+    def stop(self, key: str, token: str | None) -> None:
+        if not self.state.owns(key, token):
+            raise StationError(f"{key} is driven from another page: this page only watches it")
+        ui = self._ui.get(key)
+        if ui is None or not self.running(key):
+            raise StationError(f"no session is running on {key}")
+        ui.stop_event.set()
+
+    def running(self, key: str) -> bool:
+        t = self._threads.get(key)
+        return t is not None and t.is_alive()
+
+    def wait(self, key: str, timeout: float | None = None) -> None:
+        t = self._threads.get(key)
+        if t is not None:
+            t.join(timeout)
+
+    def close(self) -> None:
+        for key, ui in list(self._ui.items()):
+            ui.stop_event.set()
+        for t in list(self._threads.values()):
+            t.join(30)
+        if self._bench is not None:
+            self._bench.close()
+            self._bench = None
+
+    # ------------------------------------------------------------------ running
+    def _launch(self, key: str, o: dict, directory: Path, resume: bool) -> None:
+        ui = WebPresenter(self.state, key)
+        self._ui[key] = ui
+        t = threading.Thread(target=self._run, args=(key, o, directory, resume, ui), name=f"session {key}", daemon=True)
+        self._threads[key] = t
+        t.start()
+
+    def _device_url(self, key: str, ui: WebPresenter):
+        if key != SIM_KEY:
+            return key, ui
+        from imubench.device.sim import VirtualBench
+        from imubench.procedures.person import SimPerson
+        if self._bench is None or not self._bench.running:
+            self._bench = VirtualBench(speed=self.sim_speed, seed=self.sim_seed, truth="random")
+        person = SimPerson(self._bench, forward=ui, **{"seed": self.sim_seed, **self.person_kw})
+        self.persons[key] = person
+        return self._bench.port_url, person
+
+    def _run(self, key: str, o: dict, directory: Path, resume: bool, ui: WebPresenter) -> None:
+        from imubench.device.link import Device
+        from imubench.procedures.session import SessionConfig, run_session
+        sess_dir = directory
+        try:
+            url, presenter = self._device_url(key, ui)
+            cfg = SessionConfig(method=o["method"], gyro=None if o["gyro"] == "none" else o["gyro"],
+                                rate_hz=o["rate_hz"], write=o["write"], note=o["note"],
+                                adaptive=o["capture"] == "adaptive", pose_timeout_s=None)
+            ui.turns_total = 6 * len(cfg.turntable_rates_dps) if cfg.gyro == "turntable" else 0
+            if o["method"] == "six":
+                ui.say("warning: six-position needs a square fixture (a machined cube against a square); held by "
+                       "hand its faces are degrees off square and the fit fails: use multi")
+            with Device.open(url, timeout=5.0) as dev:
+                from imubench.wire.ids import board_name, uid_text
+                info = dev.info()
+                self.state.update(key, lambda b: setattr(b, "device", {"board": board_name(info.board),
+                                                                       "uid": uid_text(info.mcu_uid), "url": url}))
+                result, sess = run_session(dev, sess_dir, cfg, presenter, resume=resume)
+            self._finish(key, result, sess_dir)
+        except SessionStopped as e:
+            self._failed(key, sess_dir, "interrupted", str(e))
+        except Exception as e:  # noqa: BLE001 - the page shows why, the session stays resumable
+            self._failed(key, sess_dir, "failed", _one_line(e))
+
+    def _failed(self, key: str, d: Path, status: str, why: str) -> None:
+        resumable = (d / "session.json").is_file()
+
+        def f(b):
+            b.status, b.error, b.resumable, b.phase = status, why, resumable, "end"
+            b.log.append(f"{status}: {why}" + ("; resume it from this page" if resumable else ""))
+        self.state.update(key, f)
+
+    def _finish(self, key: str, result: dict, d: Path) -> None:
+        from imubench.results.report import build_report, calibration_verdict, parameter_rows
+        status, words = calibration_verdict(result)
+        recorded = None
+        if self.history:
+            try:
+                from imubench.results.history import History
+                with History(self.db) as h:
+                    run_id, new = h.record_once(result)
+                recorded = f"recorded in the history as run {run_id}" + ("" if new else " (already recorded)")
+            except Exception as e:  # noqa: BLE001 - the result is safe in session.json
+                recorded = f"not recorded in the history ({_one_line(e)}); the result is in {d / 'session.json'}"
+        report = build_report(d)
+        params = [r for r in parameter_rows(result) if r[1] != "not estimated"]
+        summary = {"status": status, "verdict": words, "parameters": params,
+                   "accel_rms_after_mg": result.get("accel_rms_after_mg"), "bench_time_s": result.get("bench_time_s"),
+                   "attitudes": len(result.get("poses") or []), "passed": bool(result.get("passed")),
+                   "written": bool(result.get("written")), "verified": bool(result.get("verified")),
+                   "report": f"/report/{_safe(key)}/report.html", "report_path": str(report), "history": recorded,
+                   "session_dir": str(d)}
+
+        def f(b):
+            b.status, b.result, b.phase, b.resumable = "done", summary, "end", False
+        self.state.update(key, f)
+
+    def report_path(self, safe_key: str) -> Path | None:
+        for b in self.state.boards.values():
+            if _safe(b.key) == safe_key and b.result:
+                return Path(b.result["report_path"])
+        return None
+
+
+def _safe(key: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in key).strip("-") or "device"
+
+
+def _one_line(e: BaseException) -> str:
+    text = str(e).strip().splitlines()[0] if str(e).strip() else ""
+    return text if isinstance(e, ImubenchError) and text else f"{type(e).__name__}: {text}" if text else type(e).__name__

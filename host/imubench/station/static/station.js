@@ -1,0 +1,207 @@
+// imubench station page: renders the station's state (server-sent events from /api/events)
+// one column per device; the page that owns a device drives it, any other page watches.
+"use strict";
+(function () {
+  let token = sessionStorage.getItem("imubench-token") || "";
+  const cols = {};                 // device key -> column element
+  const cardStates = {};           // key/name -> last state seen (for the transition log)
+  window.__transitions = [];
+  window.__streamErrors = 0;       // event stream failures (a healthy session has none)       // [key, pose name, state] as the page saw them (tests read it)
+  let last = null;
+
+  const $ = (sel, el) => (el || document).querySelector(sel);
+  const esc = (s) => String(s == null ? "" : s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
+  const fmt = (x, d) => (x == null || !isFinite(x) ? "–" : Number(x).toFixed(d));
+
+  async function post(path, body) {
+    const r = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json", "X-Station-Token": token }, body: JSON.stringify(body) });
+    const j = await r.json().catch(() => ({}));
+    if (!r.ok) throw new Error(j.error || r.statusText);
+    return j;
+  }
+
+  async function claim(key) {
+    const j = await post("/api/claim", { key: key, token: token });
+    if (j.token) { token = j.token; sessionStorage.setItem("imubench-token", token); reconnect(); }
+    return !!j.token;
+  }
+
+  // ------------------------------------------------------------------ events
+  let es = null;
+  function reconnect() {
+    if (es) es.close();
+    es = new EventSource("/api/events?token=" + encodeURIComponent(token));
+    es.onopen = () => { $("#conn").textContent = "live"; };
+    es.onerror = () => { window.__streamErrors += 1; $("#conn").textContent = "reconnecting…"; };
+    es.onmessage = (ev) => { last = JSON.parse(ev.data); render(last); };
+  }
+
+  const claiming = {};
+  function render(snap) {
+    const mine = snap.boards.filter((b) => b.yours);
+    for (const b of snap.boards) {
+      // a session started by the command is owned by the first page that opens
+      if (!b.owned && !claiming[b.key] && (snap.mode === "session" || b.status === "running")) {
+        claiming[b.key] = true;
+        claim(b.key).finally(() => { claiming[b.key] = false; });
+      }
+      renderBoard(b);
+    }
+    const watching = snap.boards.filter((b) => b.owned && !b.yours);
+    $("#role").textContent = mine.length ? "you drive " + mine.map((b) => b.key).join(", ")
+      : watching.length ? "read-only: watching" : "";
+    $("#role").className = "pill " + (mine.length ? "done" : watching.length ? "readonly" : "");
+    const busy = mine.some((b) => b.status === "running");
+    $("#setup").hidden = !(snap.mode === "idle" && !busy);
+    $("#use-sim").parentElement.hidden = !snap.sim;
+  }
+
+  function column(key) {
+    if (cols[key]) return cols[key];
+    const el = $("#board-tpl").content.firstElementChild.cloneNode(true);
+    el.dataset.key = key;
+    $(".stop", el).onclick = () => post("/api/stop", { key: key }).catch((e) => alert(e.message));
+    $(".resume", el).onclick = () => post("/api/resume", { key: key }).catch((e) => alert(e.message));
+    $("#boards").appendChild(el);
+    cols[key] = el;
+    return el;
+  }
+
+  function renderBoard(b) {
+    const el = column(b.key);
+    const dev = b.device && b.device.board ? ` — ${b.device.board} ${b.device.uid || ""}` : "";
+    $(".devname", el).textContent = (b.key === "sim" ? "virtual bench" : b.key) + dev;
+    const st = $(".status", el);
+    st.textContent = b.status + (b.phase && b.status === "running" ? " · " + b.phase : "");
+    st.className = "status pill " + b.status;
+    const ow = $(".owner", el);
+    ow.textContent = b.yours ? "you drive this device" : b.owned ? "read-only: driven from another page" : "";
+    ow.className = "owner pill" + (b.owned && !b.yours ? " readonly-banner" : "");
+    el.classList.toggle("readonly", b.owned && !b.yours);
+    $(".stop", el).hidden = !(b.yours && b.status === "running");
+    $(".resume", el).hidden = !(b.yours && b.resumable && b.status !== "running");
+    $(".error-line", el).textContent = b.error ? b.error + (b.resumable ? " — the captured attitudes are kept: Resume continues" : "") : "";
+
+    // verdict first
+    const v = $(".verdict", el);
+    if (b.result) {
+      v.hidden = false;
+      v.className = "verdict " + b.result.status;
+      v.innerHTML = `<b>${b.result.status === "pass" ? "PASSED" : "FAILED"}</b>: ${esc(b.result.verdict)}`;
+    } else v.hidden = true;
+
+    renderLive(el, b);
+    renderTargets(el, b);
+    renderCards(el, b);
+
+    const res = $(".result", el);
+    if (b.result) {
+      res.hidden = false;
+      $(".params", el).innerHTML = b.result.parameters.map((r) => `<tr><td>${esc(r[0])}</td><td>${esc(r[1])}</td></tr>`).join("");
+      $(".report-line", el).innerHTML = `${b.result.attitudes} attitudes, bench time ${fmt(b.result.bench_time_s, 0)} s; ` +
+        `<a class="report-link" href="${esc(b.result.report)}" target="_blank">the HTML report</a>` +
+        (b.result.history ? `; ${esc(b.result.history)}` : "") + `<br><small>session directory ${esc(b.result.session_dir)}</small>`;
+    } else res.hidden = true;
+    $(".log", el).textContent = b.log.join("\n");
+  }
+
+  function renderLive(el, b) {
+    const posing = b.status === "running" && (b.phase === "poses" || b.phase === "rest");
+    const L = posing ? b.live || {} : {};
+    $(".live", el).classList.toggle("idle", b.status !== "running");
+    $(".a-g", el).textContent = L.a_g == null ? "–" : Number(L.a_g).toFixed(4);
+    const att = $(".attitude", el);
+    if (b.phase === "rest") att.textContent = "hold still: measuring the noise" + (L.rest != null ? ` (${fmt(100 * L.rest, 0)} %)` : "");
+    else if (L.attitude) att.innerHTML = `the board is in <b>${esc(L.attitude)}</b>: ${esc(L.words)}${L.captured ? " (already captured)" : ""}`;
+    else if (b.status === "running" && !posing) att.textContent = {
+      turns: "the turntable turns the board: keep it mounted, hands off", fit: "fitting…",
+      write: "writing the parameters to the device…", verify: "verifying: present the attitude asked for below",
+      start: "starting…"}[b.phase] || b.phase;
+    else if (b.status !== "running") att.textContent = b.status === "done" ? "session finished" : b.status === "idle" ? "–" : "session " + b.status;
+    else att.textContent = L.state ? (L.state === "moving" ? "moving…" : "in no planned attitude") : "–";
+    const k = L.k || 3, km = L.k_move || 6, r = L.ratio || 0;
+    const span = km * 1.25;
+    const fill = $(".meter-fill", el);
+    fill.style.width = Math.min(100, (100 * r) / span) + "%";
+    fill.className = "meter-fill" + (r > km ? " moving" : r > k ? " loud" : "");
+    $(".meter-threshold", el).style.left = (100 * k) / span + "%";
+    $(".ratio", el).textContent = L.ratio == null ? "" : `${fmt(r, 1)} (still below ${fmt(k, 1)}, from the rest noise) — ${L.state}`;
+    $(".hold-fill", el).style.width = fmt(100 * (L.hold || 0), 0) + "%";
+    const sig = L.sigma_mg != null ? `σ of |a| ${fmt(L.sigma_mg * 1000, 0)} µg` + (L.target_mg ? ` (target ${fmt(L.target_mg * 1000, 0)} µg)` : "") : "";
+    $(".hold-text", el).textContent = sig;
+    $(".hint", el).textContent = L.hint || "";
+  }
+
+  const UNITS = { b: "mg", s: "ppm", a: "mrad" };
+  function renderTargets(el, b) {
+    const T = b.targets || {};
+    const tbl = $(".targets", el);
+    if (T.sigmas) {
+      const tgt = (n) => (n[0] === "b" ? T.targets.accel_bias_mg : n[0] === "s" ? T.targets.accel_scale_ppm : T.targets.accel_nonorth_mrad);
+      tbl.innerHTML = "<tr><th>accelerometer</th><th>1σ now</th><th>target</th></tr>" + Object.keys(T.sigmas).map((n) =>
+        `<tr><td>${n} (${UNITS[n[0]]})</td><td class="${T.sigmas[n] <= tgt(n) ? "ok" : "over"}">${Number(T.sigmas[n]).toPrecision(2)}</td><td>≤ ${tgt(n)}</td></tr>`).join("") +
+        `<tr><td colspan="3">${T.reached ? "every parameter at its target: no more attitudes needed" : "more attitudes needed"}</td></tr>`;
+    } else tbl.innerHTML = b.config && b.config.capture === "adaptive" && b.method === "multi"
+      ? "<tr><td>the parameters' σ appear once 12 attitudes are captured</td></tr>" : "";
+    $(".steps", el).innerHTML = b.steps.map((s) => `<div class="step ${esc(s.state)}" data-kind="${esc(s.kind)}">${esc(s.text)}</div>`).join("");
+    $(".turns", el).innerHTML = b.turns.map((t, i) =>
+      `<div class="step ${esc(t.state)}"><img alt="turn" src="/turn.svg?axis=${t.axis.join(",")}&rate=${t.rate_dps}"> turn ${i + 1}${t.total ? " of " + t.total : ""}: ` +
+      `${fmt(t.rate_dps, 0)} °/s about board [${t.axis.map((x) => fmt(x, 0)).join(", ")}] for ${fmt(t.duration_s, 1)} s</div>`).join("");
+  }
+
+  function renderCards(el, b) {
+    const box = $(".cards", el);
+    const done = b.plan.filter((c) => c.state === "done").length;
+    $(".cards-title", el).textContent = b.plan.length ? `Attitudes: ${done} of ${b.plan.length} captured — present them in any order` +
+      (b.config && b.config.capture === "adaptive" && b.method === "multi" ? "; the session stops as soon as the targets are reached" : "") : "";
+    const here = (b.live || {}).attitude;
+    for (const c of b.plan) {
+      let card = box.querySelector(`[data-name="${CSS.escape(c.name)}"]`);
+      if (!card) {
+        card = document.createElement("div");
+        card.className = "card";
+        card.dataset.name = c.name;
+        card.innerHTML = `<span class="seq"></span><img alt="${esc(c.name)}" src="/pose.svg?up=${c.direction.join(",")}">` +
+          `<div class="name">${esc(c.name)}</div><div class="words">${esc(c.words)}</div>` +
+          `<div class="state"></div><div class="bar"><div class="bar-fill"></div></div><div class="detail"></div>`;
+        box.appendChild(card);
+      }
+      const id = b.key + "/" + c.name;
+      if (cardStates[id] !== c.state) { window.__transitions.push([b.key, c.name, c.state]); cardStates[id] = c.state; }
+      card.dataset.state = c.state;
+      card.dataset.seq = c.seq == null ? "" : c.seq;
+      card.className = "card " + c.state + (c.name === here && b.status === "running" ? " here" : "") +
+        (b.status === "done" && c.state === "todo" ? " unneeded" : "") +
+        (b.status === "running" && c.state === "todo" && c.name === b.suggested ? " suggested" : "");
+      $(".seq", card).textContent = c.seq == null ? "" : "#" + c.seq;
+      $(".state", card).textContent = c.state === "todo" ? (b.status === "done" ? "not needed" :
+        c.name === b.suggested && b.status === "running" ? "to do — suggested next" : "to do") :
+        c.state === "capturing" ? "capturing — hold still" : c.state;
+      $(".bar-fill", card).style.width = fmt(100 * (c.progress || 0), 0) + "%";
+      let d = "";
+      if (c.state === "done" && c.before_g != null) d = `|a| ${fmt(c.before_g, 4)} g` + (c.after_g != null ? ` → ${fmt(c.after_g, 5)} g` : "");
+      if (c.state === "rejected") d = "rejected: " + esc(c.why);
+      $(".detail", card).innerHTML = d;
+    }
+  }
+
+  // ------------------------------------------------------------------ setup form
+  $("#method").onchange = () => { $("#six-warning").hidden = $("#method").value !== "six"; };
+  $("#use-sim").onchange = () => { $("#port").disabled = $("#use-sim").checked; };
+  $("#setup-form").onsubmit = async (ev) => {
+    ev.preventDefault();
+    const f = new FormData(ev.target);
+    const opts = Object.fromEntries(f.entries());
+    opts.port = $("#use-sim").checked ? "sim" : (opts.port || "").trim();
+    opts.write = f.get("write") === "on";
+    $("#setup-error").textContent = "";
+    try {
+      if (!opts.port) throw new Error("give the device's port, or choose the virtual bench");
+      if (!(await claim(opts.port))) throw new Error(opts.port + " is driven from another page");
+      await post("/api/start", opts);
+    } catch (e) { $("#setup-error").textContent = e.message; }
+  };
+
+  fetch("/api/state").then((r) => r.json()).then((s) => { last = s; render(s); }).catch(() => {});
+  reconnect();
+})();
