@@ -382,48 +382,68 @@ static void batch_send(ib_core_t *c)
     c->batch_n = 0;
 }
 
-/* Read one sample of every sensor and append it to the batch. */
-static void sample(ib_core_t *c, uint32_t t_us)
+/* What one sample read brought back, from the synchronous reads or the DMA chain. */
+typedef struct {
+    int accel_err;             /* IB_ADXL355_OK or the error */
+    size_t total;              /* FIFO sets read */
+    int32_t sum[3];            /* their sum */
+    uint8_t st_or;             /* STATUS bits seen */
+    ib_adxrs450_err_t gyro_err[3];
+    ib_adxrs450_sample_t g[3];
+} sample_in_t;
+
+/* Read one sample of every sensor with the blocking bus calls (boards without bus->start). */
+static void read_sync(ib_core_t *c, sample_in_t *in)
 {
-    if (c->batch_n == 0) {
-        batch_begin(c, t_us);
-    }
-    uint8_t status = 0;
-    int32_t acc[3] = {c->accel_last[0], c->accel_last[1], c->accel_last[2]};
+    memset(in, 0, sizeof *in);
     if (c->present & 1u) {
         /* every set the FIFO collected since the last tick, in chunks of 8 (small stack) */
         int32_t sets[8][3];
-        int32_t sum[3] = {0, 0, 0}; /* <= 40 sets of 20-bit values: |sum| < 2^25 */
-        size_t total = 0, n = 0;
+        size_t n = 0;
         int err = IB_ADXL355_OK;
-        uint8_t st_or = 0;
         do {
             err = ib_adxl355_read_fifo(&c->accel, sets, 8u, &n);
-            st_or |= c->accel.last_status;
+            in->st_or |= c->accel.last_status;
             for (size_t i = 0; err == IB_ADXL355_OK && i < n; i++) {
-                sum[0] += sets[i][0];
-                sum[1] += sets[i][1];
-                sum[2] += sets[i][2];
+                in->sum[0] += sets[i][0];
+                in->sum[1] += sets[i][1];
+                in->sum[2] += sets[i][2];
             }
-            total += n;
-        } while (err == IB_ADXL355_OK && n == 8u && total < ACCEL_FIFO_MAX_SETS + 8u);
-        if (err != IB_ADXL355_OK) {
+            in->total += n;
+        } while (err == IB_ADXL355_OK && n == 8u && in->total < ACCEL_FIFO_MAX_SETS + 8u);
+        in->accel_err = err;
+    }
+    for (int k = 0; k < 3; k++) {
+        if (c->present & (1u << (1 + k))) {
+            in->gyro_err[k] = ib_adxrs450_read_rate(&c->gyro[k], &in->g[k]);
+        }
+    }
+}
+
+/* Append the sample to the batch (and send the batch when full). */
+static void sample_commit(ib_core_t *c, const sample_in_t *in)
+{
+    uint8_t status = 0;
+    int32_t acc[3] = {c->accel_last[0], c->accel_last[1], c->accel_last[2]};
+    if (c->present & 1u) {
+        if (in->accel_err != IB_ADXL355_OK) {
             c->batch_spi_error |= 1u;
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SPI_ERROR;
             c->stats.spi_errors++;
             status |= IB_SAMPLE_STATUS_ACCEL_BAD;
-        } else if (total == 0) {
+        } else if (in->total == 0) {
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_ACCEL_STALE;
             status |= IB_SAMPLE_STATUS_ACCEL_BAD;
         } else {
-            const int32_t n_sets = (int32_t)total, h = n_sets / 2; /* 32-bit: no libgcc divide */
+            const int32_t n_sets = (int32_t)in->total, h = n_sets / 2; /* 32-bit: no libgcc divide */
             for (int k = 0; k < 3; k++) {
                 /* rounded mean, symmetric about zero */
-                acc[k] = sum[k] >= 0 ? (sum[k] + h) / n_sets : -((-sum[k] + h) / n_sets);
+                int32_t sum = in->sum[k];
+                acc[k] = n_sets == 1 ? sum : sum >= 0 ? (sum + h) / n_sets : -((-sum + h) / n_sets);
                 c->accel_last[k] = acc[k];
             }
         }
-        c->batch_hdr.accel_status |= st_or;
+        c->batch_hdr.accel_status |= in->st_or;
     } else {
         status |= IB_SAMPLE_STATUS_ACCEL_BAD;
     }
@@ -434,21 +454,20 @@ static void sample(ib_core_t *c, uint32_t t_us)
             status |= bad;
             continue;
         }
-        ib_adxrs450_sample_t s;
-        ib_adxrs450_err_t e = ib_adxrs450_read_rate(&c->gyro[k], &s);
-        if (e == IB_ADXRS450_ERR_BUS) {
+        const ib_adxrs450_sample_t *s = &in->g[k];
+        if (in->gyro_err[k] == IB_ADXRS450_ERR_BUS) {
             c->batch_spi_error |= (uint8_t)(1u << (1 + k));
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SPI_ERROR;
             c->stats.spi_errors++;
             status |= bad;
             continue;
         }
-        rate[k] = s.rate_counts;
-        c->batch_hdr.gyro_faults[k] |= (uint8_t)(s.faults | (s.parity_error ? 1u : 0u));
-        if (s.st != 1u) {
-            c->batch_gyro_st_bad[k] = (uint8_t)(s.st | 0x80u);
+        rate[k] = s->rate_counts;
+        c->batch_hdr.gyro_faults[k] |= (uint8_t)(s->faults | (s->parity_error ? 1u : 0u));
+        if (s->st != 1u) {
+            c->batch_gyro_st_bad[k] = (uint8_t)(s->st | 0x80u);
         }
-        if (!s.good) {
+        if (!s->good) {
             status |= bad;
         }
     }
@@ -485,11 +504,161 @@ static void sample(ib_core_t *c, uint32_t t_us)
     }
 }
 
+/* ---- the sample read as a chain of DMA transfers (bus->start) ----
+ * Steps: 0 ADXL355 STATUS + FIFO_ENTRIES, 1 pop the FIFO (the whole sets the header
+ * counted, at most JOB_FIFO_SETS), 2 + 2k + f: frame f (0, 1) of gyro k's rate read
+ * (ib_adxrs450_read_rate's two frames). Each step is started from the previous one's
+ * completion interrupt (job_next); the main loop is free meanwhile and finishes the sample
+ * (sample_finish) when job_done is set. */
+#define JOB_FIFO_SETS 8u
+#define JOB_START 0xFFu
+#define JOB_END 8u
+#define JOB_WAIT_US 5000u
+
+static void job_next(void *arg, int rc);
+
+static int job_launch(ib_core_t *c, uint8_t st)
+{
+    const ib_spi_bus_t *b = c->board->spi;
+    if (st == 0u) {
+        return b->start(b->ctx, IB_CS_ACCEL, c->job_hdr_tx, c->job_hdr_rx, sizeof c->job_hdr_tx, job_next, c);
+    }
+    if (st == 1u) {
+        return b->start(b->ctx, IB_CS_ACCEL, c->job_fifo_tx, c->job_fifo_rx, 1u + 3u * (size_t)c->job_fifo_n,
+                        job_next, c);
+    }
+    uint8_t k = (uint8_t)((st - 2u) / 2u);
+    return b->start(b->ctx, (uint8_t)(IB_CS_GYRO_X + k), c->job_gyro_tx, c->job_gyro_rx[k][(st - 2u) & 1u], 4u,
+                    job_next, c);
+}
+
+/* The first step at or after st that applies (sensor present, no failed transfer). */
+static uint8_t job_skip(const ib_core_t *c, uint8_t st)
+{
+    if (st == 0u && !(c->present & 1u)) {
+        st = 2u;
+    }
+    if (st == 1u && (c->job_rc[0] != 0 || c->job_fifo_n == 0u)) {
+        st = 2u;
+    }
+    while (st < JOB_END) {
+        uint8_t k = (uint8_t)((st - 2u) / 2u);
+        if ((c->present & (1u << (1u + k))) && c->job_rc[1u + k] == 0) {
+            break;
+        }
+        st = (uint8_t)(2u + 2u * (k + 1u));
+    }
+    return st;
+}
+
+static void job_next(void *arg, int rc)
+{
+    ib_core_t *c = (ib_core_t *)arg;
+    uint8_t st = c->job_step;
+    if (st == JOB_START) {
+        st = 0u;
+    } else {
+        uint8_t sensor = st < 2u ? 0u : (uint8_t)(1u + (st - 2u) / 2u);
+        if (rc < 0) {
+            c->job_rc[sensor] = -1;
+        } else if (st == 0u) {
+            c->job_fifo_n = (uint8_t)ib_adxl355_fifo_entries(&c->accel, &c->job_hdr_rx[1], JOB_FIFO_SETS);
+        }
+        st++;
+    }
+    for (;;) {
+        st = job_skip(c, st);
+        if (st >= JOB_END) {
+            c->job_step = JOB_END;
+            c->job_busy = 0;
+            c->job_done = 1;
+            return;
+        }
+        c->job_step = st;
+        if (job_launch(c, st) == 0) {
+            return;
+        }
+        c->job_rc[st < 2u ? 0u : 1u + (st - 2u) / 2u] = -1;
+        st++;
+    }
+}
+
+static void job_begin(ib_core_t *c)
+{
+    memset(c->job_rc, 0, sizeof c->job_rc);
+    c->job_fifo_n = 0;
+    c->job_done = 0;
+    c->job_step = JOB_START;
+    c->job_busy = 1;
+    job_next(c, 0);
+}
+
+/* Turn what the chain brought back into the sample. */
+static void sample_finish(ib_core_t *c)
+{
+    sample_in_t in;
+    memset(&in, 0, sizeof in);
+    c->job_done = 0;
+    if (c->present & 1u) {
+        if (c->job_rc[0] != 0) {
+            in.accel_err = IB_ADXL355_ERR_BUS;
+        } else {
+            in.st_or = c->accel.last_status;
+            if (c->job_fifo_n) {
+                int32_t sets[JOB_FIFO_SETS][3];
+                ib_adxl355_fifo_parse_t p;
+                ib_adxl355_fifo_parse_init(&p);
+                ib_adxl355_fifo_parse(&c->accel, &p, &c->job_fifo_rx[1], c->job_fifo_n, sets, JOB_FIFO_SETS);
+                ib_adxl355_fifo_parse_end(&c->accel, &p);
+                for (size_t i = 0; i < p.sets; i++) {
+                    in.sum[0] += sets[i][0];
+                    in.sum[1] += sets[i][1];
+                    in.sum[2] += sets[i][2];
+                }
+                in.total = p.sets;
+            }
+        }
+    }
+    for (int k = 0; k < 3; k++) {
+        if (!(c->present & (1u << (1 + k)))) {
+            continue;
+        }
+        if (c->job_rc[1 + k] != 0) {
+            ib_adxrs450_note_bus_error(&c->gyro[k]);
+            in.gyro_err[k] = IB_ADXRS450_ERR_BUS;
+            continue;
+        }
+        in.gyro_err[k] = ib_adxrs450_rate_from_frames(&c->gyro[k], ib_adxrs450_word(c->job_gyro_rx[k][0]),
+                                                      ib_adxrs450_word(c->job_gyro_rx[k][1]), &in.g[k]);
+    }
+    sample_commit(c, &in);
+}
+
+/* Let a running chain end (bounded) and finish its sample: before anything else uses the
+ * bus or the batch. */
+static void job_wait(ib_core_t *c)
+{
+    if (c->job_busy) {
+        uint32_t t0 = now_us(c);
+        while (c->job_busy && now_us(c) - t0 < JOB_WAIT_US) {
+        }
+        if (c->job_busy) { /* the bus never completed: report every sensor's read as failed */
+            c->job_busy = 0;
+            memset(c->job_rc, 0xFF, sizeof c->job_rc);
+            c->job_done = 1;
+        }
+    }
+    if (c->job_done) {
+        sample_finish(c);
+    }
+}
+
 void ib_core_tick(ib_core_t *c, uint32_t missed)
 {
     if (c->stream_state == IB_STREAM_STATE_STOPPED) {
         return;
     }
+    job_wait(c);
     if (missed) {
         /* samples inside a batch are consecutive: close the batch, then skip */
         batch_send(c);
@@ -497,11 +666,21 @@ void ib_core_tick(ib_core_t *c, uint32_t missed)
         c->stats.samples_dropped += missed;
         c->drop_pending = 1;
     }
-    sample(c, now_us(c));
+    if (c->batch_n == 0) {
+        batch_begin(c, now_us(c));
+    }
+    if (c->board->spi->start) {
+        job_begin(c);
+        return;
+    }
+    sample_in_t in;
+    read_sync(c, &in);
+    sample_commit(c, &in);
 }
 
 static void stream_stop(ib_core_t *c)
 {
+    job_wait(c);
     batch_send(c);
     c->stream_state = IB_STREAM_STATE_STOPPED;
     c->board->set_tick_hz(c->board->ctx, 0);
@@ -881,6 +1060,9 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b)
     c->accel_range_g = 2;
     c->last_time_us = now_us(c);
     ib_frame_rx_init(&c->rx);
+    c->job_hdr_tx[0] = ib_adxl355_read_cmd(IB_ADXL355_REG_STATUS);
+    c->job_fifo_tx[0] = ib_adxl355_read_cmd(IB_ADXL355_REG_FIFO_DATA);
+    ib_adxrs450_rate_cmd_bytes(c->job_gyro_tx);
     b->set_tick_hz(b->ctx, 0);
     sensors_init(c);
     load_params(c);
@@ -907,6 +1089,9 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b)
 
 void ib_core_poll(ib_core_t *c)
 {
+    if (c->job_done) {
+        sample_finish(c);
+    }
     /* one command at a time: bytes after a command wait until its reply is out */
     (void)flush_reply(c);
     while (c->reply_pending == 0 && !c->reboot_pending) {

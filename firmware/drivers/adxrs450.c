@@ -233,6 +233,39 @@ void ib_adxrs450_clear_faults_seen(ib_adxrs450_t *dev)
     }
 }
 
+ib_adxrs450_err_t ib_adxrs450_rate_from_frames(ib_adxrs450_t *dev, uint32_t w0, uint32_t w,
+                                               ib_adxrs450_sample_t *s)
+{
+    note_discarded(dev, w0);
+    ib_adxrs450_decode_sensor(w, s);
+    ib_adxrs450_err_t e = check_word(dev, w);
+    if (e != IB_ADXRS450_OK) {
+        return e;
+    }
+    if (s->st == IB_ADXRS450_ST_REGISTER || resp_type(w) != 0u) {
+        s->good = 0; /* a register/error reply, or an SQ echo we did not send */
+        return IB_ADXRS450_ERR_BAD_RESPONSE;
+    }
+    dev->faults_seen |= s->faults;
+    return s->good ? IB_ADXRS450_OK : IB_ADXRS450_ERR_FAULT;
+}
+
+void ib_adxrs450_rate_cmd_bytes(uint8_t tx[4])
+{
+    uint32_t cmd = ib_adxrs450_cmd_sensor_data(0);
+    tx[0] = (uint8_t)(cmd >> 24);
+    tx[1] = (uint8_t)(cmd >> 16);
+    tx[2] = (uint8_t)(cmd >> 8);
+    tx[3] = (uint8_t)cmd;
+}
+
+uint32_t ib_adxrs450_word(const uint8_t rx[4])
+{
+    return ((uint32_t)rx[0] << 24) | ((uint32_t)rx[1] << 16) | ((uint32_t)rx[2] << 8) | (uint32_t)rx[3];
+}
+
+void ib_adxrs450_note_bus_error(ib_adxrs450_t *dev) { dev->bus_errors++; }
+
 ib_adxrs450_err_t ib_adxrs450_read_rate(ib_adxrs450_t *dev, ib_adxrs450_sample_t *s)
 {
     if (!dev_ok(dev) || s == NULL) {
@@ -245,22 +278,12 @@ ib_adxrs450_err_t ib_adxrs450_read_rate(ib_adxrs450_t *dev, ib_adxrs450_sample_t
     if (e != IB_ADXRS450_OK) {
         return e;
     }
-    note_discarded(dev, w0);
     e = frame(dev, cmd, &w);
     if (e != IB_ADXRS450_OK) {
+        note_discarded(dev, w0);
         return e;
     }
-    ib_adxrs450_decode_sensor(w, s);
-    e = check_word(dev, w);
-    if (e != IB_ADXRS450_OK) {
-        return e;
-    }
-    if (s->st == IB_ADXRS450_ST_REGISTER || resp_type(w) != 0u) {
-        s->good = 0; /* a register/error reply, or an SQ echo we did not send */
-        return IB_ADXRS450_ERR_BAD_RESPONSE;
-    }
-    dev->faults_seen |= s->faults;
-    return s->good ? IB_ADXRS450_OK : IB_ADXRS450_ERR_FAULT;
+    return ib_adxrs450_rate_from_frames(dev, w0, w, s);
 }
 
 /* The CHK-phase replies of start-up steps 3 and 4. */
