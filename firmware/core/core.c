@@ -310,7 +310,8 @@ static void report_faults(ib_core_t *c)
     }
 }
 
-static void batch_begin(ib_core_t *c, uint32_t t_us)
+/* read_temps 0: the sample chain reads them (job_temps) */
+static void batch_begin(ib_core_t *c, uint32_t t_us, int read_temps)
 {
     memset(&c->batch_hdr, 0, sizeof c->batch_hdr);
     c->batch_hdr.sample_index = c->sample_index;
@@ -325,7 +326,7 @@ static void batch_begin(ib_core_t *c, uint32_t t_us)
     c->batch_spi_error = 0;
     memset(c->batch_gyro_st_bad, 0, sizeof c->batch_gyro_st_bad);
     /* temperatures once per batch */
-    if (c->present & 1u) {
+    if (read_temps && (c->present & 1u)) {
         uint8_t t[2];
         if (ib_adxl355_read_regs(&c->accel, 0x06, t, 2) == IB_ADXL355_OK) {
             c->accel_temp_counts = (uint16_t)(((t[0] & 0x0Fu) << 8) | t[1]);
@@ -334,7 +335,7 @@ static void batch_begin(ib_core_t *c, uint32_t t_us)
             c->stats.spi_errors++;
         }
     }
-    for (int k = 0; k < 3; k++) {
+    for (int k = 0; k < 3 && read_temps; k++) {
         if (c->present & (1u << (1 + k))) {
             int16_t raw10;
             ib_adxrs450_err_t e = ib_adxrs450_read_temp(&c->gyro[k], &raw10);
@@ -505,11 +506,14 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
 }
 
 /* ---- the sample read as a chain of DMA transfers (bus->start) ----
- * Steps: 0 ADXL355 STATUS + FIFO_ENTRIES, 1 pop the FIFO (the whole sets the header
- * counted, at most JOB_FIFO_SETS), 2 + 2k + f: frame f (0, 1) of gyro k's rate read
- * (ib_adxrs450_read_rate's two frames). Each step is started from the previous one's
- * completion interrupt (job_next); the main loop is free meanwhile and finishes the sample
- * (sample_finish) when job_done is set. */
+ * Steps: 0 ADXL355 STATUS, FIFO_ENTRIES, TEMP2, TEMP1 in one burst; 1 pop the FIFO (the
+ * whole sets the header counted, at most JOB_FIFO_SETS); 2 + 2k: gyro k's frame, whose reply
+ * is the rate latched by the previous sample's frame (the pipelined read of adxrs450.h: one
+ * frame per gyro instead of two, the rate one sample period old); at the start of a batch
+ * that frame sends "read TEM" instead and step 3 + 2k the sensor-data command, whose reply is
+ * the temperature. Each step is started from the previous one's completion interrupt
+ * (job_next); the main loop is free meanwhile and finishes the sample (sample_finish) when
+ * job_done is set. */
 #define JOB_FIFO_SETS 8u
 #define JOB_START 0xFFu
 #define JOB_END 8u
@@ -521,15 +525,16 @@ static int job_launch(ib_core_t *c, uint8_t st)
 {
     const ib_spi_bus_t *b = c->board->spi;
     if (st == 0u) {
-        return b->start(b->ctx, IB_CS_ACCEL, c->job_hdr_tx, c->job_hdr_rx, sizeof c->job_hdr_tx, job_next, c);
+        size_t n = c->job_temps ? sizeof c->job_hdr_tx : 3u;
+        return b->start(b->ctx, IB_CS_ACCEL, c->job_hdr_tx, c->job_hdr_rx, n, job_next, c);
     }
     if (st == 1u) {
         return b->start(b->ctx, IB_CS_ACCEL, c->job_fifo_tx, c->job_fifo_rx, 1u + 3u * (size_t)c->job_fifo_n,
                         job_next, c);
     }
-    uint8_t k = (uint8_t)((st - 2u) / 2u);
-    return b->start(b->ctx, (uint8_t)(IB_CS_GYRO_X + k), c->job_gyro_tx, c->job_gyro_rx[k][(st - 2u) & 1u], 4u,
-                    job_next, c);
+    uint8_t k = (uint8_t)((st - 2u) / 2u), f = (uint8_t)((st - 2u) & 1u);
+    const uint8_t *tx = (f == 0u && c->job_temps) ? c->job_tem_tx : c->job_gyro_tx;
+    return b->start(b->ctx, (uint8_t)(IB_CS_GYRO_X + k), tx, c->job_gyro_rx[k][f], 4u, job_next, c);
 }
 
 /* The first step at or after st that applies (sensor present, no failed transfer). */
@@ -543,10 +548,11 @@ static uint8_t job_skip(const ib_core_t *c, uint8_t st)
     }
     while (st < JOB_END) {
         uint8_t k = (uint8_t)((st - 2u) / 2u);
-        if ((c->present & (1u << (1u + k))) && c->job_rc[1u + k] == 0) {
+        int ok = (c->present & (1u << (1u + k))) && c->job_rc[1u + k] == 0;
+        if (ok && (!((st - 2u) & 1u) || c->job_temps)) {
             break;
         }
-        st = (uint8_t)(2u + 2u * (k + 1u));
+        st = ok ? (uint8_t)(st + 1u) : (uint8_t)(2u + 2u * (k + 1u));
     }
     return st;
 }
@@ -583,9 +589,10 @@ static void job_next(void *arg, int rc)
     }
 }
 
-static void job_begin(ib_core_t *c)
+static void job_begin(ib_core_t *c, uint8_t temps)
 {
     memset(c->job_rc, 0, sizeof c->job_rc);
+    c->job_temps = temps;
     c->job_fifo_n = 0;
     c->job_done = 0;
     c->job_step = JOB_START;
@@ -604,6 +611,10 @@ static void sample_finish(ib_core_t *c)
             in.accel_err = IB_ADXL355_ERR_BUS;
         } else {
             in.st_or = c->accel.last_status;
+            if (c->job_temps) {
+                c->accel_temp_counts = (uint16_t)(((c->job_hdr_rx[3] & 0x0Fu) << 8) | c->job_hdr_rx[4]);
+                c->batch_hdr.accel_temp_counts = c->accel_temp_counts;
+            }
             if (c->job_fifo_n) {
                 int32_t sets[JOB_FIFO_SETS][3];
                 ib_adxl355_fifo_parse_t p;
@@ -628,8 +639,13 @@ static void sample_finish(ib_core_t *c)
             in.gyro_err[k] = IB_ADXRS450_ERR_BUS;
             continue;
         }
-        in.gyro_err[k] = ib_adxrs450_rate_from_frames(&c->gyro[k], ib_adxrs450_word(c->job_gyro_rx[k][0]),
-                                                      ib_adxrs450_word(c->job_gyro_rx[k][1]), &in.g[k]);
+        in.gyro_err[k] = ib_adxrs450_rate_from_reply(&c->gyro[k], ib_adxrs450_word(c->job_gyro_rx[k][0]), &in.g[k]);
+        int16_t raw10;
+        if (c->job_temps &&
+            ib_adxrs450_temp_from_reply(&c->gyro[k], ib_adxrs450_word(c->job_gyro_rx[k][1]), &raw10) == IB_ADXRS450_OK) {
+            c->gyro_temp_raw10[k] = raw10;
+            c->batch_hdr.gyro_temp_counts[k] = raw10;
+        }
     }
     sample_commit(c, &in);
 }
@@ -666,11 +682,13 @@ void ib_core_tick(ib_core_t *c, uint32_t missed)
         c->stats.samples_dropped += missed;
         c->drop_pending = 1;
     }
-    if (c->batch_n == 0) {
-        batch_begin(c, now_us(c));
+    const int async = c->board->spi->start != NULL;
+    const uint8_t first = c->batch_n == 0;
+    if (first) {
+        batch_begin(c, now_us(c), !async);
     }
-    if (c->board->spi->start) {
-        job_begin(c);
+    if (async) {
+        job_begin(c, first);
         return;
     }
     sample_in_t in;
@@ -794,6 +812,13 @@ static uint8_t do_start_stream(ib_core_t *c, const ib_msg_start_stream_t *m, uin
             }
             left = left > n ? left - n : 0;
         } while (n == 8u && left);
+    }
+    if (c->board->spi->start) { /* pipelined rate reads: the first frame's reply must be a rate */
+        for (int k = 0; k < 3; k++) {
+            if ((c->present & (1u << (1 + k))) && ib_adxrs450_prime_rate(&c->gyro[k]) == IB_ADXRS450_ERR_BUS) {
+                c->stats.spi_errors++;
+            }
+        }
     }
     c->rate_hz = m->rate_hz;
     uint32_t auto_b = m->rate_hz / 250u;
@@ -1063,6 +1088,7 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b)
     c->job_hdr_tx[0] = ib_adxl355_read_cmd(IB_ADXL355_REG_STATUS);
     c->job_fifo_tx[0] = ib_adxl355_read_cmd(IB_ADXL355_REG_FIFO_DATA);
     ib_adxrs450_rate_cmd_bytes(c->job_gyro_tx);
+    ib_adxrs450_temp_cmd_bytes(c->job_tem_tx);
     b->set_tick_hz(b->ctx, 0);
     sensors_init(c);
     load_params(c);

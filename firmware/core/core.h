@@ -87,9 +87,10 @@ typedef struct ib_core {
     int8_t job_rc[4];             /* per sensor: 0, or <0 when a transfer failed */
     uint8_t job_fifo_n;           /* FIFO entries popped */
     uint32_t job_t_us;
-    uint8_t job_hdr_tx[3], job_hdr_rx[3];
+    uint8_t job_temps;            /* this chain also reads the temperatures (batch start) */
+    uint8_t job_hdr_tx[5], job_hdr_rx[5]; /* ADXL355 STATUS, FIFO_ENTRIES, TEMP2, TEMP1 */
     uint8_t job_fifo_tx[1u + 3u * 24u], job_fifo_rx[1u + 3u * 24u];
-    uint8_t job_gyro_tx[4];
+    uint8_t job_gyro_tx[4], job_tem_tx[4]; /* ADXRS450 sensor-data / read TEM commands */
     uint8_t job_gyro_rx[3][2][4];
 
     ib_msg_stats_t stats;
