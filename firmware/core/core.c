@@ -543,7 +543,10 @@ static uint8_t job_skip(const ib_core_t *c, uint8_t st)
     if (st == 0u && !(c->present & 1u)) {
         st = 2u;
     }
-    if (st == 1u && (c->job_rc[0] != 0 || c->job_fifo_n == 0u)) {
+    if (st == 1u) {
+        if (c->job_rc[0] == 0 && c->job_fifo_n != 0u) {
+            return st;
+        }
         st = 2u;
     }
     while (st < JOB_END) {
