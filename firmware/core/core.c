@@ -514,7 +514,7 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
  * the temperature. Each step is started from the previous one's completion interrupt
  * (job_next); the main loop is free meanwhile and finishes the sample (sample_finish) when
  * job_done is set. */
-#define JOB_FIFO_SETS 8u
+#define JOB_FIFO_SETS (IB_ADXL355_FIFO_SIZE / 3u) /* the whole FIFO: 160 Hz takes 25 sets a tick */
 #define JOB_START 0xFFu
 #define JOB_END 8u
 #define JOB_WAIT_US 5000u
@@ -529,8 +529,8 @@ static int job_launch(ib_core_t *c, uint8_t st)
         return b->start(b->ctx, IB_CS_ACCEL, c->job_hdr_tx, c->job_hdr_rx, n, job_next, c);
     }
     if (st == 1u) {
-        return b->start(b->ctx, IB_CS_ACCEL, c->job_fifo_tx, c->job_fifo_rx, 1u + 3u * (size_t)c->job_fifo_n,
-                        job_next, c);
+        return b->start(b->ctx, IB_CS_ACCEL, ib_adxl355_fifo_read_tx, c->job_fifo_rx,
+                        1u + 3u * (size_t)c->job_fifo_n, job_next, c);
     }
     uint8_t k = (uint8_t)((st - 2u) / 2u), f = (uint8_t)((st - 2u) & 1u);
     const uint8_t *tx = (f == 0u && c->job_temps) ? c->job_tem_tx : c->job_gyro_tx;
@@ -619,16 +619,23 @@ static void sample_finish(ib_core_t *c)
                 c->batch_hdr.accel_temp_counts = c->accel_temp_counts;
             }
             if (c->job_fifo_n) {
-                int32_t sets[JOB_FIFO_SETS][3];
+                int32_t sets[8][3]; /* in chunks of 8 sets (small stack) */
                 ib_adxl355_fifo_parse_t p;
                 ib_adxl355_fifo_parse_init(&p);
-                ib_adxl355_fifo_parse(&c->accel, &p, &c->job_fifo_rx[1], c->job_fifo_n, sets, JOB_FIFO_SETS);
-                ib_adxl355_fifo_parse_end(&c->accel, &p);
-                for (size_t i = 0; i < p.sets; i++) {
-                    in.sum[0] += sets[i][0];
-                    in.sum[1] += sets[i][1];
-                    in.sum[2] += sets[i][2];
+                size_t total = 0;
+                for (size_t e0 = 0; e0 < c->job_fifo_n && !p.empty; e0 += 24u) {
+                    size_t n = c->job_fifo_n - e0 < 24u ? c->job_fifo_n - e0 : 24u;
+                    p.sets = 0;
+                    ib_adxl355_fifo_parse(&c->accel, &p, &c->job_fifo_rx[1u + 3u * e0], n, sets, 8u);
+                    for (size_t i = 0; i < p.sets; i++) {
+                        in.sum[0] += sets[i][0];
+                        in.sum[1] += sets[i][1];
+                        in.sum[2] += sets[i][2];
+                    }
+                    total += p.sets;
                 }
+                ib_adxl355_fifo_parse_end(&c->accel, &p);
+                p.sets = total;
                 in.total = p.sets;
             }
         }
@@ -1089,7 +1096,6 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b)
     c->last_time_us = now_us(c);
     ib_frame_rx_init(&c->rx);
     c->job_hdr_tx[0] = ib_adxl355_read_cmd(IB_ADXL355_REG_STATUS);
-    c->job_fifo_tx[0] = ib_adxl355_read_cmd(IB_ADXL355_REG_FIFO_DATA);
     ib_adxrs450_rate_cmd_bytes(c->job_gyro_tx);
     ib_adxrs450_temp_cmd_bytes(c->job_tem_tx);
     b->set_tick_hz(b->ctx, 0);

@@ -89,7 +89,7 @@ typedef struct ib_core {
     uint32_t job_t_us;
     uint8_t job_temps;            /* this chain also reads the temperatures (batch start) */
     uint8_t job_hdr_tx[5], job_hdr_rx[5]; /* ADXL355 STATUS, FIFO_ENTRIES, TEMP2, TEMP1 */
-    uint8_t job_fifo_tx[1u + 3u * 24u], job_fifo_rx[1u + 3u * 24u];
+    uint8_t job_fifo_rx[1u + 3u * IB_ADXL355_FIFO_SIZE]; /* the whole FIFO at most */
     uint8_t job_gyro_tx[4], job_tem_tx[4]; /* ADXRS450 sensor-data / read TEM commands */
     uint8_t job_gyro_rx[3][2][4];
 

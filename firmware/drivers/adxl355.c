@@ -42,6 +42,8 @@ int32_t ib_adxl355_counts_from_bytes(uint8_t b3, uint8_t b2, uint8_t b1)
 
 uint8_t ib_adxl355_read_cmd(uint8_t addr) { return (uint8_t)((addr << 1) | RW_READ); }
 
+const uint8_t ib_adxl355_fifo_read_tx[1u + 3u * IB_ADXL355_FIFO_SIZE] = {(IB_ADXL355_REG_FIFO_DATA << 1) | RW_READ};
+
 /* ---- raw register access ---- */
 
 static int xfer(ib_adxl355_t *dev, const uint8_t *tx, uint8_t *rx, size_t len)

@@ -285,6 +285,9 @@ typedef struct ib_adxl355_fifo_parse {
 
 /* The command byte that starts a read burst at addr (0x09: STATUS, 0x23: FIFO_DATA). */
 uint8_t ib_adxl355_read_cmd(uint8_t addr);
+/* What to send to pop n entries (the first 1 + 3n bytes): the FIFO_DATA read command, then
+ * zeros. In flash, so a DMA can send it. */
+extern const uint8_t ib_adxl355_fifo_read_tx[1u + 3u * IB_ADXL355_FIFO_SIZE];
 size_t ib_adxl355_fifo_entries(ib_adxl355_t *dev, const uint8_t hdr[2], size_t max_sets);
 void ib_adxl355_fifo_parse_init(ib_adxl355_fifo_parse_t *p);
 void ib_adxl355_fifo_parse(ib_adxl355_t *dev, ib_adxl355_fifo_parse_t *p, const uint8_t *buf, size_t n,
