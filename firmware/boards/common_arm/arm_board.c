@@ -303,9 +303,12 @@ static int spi_transfer(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, s
 }
 
 #if IB_CFG_SPI_DMA
+#define SPI_DMA_TIMEOUT_MS 3u /* the longest transfer (97 bytes) takes ~0.2 ms */
+
 static struct {
     void (*done)(void *arg, int rc);
     void *arg;
+    uint32_t t0_ms;
     uint8_t cs;
     volatile uint8_t busy;
 } g_spi_job;
@@ -329,6 +332,7 @@ static int spi_start(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, size
     g_spi_job.done = done;
     g_spi_job.arg = arg;
     g_spi_job.cs = cs;
+    g_spi_job.t0_ms = g_ms;
     g_spi_job.busy = 1;
     chip_cs_write(cs, 0);
     ib_dsb(); /* tx bytes in SRAM before the DMA reads them */
@@ -366,6 +370,17 @@ static void spi_job_sleep(void)
     for (;;) {
         uint32_t pm = ib_irq_save();
         int sleep = g_spi_job.busy && g_rx_head == g_rx_tail;
+        if (sleep && g_ms - g_spi_job.t0_ms > SPI_DMA_TIMEOUT_MS) {
+            /* the completion never came (bounded like every other wait): stop the channels,
+             * release chip select and report a bus error to the chain (it goes on with the
+             * next step; the sample is flagged SPI_ERROR) */
+            (void)chip_spi_dma_finish();
+            SPI_CR2(CHIP_SPI1_BASE) = 0;
+            chip_cs_write(g_spi_job.cs, 1);
+            g_spi_job.busy = 0;
+            g_spi_job.done(g_spi_job.arg, -1);
+            sleep = 0;
+        }
         if (sleep) {
             ib_wfi();
         }

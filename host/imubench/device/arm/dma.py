@@ -85,7 +85,7 @@ class _TxDma:
             return
         rx, tx = self._spi_chan(0), self._spi_chan(1)
         spi = self.m.spi
-        if not (rx["en"] and tx["en"] and spi.cr2 & 3 == 3):
+        if not (rx["en"] and tx["en"] and (spi.cr2 & 3) == 3):
             return
         if not (rx["ok"] and tx["ok"]):
             self.m.log("DMA: SPI1 channels enabled with a direction/peripheral SPI1 does not request: no requests")
