@@ -40,9 +40,9 @@ class _Transfer:
 
 
 class _SpiJob:
-    def __init__(self, t0: float, t_end: float, n: int, rx: bytes, rx_addr: int, rx_minc: bool):
+    def __init__(self, t0: float, t_end: float, n: int, rx_addr: int, rx_minc: bool):
         self.t0, self.t_end, self.n = t0, t_end, n
-        self.rx, self.rx_addr, self.rx_minc = rx, rx_addr, rx_minc
+        self.rx_addr, self.rx_minc = rx_addr, rx_minc
 
     def remaining(self, t: float) -> int:
         if t >= self.t_end:
@@ -101,8 +101,8 @@ class _TxDma:
             self.spi_flags[1] |= 4
             self._spi_irq(1)
             return
-        got, t_end = spi.dma_exchange(data, t)
-        self.spi_job = _SpiJob(t, t_end, n, got, rx["mem"], rx["minc"])
+        t_end = spi.dma_exchange(data, t)
+        self.spi_job = _SpiJob(t, t_end, n, rx["mem"], rx["minc"])
         self.spi_transfers += 1
         self.m.events_changed()
 
@@ -116,11 +116,12 @@ class _TxDma:
         if j is None or t < j.t_end:
             return
         self.spi_job = None
+        got = self.m.spi.dma_received(j.n)
         try:
             if j.rx_minc:
-                self.m.cpu.uc.mem_write(j.rx_addr, j.rx)
+                self.m.cpu.uc.mem_write(j.rx_addr, got)
             else:
-                self.m.cpu.uc.mem_write(j.rx_addr, j.rx[-1:])
+                self.m.cpu.uc.mem_write(j.rx_addr, got[-1:])
         except Exception:  # noqa: BLE001
             self.spi_flags[0] |= 4
         self.spi_flags[0] |= 3

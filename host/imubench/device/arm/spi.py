@@ -106,30 +106,37 @@ class Spi:
         self.lib.simlib_spi_peek(self.cs, tx, out, len(tx))
         return out[n - 1]
 
-    def dma_exchange(self, data: bytes, t: float) -> tuple[bytes, float]:
-        """A DMA transfer of `data` starting at t: returns the bytes received and the device
-        time its last frame ends."""
+    def dma_exchange(self, data: bytes, t: float) -> float:
+        """A DMA transfer of `data` starting at t: the bytes join the transaction in progress;
+        returns the device time its last frame ends (dma_received then gives the reply)."""
         if not (self.cr1 & CR1_SPE and self.cr1 & CR1_MSTR):
             self.m.log("SPI1: DMA requests while the SPI is not an enabled master: nothing clocked")
         n = len(data)
         start = max(t, self.busy_until if self.frame_rx is not None else t, self.dma_busy_until)
         if self.cs is not None:
             self.tx += data
-            tx = bytes(self.tx)
-            if self.cs != 0 and len(tx) < 4:
-                tx = tx + bytes(4 - len(tx))
-            out = (ctypes.c_uint8 * len(tx))()
-            self.m.set_model_time(self.t_cs)
-            self.lib.simlib_spi_peek(self.cs, tx, out, len(tx))
-            got = bytes(out)[len(self.tx) - n:len(self.tx)]
-            self.rx += got
-        else:
-            got = bytes(n)
         dt = self.frame_time() * n
         self.bytes += n
         self.bus_time += dt
         self.dma_busy_until = start + dt
-        return got, start + dt
+        return start + dt
+
+    def dma_received(self, n: int) -> bytes:
+        """The bytes the last n clocked brought back, asked for when they have been clocked
+        (the end of the DMA transfer): as late as the polled path asks, so a change made
+        through the control channel while the transfer ran (a fault) is in both this reply
+        and the transaction committed at chip select rise."""
+        if self.cs is None:
+            return bytes(n)
+        tx = bytes(self.tx)
+        if self.cs != 0 and len(tx) < 4:
+            tx = tx + bytes(4 - len(tx))
+        out = (ctypes.c_uint8 * len(tx))()
+        self.m.set_model_time(self.t_cs)
+        self.lib.simlib_spi_peek(self.cs, tx, out, len(tx))
+        got = bytes(out)[len(self.tx) - n:len(self.tx)]
+        self.rx += got
+        return got
 
     # ------------------------------------------------------------ registers
     def read(self, off: int, size: int, t: float) -> int:
