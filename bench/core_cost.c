@@ -104,7 +104,7 @@ int main(int argc, char **argv)
     for (int k = 0; k < 3; k++) {
         sim_adxrs450_init(&gyr[k], 100u + (unsigned)k, k);
     }
-    static const ib_spi_bus_t bus = {board_spi_transfer, delay_us, NULL};
+    static const ib_spi_bus_t bus = {board_spi_transfer, delay_us, NULL, NULL}; /* no start(): synchronous reads */
     ib_board_t b;
     memset(&b, 0, sizeof b);
     b.board_id = IB_BOARD_SIM;

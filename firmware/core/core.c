@@ -310,7 +310,8 @@ static void report_faults(ib_core_t *c)
     }
 }
 
-static void batch_begin(ib_core_t *c, uint32_t t_us)
+/* read_temps 0: the sample chain reads them (job_temps) */
+static void batch_begin(ib_core_t *c, uint32_t t_us, int read_temps)
 {
     memset(&c->batch_hdr, 0, sizeof c->batch_hdr);
     c->batch_hdr.sample_index = c->sample_index;
@@ -325,7 +326,7 @@ static void batch_begin(ib_core_t *c, uint32_t t_us)
     c->batch_spi_error = 0;
     memset(c->batch_gyro_st_bad, 0, sizeof c->batch_gyro_st_bad);
     /* temperatures once per batch */
-    if (c->present & 1u) {
+    if (read_temps && (c->present & 1u)) {
         uint8_t t[2];
         if (ib_adxl355_read_regs(&c->accel, 0x06, t, 2) == IB_ADXL355_OK) {
             c->accel_temp_counts = (uint16_t)(((t[0] & 0x0Fu) << 8) | t[1]);
@@ -334,7 +335,7 @@ static void batch_begin(ib_core_t *c, uint32_t t_us)
             c->stats.spi_errors++;
         }
     }
-    for (int k = 0; k < 3; k++) {
+    for (int k = 0; k < 3 && read_temps; k++) {
         if (c->present & (1u << (1 + k))) {
             int16_t raw10;
             ib_adxrs450_err_t e = ib_adxrs450_read_temp(&c->gyro[k], &raw10);
@@ -382,48 +383,68 @@ static void batch_send(ib_core_t *c)
     c->batch_n = 0;
 }
 
-/* Read one sample of every sensor and append it to the batch. */
-static void sample(ib_core_t *c, uint32_t t_us)
+/* What one sample read brought back, from the synchronous reads or the DMA chain. */
+typedef struct {
+    int accel_err;             /* IB_ADXL355_OK or the error */
+    size_t total;              /* FIFO sets read */
+    int32_t sum[3];            /* their sum */
+    uint8_t st_or;             /* STATUS bits seen */
+    ib_adxrs450_err_t gyro_err[3];
+    ib_adxrs450_sample_t g[3];
+} sample_in_t;
+
+/* Read one sample of every sensor with the blocking bus calls (boards without bus->start). */
+static void read_sync(ib_core_t *c, sample_in_t *in)
 {
-    if (c->batch_n == 0) {
-        batch_begin(c, t_us);
-    }
-    uint8_t status = 0;
-    int32_t acc[3] = {c->accel_last[0], c->accel_last[1], c->accel_last[2]};
+    memset(in, 0, sizeof *in);
     if (c->present & 1u) {
         /* every set the FIFO collected since the last tick, in chunks of 8 (small stack) */
         int32_t sets[8][3];
-        int32_t sum[3] = {0, 0, 0}; /* <= 40 sets of 20-bit values: |sum| < 2^25 */
-        size_t total = 0, n = 0;
+        size_t n = 0;
         int err = IB_ADXL355_OK;
-        uint8_t st_or = 0;
         do {
             err = ib_adxl355_read_fifo(&c->accel, sets, 8u, &n);
-            st_or |= c->accel.last_status;
+            in->st_or |= c->accel.last_status;
             for (size_t i = 0; err == IB_ADXL355_OK && i < n; i++) {
-                sum[0] += sets[i][0];
-                sum[1] += sets[i][1];
-                sum[2] += sets[i][2];
+                in->sum[0] += sets[i][0];
+                in->sum[1] += sets[i][1];
+                in->sum[2] += sets[i][2];
             }
-            total += n;
-        } while (err == IB_ADXL355_OK && n == 8u && total < ACCEL_FIFO_MAX_SETS + 8u);
-        if (err != IB_ADXL355_OK) {
+            in->total += n;
+        } while (err == IB_ADXL355_OK && n == 8u && in->total < ACCEL_FIFO_MAX_SETS + 8u);
+        in->accel_err = err;
+    }
+    for (int k = 0; k < 3; k++) {
+        if (c->present & (1u << (1 + k))) {
+            in->gyro_err[k] = ib_adxrs450_read_rate(&c->gyro[k], &in->g[k]);
+        }
+    }
+}
+
+/* Append the sample to the batch (and send the batch when full). */
+static void sample_commit(ib_core_t *c, const sample_in_t *in)
+{
+    uint8_t status = 0;
+    int32_t acc[3] = {c->accel_last[0], c->accel_last[1], c->accel_last[2]};
+    if (c->present & 1u) {
+        if (in->accel_err != IB_ADXL355_OK) {
             c->batch_spi_error |= 1u;
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SPI_ERROR;
             c->stats.spi_errors++;
             status |= IB_SAMPLE_STATUS_ACCEL_BAD;
-        } else if (total == 0) {
+        } else if (in->total == 0) {
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_ACCEL_STALE;
             status |= IB_SAMPLE_STATUS_ACCEL_BAD;
         } else {
-            const int32_t n_sets = (int32_t)total, h = n_sets / 2; /* 32-bit: no libgcc divide */
+            const int32_t n_sets = (int32_t)in->total, h = n_sets / 2; /* 32-bit: no libgcc divide */
             for (int k = 0; k < 3; k++) {
                 /* rounded mean, symmetric about zero */
-                acc[k] = sum[k] >= 0 ? (sum[k] + h) / n_sets : -((-sum[k] + h) / n_sets);
+                int32_t sum = in->sum[k];
+                acc[k] = n_sets == 1 ? sum : sum >= 0 ? (sum + h) / n_sets : -((-sum + h) / n_sets);
                 c->accel_last[k] = acc[k];
             }
         }
-        c->batch_hdr.accel_status |= st_or;
+        c->batch_hdr.accel_status |= in->st_or;
     } else {
         status |= IB_SAMPLE_STATUS_ACCEL_BAD;
     }
@@ -434,21 +455,20 @@ static void sample(ib_core_t *c, uint32_t t_us)
             status |= bad;
             continue;
         }
-        ib_adxrs450_sample_t s;
-        ib_adxrs450_err_t e = ib_adxrs450_read_rate(&c->gyro[k], &s);
-        if (e == IB_ADXRS450_ERR_BUS) {
+        const ib_adxrs450_sample_t *s = &in->g[k];
+        if (in->gyro_err[k] == IB_ADXRS450_ERR_BUS) {
             c->batch_spi_error |= (uint8_t)(1u << (1 + k));
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SPI_ERROR;
             c->stats.spi_errors++;
             status |= bad;
             continue;
         }
-        rate[k] = s.rate_counts;
-        c->batch_hdr.gyro_faults[k] |= (uint8_t)(s.faults | (s.parity_error ? 1u : 0u));
-        if (s.st != 1u) {
-            c->batch_gyro_st_bad[k] = (uint8_t)(s.st | 0x80u);
+        rate[k] = s->rate_counts;
+        c->batch_hdr.gyro_faults[k] |= (uint8_t)(s->faults | (s->parity_error ? 1u : 0u));
+        if (s->st != 1u) {
+            c->batch_gyro_st_bad[k] = (uint8_t)(s->st | 0x80u);
         }
-        if (!s.good) {
+        if (!s->good) {
             status |= bad;
         }
     }
@@ -485,11 +505,186 @@ static void sample(ib_core_t *c, uint32_t t_us)
     }
 }
 
+/* ---- the sample read as a chain of DMA transfers (bus->start) ----
+ * Steps: 0 ADXL355 STATUS, FIFO_ENTRIES, TEMP2, TEMP1 in one burst; 1 pop the FIFO (the
+ * whole sets the header counted, at most JOB_FIFO_SETS); 2 + 2k: gyro k's frame, whose reply
+ * is the rate latched by the previous sample's frame (the pipelined read of adxrs450.h: one
+ * frame per gyro instead of two, the rate one sample period old); at the start of a batch
+ * that frame sends "read TEM" instead and step 3 + 2k the sensor-data command, whose reply is
+ * the temperature. Each step is started from the previous one's completion interrupt
+ * (job_next); the main loop is free meanwhile and finishes the sample (sample_finish) when
+ * job_done is set. */
+#define JOB_FIFO_SETS (IB_ADXL355_FIFO_SIZE / 3u) /* the whole FIFO: 160 Hz takes 25 sets a tick */
+#define JOB_START 0xFFu
+#define JOB_END 8u
+#define JOB_WAIT_US 5000u
+
+static void job_next(void *arg, int rc);
+
+static int job_launch(ib_core_t *c, uint8_t st)
+{
+    const ib_spi_bus_t *b = c->board->spi;
+    if (st == 0u) {
+        size_t n = c->job_temps ? sizeof c->job_hdr_tx : 3u;
+        return b->start(b->ctx, IB_CS_ACCEL, c->job_hdr_tx, c->job_hdr_rx, n, job_next, c);
+    }
+    if (st == 1u) {
+        return b->start(b->ctx, IB_CS_ACCEL, ib_adxl355_fifo_read_tx, c->job_fifo_rx,
+                        1u + 3u * (size_t)c->job_fifo_n, job_next, c);
+    }
+    uint8_t k = (uint8_t)((st - 2u) / 2u), f = (uint8_t)((st - 2u) & 1u);
+    const uint8_t *tx = (f == 0u && c->job_temps) ? c->job_tem_tx : c->job_gyro_tx;
+    return b->start(b->ctx, (uint8_t)(IB_CS_GYRO_X + k), tx, c->job_gyro_rx[k][f], 4u, job_next, c);
+}
+
+/* The first step at or after st that applies (sensor present, no failed transfer). */
+static uint8_t job_skip(const ib_core_t *c, uint8_t st)
+{
+    if (st == 0u && !(c->present & 1u)) {
+        st = 2u;
+    }
+    if (st == 1u) {
+        if (c->job_rc[0] == 0 && c->job_fifo_n != 0u) {
+            return st;
+        }
+        st = 2u;
+    }
+    while (st < JOB_END) {
+        uint8_t k = (uint8_t)((st - 2u) / 2u);
+        int ok = (c->present & (1u << (1u + k))) && c->job_rc[1u + k] == 0;
+        if (ok && (!((st - 2u) & 1u) || c->job_temps)) {
+            break;
+        }
+        st = ok ? (uint8_t)(st + 1u) : (uint8_t)(2u + 2u * (k + 1u));
+    }
+    return st;
+}
+
+static void job_next(void *arg, int rc)
+{
+    ib_core_t *c = (ib_core_t *)arg;
+    uint8_t st = c->job_step;
+    if (st == JOB_START) {
+        st = 0u;
+    } else {
+        uint8_t sensor = st < 2u ? 0u : (uint8_t)(1u + (st - 2u) / 2u);
+        if (rc < 0) {
+            c->job_rc[sensor] = -1;
+        } else if (st == 0u) {
+            c->job_fifo_n = (uint8_t)ib_adxl355_fifo_entries(&c->accel, &c->job_hdr_rx[1], JOB_FIFO_SETS);
+        }
+        st++;
+    }
+    for (;;) {
+        st = job_skip(c, st);
+        if (st >= JOB_END) {
+            c->job_step = JOB_END;
+            c->job_busy = 0;
+            c->job_done = 1;
+            return;
+        }
+        c->job_step = st;
+        if (job_launch(c, st) == 0) {
+            return;
+        }
+        c->job_rc[st < 2u ? 0u : 1u + (st - 2u) / 2u] = -1;
+        st++;
+    }
+}
+
+static void job_begin(ib_core_t *c, uint8_t temps)
+{
+    memset(c->job_rc, 0, sizeof c->job_rc);
+    c->job_temps = temps;
+    c->job_fifo_n = 0;
+    c->job_done = 0;
+    c->job_step = JOB_START;
+    c->job_busy = 1;
+    job_next(c, 0);
+}
+
+/* Turn what the chain brought back into the sample. */
+static void sample_finish(ib_core_t *c)
+{
+    sample_in_t in;
+    memset(&in, 0, sizeof in);
+    c->job_done = 0;
+    if (c->present & 1u) {
+        if (c->job_rc[0] != 0) {
+            in.accel_err = IB_ADXL355_ERR_BUS;
+        } else {
+            in.st_or = c->accel.last_status;
+            if (c->job_temps) {
+                c->accel_temp_counts = (uint16_t)(((c->job_hdr_rx[3] & 0x0Fu) << 8) | c->job_hdr_rx[4]);
+                c->batch_hdr.accel_temp_counts = c->accel_temp_counts;
+            }
+            if (c->job_fifo_n) {
+                int32_t sets[8][3]; /* in chunks of 8 sets (small stack) */
+                ib_adxl355_fifo_parse_t p;
+                ib_adxl355_fifo_parse_init(&p);
+                size_t total = 0;
+                for (size_t e0 = 0; e0 < c->job_fifo_n && !p.empty; e0 += 24u) {
+                    size_t n = c->job_fifo_n - e0 < 24u ? c->job_fifo_n - e0 : 24u;
+                    p.sets = 0;
+                    ib_adxl355_fifo_parse(&c->accel, &p, &c->job_fifo_rx[1u + 3u * e0], n, sets, 8u);
+                    for (size_t i = 0; i < p.sets; i++) {
+                        in.sum[0] += sets[i][0];
+                        in.sum[1] += sets[i][1];
+                        in.sum[2] += sets[i][2];
+                    }
+                    total += p.sets;
+                }
+                ib_adxl355_fifo_parse_end(&c->accel, &p);
+                p.sets = total;
+                in.total = p.sets;
+            }
+        }
+    }
+    for (int k = 0; k < 3; k++) {
+        if (!(c->present & (1u << (1 + k)))) {
+            continue;
+        }
+        if (c->job_rc[1 + k] != 0) {
+            ib_adxrs450_note_bus_error(&c->gyro[k]);
+            in.gyro_err[k] = IB_ADXRS450_ERR_BUS;
+            continue;
+        }
+        in.gyro_err[k] = ib_adxrs450_rate_from_reply(&c->gyro[k], ib_adxrs450_word(c->job_gyro_rx[k][0]), &in.g[k]);
+        int16_t raw10;
+        if (c->job_temps &&
+            ib_adxrs450_temp_from_reply(&c->gyro[k], ib_adxrs450_word(c->job_gyro_rx[k][1]), &raw10) == IB_ADXRS450_OK) {
+            c->gyro_temp_raw10[k] = raw10;
+            c->batch_hdr.gyro_temp_counts[k] = raw10;
+        }
+    }
+    sample_commit(c, &in);
+}
+
+/* Let a running chain end (bounded) and finish its sample: before anything else uses the
+ * bus or the batch. */
+static void job_wait(ib_core_t *c)
+{
+    if (c->job_busy) {
+        uint32_t t0 = now_us(c);
+        while (c->job_busy && now_us(c) - t0 < JOB_WAIT_US) {
+        }
+        if (c->job_busy) { /* the bus never completed: report every sensor's read as failed */
+            c->job_busy = 0;
+            memset(c->job_rc, 0xFF, sizeof c->job_rc);
+            c->job_done = 1;
+        }
+    }
+    if (c->job_done) {
+        sample_finish(c);
+    }
+}
+
 void ib_core_tick(ib_core_t *c, uint32_t missed)
 {
     if (c->stream_state == IB_STREAM_STATE_STOPPED) {
         return;
     }
+    job_wait(c);
     if (missed) {
         /* samples inside a batch are consecutive: close the batch, then skip */
         batch_send(c);
@@ -497,11 +692,23 @@ void ib_core_tick(ib_core_t *c, uint32_t missed)
         c->stats.samples_dropped += missed;
         c->drop_pending = 1;
     }
-    sample(c, now_us(c));
+    const int async = c->board->spi->start != NULL;
+    const uint8_t first = c->batch_n == 0;
+    if (first) {
+        batch_begin(c, now_us(c), !async);
+    }
+    if (async) {
+        job_begin(c, first);
+        return;
+    }
+    sample_in_t in;
+    read_sync(c, &in);
+    sample_commit(c, &in);
 }
 
 static void stream_stop(ib_core_t *c)
 {
+    job_wait(c);
     batch_send(c);
     c->stream_state = IB_STREAM_STATE_STOPPED;
     c->board->set_tick_hz(c->board->ctx, 0);
@@ -615,6 +822,13 @@ static uint8_t do_start_stream(ib_core_t *c, const ib_msg_start_stream_t *m, uin
             }
             left = left > n ? left - n : 0;
         } while (n == 8u && left);
+    }
+    if (c->board->spi->start) { /* pipelined rate reads: the first frame's reply must be a rate */
+        for (int k = 0; k < 3; k++) {
+            if ((c->present & (1u << (1 + k))) && ib_adxrs450_prime_rate(&c->gyro[k]) == IB_ADXRS450_ERR_BUS) {
+                c->stats.spi_errors++;
+            }
+        }
     }
     c->rate_hz = m->rate_hz;
     uint32_t auto_b = m->rate_hz / 250u;
@@ -881,6 +1095,9 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b)
     c->accel_range_g = 2;
     c->last_time_us = now_us(c);
     ib_frame_rx_init(&c->rx);
+    c->job_hdr_tx[0] = ib_adxl355_read_cmd(IB_ADXL355_REG_STATUS);
+    ib_adxrs450_rate_cmd_bytes(c->job_gyro_tx);
+    ib_adxrs450_temp_cmd_bytes(c->job_tem_tx);
     b->set_tick_hz(b->ctx, 0);
     sensors_init(c);
     load_params(c);
@@ -907,6 +1124,9 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b)
 
 void ib_core_poll(ib_core_t *c)
 {
+    if (c->job_done) {
+        sample_finish(c);
+    }
     /* one command at a time: bytes after a command wait until its reply is out */
     (void)flush_reply(c);
     while (c->reply_pending == 0 && !c->reboot_pending) {

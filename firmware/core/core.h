@@ -78,6 +78,21 @@ typedef struct ib_core {
     uint8_t last_cmd_payload[IB_MAX_COMMAND_PAYLOAD]; /* and its payload, byte for byte */
     uint8_t reboot_pending;
 
+    /* asynchronous sample read (boards whose bus has start(): SPI by DMA). ib_core_tick
+     * starts the chain, the bus interrupt runs it (job_next), ib_core_poll finishes the
+     * sample once it is done. */
+    volatile uint8_t job_busy;    /* a chain is running */
+    volatile uint8_t job_done;    /* a finished chain waits for sample_finish */
+    uint8_t job_step;
+    int8_t job_rc[4];             /* per sensor: 0, or <0 when a transfer failed */
+    uint8_t job_fifo_n;           /* FIFO entries popped */
+    uint32_t job_t_us;
+    uint8_t job_temps;            /* this chain also reads the temperatures (batch start) */
+    uint8_t job_hdr_tx[5], job_hdr_rx[5]; /* ADXL355 STATUS, FIFO_ENTRIES, TEMP2, TEMP1 */
+    uint8_t job_fifo_rx[1u + 3u * IB_ADXL355_FIFO_SIZE]; /* the whole FIFO at most */
+    uint8_t job_gyro_tx[4], job_tem_tx[4]; /* ADXRS450 sensor-data / read TEM commands */
+    uint8_t job_gyro_rx[3][2][4];
+
     ib_msg_stats_t stats;
     uint32_t uptime_ms;
     uint32_t uptime_us_rem;

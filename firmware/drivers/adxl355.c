@@ -40,6 +40,10 @@ int32_t ib_adxl355_counts_from_bytes(uint8_t b3, uint8_t b2, uint8_t b1)
     return v;
 }
 
+uint8_t ib_adxl355_read_cmd(uint8_t addr) { return (uint8_t)((addr << 1) | RW_READ); }
+
+const uint8_t ib_adxl355_fifo_read_tx[1u + 3u * IB_ADXL355_FIFO_SIZE] = {(IB_ADXL355_REG_FIFO_DATA << 1) | RW_READ};
+
 /* ---- raw register access ---- */
 
 static int xfer(ib_adxl355_t *dev, const uint8_t *tx, uint8_t *rx, size_t len)
@@ -443,6 +447,74 @@ static int fifo_pop(ib_adxl355_t *dev, uint8_t *out, size_t n)
     return r;
 }
 
+size_t ib_adxl355_fifo_entries(ib_adxl355_t *dev, const uint8_t hdr[2], size_t max_sets)
+{
+    dev->last_status = hdr[0];
+    size_t entries = hdr[1] & 0x7Fu;
+    if (entries > IB_ADXL355_FIFO_SIZE) {
+        entries = IB_ADXL355_FIFO_SIZE;
+    }
+    entries -= entries % 3u;
+    if (max_sets < IB_ADXL355_FIFO_SIZE / 3u && entries > max_sets * 3u) {
+        entries = max_sets * 3u;
+    }
+    return entries;
+}
+
+void ib_adxl355_fifo_parse_init(ib_adxl355_fifo_parse_t *p)
+{
+    p->axis = 0;
+    p->empty = 0;
+    p->sets = 0;
+    p->dropped = 0;
+}
+
+void ib_adxl355_fifo_parse(ib_adxl355_t *dev, ib_adxl355_fifo_parse_t *p, const uint8_t *buf, size_t n,
+                           int32_t (*xyz)[3], size_t max_sets)
+{
+    for (size_t k = 0; k < n && !p->empty; k++) {
+        const uint8_t *e = &buf[3u * k];
+        if (e[2] & IB_ADXL355_FIFO_MARKER_EMPTY) {
+            p->empty = 1; /* the rest of this burst is empty too */
+            break;
+        }
+        int32_t v = ib_adxl355_counts_from_bytes(e[0], e[1], e[2]);
+        size_t dropped = 0;
+        if (e[2] & IB_ADXL355_FIFO_MARKER_X) {
+            dropped = p->axis; /* a partial set cut short by a new X */
+            p->cur[0] = v;
+            p->axis = 1;
+        } else if (p->axis == 0) {
+            dropped = 1; /* Y or Z without its X: resynchronise */
+        } else {
+            p->cur[p->axis++] = v;
+            if (p->axis == 3u) {
+                if (p->sets < max_sets) {
+                    xyz[p->sets][0] = p->cur[0];
+                    xyz[p->sets][1] = p->cur[1];
+                    xyz[p->sets][2] = p->cur[2];
+                    p->sets++;
+                } else {
+                    dropped = 3;
+                }
+                p->axis = 0;
+            }
+        }
+        if (dropped) {
+            dev->fifo_discarded += (uint32_t)dropped;
+            p->dropped += dropped;
+        }
+    }
+}
+
+void ib_adxl355_fifo_parse_end(ib_adxl355_t *dev, ib_adxl355_fifo_parse_t *p)
+{
+    if (p->axis != 0) {
+        dev->fifo_discarded += p->axis; /* the FIFO ended inside a set */
+        p->axis = 0;
+    }
+}
+
 int ib_adxl355_read_fifo(ib_adxl355_t *dev, int32_t (*xyz)[3], size_t max_sets,
                          size_t *n_sets)
 {
@@ -455,75 +527,37 @@ int ib_adxl355_read_fifo(ib_adxl355_t *dev, int32_t (*xyz)[3], size_t max_sets,
     if (r != IB_ADXL355_OK) {
         return r;
     }
-    dev->last_status = hdr[0];
-    size_t entries = hdr[1] & 0x7Fu;
-    if (entries > IB_ADXL355_FIFO_SIZE) {
-        entries = IB_ADXL355_FIFO_SIZE;
-    }
-    entries -= entries % 3u;
-    if (max_sets < IB_ADXL355_FIFO_SIZE / 3u && entries > max_sets * 3u) {
-        entries = max_sets * 3u;
-    }
+    size_t entries = ib_adxl355_fifo_entries(dev, hdr, max_sets);
 
     /* `budget` grows by one for every discarded entry, but never beyond `limit`, so a
      * garbage stream cannot keep the loop going. */
     const size_t limit = entries + IB_ADXL355_FIFO_SIZE;
     size_t budget = entries;
     size_t popped = 0;
-    size_t sets = 0;
-    unsigned axis = 0; /* next axis expected: 0 = waiting for an X marker */
-    int32_t cur[3] = {0, 0, 0};
-    int empty = 0;
+    ib_adxl355_fifo_parse_t p;
+    ib_adxl355_fifo_parse_init(&p);
     uint8_t buf[3u * IB_ADXL355_FIFO_CHUNK];
 
-    while (popped < budget && !empty) {
+    while (popped < budget && !p.empty) {
         size_t n = budget - popped;
         if (n > IB_ADXL355_FIFO_CHUNK) {
             n = IB_ADXL355_FIFO_CHUNK;
         }
         r = fifo_pop(dev, buf, n);
         if (r != IB_ADXL355_OK) {
-            *n_sets = sets;
+            *n_sets = p.sets;
             return r;
         }
         popped += n;
-        for (size_t k = 0; k < n; k++) {
-            const uint8_t *e = &buf[3u * k];
-            if (e[2] & IB_ADXL355_FIFO_MARKER_EMPTY) {
-                empty = 1; /* the rest of this burst is empty too */
-                break;
-            }
-            int32_t v = ib_adxl355_counts_from_bytes(e[0], e[1], e[2]);
-            size_t dropped = 0;
-            if (e[2] & IB_ADXL355_FIFO_MARKER_X) {
-                dropped = axis; /* a partial set cut short by a new X */
-                cur[0] = v;
-                axis = 1;
-            } else if (axis == 0) {
-                dropped = 1; /* Y or Z without its X: resynchronise */
-            } else {
-                cur[axis++] = v;
-                if (axis == 3u) {
-                    xyz[sets][0] = cur[0];
-                    xyz[sets][1] = cur[1];
-                    xyz[sets][2] = cur[2];
-                    sets++;
-                    axis = 0;
-                }
-            }
-            if (dropped) {
-                dev->fifo_discarded += (uint32_t)dropped;
-                budget += dropped;
-                if (budget > limit) {
-                    budget = limit;
-                }
-            }
+        size_t before = p.dropped;
+        ib_adxl355_fifo_parse(dev, &p, buf, n, xyz, max_sets);
+        budget += p.dropped - before;
+        if (budget > limit) {
+            budget = limit;
         }
     }
-    if (axis != 0) {
-        dev->fifo_discarded += axis; /* the FIFO ended inside a set */
-    }
-    *n_sets = sets;
+    ib_adxl355_fifo_parse_end(dev, &p);
+    *n_sets = p.sets;
     return IB_ADXL355_OK;
 }
 

@@ -268,6 +268,32 @@ int ib_adxl355_wait_sample(ib_adxl355_t *dev, ib_adxl355_sample_t *s, uint32_t t
 int ib_adxl355_read_fifo(ib_adxl355_t *dev, int32_t (*xyz)[3], size_t max_sets,
                          size_t *n_sets);
 
+/* The FIFO read in pieces, for a board that runs the transfers itself (DMA):
+ *   ib_adxl355_fifo_entries: from STATUS and FIFO_ENTRIES (a 2-byte read at 0x04) the number
+ *     of entries to pop (whole sets, at most max_sets); keeps STATUS in dev->last_status.
+ *   ib_adxl355_fifo_parse: the popped entries (3 bytes each, as read from FIFO_DATA) into
+ *     complete sets, with the marker checks of ib_adxl355_read_fifo (sets beyond max_sets
+ *     and entries out of step are discarded and counted); call _init before and _end after.
+ * ib_adxl355_read_fifo is these three around its own transfers. */
+typedef struct ib_adxl355_fifo_parse {
+    unsigned axis;    /* next axis expected, 0 = waiting for an X marker */
+    int empty;        /* an empty marker was seen */
+    size_t sets;      /* complete sets written to xyz */
+    size_t dropped;   /* entries discarded so far */
+    int32_t cur[3];
+} ib_adxl355_fifo_parse_t;
+
+/* The command byte that starts a read burst at addr (0x09: STATUS, 0x23: FIFO_DATA). */
+uint8_t ib_adxl355_read_cmd(uint8_t addr);
+/* What to send to pop n entries (the first 1 + 3n bytes): the FIFO_DATA read command, then
+ * zeros. In flash, so a DMA can send it. */
+extern const uint8_t ib_adxl355_fifo_read_tx[1u + 3u * IB_ADXL355_FIFO_SIZE];
+size_t ib_adxl355_fifo_entries(ib_adxl355_t *dev, const uint8_t hdr[2], size_t max_sets);
+void ib_adxl355_fifo_parse_init(ib_adxl355_fifo_parse_t *p);
+void ib_adxl355_fifo_parse(ib_adxl355_t *dev, ib_adxl355_fifo_parse_t *p, const uint8_t *buf, size_t n,
+                           int32_t (*xyz)[3], size_t max_sets);
+void ib_adxl355_fifo_parse_end(ib_adxl355_t *dev, ib_adxl355_fifo_parse_t *p);
+
 /* Self-test. Saves the configuration, goes to +-8 g, 1 kHz, HPF off, measuring; sets
  * ST1, discards IB_ADXL355_ST_SETTLE samples and averages IB_ADXL355_ST_AVERAGE as the
  * baseline; sets ST1|ST2, settles and averages again; clears SELF_TEST and restores the

@@ -122,15 +122,10 @@ static ib_adxrs450_err_t check_word(ib_adxrs450_t *dev, uint32_t w)
 /* The second frame of a register operation: send `cmd`, and evaluate the reply it
  * brings back (the answer to the previous frame's command), which must be a register
  * reply of `type`; its data field goes to *data. */
-static ib_adxrs450_err_t reg_fetch(ib_adxrs450_t *dev, uint32_t cmd, uint8_t type,
-                                   uint16_t *data)
+/* A register reply of `type`: checks as reg_fetch does; its data field goes to *data. */
+static ib_adxrs450_err_t check_reg_reply(ib_adxrs450_t *dev, uint32_t w, uint8_t type, uint16_t *data)
 {
-    uint32_t w = 0;
-    ib_adxrs450_err_t e = frame(dev, cmd, &w);
-    if (e != IB_ADXRS450_OK) {
-        return e;
-    }
-    e = check_word(dev, w);
+    ib_adxrs450_err_t e = check_word(dev, w);
     if (e != IB_ADXRS450_OK) {
         return e;
     }
@@ -146,6 +141,17 @@ static ib_adxrs450_err_t reg_fetch(ib_adxrs450_t *dev, uint32_t cmd, uint8_t typ
     }
     *data = (uint16_t)((w >> 5) & 0xFFFFu);
     return IB_ADXRS450_OK;
+}
+
+static ib_adxrs450_err_t reg_fetch(ib_adxrs450_t *dev, uint32_t cmd, uint8_t type,
+                                   uint16_t *data)
+{
+    uint32_t w = 0;
+    ib_adxrs450_err_t e = frame(dev, cmd, &w);
+    if (e != IB_ADXRS450_OK) {
+        return e;
+    }
+    return check_reg_reply(dev, w, type, data);
 }
 
 /* Two frames: cmd1 (its reply arrives in the second frame), then cmd2 as the fetch frame.
@@ -208,6 +214,15 @@ ib_adxrs450_err_t ib_adxrs450_read_fault(ib_adxrs450_t *dev, uint16_t *fault)
     return IB_ADXRS450_OK;
 }
 
+static int16_t tem_raw10(uint16_t v)
+{
+    int32_t t = (int32_t)((v >> 6) & 0x3FFu);
+    if (t & 0x200) {
+        t -= 0x400;
+    }
+    return (int16_t)t;
+}
+
 ib_adxrs450_err_t ib_adxrs450_read_temp(ib_adxrs450_t *dev, int16_t *raw10)
 {
     if (raw10 == NULL) {
@@ -218,11 +233,7 @@ ib_adxrs450_err_t ib_adxrs450_read_temp(ib_adxrs450_t *dev, int16_t *raw10)
     if (e != IB_ADXRS450_OK) {
         return e;
     }
-    int32_t t = (int32_t)((v >> 6) & 0x3FFu);
-    if (t & 0x200) {
-        t -= 0x400;
-    }
-    *raw10 = (int16_t)t;
+    *raw10 = tem_raw10(v);
     return IB_ADXRS450_OK;
 }
 
@@ -232,6 +243,70 @@ void ib_adxrs450_clear_faults_seen(ib_adxrs450_t *dev)
         dev->faults_seen = 0;
     }
 }
+
+ib_adxrs450_err_t ib_adxrs450_rate_from_reply(ib_adxrs450_t *dev, uint32_t w, ib_adxrs450_sample_t *s)
+{
+    ib_adxrs450_decode_sensor(w, s);
+    ib_adxrs450_err_t e = check_word(dev, w);
+    if (e != IB_ADXRS450_OK) {
+        return e;
+    }
+    if (s->st == IB_ADXRS450_ST_REGISTER || resp_type(w) != 0u) {
+        s->good = 0; /* a register/error reply, or an SQ echo we did not send */
+        return IB_ADXRS450_ERR_BAD_RESPONSE;
+    }
+    dev->faults_seen |= s->faults;
+    return s->good ? IB_ADXRS450_OK : IB_ADXRS450_ERR_FAULT;
+}
+
+static void cmd_bytes(uint32_t cmd, uint8_t tx[4])
+{
+    tx[0] = (uint8_t)(cmd >> 24);
+    tx[1] = (uint8_t)(cmd >> 16);
+    tx[2] = (uint8_t)(cmd >> 8);
+    tx[3] = (uint8_t)cmd;
+}
+
+void ib_adxrs450_temp_cmd_bytes(uint8_t tx[4]) { cmd_bytes(ib_adxrs450_cmd_read(IB_ADXRS450_REG_TEM), tx); }
+
+ib_adxrs450_err_t ib_adxrs450_temp_from_reply(ib_adxrs450_t *dev, uint32_t w, int16_t *raw10)
+{
+    uint16_t v = 0;
+    ib_adxrs450_err_t e = check_reg_reply(dev, w, IB_ADXRS450_RESP_TYPE_READ, &v);
+    if (e == IB_ADXRS450_OK) {
+        *raw10 = tem_raw10(v);
+    }
+    return e;
+}
+
+ib_adxrs450_err_t ib_adxrs450_prime_rate(ib_adxrs450_t *dev)
+{
+    if (!dev_ok(dev)) {
+        return IB_ADXRS450_ERR_ARG;
+    }
+    uint32_t w = 0;
+    ib_adxrs450_err_t e = frame(dev, ib_adxrs450_cmd_sensor_data(0), &w);
+    if (e == IB_ADXRS450_OK) {
+        note_discarded(dev, w);
+    }
+    return e;
+}
+
+ib_adxrs450_err_t ib_adxrs450_rate_from_frames(ib_adxrs450_t *dev, uint32_t w0, uint32_t w,
+                                               ib_adxrs450_sample_t *s)
+{
+    note_discarded(dev, w0);
+    return ib_adxrs450_rate_from_reply(dev, w, s);
+}
+
+void ib_adxrs450_rate_cmd_bytes(uint8_t tx[4]) { cmd_bytes(ib_adxrs450_cmd_sensor_data(0), tx); }
+
+uint32_t ib_adxrs450_word(const uint8_t rx[4])
+{
+    return ((uint32_t)rx[0] << 24) | ((uint32_t)rx[1] << 16) | ((uint32_t)rx[2] << 8) | (uint32_t)rx[3];
+}
+
+void ib_adxrs450_note_bus_error(ib_adxrs450_t *dev) { dev->bus_errors++; }
 
 ib_adxrs450_err_t ib_adxrs450_read_rate(ib_adxrs450_t *dev, ib_adxrs450_sample_t *s)
 {
@@ -245,22 +320,12 @@ ib_adxrs450_err_t ib_adxrs450_read_rate(ib_adxrs450_t *dev, ib_adxrs450_sample_t
     if (e != IB_ADXRS450_OK) {
         return e;
     }
-    note_discarded(dev, w0);
     e = frame(dev, cmd, &w);
     if (e != IB_ADXRS450_OK) {
+        note_discarded(dev, w0);
         return e;
     }
-    ib_adxrs450_decode_sensor(w, s);
-    e = check_word(dev, w);
-    if (e != IB_ADXRS450_OK) {
-        return e;
-    }
-    if (s->st == IB_ADXRS450_ST_REGISTER || resp_type(w) != 0u) {
-        s->good = 0; /* a register/error reply, or an SQ echo we did not send */
-        return IB_ADXRS450_ERR_BAD_RESPONSE;
-    }
-    dev->faults_seen |= s->faults;
-    return s->good ? IB_ADXRS450_OK : IB_ADXRS450_ERR_FAULT;
+    return ib_adxrs450_rate_from_frames(dev, w0, w, s);
 }
 
 /* The CHK-phase replies of start-up steps 3 and 4. */

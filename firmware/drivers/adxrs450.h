@@ -219,6 +219,30 @@ ib_adxrs450_err_t ib_adxrs450_init(ib_adxrs450_t *dev, const ib_spi_bus_t *bus, 
  * (ST != 01 or fault bits set; s->faults and s->st say which). */
 ib_adxrs450_err_t ib_adxrs450_read_rate(ib_adxrs450_t *dev, ib_adxrs450_sample_t *s);
 
+/* ib_adxrs450_read_rate in pieces, for a board that runs the frames itself (DMA): send the
+ * bytes of ib_adxrs450_rate_cmd_bytes in two chip-select frames, then pass both replies
+ * (ib_adxrs450_word of the received bytes) to ib_adxrs450_rate_from_frames, which checks
+ * and decodes them exactly as ib_adxrs450_read_rate does. A failed frame:
+ * ib_adxrs450_note_bus_error. */
+void ib_adxrs450_rate_cmd_bytes(uint8_t tx[4]);
+uint32_t ib_adxrs450_word(const uint8_t rx[4]);
+ib_adxrs450_err_t ib_adxrs450_rate_from_frames(ib_adxrs450_t *dev, uint32_t w0, uint32_t w,
+                                               ib_adxrs450_sample_t *s);
+void ib_adxrs450_note_bus_error(ib_adxrs450_t *dev);
+
+/* The pipelined rate read (one frame per sample): every frame sends the sensor-data command
+ * and its reply answers the previous frame's, so the rate reported was latched one frame
+ * earlier (one sample period). ib_adxrs450_prime_rate sends one sensor-data frame (reply
+ * discarded) so the next frame's reply is a rate; ib_adxrs450_rate_from_reply checks and
+ * decodes a reply as ib_adxrs450_read_rate does. The temperature fits in the pipeline: a
+ * frame with the bytes of ib_adxrs450_temp_cmd_bytes (its reply: the pending rate), then a
+ * sensor-data frame whose reply, through ib_adxrs450_temp_from_reply (a register reply of
+ * TEM, checked as ib_adxrs450_read_reg does), is the temperature. */
+ib_adxrs450_err_t ib_adxrs450_prime_rate(ib_adxrs450_t *dev);
+ib_adxrs450_err_t ib_adxrs450_rate_from_reply(ib_adxrs450_t *dev, uint32_t w, ib_adxrs450_sample_t *s);
+void ib_adxrs450_temp_cmd_bytes(uint8_t tx[4]);
+ib_adxrs450_err_t ib_adxrs450_temp_from_reply(ib_adxrs450_t *dev, uint32_t w, int16_t *raw10);
+
 /* Read the 16-bit register at `addr` (two frames). The reply must have good parity,
  * ST = 11 and type 010; a R/W error reply gives ERR_BAD_RESPONSE with its SPI/RE/DU
  * bits in dev->last_rw_error. ERR_ARG for addr > 0x1FF or NULL value. */

@@ -35,6 +35,16 @@ typedef struct ib_spi_bus {
     /* Busy-wait or sleep at least `us` microseconds of device time. */
     void (*delay_us)(void *ctx, uint32_t us);
     void *ctx;
+    /*
+     * Optional (NULL when the board has none, e.g. the QEMU images and the simulator): start
+     * the same transaction and return at once (0; negative if it cannot start, e.g. one is
+     * already running). The board clocks it without the CPU (DMA) and, once chip select is
+     * high again, calls done(arg, rc) from its interrupt, rc as transfer() returns; done may
+     * start the next transaction (a chain). tx and rx must stay valid until then, and no
+     * transfer() may be called while one runs.
+     */
+    int (*start)(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len,
+                 void (*done)(void *arg, int rc), void *arg);
 } ib_spi_bus_t;
 
 #endif

@@ -885,8 +885,62 @@ static void test_bad_args(void)
     CHECK_EQ_INT(ib_adxrs450_read_rate(NULL, &s), IB_ADXRS450_ERR_ARG);
 }
 
+/* The pieces a DMA board uses (one frame per sample): prime, then every frame's reply is the
+ * rate latched by the frame before, decoded exactly as ib_adxrs450_read_rate does; "read TEM"
+ * then a sensor-data frame gives the pending rate and the temperature. */
+static void test_pipelined_pieces(void)
+{
+    setup(9);
+    make_ideal();
+    ib_adxrs450_t g;
+    CHECK_EQ_INT(init_chip(&g, 0), IB_ADXRS450_OK);
+    uint8_t sd[4], tem[4], rx[4];
+    ib_adxrs450_rate_cmd_bytes(sd);
+    ib_adxrs450_temp_cmd_bytes(tem);
+    CHECK_EQ_INT(be32(sd), ib_adxrs450_cmd_sensor_data(0));
+    CHECK_EQ_INT(be32(tem), ib_adxrs450_cmd_read(IB_ADXRS450_REG_TEM));
+    /* after a register read the first reply would be a register reply: prime */
+    uint16_t pid = 0;
+    ib_adxrs450_sample_t s0;
+    set_rate_dps(1.0, 0.0, 0.0);
+    (void)settled_read(&g, &s0); /* the model's output filter settles */
+    CHECK_EQ_INT(ib_adxrs450_read_reg(&g, IB_ADXRS450_REG_PID, &pid), IB_ADXRS450_OK);
+    bus_delay(&B, 1000);
+    CHECK_EQ_INT(ib_adxrs450_prime_rate(&g), IB_ADXRS450_OK);
+    ib_adxrs450_sample_t s;
+    bus_delay(&B, 250);
+    CHECK_EQ_INT(B.bus.transfer(B.bus.ctx, IB_CS_GYRO_X, sd, rx, 4), 0);
+    CHECK_EQ_INT(ib_adxrs450_rate_from_reply(&g, ib_adxrs450_word(rx), &s), IB_ADXRS450_OK);
+    CHECK_EQ_INT(s.rate_counts, 80);
+    CHECK_EQ_INT(s.good, 1);
+    /* the rate changes: the next reply still carries the one latched before the change */
+    set_rate_dps(-2.0, 0.0, 0.0);
+    bus_delay(&B, 20000);
+    CHECK_EQ_INT(B.bus.transfer(B.bus.ctx, IB_CS_GYRO_X, tem, rx, 4), 0);
+    CHECK_EQ_INT(ib_adxrs450_rate_from_reply(&g, ib_adxrs450_word(rx), &s), IB_ADXRS450_OK);
+    CHECK_EQ_INT(s.rate_counts, 80);
+    CHECK_EQ_INT(B.bus.transfer(B.bus.ctx, IB_CS_GYRO_X, sd, rx, 4), 0);
+    int16_t raw10 = 99;
+    CHECK_EQ_INT(ib_adxrs450_temp_from_reply(&g, ib_adxrs450_word(rx), &raw10), IB_ADXRS450_OK);
+    int16_t direct = 0;
+    CHECK_EQ_INT(ib_adxrs450_read_temp(&g, &direct), IB_ADXRS450_OK);
+    CHECK_EQ_INT(raw10, direct);
+    /* a register reply where a rate is expected, and a rate where a register reply is */
+    CHECK_EQ_INT(ib_adxrs450_prime_rate(&g), IB_ADXRS450_OK); /* its reply: the TEM read's */
+    CHECK_EQ_INT(B.bus.transfer(B.bus.ctx, IB_CS_GYRO_X, sd, rx, 4), 0);
+    CHECK_EQ_INT(ib_adxrs450_temp_from_reply(&g, ib_adxrs450_word(rx), &raw10), IB_ADXRS450_ERR_BAD_RESPONSE);
+    CHECK_EQ_INT(B.bus.transfer(B.bus.ctx, IB_CS_GYRO_X, tem, rx, 4), 0);
+    CHECK_EQ_INT(B.bus.transfer(B.bus.ctx, IB_CS_GYRO_X, sd, rx, 4), 0);
+    CHECK_EQ_INT(ib_adxrs450_rate_from_reply(&g, ib_adxrs450_word(rx), &s), IB_ADXRS450_ERR_BAD_RESPONSE);
+    /* a flipped bit is a parity error, as in the blocking read */
+    CHECK_EQ_INT(ib_adxrs450_rate_from_reply(&g, 0x14014001u ^ 0x00000400u, &s), IB_ADXRS450_ERR_PARITY);
+    CHECK_EQ_INT(ib_adxrs450_rate_from_reply(&g, 0x14014001u, &s), IB_ADXRS450_OK);
+    CHECK_EQ_INT(s.rate_counts, 80);
+}
+
 int main(void)
 {
+    RUN(test_pipelined_pieces);
     RUN(test_parity_examples);
     RUN(test_command_words);
     RUN(test_model_startup_table);

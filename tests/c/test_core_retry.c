@@ -56,7 +56,7 @@ static int tb_spi(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t 
 static void tb_delay(void *ctx, uint32_t us) { ((tb_t *)ctx)->t_us += us; }
 static void tb_reboot(void *ctx) { (void)ctx; }
 
-static const ib_spi_bus_t g_bus = {tb_spi, tb_delay, &g_tb};
+static const ib_spi_bus_t g_bus = {tb_spi, tb_delay, &g_tb, NULL}; /* no start(): synchronous reads */
 static const ib_board_t g_board = {
     IB_BOARD_SIM, IB_CLOCK_SOURCE_NONE, 0, {0}, "test", tb_time, tb_tick, tb_free, tb_write, tb_read,
     &g_bus, NULL, tb_reboot, &g_tb};

@@ -17,9 +17,13 @@
  * loop) or by polling TXE from link_write()/link_tx_free()/the main loop/delays (QEMU:
  * no DMA model and no TXE interrupt; TXE is always 1 there, so the ring empties at once).
  *
- * SPI1: mode 0, 8 bit, MSB first, software NSS, polled byte by byte; every wait bounded,
- * a timeout is a bus error (-1). With no sensor (QEMU) every byte reads 0x00 and the
- * drivers report the parts missing; the firmware keeps serving commands.
+ * SPI1: mode 0, 8 bit, MSB first, software NSS. transfer(): polled byte by byte (start-up,
+ * configuration, commands, the once-per-batch temperatures); every wait bounded, a timeout
+ * is a bus error (-1). start() (IB_CFG_SPI_DMA, hardware builds): chip select low, SPI1
+ * RX and TX by DMA, and from the RX channel's completion interrupt chip select high and the
+ * caller's done(); the core chains a sample's transfers from there (core.c, job_next).
+ * With no sensor (QEMU) every byte reads 0x00 and the drivers report the parts missing;
+ * the firmware keeps serving commands.
  */
 #include <string.h>
 
@@ -298,6 +302,96 @@ static int spi_transfer(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, s
     return rc;
 }
 
+#if IB_CFG_SPI_DMA
+#define SPI_DMA_TIMEOUT_MS 3u /* the longest transfer (97 bytes) takes ~0.2 ms */
+
+static struct {
+    void (*done)(void *arg, int rc);
+    void *arg;
+    uint32_t t0_ms;
+    uint8_t cs;
+    volatile uint8_t busy;
+} g_spi_job;
+static const uint8_t g_spi_zero = 0; /* sent when tx is NULL */
+static uint8_t g_spi_sink;           /* received into when rx is NULL */
+
+static int spi_start(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len,
+                     void (*done)(void *arg, int rc), void *arg)
+{
+    (void)ctx;
+    const uint32_t b = CHIP_SPI1_BASE;
+    if (cs >= IB_CS_COUNT || len == 0u || len > 0xFFFFu || g_spi_job.busy || done == NULL) {
+        return -1;
+    }
+    if (SPI_SR(b) & SPI_SR_MODF) { /* mode fault cleared MSTR/SPE: re-arm */
+        SPI_CR1(b) = SPI_CR1(b) | SPI_CR1_MSTR | SPI_CR1_SPE;
+    }
+    if (SPI_SR(b) & SPI_SR_RXNE) {
+        (void)SPI_DR(b); /* stale byte */
+    }
+    g_spi_job.done = done;
+    g_spi_job.arg = arg;
+    g_spi_job.cs = cs;
+    g_spi_job.t0_ms = g_ms;
+    g_spi_job.busy = 1;
+    chip_cs_write(cs, 0);
+    ib_dsb(); /* tx bytes in SRAM before the DMA reads them */
+    chip_spi_dma_start(tx ? tx : &g_spi_zero, tx != NULL, rx ? rx : &g_spi_sink, rx != NULL, (uint32_t)len);
+    SPI_CR2(b) = SPI_CR2_RXDMAEN | SPI_CR2_TXDMAEN; /* RM: channels enabled, then the requests */
+    return 0;
+}
+
+/* RX channel complete (the last byte is in memory, so its frame has been clocked). */
+void arm_spi_dma_irq(void)
+{
+    const uint32_t b = CHIP_SPI1_BASE;
+    int rc = chip_spi_dma_finish();
+    SPI_CR2(b) = 0;
+    if (spi_wait(SPI_SR_BSY, 0u) != 0) {
+        rc = -1;
+    }
+    chip_cs_write(g_spi_job.cs, 1);
+    g_spi_job.busy = 0;
+    if (g_spi_job.done) {
+        g_spi_job.done(g_spi_job.arg, rc);
+    }
+}
+#endif
+
+#if IB_CFG_SPI_DMA
+/* While a chain of DMA transfers runs and no byte waits to be read, sleep: each completion
+ * interrupt runs the next step of the chain and wakes us; we go back to sleep until the
+ * chain is over or a byte arrives (then the main loop serves it at once). Interrupts are
+ * masked around the check so a completion between check and WFI still wakes the WFI
+ * (ARMv7-M: WFI wakes on a pending interrupt whatever PRIMASK says); the interrupt runs
+ * when PRIMASK is restored. */
+static void spi_job_sleep(void)
+{
+    for (;;) {
+        uint32_t pm = ib_irq_save();
+        int sleep = g_spi_job.busy && g_rx_head == g_rx_tail;
+        if (sleep && g_ms - g_spi_job.t0_ms > SPI_DMA_TIMEOUT_MS) {
+            /* the completion never came (bounded like every other wait): stop the channels,
+             * release chip select and report a bus error to the chain (it goes on with the
+             * next step; the sample is flagged SPI_ERROR) */
+            (void)chip_spi_dma_finish();
+            SPI_CR2(CHIP_SPI1_BASE) = 0;
+            chip_cs_write(g_spi_job.cs, 1);
+            g_spi_job.busy = 0;
+            g_spi_job.done(g_spi_job.arg, -1);
+            sleep = 0;
+        }
+        if (sleep) {
+            ib_wfi();
+        }
+        ib_irq_restore(pm);
+        if (!sleep) {
+            return;
+        }
+    }
+}
+#endif
+
 static void b_delay_us(void *ctx, uint32_t us)
 {
     (void)ctx;
@@ -325,6 +419,9 @@ static void spi_init(uint32_t pclk_hz)
     /* mode 0 (CPOL = 0, CPHA = 0), 8 bit, MSB first, master, software NSS held high */
     SPI_CR1(b) = SPI_CR1_MSTR | (br << SPI_CR1_BR_SHIFT) | SPI_CR1_SSM | SPI_CR1_SSI;
     SPI_CR1(b) = SPI_CR1(b) | SPI_CR1_SPE;
+#if IB_CFG_SPI_DMA
+    chip_spi_dma_init(CHIP_SPI1_BASE + 0x0Cu);
+#endif
 }
 
 /* ---------------------------------------------------------------- reboot */
@@ -361,6 +458,11 @@ int main(void)
     g_spi.transfer = spi_transfer;
     g_spi.delay_us = b_delay_us;
     g_spi.ctx = NULL;
+#if IB_CFG_SPI_DMA
+    g_spi.start = spi_start;
+#else
+    g_spi.start = NULL;
+#endif
 
     g_board.board_id = CHIP_BOARD_ID;
     g_board.clock_source = g_clk.clock_source;
@@ -393,5 +495,8 @@ int main(void)
         if (!g_tick_period_us && g_rx_head == g_rx_tail && tx_used() == 0u) {
             ib_wfi(); /* idle: SysTick (1 ms) or a received byte wakes us */
         }
+#if IB_CFG_SPI_DMA
+        spi_job_sleep();
+#endif
     }
 }

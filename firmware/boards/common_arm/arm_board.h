@@ -15,6 +15,10 @@
  *                      (IB_CFG_QEMU_SYSCLK_HZ), polled TX (no DMA model, no TXE interrupt),
  *                      clock source reported as IB_CLOCK_SOURCE_HSI, board QEMU_F1/QEMU_F4
  *   IB_CFG_TX_DMA      1: TX ring drained by DMA (default: hardware builds), 0: polled TXE
+ *   IB_CFG_SPI_DMA     1: the bus's start() (asynchronous transfers: SPI1 RX/TX by DMA, the
+ *                      completion interrupt calls the driver's done()), so the core reads a
+ *                      sample as a chain of transfers while the main loop is free (default:
+ *                      hardware builds). 0 (QEMU: no SPI DMA model): transfers polled only.
  *   IB_CFG_TX_RING     TX ring bytes (power of two). The core sends a sample batch only
  *                      when link_tx_free() >= frame + 2 reply frames (~800 bytes for a
  *                      16-sample raw batch), so keep it >= 1024.
@@ -39,6 +43,9 @@
 #endif
 #ifndef IB_CFG_TX_DMA
 #define IB_CFG_TX_DMA (!IB_CFG_QEMU)
+#endif
+#ifndef IB_CFG_SPI_DMA
+#define IB_CFG_SPI_DMA (!IB_CFG_QEMU)
 #endif
 #ifndef IB_CFG_TX_RING
 #define IB_CFG_TX_RING 1024u
@@ -101,6 +108,8 @@
 #define SPI_CR1_SPE (1u << 6)
 #define SPI_CR1_SSI (1u << 8)
 #define SPI_CR1_SSM (1u << 9)
+#define SPI_CR2_RXDMAEN (1u << 0)
+#define SPI_CR2_TXDMAEN (1u << 1)
 #define SPI_SR_RXNE (1u << 0)
 #define SPI_SR_TXE (1u << 1)
 #define SPI_SR_MODF (1u << 5)
@@ -145,6 +154,17 @@ void chip_tx_dma_start(const uint8_t *p, uint32_t n);
 int chip_tx_dma_done(void);   /* 1 once the running transfer finished (or failed) */
 void chip_tx_dma_stop(void);  /* clear flags, disable the channel/stream */
 void arm_tx_dma_irq(void);
+#endif
+
+#if IB_CFG_SPI_DMA
+/* SPI1 by DMA: one RX (peripheral-to-memory) and one TX (memory-to-peripheral) channel of n
+ * bytes; *_inc 0 = the same byte every time. The RX channel's transfer-complete/error
+ * interrupt must call arm_spi_dma_irq(); chip_spi_dma_finish() then stops both channels,
+ * clears their flags and returns 0, or -1 on a transfer error. */
+void chip_spi_dma_init(uint32_t spi_dr_addr);
+void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n);
+int chip_spi_dma_finish(void);
+void arm_spi_dma_irq(void);
 #endif
 
 /* Interrupt handlers defined in arm_board.c, referenced by the chips' vector tables. */

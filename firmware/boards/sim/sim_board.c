@@ -287,6 +287,7 @@ void sim_board_setup(void)
     s->spi.transfer = spi_transfer;
     s->spi.delay_us = spi_delay_us;
     s->spi.ctx = s;
+    s->spi.start = NULL; /* transfers run synchronously in the simulator */
     sim_flash_setup_if(&s->flash, &s->flash_if);
 
     ib_board_t *b = &s->board;

@@ -37,6 +37,7 @@
 
 extern uint32_t _estack;
 void DMA1_Channel4_IRQHandler(void);
+void DMA1_Channel2_IRQHandler(void);
 
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Woverride-init"
@@ -48,6 +49,9 @@ __attribute__((section(".isr_vector"), used)) void (*const g_vectors[16u + F1_IR
     [15] = SysTick_Handler,
 #if IB_CFG_TX_DMA
     [16u + F1_IRQ_DMA1_CH4] = DMA1_Channel4_IRQHandler,
+#endif
+#if IB_CFG_SPI_DMA
+    [16u + F1_IRQ_DMA1_CH2] = DMA1_Channel2_IRQHandler,
 #endif
     [16u + F1_IRQ_USART1] = USART1_IRQHandler,
 };
@@ -208,6 +212,46 @@ void chip_tx_dma_stop(void)
 }
 
 void DMA1_Channel4_IRQHandler(void) { arm_tx_dma_irq(); }
+#endif
+
+/* ----------------------------------------------------------------- SPI DMA */
+
+#if IB_CFG_SPI_DMA
+#define SPI_RX_CH 2u /* SPI1_RX: DMA1 channel 2, SPI1_TX: channel 3 (RM0008 13.3.7, table 78) */
+#define SPI_TX_CH 3u
+
+void chip_spi_dma_init(uint32_t spi_dr_addr)
+{
+    DMA1_CCR(SPI_RX_CH) = 0;
+    DMA1_CCR(SPI_TX_CH) = 0;
+    DMA1_IFCR = DMA_IFCR_ALL(SPI_RX_CH) | DMA_IFCR_ALL(SPI_TX_CH);
+    DMA1_CPAR(SPI_RX_CH) = spi_dr_addr;
+    DMA1_CPAR(SPI_TX_CH) = spi_dr_addr;
+    ib_irq_enable(F1_IRQ_DMA1_CH2, 0x80u);
+}
+
+void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n)
+{
+    DMA1_IFCR = DMA_IFCR_ALL(SPI_RX_CH) | DMA_IFCR_ALL(SPI_TX_CH);
+    DMA1_CMAR(SPI_RX_CH) = (uint32_t)(uintptr_t)rx;
+    DMA1_CNDTR(SPI_RX_CH) = n;
+    /* RX above TX in priority: a received byte is taken before the next one is sent */
+    DMA1_CCR(SPI_RX_CH) = (rx_inc ? DMA_CCR_MINC : 0u) | DMA_CCR_TCIE | DMA_CCR_TEIE | DMA_CCR_PL_VHIGH | DMA_CCR_EN;
+    DMA1_CMAR(SPI_TX_CH) = (uint32_t)(uintptr_t)tx;
+    DMA1_CNDTR(SPI_TX_CH) = n;
+    DMA1_CCR(SPI_TX_CH) = DMA_CCR_DIR | (tx_inc ? DMA_CCR_MINC : 0u) | DMA_CCR_PL_HIGH | DMA_CCR_EN;
+}
+
+int chip_spi_dma_finish(void)
+{
+    uint32_t isr = DMA1_ISR;
+    DMA1_CCR(SPI_RX_CH) = 0;
+    DMA1_CCR(SPI_TX_CH) = 0;
+    DMA1_IFCR = DMA_IFCR_ALL(SPI_RX_CH) | DMA_IFCR_ALL(SPI_TX_CH);
+    return (isr & (DMA_ISR_TEIF(SPI_RX_CH) | DMA_ISR_TEIF(SPI_TX_CH))) ? -1 : 0;
+}
+
+void DMA1_Channel2_IRQHandler(void) { arm_spi_dma_irq(); }
 #endif
 
 /* ------------------------------------------------------------------ flash */

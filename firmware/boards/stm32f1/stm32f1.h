@@ -8,7 +8,8 @@
  *     3.3  Memory map (peripheral base addresses)
  *     7.3  RCC registers: CR, CFGR, AHBENR, APB2ENR
  *     9.2  GPIO registers: CRL, CRH, IDR, ODR, BSRR, BRR
- *     13.4 DMA registers: ISR, IFCR, CCRx, CNDTRx, CPARx, CMARx (USART1_TX = DMA1 ch 4)
+ *     13.4 DMA registers: ISR, IFCR, CCRx, CNDTRx, CPARx, CMARx (table 78: USART1_TX =
+ *          DMA1 ch 4, SPI1_RX = ch 2, SPI1_TX = ch 3)
  *     10.1.2 Interrupt and exception vectors (vector table positions)
  *     30.2 Unique device ID register (96 bits at 0x1FFFF7E8)
  *   PM0075 (STM32F10xxx Flash memory programming manual)
@@ -32,6 +33,7 @@
 #define F1_UID_BASE 0x1FFFF7E8u
 
 /* ---- IRQ numbers (RM0008 10.1.2, table 63) ---- */
+#define F1_IRQ_DMA1_CH2 12u
 #define F1_IRQ_DMA1_CH4 14u
 #define F1_IRQ_SPI1 35u
 #define F1_IRQ_USART1 37u
@@ -110,5 +112,6 @@
 #define DMA_CCR_DIR (1u << 4) /* 1: memory -> peripheral */
 #define DMA_CCR_MINC (1u << 7)
 #define DMA_CCR_PL_HIGH (2u << 12)
+#define DMA_CCR_PL_VHIGH (3u << 12)
 
 #endif

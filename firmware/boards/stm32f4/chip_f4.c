@@ -38,6 +38,7 @@
 
 extern uint32_t _estack;
 void DMA2_Stream7_IRQHandler(void);
+void DMA2_Stream0_IRQHandler(void);
 
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Woverride-init"
@@ -49,6 +50,9 @@ __attribute__((section(".isr_vector"), used)) void (*const g_vectors[16u + F4_IR
     [15] = SysTick_Handler,
 #if IB_CFG_TX_DMA
     [16u + F4_IRQ_DMA2_STREAM7] = DMA2_Stream7_IRQHandler,
+#endif
+#if IB_CFG_SPI_DMA
+    [16u + F4_IRQ_DMA2_STREAM0] = DMA2_Stream0_IRQHandler,
 #endif
     [16u + F4_IRQ_USART1] = USART1_IRQHandler,
 };
@@ -222,6 +226,57 @@ int chip_tx_dma_done(void)
 void chip_tx_dma_stop(void) { dma_disable(); }
 
 void DMA2_Stream7_IRQHandler(void) { arm_tx_dma_irq(); }
+#endif
+
+/* ----------------------------------------------------------------- SPI DMA */
+
+#if IB_CFG_SPI_DMA
+#define SPI_RX_STREAM 0u /* SPI1_RX: DMA2 stream 0, SPI1_TX: stream 3, both channel 3 (table 43) */
+#define SPI_TX_STREAM 3u
+#define SPI_DMA_CHANNEL 3u
+
+static void spi_dma_disable(void)
+{
+    DMA2_SCR(SPI_RX_STREAM) = 0;
+    DMA2_SCR(SPI_TX_STREAM) = 0;
+    for (uint32_t i = 0; i < DMA_WAIT_LOOPS && ((DMA2_SCR(SPI_RX_STREAM) | DMA2_SCR(SPI_TX_STREAM)) & DMA_SCR_EN);
+         i++) {
+    }
+    DMA2_LIFCR = DMA_LIFCR_ALL0 | DMA_LIFCR_ALL3;
+}
+
+void chip_spi_dma_init(uint32_t spi_dr_addr)
+{
+    spi_dma_disable();
+    DMA2_SPAR(SPI_RX_STREAM) = spi_dr_addr;
+    DMA2_SPAR(SPI_TX_STREAM) = spi_dr_addr;
+    DMA2_SFCR(SPI_RX_STREAM) = 0; /* direct mode */
+    DMA2_SFCR(SPI_TX_STREAM) = 0;
+    ib_irq_enable(F4_IRQ_DMA2_STREAM0, 0x80u);
+}
+
+void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n)
+{
+    /* both streams are off here (EN cleared by hardware at the end, or by finish) */
+    DMA2_LIFCR = DMA_LIFCR_ALL0 | DMA_LIFCR_ALL3;
+    DMA2_SM0AR(SPI_RX_STREAM) = (uint32_t)(uintptr_t)rx;
+    DMA2_SNDTR(SPI_RX_STREAM) = n;
+    DMA2_SCR(SPI_RX_STREAM) = DMA_SCR_CHSEL(SPI_DMA_CHANNEL) | DMA_SCR_PL_VHIGH | (rx_inc ? DMA_SCR_MINC : 0u) |
+                              DMA_SCR_TCIE | DMA_SCR_TEIE | DMA_SCR_EN;
+    DMA2_SM0AR(SPI_TX_STREAM) = (uint32_t)(uintptr_t)tx;
+    DMA2_SNDTR(SPI_TX_STREAM) = n;
+    DMA2_SCR(SPI_TX_STREAM) = DMA_SCR_CHSEL(SPI_DMA_CHANNEL) | DMA_SCR_PL_HIGH | (tx_inc ? DMA_SCR_MINC : 0u) |
+                              DMA_SCR_DIR_M2P | DMA_SCR_EN;
+}
+
+int chip_spi_dma_finish(void)
+{
+    uint32_t isr = DMA2_LISR;
+    spi_dma_disable();
+    return (isr & (DMA_LISR_TEIF0 | DMA_LISR_DMEIF0 | DMA_LISR_TEIF3 | DMA_LISR_DMEIF3)) ? -1 : 0;
+}
+
+void DMA2_Stream0_IRQHandler(void) { arm_spi_dma_irq(); }
 #endif
 
 /* ------------------------------------------------------------------ flash */

@@ -12,7 +12,8 @@
  *     7.3  RCC registers (F405/407 chapter): CR, PLLCFGR, CFGR, AHB1ENR, APB1ENR, APB2ENR
  *     8.4  GPIO registers: MODER, OTYPER, OSPEEDR, PUPDR, BSRR, AFRL, AFRH
  *     10.5 DMA registers: LISR/HISR, LIFCR/HIFCR, SxCR, SxNDTR, SxPAR, SxM0AR, SxFCR
- *          (10.3.3 request mapping: USART1_TX = DMA2 stream 7 channel 4)
+ *          (10.3.3 request mapping, table 43: USART1_TX = DMA2 stream 7 channel 4,
+ *          SPI1_RX = stream 0 channel 3, SPI1_TX = stream 3 channel 3)
  *     12.2 Interrupt and exception vectors (vector table positions)
  *     39.1 Unique device ID register (96 bits at 0x1FFF7A10)
  *   USART and SPI: common_arm/arm_board.h (RM0090 30.6 and 28.5).
@@ -36,6 +37,7 @@
 /* ---- IRQ numbers (RM0090 12.2, table 61) ---- */
 #define F4_IRQ_SPI1 35u
 #define F4_IRQ_USART1 37u
+#define F4_IRQ_DMA2_STREAM0 56u
 #define F4_IRQ_DMA2_STREAM7 70u
 #define F4_IRQ_COUNT 82u
 
@@ -141,6 +143,14 @@
 #define DMA_SCR_DIR_M2P (1u << 6)
 #define DMA_SCR_MINC (1u << 10)
 #define DMA_SCR_PL_HIGH (2u << 16)
+#define DMA_SCR_PL_VHIGH (3u << 16)
+/* LISR/LIFCR flags of streams 0 and 3 (FEIF, DMEIF, TEIF, HTIF, TCIF) */
+#define DMA_LISR_TEIF0 (1u << 3)
+#define DMA_LISR_DMEIF0 (1u << 2)
+#define DMA_LIFCR_ALL0 0x3Du
+#define DMA_LISR_TEIF3 (1u << 25)
+#define DMA_LISR_DMEIF3 (1u << 24)
+#define DMA_LIFCR_ALL3 (0x3Du << 22)
 #define DMA_SCR_CHSEL(c) ((uint32_t)(c) << 25)
 
 #endif

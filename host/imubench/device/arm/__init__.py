@@ -7,9 +7,9 @@ the virtual device's sensor models: see docs/firmware.md ("The ARM images under 
     systick.py   SysTick timer
     rcc.py       reset and clock control (F1 and F4) and the F4 power controller
     gpio.py      GPIO ports (F1 and F4 layouts) and the F1 AFIO
-    spi.py       SPI1 master, chip selects to the C sensor models (libimumodels.so)
+    spi.py       SPI1 master (polled or by DMA), chip selects to the C sensor models (libimumodels.so)
     usart.py     USART1 (TX shifted out at the baud rate, RX from the serial endpoint)
-    dma.py       the USART1 TX DMA: F1 DMA1 channel 4, F4 DMA2 stream 7
+    dma.py       the DMA: USART1 TX (F1 DMA1 ch 4, F4 DMA2 stream 7), SPI1 RX/TX (F1 ch 2/3, F4 streams 0/3)
     flash.py     the flash interface (unlock, program, erase, busy times, power cuts)
     uid.py       the 96-bit unique device ID
     targets.py   the two boards: memory maps, interrupt numbers, wiring, CPI

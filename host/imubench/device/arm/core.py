@@ -219,6 +219,17 @@ class Cpu:
                 out.append(self.t.flash_base + i)
         return out
 
+    def unmask_addresses(self) -> list[int]:
+        """Half-words that start an instruction able to clear PRIMASK: MSR PRIMASK, Rn
+        (0xF38n 0x8810) and CPSIE i (0xB662)."""
+        out = []
+        raw = self.code_bytes
+        for i in range(0, len(raw) - 3, 2):
+            hw = raw[i] | raw[i + 1] << 8
+            if hw == 0xB662 or ((hw & 0xFFF0) == 0xF380 and (raw[i + 2] | raw[i + 3] << 8) == 0x8810):
+                out.append(self.t.flash_base + i)
+        return out
+
     def _on_intr(self, uc, intno, data) -> None:
         if intno == EXCP_EXCEPTION_EXIT:
             self.exc_exit = True

@@ -276,6 +276,8 @@ class Machine:
         self.cpu.install_counter(reg)
         for a in self.cpu.wfi_addresses():
             self.cpu.hook_at(a, lambda a=a: self._on_wfi(a))
+        for a in self.cpu.unmask_addresses():
+            self.cpu.hook_at(a, self._on_unmask)
         self.cpu.hook_at(self.img.sym("ib_core_poll"), self._on_main_loop)
         self.cpu.hook_at(self.img.sym("b_delay_us"), self._on_delay)
         self.cpu.hook_at(self.img.sym("arm_time_us"), self._on_time_read)
@@ -407,6 +409,14 @@ class Machine:
     def _on_wfi(self, addr: int) -> None:
         self.cpu.wfi_pc = addr
         self.cpu.on_wfi()
+
+    def _on_unmask(self) -> None:
+        """An instruction that may clear PRIMASK is about to run: if an exception waits for
+        it, stop right after (the next block boundary) so it is taken there. The periodic
+        MASKED_POLL check alone misses short unmasked windows, e.g. the board's sleep loop
+        (mask, check, WFI, unmask, mask again: 3 instructions unmasked)."""
+        if self.nvic.pending and self.nvic.next_exception(0) is not None:
+            self.stop_soon()
 
     def _tick_due(self) -> float:
         """Device time at which the image's main loop sees its sample tick due (inf: no

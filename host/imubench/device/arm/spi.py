@@ -8,6 +8,10 @@ completing while RXNE is still set sets OVR (the byte is lost). Polling SR while
 in flight fast-forwards device time to its end (the core would only have spun): that time
 is accounted as busy-wait.
 
+DMA (CR2 RXDMAEN | TXDMAEN with the DMA channels of dma.py enabled): the DMA feeds DR and
+takes the received bytes; dma_exchange clocks the whole transfer through the same models,
+one frame time per byte, and BSY reads 1 until its last frame has been clocked.
+
 The sensors: the chip-select GPIO lines (targets.py wiring) select the ADXL355 or one of the
 three ADXRS450; the bytes go to the SAME C models imubench-sim links (libimumodels.so,
 sim_spi_exchange with the injected bus faults). A transaction is committed to the model once,
@@ -48,6 +52,7 @@ class Spi:
         self.tx = bytearray()
         self.rx = bytearray()
         self.t_cs = 0.0
+        self.dma_busy_until = -1.0
 
     def frame_time(self) -> float:
         br = (self.cr1 >> 3) & 7
@@ -101,6 +106,38 @@ class Spi:
         self.lib.simlib_spi_peek(self.cs, tx, out, len(tx))
         return out[n - 1]
 
+    def dma_exchange(self, data: bytes, t: float) -> float:
+        """A DMA transfer of `data` starting at t: the bytes join the transaction in progress;
+        returns the device time its last frame ends (dma_received then gives the reply)."""
+        if not (self.cr1 & CR1_SPE and self.cr1 & CR1_MSTR):
+            self.m.log("SPI1: DMA requests while the SPI is not an enabled master: nothing clocked")
+        n = len(data)
+        start = max(t, self.busy_until if self.frame_rx is not None else t, self.dma_busy_until)
+        if self.cs is not None:
+            self.tx += data
+        dt = self.frame_time() * n
+        self.bytes += n
+        self.bus_time += dt
+        self.dma_busy_until = start + dt
+        return start + dt
+
+    def dma_received(self, n: int) -> bytes:
+        """The bytes the last n clocked brought back, asked for when they have been clocked
+        (the end of the DMA transfer): as late as the polled path asks, so a change made
+        through the control channel while the transfer ran (a fault) is in both this reply
+        and the transaction committed at chip select rise."""
+        if self.cs is None:
+            return bytes(n)
+        tx = bytes(self.tx)
+        if self.cs != 0 and len(tx) < 4:
+            tx = tx + bytes(4 - len(tx))
+        out = (ctypes.c_uint8 * len(tx))()
+        self.m.set_model_time(self.t_cs)
+        self.lib.simlib_spi_peek(self.cs, tx, out, len(tx))
+        got = bytes(out)[len(self.tx) - n:len(self.tx)]
+        self.rx += got
+        return got
+
     # ------------------------------------------------------------ registers
     def read(self, off: int, size: int, t: float) -> int:
         if off == 0x8:
@@ -113,7 +150,7 @@ class Spi:
                 sr |= SR_RXNE
             if self.ovr:
                 sr |= SR_OVR
-            if self.frame_rx is not None:
+            if self.frame_rx is not None or t < self.dma_busy_until:
                 sr |= SR_BSY
             return sr
         self.update(t)
@@ -140,6 +177,8 @@ class Spi:
                 self.m.log("SPI1: hardware NSS (SSM = 0) is not modelled")
         elif off == 0x4:
             self.cr2 = value & 0xF7
+            if self.cr2 & 3:
+                self.m.dma.spi_try_start(t)
         elif off == 0xC:
             if not (self.cr1 & CR1_SPE and self.cr1 & CR1_MSTR):
                 self.m.log("SPI1: DR written while the SPI is not an enabled master: ignored")
