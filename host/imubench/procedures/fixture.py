@@ -290,6 +290,7 @@ class BoardSession(Session):
             raise BoardFailed("sensor", f"{', '.join(names)} flagged bad during capture "
                                         f"({int(np.count_nonzero(b.status))} of {len(b)} samples): a faulted sensor; "
                                         "nothing is calibrated on faulted data")
+        self._count_block(b)
         return b
 
 

@@ -303,10 +303,15 @@ class Session:
             except LinkTimeout:
                 if time.monotonic() > t_end:
                     raise
-        if getattr(self, "_first_index", None) is None:
-            self._first_index = int(b.sample_index[0])
-        self._last_index = int(b.sample_index[-1]) + 1
+        self._count_block(b)
         return b
+
+    def _count_block(self, b) -> None:
+        """Keep the device sample index of the first and last sample read (the bench time)."""
+        if len(b):
+            if getattr(self, "_first_index", None) is None:
+                self._first_index = int(b.sample_index[0])
+            self._last_index = int(b.sample_index[-1]) + 1
 
     def _fit_inputs(self) -> tuple[np.ndarray, np.ndarray]:
         """(means, sigmas) of the captured poses for the accelerometer fit. An adaptive
@@ -665,7 +670,7 @@ class Session:
         from imubench.calib import accel as CA
         from imubench.calib import gyro as CG
         self.run_started = _now()
-        self._first_index = None
+        self._first_index = self._last_index = None
         ident = self.check_health()
         self._start_stream()
         try:
@@ -704,7 +709,8 @@ class Session:
                     self.ui.say(f"  {why}" + ("" if not reached else
                                               f": done after {len(self.poses)} attitudes, {len(todo)} not needed"))
             # device time from the first prompt to the last pose: the person's moves included
-            self.bench_time_s = (self._last_index - self._first_index) / self.cfg.rate_hz
+            self.bench_time_s = (None if self._first_index is None else
+                                 (self._last_index - self._first_index) / self.cfg.rate_hz)
             segments = self.capture_turntable() if self.cfg.gyro == "turntable" else None
             turn_runs = self.capture_known_turns() if self.cfg.gyro == "turns" else None
         finally:
