@@ -322,6 +322,9 @@ def test_cli_end_to_end(session, tmp_path):
     lines = out.splitlines()
     assert lines[0].startswith(f"recording: {p} (csv), 7500 samples at 100 Hz (75.0 s); accelerometer g, gyro °/s")
     assert "still intervals: 12 found by the data" in out
+    # no --method: six faces (6 distinct attitudes) cannot feed the 9-parameter |a| = g fit, so six is chosen
+    assert "method: six-position (the multi-position fit cannot be used: too few poses: 12 given, 6 distinct" in out
+    assert json.loads((tmp_path / "out" / "session.json").read_text())["config"]["method"] == "six"
     assert "turn about +X" in out and "turn about +Y" in out and "turn about +Z" in out
     assert "gyro (turns):" in out and "three turns determine M exactly" in out
     assert "recorded in the history as run 1" in out

@@ -43,9 +43,10 @@ def register(sub) -> None:
                                    "device's own output and record the run in the history (docs/calibration.md). "
                                    "Everything captured is on disk as it arrives: --resume DIR continues.")
     add_port(p, many=True)
-    p.add_argument("--method", choices=METHODS, default="multi",
-                   help="accelerometer model: the multi-position |a| = g fit (any attitudes, by hand) or six faces "
-                        "(linear least squares, full M; needs a square fixture)")
+    p.add_argument("--method", choices=METHODS, default=None,
+                   help="accelerometer model: the multi-position |a| = g fit (any attitudes, by hand; the default) or "
+                        "six faces (linear least squares, full M; needs a square fixture); with --from the default "
+                        "is multi when the recording's attitudes constrain it, else six")
     p.add_argument("--capture", choices=CAPTURES, default="adaptive",
                    help="adaptive: hold each attitude until its |a| is known, stop when every parameter's sigma is "
                         "at its target (docs/calibration.md); plan: every planned attitude, --hold seconds each")
@@ -208,7 +209,7 @@ def run(a) -> int:
     if a.resume:
         from imubench.results.sessionfile import load_state
         load_state(a.resume)            # a damaged or foreign session.json is named before a device is opened
-    cfg = SessionConfig(method=a.method, gyro=None if a.gyro == "none" else a.gyro, rate_hz=a.rate,
+    cfg = SessionConfig(method=a.method or "multi", gyro=None if a.gyro == "none" else a.gyro, rate_hz=a.rate,
                         hold_s=a.hold, write=not a.no_write, note=a.note, adaptive=a.capture == "adaptive",
                         pose_timeout_s=a.pose_timeout)
     if a.method == "six" and not a.resume:
@@ -539,7 +540,7 @@ def _run_from_file(a) -> int:
         annotation = read_annotation(a.annotation) if a.annotation else None
     except RecordingError as e:
         raise UsageError(str(e), "give imucal's section list (JSON)") from None
-    cfg = FileConfig(method=a.method, gyro=None if a.gyro == "none" else a.gyro, turn_deg=a.turn_angle,
+    cfg = FileConfig(method=a.method or "auto", gyro=None if a.gyro == "none" else a.gyro, turn_deg=a.turn_angle,
                      angle_sigma_deg=a.turn_sigma, axis_sigma_deg=a.turn_axis_sigma,
                      gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
                      writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol)

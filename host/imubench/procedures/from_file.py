@@ -39,7 +39,7 @@ _AXES = "XYZ"
 
 @dataclass
 class FileConfig:
-    method: str = "six"                  # "six" | "multi"
+    method: str = "auto"                 # "six" | "multi" | "auto": multi when the attitudes constrain it, else six
     gyro: str | None = "bias"            # "bias" | "turns" | "rotation" | None
     turn_deg: float = 360.0              # the known angle of one turn
     angle_sigma_deg: float = 1.0         # hand placement after a turn
@@ -177,6 +177,7 @@ class FileAnalysis:
         self.gyro: TriadFit | None = None
         self.gyro_parts: dict = {}
         self.turns: list = []
+        self.method = cfg.method        # "auto" becomes "six" or "multi" in run()
 
     def _note(self, text: str) -> None:
         self.notes.append(text)
@@ -224,7 +225,7 @@ class FileAnalysis:
         for i in dropped:
             self._note(f"still interval at {i.t_start_s:.1f} s ({i.duration_s:.1f} s) not used: its mean moved "
                        f"within it ({i.drift_z:.1f} σ)")
-        need = 6 if cfg.method == "six" else 9
+        need = 9 if cfg.method == "multi" else 6
         require_static(keep if len(keep) < len(ivs) else ivs, need)
         self.intervals = keep
         means = np.array([i.mean for i in keep])
@@ -234,7 +235,16 @@ class FileAnalysis:
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
                                             for f, i in zip(self.faces, keep)))
         # ---- accelerometer fit
-        if cfg.method == "six":
+        self.method = cfg.method
+        if cfg.method == "auto":
+            try:
+                CA.check_observability(means, "multi_position")
+                self.method = "multi"
+                self.say("method: multi-position |a| = g (the attitudes constrain its 9 parameters)")
+            except CalibrationError as e:
+                self.method = "six"
+                self.say(f"method: six-position (the multi-position fit cannot be used: {e})")
+        if self.method == "six":
             accel = CA.six_position(means, sigmas, skip_non_faces=True)
         else:
             CA.check_observability(means, "multi_position")
@@ -393,7 +403,7 @@ class FileAnalysis:
             "device": {"mcu_uid": device_id(name), "board": f"IMU '{name}' (from a file)", "fw_version": "",
                        "fw_build": "", "accel_ids": [], "gyro_pid": [], "gyro_sn": []},
             "started": self.started, "session_started": self.started, "finished": _now(),
-            "method": cfg.method, "gyro_method": cfg.gyro,
+            "method": self.method, "gyro_method": cfg.gyro,
             "accel": fit_dict(accel, "mps2") | {"residual_rms_mps2": accel.residual_rms},
             "gyro": fit_dict(self.gyro, "rad_s"),
             "poses": poses, "temperature_c": {},
@@ -440,7 +450,7 @@ def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -
             say(f"  note: {kind} not written: {e}")
     result["exports"] = files
     state = {"schema": SESSION_SCHEMA, "started": result["started"],
-             "config": {"method": cfg.method, "gyro": cfg.gyro, "rate_hz": rec.fs_hz, "hold_s": cfg.min_still_s,
+             "config": {"method": fa.method, "gyro": cfg.gyro, "rate_hz": rec.fs_hz, "hold_s": cfg.min_still_s,
                         "rest_s": 0.0, "settle_s": cfg.window_s, "note": cfg.note, "write": False,
                         "tolerances": asdict(cfg.tolerances), "from_file": rec.source},
              "rest": None,
