@@ -133,7 +133,7 @@ int main(int argc, char **argv)
     unsigned long long before = link_bytes;
     for (unsigned long i = 0; i < ticks; i++) {
         t_us += period;
-        ib_core_tick(&core, 0);
+        ib_core_tick(&core, 0, t_us);
         ib_core_poll(&core);
     }
     printf("{\"ticks\": %lu, \"samples_produced\": %lu, \"samples_dropped\": %lu, \"link_bytes\": %llu, "

@@ -97,6 +97,8 @@ def test_every_rate_streams_without_loss(target):
             assert len(block) == n, what
             assert st.frames_rejected == 0 and st.frames_missing == 0 and st.samples_missing == 0, what
             assert np.array_equal(block.sample_index, block.sample_index[0] + np.arange(n)), what
+            # every sample stamped on the stream's period grid, however late the loop got to it
+            assert np.array_equal(block.t_us - block.t_us[0], np.arange(n) * (1_000_000 // rate)), what
             assert not (block.sensor_flags & BatchFlags.SAMPLES_DROPPED).any(), what
             if calibrated:
                 # The F103's calibrated sample (soft-float) plus the batch it sends can delay the

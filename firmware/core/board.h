@@ -9,7 +9,7 @@
  * Main loop of every board:
  *     ib_core_init(&core, &board);
  *     for (;;) {
- *         if (a sample period elapsed) ib_core_tick(&core, periods_missed);
+ *         if (a sample period elapsed) ib_core_tick(&core, periods_missed, due_time_us);
  *         ib_core_poll(&core);
  *     }
  */
@@ -35,7 +35,8 @@ typedef struct ib_board_if {
 
     /* The core asks for a sample tick at rate_hz (0 = none). The board then calls
      * ib_core_tick() once per period from the main loop, never from an interrupt, passing
-     * how many periods it missed since the previous call. */
+     * how many periods it missed since the previous call and the time the tick fell due
+     * (start + k x period in time_us() terms, not when the call is made). */
     void (*set_tick_hz)(void *ctx, uint32_t rate_hz);
 
     /* Link (serial port). link_write queues bytes for transmission and returns how many it

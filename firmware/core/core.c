@@ -679,7 +679,7 @@ static void job_wait(ib_core_t *c)
     }
 }
 
-void ib_core_tick(ib_core_t *c, uint32_t missed)
+void ib_core_tick(ib_core_t *c, uint32_t missed, uint32_t due_us)
 {
     if (c->stream_state == IB_STREAM_STATE_STOPPED) {
         return;
@@ -695,7 +695,7 @@ void ib_core_tick(ib_core_t *c, uint32_t missed)
     const int async = c->board->spi->start != NULL;
     const uint8_t first = c->batch_n == 0;
     if (first) {
-        batch_begin(c, now_us(c), !async);
+        batch_begin(c, due_us, !async);
     }
     if (async) {
         job_begin(c, first);

@@ -103,8 +103,11 @@ typedef struct ib_core {
 /* Boot: sensors start-up, parameters from flash, then a 0x00 and an unsolicited info. */
 void ib_core_init(ib_core_t *c, const ib_board_t *b);
 
-/* One sample period elapsed (`missed` periods were skipped before it: counted as dropped). */
-void ib_core_tick(ib_core_t *c, uint32_t missed);
+/* One sample period elapsed (`missed` periods were skipped before it: counted as dropped).
+ * due_us: the device time at which this tick fell due on the board's period grid (start +
+ * k x period); a batch is stamped with its first sample's due time, so the stamps stay on the
+ * grid however late the main loop reaches a tick (docs/protocol.md, batch time). */
+void ib_core_tick(ib_core_t *c, uint32_t missed, uint32_t due_us);
 
 /* Main-loop work: received bytes, commands, periodic stats. Call as often as possible. */
 void ib_core_poll(ib_core_t *c);

@@ -8,8 +8,9 @@
  * model it (CYCCNT reads 0).
  *
  * Sample tick: the main loop compares time_us() with the next due time of the period
- * the core asked for (set_tick_hz) and calls ib_core_tick(missed) from the main loop,
- * never from an interrupt.
+ * the core asked for (set_tick_hz) and calls ib_core_tick(missed, due) from the main loop,
+ * never from an interrupt; due is the tick's place on the period grid (the batch stamp), not
+ * the moment the main loop got to it.
  *
  * Link: USART1 8N1. RX: RXNE interrupt into a ring (ORE/FE/NE cleared by the SR-then-DR
  * read). TX: a ring the core fills through link_write(); drained by DMA (hardware builds:
@@ -487,8 +488,9 @@ int main(void)
             uint32_t late = arm_time_us() - g_tick_next_us;
             if (late < 0x80000000u) { /* due (serial-number comparison) */
                 uint32_t missed = late / g_tick_period_us;
-                g_tick_next_us += (missed + 1u) * g_tick_period_us;
-                ib_core_tick(&g_core, missed);
+                uint32_t due_us = g_tick_next_us + missed * g_tick_period_us;
+                g_tick_next_us = due_us + g_tick_period_us;
+                ib_core_tick(&g_core, missed, due_us);
             }
         }
         ib_core_poll(&g_core);

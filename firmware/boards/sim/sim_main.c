@@ -96,7 +96,7 @@ enum { CORE_INIT, CORE_TICK, CORE_POLL };
 
 /* Run one core entry point; -1 when it was cut off by a reset (g_sim.reset_kind says
  * which). Nothing here is modified between setjmp and longjmp. */
-static int core_call(int what, uint32_t arg)
+static int core_call(int what, uint32_t arg, uint32_t arg2)
 {
     sim_t *s = &g_sim;
     if (setjmp(s->reset_jmp) != 0) {
@@ -109,7 +109,7 @@ static int core_call(int what, uint32_t arg)
         ib_core_init(&s->core, &s->board);
         break;
     case CORE_TICK:
-        ib_core_tick(&s->core, arg);
+        ib_core_tick(&s->core, arg, arg2);
         break;
     default:
         ib_core_poll(&s->core);
@@ -144,7 +144,7 @@ static void boot(int kind)
         s->boots++;
         memset(&s->core, 0, sizeof s->core);
         uint64_t t0 = s->t_us;
-        if (core_call(CORE_INIT, 0) == 0) {
+        if (core_call(CORE_INIT, 0, 0) == 0) {
             sim_log("boot %u done (%.3f s of device time)", s->boots, (double)(s->t_us - t0) * 1e-6);
             return;
         }
@@ -201,15 +201,16 @@ static int run_device(uint64_t target, uint64_t budget_end_ns)
             s->tick_n++;
             missed++;
         }
+        uint32_t due_us = (uint32_t)tick_time(s->tick_n);
         s->tick_n++;
         s->next_tick_us = tick_time(s->tick_n);
         s->ticks++;
         s->ticks_missed += missed;
-        if (core_call(CORE_TICK, missed) != 0) {
+        if (core_call(CORE_TICK, missed, due_us) != 0) {
             boot(s->reset_kind);
             return 0;
         }
-        if (core_call(CORE_POLL, 0) != 0) {
+        if (core_call(CORE_POLL, 0, 0) != 0) {
             boot(s->reset_kind);
             return 0;
         }
@@ -225,7 +226,7 @@ static int run_device(uint64_t target, uint64_t budget_end_ns)
         }
     }
     sim_advance_to(target);
-    if (core_call(CORE_POLL, 0) != 0) {
+    if (core_call(CORE_POLL, 0, 0) != 0) {
         boot(s->reset_kind);
     }
     return 0;
