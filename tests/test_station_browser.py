@@ -128,3 +128,82 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
     finally:
         server.stop()
         station.close()
+
+
+def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
+    """`imubench calibrate --sim --sim-boards 3 --ui web`: the station session (procedures.fixture)
+    on the page, one column per board. Slot 2's gyro Y is faulted: its column says it failed
+    at the health check while the others are calibrated; the page that opens first drives every
+    board (one token), a second page only watches; every finished column has its verdict,
+    parameters and a report that opens; the command prints the per-board table after Ctrl-C."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+    cmd = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "3", "--sim-speed", "4",
+           "--ui", "web", "--http-port", "0", "--dir", str(tmp_path / "st"), "--db", str(tmp_path / "h.sqlite"),
+           "--hold", "0.5", "--sim-fault", "2:gyro_y"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    lines = []
+    try:
+        url = None
+        t_end = time.monotonic() + 60
+        while url is None and time.monotonic() < t_end:
+            line = proc.stdout.readline()
+            assert line, "".join(lines) + proc.stderr.read()
+            lines.append(line)
+            m = re.search(r"station page: (http://127\.0\.0\.1:\d+/)", line)
+            url = m.group(1) if m else None
+        assert url, "".join(lines)
+        page = browser.new_page(viewport={"width": 1500, "height": 1300})
+        page.set_default_timeout(120_000)
+        page.goto(url)
+        page.wait_for_function("() => document.querySelectorAll('.board-col').length === 3", polling=50)
+        assert page.locator("main#boards.multi").count() == 1
+        # the first page drives all three boards
+        page.wait_for_function("() => /you drive .*,.*,/.test(document.querySelector('#role').textContent)", polling=50)
+        # while the plate moves: cards turn done on the healthy boards, in the plan's order
+        page.wait_for_function("() => document.querySelectorAll('.board-col .card.done').length >= 6", polling=50)
+        # the whole session: every column ends with a verdict
+        page.wait_for_function("() => document.querySelectorAll('.board-col .verdict:not([hidden])').length === 3",
+                               polling=100)
+        cols = page.locator(".board-col")
+        verdicts = [cols.nth(k).locator(".verdict").text_content() for k in range(3)]
+        names = [cols.nth(k).locator(".devname").text_content() for k in range(3)]
+        assert [n.split(":")[0] for n in names] == ["slot 1", "slot 2", "slot 3"], names
+        assert verdicts[0].startswith("PASSED") and verdicts[2].startswith("PASSED"), verdicts
+        assert verdicts[1].startswith("FAILED") and "health" in verdicts[1] and "gyro" in verdicts[1].lower(), verdicts
+        for k in (0, 2):
+            col = cols.nth(k)
+            done = col.locator(".card.done")
+            n = done.count()
+            assert n >= 12
+            seqs = [int(done.nth(i).get_attribute("data-seq")) for i in range(n)]
+            assert seqs == list(range(1, n + 1))          # the fixture presents the plan in order
+            assert col.locator(".steps .step.running").count() == 0
+            assert col.locator(".steps .step[data-kind=verify]").count() == 1
+            assert col.locator(".params tr").count() >= 12          # accelerometer M and b at least
+            href = col.locator("a.report-link").get_attribute("href")
+            with urllib.request.urlopen(url.rstrip("/") + href, timeout=30) as r:
+                assert r.status == 200 and b"imubench" in r.read()
+        assert cols.nth(1).locator(".card.done").count() == 0
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "station-three-boards.png"), full_page=True)
+        # a second page watches every board read-only
+        other = browser.new_page(viewport={"width": 1200, "height": 900})
+        other.goto(url)
+        other.wait_for_function("() => document.querySelectorAll('.board-col.readonly').length === 3", polling=50)
+        assert "read-only" in other.locator("#role").text_content()
+        st = json.loads(urllib.request.urlopen(url + "api/state", timeout=10).read())
+        assert [b["status"] for b in st["boards"]] == ["done", "failed", "done"]
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    out = "".join(lines) + out
+    assert "Traceback" not in out + err, out + err
+    assert proc.returncode == 1, out + err                 # one board failed: the command says so
+    assert "1 of 3 boards failed: slot 2 at health" in err, err
+    table = out[out.index("slot  MCU UID"):]
+    assert re.search(r"^\s+1\s+\w{24}\s+PASSED", table, re.M) and re.search(r"^\s+2\s+\w{24}\s+FAILED", table, re.M)

@@ -82,6 +82,9 @@ def register(sub) -> None:
     p.add_argument("--sim-boards", type=_board_count, default=1, metavar="N",
                    help="with --sim: N virtual devices on one virtual fixture (each its own random truth and serial "
                         "numbers, seeds --sim-seed, --sim-seed + 1, ...): one station session")
+    p.add_argument("--sim-fault", type=_sim_fault, action="append", default=[], metavar="K:SENSOR",
+                   help="with --sim: virtual board K's SENSOR (accel, gyro_x, gyro_y, gyro_z) is faulted from the start "
+                        "(a gyro reports its fault bits, the accelerometer is missing), to see a failing board")
     p.add_argument("--station-file", type=_station_file, metavar="FILE",
                    help="a TOML file describing this station: station, operator, fixture, db and ports = [URL, ...] "
                         "(the boards on its fixture); options given on the command line win (docs/production.md)")
@@ -197,6 +200,8 @@ def run(a) -> int:
     from imubench.device.link import Device
     from imubench.procedures.session import SessionConfig, SimPresenter, run_session
 
+    if a.sim_fault and not a.sim:
+        raise UsageError("--sim-fault goes with --sim", "it faults a sensor of a virtual board")
     if a.redo and not a.resume:
         raise UsageError("--redo goes with --resume DIR", "give the session directory to continue")
     if a.resume and a.dir:
@@ -215,9 +220,6 @@ def run(a) -> int:
     if a.method == "six" and not a.resume:
         print(SIX_WARNING)
     if _station_session(a):
-        if a.ui == "web":
-            raise UsageError("--ui web drives one board; a station session with several boards runs in the terminal",
-                             "drop --ui web, or give one --port")
         return _run_station(a, cfg)
     directory = Path(a.resume or a.dir or f"imubench-session-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: (f"everything captured is kept in {directory}; continue with: "
@@ -233,6 +235,11 @@ def run(a) -> int:
         bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random", target=a.target)
     with bench if a.sim else nullcontext() as vb:
         if vb is not None:
+            for slot, sensor in a.sim_fault:
+                if slot != 1:
+                    raise UsageError(f"--sim-fault {slot}:{sensor}: there is one virtual board",
+                                     "give 1:SENSOR, or --sim-boards N for several")
+                _inject_sim_fault(vb, sensor)
             url = vb.port_url
             ui = SimPresenter(vb, tilt_deg=a.sim_tilt, seed=a.sim_seed)
             print(f"virtual device with random truth (seed {a.sim_seed}) on {url}")
@@ -361,6 +368,26 @@ def _record_history(result: dict, db, state_path: Path) -> None:
 
 
 # ------------------------------------------------------------------ several boards: a station session
+SIM_FAULT_SENSORS = ("accel", "gyro_x", "gyro_y", "gyro_z")
+
+
+def _sim_fault(text: str) -> tuple[int, str]:
+    """--sim-fault K:SENSOR: board K (1-based) with that sensor faulted."""
+    import argparse
+    slot, _, sensor = text.partition(":")
+    if not slot.strip().isdigit() or int(slot) < 1 or sensor not in SIM_FAULT_SENSORS:
+        raise argparse.ArgumentTypeError(f"{text!r} is not K:SENSOR (K a board from 1, SENSOR one of "
+                                         f"{', '.join(SIM_FAULT_SENSORS)}), e.g. 2:gyro_y")
+    return int(slot), sensor
+
+
+def _inject_sim_fault(vb, sensor: str) -> None:
+    if sensor == "accel":
+        vb.inject("missing", sensor="accel")
+    else:
+        vb.inject("gyro_fault_bits", sensor=sensor, bits=0x10, persistent=True)
+
+
 def _station_session(a) -> bool:
     """Several boards on one fixture (procedures.fixture) rather than the one-board session."""
     sf = getattr(a, "station_file", None) or {}
@@ -402,6 +429,11 @@ def _run_station(a, cfg) -> int:
                                                         target=a.target))
                        for k in range(a.sim_boards)]
             ports = [vb.port_url for vb in benches]
+            for slot, sensor in a.sim_fault:
+                if slot > len(benches):
+                    raise UsageError(f"--sim-fault {slot}:{sensor}: there are {len(benches)} virtual boards",
+                                     f"give a board from 1 to {len(benches)}")
+                _inject_sim_fault(benches[slot - 1], sensor)
             mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed)
             print(f"{len(benches)} virtual devices with random truth (seeds {a.sim_seed}..{a.sim_seed + len(benches) - 1}) "
                   "on one virtual fixture")
@@ -423,8 +455,11 @@ def _run_station(a, cfg) -> int:
                     who = st["uid"] or st["port"]
                     print(f"  slot {st['slot']} {who}: {st['state'] if st['state'] != 'running' else st['stage']}"
                           + (f" ({st['reason']})" if st["reason"] else ""), flush=True)
-        res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
-                          link_timeout_s=a.link_timeout, baudrate=a.baud)
+        if a.ui == "web":
+            res = _station_on_page(a, cfg, ports, directory, mover, station, db, on_event)
+        else:
+            res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
+                              link_timeout_s=a.link_timeout, baudrate=a.baud)
     print()
     print(_station_table(res))
     print(f"station session {res.session_id}: {len(res.passed)} of {len(res.boards)} boards passed "
@@ -434,6 +469,67 @@ def _run_station(a, cfg) -> int:
                            + "; ".join(f"slot {b.slot} at {b.stage}" for b in res.boards if b.state != "passed"),
                            "see the table above; the boards that passed are written and recorded")
     return 0
+
+
+def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_event):
+    """The station session with the station page: one column per board (live view, the pose
+    cards, the stages, the verdict, parameters and report). The page stays up after the
+    session until Ctrl-C; Ctrl-C during the session stops every board where it is."""
+    import threading
+
+    from imubench.cli.station import serve_forever
+    from imubench.procedures.fixture import run_fixture
+    from imubench.station.runner import Station as Page
+    from imubench.station.server import Server
+    page = Page(workdir=directory, db=db, allow_sim=False, history=False)
+    page.state.mode = "session"
+    options = {"port": ", ".join(ports), "method": cfg.method, "gyro": a.gyro, "capture": a.capture,
+               "write": cfg.write, "note": cfg.note, "rate_hz": cfg.rate_hz, "fixture": True}
+    box: dict = {}
+
+    def both(st: dict) -> None:
+        on_event(st)
+        page.board_event(st["port"], st)
+
+    def run() -> None:
+        try:
+            box["res"] = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=both,
+                                     link_timeout_s=a.link_timeout, baudrate=a.baud,
+                                     pages=lambda slot, port: page.adopt(port, options, slot))
+            for b in box["res"].boards:   # verdicts, parameters and reports on the columns
+                page.board_result(b.port, box["res"].results.get(b.slot) or {}, directory / f"slot-{b.slot}",
+                                  b.run_id)
+        except BaseException as e:  # noqa: BLE001 - re-raised in the command's thread
+            box["error"] = e
+        finally:
+            box["done"] = True
+
+    worker = threading.Thread(target=run, name="station session", daemon=True)
+    told = []
+
+    def ended() -> bool:
+        if box.get("done") and not told:
+            told.append(True)
+            if "res" in box:
+                print(f"station session over: {len(box['res'].passed)} of {len(box['res'].boards)} boards passed; "
+                      "the page stays up until Ctrl-C", flush=True)
+        return False
+
+    try:
+        server = Server(page, port=a.http_port)
+        worker.start()
+        serve_forever(server, a.open, until=ended)
+    except KeyboardInterrupt:
+        pass
+    except OSError as e:
+        raise CommandError(f"cannot serve on 127.0.0.1:{a.http_port}: {e.strerror or e}",
+                           "give another --http-port, or 0 for any free port") from None
+    finally:
+        page.close()                    # a session still running stops where it is
+        worker.join()
+    if "error" in box:
+        raise box["error"]
+    return box["res"]
 
 
 def _shown(db) -> str:

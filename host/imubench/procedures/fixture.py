@@ -42,6 +42,7 @@ import numpy as np
 
 from imubench.calib import CalibrationError
 from imubench.device.link import Device, LinkError, LinkTimeout
+from imubench.errors import ImubenchError
 from imubench.procedures.session import (
     Session,
     SessionAborted,
@@ -150,19 +151,40 @@ class Plate:
 
 
 class BoardPresenter:
-    """One board's Presenter: instructions go to its status, moves to the shared plate."""
+    """One board's Presenter: instructions go to its status, moves to the shared plate. With
+    `page` (a station page's presenter for this board's column, imubench.station.presenter)
+    the session's live view, pose cards, fit and steps go there too; the plate stays the one
+    that moves (the poses come in the plan's order, every board in step)."""
 
-    def __init__(self, run: "FixtureRun", slot: int, discard=lambda: None):
+    PAGE_HOOKS = ("present_plan", "present_rest", "pose_event", "live", "suggest", "targets", "step")
+
+    def __init__(self, run: "FixtureRun", slot: int, discard=lambda: None, page=None):
         self.run, self.slot = run, slot
         self.discard = discard          # drop what the board sent while it waited for the plate
+        self.page = page
+
+    def __getattr__(self, name):
+        # the session's optional hooks (session._hook): only the page's, and never present_todo
+        # (a fixture's poses are directed: the plate presents them to every board at once)
+        page = self.__dict__.get("page")
+        if page is not None and name in self.PAGE_HOOKS:
+            return getattr(page, name)
+        raise AttributeError(name)
 
     def say(self, text: str) -> None:
         self.run._update(self.slot, message=text)
+        if self.page is not None:
+            self.page.say(text)
 
     def present_pose(self, name, direction, index, total):
         st = self.run.boards[self.slot]
         stage = "verify" if st.stage in ("write", "verify") else "poses"
         self.run._update(self.slot, stage=stage, message=f"[{index + 1}/{total}] {name}", progress=index / max(total, 1))
+        if self.page is not None:
+            if stage == "verify":
+                self.page.present_pose(name, direction, index, total)
+            else:
+                self.page.pose_event(name, "capturing", {"progress": 0.0})
         self.run.plate.request(self.slot, "pose", name, (name, np.asarray(direction, float), index, total))
         # while this board waited for the others, its samples of the old attitude piled up: they
         # are in the raw capture, but the session's wait for the new attitude starts now
@@ -170,12 +192,16 @@ class BoardPresenter:
 
     def present_turn(self, axis, rate_dps, duration_s):
         self.run._update(self.slot, stage="turntable", message=f"turn {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()}")
+        if self.page is not None:
+            self.page.present_turn(axis, rate_dps, duration_s)
         key = (tuple(np.round(np.asarray(axis, float), 6)), float(rate_dps))
         self.run.plate.request(self.slot, "turn", key, (np.asarray(axis, float), rate_dps, duration_s))
         self.discard()
 
     def progress(self, label, fraction):
         self.run._update(self.slot, progress=float(fraction), publish=False)
+        if self.page is not None:
+            self.page.progress(label, fraction)
 
     def keep_pose(self, name, summary):
         return True
@@ -317,7 +343,8 @@ class FixtureRun:
 
     def __init__(self, ports: list[str], directory, cfg: SessionConfig, mover, station: Station | None = None,
                  db=None, on_event: Callable[[dict], None] | None = None, link_timeout_s: float = 10.0,
-                 baudrate: int | None = None, say=print, plots: bool = True):
+                 baudrate: int | None = None, say=print, plots: bool = True,
+                 pages: Callable[[int, str], object] | None = None):
         if not ports:
             raise ValueError("no boards: give at least one port")
         self.ports = list(ports)
@@ -330,6 +357,7 @@ class FixtureRun:
         self.baudrate = baudrate
         self.say = say
         self.plots = plots
+        self.pages = pages              # pages(slot, port): a station page's presenter for that board, or None
         self.session_id = (f"{self.station.station_id}-{_dt.datetime.now(_dt.timezone.utc):%Y%m%dT%H%M%SZ}-"
                            f"{uuid.uuid4().hex[:6]}")
         self.boards = {k + 1: BoardStatus(slot=k + 1, port=p, directory=str(self.dir / f"slot-{k + 1}"))
@@ -405,7 +433,8 @@ class FixtureRun:
             self._update(slot, uid=info_dev["mcu_uid"], message=f"{info_dev['board']} {info_dev['mcu_uid']}")
             params_before = dev.get_params(ParamsWhich.ACTIVE).params
             sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
-                                BoardPresenter(self, slot, discard=dev.discard_buffered))
+                                BoardPresenter(self, slot, discard=dev.discard_buffered,
+                                               page=self.pages(slot, st.port) if self.pages else None))
             sess.board_run, sess.slot, sess.link_timeout_s = self, slot, self.link_timeout_s
             try:
                 result = sess.run(plan_for(self.cfg.method))
@@ -413,7 +442,7 @@ class FixtureRun:
                 raise BoardFailed("fit", f"fit refused: {e}") from None
             except (LinkTimeout, LinkError) as e:
                 raise BoardFailed("link", f"link lost: {e}") from None
-            except SessionAborted as e:
+            except (SessionAborted, ImubenchError) as e:   # e.g. stopped on the station page
                 raise BoardFailed(self.boards[slot].stage, str(e)) from None
             self._update(slot, stage="fit", message=f"fit: |a| − g RMS {result['accel_rms_after_mg']:.3f} mg")
             result["write_requested"] = bool(self.cfg.write)

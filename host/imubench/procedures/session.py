@@ -281,9 +281,23 @@ class Session:
         rejected = self.dev.link.decoder.stats.frames_rejected - before
         problems = []
         if bad:
-            problems.append(f"{bad} of {len(b)} samples flagged bad (sensor faults, parity or SPI errors)")
+            from imubench.wire.protocol_gen import SampleStatus
+            which = [n for bit, n in zip((SampleStatus.ACCEL_BAD, SampleStatus.GYRO_X_BAD, SampleStatus.GYRO_Y_BAD,
+                                          SampleStatus.GYRO_Z_BAD), names)
+                     if np.any(b.status & bit)]
+            problems.append(f"{bad} of {len(b)} samples flagged bad" + (f" ({', '.join(which)})" if which else "")
+                            + ": sensor faults, parity or SPI errors")
         if faults:
-            problems.append(f"{len(faults)} fault events from the device (e.g. sensor {faults[-1].sensor}, kind {faults[-1].kind})")
+            from imubench.wire.protocol_gen import FaultKind
+
+            def kind(k: int) -> str:
+                try:
+                    return FaultKind(k).name.lower().replace("_", " ")
+                except ValueError:
+                    return f"fault kind {k}"
+            seen = dict.fromkeys(f"{names[e.sensor] if 0 <= e.sensor < 4 else f'sensor {e.sensor}'}: {kind(int(e.kind))}"
+                                 for e in faults)
+            problems.append(f"{len(faults)} fault events from the device ({', '.join(seen)})")
         if rejected:
             problems.append(f"{rejected} corrupted frames on the link (cable, baud rate, ground)")
         if b.status.any() or problems:

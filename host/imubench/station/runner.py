@@ -45,6 +45,7 @@ class Station:
         self._ui: dict[str, WebPresenter] = {}
         self._bench = None
         self._lock = threading.Lock()
+        self._adopted: set[str] = set()               # boards of a station session run by the command
         self.persons: dict[str, object] = {}          # the SimPerson of the last sim run (tests read its order)
 
     # ----------------------------------------------------------------- requests
@@ -113,6 +114,9 @@ class Station:
 
     def running(self, key: str) -> bool:
         t = self._threads.get(key)
+        if key in self._adopted:
+            b = self.state.boards.get(key)
+            return b is not None and b.status == "running"
         return t is not None and t.is_alive()
 
     def wait(self, key: str, timeout: float | None = None) -> None:
@@ -182,8 +186,6 @@ class Station:
         self.state.update(key, f)
 
     def _finish(self, key: str, result: dict, d: Path) -> None:
-        from imubench.results.report import build_report, calibration_verdict, parameter_rows
-        status, words = calibration_verdict(result)
         recorded = None
         if self.history:
             try:
@@ -193,24 +195,96 @@ class Station:
                 recorded = f"recorded in the history as run {run_id}" + ("" if new else " (already recorded)")
             except Exception as e:  # noqa: BLE001 - the result is safe in session.json
                 recorded = f"not recorded in the history ({_one_line(e)}); the result is in {d / 'session.json'}"
-        report = build_report(d)
-        params = [r for r in parameter_rows(result) if r[1] != "not estimated"]
-        summary = {"status": status, "verdict": words, "parameters": params,
-                   "accel_rms_after_mg": result.get("accel_rms_after_mg"), "bench_time_s": result.get("bench_time_s"),
-                   "attitudes": len(result.get("poses") or []), "passed": bool(result.get("passed")),
-                   "written": bool(result.get("written")), "verified": bool(result.get("verified")),
-                   "report": f"/report/{_safe(key)}/report.html", "report_path": str(report), "history": recorded,
-                   "session_dir": str(d)}
+        summary = _summary(key, result, d, recorded)
 
         def f(b):
             b.status, b.result, b.phase, b.resumable = "done", summary, "end", False
         self.state.update(key, f)
 
+    # ------------------------------------------------------- a station session's boards
+    # `imubench calibrate --port A --port B ... --ui web`: the command runs the station session
+    # (procedures.fixture) and the page shows one column per board; Stop on a column stops
+    # that board only (it leaves the plate, the others go on).
+    def adopt(self, key: str, options: dict, slot: int) -> WebPresenter:
+        """The column of one board of a station session; returns the presenter its session
+        reports to."""
+        ui = WebPresenter(self.state, key)
+        with self._lock:
+            self._ui[key] = ui
+            self._adopted.add(key)
+
+        def f(b):
+            b.status, b.config, b.phase, b.error, b.result = "running", dict(options), "connect", None, None
+            b.device = {"slot": slot}
+        self.state.update(key, f)
+        return ui
+
+    def board_event(self, key: str, st: dict) -> None:
+        """A station session's board status (procedures.fixture.BoardStatus) on its column."""
+        def f(b):
+            b.device = {**b.device, "slot": st["slot"], "uid": st.get("uid") or b.device.get("uid"), "url": st["port"]}
+            if st["state"] == "running":
+                b.phase = {"turntable": "turns", "health": "start", "connect": "start"}.get(st["stage"], st["stage"])
+                if st["stage"] in ("write", "verify"):  # the fixture writes and verifies each board itself
+                    _close_steps(b, "done")
+                    text = {"write": "writing the parameters, reading them back, saving, rebooting",
+                            "verify": "verifying the device's calibrated output"}[st["stage"]]
+                    if not any(x["kind"] == st["stage"] for x in b.steps):
+                        b.steps.append({"kind": st["stage"], "text": text, "state": "running"})
+            else:
+                b.status, b.phase = ("done" if st["state"] == "passed" else "failed"), "end"
+                b.error = None if st["state"] == "passed" else f"failed at {st['stage']}: {st['reason']}"
+                _close_steps(b, "done" if st["state"] == "passed" else "failed")
+                for c in b.plan:                 # nothing is being captured any more
+                    if c["state"] == "capturing":
+                        c["state"], c["progress"] = "todo", 0.0
+        self.state.update(key, f)
+
+    def board_result(self, key: str, record: dict, d: Path, run_id=None) -> None:
+        """A station session's board is over: its verdict, parameters and report on its column
+        (the report is built here, after every board has finished: it takes the CPU the
+        streams need)."""
+        recorded = None if run_id is None else f"recorded in the history as run {run_id}"
+        summary = _summary(key, record, d, recorded)
+        if not record.get("passed"):
+            fail = record.get("failure") or {}
+            if fail:
+                summary["status"], summary["verdict"] = "fail", f"failed at {fail.get('stage')}: {fail.get('reason')}"
+            elif summary["status"] == "pass":
+                summary["status"] = "fail"
+                summary["verdict"] = self.state.boards[key].error or "did not pass its limits"
+
+        def f(b):
+            b.result = summary
+            b.status = "done" if summary["status"] == "pass" else "failed"
+            b.phase = "end"
+        self.state.update(key, f)
+
     def report_path(self, safe_key: str) -> Path | None:
         for b in self.state.boards.values():
-            if _safe(b.key) == safe_key and b.result:
+            if _safe(b.key) == safe_key and b.result and b.result.get("report_path"):
                 return Path(b.result["report_path"])
         return None
+
+
+def _close_steps(b, state: str) -> None:
+    for x in b.steps:
+        if x["state"] == "running":
+            x["state"] = state
+
+
+def _summary(key: str, result: dict, d: Path, recorded: str | None) -> dict:
+    """What a finished session's column shows: verdict first, parameters ± σ, the report."""
+    from imubench.results.report import build_report, calibration_verdict, parameter_rows
+    status, words = calibration_verdict(result)
+    report = build_report(d) if (Path(d) / "session.json").is_file() else None
+    params = [r for r in parameter_rows(result) if r[1] != "not estimated"]
+    return {"status": status, "verdict": words, "parameters": params,
+            "accel_rms_after_mg": result.get("accel_rms_after_mg"), "bench_time_s": result.get("bench_time_s"),
+            "attitudes": len(result.get("poses") or []), "passed": bool(result.get("passed")),
+            "written": bool(result.get("written")), "verified": bool(result.get("verified")),
+            "report": f"/report/{_safe(key)}/report.html" if report else None,
+            "report_path": str(report) if report else None, "history": recorded, "session_dir": str(d)}
 
 
 def _safe(key: str) -> str:

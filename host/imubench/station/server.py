@@ -52,10 +52,12 @@ def create_app(station: Station) -> Starlette:
             version = -1
             last_send = 0.0
             while True:
-                if await request.is_disconnected():
+                if state.closed or await request.is_disconnected():
                     return
                 state.seen(token)
                 new = await asyncio.to_thread(state.wait, version, KEEPALIVE_S)
+                if state.closed:
+                    return
                 if new == version:
                     yield ": keep-alive\n\n"
                     continue
@@ -210,6 +212,7 @@ class Server:
         return self
 
     def stop(self) -> None:
+        self.station.state.close()      # open pages' event streams end first
         self.server.should_exit = True
         if self.thread is not None:
             self.thread.join(10)

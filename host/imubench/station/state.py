@@ -43,6 +43,14 @@ class StationState:
         self.boards: dict[str, DeviceBoard] = {}
         self.mode = "idle"                    # "idle": the page chooses; "session": started by the command
         self.sim_available = True             # the page may choose the virtual bench
+        self.closed = False                   # the server is stopping: event streams end
+
+    def close(self) -> None:
+        """Wake every event stream and let it end (before the web server stops, so that no
+        open page holds the shutdown up)."""
+        with self._lock:
+            self.closed = True
+            self._lock.notify_all()
 
     # ----------------------------------------------------------------- writing
     def board(self, key: str) -> DeviceBoard:
@@ -108,5 +116,5 @@ class StationState:
 
     def wait(self, version: int, timeout: float) -> int:
         with self._lock:
-            self._lock.wait_for(lambda: self.version != version, timeout=timeout)
+            self._lock.wait_for(lambda: self.version != version or self.closed, timeout=timeout)
             return self.version

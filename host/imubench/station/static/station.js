@@ -37,13 +37,15 @@
   }
 
   const claiming = {};
+  let claimChain = Promise.resolve();   // one claim at a time: every device of a session gets this page's one token
   function render(snap) {
     const mine = snap.boards.filter((b) => b.yours);
+    $("#boards").classList.toggle("multi", snap.boards.length > 1);
     for (const b of snap.boards) {
       // a session started by the command is owned by the first page that opens
       if (!b.owned && !claiming[b.key] && (snap.mode === "session" || b.status === "running")) {
         claiming[b.key] = true;
-        claim(b.key).finally(() => { claiming[b.key] = false; });
+        claimChain = claimChain.then(() => claim(b.key)).catch(() => false).finally(() => { claiming[b.key] = false; });
       }
       renderBoard(b);
     }
@@ -69,8 +71,9 @@
 
   function renderBoard(b) {
     const el = column(b.key);
-    const dev = b.device && b.device.board ? ` — ${b.device.board} ${b.device.uid || ""}` : "";
-    $(".devname", el).textContent = (b.key === "sim" ? "virtual bench" : b.key) + dev;
+    const slot = b.device && b.device.slot ? `slot ${b.device.slot}: ` : "";
+    const dev = b.device && b.device.board ? ` — ${b.device.board} ${b.device.uid || ""}` : b.device && b.device.uid ? ` — ${b.device.uid}` : "";
+    $(".devname", el).textContent = slot + (b.key === "sim" ? "virtual bench" : b.device && b.device.slot ? (b.device.url || b.key) : b.key) + dev;
     const st = $(".status", el);
     st.textContent = b.status + (b.phase && b.status === "running" ? " · " + b.phase : "");
     st.className = "status pill " + b.status;
@@ -80,7 +83,7 @@
     el.classList.toggle("readonly", b.owned && !b.yours);
     $(".stop", el).hidden = !(b.yours && b.status === "running");
     $(".resume", el).hidden = !(b.yours && b.resumable && b.status !== "running");
-    $(".error-line", el).textContent = b.error ? b.error + (b.resumable ? " — the captured attitudes are kept: Resume continues" : "") : "";
+    $(".error-line", el).textContent = b.error && !b.result ? b.error + (b.resumable ? " — the captured attitudes are kept: Resume continues" : "") : "";
 
     // verdict first
     const v = $(".verdict", el);
@@ -98,8 +101,10 @@
     if (b.result) {
       res.hidden = false;
       $(".params", el).innerHTML = b.result.parameters.map((r) => `<tr><td>${esc(r[0])}</td><td>${esc(r[1])}</td></tr>`).join("");
-      $(".report-line", el).innerHTML = `${b.result.attitudes} attitudes, bench time ${fmt(b.result.bench_time_s, 0)} s; ` +
-        `<a class="report-link" href="${esc(b.result.report)}" target="_blank">the HTML report</a>` +
+      $(".result h3", el).textContent = b.result.parameters.length ? "Parameters ± 1σ" : "Nothing was fitted";
+      $(".report-line", el).innerHTML = `${b.result.attitudes} attitudes` +
+        (b.result.bench_time_s != null ? `, bench time ${fmt(b.result.bench_time_s, 0)} s` : "") + "; " +
+        (b.result.report ? `<a class="report-link" href="${esc(b.result.report)}" target="_blank">the HTML report</a>` : "no report (nothing was fitted)") +
         (b.result.history ? `; ${esc(b.result.history)}` : "") + `<br><small>session directory ${esc(b.result.session_dir)}</small>`;
     } else res.hidden = true;
     $(".log", el).textContent = b.log.join("\n");
@@ -152,7 +157,8 @@
   function renderCards(el, b) {
     const box = $(".cards", el);
     const done = b.plan.filter((c) => c.state === "done").length;
-    $(".cards-title", el).textContent = b.plan.length ? `Attitudes: ${done} of ${b.plan.length} captured — present them in any order` +
+    const order = b.config && b.config.fixture ? "the fixture presents them in the plan's order, every board at once" : "present them in any order";
+    $(".cards-title", el).textContent = b.plan.length ? `Attitudes: ${done} of ${b.plan.length} captured — ${order}` +
       (b.config && b.config.capture === "adaptive" && b.method === "multi" ? "; the session stops as soon as the targets are reached" : "") : "";
     const here = (b.live || {}).attitude;
     for (const c of b.plan) {
