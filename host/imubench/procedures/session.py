@@ -565,27 +565,45 @@ class Session:
                 for sign in (1.0, -1.0):
                     r_dps = sign * rate
                     self.ui.present_turn(np.array(axis), r_dps, self.cfg.turntable_s)
-                    got, steady = [], 0
                     need = int(0.6 * self.cfg.turntable_s * fs)     # the steady middle of the turn
-                    waited = 0
-                    while steady < need:
-                        b = self._next_block()
-                        waited += len(b)
-                        _, gyr = b.si()
-                        on = np.abs(gyr @ np.array(axis) - np.radians(r_dps)) < 0.1 * abs(np.radians(r_dps))
-                        if on.all():
-                            got.append(gyr)
-                            steady += len(gyr)
-                        elif got:
-                            break                                   # the turn ended early
-                        if waited > (self.cfg.turntable_s + 30) * fs:
-                            raise SessionAborted(f"no steady turn at {r_dps:+g} °/s about {axis_name} was seen")
-                    if steady < need // 2:
+                    seg = self._steady_turn(np.array(axis), np.radians(r_dps), need,
+                                            int((self.cfg.turntable_s + 30) * fs))
+                    if seg is None:
+                        raise SessionAborted(f"no steady turn at {r_dps:+g} °/s about {axis_name} was seen")
+                    if len(seg) < need // 2:
                         raise SessionAborted(f"the turn at {r_dps:+g} °/s about {axis_name} was too short or unsteady")
-                    segments.append((np.concatenate(got), np.array(axis), np.radians(r_dps)))
+                    segments.append((seg, np.array(axis), np.radians(r_dps)))
                     # let the table stop before the next turn
                     self._wait_still(2.0)
         return segments
+
+    def _steady_turn(self, axis: np.ndarray, rate_rad_s: float, need: int, limit: int) -> np.ndarray | None:
+        """The gyro samples (rad/s) of one steady turn: the first run of consecutive samples
+        within 10 % of the table's rate about axis, up to `need` of them (or shorter when the
+        turn ended first); None when none began within `limit` samples. Judged sample by
+        sample: a block read after a busy moment may hold the whole turn and its ends."""
+        gyr = np.zeros((0, 3))
+        waited = 0
+        while True:
+            b = self._next_block()
+            waited += len(b)
+            gyr = np.concatenate([gyr, b.si()[1]])
+            on = np.abs(gyr @ axis - rate_rad_s) < 0.1 * abs(rate_rad_s)
+            while on.any():
+                start = int(np.argmax(on))
+                off = np.flatnonzero(~on[start:])
+                stop = start + int(off[0]) if len(off) else len(on)
+                if stop - start >= need:
+                    return gyr[start:start + need]
+                if not len(off):
+                    break                                           # still turning: read on
+                if stop - start >= need // 2:
+                    return gyr[start:stop]                          # the turn ended early
+                gyr, on = gyr[stop:], on[stop:]                     # a blip at the band's edge
+            if not on.any():
+                gyr = gyr[-1:]                                      # nothing of a turn yet
+            if waited > limit:
+                return None
 
     def _wait_still(self, timeout_s: float) -> None:
         from imubench.calib.static import StillnessDetector
