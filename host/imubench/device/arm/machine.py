@@ -670,6 +670,7 @@ class Server:
             last_wall = wall
             if target > now:
                 m.run_until(target, 0.02, idle_cap)
+                self._finish_spi_transaction()
             now = m.now()
             m.usart.drain(now)
             m.set_model_time(now)
@@ -731,3 +732,13 @@ class Server:
                 ctl_ready = True
         if ctl_ready:
             lib.sim_control_handle(pfd, n_ctl)
+
+    def _finish_spi_transaction(self) -> None:
+        """Run on until the image raises the chip select of an SPI transaction in progress (at
+        most 1 ms of device time): a fault injected through the control channel between the
+        bytes the image received and the transaction committed at chip select rise would
+        change a sensor's answer in the middle of a frame, which a real sensor cannot do."""
+        m, spi = self.m, self.m.spi
+        t_end = m.now() + 1e-3
+        while spi.cs is not None and spi.tx and m.now() < t_end and m.reset_req is None:
+            m.run_until(min(m.now() + 20e-6, t_end), 0.005)
