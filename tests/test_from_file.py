@@ -389,7 +389,9 @@ def test_guided_session_known_angle_turns_on_the_virtual_bench(tmp_path):
         ui = SimPresenter(vb, seed=3, quiet=True)
         ui.say = said.append
         with Device.open(vb.port_url, timeout=5.0) as dev:
-            result, _ = run_session(dev, tmp_path / "s", SessionConfig(gyro="turns", write=False), ui)
+            # no pose timeout, as `imubench calibrate` runs a person's session (it crashed the turn step)
+            result, _ = run_session(dev, tmp_path / "s", SessionConfig(gyro="turns", write=False, pose_timeout_s=None),
+                                    ui)
         truth = vb.get_truth()
     assert sum("turns the board 360°" in s for s in said) == 3
     g = result["gyro"]

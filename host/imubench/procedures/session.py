@@ -667,7 +667,7 @@ class Session:
                     moved = moved or not quiet
                     if moved and still and min(st.n, after_n) >= hold_n:
                         break
-                if waited > self.cfg.pose_timeout_s * fs:
+                if self.cfg.pose_timeout_s is not None and waited > self.cfg.pose_timeout_s * fs:
                     raise SessionAborted(f"known-angle turn about {name}: no "
                                          + ("still attitude with " + name + " up" if phase == "settle" else
                                             "turn followed by a rest") + f" within {self.cfg.pose_timeout_s:g} s")
