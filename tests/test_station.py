@@ -135,8 +135,31 @@ def test_station_server_answers_bad_requests_in_one_line(tmp_path):
         code, body = call("api/start", {"port": "socket://127.0.0.1:1", "gyro": "spin"}, token)
         assert code == 400 and json.loads(body)["error"].startswith("gyro must be one of")
         assert call("report/none/report.html")[0] == 404
+        code, svg = call("turn.svg?axis=0,0,1&angle=360")          # a known-angle turn by hand
+        assert code == 200 and "+360°" in svg
+        assert call("turn.svg?axis=0,0,1&angle=full")[0] == 400
     finally:
         server.stop()
+
+
+def test_known_angle_turns_by_hand_on_the_station_page(tmp_path):
+    """--gyro turns from the page: for X, Y and Z up the page asks for the attitude (a step),
+    then for one full turn by hand (its own picture); the simulated person does both and the
+    gyro is calibrated from the turns."""
+    st = Station(workdir=tmp_path, db=tmp_path / "h.sqlite", sim_speed=40.0, sim_seed=3)
+    try:
+        st.start({"port": "sim", "gyro": "turns", "write": False}, token=None)
+        st.wait("sim", timeout=600)
+        b = st.state.boards["sim"]
+    finally:
+        st.close()
+    assert b.status == "done", (b.error, b.log[-5:])
+    hand = [t for t in b.turns if t.get("by_hand")]
+    assert len(hand) == 3 and [t["state"] for t in hand] == ["done"] * 3
+    assert [np.argmax(np.abs(t["axis"])) for t in hand] == [0, 1, 2] and all(t["angle_deg"] == 360 for t in hand)
+    steps = [x for x in b.steps if x["kind"] == "turn-pose"]
+    assert len(steps) == 3 and all(x["state"] == "done" for x in steps) and "lie still" in steps[0]["text"]
+    assert any(r[0] == "gyro Mxx − 1" for r in b.result["parameters"]), b.result["parameters"]
 
 
 def test_any_order_with_a_hint_no_timeout_and_adaptive_stop(tmp_path):

@@ -71,6 +71,11 @@ class SimPerson(SimPresenter):
         super().present_turn(axis, rate_dps, duration_s)
 
     # ------------------------------------------------------------------ the person
+    def present_known_turn(self, up, angle_deg):
+        if self.forward is not None and hasattr(self.forward, "present_known_turn"):
+            self.forward.present_known_turn(up, angle_deg)
+        super().present_known_turn(up, angle_deg)
+
     def present_rest(self, duration_s):
         if self.forward is not None and hasattr(self.forward, "present_rest"):
             self.forward.present_rest(duration_s)

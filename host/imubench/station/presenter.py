@@ -64,10 +64,35 @@ class WebPresenter:
         self._upd(lambda b: setattr(b, "phase", "poses"))
 
     def present_pose(self, name, direction, index, total) -> None:
-        """Verification poses (after the write-back): one step each."""
+        """Directed poses: the attitude before a known-angle turn (--gyro turns), or a
+        verification pose after the write-back; one step each."""
         self._check_stop()
-        self._upd(lambda b: b.steps.append({"kind": "verify-pose", "text": f"verify: {name} ({pose_words(direction)})",
-                                             "state": "running", "direction": [float(x) for x in direction]}))
+        if "for a turn" in name:
+            kind, text = "turn-pose", (f"turn {index + 1} of {total}: lay the board on the table, "
+                                       f"{pose_words(direction)}, and let it lie still")
+        else:
+            kind, text = "verify-pose", f"verify: {name} ({pose_words(direction)})"
+
+        def f(b):
+            for s in b.steps:
+                if s["state"] == "running" and s["kind"] in ("turn-pose", "verify-pose"):
+                    s["state"] = "done"
+            b.steps.append({"kind": kind, "text": text, "state": "running", "direction": [float(x) for x in direction]})
+            if kind == "turn-pose":
+                b.phase = "turns"
+        self._upd(f)
+
+    def present_known_turn(self, up, angle_deg) -> None:
+        """--gyro turns: the person turns the board by hand through angle_deg about the vertical."""
+        self._check_stop()
+
+        def f(b):
+            for t in b.turns:
+                t["state"] = "done"
+            b.turns.append({"axis": [float(x) for x in up], "rate_dps": None, "angle_deg": float(angle_deg),
+                            "duration_s": None, "state": "running", "by_hand": True, "total": 3})
+            b.phase = "turns"
+        self._upd(f)
 
     def present_turn(self, axis, rate_dps, duration_s) -> None:
         self._check_stop()
@@ -128,7 +153,7 @@ class WebPresenter:
     def step(self, kind, text, state) -> None:
         def f(b):
             for s in b.steps:
-                if s["kind"] == "verify-pose" and s["state"] == "running":
+                if s["kind"] in ("verify-pose", "turn-pose") and s["state"] == "running":
                     s["state"] = "done"
             if kind == "fit":
                 for t in b.turns:

@@ -13,7 +13,7 @@ from imubench.station.state import StationState
 
 SIM_KEY = "sim"
 METHODS = ("multi", "six")
-GYRO_METHODS = ("bias", "turntable", "rotation", "none")
+GYRO_METHODS = ("bias", "turntable", "rotation", "turns", "none")
 CAPTURES = ("adaptive", "plan")
 
 

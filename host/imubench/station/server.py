@@ -10,7 +10,7 @@ station's state (station.state) each time it changes, at most ten a second.
     POST /api/start            {port, method, gyro, capture, write, note} (X-Station-Token)
     POST /api/stop, /api/resume  {key} (the owner only)
     GET  /pose.svg?up=x,y,z    the board in that attitude (results.boardpic)
-    GET  /turn.svg?axis=x,y,z&rate=R
+    GET  /turn.svg?axis=x,y,z&rate=R  (or &angle=A: a turn by hand)
     GET  /report/KEY/report.html  the session's HTML report
 """
 from __future__ import annotations
@@ -117,10 +117,15 @@ def create_app(station: Station) -> Starlette:
         from imubench.results.boardpic import turn_svg as draw
         axis = _vector(request.query_params.get("axis"))
         try:
-            rate = float(request.query_params.get("rate", "0"))
+            rate = request.query_params.get("rate")
+            angle = request.query_params.get("angle")
+            rate = None if rate is None else float(rate)
+            angle = None if angle is None else float(angle)
         except ValueError:
-            raise StationError("rate must be a number (°/s)") from None
-        return Response(draw(axis, rate_dps=rate), media_type="image/svg+xml")
+            raise StationError("rate (°/s) and angle (°) must be numbers") from None
+        if rate is None and angle is None:
+            rate = 0.0
+        return Response(draw(axis, rate_dps=rate, angle_deg=angle), media_type="image/svg+xml")
 
     async def report(request: Request):
         p = station.report_path(request.path_params["key"])

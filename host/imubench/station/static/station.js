@@ -119,7 +119,9 @@
     if (b.phase === "rest") att.textContent = "hold still: measuring the noise" + (L.rest != null ? ` (${fmt(100 * L.rest, 0)} %)` : "");
     else if (L.attitude) att.innerHTML = `the board is in <b>${esc(L.attitude)}</b>: ${esc(L.words)}${L.captured ? " (already captured)" : ""}`;
     else if (b.status === "running" && !posing) att.textContent = {
-      turns: "the turntable turns the board: keep it mounted, hands off", fit: "fitting…",
+      turns: b.turns.length && b.turns[b.turns.length - 1].by_hand ? "turn the board by hand one full turn on the table, then let it lie still"
+        : b.config && b.config.gyro === "turns" ? "lay the board on the table as shown under the parameters, still" : "the turntable turns the board: keep it mounted, hands off",
+      fit: "fitting…",
       write: "writing the parameters to the device…", verify: "verifying: present the attitude asked for below",
       start: "starting…"}[b.phase] || b.phase;
     else if (b.status !== "running") att.textContent = b.status === "done" ? "session finished" : b.status === "idle" ? "–" : "session " + b.status;
@@ -149,9 +151,11 @@
     } else tbl.innerHTML = b.config && b.config.capture === "adaptive" && b.method === "multi"
       ? "<tr><td>the parameters' σ appear once 12 attitudes are captured</td></tr>" : "";
     $(".steps", el).innerHTML = b.steps.map((s) => `<div class="step ${esc(s.state)}" data-kind="${esc(s.kind)}">${esc(s.text)}</div>`).join("");
-    $(".turns", el).innerHTML = b.turns.map((t, i) =>
-      `<div class="step ${esc(t.state)}"><img alt="turn" src="/turn.svg?axis=${t.axis.join(",")}&rate=${t.rate_dps}"> turn ${i + 1}${t.total ? " of " + t.total : ""}: ` +
-      `${fmt(t.rate_dps, 0)} °/s about board [${t.axis.map((x) => fmt(x, 0)).join(", ")}] for ${fmt(t.duration_s, 1)} s</div>`).join("");
+    $(".turns", el).innerHTML = b.turns.map((t, i) => t.by_hand
+      ? `<div class="step ${esc(t.state)}"><img alt="turn by hand" src="/turn.svg?axis=${t.axis.join(",")}&angle=${t.angle_deg}"> turn ${i + 1}${t.total ? " of " + t.total : ""}: ` +
+        `by hand, one full turn (${fmt(t.angle_deg, 0)}°) on the table about the vertical (${"XYZ"[t.axis.map(Math.abs).indexOf(Math.max(...t.axis.map(Math.abs)))]} pointing up), then let it lie still</div>`
+      : `<div class="step ${esc(t.state)}"><img alt="turn" src="/turn.svg?axis=${t.axis.join(",")}&rate=${t.rate_dps}"> turn ${i + 1}${t.total ? " of " + t.total : ""}: ` +
+        `${fmt(t.rate_dps, 0)} °/s about board [${t.axis.map((x) => fmt(x, 0)).join(", ")}] for ${fmt(t.duration_s, 1)} s</div>`).join("");
   }
 
   function renderCards(el, b) {
