@@ -135,6 +135,10 @@ CASES = (
        ("allan", ["--analyse", "{png}"], 1, ["no raw samples"]),
        ("history", ["--db", "{png}"], 1, ["imubench history database"]),
        ("history", ["--db", "{capture}", "B559FCF4"], 1, ["imubench history database"]),
+       # the history is opened before anything is captured, not after the session it would lose
+       ("calibrate", ["--db", "{png}", "--port", REFUSED], 1, ["history database", "nothing was captured"]),
+       ("calibrate", ["--sim", "--db", "postgresql://nobody@127.0.0.1:1/x"], 1,
+        ["history database: cannot open postgresql://nobody@127.0.0.1:1/x", "connection", "nothing was captured"]),
        ("report", ["{session}"], 1, ["session.json", "damaged"]),
        ("calibrate", ["--resume", "{session}", "--port", REFUSED], 1, ["session.json", "damaged"]),
        ("closure", ["--analyse", "{closure}"], 1, ["closure.json", "damaged"]),

@@ -184,7 +184,27 @@ def _add_from_file(p) -> None:
                         "(default: the device's, 1 mg)")
 
 
+def _check_history(db) -> None:
+    """Open the history database before anything is captured: a database that is down or a
+    path that cannot be written is named now, not after a session whose record it would lose."""
+    from imubench.results.db import describe
+    from imubench.results.history import History, default_target
+    target = db or default_target()
+    try:
+        with History(target, timeout_s=5.0):
+            pass
+    except Exception as e:  # noqa: BLE001 - any failure to open is the same answer to the user
+        text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        if describe(target) not in text:
+            text = f"{describe(target)}: {text}"
+        raise CommandError(f"history database: {text}",
+                           "start the database or fix --db (or IMUBENCH_DB); nothing was captured") from None
+
+
 def run(a) -> int:
+    if a.db and Path(a.db).is_dir():
+        raise UsageError(f"--db {a.db} is a directory", f"give the database file, e.g. {Path(a.db) / 'history.sqlite'}")
+    _check_history(a.db or (a.station_file or {}).get("db"))
     if a.from_file is not None:
         return _run_from_file(a)
     stray = [k for k in _FILE_ONLY if getattr(a, k, None) is not None] + (["export"] if a.export else [])
@@ -206,8 +226,6 @@ def run(a) -> int:
         raise UsageError("--redo goes with --resume DIR", "give the session directory to continue")
     if a.resume and a.dir:
         raise UsageError("--dir and --resume exclude each other", "--resume DIR continues the session in DIR")
-    if a.db and Path(a.db).is_dir():
-        raise UsageError(f"--db {a.db} is a directory", f"give the database file, e.g. {Path(a.db) / 'history.sqlite'}")
     if a.resume and _station_session(a):
         raise UsageError("--resume continues a one-board session; a station session with several boards is "
                          "started afresh", "run it again with --dir NEW_DIR (each board's captures stay in DIR/slot-K)")
