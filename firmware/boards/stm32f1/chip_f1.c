@@ -158,10 +158,8 @@ void chip_periph_init(void)
 
 void chip_cs_write(uint8_t cs, int level)
 {
-    static const uint32_t port[IB_CS_COUNT] = {F1_GPIOA_BASE, F1_GPIOB_BASE, F1_GPIOB_BASE, F1_GPIOB_BASE};
-    static const uint8_t pin[IB_CS_COUNT] = {4, 0, 1, 10};
     if (cs < IB_CS_COUNT) {
-        GPIO_BSRR(port[cs]) = level ? (1u << pin[cs]) : (1u << (pin[cs] + 16u));
+        *chip_cs_bsrr(cs) = level ? chip_cs_bit(cs) : chip_cs_bit(cs) << 16;
     }
 }
 
@@ -250,6 +248,9 @@ int chip_spi_dma_finish(void)
     DMA1_IFCR = DMA_IFCR_ALL(SPI_RX_CH) | DMA_IFCR_ALL(SPI_TX_CH);
     return (isr & (DMA_ISR_TEIF(SPI_RX_CH) | DMA_ISR_TEIF(SPI_TX_CH))) ? -1 : 0;
 }
+
+/* F1 channels stay enabled at the end of a transfer (RM0008 13.3.3): finish disables them. */
+void chip_spi_dma_abort(void) { (void)chip_spi_dma_finish(); }
 
 void DMA1_Channel2_IRQHandler(void) { arm_spi_dma_irq(); }
 #endif
