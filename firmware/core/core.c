@@ -691,6 +691,16 @@ void ib_core_tick(ib_core_t *c, uint32_t missed, uint32_t due_us)
         return;
     }
     job_wait(c);
+    /* the periodic stats: checked once a sample (not on every main-loop pass, each a time read) */
+    update_uptime(c);
+    if (c->uptime_ms - c->last_stats_ms >= STATS_PERIOD_MS) {
+        c->last_stats_ms = c->uptime_ms;
+        ib_msg_stats_t s = c->stats;
+        s.request_id = 0;
+        s.uptime_ms = c->uptime_ms;
+        size_t len = ib_msg_stats_pack(&s, c->msg_raw + IB_HEADER_SIZE);
+        send_unsolicited(c, IB_MSG_STATS, len);
+    }
     if (missed) {
         /* samples inside a batch are consecutive: close the batch, then skip */
         batch_send(c);
@@ -1156,16 +1166,5 @@ void ib_core_poll(ib_core_t *c)
         c->reboot_pending = 0;
         c->board->reboot(c->board->ctx);
         return;
-    }
-    if (c->stream_state != IB_STREAM_STATE_STOPPED) {
-        update_uptime(c);
-        if (c->uptime_ms - c->last_stats_ms >= STATS_PERIOD_MS) {
-            c->last_stats_ms = c->uptime_ms;
-            ib_msg_stats_t s = c->stats;
-            s.request_id = 0;
-            s.uptime_ms = c->uptime_ms;
-            size_t len = ib_msg_stats_pack(&s, c->msg_raw + IB_HEADER_SIZE);
-            send_unsolicited(c, IB_MSG_STATS, len);
-        }
     }
 }

@@ -122,7 +122,8 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b);
  * grid however late the main loop reaches a tick (docs/protocol.md, batch time). */
 void ib_core_tick(ib_core_t *c, uint32_t missed, uint32_t due_us);
 
-/* Main-loop work: received bytes, commands, periodic stats. Call as often as possible. */
+/* Main-loop work: received bytes, commands, finishing a sample read by the DMA chain. Call as
+ * often as possible. (The periodic stats are sent from ib_core_tick.) */
 void ib_core_poll(ib_core_t *c);
 
 /* Validate a parameter block as set_params does; returns IB_ERROR_OK or the error code.
