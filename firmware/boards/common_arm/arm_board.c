@@ -207,10 +207,13 @@ static size_t b_link_write(void *ctx, const uint8_t *data, size_t len)
     size_t room = TX_MASK - tx_used();
     size_t n = len < room ? len : room;
     uint32_t h = g_tx_head;
-    for (size_t i = 0; i < n; i++) {
-        g_tx[h] = data[i];
-        h = (h + 1u) & TX_MASK;
+    size_t first = IB_CFG_TX_RING - h; /* up to the ring's end, then from its start */
+    if (first > n) {
+        first = n;
     }
+    memcpy(&g_tx[h], data, first);
+    memcpy(g_tx, data + first, n - first);
+    h = (h + (uint32_t)n) & TX_MASK;
     ib_compiler_barrier();
     g_tx_head = h;
     tx_service();
