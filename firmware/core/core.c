@@ -163,16 +163,35 @@ uint8_t ib_core_check_params(const ib_params_t *p, ib_triad_corr_t *accel, ib_tr
                        p->gyro_t_ref_c, IB_LIMIT_GYRO_BIAS_MAX_RAD_S, IB_LIMIT_GYRO_BIAS_TC_MAX_RAD_S_PER_C, gyro);
 }
 
-void ib_core_correct(const ib_triad_corr_t *t, const float u[3], const float temp_c[3], float out[3])
+/* ib_core_correct in two parts: what depends on the temperatures only (the stream reads them
+ * once a batch, so this runs once a batch) and what depends on the sample. The same float
+ * operations in the same order as the one-step formula, so the result is bit for bit the same. */
+static void correct_terms(const ib_triad_corr_t *t, const float temp_c[3], float bdt[3], float den[3])
+{
+    for (int k = 0; k < 3; k++) {
+        float dt = temp_c[k] - t->t_ref_c;
+        bdt[k] = t->bias_tc[k] * dt;
+        den[k] = 1.0f + t->scale_tc[k] * dt;
+    }
+}
+
+static void correct_apply(const ib_triad_corr_t *t, const float u[3], const float bdt[3], const float den[3],
+                          float out[3])
 {
     float v[3];
     for (int k = 0; k < 3; k++) {
-        float dt = temp_c[k] - t->t_ref_c;
-        v[k] = (u[k] - t->b[k] - t->bias_tc[k] * dt) / (1.0f + t->scale_tc[k] * dt);
+        v[k] = (u[k] - t->b[k] - bdt[k]) / den[k];
     }
     for (int r = 0; r < 3; r++) {
         out[r] = t->m_inv[r][0] * v[0] + t->m_inv[r][1] * v[1] + t->m_inv[r][2] * v[2];
     }
+}
+
+void ib_core_correct(const ib_triad_corr_t *t, const float u[3], const float temp_c[3], float out[3])
+{
+    float bdt[3], den[3];
+    correct_terms(t, temp_c, bdt, den);
+    correct_apply(t, u, bdt, den, out);
 }
 
 static void identity_params(ib_params_t *p)
@@ -190,6 +209,7 @@ static void set_factory(ib_core_t *c)
 {
     identity_params(&c->params);
     (void)ib_core_check_params(&c->params, &c->corr_accel, &c->corr_gyro);
+    c->cal_ready = 0;
     c->param_source = IB_PARAM_SOURCE_FACTORY;
 }
 
@@ -218,6 +238,7 @@ static void load_params(ib_core_t *c)
     c->params = p;
     c->corr_accel = a;
     c->corr_gyro = g;
+    c->cal_ready = 0;
     c->param_source = IB_PARAM_SOURCE_FLASH;
 }
 
@@ -421,6 +442,23 @@ static void read_sync(ib_core_t *c, sample_in_t *in)
     }
 }
 
+/* The calibrated stream's terms that change only with the temperatures (once a batch), the
+ * range or the parameters. */
+static void cal_prepare(ib_core_t *c)
+{
+    float ta[3], tg[3];
+    float lsb = (float)ib_adxl355_lsb_per_g(range_code(c->accel_range_g));
+    float t_acc = 25.0f + ((float)c->accel_temp_counts - 1885.0f) / -9.05f;
+    for (int k = 0; k < 3; k++) {
+        ta[k] = t_acc;
+        tg[k] = 45.0f + (float)c->gyro_temp_raw10[k] / 5.0f;
+    }
+    c->cal_mps2_per_count = G0_MPS2 / lsb;
+    correct_terms(&c->corr_accel, ta, c->cal_bdt[0], c->cal_den[0]);
+    correct_terms(&c->corr_gyro, tg, c->cal_bdt[1], c->cal_den[1]);
+    c->cal_ready = 1;
+}
+
 /* Append the sample to the batch (and send the batch when full). */
 static void sample_commit(ib_core_t *c, const sample_in_t *in)
 {
@@ -478,17 +516,16 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
     uint8_t *rec;
     if (c->stream_state == IB_STREAM_STATE_CALIBRATED) {
         ib_cal_sample_t cs;
-        float u[3], w[3], ta[3], tg[3];
-        float lsb = (float)ib_adxl355_lsb_per_g(range_code(c->accel_range_g));
-        float t_acc = 25.0f + ((float)c->accel_temp_counts - 1885.0f) / -9.05f;
-        for (int k = 0; k < 3; k++) {
-            u[k] = (float)acc[k] * (G0_MPS2 / lsb);
-            w[k] = (float)rate[k] * RAD_PER_GYRO_COUNT;
-            ta[k] = t_acc;
-            tg[k] = 45.0f + (float)c->gyro_temp_raw10[k] / 5.0f;
+        float u[3], w[3];
+        if (c->batch_n == 0 || !c->cal_ready) {
+            cal_prepare(c); /* the temperatures are new at a batch's first sample */
         }
-        ib_core_correct(&c->corr_accel, u, ta, cs.accel_mps2);
-        ib_core_correct(&c->corr_gyro, w, tg, cs.rate_rad_s);
+        for (int k = 0; k < 3; k++) {
+            u[k] = (float)acc[k] * c->cal_mps2_per_count;
+            w[k] = (float)rate[k] * RAD_PER_GYRO_COUNT;
+        }
+        correct_apply(&c->corr_accel, u, c->cal_bdt[0], c->cal_den[0], cs.accel_mps2);
+        correct_apply(&c->corr_gyro, w, c->cal_bdt[1], c->cal_den[1], cs.rate_rad_s);
         cs.status = status;
         rec = c->batch_buf + IB_HEADER_SIZE + IB_BATCH_HEADER_SIZE + (size_t)c->batch_n * IB_CAL_SAMPLE_SIZE;
         ib_cal_sample_pack(&cs, rec);
@@ -934,6 +971,7 @@ static void execute(ib_core_t *c, const ib_frame_t *f)
             c->params = m.params;
             c->corr_accel = a;
             c->corr_gyro = g;
+            c->cal_ready = 0; /* applied from the next sample */
             c->param_source = IB_PARAM_SOURCE_UNSAVED;
         }
         break;

@@ -64,6 +64,12 @@ typedef struct ib_core {
     uint8_t batch_gyro_st_bad[3]; /* 0x80 | ST of a gyro reply with ST != 01 in this batch */
     ib_batch_header_t batch_hdr;
     uint32_t batch_t0_us;
+    /* the calibrated stream's per-batch terms (core.c, cal_prepare): the correction's
+     * temperature terms (bias_tc x dt, 1 + scale_tc x dt) of [0] the accelerometer, [1] the
+     * gyros, and m/s^2 per count at the range; cal_ready 0 after a parameter change */
+    float cal_bdt[2][3], cal_den[2][3];
+    float cal_mps2_per_count;
+    uint8_t cal_ready;
     uint8_t batch_buf[IB_MAX_FRAME];  /* raw frame being built: header, payload, CRC */
     uint8_t fault_state[4];       /* fault kind last reported per sensor, 0 = none */
 
