@@ -513,12 +513,14 @@ int main(void)
                 ib_core_tick(&g_core, missed, due_us);
             }
         }
+#if IB_CFG_SPI_DMA
+        /* sleep through the sample's DMA chain, then poll: the sample is finished in the
+         * pass that started it, not in a later one (one main-loop pass less per sample) */
+        spi_job_sleep();
+#endif
         ib_core_poll(&g_core);
         if (!g_tick_period_us && g_rx_head == g_rx_tail && tx_used() == 0u) {
             ib_wfi(); /* idle: SysTick (1 ms) or a received byte wakes us */
         }
-#if IB_CFG_SPI_DMA
-        spi_job_sleep();
-#endif
     }
 }
