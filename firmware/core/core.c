@@ -649,8 +649,11 @@ static void job_begin(ib_core_t *c, uint8_t temps)
 /* Turn what the chain brought back into the sample. */
 static void sample_finish(ib_core_t *c)
 {
-    sample_in_t in;
-    memset(&in, 0, sizeof in);
+    sample_in_t in; /* every field sample_commit reads is set below (no memset: once a sample) */
+    in.accel_err = IB_ADXL355_OK;
+    in.total = 0;
+    in.sum[0] = in.sum[1] = in.sum[2] = 0;
+    in.st_or = 0;
     c->job_done = 0;
     if (c->present & 1u) {
         if (c->job_rc[0] != 0) {
