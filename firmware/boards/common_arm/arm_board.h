@@ -164,7 +164,8 @@ void arm_tx_dma_irq(void);
  * clear and returns 0, or -1 on a transfer error. chip_spi_dma_abort() stops both channels
  * whatever they are doing (a completion that never came) and clears their flags. */
 void chip_spi_dma_init(uint32_t spi_dr_addr);
-void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n);
+/* static inline in chip.h (it runs for every transfer):
+ * void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n); */
 int chip_spi_dma_finish(void);
 void chip_spi_dma_abort(void);
 void arm_spi_dma_irq(void);

@@ -30,4 +30,22 @@ static inline uint32_t chip_cs_bit(uint8_t cs)
     return pin_bit[cs];
 }
 
+#if IB_CFG_SPI_DMA
+#define SPI_RX_CH 2u /* SPI1_RX: DMA1 channel 2, SPI1_TX: channel 3 (RM0008 13.3.7, table 78) */
+#define SPI_TX_CH 3u
+
+/* arm_board.h's chip_spi_dma_start, inline: it runs for every transfer of the sample chain. */
+static inline void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n)
+{
+    DMA1_IFCR = DMA_IFCR_ALL(SPI_RX_CH) | DMA_IFCR_ALL(SPI_TX_CH);
+    DMA1_CMAR(SPI_RX_CH) = (uint32_t)(uintptr_t)rx;
+    DMA1_CNDTR(SPI_RX_CH) = n;
+    /* RX above TX in priority: a received byte is taken before the next one is sent */
+    DMA1_CCR(SPI_RX_CH) = (rx_inc ? DMA_CCR_MINC : 0u) | DMA_CCR_TCIE | DMA_CCR_TEIE | DMA_CCR_PL_VHIGH | DMA_CCR_EN;
+    DMA1_CMAR(SPI_TX_CH) = (uint32_t)(uintptr_t)tx;
+    DMA1_CNDTR(SPI_TX_CH) = n;
+    DMA1_CCR(SPI_TX_CH) = DMA_CCR_DIR | (tx_inc ? DMA_CCR_MINC : 0u) | DMA_CCR_PL_HIGH | DMA_CCR_EN;
+}
+#endif
+
 #endif

@@ -229,9 +229,7 @@ void DMA2_Stream7_IRQHandler(void) { arm_tx_dma_irq(); }
 /* ----------------------------------------------------------------- SPI DMA */
 
 #if IB_CFG_SPI_DMA
-#define SPI_RX_STREAM 0u /* SPI1_RX: DMA2 stream 0, SPI1_TX: stream 3, both channel 3 (table 43) */
-#define SPI_TX_STREAM 3u
-#define SPI_DMA_CHANNEL 3u
+/* SPI_RX_STREAM, SPI_TX_STREAM, SPI_DMA_CHANNEL and chip_spi_dma_start(): chip.h */
 
 static void spi_dma_disable(void)
 {
@@ -251,20 +249,6 @@ void chip_spi_dma_init(uint32_t spi_dr_addr)
     DMA2_SFCR(SPI_RX_STREAM) = 0; /* direct mode */
     DMA2_SFCR(SPI_TX_STREAM) = 0;
     ib_irq_enable(F4_IRQ_DMA2_STREAM0, 0x80u);
-}
-
-void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n)
-{
-    /* both streams are off and their flags clear here (EN cleared by hardware at the end of
-     * the previous transfer, flags by finish; or by init / abort) */
-    DMA2_SM0AR(SPI_RX_STREAM) = (uint32_t)(uintptr_t)rx;
-    DMA2_SNDTR(SPI_RX_STREAM) = n;
-    DMA2_SCR(SPI_RX_STREAM) = DMA_SCR_CHSEL(SPI_DMA_CHANNEL) | DMA_SCR_PL_VHIGH | (rx_inc ? DMA_SCR_MINC : 0u) |
-                              DMA_SCR_TCIE | DMA_SCR_TEIE | DMA_SCR_EN;
-    DMA2_SM0AR(SPI_TX_STREAM) = (uint32_t)(uintptr_t)tx;
-    DMA2_SNDTR(SPI_TX_STREAM) = n;
-    DMA2_SCR(SPI_TX_STREAM) = DMA_SCR_CHSEL(SPI_DMA_CHANNEL) | DMA_SCR_PL_HIGH | (tx_inc ? DMA_SCR_MINC : 0u) |
-                              DMA_SCR_DIR_M2P | DMA_SCR_EN;
 }
 
 /* RX stream complete: in direct mode the TX stream moved its last byte before the RX stream
