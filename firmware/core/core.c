@@ -163,16 +163,35 @@ uint8_t ib_core_check_params(const ib_params_t *p, ib_triad_corr_t *accel, ib_tr
                        p->gyro_t_ref_c, IB_LIMIT_GYRO_BIAS_MAX_RAD_S, IB_LIMIT_GYRO_BIAS_TC_MAX_RAD_S_PER_C, gyro);
 }
 
-void ib_core_correct(const ib_triad_corr_t *t, const float u[3], const float temp_c[3], float out[3])
+/* ib_core_correct in two parts: what depends on the temperatures only (the stream reads them
+ * once a batch, so this runs once a batch) and what depends on the sample. The same float
+ * operations in the same order as the one-step formula, so the result is bit for bit the same. */
+static void correct_terms(const ib_triad_corr_t *t, const float temp_c[3], float bdt[3], float den[3])
+{
+    for (int k = 0; k < 3; k++) {
+        float dt = temp_c[k] - t->t_ref_c;
+        bdt[k] = t->bias_tc[k] * dt;
+        den[k] = 1.0f + t->scale_tc[k] * dt;
+    }
+}
+
+static void correct_apply(const ib_triad_corr_t *t, const float u[3], const float bdt[3], const float den[3],
+                          float out[3])
 {
     float v[3];
     for (int k = 0; k < 3; k++) {
-        float dt = temp_c[k] - t->t_ref_c;
-        v[k] = (u[k] - t->b[k] - t->bias_tc[k] * dt) / (1.0f + t->scale_tc[k] * dt);
+        v[k] = (u[k] - t->b[k] - bdt[k]) / den[k];
     }
     for (int r = 0; r < 3; r++) {
         out[r] = t->m_inv[r][0] * v[0] + t->m_inv[r][1] * v[1] + t->m_inv[r][2] * v[2];
     }
+}
+
+void ib_core_correct(const ib_triad_corr_t *t, const float u[3], const float temp_c[3], float out[3])
+{
+    float bdt[3], den[3];
+    correct_terms(t, temp_c, bdt, den);
+    correct_apply(t, u, bdt, den, out);
 }
 
 static void identity_params(ib_params_t *p)
@@ -190,6 +209,7 @@ static void set_factory(ib_core_t *c)
 {
     identity_params(&c->params);
     (void)ib_core_check_params(&c->params, &c->corr_accel, &c->corr_gyro);
+    c->cal_ready = 0;
     c->param_source = IB_PARAM_SOURCE_FACTORY;
 }
 
@@ -218,6 +238,7 @@ static void load_params(ib_core_t *c)
     c->params = p;
     c->corr_accel = a;
     c->corr_gyro = g;
+    c->cal_ready = 0;
     c->param_source = IB_PARAM_SOURCE_FLASH;
 }
 
@@ -421,6 +442,23 @@ static void read_sync(ib_core_t *c, sample_in_t *in)
     }
 }
 
+/* The calibrated stream's terms that change only with the temperatures (once a batch), the
+ * range or the parameters. */
+static void cal_prepare(ib_core_t *c)
+{
+    float ta[3], tg[3];
+    float lsb = (float)ib_adxl355_lsb_per_g(range_code(c->accel_range_g));
+    float t_acc = 25.0f + ((float)c->accel_temp_counts - 1885.0f) / -9.05f;
+    for (int k = 0; k < 3; k++) {
+        ta[k] = t_acc;
+        tg[k] = 45.0f + (float)c->gyro_temp_raw10[k] / 5.0f;
+    }
+    c->cal_mps2_per_count = G0_MPS2 / lsb;
+    correct_terms(&c->corr_accel, ta, c->cal_bdt[0], c->cal_den[0]);
+    correct_terms(&c->corr_gyro, tg, c->cal_bdt[1], c->cal_den[1]);
+    c->cal_ready = 1;
+}
+
 /* Append the sample to the batch (and send the batch when full). */
 static void sample_commit(ib_core_t *c, const sample_in_t *in)
 {
@@ -478,17 +516,16 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
     uint8_t *rec;
     if (c->stream_state == IB_STREAM_STATE_CALIBRATED) {
         ib_cal_sample_t cs;
-        float u[3], w[3], ta[3], tg[3];
-        float lsb = (float)ib_adxl355_lsb_per_g(range_code(c->accel_range_g));
-        float t_acc = 25.0f + ((float)c->accel_temp_counts - 1885.0f) / -9.05f;
-        for (int k = 0; k < 3; k++) {
-            u[k] = (float)acc[k] * (G0_MPS2 / lsb);
-            w[k] = (float)rate[k] * RAD_PER_GYRO_COUNT;
-            ta[k] = t_acc;
-            tg[k] = 45.0f + (float)c->gyro_temp_raw10[k] / 5.0f;
+        float u[3], w[3];
+        if (c->batch_n == 0 || !c->cal_ready) {
+            cal_prepare(c); /* the temperatures are new at a batch's first sample */
         }
-        ib_core_correct(&c->corr_accel, u, ta, cs.accel_mps2);
-        ib_core_correct(&c->corr_gyro, w, tg, cs.rate_rad_s);
+        for (int k = 0; k < 3; k++) {
+            u[k] = (float)acc[k] * c->cal_mps2_per_count;
+            w[k] = (float)rate[k] * RAD_PER_GYRO_COUNT;
+        }
+        correct_apply(&c->corr_accel, u, c->cal_bdt[0], c->cal_den[0], cs.accel_mps2);
+        correct_apply(&c->corr_gyro, w, c->cal_bdt[1], c->cal_den[1], cs.rate_rad_s);
         cs.status = status;
         rec = c->batch_buf + IB_HEADER_SIZE + IB_BATCH_HEADER_SIZE + (size_t)c->batch_n * IB_CAL_SAMPLE_SIZE;
         ib_cal_sample_pack(&cs, rec);
@@ -511,85 +548,89 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
  * is the rate latched by the previous sample's frame (the pipelined read of adxrs450.h: one
  * frame per gyro instead of two, the rate one sample period old); at the start of a batch
  * that frame sends "read TEM" instead and step 3 + 2k the sensor-data command, whose reply is
- * the temperature. Each step is started from the previous one's completion interrupt
- * (job_next); the main loop is free meanwhile and finishes the sample (sample_finish) when
- * job_done is set. */
+ * the temperature. The steps that apply (sensors present) are listed at each batch start
+ * (job_plan), so a step's work in the interrupt is to take the next entry. Each step is
+ * started from the previous one's completion interrupt (job_next); the main loop is free
+ * meanwhile and finishes the sample (sample_finish) when job_done is set. */
 #define JOB_FIFO_SETS (IB_ADXL355_FIFO_SIZE / 3u) /* the whole FIFO: 160 Hz takes 25 sets a tick */
-#define JOB_START 0xFFu
-#define JOB_END 8u
 #define JOB_WAIT_US 5000u
+enum { JOB_PLAIN = 0, JOB_HDR = 1, JOB_FIFO = 2 };
 
 static void job_next(void *arg, int rc);
 
-static int job_launch(ib_core_t *c, uint8_t st)
+static void job_add(ib_job_step_t **s, const uint8_t *tx, uint8_t *rx, uint8_t len, uint8_t cs, uint8_t sensor,
+                    uint8_t kind)
+{
+    ib_job_step_t *e = (*s)++;
+    e->tx = tx;
+    e->rx = rx;
+    e->len = len;
+    e->cs = cs;
+    e->sensor = sensor;
+    e->kind = kind;
+}
+
+/* List the transfers of a chain for the sensors present (temps: a batch start's). */
+static void job_plan(ib_core_t *c, uint8_t temps)
+{
+    ib_job_step_t *s = c->job_list;
+    if (c->present & 1u) {
+        job_add(&s, c->job_hdr_tx, c->job_hdr_rx, temps ? (uint8_t)sizeof c->job_hdr_tx : 3u, IB_CS_ACCEL, 0u,
+                JOB_HDR);
+        job_add(&s, ib_adxl355_fifo_read_tx, c->job_fifo_rx, 0u, IB_CS_ACCEL, 0u, JOB_FIFO);
+    }
+    for (uint8_t k = 0; k < 3u; k++) {
+        if (!(c->present & (1u << (1u + k)))) {
+            continue;
+        }
+        uint8_t cs = (uint8_t)(IB_CS_GYRO_X + k);
+        job_add(&s, temps ? c->job_tem_tx : c->job_gyro_tx, c->job_gyro_rx[k][0], 4u, cs, (uint8_t)(1u + k),
+                JOB_PLAIN);
+        if (temps) {
+            job_add(&s, c->job_gyro_tx, c->job_gyro_rx[k][1], 4u, cs, (uint8_t)(1u + k), JOB_PLAIN);
+        }
+    }
+    c->job_end = s;
+    c->job_list_temps = temps;
+}
+
+/* Start the first transfer at or after s that applies (its sensor has not failed; the FIFO
+ * pop only when the header counted entries); the chain is over when none is left. */
+static void job_run(ib_core_t *c, const ib_job_step_t *s)
 {
     const ib_spi_bus_t *b = c->board->spi;
-    if (st == 0u) {
-        size_t n = c->job_temps ? sizeof c->job_hdr_tx : 3u;
-        return b->start(b->ctx, IB_CS_ACCEL, c->job_hdr_tx, c->job_hdr_rx, n, job_next, c);
+    for (; s < c->job_end; s++) {
+        if (c->job_rc[s->sensor]) {
+            continue;
+        }
+        size_t len = s->len;
+        if (s->kind == JOB_FIFO) {
+            if (c->job_fifo_n == 0u) {
+                continue;
+            }
+            len = 1u + 3u * (size_t)c->job_fifo_n;
+        }
+        c->job_cur = s;
+        if (b->start(b->ctx, s->cs, s->tx, s->rx, len, job_next, c) == 0) {
+            return;
+        }
+        c->job_rc[s->sensor] = -1;
     }
-    if (st == 1u) {
-        return b->start(b->ctx, IB_CS_ACCEL, ib_adxl355_fifo_read_tx, c->job_fifo_rx,
-                        1u + 3u * (size_t)c->job_fifo_n, job_next, c);
-    }
-    uint8_t k = (uint8_t)((st - 2u) / 2u), f = (uint8_t)((st - 2u) & 1u);
-    const uint8_t *tx = (f == 0u && c->job_temps) ? c->job_tem_tx : c->job_gyro_tx;
-    return b->start(b->ctx, (uint8_t)(IB_CS_GYRO_X + k), tx, c->job_gyro_rx[k][f], 4u, job_next, c);
+    c->job_busy = 0;
+    c->job_done = 1;
 }
 
-/* The first step at or after st that applies (sensor present, no failed transfer). */
-static uint8_t job_skip(const ib_core_t *c, uint8_t st)
-{
-    if (st == 0u && !(c->present & 1u)) {
-        st = 2u;
-    }
-    if (st == 1u) {
-        if (c->job_rc[0] == 0 && c->job_fifo_n != 0u) {
-            return st;
-        }
-        st = 2u;
-    }
-    while (st < JOB_END) {
-        uint8_t k = (uint8_t)((st - 2u) / 2u);
-        int ok = (c->present & (1u << (1u + k))) && c->job_rc[1u + k] == 0;
-        if (ok && (!((st - 2u) & 1u) || c->job_temps)) {
-            break;
-        }
-        st = ok ? (uint8_t)(st + 1u) : (uint8_t)(2u + 2u * (k + 1u));
-    }
-    return st;
-}
-
+/* A transfer of the chain ended (bus interrupt): note it, start the next. */
 static void job_next(void *arg, int rc)
 {
     ib_core_t *c = (ib_core_t *)arg;
-    uint8_t st = c->job_step;
-    if (st == JOB_START) {
-        st = 0u;
-    } else {
-        uint8_t sensor = st < 2u ? 0u : (uint8_t)(1u + (st - 2u) / 2u);
-        if (rc < 0) {
-            c->job_rc[sensor] = -1;
-        } else if (st == 0u) {
-            c->job_fifo_n = (uint8_t)ib_adxl355_fifo_entries(&c->accel, &c->job_hdr_rx[1], JOB_FIFO_SETS);
-        }
-        st++;
+    const ib_job_step_t *s = c->job_cur;
+    if (rc < 0) {
+        c->job_rc[s->sensor] = -1;
+    } else if (s->kind == JOB_HDR) {
+        c->job_fifo_n = (uint8_t)ib_adxl355_fifo_entries(&c->accel, &c->job_hdr_rx[1], JOB_FIFO_SETS);
     }
-    for (;;) {
-        st = job_skip(c, st);
-        if (st >= JOB_END) {
-            c->job_step = JOB_END;
-            c->job_busy = 0;
-            c->job_done = 1;
-            return;
-        }
-        c->job_step = st;
-        if (job_launch(c, st) == 0) {
-            return;
-        }
-        c->job_rc[st < 2u ? 0u : 1u + (st - 2u) / 2u] = -1;
-        st++;
-    }
+    job_run(c, s + 1);
 }
 
 static void job_begin(ib_core_t *c, uint8_t temps)
@@ -598,16 +639,21 @@ static void job_begin(ib_core_t *c, uint8_t temps)
     c->job_temps = temps;
     c->job_fifo_n = 0;
     c->job_done = 0;
-    c->job_step = JOB_START;
     c->job_busy = 1;
-    job_next(c, 0);
+    if (c->job_list_temps != temps) {
+        job_plan(c, temps);
+    }
+    job_run(c, c->job_list);
 }
 
 /* Turn what the chain brought back into the sample. */
 static void sample_finish(ib_core_t *c)
 {
-    sample_in_t in;
-    memset(&in, 0, sizeof in);
+    sample_in_t in; /* every field sample_commit reads is set below (no memset: once a sample) */
+    in.accel_err = IB_ADXL355_OK;
+    in.total = 0;
+    in.sum[0] = in.sum[1] = in.sum[2] = 0;
+    in.st_or = 0;
     c->job_done = 0;
     if (c->present & 1u) {
         if (c->job_rc[0] != 0) {
@@ -685,6 +731,16 @@ void ib_core_tick(ib_core_t *c, uint32_t missed, uint32_t due_us)
         return;
     }
     job_wait(c);
+    /* the periodic stats: checked once a sample (not on every main-loop pass, each a time read) */
+    update_uptime(c);
+    if (c->uptime_ms - c->last_stats_ms >= STATS_PERIOD_MS) {
+        c->last_stats_ms = c->uptime_ms;
+        ib_msg_stats_t s = c->stats;
+        s.request_id = 0;
+        s.uptime_ms = c->uptime_ms;
+        size_t len = ib_msg_stats_pack(&s, c->msg_raw + IB_HEADER_SIZE);
+        send_unsolicited(c, IB_MSG_STATS, len);
+    }
     if (missed) {
         /* samples inside a batch are consecutive: close the batch, then skip */
         batch_send(c);
@@ -837,6 +893,7 @@ static uint8_t do_start_stream(ib_core_t *c, const ib_msg_start_stream_t *m, uin
     c->batch_n = 0;
     c->drop_pending = 0;
     memset(c->fault_state, 0, sizeof c->fault_state);
+    c->job_list_temps = 0xFFu; /* list the chain's transfers again (the sensors present) */
     c->stream_state = m->mode == IB_STREAM_MODE_CALIBRATED ? IB_STREAM_STATE_CALIBRATED : IB_STREAM_STATE_RAW;
     c->board->set_tick_hz(c->board->ctx, m->rate_hz);
     *value = c->batch_max;
@@ -917,6 +974,7 @@ static void execute(ib_core_t *c, const ib_frame_t *f)
             c->params = m.params;
             c->corr_accel = a;
             c->corr_gyro = g;
+            c->cal_ready = 0; /* applied from the next sample */
             c->param_source = IB_PARAM_SOURCE_UNSAVED;
         }
         break;
@@ -1095,6 +1153,7 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b)
     c->accel_range_g = 2;
     c->last_time_us = now_us(c);
     ib_frame_rx_init(&c->rx);
+    c->job_list_temps = 0xFFu;
     c->job_hdr_tx[0] = ib_adxl355_read_cmd(IB_ADXL355_REG_STATUS);
     ib_adxrs450_rate_cmd_bytes(c->job_gyro_tx);
     ib_adxrs450_temp_cmd_bytes(c->job_tem_tx);
@@ -1148,16 +1207,5 @@ void ib_core_poll(ib_core_t *c)
         c->reboot_pending = 0;
         c->board->reboot(c->board->ctx);
         return;
-    }
-    if (c->stream_state != IB_STREAM_STATE_STOPPED) {
-        update_uptime(c);
-        if (c->uptime_ms - c->last_stats_ms >= STATS_PERIOD_MS) {
-            c->last_stats_ms = c->uptime_ms;
-            ib_msg_stats_t s = c->stats;
-            s.request_id = 0;
-            s.uptime_ms = c->uptime_ms;
-            size_t len = ib_msg_stats_pack(&s, c->msg_raw + IB_HEADER_SIZE);
-            send_unsolicited(c, IB_MSG_STATS, len);
-        }
     }
 }

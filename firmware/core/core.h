@@ -24,6 +24,16 @@ typedef struct {
     float t_ref_c;
 } ib_triad_corr_t;
 
+/* One transfer of the sample chain (core.c, job_next). */
+typedef struct {
+    const uint8_t *tx;
+    uint8_t *rx;
+    uint8_t len;     /* bytes (the FIFO pop's comes from the header it follows) */
+    uint8_t cs;      /* IB_CS_* */
+    uint8_t sensor;  /* enum ib_sensor: a failed transfer skips the sensor's other steps */
+    uint8_t kind;    /* JOB_PLAIN, JOB_HDR (ADXL355 header: count the FIFO), JOB_FIFO */
+} ib_job_step_t;
+
 typedef struct ib_core {
     const ib_board_t *board;
 
@@ -54,6 +64,12 @@ typedef struct ib_core {
     uint8_t batch_gyro_st_bad[3]; /* 0x80 | ST of a gyro reply with ST != 01 in this batch */
     ib_batch_header_t batch_hdr;
     uint32_t batch_t0_us;
+    /* the calibrated stream's per-batch terms (core.c, cal_prepare): the correction's
+     * temperature terms (bias_tc x dt, 1 + scale_tc x dt) of [0] the accelerometer, [1] the
+     * gyros, and m/s^2 per count at the range; cal_ready 0 after a parameter change */
+    float cal_bdt[2][3], cal_den[2][3];
+    float cal_mps2_per_count;
+    uint8_t cal_ready;
     uint8_t batch_buf[IB_MAX_FRAME];  /* raw frame being built: header, payload, CRC */
     uint8_t fault_state[4];       /* fault kind last reported per sensor, 0 = none */
 
@@ -83,15 +99,18 @@ typedef struct ib_core {
      * sample once it is done. */
     volatile uint8_t job_busy;    /* a chain is running */
     volatile uint8_t job_done;    /* a finished chain waits for sample_finish */
-    uint8_t job_step;
     int8_t job_rc[4];             /* per sensor: 0, or <0 when a transfer failed */
     uint8_t job_fifo_n;           /* FIFO entries popped */
-    uint32_t job_t_us;
     uint8_t job_temps;            /* this chain also reads the temperatures (batch start) */
     uint8_t job_hdr_tx[5], job_hdr_rx[5]; /* ADXL355 STATUS, FIFO_ENTRIES, TEMP2, TEMP1 */
     uint8_t job_fifo_rx[1u + 3u * IB_ADXL355_FIFO_SIZE]; /* the whole FIFO at most */
     uint8_t job_gyro_tx[4], job_tem_tx[4]; /* ADXRS450 sensor-data / read TEM commands */
     uint8_t job_gyro_rx[3][2][4];
+    /* the chain's transfers for the sensors present, listed when the kind of chain changes
+     * (a batch start's reads the temperatures too: twice a batch); job_cur is the running one */
+    ib_job_step_t job_list[8];
+    const ib_job_step_t *job_cur, *job_end;
+    uint8_t job_list_temps;       /* the kind listed: 0, 1, or 0xFF none yet */
 
     ib_msg_stats_t stats;
     uint32_t uptime_ms;
@@ -109,7 +128,8 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b);
  * grid however late the main loop reaches a tick (docs/protocol.md, batch time). */
 void ib_core_tick(ib_core_t *c, uint32_t missed, uint32_t due_us);
 
-/* Main-loop work: received bytes, commands, periodic stats. Call as often as possible. */
+/* Main-loop work: received bytes, commands, finishing a sample read by the DMA chain. Call as
+ * often as possible. (The periodic stats are sent from ib_core_tick.) */
 void ib_core_poll(ib_core_t *c);
 
 /* Validate a parameter block as set_params does; returns IB_ERROR_OK or the error code.

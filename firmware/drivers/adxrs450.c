@@ -247,9 +247,15 @@ void ib_adxrs450_clear_faults_seen(ib_adxrs450_t *dev)
 ib_adxrs450_err_t ib_adxrs450_rate_from_reply(ib_adxrs450_t *dev, uint32_t w, ib_adxrs450_sample_t *s)
 {
     ib_adxrs450_decode_sensor(w, s);
-    ib_adxrs450_err_t e = check_word(dev, w);
-    if (e != IB_ADXRS450_OK) {
-        return e;
+    /* check_word's checks, with the parity the decode just worked out (not a second time:
+     * this runs for every gyro every sample) */
+    dev->last_response = w;
+    if (word_stuck(w)) {
+        return IB_ADXRS450_ERR_MISSING;
+    }
+    if (s->parity_error) {
+        dev->parity_errors++;
+        return IB_ADXRS450_ERR_PARITY;
     }
     if (s->st == IB_ADXRS450_ST_REGISTER || resp_type(w) != 0u) {
         s->good = 0; /* a register/error reply, or an SQ echo we did not send */

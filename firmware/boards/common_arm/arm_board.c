@@ -207,10 +207,13 @@ static size_t b_link_write(void *ctx, const uint8_t *data, size_t len)
     size_t room = TX_MASK - tx_used();
     size_t n = len < room ? len : room;
     uint32_t h = g_tx_head;
-    for (size_t i = 0; i < n; i++) {
-        g_tx[h] = data[i];
-        h = (h + 1u) & TX_MASK;
+    size_t first = IB_CFG_TX_RING - h; /* up to the ring's end, then from its start */
+    if (first > n) {
+        first = n;
     }
+    memcpy(&g_tx[h], data, first);
+    memcpy(g_tx, data + first, n - first);
+    h = (h + (uint32_t)n) & TX_MASK;
     ib_compiler_barrier();
     g_tx_head = h;
     tx_service();
@@ -309,33 +312,50 @@ static int spi_transfer(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, s
 static struct {
     void (*done)(void *arg, int rc);
     void *arg;
+    volatile uint32_t *cs_bsrr; /* chip select of the running transfer: its BSRR */
+    uint32_t cs_bit;            /* and its pin's bit there (written: released) */
     uint32_t t0_ms;
-    uint8_t cs;
     volatile uint8_t busy;
 } g_spi_job;
 static const uint8_t g_spi_zero = 0; /* sent when tx is NULL */
 static uint8_t g_spi_sink;           /* received into when rx is NULL */
 
+/* Rare: a mode fault (it cleared MSTR/SPE: re-arm) or a stale received byte. Out of line so
+ * the per-transfer path is one SR read and a branch. */
+__attribute__((noinline)) static void spi_recover(uint32_t sr)
+{
+    const uint32_t b = CHIP_SPI1_BASE;
+    if (sr & SPI_SR_MODF) {
+        SPI_CR1(b) = SPI_CR1(b) | SPI_CR1_MSTR | SPI_CR1_SPE;
+    }
+    if (SPI_SR(b) & SPI_SR_RXNE) {
+        (void)SPI_DR(b);
+    }
+}
+
+/* Runs ~5 times a sample (the chain's transfers), mostly from the previous transfer's
+ * completion interrupt: kept lean (one SR read, chip select inline, no flag re-reads). */
 static int spi_start(void *ctx, uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len,
                      void (*done)(void *arg, int rc), void *arg)
 {
     (void)ctx;
     const uint32_t b = CHIP_SPI1_BASE;
-    if (cs >= IB_CS_COUNT || len == 0u || len > 0xFFFFu || g_spi_job.busy || done == NULL) {
+    if (cs >= IB_CS_COUNT || len - 1u >= 0xFFFFu || g_spi_job.busy || done == NULL) {
         return -1;
     }
-    if (SPI_SR(b) & SPI_SR_MODF) { /* mode fault cleared MSTR/SPE: re-arm */
-        SPI_CR1(b) = SPI_CR1(b) | SPI_CR1_MSTR | SPI_CR1_SPE;
+    uint32_t sr = SPI_SR(b);
+    if (sr & (SPI_SR_MODF | SPI_SR_RXNE)) {
+        spi_recover(sr);
     }
-    if (SPI_SR(b) & SPI_SR_RXNE) {
-        (void)SPI_DR(b); /* stale byte */
-    }
+    volatile uint32_t *bsrr = chip_cs_bsrr(cs);
+    uint32_t bit = chip_cs_bit(cs);
     g_spi_job.done = done;
     g_spi_job.arg = arg;
-    g_spi_job.cs = cs;
+    g_spi_job.cs_bsrr = bsrr;
+    g_spi_job.cs_bit = bit;
     g_spi_job.t0_ms = g_ms;
     g_spi_job.busy = 1;
-    chip_cs_write(cs, 0);
+    *bsrr = bit << 16; /* select */
     ib_dsb(); /* tx bytes in SRAM before the DMA reads them */
     chip_spi_dma_start(tx ? tx : &g_spi_zero, tx != NULL, rx ? rx : &g_spi_sink, rx != NULL, (uint32_t)len);
     SPI_CR2(b) = SPI_CR2_RXDMAEN | SPI_CR2_TXDMAEN; /* RM: channels enabled, then the requests */
@@ -348,14 +368,14 @@ void arm_spi_dma_irq(void)
     const uint32_t b = CHIP_SPI1_BASE;
     int rc = chip_spi_dma_finish();
     SPI_CR2(b) = 0;
-    if (spi_wait(SPI_SR_BSY, 0u) != 0) {
-        rc = -1;
+    if (SPI_SR(b) & SPI_SR_BSY) { /* clear by now: the last frame's byte is in memory */
+        if (spi_wait(SPI_SR_BSY, 0u) != 0) {
+            rc = -1;
+        }
     }
-    chip_cs_write(g_spi_job.cs, 1);
+    *g_spi_job.cs_bsrr = g_spi_job.cs_bit; /* release */
     g_spi_job.busy = 0;
-    if (g_spi_job.done) {
-        g_spi_job.done(g_spi_job.arg, rc);
-    }
+    g_spi_job.done(g_spi_job.arg, rc);
 }
 #endif
 
@@ -375,9 +395,9 @@ static void spi_job_sleep(void)
             /* the completion never came (bounded like every other wait): stop the channels,
              * release chip select and report a bus error to the chain (it goes on with the
              * next step; the sample is flagged SPI_ERROR) */
-            (void)chip_spi_dma_finish();
+            chip_spi_dma_abort();
             SPI_CR2(CHIP_SPI1_BASE) = 0;
-            chip_cs_write(g_spi_job.cs, 1);
+            *g_spi_job.cs_bsrr = g_spi_job.cs_bit;
             g_spi_job.busy = 0;
             g_spi_job.done(g_spi_job.arg, -1);
             sleep = 0;
@@ -493,12 +513,14 @@ int main(void)
                 ib_core_tick(&g_core, missed, due_us);
             }
         }
+#if IB_CFG_SPI_DMA
+        /* sleep through the sample's DMA chain, then poll: the sample is finished in the
+         * pass that started it, not in a later one (one main-loop pass less per sample) */
+        spi_job_sleep();
+#endif
         ib_core_poll(&g_core);
         if (!g_tick_period_us && g_rx_head == g_rx_tail && tx_used() == 0u) {
             ib_wfi(); /* idle: SysTick (1 ms) or a received byte wakes us */
         }
-#if IB_CFG_SPI_DMA
-        spi_job_sleep();
-#endif
     }
 }

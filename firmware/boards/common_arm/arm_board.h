@@ -158,12 +158,16 @@ void arm_tx_dma_irq(void);
 
 #if IB_CFG_SPI_DMA
 /* SPI1 by DMA: one RX (peripheral-to-memory) and one TX (memory-to-peripheral) channel of n
- * bytes; *_inc 0 = the same byte every time. The RX channel's transfer-complete/error
- * interrupt must call arm_spi_dma_irq(); chip_spi_dma_finish() then stops both channels,
- * clears their flags and returns 0, or -1 on a transfer error. */
+ * bytes; *_inc 0 = the same byte every time; both channels off and their flags clear when
+ * it is called. The RX channel's transfer-complete/error interrupt must call
+ * arm_spi_dma_irq(); chip_spi_dma_finish() then leaves both channels off with their flags
+ * clear and returns 0, or -1 on a transfer error. chip_spi_dma_abort() stops both channels
+ * whatever they are doing (a completion that never came) and clears their flags. */
 void chip_spi_dma_init(uint32_t spi_dr_addr);
-void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n);
+/* static inline in chip.h (it runs for every transfer):
+ * void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n); */
 int chip_spi_dma_finish(void);
+void chip_spi_dma_abort(void);
 void arm_spi_dma_irq(void);
 #endif
 

@@ -3,6 +3,7 @@
 #define IB_CHIP_H
 
 #include "protocol_gen.h"
+#include "spi_bus.h"
 #include "stm32f1.h"
 
 #define CHIP_USART1_BASE F1_USART1_BASE
@@ -12,6 +13,39 @@
 #define CHIP_BOARD_ID IB_BOARD_QEMU_F1
 #else
 #define CHIP_BOARD_ID IB_BOARD_STM32F103
+#endif
+
+/* Chip select cs (IB_CS_*, < IB_CS_COUNT): the GPIO BSRR register that drives it and its
+ * pin's bit there (write the bit: high, released; the bit << 16: low, selected). Inline:
+ * the sample chain selects and releases a chip about ten times a sample. Pins: PA4
+ * ADXL355, PB0/PB1/PB10 ADXRS450 X/Y/Z. */
+static inline volatile uint32_t *chip_cs_bsrr(uint8_t cs)
+{
+    return &GPIO_BSRR(cs == IB_CS_ACCEL ? F1_GPIOA_BASE : F1_GPIOB_BASE);
+}
+
+static inline uint32_t chip_cs_bit(uint8_t cs)
+{
+    static const uint16_t pin_bit[IB_CS_COUNT] = {1u << 4, 1u << 0, 1u << 1, 1u << 10};
+    return pin_bit[cs];
+}
+
+#if IB_CFG_SPI_DMA
+#define SPI_RX_CH 2u /* SPI1_RX: DMA1 channel 2, SPI1_TX: channel 3 (RM0008 13.3.7, table 78) */
+#define SPI_TX_CH 3u
+
+/* arm_board.h's chip_spi_dma_start, inline: it runs for every transfer of the sample chain. */
+static inline void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n)
+{
+    DMA1_IFCR = DMA_IFCR_ALL(SPI_RX_CH) | DMA_IFCR_ALL(SPI_TX_CH);
+    DMA1_CMAR(SPI_RX_CH) = (uint32_t)(uintptr_t)rx;
+    DMA1_CNDTR(SPI_RX_CH) = n;
+    /* RX above TX in priority: a received byte is taken before the next one is sent */
+    DMA1_CCR(SPI_RX_CH) = (rx_inc ? DMA_CCR_MINC : 0u) | DMA_CCR_TCIE | DMA_CCR_TEIE | DMA_CCR_PL_VHIGH | DMA_CCR_EN;
+    DMA1_CMAR(SPI_TX_CH) = (uint32_t)(uintptr_t)tx;
+    DMA1_CNDTR(SPI_TX_CH) = n;
+    DMA1_CCR(SPI_TX_CH) = DMA_CCR_DIR | (tx_inc ? DMA_CCR_MINC : 0u) | DMA_CCR_PL_HIGH | DMA_CCR_EN;
+}
 #endif
 
 #endif

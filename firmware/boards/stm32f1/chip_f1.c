@@ -158,10 +158,8 @@ void chip_periph_init(void)
 
 void chip_cs_write(uint8_t cs, int level)
 {
-    static const uint32_t port[IB_CS_COUNT] = {F1_GPIOA_BASE, F1_GPIOB_BASE, F1_GPIOB_BASE, F1_GPIOB_BASE};
-    static const uint8_t pin[IB_CS_COUNT] = {4, 0, 1, 10};
     if (cs < IB_CS_COUNT) {
-        GPIO_BSRR(port[cs]) = level ? (1u << pin[cs]) : (1u << (pin[cs] + 16u));
+        *chip_cs_bsrr(cs) = level ? chip_cs_bit(cs) : chip_cs_bit(cs) << 16;
     }
 }
 
@@ -217,8 +215,7 @@ void DMA1_Channel4_IRQHandler(void) { arm_tx_dma_irq(); }
 /* ----------------------------------------------------------------- SPI DMA */
 
 #if IB_CFG_SPI_DMA
-#define SPI_RX_CH 2u /* SPI1_RX: DMA1 channel 2, SPI1_TX: channel 3 (RM0008 13.3.7, table 78) */
-#define SPI_TX_CH 3u
+/* SPI_RX_CH, SPI_TX_CH: chip.h */
 
 void chip_spi_dma_init(uint32_t spi_dr_addr)
 {
@@ -230,17 +227,7 @@ void chip_spi_dma_init(uint32_t spi_dr_addr)
     ib_irq_enable(F1_IRQ_DMA1_CH2, 0x80u);
 }
 
-void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n)
-{
-    DMA1_IFCR = DMA_IFCR_ALL(SPI_RX_CH) | DMA_IFCR_ALL(SPI_TX_CH);
-    DMA1_CMAR(SPI_RX_CH) = (uint32_t)(uintptr_t)rx;
-    DMA1_CNDTR(SPI_RX_CH) = n;
-    /* RX above TX in priority: a received byte is taken before the next one is sent */
-    DMA1_CCR(SPI_RX_CH) = (rx_inc ? DMA_CCR_MINC : 0u) | DMA_CCR_TCIE | DMA_CCR_TEIE | DMA_CCR_PL_VHIGH | DMA_CCR_EN;
-    DMA1_CMAR(SPI_TX_CH) = (uint32_t)(uintptr_t)tx;
-    DMA1_CNDTR(SPI_TX_CH) = n;
-    DMA1_CCR(SPI_TX_CH) = DMA_CCR_DIR | (tx_inc ? DMA_CCR_MINC : 0u) | DMA_CCR_PL_HIGH | DMA_CCR_EN;
-}
+/* chip_spi_dma_start(): chip.h */
 
 int chip_spi_dma_finish(void)
 {
@@ -250,6 +237,9 @@ int chip_spi_dma_finish(void)
     DMA1_IFCR = DMA_IFCR_ALL(SPI_RX_CH) | DMA_IFCR_ALL(SPI_TX_CH);
     return (isr & (DMA_ISR_TEIF(SPI_RX_CH) | DMA_ISR_TEIF(SPI_TX_CH))) ? -1 : 0;
 }
+
+/* F1 channels stay enabled at the end of a transfer (RM0008 13.3.3): finish disables them. */
+void chip_spi_dma_abort(void) { (void)chip_spi_dma_finish(); }
 
 void DMA1_Channel2_IRQHandler(void) { arm_spi_dma_irq(); }
 #endif

@@ -164,10 +164,8 @@ void chip_periph_init(void)
 
 void chip_cs_write(uint8_t cs, int level)
 {
-    static const uint32_t port[IB_CS_COUNT] = {F4_GPIOA_BASE, F4_GPIOB_BASE, F4_GPIOB_BASE, F4_GPIOB_BASE};
-    static const uint8_t pin[IB_CS_COUNT] = {4, 0, 1, 10};
     if (cs < IB_CS_COUNT) {
-        GPIO_BSRR(port[cs]) = level ? (1u << pin[cs]) : (1u << (pin[cs] + 16u));
+        *chip_cs_bsrr(cs) = level ? chip_cs_bit(cs) : chip_cs_bit(cs) << 16;
     }
 }
 
@@ -231,9 +229,7 @@ void DMA2_Stream7_IRQHandler(void) { arm_tx_dma_irq(); }
 /* ----------------------------------------------------------------- SPI DMA */
 
 #if IB_CFG_SPI_DMA
-#define SPI_RX_STREAM 0u /* SPI1_RX: DMA2 stream 0, SPI1_TX: stream 3, both channel 3 (table 43) */
-#define SPI_TX_STREAM 3u
-#define SPI_DMA_CHANNEL 3u
+/* SPI_RX_STREAM, SPI_TX_STREAM, SPI_DMA_CHANNEL and chip_spi_dma_start(): chip.h */
 
 static void spi_dma_disable(void)
 {
@@ -255,26 +251,22 @@ void chip_spi_dma_init(uint32_t spi_dr_addr)
     ib_irq_enable(F4_IRQ_DMA2_STREAM0, 0x80u);
 }
 
-void chip_spi_dma_start(const uint8_t *tx, int tx_inc, uint8_t *rx, int rx_inc, uint32_t n)
-{
-    /* both streams are off here (EN cleared by hardware at the end, or by finish) */
-    DMA2_LIFCR = DMA_LIFCR_ALL0 | DMA_LIFCR_ALL3;
-    DMA2_SM0AR(SPI_RX_STREAM) = (uint32_t)(uintptr_t)rx;
-    DMA2_SNDTR(SPI_RX_STREAM) = n;
-    DMA2_SCR(SPI_RX_STREAM) = DMA_SCR_CHSEL(SPI_DMA_CHANNEL) | DMA_SCR_PL_VHIGH | (rx_inc ? DMA_SCR_MINC : 0u) |
-                              DMA_SCR_TCIE | DMA_SCR_TEIE | DMA_SCR_EN;
-    DMA2_SM0AR(SPI_TX_STREAM) = (uint32_t)(uintptr_t)tx;
-    DMA2_SNDTR(SPI_TX_STREAM) = n;
-    DMA2_SCR(SPI_TX_STREAM) = DMA_SCR_CHSEL(SPI_DMA_CHANNEL) | DMA_SCR_PL_HIGH | (tx_inc ? DMA_SCR_MINC : 0u) |
-                              DMA_SCR_DIR_M2P | DMA_SCR_EN;
-}
-
+/* RX stream complete: in direct mode the TX stream moved its last byte before the RX stream
+ * took the last one, and the hardware cleared both streams' EN at the end of their transfers
+ * (RM0090 10.3.17, 10.5.5), so only the flags need clearing. A transfer error also clears EN
+ * (10.3.18); the streams are stopped anyway then. */
 int chip_spi_dma_finish(void)
 {
     uint32_t isr = DMA2_LISR;
-    spi_dma_disable();
-    return (isr & (DMA_LISR_TEIF0 | DMA_LISR_DMEIF0 | DMA_LISR_TEIF3 | DMA_LISR_DMEIF3)) ? -1 : 0;
+    DMA2_LIFCR = DMA_LIFCR_ALL0 | DMA_LIFCR_ALL3;
+    if (isr & (DMA_LISR_TEIF0 | DMA_LISR_DMEIF0 | DMA_LISR_TEIF3 | DMA_LISR_DMEIF3)) {
+        spi_dma_disable();
+        return -1;
+    }
+    return 0;
 }
+
+void chip_spi_dma_abort(void) { spi_dma_disable(); }
 
 void DMA2_Stream0_IRQHandler(void) { arm_spi_dma_irq(); }
 #endif
