@@ -298,11 +298,16 @@ _KILL_AFTER_HISTORY = """
 import os, signal, sys
 from imubench.cli.main import main
 from imubench.results import history as H
-_exit = H.History.__exit__
+_exit, _record = H.History.__exit__, H.History.record_once
+def _record_flag(self, *a, **k):
+    self._wrote = True
+    return _record(self, *a, **k)
 def _exit_then_die(self, *exc):          # the history write is committed and closed: die now
     _exit(self, *exc)
-    os.kill(os.getpid(), signal.SIGKILL)
+    if getattr(self, "_wrote", False):   # (not the check that opens it before the session)
+        os.kill(os.getpid(), signal.SIGKILL)
 H.History.__exit__ = _exit_then_die
+H.History.record_once = _record_flag
 sys.exit(main(sys.argv[1:]))
 """
 

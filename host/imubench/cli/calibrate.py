@@ -509,11 +509,13 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
         on_event(st)
         page.board_event(st["port"], st)
 
+    uis = {port: page.adopt(port, options, k + 1) for k, port in enumerate(ports)}   # the columns in slot order
+
     def run() -> None:
         try:
             box["res"] = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=both,
                                      link_timeout_s=a.link_timeout, baudrate=a.baud,
-                                     pages=lambda slot, port: page.adopt(port, options, slot))
+                                     pages=lambda slot, port: uis[port])
             for b in box["res"].boards:   # verdicts, parameters and reports on the columns
                 page.board_result(b.port, box["res"].results.get(b.slot) or {}, directory / f"slot-{b.slot}",
                                   b.run_id)

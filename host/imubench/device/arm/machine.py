@@ -670,7 +670,6 @@ class Server:
             last_wall = wall
             if target > now:
                 m.run_until(target, 0.02, idle_cap)
-                self._finish_spi_transaction()
             now = m.now()
             m.usart.drain(now)
             m.set_model_time(now)
@@ -731,14 +730,9 @@ class Server:
                 pfd[slot[fd]].revents = ev
                 ctl_ready = True
         if ctl_ready:
+            spi = self.m.spi
+            if spi.cs is not None and spi.tx:
+                # a fault injected now changes the sensor's answer between the bytes the image
+                # has received and the transaction committed at chip select rise
+                spi.control_during_transaction = True
             lib.sim_control_handle(pfd, n_ctl)
-
-    def _finish_spi_transaction(self) -> None:
-        """Run on until the image raises the chip select of an SPI transaction in progress (at
-        most 1 ms of device time): a fault injected through the control channel between the
-        bytes the image received and the transaction committed at chip select rise would
-        change a sensor's answer in the middle of a frame, which a real sensor cannot do."""
-        m, spi = self.m, self.m.spi
-        t_end = m.now() + 1e-3
-        while spi.cs is not None and spi.tx and m.now() < t_end and m.reset_req is None:
-            m.run_until(min(m.now() + 20e-6, t_end), 0.005)
