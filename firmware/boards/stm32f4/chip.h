@@ -15,20 +15,9 @@
 #define CHIP_BOARD_ID IB_BOARD_STM32F4
 #endif
 
-/* Chip select cs (IB_CS_*, < IB_CS_COUNT): the GPIO BSRR register that drives it and its
- * pin's bit there (write the bit: high, released; the bit << 16: low, selected). Inline:
- * the sample chain selects and releases a chip about ten times a sample. Pins: PA4
- * ADXL355, PB0/PB1/PB10 ADXRS450 X/Y/Z. */
-static inline volatile uint32_t *chip_cs_bsrr(uint8_t cs)
-{
-    return &GPIO_BSRR(cs == IB_CS_ACCEL ? F4_GPIOA_BASE : F4_GPIOB_BASE);
-}
-
-static inline uint32_t chip_cs_bit(uint8_t cs)
-{
-    static const uint16_t pin_bit[IB_CS_COUNT] = {1u << 4, 1u << 0, 1u << 1, 1u << 10};
-    return pin_bit[cs];
-}
+#define CHIP_GPIOA_BASE F4_GPIOA_BASE
+#define CHIP_GPIOB_BASE F4_GPIOB_BASE
+#include "chip_cs.h"
 
 #if IB_CFG_SPI_DMA
 #define SPI_RX_STREAM 0u /* SPI1_RX: DMA2 stream 0, SPI1_TX: stream 3, both channel 3 (RM0090 table 43) */

@@ -291,9 +291,8 @@ def run(a) -> int:
 def _run_web(a, cfg, directory: Path) -> int:
     """The session on the station page: served until Ctrl-C, so that a failed or stopped
     session can be resumed there; the exit code is the last session's verdict."""
-    from imubench.cli.station import serve_forever
+    from imubench.cli.station import serve_page
     from imubench.station.runner import SIM_KEY, Station
-    from imubench.station.server import Server
     station = Station(workdir=directory.parent, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed,
                       allow_sim=a.sim, person={"offset_deg": (a.sim_tilt, a.sim_tilt)} if a.sim_tilt else None)
     station.state.mode = "session"
@@ -317,14 +316,8 @@ def _run_web(a, cfg, directory: Path) -> int:
         return False
 
     try:
-        server = Server(station, port=a.http_port)
-        station.start(options, None, directory=directory, resume=bool(a.resume))
-        serve_forever(server, a.open, until=ended)
-    except KeyboardInterrupt:
-        pass
-    except OSError as e:
-        raise CommandError(f"cannot serve on 127.0.0.1:{a.http_port}: {e.strerror or e}",
-                           "give another --http-port, or 0 for any free port") from None
+        serve_page(station, a, until=ended,
+                   start=lambda: station.start(options, None, directory=directory, resume=bool(a.resume)))
     finally:
         station.close()
     b = station.state.boards.get(key)
@@ -495,10 +488,9 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
     session until Ctrl-C; Ctrl-C during the session stops every board where it is."""
     import threading
 
-    from imubench.cli.station import serve_forever
+    from imubench.cli.station import serve_page
     from imubench.procedures.fixture import run_fixture
     from imubench.station.runner import Station as Page
-    from imubench.station.server import Server
     page = Page(workdir=directory, db=db, allow_sim=False, history=False)
     page.state.mode = "session"
     options = {"port": ", ".join(ports), "method": cfg.method, "gyro": a.gyro, "capture": a.capture,
@@ -536,17 +528,11 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
         return False
 
     try:
-        server = Server(page, port=a.http_port)
-        worker.start()
-        serve_forever(server, a.open, until=ended)
-    except KeyboardInterrupt:
-        pass
-    except OSError as e:
-        raise CommandError(f"cannot serve on 127.0.0.1:{a.http_port}: {e.strerror or e}",
-                           "give another --http-port, or 0 for any free port") from None
+        serve_page(page, a, until=ended, start=worker.start)
     finally:
         page.close()                    # a session still running stops where it is
-        worker.join()
+        if worker.ident is not None:     # started (the page could be served)
+            worker.join()
     if "error" in box:
         raise box["error"]
     return box["res"]

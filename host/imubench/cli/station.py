@@ -56,16 +56,27 @@ def serve_forever(server, open_browser: bool, until=None) -> None:
         server.stop()
 
 
-def run(a) -> int:
-    from imubench.station.runner import Station
+def serve_page(station, a, until=None, start=lambda: None) -> None:
+    """Serve `station` (imubench.station.runner.Station) on 127.0.0.1:--http-port: start()
+    once it is bound, then until Ctrl-C (a normal end here) or until() is true. A port that
+    cannot be served is a one-line error."""
     from imubench.station.server import Server
-    station = Station(workdir=a.dir, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed, allow_sim=a.sim)
     try:
         server = Server(station, port=a.http_port)
-        serve_forever(server, a.open)
+        start()
+        serve_forever(server, a.open, until=until)
+    except KeyboardInterrupt:
+        pass
     except OSError as e:
         raise CommandError(f"cannot serve on 127.0.0.1:{a.http_port}: {e.strerror or e}",
                            "give another --http-port, or 0 for any free port") from None
+
+
+def run(a) -> int:
+    from imubench.station.runner import Station
+    station = Station(workdir=a.dir, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed, allow_sim=a.sim)
+    try:
+        serve_page(station, a)
     finally:
         station.close()
     return 0

@@ -48,6 +48,7 @@ from imubench.procedures.session import (
     SessionAborted,
     SessionConfig,
     SimPresenter,
+    _jsonable,
     plan_for,
 )
 from imubench.results.atomic import write_json_atomic
@@ -598,17 +599,3 @@ def capture_ref(d: Path) -> dict:
 
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="microseconds")
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    if isinstance(x, Path):
-        return str(x)
-    return x
