@@ -234,3 +234,54 @@ def test_the_suggested_next_attitude_helps_the_fit_most():
     worst_after = {n: float(np.max(s)) for n, s in after.items() if s is not None}
     assert worst_after[best] == min(worst_after.values()) < max(worst_after.values())
     assert suggest_next(done, []) is None
+
+
+def test_a_busy_port_is_refused_before_anything_starts(tmp_path):
+    """The page's port is bound before the session starts: a port in use is one line, and no
+    board was opened, nothing captured."""
+    import socket
+    import subprocess
+    import sys
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    port = busy.getsockname()[1]
+    try:
+        for extra in (["--sim-boards", "2"], []):
+            d = tmp_path / f"s{len(extra)}"
+            r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--sim", *extra, "--ui", "web",
+                                "--http-port", str(port), "--dir", str(d), "--db", str(tmp_path / "h.sqlite")],
+                               capture_output=True, text=True, timeout=120)
+            assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+            assert r.stderr.strip().splitlines() == [
+                f"imubench calibrate: error: the station cannot listen on 127.0.0.1:{port}: Address already in use; "
+                "give another --http-port, or 0 for any free port"], r.stderr
+            assert not d.exists()
+    finally:
+        busy.close()
+
+
+def test_ctrl_c_stops_every_board_of_a_station_session_on_the_page(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    p = subprocess.Popen([sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "2", "--sim-speed", "2",
+                          "--ui", "web", "--http-port", "0", "--dir", str(tmp_path / "st"),
+                          "--db", str(tmp_path / "h.sqlite")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = []
+    try:
+        for line in p.stdout:
+            seen.append(line)
+            if "presents" in line:           # the plate moves: the boards are capturing
+                break
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    out = "".join(seen) + out
+    assert p.returncode == 1 and "Traceback" not in out + err, out + err
+    assert err.strip() == ("imubench calibrate: error: 2 of 2 boards failed: slot 1 at poses; slot 2 at poses; see the "
+                           "table above; the boards that passed are written and recorded"), err
+    assert out.count("at poses: stopped: the station was closed (Ctrl-C); everything captured is kept") == 2, out
+    assert (tmp_path / "st" / "slot-1" / "capture-1.bin").stat().st_size > 0

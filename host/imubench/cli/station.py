@@ -39,17 +39,18 @@ def register(sub) -> None:
     p.set_defaults(run=run)
 
 
-def serve_forever(server, open_browser: bool, until=None) -> None:
-    """Print the address, open the browser if asked, and serve until Ctrl-C (or until()
-    returns true)."""
+def serve_forever(server, open_browser: bool, until=None, then=lambda: None) -> None:
+    """Listen, call then() (what the page is for starts once it can be served), print the
+    address, open the browser if asked, and serve until Ctrl-C (or until() returns true)."""
     import time
     server.start()
-    print(f"station page: {server.url}  (127.0.0.1 only; Ctrl-C stops it)", flush=True)
-    if open_browser:
-        import webbrowser
-        if not webbrowser.open(server.url):
-            print(f"could not start a browser: open {server.url} yourself", file=sys.stderr)
     try:
+        then()
+        print(f"station page: {server.url}  (127.0.0.1 only; Ctrl-C stops it)", flush=True)
+        if open_browser:
+            import webbrowser
+            if not webbrowser.open(server.url):
+                print(f"could not start a browser: open {server.url} yourself", file=sys.stderr)
         while until is None or not until():
             time.sleep(0.2)
     finally:
@@ -60,16 +61,14 @@ def serve_page(station, a, until=None, start=lambda: None) -> None:
     """Serve `station` (imubench.station.runner.Station) on 127.0.0.1:--http-port: start()
     once it is bound, then until Ctrl-C (a normal end here) or until() is true. A port that
     cannot be served is a one-line error."""
+    from imubench.station.runner import StationError
     from imubench.station.server import Server
     try:
-        server = Server(station, port=a.http_port)
-        start()
-        serve_forever(server, a.open, until=until)
+        serve_forever(Server(station, port=a.http_port), a.open, until=until, then=start)
     except KeyboardInterrupt:
         pass
-    except OSError as e:
-        raise CommandError(f"cannot serve on 127.0.0.1:{a.http_port}: {e.strerror or e}",
-                           "give another --http-port, or 0 for any free port") from None
+    except StationError as e:
+        raise CommandError(str(e), "give another --http-port, or 0 for any free port") from None
 
 
 def run(a) -> int:

@@ -177,7 +177,12 @@ class BoardPresenter:
         if self.page is not None:
             self.page.say(text)
 
+    def _check_page(self) -> None:
+        if self.page is not None:
+            self.page.check_stop()      # stopped on the page (or the station closed): this board stops here
+
     def present_pose(self, name, direction, index, total):
+        self._check_page()
         st = self.run.boards[self.slot]
         stage = "verify" if st.stage in ("write", "verify") else "poses"
         self.run._update(self.slot, stage=stage, message=f"[{index + 1}/{total}] {name}", progress=index / max(total, 1))
@@ -192,6 +197,7 @@ class BoardPresenter:
         self.discard()
 
     def present_turn(self, axis, rate_dps, duration_s):
+        self._check_page()
         self.run._update(self.slot, stage="turntable", message=f"turn {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()}")
         if self.page is not None:
             self.page.present_turn(axis, rate_dps, duration_s)
@@ -200,6 +206,7 @@ class BoardPresenter:
         self.discard()
 
     def progress(self, label, fraction):
+        self._check_page()
         self.run._update(self.slot, progress=float(fraction), publish=False)
         if self.page is not None:
             self.page.progress(label, fraction)
@@ -502,7 +509,8 @@ class FixtureRun:
     def _fail(self, slot: int, stage: str, reason: str) -> None:
         self.plate.leave(slot)
         self._update(slot, state="failed", stage=stage or "connect", reason=reason, message=f"FAILED: {reason}")
-        self.say(f"slot {slot} ({self.boards[slot].port}) FAILED at {stage}: {reason}")
+        if self.on_event is None:       # a listener shows the failure with the board's other events
+            self.say(f"slot {slot} ({self.boards[slot].port}) FAILED at {stage}: {reason}")
 
     def _record_for(self, slot: int, started: str, result: dict | None, ident: dict, params_before, link_stats) -> dict:
         st = self.boards[slot]

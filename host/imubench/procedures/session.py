@@ -129,6 +129,9 @@ def _pieces(b: SampleBlock, n: int):
         yield b[i:i + n]
 
 
+TURN_POSE_SUFFIX = " (for a turn)"     # names the attitude of a known-angle turn (presenters tell it apart)
+
+
 def _hook(ui, name: str, *args) -> None:
     """Call an optional presenter method if this presenter has it."""
     f = getattr(ui, name, None)
@@ -633,7 +636,7 @@ class Session:
         hold_n = int(self.cfg.hold_s * fs)
         out = []
         for i, (name, axis) in enumerate((("X", (1.0, 0, 0)), ("Y", (0, 1.0, 0)), ("Z", (0, 0, 1.0)))):
-            self.ui.present_pose(f"+{name} up (for a turn)", np.array(axis), i, 3)
+            self.ui.present_pose(f"+{name} up{TURN_POSE_SUFFIX}", np.array(axis), i, 3)
             det = StillnessDetector(fs, noise, window_s=self.cfg.settle_s)
             recent: list[SampleBlock] = []
             got: list[SampleBlock] = []

@@ -11,6 +11,7 @@ import numpy as np
 
 from imubench.errors import ImubenchError
 from imubench.procedures.poses import pose_words
+from imubench.procedures.session import TURN_POSE_SUFFIX
 from imubench.station.state import StationState
 
 LOG_LINES = 200
@@ -26,14 +27,21 @@ class WebPresenter:
         self.state = state
         self.key = key
         self.stop_event = threading.Event()
+        self.stop_reason = "stopped on the station page: everything captured is kept; resume it there"
         self._last_live = 0.0
 
     def _upd(self, fn) -> None:
         self.state.update(self.key, fn)
 
-    def _check_stop(self) -> None:
+    def stop(self, reason: str | None = None) -> None:
+        """Ask the session to stop at its next update (SessionStopped with the reason)."""
+        if reason:
+            self.stop_reason = reason
+        self.stop_event.set()
+
+    def check_stop(self) -> None:
         if self.stop_event.is_set():
-            raise SessionStopped("stopped on the station page: everything captured is kept; resume it there")
+            raise SessionStopped(self.stop_reason)
 
     # ------------------------------------------------------------- Presenter
     def say(self, text: str) -> None:
@@ -60,14 +68,14 @@ class WebPresenter:
         self._upd(lambda b: setattr(b, "phase", "rest"))
 
     def present_todo(self, todo, done, total) -> None:
-        self._check_stop()
+        self.check_stop()
         self._upd(lambda b: setattr(b, "phase", "poses"))
 
     def present_pose(self, name, direction, index, total) -> None:
         """Directed poses: the attitude before a known-angle turn (--gyro turns), or a
         verification pose after the write-back; one step each."""
-        self._check_stop()
-        if "for a turn" in name:
+        self.check_stop()
+        if name.endswith(TURN_POSE_SUFFIX):
             kind, text = "turn-pose", (f"turn {index + 1} of {total}: lay the board on the table, "
                                        f"{pose_words(direction)}, and let it lie still")
         else:
@@ -84,7 +92,7 @@ class WebPresenter:
 
     def present_known_turn(self, up, angle_deg) -> None:
         """--gyro turns: the person turns the board by hand through angle_deg about the vertical."""
-        self._check_stop()
+        self.check_stop()
 
         def f(b):
             for t in b.turns:
@@ -95,7 +103,7 @@ class WebPresenter:
         self._upd(f)
 
     def present_turn(self, axis, rate_dps, duration_s) -> None:
-        self._check_stop()
+        self.check_stop()
 
         def f(b):
             for t in b.turns:
@@ -114,7 +122,7 @@ class WebPresenter:
         return True
 
     def live(self, st: dict) -> None:
-        self._check_stop()
+        self.check_stop()
         now = time.monotonic()
         if now - self._last_live < LIVE_MIN_INTERVAL_S:
             return

@@ -110,7 +110,7 @@ class Station:
         ui = self._ui.get(key)
         if ui is None or not self.running(key):
             raise StationError(f"no session is running on {key}")
-        ui.stop_event.set()
+        ui.stop()
 
     def running(self, key: str) -> bool:
         t = self._threads.get(key)
@@ -126,7 +126,7 @@ class Station:
 
     def close(self) -> None:
         for key, ui in list(self._ui.items()):
-            ui.stop_event.set()
+            ui.stop("stopped: the station was closed (Ctrl-C); everything captured is kept")
         for t in list(self._threads.values()):
             t.join(30)
         if self._bench is not None:

@@ -204,13 +204,25 @@ class Server:
         return f"http://127.0.0.1:{self.port}/"
 
     def start(self, timeout: float = 15.0) -> "Server":
-        """Serve in a background thread; return once it listens."""
-        self.thread = threading.Thread(target=self.server.run, name="station server", daemon=True)
+        """Bind 127.0.0.1:port here (a port in use is a StationError, before anything else has
+        started), then serve in a background thread; return once it listens."""
+        import socket
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((self.config.host, self.config.port))
+        except OSError as e:
+            sock.close()
+            raise StationError(f"the station cannot listen on {self.config.host}:{self.config.port}: "
+                               f"{e.strerror or e}") from None
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [sock]}, name="station server",
+                                       daemon=True)
         self.thread.start()
         t_end = time.monotonic() + timeout
         while not self.server.started:
             if not self.thread.is_alive():
-                raise StationError(f"the station could not listen on 127.0.0.1:{self.config.port} (in use?)")
+                raise StationError(f"the station's web server stopped before it listened on "
+                                   f"127.0.0.1:{self.port}")
             if time.monotonic() > t_end:
                 raise StationError("the station's web server did not start")
             time.sleep(0.02)
