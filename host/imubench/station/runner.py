@@ -249,7 +249,7 @@ class Station:
         if not record.get("passed"):
             fail = record.get("failure") or {}
             if fail:
-                summary["status"], summary["verdict"] = "fail", f"failed at {fail.get('stage')}: {fail.get('reason')}"
+                summary["status"], summary["verdict"] = "fail", f"at {fail.get('stage')}: {fail.get('reason')}"
             elif summary["status"] == "pass":
                 summary["status"] = "fail"
                 summary["verdict"] = self.state.boards[key].error or "did not pass its limits"
