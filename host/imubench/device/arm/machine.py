@@ -307,7 +307,16 @@ class Machine:
         return self.clock.now()
 
     def set_model_time(self, t: float) -> None:
-        self.lib.simlib_set_time(int(t * 1e6))
+        """Bring the sensor models and the control channel to device time t (whole µs, rounded:
+        a device time a hair under an event's µs, from the float arithmetic, must still reach
+        it). While an SPI transaction is open the models stay at its chip-select time: it is
+        answered from that state byte by byte and committed from it at chip select rise, so
+        the sensors must not move on in between (an ADXL355 FIFO that filled meanwhile made the
+        commit differ from the bytes the image had received)."""
+        spi = self.spi
+        if spi.cs is not None and spi.tx and t > spi.t_cs:
+            t = spi.t_cs
+        self.lib.simlib_set_time(round(t * 1e6))
 
     def events_changed(self) -> None:
         self._recompute_next()
@@ -644,7 +653,9 @@ class Server:
             now = m.now()
             m.set_model_time(now)
             ext = lib.simlib_next_event()
-            m.ext_deadline = ext * 1e-6 if ext != 0xFFFFFFFFFFFFFFFF else INF
+            # a deadline already reached is not one to stop at: the models catch up with it at
+            # the next set_model_time (e.g. once an open SPI transaction is committed)
+            m.ext_deadline = ext * 1e-6 if ext != 0xFFFFFFFFFFFFFFFF and ext * 1e-6 > now else INF
             m._recompute_next()
             if self.speed > 0:
                 target = self._pace_target(wall)
