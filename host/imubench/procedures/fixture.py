@@ -50,6 +50,7 @@ from imubench.procedures.session import (
     SimPresenter,
     _jsonable,
     plan_for,
+    rotation_to,
 )
 from imubench.results.atomic import write_json_atomic
 from imubench.wire import params as PR
@@ -233,17 +234,10 @@ class PlatePresenter(SimPresenter):
         if not alive:
             return
         self.vb = alive[0]
-        cur = np.asarray(self.vb.status()["gravity_board"], dtype=float)
-        cur /= np.linalg.norm(cur)
-        target = target / np.linalg.norm(target)
-        axis = np.cross(target, cur)
-        s, c = np.linalg.norm(axis), float(np.clip(cur @ target, -1.0, 1.0))
-        angle = np.degrees(np.arctan2(s, c))
-        if s < 1e-9:
-            if c > 0:
-                return
-            axis = np.cross(cur, [1.0, 0.0, 0.0] if abs(cur[0]) < 0.9 else [0.0, 1.0, 0.0])
-        ax = list(axis / np.linalg.norm(axis))
+        turn = rotation_to(self.vb.status()["gravity_board"], target)
+        if turn is None:
+            return
+        ax, angle = turn
         self._each(lambda b: b.rotate(ax, rate_dps=self.rate_dps, duration_s=angle / self.rate_dps, wait=False))
         self._each(lambda b: b.wait_idle(timeout=b._wait_timeout(angle / self.rate_dps)))
 

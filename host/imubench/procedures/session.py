@@ -132,6 +132,22 @@ def _pieces(b: SampleBlock, n: int):
 TURN_POSE_SUFFIX = " (for a turn)"     # names the attitude of a known-angle turn (presenters tell it apart)
 
 
+def rotation_to(up_now, up_wanted) -> tuple[list[float], float] | None:
+    """The turn (unit axis in the board frame, angle in degrees) that brings the board's up
+    direction from up_now to up_wanted; None when it is there already."""
+    cur = np.asarray(up_now, dtype=float)
+    cur = cur / np.linalg.norm(cur)
+    target = np.asarray(up_wanted, dtype=float)
+    target = target / np.linalg.norm(target)
+    axis = np.cross(target, cur)
+    s, c = np.linalg.norm(axis), float(np.clip(cur @ target, -1.0, 1.0))
+    if s < 1e-9:
+        if c > 0:
+            return None
+        axis = np.cross(cur, [1.0, 0.0, 0.0] if abs(cur[0]) < 0.9 else [0.0, 1.0, 0.0])  # any perpendicular
+    return list(axis / np.linalg.norm(axis)), float(np.degrees(np.arctan2(s, c)))
+
+
 def _hook(ui, name: str, *args) -> None:
     """Call an optional presenter method if this presenter has it."""
     f = getattr(ui, name, None)
@@ -156,18 +172,10 @@ class SimPresenter:
             print(text, flush=True)
 
     def _rotate_to(self, target: np.ndarray) -> None:
-        cur = np.asarray(self.vb.status()["gravity_board"], dtype=float)
-        cur /= np.linalg.norm(cur)
-        target = target / np.linalg.norm(target)
-        axis = np.cross(target, cur)
-        s, c = np.linalg.norm(axis), float(np.clip(cur @ target, -1.0, 1.0))
-        angle = np.degrees(np.arctan2(s, c))
-        if s < 1e-9:
-            if c > 0:
-                return
-            axis = np.cross(cur, [1.0, 0.0, 0.0] if abs(cur[0]) < 0.9 else [0.0, 1.0, 0.0])  # any perpendicular
-        self.vb.rotate(list(axis / np.linalg.norm(axis)), rate_dps=self.rate_dps,
-                       duration_s=angle / self.rate_dps, wait=True)
+        turn = rotation_to(self.vb.status()["gravity_board"], target)
+        if turn is not None:
+            axis, angle = turn
+            self.vb.rotate(axis, rate_dps=self.rate_dps, duration_s=angle / self.rate_dps, wait=True)
 
     def present_pose(self, name, direction, index, total):
         d = np.asarray(direction, dtype=float)
