@@ -293,7 +293,7 @@ def test_writers_express_the_same_calibration(session, tmp_path):
     assert np.allclose([float(vals[f"INS_ACCOFFS_{a}"]) for a in "XYZ"], fa.accel.b)
     assert np.allclose([float(vals[f"INS_ACCSCAL_{a}"]) for a in "XYZ"], 1 / np.diag(fa.accel.m))
     assert "no cross-axis terms" in ap.read_text()
-    from imubench.procedures.session import params_from_fits
+    from imubench.procedures.writeback import params_from_fits
     from imubench.wire import params as PR
     (pp,) = paramfiles.write("params", tmp_path / "c", accel=fa.accel, gyro=fa.gyro, accel_factor=fa.fa,
                          gyro_factor=fa.fg, accel_unit="counts", gyro_unit="dps", scaled=True,

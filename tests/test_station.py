@@ -167,7 +167,7 @@ def test_any_order_with_a_hint_no_timeout_and_adaptive_stop(tmp_path):
     then the attitudes come in the person's random order and the adaptive session stops when
     every parameter is at its target."""
     from imubench.device.sim import VirtualBench
-    from imubench.procedures.person import SimPerson
+    from imubench.procedures.virtual import SimPerson
     from imubench.procedures.session import Session, SessionConfig, plan_for
 
     class Watch(SimPerson):

@@ -1,6 +1,6 @@
 """The station page in a real browser: Debian's chromium (/usr/bin/chromium, SYSTEM_PKGS in the
 Makefile) driven by Playwright (test extra; its own browsers are never downloaded). A simulated
-person (procedures/person.py) presents the attitudes on the virtual bench in a random order;
+person (procedures/virtual.py) presents the attitudes on the virtual bench in a random order;
 the page must show what happens: pose cards turning done in the order presented, the live |a|,
 a stop and a resume from the page, the verdict, the report link; a second page only watches.
 The finished page is kept as build/test-artifacts/station-finished.png."""

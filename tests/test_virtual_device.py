@@ -341,7 +341,7 @@ def test_erases_per_slot_are_reported_and_survive_a_reboot(vb):
 def test_the_host_warns_before_a_save_that_wears_a_slot_out(vb):
     """write_verified warns (naming the counts, the rating and the fraction) once a save would
     take a slot past the warning fraction of its rated erase cycles."""
-    from imubench.procedures.session import wear_warning, write_verified
+    from imubench.procedures.writeback import wear_warning, write_verified
     with _connect(vb) as d:
         rated = min(d.stats().param_slot_erases) + 1           # the next save reaches it
         assert wear_warning(d) is None                         # far below 10 000 cycles
@@ -349,7 +349,7 @@ def test_the_host_warns_before_a_save_that_wears_a_slot_out(vb):
         w = wear_warning(d, endurance=rated)
         assert w is not None and "erase cycles the flash is rated for" in w and "%" in w
         said = []
-        import imubench.procedures.session as S
+        import imubench.procedures.writeback as S
         old = S.ERASE_ENDURANCE.copy()
         try:
             S.ERASE_ENDURANCE["SIM"] = rated

@@ -43,15 +43,10 @@ import numpy as np
 from imubench.calib import CalibrationError
 from imubench.device.link import Device, LinkError, LinkTimeout
 from imubench.errors import ImubenchError
-from imubench.procedures.session import (
-    Session,
-    SessionAborted,
-    SessionConfig,
-    SimPresenter,
-    _jsonable,
-    plan_for,
-    rotation_to,
-)
+from imubench.procedures.errors import SessionAborted
+from imubench.procedures.session import Session, SessionConfig, plan_for
+from imubench.procedures.virtual import PlatePresenter  # noqa: F401 - where callers found it
+from imubench.results.record import _jsonable
 from imubench.results.atomic import write_json_atomic
 from imubench.wire import params as PR
 from imubench.wire.ids import board_name, uid_text
@@ -214,44 +209,6 @@ class BoardPresenter:
 
     def keep_pose(self, name, summary):
         return True
-
-
-class PlatePresenter(SimPresenter):
-    """The virtual fixture: one plate carrying several virtual devices. Every attitude and
-    every turn is made on all of them at once (each simulator's own rotation, so each board's
-    gyros see the motion); a bench whose simulator is gone is left out."""
-
-    def __init__(self, benches: list, rate_dps: float = 90.0, tilt_deg: float = 0.0, seed: int = 0,
-                 quiet: bool = False):
-        super().__init__(benches[0], rate_dps=rate_dps, tilt_deg=tilt_deg, seed=seed, quiet=quiet)
-        self.benches = list(benches)
-
-    def _alive(self) -> list:
-        return [b for b in self.benches if b.running]
-
-    def _rotate_to(self, target: np.ndarray) -> None:
-        alive = self._alive()
-        if not alive:
-            return
-        self.vb = alive[0]
-        turn = rotation_to(self.vb.status()["gravity_board"], target)
-        if turn is None:
-            return
-        ax, angle = turn
-        self._each(lambda b: b.rotate(ax, rate_dps=self.rate_dps, duration_s=angle / self.rate_dps, wait=False))
-        self._each(lambda b: b.wait_idle(timeout=b._wait_timeout(angle / self.rate_dps)))
-
-    def present_turn(self, axis, rate_dps, duration_s):
-        self.say(f"virtual turntable: {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()} for {duration_s:g} s")
-        self._each(lambda b: b.rotate(list(axis), rate_dps=rate_dps, duration_s=duration_s, wait=False))
-
-    def _each(self, fn) -> None:
-        from imubench.device.sim import SimError
-        for b in self._alive():
-            try:
-                fn(b)
-            except SimError:        # that board's simulator died: the plate carries the others
-                pass
 
 
 # ---------------------------------------------------------------- one board's session

@@ -26,7 +26,8 @@ import numpy as np
 
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
-from imubench.procedures.session import Tolerances, _jsonable, fit_dict
+from imubench.procedures.session import Tolerances
+from imubench.results.record import _jsonable, fit_dict
 from imubench.recordings import Recording, RecordingError, timing_lines
 from imubench.results.atomic import write_json_atomic
 from imubench.results.sessionfile import SESSION_SCHEMA
@@ -479,7 +480,7 @@ def _write_one(kind: str, prefix: Path, fa: FileAnalysis, result: dict, paramfil
                              "(--accel-scale / --gyro-scale); imutk and imucal take counts as they are")
     params = None
     if kind == "params":
-        from imubench.procedures.session import params_from_fits
+        from imubench.procedures.writeback import params_from_fits
         from imubench.wire import params as PR
         params = params_from_fits(fa.accel, fa.gyro, PR.identity(), 0)
     return paramfiles.write(kind, prefix, accel=fa.accel, gyro=fa.gyro, accel_factor=fa.fa, gyro_factor=fa.fg,

@@ -28,7 +28,7 @@ import numpy as np
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
 from imubench.device.link import Device
-from imubench.errors import ImubenchError
+from imubench.procedures.errors import SessionAborted
 from imubench.procedures.poses import (
     DETECT_TOL_DEG,
     Targets,
@@ -39,7 +39,10 @@ from imubench.procedures.poses import (
     pose_words,
     suggest_next,
 )
+from imubench.procedures.virtual import SimPresenter  # noqa: F401 - where callers found it
+from imubench.procedures.writeback import params_from_fits, wear_warning, write_verified  # noqa: F401
 from imubench.results.atomic import write_json_atomic
+from imubench.results.record import _jsonable, _now, fit_dict
 from imubench.results.sessionfile import SESSION_SCHEMA, SessionFileError, load_state
 from imubench.wire import params as PR
 from imubench.wire.decoder import SampleBlock
@@ -94,10 +97,6 @@ class PoseRecord:
     angle_from_plan_deg: float | None = None   # measured gravity direction vs the planned one
 
 
-class SessionAborted(ImubenchError, RuntimeError):
-    """The session cannot go on; the message says why and what to do."""
-
-
 # ---------------------------------------------------------------- presenters
 class Presenter(Protocol):
     """What a session needs from its face (terminal, station page, virtual bench).
@@ -132,77 +131,12 @@ def _pieces(b: SampleBlock, n: int):
 TURN_POSE_SUFFIX = " (for a turn)"     # names the attitude of a known-angle turn (presenters tell it apart)
 
 
-def rotation_to(up_now, up_wanted) -> tuple[list[float], float] | None:
-    """The turn (unit axis in the board frame, angle in degrees) that brings the board's up
-    direction from up_now to up_wanted; None when it is there already."""
-    cur = np.asarray(up_now, dtype=float)
-    cur = cur / np.linalg.norm(cur)
-    target = np.asarray(up_wanted, dtype=float)
-    target = target / np.linalg.norm(target)
-    axis = np.cross(target, cur)
-    s, c = np.linalg.norm(axis), float(np.clip(cur @ target, -1.0, 1.0))
-    if s < 1e-9:
-        if c > 0:
-            return None
-        axis = np.cross(cur, [1.0, 0.0, 0.0] if abs(cur[0]) < 0.9 else [0.0, 1.0, 0.0])  # any perpendicular
-    return list(axis / np.linalg.norm(axis)), float(np.degrees(np.arctan2(s, c)))
-
 
 def _hook(ui, name: str, *args) -> None:
     """Call an optional presenter method if this presenter has it."""
     f = getattr(ui, name, None)
     if f is not None:
         f(*args)
-
-
-class SimPresenter:
-    """Drives the virtual bench: moves the board by real rotations (so the gyros see the
-    motion) and runs the turntable. Optional tilt_deg misaligns every pose (a box that is
-    not square, a table that is not level)."""
-
-    def __init__(self, vb, rate_dps: float = 90.0, tilt_deg: float = 0.0, seed: int = 0, quiet: bool = False):
-        self.vb = vb
-        self.rate_dps = rate_dps
-        self.tilt_deg = tilt_deg
-        self.rng = np.random.default_rng(seed)
-        self.quiet = quiet
-
-    def say(self, text):
-        if not self.quiet:
-            print(text, flush=True)
-
-    def _rotate_to(self, target: np.ndarray) -> None:
-        turn = rotation_to(self.vb.status()["gravity_board"], target)
-        if turn is not None:
-            axis, angle = turn
-            self.vb.rotate(axis, rate_dps=self.rate_dps, duration_s=angle / self.rate_dps, wait=True)
-
-    def present_pose(self, name, direction, index, total):
-        d = np.asarray(direction, dtype=float)
-        if self.tilt_deg:
-            perp = np.cross(d, self.rng.normal(size=3))
-            perp /= np.linalg.norm(perp)
-            t = np.radians(self.tilt_deg)
-            d = np.cos(t) * d + np.sin(t) * perp
-        self.say(f"[{index + 1}/{total}] virtual bench presents {name}")
-        self._rotate_to(d)
-
-    def present_turn(self, axis, rate_dps, duration_s):
-        self.say(f"virtual turntable: {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()} for {duration_s:g} s")
-        self.vb.rotate(list(axis), rate_dps=rate_dps, duration_s=duration_s, wait=False)
-
-    def progress(self, label, fraction):
-        pass
-
-    def keep_pose(self, name, summary):
-        return True
-
-    def present_known_turn(self, up, angle_deg):
-        """--gyro turns: turn the virtual board through angle_deg about its current vertical."""
-        g = np.asarray(self.vb.status()["gravity_board"], dtype=float)
-        g /= np.linalg.norm(g)
-        self.say(f"virtual bench turns the board {angle_deg:g}° about the vertical (board {np.round(g, 2).tolist()})")
-        self.vb.rotate(list(g), rate_dps=-self.rate_dps, duration_s=angle_deg / self.rate_dps, wait=False)
 
 
 # ---------------------------------------------------------------- the session
@@ -922,117 +856,6 @@ class Session:
         new = params_from_fits(accel, gyro, old.params, cal_id)
         PR.validate(new)                                      # the device's own checks, first here
         return write_verified(self.dev, new, previous=old.params, say=self.ui.say)
-
-
-# Rated erase cycles of a flash page/sector per board (the parameter slots): STM32F103 datasheet
-# (DS5319, "Flash memory endurance: 10 kcycles"); STM32F405/407 datasheet (DS8626: 10 kcycles,
-# not checked against the datasheet here); the virtual device models the F103's.
-ERASE_ENDURANCE = {"STM32F103": 10_000, "STM32F4": 10_000, "SIM": 10_000}
-WEAR_WARN_FRACTION = 0.8        # warn before a save that takes a slot past 80 % of its rating
-
-
-def wear_warning(dev: Device, fraction: float = WEAR_WARN_FRACTION, endurance: int | None = None) -> str | None:
-    """The warning to give before a save, or None: a save erases the slot not holding the
-    current block; if that takes it past `fraction` of the rated erase cycles, say so with the
-    slot, its erase count (the device's lower bound, stats.param_slot_erases) and the rating."""
-    from imubench.wire.ids import board_name
-    stats = dev.stats()
-    info = dev.info()
-    rated = endurance or ERASE_ENDURANCE.get(board_name(info.board), 10_000)
-    erases = [int(e) for e in stats.param_slot_erases]
-    after = min(erases) + 1            # the next save erases the slot not holding the current block
-    if after <= fraction * rated:
-        return None
-    return (f"flash wear: saving a changed block erases a parameter slot for at least the {after}th time (slots erased "
-            f"{erases[0]} and {erases[1]} times so far), {100 * after / rated:.0f} % of the {rated} erase cycles "
-            f"the flash is rated for (warning from {100 * fraction:.0f} %); save only when the parameters changed")
-
-
-def write_verified(dev: Device, new: Params, previous: Params | None = None,
-                   say=lambda s: None, reboot_wait_s: float = 10.0) -> dict:
-    """Write a parameter block and prove it took: set_params, read back bit-exactly, save,
-    reboot, read the active parameters back (bit-exactly, and the generation just saved).
-    On any failure the previous parameters (`previous`, default: the active ones read
-    first) are put back, and saved again if the new ones had been saved; the error is
-    re-raised (SessionAborted if the restore failed too). Returns {"generation", "steps",
-    "params"}. The caller validates `new` first (params.validate)."""
-    if previous is None:
-        previous = dev.get_params(ParamsWhich.ACTIVE).params
-    steps = []
-    try:
-        dev.set_params(new)
-        steps.append("set")
-        if _pack(dev.get_params(ParamsWhich.ACTIVE).params) != _pack(new):
-            raise SessionAborted("read-back after set_params differs from what was written")
-        steps.append("read back")
-        warning = wear_warning(dev)
-        if warning:
-            say(f"warning: {warning}")
-        gen = dev.save_params()
-        steps.append(f"already stored, flash untouched (generation {gen})" if dev.last_save_unchanged
-                     else f"saved (generation {gen})")
-        info = dev.reboot(wait_s=reboot_wait_s)
-        dev.discard_buffered()
-        steps.append("rebooted")
-        stored = dev.get_params(ParamsWhich.ACTIVE)
-        if _pack(stored.params) != _pack(new) or stored.generation != gen:
-            raise SessionAborted("after reboot the active parameters are not the ones saved")
-        steps.append(f"read back after reboot ({info.param_source and 'flash'})")
-    except Exception as e:
-        say(f"write-back failed after: {', '.join(steps) or 'nothing'} — {e}; restoring the previous parameters")
-        try:
-            dev.set_params(previous)
-            if "saved" in " ".join(steps):
-                dev.save_params()
-        except Exception as e2:  # noqa: BLE001 - report both failures
-            raise SessionAborted(f"write-back failed ({e}) and restoring the previous parameters failed too ({e2})") from e
-        raise
-    return {"generation": gen, "steps": steps, "params": new}
-
-
-# ------------------------------------------------------------------- helpers
-def params_from_fits(accel: TriadFit | None, gyro: TriadFit | None, base: Params, cal_id: int) -> Params:
-    """The device parameter block from fits (fields a fit does not cover keep `base`)."""
-    p = Params.from_values(base.values())
-    if accel is not None:
-        p.accel_m = tuple(float(v) for v in np.asarray(accel.m).ravel())
-        p.accel_b_mps2 = tuple(float(v) for v in accel.b)
-    if gyro is not None:
-        p.gyro_m = tuple(float(v) for v in np.asarray(gyro.m).ravel())
-        p.gyro_b_rad_s = tuple(float(v) for v in gyro.b)
-    p.cal_time_unix_s = int(time.time())
-    p.cal_id = cal_id & 0xFFFFFFFF
-    return p
-
-
-def _pack(p: Params) -> bytes:
-    return p.STRUCT.pack(*p.values())
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    if isinstance(x, Path):
-        return str(x)
-    return x
-
-
-def fit_dict(fit: TriadFit | None, unit: str) -> dict | None:
-    if fit is None:
-        return None
-    return {"method": fit.method, "m": fit.m.tolist(), f"b_{unit}": fit.b.tolist(),
-            "sigma_m": fit.sigma_m.tolist(), f"sigma_b_{unit}": fit.sigma_b.tolist(),
-            "residual_rms": fit.residual_rms, "extra": _jsonable(fit.extra)}
 
 
 def plan_for(method: str) -> list[tuple[str, np.ndarray]]:

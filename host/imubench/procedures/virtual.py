@@ -1,13 +1,8 @@
-"""A simulated person at the virtual bench: presents the attitudes a session asks for in a
-random order, each by hand (a 3–8 s move, placed within ±5–10° of the plan) and holds the
-board with a hand's tremor (a few hundredths of a degree RMS) while "still".
+"""The virtual presenters: what moves the virtual bench for a session.
 
-    person = SimPerson(bench, seed=1)
-    run_session(dev, directory, cfg, person)       # any presenter hooks are passed on
-
-Used by bench/session_time.py and the station page's browser test (tests/test_station_browser.py).
-The moves and the tremor are paths on the virtual bench's control channel (device/sim.py):
-each leg a body-fixed turn on a minimum-jerk profile, which is how a hand moves.
+SimPresenter (one virtual board: every attitude by a real rotation, the turntable),
+PlatePresenter (the virtual fixture: one plate carrying several virtual boards) and SimPerson
+(a simulated person at the virtual bench: any order, hand moves, tremor).
 """
 from __future__ import annotations
 
@@ -15,7 +10,96 @@ import math
 
 import numpy as np
 
-from imubench.procedures.session import SimPresenter
+from imubench.calib.geometry import rotation_to
+
+
+class SimPresenter:
+    """Drives the virtual bench: moves the board by real rotations (so the gyros see the
+    motion) and runs the turntable. Optional tilt_deg misaligns every pose (a box that is
+    not square, a table that is not level)."""
+
+    def __init__(self, vb, rate_dps: float = 90.0, tilt_deg: float = 0.0, seed: int = 0, quiet: bool = False):
+        self.vb = vb
+        self.rate_dps = rate_dps
+        self.tilt_deg = tilt_deg
+        self.rng = np.random.default_rng(seed)
+        self.quiet = quiet
+
+    def say(self, text):
+        if not self.quiet:
+            print(text, flush=True)
+
+    def _rotate_to(self, target: np.ndarray) -> None:
+        turn = rotation_to(self.vb.status()["gravity_board"], target)
+        if turn is not None:
+            axis, angle = turn
+            self.vb.rotate(axis, rate_dps=self.rate_dps, duration_s=angle / self.rate_dps, wait=True)
+
+    def present_pose(self, name, direction, index, total):
+        d = np.asarray(direction, dtype=float)
+        if self.tilt_deg:
+            perp = np.cross(d, self.rng.normal(size=3))
+            perp /= np.linalg.norm(perp)
+            t = np.radians(self.tilt_deg)
+            d = np.cos(t) * d + np.sin(t) * perp
+        self.say(f"[{index + 1}/{total}] virtual bench presents {name}")
+        self._rotate_to(d)
+
+    def present_turn(self, axis, rate_dps, duration_s):
+        self.say(f"virtual turntable: {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()} for {duration_s:g} s")
+        self.vb.rotate(list(axis), rate_dps=rate_dps, duration_s=duration_s, wait=False)
+
+    def progress(self, label, fraction):
+        pass
+
+    def keep_pose(self, name, summary):
+        return True
+
+    def present_known_turn(self, up, angle_deg):
+        """--gyro turns: turn the virtual board through angle_deg about its current vertical."""
+        g = np.asarray(self.vb.status()["gravity_board"], dtype=float)
+        g /= np.linalg.norm(g)
+        self.say(f"virtual bench turns the board {angle_deg:g}° about the vertical (board {np.round(g, 2).tolist()})")
+        self.vb.rotate(list(g), rate_dps=-self.rate_dps, duration_s=angle_deg / self.rate_dps, wait=False)
+
+
+class PlatePresenter(SimPresenter):
+    """The virtual fixture: one plate carrying several virtual devices. Every attitude and
+    every turn is made on all of them at once (each simulator's own rotation, so each board's
+    gyros see the motion); a bench whose simulator is gone is left out."""
+
+    def __init__(self, benches: list, rate_dps: float = 90.0, tilt_deg: float = 0.0, seed: int = 0,
+                 quiet: bool = False):
+        super().__init__(benches[0], rate_dps=rate_dps, tilt_deg=tilt_deg, seed=seed, quiet=quiet)
+        self.benches = list(benches)
+
+    def _alive(self) -> list:
+        return [b for b in self.benches if b.running]
+
+    def _rotate_to(self, target: np.ndarray) -> None:
+        alive = self._alive()
+        if not alive:
+            return
+        self.vb = alive[0]
+        turn = rotation_to(self.vb.status()["gravity_board"], target)
+        if turn is None:
+            return
+        ax, angle = turn
+        self._each(lambda b: b.rotate(ax, rate_dps=self.rate_dps, duration_s=angle / self.rate_dps, wait=False))
+        self._each(lambda b: b.wait_idle(timeout=b._wait_timeout(angle / self.rate_dps)))
+
+    def present_turn(self, axis, rate_dps, duration_s):
+        self.say(f"virtual turntable: {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()} for {duration_s:g} s")
+        self._each(lambda b: b.rotate(list(axis), rate_dps=rate_dps, duration_s=duration_s, wait=False))
+
+    def _each(self, fn) -> None:
+        from imubench.device.sim import SimError
+        for b in self._alive():
+            try:
+                fn(b)
+            except SimError:        # that board's simulator died: the plate carries the others
+                pass
+
 
 #: tremor: legs of this length, each turning by a random angle of this RMS about a random
 #: axis and back (a few hundredths of a degree RMS of attitude, a few Hz)
