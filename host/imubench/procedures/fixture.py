@@ -44,6 +44,7 @@ from imubench.calib import CalibrationError
 from imubench.device.link import Device, LinkError, LinkTimeout
 from imubench.errors import ImubenchError
 from imubench.procedures.errors import SessionAborted
+from imubench.procedures.presenter import Presenter
 from imubench.procedures.session import Session, SessionConfig, plan_for
 from imubench.procedures.virtual import PlatePresenter  # noqa: F401 - where callers found it
 from imubench.results.record import _jsonable
@@ -147,26 +148,40 @@ class Plate:
             self._cv.notify_all()
 
 
-class BoardPresenter:
+class BoardPresenter(Presenter):
     """One board's Presenter: instructions go to its status, moves to the shared plate. With
     `page` (a station page's presenter for this board's column, imubench.station.presenter)
     the session's live view, pose cards, fit and steps go there too; the plate stays the one
-    that moves (the poses come in the plan's order, every board in step)."""
-
-    PAGE_HOOKS = ("present_plan", "present_rest", "pose_event", "live", "suggest", "targets", "step")
+    that moves (the poses come in the plan's order, every board in step: present_todo is the
+    base class's, a directed present_pose of the first missing attitude)."""
 
     def __init__(self, run: "FixtureRun", slot: int, discard=lambda: None, page=None):
         self.run, self.slot = run, slot
         self.discard = discard          # drop what the board sent while it waited for the plate
         self.page = page
+        self.shown = page if page is not None else Presenter()     # where the session's views go
 
-    def __getattr__(self, name):
-        # the session's optional hooks (session._hook): only the page's, and never present_todo
-        # (a fixture's poses are directed: the plate presents them to every board at once)
-        page = self.__dict__.get("page")
-        if page is not None and name in self.PAGE_HOOKS:
-            return getattr(page, name)
-        raise AttributeError(name)
+    # what the session shows goes to the page (nothing without one)
+    def present_plan(self, plan, method):
+        self.shown.present_plan(plan, method)
+
+    def present_rest(self, duration_s):
+        self.shown.present_rest(duration_s)
+
+    def pose_event(self, name, state, detail):
+        self.shown.pose_event(name, state, detail)
+
+    def live(self, state):
+        self.shown.live(state)
+
+    def suggest(self, name):
+        self.shown.suggest(name)
+
+    def targets(self, sigmas, targets, reached):
+        self.shown.targets(sigmas, targets, reached)
+
+    def step(self, kind, text, state):
+        self.shown.step(kind, text, state)
 
     def say(self, text: str) -> None:
         self.run._update(self.slot, message=text)
@@ -206,9 +221,6 @@ class BoardPresenter:
         self.run._update(self.slot, progress=float(fraction), publish=False)
         if self.page is not None:
             self.page.progress(label, fraction)
-
-    def keep_pose(self, name, summary):
-        return True
 
 
 # ---------------------------------------------------------------- one board's session

@@ -21,7 +21,6 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
@@ -39,6 +38,7 @@ from imubench.procedures.poses import (
     pose_words,
     suggest_next,
 )
+from imubench.procedures.presenter import TURN_POSE_SUFFIX, Presenter  # noqa: F401 - TURN_POSE_SUFFIX: where callers found it
 from imubench.procedures.virtual import SimPresenter  # noqa: F401 - where callers found it
 from imubench.procedures.writeback import params_from_fits, wear_warning, write_verified  # noqa: F401
 from imubench.results.atomic import write_json_atomic
@@ -97,46 +97,13 @@ class PoseRecord:
     angle_from_plan_deg: float | None = None   # measured gravity direction vs the planned one
 
 
-# ---------------------------------------------------------------- presenters
-class Presenter(Protocol):
-    """What a session needs from its face (terminal, station page, virtual bench).
-
-    Optional, called when the presenter has them (see _hook):
-      present_plan(plan, method)                       the attitudes planned, before anything
-      present_rest(duration_s)                         hold still at the start
-      present_todo(todo, done, total)                  attitudes still missing, in any order:
-                                                       todo/done are [(name, direction)]
-      live(state: dict)                                a few times a second while waiting for a pose:
-                                                       a_g, ratio, k, k_move, state, attitude,
-                                                       angle_deg, hold, sigma_mg, hint
-      pose_event(name, state, detail: dict)            "capturing" (progress) / "done" (before_g,
-                                                       after_g later) / "rejected" (why) / "todo"
-      targets(sigmas: dict, targets: dict, reached)    an adaptive session's parameter sigmas
-      suggest(name)                                    the missing attitude that helps the fit most
-      step(kind, text, state)                          fit / write-back / verification steps
-    """
-    def say(self, text: str) -> None: ...
-    def present_pose(self, name: str, direction: np.ndarray, index: int, total: int) -> None: ...
-    def present_turn(self, axis: np.ndarray, rate_dps: float, duration_s: float) -> None: ...
-    def progress(self, label: str, fraction: float) -> None: ...
-    def keep_pose(self, name: str, summary: str) -> bool: ...   # False: redo this pose
-
-
 def _pieces(b: SampleBlock, n: int):
     """A block in consecutive pieces of at most n samples."""
     for i in range(0, len(b), n):
         yield b[i:i + n]
 
 
-TURN_POSE_SUFFIX = " (for a turn)"     # names the attitude of a known-angle turn (presenters tell it apart)
 
-
-
-def _hook(ui, name: str, *args) -> None:
-    """Call an optional presenter method if this presenter has it."""
-    f = getattr(ui, name, None)
-    if f is not None:
-        f(*args)
 
 
 # ---------------------------------------------------------------- the session
@@ -326,11 +293,8 @@ class Session:
         done = [(n, v) for n, v in full_plan if n not in todo_names]
         name, direction = plan[0]
         if self.cfg.method == "multi":
-            _hook(self.ui, "suggest", suggest_next([v for _, v in done], plan))
-        if hasattr(self.ui, "present_todo"):
-            self.ui.present_todo(list(plan), done, total)
-        else:
-            self.ui.present_pose(name, direction, index, total)
+            self.ui.suggest(suggest_next([v for _, v in done], plan))
+        self.ui.present_todo(list(plan), done, total)
         # only what comes after the prompt counts: samples that waited in the buffer (behind a
         # question on the terminal, or a reader behind the device) show the board before the
         # person acted. The capture file on disk keeps every sample (the rotation method's).
@@ -368,7 +332,7 @@ class Session:
                     if was_still and not judged and (st.state == "moving" or restarted):
                         last_msg = self._tell("detected motion, hold still", last_msg)
                     if capturing is not None:
-                        _hook(self.ui, "pose_event", capturing, "todo", {"why": "moved"})
+                        self.ui.pose_event(capturing, "todo", {"why": "moved"})
                         capturing = None
                     judged = False
                     sigma_g, next_sigma = float("inf"), 0
@@ -392,11 +356,11 @@ class Session:
                         and not judged):
                     # quiet, not yet for settle_s: the first half of the card's bar
                     if capturing not in (None, now_name):
-                        _hook(self.ui, "pose_event", capturing, "todo", {"why": "left"})
+                        self.ui.pose_event(capturing, "todo", {"why": "left"})
                     capturing = now_name
                     frac = 0.5 * min(1.0, st.still_s / self.cfg.settle_s)
                     self.ui.progress(now_name, frac)
-                    _hook(self.ui, "pose_event", now_name, "capturing", {"progress": frac})
+                    self.ui.pose_event(now_name, "capturing", {"progress": frac})
                 if still and not judged:
                     if hint:
                         last_msg = self._tell(hint, last_msg)
@@ -404,7 +368,7 @@ class Session:
                     else:
                         if capturing != now_name:
                             if capturing is not None:     # drifted into another attitude while still
-                                _hook(self.ui, "pose_event", capturing, "todo", {"why": "left"})
+                                self.ui.pose_event(capturing, "todo", {"why": "left"})
                             capturing = now_name
                         if self.cfg.adaptive and st.n >= max(hold_min, next_sigma):
                             run = SampleBlock.concat(recent)
@@ -421,20 +385,20 @@ class Session:
                             enough = st.n >= hold_n
                         frac = 0.5 + 0.5 * min(float(frac), 1.0)     # settled: the second half of the bar
                         self.ui.progress(now_name, frac)
-                        _hook(self.ui, "pose_event", now_name, "capturing", {"progress": frac})
+                        self.ui.pose_event(now_name, "capturing", {"progress": frac})
                         if enough:
                             # exactly the samples of this still run: the last st.n received (at most the hold)
                             run = SampleBlock.concat(recent)
                             rec = self._pose_from(run[len(run) - min(st.n, hold_n, len(run)):], plan)
                             if isinstance(rec, PoseRecord):
                                 return rec
-                            _hook(self.ui, "pose_event", now_name, "rejected", {"why": rec})
+                            self.ui.pose_event(now_name, "rejected", {"why": rec})
                             capturing = None
                             last_msg = self._tell(rec, last_msg)
                             judged = True
                 if waited >= live_due:
                     live_due = waited + live_every
-                    _hook(self.ui, "live", {
+                    self.ui.live({
                         "a_g": float(np.linalg.norm(acc.mean(axis=0)) / U.G0_MPS2), "ratio": float(st.ratio),
                         "k": float(det.k), "k_move": float(det.k_move), "state": st.state,
                         "attitude": now_name, "words": pose_words(full_plan[k][1]) if k is not None else None,
@@ -597,12 +561,7 @@ class Session:
                         run = SampleBlock.concat(recent)
                         got = [run[len(run) - min(st.n, len(run)):]]
                         phase = "turn"
-                        turn = getattr(self.ui, "present_known_turn", None)
-                        if turn is not None:
-                            turn(np.array(axis), self.TURN_DEG)
-                        else:
-                            self.ui.say(f"turn the board one full turn ({self.TURN_DEG:g}°) on the table about the "
-                                        f"vertical (+{name} up), then let it lie still")
+                        self.ui.present_known_turn(np.array(axis), self.TURN_DEG)
                         det.reset()
                     elif len(recent) > 200:
                         recent.pop(0)
@@ -651,11 +610,11 @@ class Session:
         ident = self.check_health()
         self._start_stream()
         try:
-            _hook(self.ui, "present_plan", list(plan), self.cfg.method)
+            self.ui.present_plan(list(plan), self.cfg.method)
             for p in self.poses:
-                _hook(self.ui, "pose_event", p.name, "done", {"before_g": float(np.linalg.norm(p.mean_mps2)) / U.G0_MPS2})
+                self.ui.pose_event(p.name, "done", {"before_g": float(np.linalg.norm(p.mean_mps2)) / U.G0_MPS2})
             if self.rest is None:
-                _hook(self.ui, "present_rest", self.cfg.rest_s)
+                self.ui.present_rest(self.cfg.rest_s)
             self.capture_rest()
             todo = [p for p in plan if p[0] not in {q.name for q in self.poses}]
             total = len(plan)
@@ -670,19 +629,19 @@ class Session:
                            + (f", σ {rec.sigma_norm_g * 1e6:.0f} µg" if rec.sigma_norm_g is not None else "") + ")")
                 if not self.ui.keep_pose(rec.name, summary):
                     self.ui.say(f"  {rec.name} discarded: present it again")
-                    _hook(self.ui, "pose_event", rec.name, "rejected", {"why": "discarded by you: present it again"})
+                    self.ui.pose_event(rec.name, "rejected", {"why": "discarded by you: present it again"})
                     self.dev.discard_buffered()
                     continue
                 self.poses.append(rec)
                 self.save()
                 todo = [p for p in todo if p[0] != rec.name]
-                _hook(self.ui, "pose_event", rec.name, "done",
+                self.ui.pose_event(rec.name, "done",
                       {"before_g": float(a_g), "n": rec.n, "sigma_mg": (rec.sigma_norm_g or float("nan")) * 1e3,
                        "angle_from_plan_deg": rec.angle_from_plan_deg})
                 self.ui.say(f"  {summary}, {len(todo)} to go")
                 if self.cfg.adaptive and self.cfg.method == "multi":
                     reached, sig, why = enough_attitudes(*self._fit_inputs(), self.cfg.targets)
-                    _hook(self.ui, "targets", sig, self.cfg.targets.as_dict(), reached)
+                    self.ui.targets(sig, self.cfg.targets.as_dict(), reached)
                     self.ui.say(f"  {why}" + ("" if not reached else
                                               f": done after {len(self.poses)} attitudes, {len(todo)} not needed"))
             # device time from the first prompt to the last pose: the person's moves included
@@ -694,7 +653,7 @@ class Session:
             self._stop_stream()
 
         means, sigmas = self._fit_inputs()
-        _hook(self.ui, "step", "fit", f"fitting {self.cfg.method}-position to {len(means)} attitudes", "running")
+        self.ui.step("fit", f"fitting {self.cfg.method}-position to {len(means)} attitudes", "running")
         if self.cfg.method == "six":
             accel = CA.six_position(means, sigmas)
         else:
@@ -732,7 +691,7 @@ class Session:
         if accel.method == "multi_position":
             from imubench.procedures.poses import accel_sigmas
             result["accel_sigmas"] = accel_sigmas(accel)
-        _hook(self.ui, "step", "fit", f"fitted: RMS of |a| − g after {result['accel_rms_after_mg']:.3g} mg", "done")
+        self.ui.step("fit", f"fitted: RMS of |a| − g after {result['accel_rms_after_mg']:.3g} mg", "done")
         if frame_note:
             result.setdefault("warnings", []).append(frame_note)
         self.save(result=result)
@@ -894,27 +853,27 @@ def run_session(dev: Device, directory, cfg: SessionConfig, ui: Presenter, *, re
         return result, sess
     result = sess.run(plan_for(cfg.method))
     for p in result["poses"]:
-        _hook(ui, "pose_event", p["name"], "done", {"before_g": p["before_g"], "after_g": p["after_g"],
+        ui.pose_event(p["name"], "done", {"before_g": p["before_g"], "after_g": p["after_g"],
                                                     "sigma_mg": p["sigma_g"] * 1e3})
     report(result)
     if result["passed"] and cfg.write:
         previous = dev.get_params(ParamsWhich.ACTIVE).params
-        _hook(ui, "step", "write", "writing the parameters: set, read back, save, reboot, read back", "running")
+        ui.step("write", "writing the parameters: set, read back, save, reboot, read back", "running")
         try:
             wb = sess.write_back(sess.accel_fit, sess.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
         except Exception as e:
-            _hook(ui, "step", "write", f"write-back failed: {e}; the previous parameters were put back", "failed")
+            ui.step("write", f"write-back failed: {e}; the previous parameters were put back", "failed")
             raise
         ui.say(f"written: {', '.join(wb['steps'])}")
-        _hook(ui, "step", "write", f"written: {', '.join(wb['steps'])}", "done")
+        ui.step("write", f"written: {', '.join(wb['steps'])}", "done")
         result["written"] = True
-        _hook(ui, "step", "verify", f"verifying the device's own output in {cfg.verify_poses} attitudes", "running")
+        ui.step("verify", f"verifying the device's own output in {cfg.verify_poses} attitudes", "running")
         result["verification"] = sess.verify(plan_for("six")[:cfg.verify_poses])
         worst = max(abs(v["after_g"] - 1.0) * 1e3 for v in result["verification"])
         result["verified"] = worst <= cfg.tolerances.verify_mg
         ui.say(f"verification of the device's calibrated output: worst | |a| - g | = {worst:.3f} mg "
                f"({'within' if result['verified'] else 'OUTSIDE'} {cfg.tolerances.verify_mg} mg)")
-        _hook(ui, "step", "verify", f"worst | |a| − g | = {worst:.3f} mg "
+        ui.step("verify", f"worst | |a| − g | = {worst:.3f} mg "
               f"({'within' if result['verified'] else 'OUTSIDE'} {cfg.tolerances.verify_mg} mg)",
               "done" if result["verified"] else "failed")
         if not result["verified"]:
@@ -923,9 +882,9 @@ def run_session(dev: Device, directory, cfg: SessionConfig, ui: Presenter, *, re
             ui.say("verification failed: the previous parameters were written back and saved")
     elif not result["passed"]:
         ui.say("the fit did not pass its tolerance: nothing was written to the device")
-        _hook(ui, "step", "write", "the fit did not pass its tolerance: nothing was written to the device", "skipped")
+        ui.step("write", "the fit did not pass its tolerance: nothing was written to the device", "skipped")
     else:
-        _hook(ui, "step", "write", "not written to the device (--no-write)", "skipped")
+        ui.step("write", "not written to the device (--no-write)", "skipped")
     png = plot_pose_residuals(result, sess.dir / "residuals.png")
     ui.say(f"residual plot: {png}")
     sess.finish(result)

@@ -11,9 +11,10 @@ import math
 import numpy as np
 
 from imubench.calib.geometry import rotation_to
+from imubench.procedures.presenter import Presenter
 
 
-class SimPresenter:
+class SimPresenter(Presenter):
     """Drives the virtual bench: moves the board by real rotations (so the gyros see the
     motion) and runs the turntable. Optional tilt_deg misaligns every pose (a box that is
     not square, a table that is not level)."""
@@ -48,12 +49,6 @@ class SimPresenter:
     def present_turn(self, axis, rate_dps, duration_s):
         self.say(f"virtual turntable: {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()} for {duration_s:g} s")
         self.vb.rotate(list(axis), rate_dps=rate_dps, duration_s=duration_s, wait=False)
-
-    def progress(self, label, fraction):
-        pass
-
-    def keep_pose(self, name, summary):
-        return True
 
     def present_known_turn(self, up, angle_deg):
         """--gyro turns: turn the virtual board through angle_deg about its current vertical."""
@@ -126,48 +121,54 @@ class SimPerson(SimPresenter):
         self.offset_deg = offset_deg
         self.tremor_deg = tremor_deg
         self.wrong_first = wrong_first
-        self.forward = forward
+        self.forward = forward if forward is not None else Presenter()     # a face that shows nothing
         self.order: list[str] = []          # attitudes in the order presented
         self.moves_s = 0.0                  # device time spent moving
 
     # everything the session says or shows also goes to the forwarded presenter
-    def __getattr__(self, name):
-        fwd = self.__dict__.get("forward")
-        if fwd is not None and name in ("present_plan", "live", "pose_event", "targets", "step", "suggest"):
-            return getattr(fwd, name)
-        raise AttributeError(name)
+    def present_plan(self, plan, method):
+        self.forward.present_plan(plan, method)
+
+    def live(self, state):
+        self.forward.live(state)
+
+    def pose_event(self, name, state, detail):
+        self.forward.pose_event(name, state, detail)
+
+    def targets(self, sigmas, targets, reached):
+        self.forward.targets(sigmas, targets, reached)
+
+    def step(self, kind, text, state):
+        self.forward.step(kind, text, state)
+
+    def suggest(self, name):
+        self.forward.suggest(name)
 
     def say(self, text):
         super().say(text)
-        if self.forward is not None:
-            self.forward.say(text)
+        self.forward.say(text)
 
     def progress(self, label, fraction):
-        if self.forward is not None:
-            self.forward.progress(label, fraction)
+        self.forward.progress(label, fraction)
 
     def keep_pose(self, name, summary):
-        return True if self.forward is None else self.forward.keep_pose(name, summary)
+        return self.forward.keep_pose(name, summary)
 
     def present_turn(self, axis, rate_dps, duration_s):
-        if self.forward is not None:
-            self.forward.present_turn(axis, rate_dps, duration_s)
+        self.forward.present_turn(axis, rate_dps, duration_s)
         super().present_turn(axis, rate_dps, duration_s)
 
     # ------------------------------------------------------------------ the person
     def present_known_turn(self, up, angle_deg):
-        if self.forward is not None and hasattr(self.forward, "present_known_turn"):
-            self.forward.present_known_turn(up, angle_deg)
+        self.forward.present_known_turn(up, angle_deg)
         super().present_known_turn(up, angle_deg)
 
     def present_rest(self, duration_s):
-        if self.forward is not None and hasattr(self.forward, "present_rest"):
-            self.forward.present_rest(duration_s)
+        self.forward.present_rest(duration_s)
         self._tremor()
 
     def present_todo(self, todo, done, total):
-        if self.forward is not None and hasattr(self.forward, "present_todo"):
-            self.forward.present_todo(todo, done, total)
+        self.forward.present_todo(todo, done, total)
         name, direction = todo[int(self.rng.integers(len(todo)))]
         self.order.append(name)
         self.say(f"simulated person presents {name}")
@@ -184,8 +185,7 @@ class SimPerson(SimPresenter):
 
     def present_pose(self, name, direction, index, total):
         """Verification (and presenters without present_todo): the attitude asked for."""
-        if self.forward is not None:
-            self.forward.present_pose(name, direction, index, total)
+        self.forward.present_pose(name, direction, index, total)
         self._move_to(self._placed(direction))
 
     def _placed(self, direction) -> np.ndarray:
