@@ -14,8 +14,9 @@ import pytest
 from imubench.cli import main as imubench
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
-from imubench.procedures.fixture import FixtureRun, Plate, PlatePresenter, Station
+from imubench.procedures.fixture import FixtureRun, Plate, Station
 from imubench.procedures.session import SessionConfig
+from imubench.procedures.virtual import PlatePresenter
 from imubench.results.calibration import truth_in_fit_frame
 from imubench.results.history import History
 from imubench.wire import params as PR

@@ -18,6 +18,7 @@ from imubench.cli.common import (
     stream_rate,
 )
 from imubench.cli.station import add_web
+from imubench.results.record import verdict
 
 METHODS = ("multi", "six")
 CAPTURES = ("adaptive", "plan")
@@ -277,7 +278,7 @@ def run(a) -> int:
                 _add_station_fields(result, a, sess.dir, params_before, _params_or_none(dev), url)
                 sess.finish(result)
     _record_history(result, a.db or (getattr(a, "station_file", None) or {}).get("db"), sess.state_path)
-    ok = result["passed"] and (result["verified"] or not cfg.write)
+    ok, _ = verdict(result, cfg.write)
     print("\ncalibration " + ("PASSED" if ok else "FAILED"))
     if not ok:
         raise CommandError("the calibration did not pass" + ("" if result["passed"] else " its tolerance")
@@ -409,7 +410,8 @@ def _run_station(a, cfg) -> int:
     """`imubench calibrate` with several boards: one station session, a verdict per board."""
     from contextlib import ExitStack
 
-    from imubench.procedures.fixture import PlatePresenter, Station, run_fixture
+    from imubench.procedures.fixture import Station, run_fixture
+    from imubench.procedures.virtual import PlatePresenter
     sf = a.station_file or {}
     ports = list(a.ports or sf.get("ports") or [])
     if a.resume:
@@ -582,7 +584,6 @@ def _add_station_fields(result: dict, a, directory: Path, before, after, url) ->
     st = Station(station_id=getattr(a, "station", None) or sf.get("station", ""),
                  operator=getattr(a, "operator", "") or sf.get("operator", ""),
                  fixture=getattr(a, "fixture", "") or sf.get("fixture", ""))
-    result["schema"] = 2
     result["station"] = {"id": st.station_id, "operator": st.operator, "fixture": st.fixture, "slot": 1,
                          "port": url, "host_version": st.host_version}
     result["params_before"] = PR.to_json(before) if before is not None else None

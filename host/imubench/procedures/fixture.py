@@ -46,15 +46,11 @@ from imubench.errors import ImubenchError
 from imubench.procedures.errors import SessionAborted
 from imubench.procedures.presenter import Presenter
 from imubench.procedures.session import Session, SessionConfig, plan_for
-from imubench.procedures.virtual import PlatePresenter  # noqa: F401 - where callers found it
-from imubench.results.record import _jsonable
+from imubench.procedures.writeback import VerifyFailed
+from imubench.results.record import CalibrationRecord, device_ident, jsonable, now_utc, verdict
 from imubench.results.atomic import write_json_atomic
 from imubench.wire import params as PR
-from imubench.wire.ids import board_name, uid_text
 from imubench.wire.protocol_gen import ParamsWhich, SampleStatus
-
-RECORD_SCHEMA = 2
-
 
 @dataclass
 class Station:
@@ -181,6 +177,8 @@ class BoardPresenter(Presenter):
         self.shown.targets(sigmas, targets, reached)
 
     def step(self, kind, text, state):
+        if kind in ("write", "verify") and state == "running":
+            self.run._update(self.slot, stage=kind, message=text)
         self.shown.step(kind, text, state)
 
     def say(self, text: str) -> None:
@@ -229,9 +227,13 @@ class BoardSession(Session):
     link_timeout_s is a lost link, and a sample flagged bad (a sensor fault, parity or SPI
     error) during capture stops the board, naming the sensor."""
 
-    link_timeout_s: float = 10.0
-    board_run: "FixtureRun | None" = None
-    slot: int = 0
+    def __init__(self, device: Device, directory, config: SessionConfig, presenter: Presenter, *,
+                 board_run: "FixtureRun | None" = None, slot: int = 0, link_timeout_s: float = 10.0):
+        super().__init__(device, directory, config, presenter)
+        self.board_run = board_run
+        self.slot = slot
+        self.link_timeout_s = link_timeout_s
+        self.link_lost: str | None = None   # why the link was lost, once it was
 
     def _stage(self, stage: str) -> None:
         if self.board_run is not None:
@@ -247,8 +249,6 @@ class BoardSession(Session):
     def capture_rest(self) -> dict:
         self._stage("rest")
         return super().capture_rest()
-
-    link_lost: str | None = None
 
     def _stop_stream(self) -> None:
         """As the session's, but after a lost link only the capture file is closed: asking a
@@ -357,7 +357,7 @@ class FixtureRun:
     def _save_station(self, finished: bool = False) -> None:
         write_json_atomic(self.dir / "station.json", {
             "schema": 1, "session_id": self.session_id, "station": dataclasses.asdict(self.station),
-            "config": _jsonable(dataclasses.asdict(self.cfg)), "ports": self.ports, "finished": finished,
+            "config": jsonable(dataclasses.asdict(self.cfg)), "ports": self.ports, "finished": finished,
             "boards": self.snapshot()})
 
     # ------------------------------------------------------------ run
@@ -387,7 +387,7 @@ class FixtureRun:
 
     def _board(self, slot: int) -> None:
         st = self.boards[slot]
-        started = _now()
+        started = now_utc()
         dev = None
         result: dict | None = None
         info_dev: dict = {"mcu_uid": None}
@@ -400,13 +400,13 @@ class FixtureRun:
                 info = dev.info()
             except (OSError, LinkError, TimeoutError) as e:
                 raise BoardFailed("connect", f"no answer from the device on {st.port}: {e}") from None
-            info_dev = _device_ident(info)
+            info_dev = device_ident(info)
             self._update(slot, uid=info_dev["mcu_uid"], message=f"{info_dev['board']} {info_dev['mcu_uid']}")
             params_before = dev.get_params(ParamsWhich.ACTIVE).params
             sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
                                 BoardPresenter(self, slot, discard=dev.discard_buffered,
-                                               page=self.pages(slot, st.port) if self.pages else None))
-            sess.board_run, sess.slot, sess.link_timeout_s = self, slot, self.link_timeout_s
+                                               page=self.pages(slot, st.port) if self.pages else None),
+                                board_run=self, slot=slot, link_timeout_s=self.link_timeout_s)
             try:
                 result = sess.run(plan_for(self.cfg.method))
             except CalibrationError as e:
@@ -418,7 +418,7 @@ class FixtureRun:
             self._update(slot, stage="fit", message=f"fit: |a| − g RMS {result['accel_rms_after_mg']:.3f} mg")
             result["write_requested"] = bool(self.cfg.write)
             if result["passed"] and self.cfg.write:
-                self._write_and_verify(slot, sess, result, params_before)
+                self._write_and_verify(slot, sess, result)
             elif not result["passed"]:
                 self.plate.leave(slot)
             result["params_after"] = PR.to_json(dev.get_params(ParamsWhich.ACTIVE).params)
@@ -441,33 +441,20 @@ class FixtureRun:
         self.results[slot] = rec
         self._record(slot, rec)
 
-    def _write_and_verify(self, slot: int, sess: BoardSession, result: dict, previous) -> None:
-        self._update(slot, stage="write", message="writing, reading back, saving, rebooting")
+    def _write_and_verify(self, slot: int, sess: BoardSession, result: dict) -> None:
+        """The session's write-back (procedures.writeback.write_and_verify: the previous
+        parameters put back when it fails); a failure is the board's, at its stage."""
         try:
-            wb = sess.write_back(sess.accel_fit, sess.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
+            out = sess.write_and_verify()
+        except VerifyFailed as e:
+            self.plate.leave(slot)
+            result["written"] = False
+            raise BoardFailed("verify", f"verification failed: {e}") from None
         except (PR.InvalidParams, SessionAborted, LinkError, TimeoutError) as e:
             self.plate.leave(slot)
             raise BoardFailed("write", f"write-back failed: {e}") from None
-        result["written"] = True
-        result["write_steps"] = wb["steps"]
-        self._update(slot, stage="verify", message="verifying the device's calibrated output")
-        try:
-            result["verification"] = sess.verify(plan_for("six")[:self.cfg.verify_poses])
-        except (BoardFailed, SessionAborted, LinkError, TimeoutError) as e:
-            reason = e.reason if isinstance(e, BoardFailed) else str(e)
-            self.plate.leave(slot)
-            try:
-                sess.restore(previous)
-                reason += "; the previous parameters were restored"
-            except Exception as e2:  # noqa: BLE001
-                reason += f"; restoring the previous parameters failed too ({e2})"
-            result["written"] = False
-            raise BoardFailed("verify", f"verification failed: {reason}") from None
-        worst = max(abs(v["after_g"] - 1.0) * 1e3 for v in result["verification"])
-        result["verified"] = worst <= self.cfg.tolerances.verify_mg
-        if not result["verified"]:
-            sess.restore(previous)
-            result["written"] = False
+        result.update(written=out.written, verified=out.verified, verification=out.verification,
+                      write_steps=out.steps)
 
     def _fail(self, slot: int, stage: str, reason: str) -> None:
         self.plate.leave(slot)
@@ -477,7 +464,7 @@ class FixtureRun:
 
     def _record_for(self, slot: int, started: str, result: dict | None, ident: dict, params_before, link_stats) -> dict:
         st = self.boards[slot]
-        base = {"schema": RECORD_SCHEMA, "session_id": self.session_id,
+        base = {"session_id": self.session_id,
                 "station": {"id": self.station.station_id, "operator": self.station.operator,
                             "fixture": self.station.fixture, "slot": slot, "port": st.port,
                             "host_version": self.station.host_version},
@@ -487,17 +474,12 @@ class FixtureRun:
             base["link"] = {"samples_missing": int(link_stats.samples_missing),
                             "frames_rejected": int(link_stats.frames_rejected),
                             "samples_overflow": int(getattr(link_stats, "samples_overflow", 0))}
+        from imubench.results.export import measurements_of
         if result is not None and st.state != "failed":
-            rec = {**result, **base, "schema": RECORD_SCHEMA}
-            from imubench.results.export import measurements_of
+            rec = {**result, **base}
             rec["measurements"] = measurements_of(rec)
-            ok = rec["passed"] and (rec["verified"] or not self.cfg.write) and all(m["passed"] for m in rec["measurements"])
+            ok, why = verdict(rec, self.cfg.write)
             if not ok:
-                why = [f"{m['name']} = {m['value']:.4g} {m['unit']} outside its limit" for m in rec["measurements"]
-                       if not m["passed"] and m["value"] is not None]
-                if not rec["passed"]:
-                    why.insert(0, f"fit out of tolerance: |a| − g RMS {rec['accel_rms_after_mg']:.3f} mg > "
-                                  f"{self.cfg.tolerances.accel_rms_mg:g} mg")
                 rec["passed"] = False
                 self._update(slot, state="failed", stage=st.stage, reason="; ".join(why) or "did not pass",
                              message="FAILED: " + ("; ".join(why) or "did not pass"))
@@ -505,16 +487,13 @@ class FixtureRun:
                 self._update(slot, state="passed", stage="done", progress=1.0, message="PASSED")
             return rec
         # failed before or during the run: what is known, the stage and the reason
-        rec = {**base, "device": ident, "started": started, "finished": _now(), "passed": False,
-               "written": bool(result and result.get("written")), "verified": False,
-               "failure": {"stage": st.stage, "reason": st.reason or "failed"}, "params_after": None,
-               "method": self.cfg.method, "gyro_method": self.cfg.gyro, "note": self.cfg.note,
-               "capture_dir": str((self.dir / f"slot-{slot}").resolve())}
-        if result is not None:      # fitted, then failed (write-back, verification): keep the fit
-            rec.update({k: result[k] for k in ("accel", "gyro", "poses", "tolerances", "accel_rms_after_mg",
-                                               "temperature_c", "verification") if k in result})
-            rec["params_after"] = result.get("params_after")
-        from imubench.results.export import measurements_of
+        fitted = {k: result[k] for k in ("accel", "gyro", "poses", "tolerances", "accel_rms_after_mg",
+                                         "temperature_c", "verification") if result is not None and k in result}
+        rec = CalibrationRecord(
+            device=ident, started=started, method=self.cfg.method, gyro_method=self.cfg.gyro, note=self.cfg.note,
+            written=bool(result and result.get("written")), capture_dir=str((self.dir / f"slot-{slot}").resolve()),
+            failure={"stage": st.stage, "reason": st.reason or "failed"},
+            **fitted, sections={**base, "params_after": (result or {}).get("params_after")}).to_json()
         rec["measurements"] = measurements_of(rec)
         return rec
 
@@ -532,7 +511,7 @@ class FixtureRun:
                      f"{self.dir / f'slot-{slot}' / 'record.json'}")
         finally:
             try:
-                write_json_atomic(self.dir / f"slot-{slot}" / "record.json", _jsonable(rec))
+                write_json_atomic(self.dir / f"slot-{slot}" / "record.json", jsonable(rec))
             except OSError:
                 pass
 
@@ -543,12 +522,6 @@ def run_fixture(ports: list[str], directory, cfg: SessionConfig, mover, **kw) ->
 
 
 # ------------------------------------------------------------------- helpers
-def _device_ident(info) -> dict:
-    return {"mcu_uid": uid_text(info.mcu_uid), "board": board_name(info.board),
-            "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
-            "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)}
-
-
 def capture_ref(d: Path) -> dict:
     """SHA-256 of the raw capture (the capture files in stream order, as one byte sequence),
     the files, and where they are: a file:// URI naming this station's host."""
@@ -567,6 +540,3 @@ def capture_ref(d: Path) -> dict:
             "uri": f"file://{host}{(files[0] if len(files) == 1 else d).resolve()}" if files else None,
             "files": listed}
 
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="microseconds")

@@ -16,7 +16,6 @@ Nothing here reads the file's bytes (imubench.recordings does) or fits (imubench
 """
 from __future__ import annotations
 
-import datetime as _dt
 import hashlib
 import math
 from dataclasses import asdict, dataclass, field
@@ -27,9 +26,9 @@ import numpy as np
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
 from imubench.procedures.session import Tolerances
-from imubench.results.record import _jsonable, fit_dict
 from imubench.recordings import Recording, RecordingError, timing_lines
 from imubench.results.atomic import write_json_atomic
+from imubench.results.record import CalibrationRecord, fit_dict, jsonable, now_utc
 from imubench.results.sessionfile import SESSION_SCHEMA
 
 GYRO_FILE_METHODS = ("bias", "turns", "rotation")
@@ -59,10 +58,6 @@ def device_id(name: str) -> str:
     """A stable 24-hex-digit identifier for an IMU known by name (the history's device key):
     the first 12 bytes of SHA-256 of the name."""
     return hashlib.sha256(name.encode()).hexdigest()[:24].upper()
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
 def _face(d: np.ndarray) -> str:
@@ -190,7 +185,7 @@ class FileAnalysis:
         from imubench.calib.static import detect_static, require_static
         from imubench.calib.turns import detect_turns
         rec, cfg = self.rec, self.cfg
-        self.started = _now()
+        self.started = now_utc()
         fs = rec.fs_hz
         # ---- accelerometer scale: declared, or provisional (raw counts without a scale)
         fa = rec.accel_factor()
@@ -398,22 +393,14 @@ class FileAnalysis:
         annotation = None
         if cfg.annotation or rec.parts:
             annotation = compare_annotation(cfg.annotation or rec.parts, self.intervals, self.faces, self.turns, fs)
-        tol = cfg.tolerances
-        result = {
-            "schema": 1,
-            "device": {"mcu_uid": device_id(name), "board": f"IMU '{name}' (from a file)", "fw_version": "",
-                       "fw_build": "", "accel_ids": [], "gyro_pid": [], "gyro_sn": []},
-            "started": self.started, "session_started": self.started, "finished": _now(),
-            "method": self.method, "gyro_method": cfg.gyro,
-            "accel": fit_dict(accel, "mps2") | {"residual_rms_mps2": accel.residual_rms},
-            "gyro": fit_dict(self.gyro, "rad_s"),
-            "poses": poses, "temperature_c": {},
-            "tolerances": asdict(tol), "passed": bool(rms_after_mg <= tol.accel_rms_mg),
-            "accel_rms_after_mg": rms_after_mg,
-            "written": False, "verified": False, "verification": [], "note": cfg.note,
-            "source": source, "segmentation": seg, "turns": turns, "gyro_parts": _jsonable(self.gyro_parts),
-            "notes": list(self.notes), "annotation": annotation, "device_name": name,
-        }
+        result = CalibrationRecord.from_fit(
+            device={"mcu_uid": device_id(name), "board": f"IMU '{name}' (from a file)", "fw_version": "",
+                    "fw_build": "", "accel_ids": [], "gyro_pid": [], "gyro_sn": []},
+            started=self.started, session_started=self.started, method=self.method, gyro_method=cfg.gyro,
+            accel=accel, gyro=self.gyro, poses=poses, tolerances=asdict(cfg.tolerances),
+            accel_rms_after_mg=rms_after_mg, note=cfg.note,
+            sections={"source": source, "segmentation": seg, "turns": turns, "gyro_parts": self.gyro_parts,
+                      "notes": list(self.notes), "annotation": annotation, "device_name": name}).to_json()
         if not rec.accel_scaled:
             result["accel_counts_per_g"] = (accel.m / self.fa * U.G0_MPS2).tolist()
         if not rec.gyro_scaled and self.gyro is not None:
@@ -461,7 +448,7 @@ def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -
                                                                          * fa.fg).tolist(), "stream": 0}
                        for p, iv in zip(result["poses"], fa.intervals)],
              "result": result, "complete": True}
-    write_json_atomic(d / "session.json", _jsonable(state))
+    write_json_atomic(d / "session.json", jsonable(state))
     plot_pose_residuals(result, d / "residuals.png")
     plot_segmentation(rec, result, d / "segmentation.png", accel_factor=fa.fa, gyro_factor=fa.fg)
     result["report"] = str(build_report(d))

@@ -16,10 +16,9 @@ in words and says when an adaptive session has enough).
 from __future__ import annotations
 
 import dataclasses
-import datetime as _dt
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -27,83 +26,26 @@ import numpy as np
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
 from imubench.device.link import Device
+from imubench.procedures.capture import PoseCapture
+from imubench.procedures.config import PoseRecord, SessionConfig, Tolerances  # noqa: F401 - where callers found them
 from imubench.procedures.errors import SessionAborted
-from imubench.procedures.poses import (
-    DETECT_TOL_DEG,
-    Targets,
-    detect_attitude,
-    enough_attitudes,
-    hold_sigma_g,
-    plan_angles_deg,
-    pose_words,
-    suggest_next,
-)
+from imubench.procedures.poses import enough_attitudes, pose_words, suggest_next
 from imubench.procedures.presenter import TURN_POSE_SUFFIX, Presenter  # noqa: F401 - TURN_POSE_SUFFIX: where callers found it
 from imubench.procedures.virtual import SimPresenter  # noqa: F401 - where callers found it
-from imubench.procedures.writeback import params_from_fits, wear_warning, write_verified  # noqa: F401
+from imubench.procedures.writeback import (  # noqa: F401 - wear_warning: where callers found it
+    WriteOutcome,
+    params_from_fits,
+    wear_warning,
+    write_and_verify,
+    write_verified,
+)
 from imubench.results.atomic import write_json_atomic
-from imubench.results.record import _jsonable, _now, fit_dict
+from imubench.results.record import CalibrationRecord, device_ident, jsonable, now_utc
 from imubench.results.sessionfile import SESSION_SCHEMA, SessionFileError, load_state
 from imubench.wire import params as PR
 from imubench.wire.decoder import SampleBlock
 from imubench.wire.ids import board_name, uid_text
 from imubench.wire.protocol_gen import Params, ParamsWhich
-
-
-# ---------------------------------------------------------------- configuration
-@dataclass
-class Tolerances:
-    accel_rms_mg: float = 1.0        # RMS of |a| - g over the poses after calibration
-    verify_mg: float = 2.0           # each verification pose: | |a| - g | of the device's output
-    gyro_turntable_rms_dps: float = 0.1
-    gyro_rotation_rms_deg: float = 0.5
-
-
-@dataclass
-class SessionConfig:
-    method: str = "six"              # "six" | "multi"
-    gyro: str | None = "bias"        # "bias" | "turntable" | "rotation" | None
-    rate_hz: int = 500
-    rest_s: float = 5.0              # still at the start: noise and gyro bias
-    settle_s: float = 0.5            # still this long before a pose is captured
-    hold_s: float = 2.0              # captured per pose
-    pose_timeout_s: float | None = 120.0   # waiting for an attitude, in device time; None: wait
-    turntable_rates_dps: tuple = (30.0, 90.0)
-    turntable_s: float = 3.0
-    verify_poses: int = 3
-    write: bool = True               # write the parameters back if the fit passes
-    note: str = ""
-    tolerances: Tolerances = field(default_factory=Tolerances)
-    # adaptive capture (procedures.poses.Targets): each attitude held until its |a| is known to
-    # targets.pose_sigma_mg; a multi-position session stops adding attitudes when every
-    # parameter's sigma is at its target. False: hold_s per attitude, every planned attitude.
-    adaptive: bool = False
-    targets: Targets = field(default_factory=Targets)
-
-
-@dataclass
-class PoseRecord:
-    name: str
-    direction: list                  # planned gravity direction in the board frame
-    mean_mps2: list                  # measured mean specific force (nominal scaling)
-    sigma_mean_mps2: list            # 1-sigma of that mean
-    n: int
-    start_index: int                 # sample_index of the first sample used
-    stop_index: int
-    temp_c: float
-    gyro_mean_rad_s: list
-    stream: int = 0                  # which continuous stream (capture-<stream>.bin) it is in
-    sigma_norm_g: float | None = None      # 1-sigma of the mean |a| over the hold, g
-    angle_from_plan_deg: float | None = None   # measured gravity direction vs the planned one
-
-
-def _pieces(b: SampleBlock, n: int):
-    """A block in consecutive pieces of at most n samples."""
-    for i in range(0, len(b), n):
-        yield b[i:i + n]
-
-
-
 
 
 # ---------------------------------------------------------------- the session
@@ -120,18 +62,26 @@ class Session:
         self.rest: dict | None = None
         self.finished: dict | None = None    # the result of a run that went to its end (finish())
         self.state_path = self.dir / "session.json"
+        self.started = now_utc()             # the session's start (a resumed session: the saved one)
+        self.saved_write = config.write      # a resumed session: whether its run was to write
+        self.run_started: str | None = None  # this run's start (run())
+        self.stream_no = 0                   # the continuous stream being captured (capture-<n>.bin)
+        self._first_index: int | None = None     # device sample index of the first and last sample read
+        self._last_index: int | None = None
+        self.bench_time_s: float | None = None   # device time from the first prompt to the last pose
+        self.accel_fit: TriadFit | None = None   # the fits of the last run()
+        self.gyro_fit: TriadFit | None = None
         if resume:
             self._load()
         else:
             self.dir.mkdir(parents=True, exist_ok=True)
             if self.state_path.exists():
                 raise SessionAborted(f"{self.dir} already holds a session: use --resume {self.dir}, or another --dir")
-            self.started = _now()
             self.save()
 
     # ------------------------------------------------------------ persistence
     def save(self, **extra) -> None:
-        state = {"schema": SESSION_SCHEMA, "started": self.started, "config": _jsonable(asdict(self.cfg)),
+        state = {"schema": SESSION_SCHEMA, "started": self.started, "config": jsonable(asdict(self.cfg)),
                  "rest": self.rest, "poses": [asdict(p) for p in self.poses], **extra}
         write_json_atomic(self.state_path, state)     # a crash leaves the old or the new file
 
@@ -235,7 +185,7 @@ class Session:
     def _count_block(self, b) -> None:
         """Keep the device sample index of the first and last sample read (the bench time)."""
         if len(b):
-            if getattr(self, "_first_index", None) is None:
+            if self._first_index is None:
                 self._first_index = int(b.sample_index[0])
             self._last_index = int(b.sample_index[-1]) + 1
 
@@ -284,14 +234,10 @@ class Session:
         waited past. Motion restarts the capture. The hold is cfg.hold_s, or with cfg.adaptive
         until the mean |a| is known to targets.pose_sigma_mg (hold_min_s .. hold_max_s). No
         timeout unless cfg.pose_timeout_s is set."""
-        from imubench.calib.static import StillnessDetector
-        fs = self.cfg.rate_hz
-        t = self.cfg.targets
         noise = np.asarray(self.rest["noise_mps2"])
         full_plan = full_plan or plan
         todo_names = {n for n, _ in plan}
         done = [(n, v) for n, v in full_plan if n not in todo_names]
-        name, direction = plan[0]
         if self.cfg.method == "multi":
             self.ui.suggest(suggest_next([v for _, v in done], plan))
         self.ui.present_todo(list(plan), done, total)
@@ -299,158 +245,16 @@ class Session:
         # question on the terminal, or a reader behind the device) show the board before the
         # person acted. The capture file on disk keeps every sample (the rotation method's).
         self.dev.discard_buffered()
-        det = StillnessDetector(fs, noise, window_s=self.cfg.settle_s)
-        if self.cfg.adaptive:
-            hold_min, hold_n = int(t.hold_min_s * fs), int(t.hold_max_s * fs)
-        else:
-            hold_min = hold_n = int(self.cfg.hold_s * fs)
-        recent: list[SampleBlock] = []   # enough trailing blocks to cover the still run
-        recent_n = 0
-        waited = 0
-        last_msg = ""
-        was_still = False
-        prev_n = 0
-        judged = False                   # this still run was already judged (wrong attitude)
-        capturing = None                 # the planned attitude being held now
-        sigma_g = float("inf")
-        next_sigma = 0                   # st.n at which sigma is computed next
-        live_every = max(1, fs // 8)
-        live_due = 0
+        cap = PoseCapture(self.cfg, noise, plan, full_plan, {p.name for p in self.poses}, self.stream_no, self.ui)
         while True:
-            # a block read after a pause (a virtual bench far ahead of the session) can hold
-            # seconds of data: judge it in pieces of 1/10 s, as a live stream would come
-            for b in _pieces(self._next_block(), max(1, fs // 10)):
-                waited += len(b)
-                recent.append(b)
-                recent_n += len(b)
-                acc = b.si()[0]
-                st = det.update(acc)
-                still = st.state == "still"
-                # the still run restarted inside this block if it is shorter than before + the block
-                restarted = still and (not was_still or st.n < prev_n + len(b))
-                if not still or restarted:
-                    if was_still and not judged and (st.state == "moving" or restarted):
-                        last_msg = self._tell("detected motion, hold still", last_msg)
-                    if capturing is not None:
-                        self.ui.pose_event(capturing, "todo", {"why": "moved"})
-                        capturing = None
-                    judged = False
-                    sigma_g, next_sigma = float("inf"), 0
-                was_still, prev_n = still, (st.n if still else 0)
-                # which attitude the board is in now (the hold's mean when still, else the last block's)
-                now_dir = st.mean if still else acc.mean(axis=0)
-                k, ang = detect_attitude(now_dir, full_plan)
-                now_name = full_plan[k][0] if k is not None else None
-                hint = ""
-                frac = 0.0
-                if st.state == "moving":
-                    pass                             # no hint while the person is still turning it
-                elif k is None:
-                    near = full_plan[int(np.argmin(plan_angles_deg(now_dir, full_plan)))]
-                    hint = (f"the board is in no planned attitude: {ang:.0f}° from the nearest, "
-                            f"{near[0]} ({pose_words(near[1])}); turn it until it is within "
-                            f"{DETECT_TOL_DEG:.0f}° of a missing one")
-                elif now_name not in todo_names:
-                    hint = f"{now_name} is already captured: present one of the {len(plan)} missing"
-                if (st.state == "settling" and not hint and k is not None and st.still_s > 0
-                        and not judged):
-                    # quiet, not yet for settle_s: the first half of the card's bar
-                    if capturing not in (None, now_name):
-                        self.ui.pose_event(capturing, "todo", {"why": "left"})
-                    capturing = now_name
-                    frac = 0.5 * min(1.0, st.still_s / self.cfg.settle_s)
-                    self.ui.progress(now_name, frac)
-                    self.ui.pose_event(now_name, "capturing", {"progress": frac})
-                if still and not judged:
-                    if hint:
-                        last_msg = self._tell(hint, last_msg)
-                        judged = True        # wait for the board to move before judging again
-                    else:
-                        if capturing != now_name:
-                            if capturing is not None:     # drifted into another attitude while still
-                                self.ui.pose_event(capturing, "todo", {"why": "left"})
-                            capturing = now_name
-                        if self.cfg.adaptive and st.n >= max(hold_min, next_sigma):
-                            run = SampleBlock.concat(recent)
-                            sigma_g = hold_sigma_g(run.si()[0][len(run) - min(st.n, len(run)):])
-                            next_sigma = st.n + max(1, fs // 10)
-                        if self.cfg.adaptive:
-                            # sigma of the mean falls as 1/sqrt(n): (need/sigma)^2 is the fraction held
-                            need = t.pose_sigma_mg * 1e-3
-                            by_sigma = min(1.0, (need / sigma_g) ** 2) if np.isfinite(sigma_g) else 0.0
-                            frac = max(st.n / hold_n, min(st.n / hold_min, by_sigma) if by_sigma else 0.5 * st.n / hold_min)
-                            enough = st.n >= hold_n or (st.n >= hold_min and sigma_g <= need)
-                        else:
-                            frac = st.n / hold_n
-                            enough = st.n >= hold_n
-                        frac = 0.5 + 0.5 * min(float(frac), 1.0)     # settled: the second half of the bar
-                        self.ui.progress(now_name, frac)
-                        self.ui.pose_event(now_name, "capturing", {"progress": frac})
-                        if enough:
-                            # exactly the samples of this still run: the last st.n received (at most the hold)
-                            run = SampleBlock.concat(recent)
-                            rec = self._pose_from(run[len(run) - min(st.n, hold_n, len(run)):], plan)
-                            if isinstance(rec, PoseRecord):
-                                return rec
-                            self.ui.pose_event(now_name, "rejected", {"why": rec})
-                            capturing = None
-                            last_msg = self._tell(rec, last_msg)
-                            judged = True
-                if waited >= live_due:
-                    live_due = waited + live_every
-                    self.ui.live({
-                        "a_g": float(np.linalg.norm(acc.mean(axis=0)) / U.G0_MPS2), "ratio": float(st.ratio),
-                        "k": float(det.k), "k_move": float(det.k_move), "state": st.state,
-                        "attitude": now_name, "words": pose_words(full_plan[k][1]) if k is not None else None,
-                        "angle_deg": ang, "captured": bool(now_name and now_name not in todo_names),
-                        "hold": float(min(frac, 1.0)),
-                        "sigma_mg": (sigma_g * 1e3 if np.isfinite(sigma_g) else None),
-                        "target_mg": t.pose_sigma_mg if self.cfg.adaptive else None, "hint": hint,
-                        "device_s": float(b.sample_index[-1]) / fs})
-                while len(recent) > 1 and recent_n - len(recent[0]) >= max(st.n, hold_n) + fs:
-                    recent_n -= len(recent.pop(0))
-                if self.cfg.pose_timeout_s is not None and waited > self.cfg.pose_timeout_s * fs:
-                    raise SessionAborted(f"no still attitude from the plan within {self.cfg.pose_timeout_s:g} s "
-                                         f"({len(plan)} missing, e.g. {name}); the board must stay still for "
-                                         f"{self.cfg.settle_s + self.cfg.hold_s:g} s in each attitude")
-
-    def _tell(self, msg: str, last: str) -> str:
-        if msg != last:
-            self.ui.say(msg)
-        return msg
-
-    def _pose_from(self, b: SampleBlock, plan) -> PoseRecord | str:
-        acc, gyr = b.si()
-        mean = acc.mean(axis=0)
-        d = mean / np.linalg.norm(mean)
-        angles = [np.degrees(np.arccos(np.clip(d @ (v / np.linalg.norm(v)), -1, 1))) for _, v in plan]
-        k = int(np.argmin(angles))
-        done = {p.name for p in self.poses}
-        if angles[k] > 20.0:
-            return (f"the board is not in a missing attitude (up along board {np.round(d, 2).tolist()}); "
-                    f"{len(plan)} missing, e.g. {plan[0][0]}")
-        name, direction = plan[k]
-        if name in done:
-            return f"{name} is already captured: present another attitude"
-        a_g = float(np.linalg.norm(mean)) / U.G0_MPS2
-        if abs(a_g - 1.0) > 0.1:
-            return (f"{name}: |a| = {a_g:.3f} g, more than 10 % from 1 g: the board was being moved or shaken; "
-                    "hold it still")
-        from imubench.calib.static import detect_static
-        iv = detect_static(acc, self.cfg.rate_hz, noise_sigma=np.asarray(self.rest["noise_mps2"]),
-                           min_duration_s=min(1.0, 0.5 * len(acc) / self.cfg.rate_hz))
-        sigma = (max(iv, key=lambda i: i.n).sigma_mean if iv else acc.std(axis=0) / np.sqrt(len(acc)))
-        temp = float(np.mean(U.accel_temp_counts_to_c(b.accel_temp_counts)))
-        return PoseRecord(name=name, direction=np.asarray(direction, float).tolist(), mean_mps2=mean.tolist(),
-                          sigma_mean_mps2=np.asarray(sigma, float).tolist(), n=len(acc),
-                          start_index=int(b.sample_index[0]), stop_index=int(b.sample_index[-1]) + 1,
-                          temp_c=temp, gyro_mean_rad_s=gyr.mean(axis=0).tolist(), stream=self.stream_no,
-                          sigma_norm_g=hold_sigma_g(acc), angle_from_plan_deg=float(angles[k]))
+            rec = cap.feed(self._next_block())
+            if rec is not None:
+                return rec
 
     # ---------------------------------------------------------------- stream
     def _start_stream(self) -> None:
         """A new continuous stream, captured to its own file as it arrives."""
-        self.stream_no = 1 + max([p.stream for p in self.poses] + [getattr(self, "stream_no", 0)])
+        self.stream_no = 1 + max([p.stream for p in self.poses] + [self.stream_no])
         old = self.dev.link.capture
         self.dev.link.capture = open(self.dir / f"capture-{self.stream_no}.bin", "ab")
         if old is not None:
@@ -523,7 +327,7 @@ class Session:
             waited += len(b)
             _, gyr = b.si()
             st = det.update(b.si()[0])
-            if getattr(st, "state", st) == "still" and np.abs(gyr.mean(axis=0)).max() < np.radians(2.0):
+            if st.state == "still" and np.abs(gyr.mean(axis=0)).max() < np.radians(2.0):
                 return
 
     # ------------------------------------------------------- known-angle turns
@@ -605,9 +409,9 @@ class Session:
     def run(self, plan: list[tuple[str, np.ndarray]], history=None, verify_plan=None) -> dict:
         from imubench.calib import accel as CA
         from imubench.calib import gyro as CG
-        self.run_started = _now()
+        self.run_started = now_utc()
         self._first_index = self._last_index = None
-        ident = self.check_health()
+        self.check_health()
         self._start_stream()
         try:
             self.ui.present_plan(list(plan), self.cfg.method)
@@ -680,9 +484,9 @@ class Session:
         if self.cfg.method == "multi" and self.cfg.gyro == "turntable":
             accel, frame_note = self._align_frames(accel, gyro, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
         self.accel_fit, self.gyro_fit = accel, gyro
-        result = self._result(ident, accel, gyro)
+        result = self._result(accel, gyro)
         result["accel_frame"] = accel.extra.get("frame", "board")
-        result["bench_time_s"] = getattr(self, "bench_time_s", None)
+        result["bench_time_s"] = self.bench_time_s
         result["adaptive"] = bool(self.cfg.adaptive)
         if self.cfg.method == "six":
             off = [p.angle_from_plan_deg for p in self.poses if p.angle_from_plan_deg is not None]
@@ -741,7 +545,7 @@ class Session:
                                    "this session was resumed — use --gyro bias or turntable, or start a new session")
         return CG.rotation_method(np.concatenate(gyro_all), self.cfg.rate_hz, intervals, np.array(dirs), bias)
 
-    def _result(self, ident: dict, accel: TriadFit, gyro: TriadFit | None) -> dict:
+    def _result(self, accel: TriadFit, gyro: TriadFit | None) -> dict:
         means = np.array([p.mean_mps2 for p in self.poses])
         sig = np.array([p.sigma_mean_mps2 for p in self.poses])
         before = np.linalg.norm(means, axis=1)
@@ -749,27 +553,15 @@ class Session:
         # 1-sigma of |a| from the mean's sigma projected on the gravity direction
         sig_g = np.sqrt(np.sum((means / before[:, None] * sig) ** 2, axis=1)) / U.G0_MPS2
         rms_after_mg = float(np.sqrt(np.mean((after - U.G0_MPS2) ** 2)) / U.G0_MPS2 * 1e3)
-        tol = self.cfg.tolerances
-        passed = rms_after_mg <= tol.accel_rms_mg
-        info = self.dev.info()
-        return {
-            "schema": 1,
-            "device": {"mcu_uid": uid_text(info.mcu_uid), "board": board_name(info.board),
-                       "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
-                       "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)},
-            "started": getattr(self, "run_started", self.started), "session_started": self.started,
-            "finished": _now(),
-            "method": self.cfg.method, "gyro_method": self.cfg.gyro,
-            "accel": fit_dict(accel, "mps2") | {"residual_rms_mps2": accel.residual_rms},
-            "gyro": fit_dict(gyro, "rad_s"),
-            "poses": [{"name": p.name, "n": p.n, "before_g": float(before[i] / U.G0_MPS2),
-                       "after_g": float(after[i] / U.G0_MPS2), "sigma_g": float(sig_g[i]), "temp_c": p.temp_c}
-                      for i, p in enumerate(self.poses)],
-            "temperature_c": {"accel": float(np.mean([p.temp_c for p in self.poses]))},
-            "tolerances": asdict(tol), "passed": bool(passed), "accel_rms_after_mg": rms_after_mg,
-            "written": False, "verified": False, "verification": [],
-            "note": self.cfg.note, "capture_dir": str(self.dir.resolve()),
-        }
+        return CalibrationRecord.from_fit(
+            device=device_ident(self.dev.info()), started=self.run_started, session_started=self.started,
+            method=self.cfg.method, gyro_method=self.cfg.gyro, accel=accel, gyro=gyro,
+            poses=[{"name": p.name, "n": p.n, "before_g": float(before[i] / U.G0_MPS2),
+                    "after_g": float(after[i] / U.G0_MPS2), "sigma_g": float(sig_g[i]), "temp_c": p.temp_c}
+                   for i, p in enumerate(self.poses)],
+            temperature_c={"accel": float(np.mean([p.temp_c for p in self.poses]))},
+            tolerances=asdict(self.cfg.tolerances), accel_rms_after_mg=rms_after_mg,
+            note=self.cfg.note, capture_dir=str(self.dir.resolve())).to_json()
 
     def verify(self, plan: list[tuple[str, np.ndarray]]) -> list[dict]:
         """The device's own calibrated output in a few attitudes: | |a| - g | per pose."""
@@ -802,19 +594,27 @@ class Session:
             self.dev.stop_stream()
         return out
 
-    def restore(self, previous: Params) -> None:
-        """Put a previous parameter block back, in RAM and in flash."""
-        self.dev.set_params(previous)
-        self.dev.save_params()
-
     # -------------------------------------------------------------- write-back
-    def write_back(self, accel: TriadFit, gyro: TriadFit | None, cal_id: int) -> dict:
-        """set_params, read back bit-exactly, save, reboot, read back again. On any failure
-        the previous parameters are put back (and saved again if they were saved)."""
+    def _new_params(self, accel: TriadFit, gyro: TriadFit | None, cal_id: int) -> tuple[Params, Params]:
+        """(the block from the fits, the active block it replaces), checked as the device checks."""
         old = self.dev.get_params(ParamsWhich.ACTIVE)
         new = params_from_fits(accel, gyro, old.params, cal_id)
         PR.validate(new)                                      # the device's own checks, first here
-        return write_verified(self.dev, new, previous=old.params, say=self.ui.say)
+        return new, old.params
+
+    def write_back(self, accel: TriadFit, gyro: TriadFit | None, cal_id: int) -> dict:
+        """set_params, read back bit-exactly, save, reboot, read back again. On any failure
+        the previous parameters are put back (and saved again if they were saved)."""
+        new, old = self._new_params(accel, gyro, cal_id)
+        return write_verified(self.dev, new, previous=old, say=self.ui.say)
+
+    def write_and_verify(self) -> WriteOutcome:
+        """The last run()'s fits written back and the device's own output verified in
+        cfg.verify_poses attitudes; the previous parameters put back when that fails
+        (procedures.writeback.write_and_verify, the fixture's too)."""
+        new, old = self._new_params(self.accel_fit, self.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
+        return write_and_verify(self.dev, new, old, lambda: self.verify(plan_for("six")[:self.cfg.verify_poses]),
+                                self.cfg.tolerances.verify_mg, self.ui)
 
 
 def plan_for(method: str) -> list[tuple[str, np.ndarray]]:
@@ -857,29 +657,8 @@ def run_session(dev: Device, directory, cfg: SessionConfig, ui: Presenter, *, re
                                                     "sigma_mg": p["sigma_g"] * 1e3})
     report(result)
     if result["passed"] and cfg.write:
-        previous = dev.get_params(ParamsWhich.ACTIVE).params
-        ui.step("write", "writing the parameters: set, read back, save, reboot, read back", "running")
-        try:
-            wb = sess.write_back(sess.accel_fit, sess.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
-        except Exception as e:
-            ui.step("write", f"write-back failed: {e}; the previous parameters were put back", "failed")
-            raise
-        ui.say(f"written: {', '.join(wb['steps'])}")
-        ui.step("write", f"written: {', '.join(wb['steps'])}", "done")
-        result["written"] = True
-        ui.step("verify", f"verifying the device's own output in {cfg.verify_poses} attitudes", "running")
-        result["verification"] = sess.verify(plan_for("six")[:cfg.verify_poses])
-        worst = max(abs(v["after_g"] - 1.0) * 1e3 for v in result["verification"])
-        result["verified"] = worst <= cfg.tolerances.verify_mg
-        ui.say(f"verification of the device's calibrated output: worst | |a| - g | = {worst:.3f} mg "
-               f"({'within' if result['verified'] else 'OUTSIDE'} {cfg.tolerances.verify_mg} mg)")
-        ui.step("verify", f"worst | |a| − g | = {worst:.3f} mg "
-              f"({'within' if result['verified'] else 'OUTSIDE'} {cfg.tolerances.verify_mg} mg)",
-              "done" if result["verified"] else "failed")
-        if not result["verified"]:
-            sess.restore(previous)
-            result["written"] = False
-            ui.say("verification failed: the previous parameters were written back and saved")
+        out = sess.write_and_verify()
+        result.update(written=out.written, verified=out.verified, verification=out.verification)
     elif not result["passed"]:
         ui.say("the fit did not pass its tolerance: nothing was written to the device")
         ui.step("write", "the fit did not pass its tolerance: nothing was written to the device", "skipped")

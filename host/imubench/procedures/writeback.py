@@ -8,12 +8,15 @@ parameter slot near its rated erase cycles) and the parameter block built from f
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from imubench.calib import TriadFit
 from imubench.device.link import Device
 from imubench.procedures.errors import SessionAborted
+from imubench.procedures.presenter import Presenter
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
 
@@ -52,6 +55,7 @@ def write_verified(dev: Device, new: Params, previous: Params | None = None,
     if previous is None:
         previous = dev.get_params(ParamsWhich.ACTIVE).params
     steps = []
+    saved = False                       # the new block reached the flash: a restore saves too
     try:
         dev.set_params(new)
         steps.append("set")
@@ -62,6 +66,7 @@ def write_verified(dev: Device, new: Params, previous: Params | None = None,
         if warning:
             say(f"warning: {warning}")
         gen = dev.save_params()
+        saved = True
         steps.append(f"already stored, flash untouched (generation {gen})" if dev.last_save_unchanged
                      else f"saved (generation {gen})")
         info = dev.reboot(wait_s=reboot_wait_s)
@@ -75,12 +80,72 @@ def write_verified(dev: Device, new: Params, previous: Params | None = None,
         say(f"write-back failed after: {', '.join(steps) or 'nothing'} — {e}; restoring the previous parameters")
         try:
             dev.set_params(previous)
-            if "saved" in " ".join(steps):
+            if saved:
                 dev.save_params()
         except Exception as e2:  # noqa: BLE001 - report both failures
             raise SessionAborted(f"write-back failed ({e}) and restoring the previous parameters failed too ({e2})") from e
         raise
     return {"generation": gen, "steps": steps, "params": new}
+
+
+def restore(dev: Device, previous: Params) -> None:
+    """Put a previous parameter block back, in RAM and in flash."""
+    dev.set_params(previous)
+    dev.save_params()
+
+
+class VerifyFailed(SessionAborted):
+    """The written parameters could not be verified; the message says whether the previous
+    ones were put back."""
+
+
+@dataclass
+class WriteOutcome:
+    written: bool                    # the new parameters are the device's now (False: the previous were put back)
+    verified: bool                   # the device's own output within verify_mg in every verification attitude
+    steps: list[str]                 # what write_verified did (set, read back, saved, rebooted, ...)
+    verification: list[dict] = field(default_factory=list)    # [{name, after_g, angle_from_plan_deg}]
+    worst_mg: float | None = None    # the worst | |a| - g | of the verification, mg
+
+
+def write_and_verify(dev: Device, new: Params, previous: Params, verify: Callable[[], list[dict]],
+                     verify_mg: float, ui: Presenter) -> WriteOutcome:
+    """The one write-back of a calibration (the one-board session and every board of a
+    fixture): write_verified (set, read back, save, reboot, read back; the previous block
+    put back on any failure, which is re-raised), then verify() the device's own calibrated
+    output; if the worst | |a| - g | is above verify_mg, or verify() fails (VerifyFailed, after
+    restoring), the previous parameters are put back and saved. The steps are told to
+    ui.step (write, verify) as they happen."""
+    ui.step("write", "writing the parameters: set, read back, save, reboot, read back", "running")
+    try:
+        wb = write_verified(dev, new, previous=previous, say=ui.say)
+    except Exception as e:
+        ui.step("write", f"write-back failed: {e}; the previous parameters were put back", "failed")
+        raise
+    ui.say(f"written: {', '.join(wb['steps'])}")
+    ui.step("write", f"written: {', '.join(wb['steps'])}", "done")
+    ui.step("verify", "verifying the device's own output in the verification attitudes", "running")
+    try:
+        verification = verify()
+    except Exception as e:
+        reason = str(e)
+        try:
+            restore(dev, previous)
+            reason += "; the previous parameters were restored"
+        except Exception as e2:  # noqa: BLE001 - report both failures
+            reason += f"; restoring the previous parameters failed too ({e2})"
+        ui.step("verify", f"verification failed: {reason}", "failed")
+        raise VerifyFailed(reason) from e
+    worst = max(abs(v["after_g"] - 1.0) * 1e3 for v in verification)
+    verified = worst <= verify_mg
+    text = f"worst | |a| − g | = {worst:.3f} mg ({'within' if verified else 'OUTSIDE'} {verify_mg} mg)"
+    ui.say(f"verification of the device's calibrated output: {text.replace('−', '-')}")
+    ui.step("verify", text, "done" if verified else "failed")
+    if not verified:
+        restore(dev, previous)
+        ui.say("verification failed: the previous parameters were written back and saved")
+    return WriteOutcome(written=verified, verified=verified, steps=wb["steps"], verification=verification,
+                        worst_mg=worst)
 
 
 # ------------------------------------------------------------------- helpers

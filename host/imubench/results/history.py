@@ -32,7 +32,6 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
-import re
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +41,7 @@ from imubench import units as U
 from imubench.results import db as DB
 from imubench.results.export import measurement_text, measurements_of
 from imubench.results.numbers import pm
-from imubench.results.record import RECORD_SCHEMA, RECORD_SCHEMAS, _parse_time, validate_result  # noqa: F401
+from imubench.results.record import _parse_time, jsonable, validate_result
 from imubench.wire.ids import parse_id, sn_text
 
 SCHEMA_VERSION = DB.SCHEMA_VERSION   # of the database (results.db: the tables and their migrations)
@@ -86,20 +85,10 @@ def _utc_text(t: _dt.datetime) -> str:
 
 
 
-def _json_default(x):
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    if isinstance(x, Path):
-        return str(x)
-    raise TypeError(f"{type(x).__name__} is not JSON-serialisable")
-
-
 def _dumps(x) -> str | None:
     if x is None:
         return None
-    return json.dumps(x, sort_keys=True, default=_json_default)
+    return json.dumps(jsonable(x), sort_keys=True)
 
 
 def _loads(s):

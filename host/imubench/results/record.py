@@ -9,25 +9,32 @@ from __future__ import annotations
 
 import datetime as _dt
 import re
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 
 from imubench.calib import TriadFit
+from imubench.wire.ids import board_name, uid_text
 
 RECORD_SCHEMA = 2           # of the result record a calibration session produces (1: before the production line)
 RECORD_SCHEMAS = (1, 2)     # records this imubench stores
 
 
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+def now_utc() -> str:
+    """The one clock of records and sessions: UTC, ISO 8601 with microseconds (two boards of a
+    fixture that start in the same second still get distinct run starts)."""
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="microseconds")
 
 
-def _jsonable(x):
+def jsonable(x):
+    """x with numpy arrays and scalars, tuples and paths turned into JSON's types (the one
+    conversion of a record, a session's state and a station file; NaN stays NaN: the history
+    keeps it, strict output turns it into null at the edge)."""
     if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
+        return {k: jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v) for v in x]
     if isinstance(x, np.ndarray):
         return x.tolist()
     if isinstance(x, (np.floating, np.integer, np.bool_)):
@@ -38,11 +45,97 @@ def _jsonable(x):
 
 
 def fit_dict(fit: TriadFit | None, unit: str) -> dict | None:
+    """A fit as the record keeps it: M, b and their sigmas in SI (`unit`: mps2 or rad_s)."""
     if fit is None:
         return None
     return {"method": fit.method, "m": fit.m.tolist(), f"b_{unit}": fit.b.tolist(),
             "sigma_m": fit.sigma_m.tolist(), f"sigma_b_{unit}": fit.sigma_b.tolist(),
-            "residual_rms": fit.residual_rms, "extra": _jsonable(fit.extra)}
+            "residual_rms": fit.residual_rms, "extra": jsonable(fit.extra)}
+
+
+def device_ident(info) -> dict:
+    """The record's device section from a device's info (wire.protocol_gen.DeviceInfo)."""
+    return {"mcu_uid": uid_text(info.mcu_uid), "board": board_name(info.board),
+            "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
+            "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)}
+
+
+# ------------------------------------------------------------------ the record
+@dataclass
+class CalibrationRecord:
+    """One calibration run. `passed` is the fit's own verdict (RMS of |a| − g within
+    tolerances.accel_rms_mg); verdict() is the run's. `sections` carries what one builder
+    adds (a station's fields, a recording's segmentation, a closure check), kept as given."""
+    device: dict
+    started: str                                     # this run's start (now_utc)
+    method: str | None
+    gyro_method: str | None
+    accel: dict | None = None                        # fit_dict(accel, "mps2") + residual_rms_mps2
+    gyro: dict | None = None                         # fit_dict(gyro, "rad_s")
+    poses: list = field(default_factory=list)        # [{name, n, before_g, after_g, sigma_g, temp_c}]
+    tolerances: dict = field(default_factory=dict)
+    accel_rms_after_mg: float | None = None
+    passed: bool = False
+    written: bool = False
+    verified: bool = False
+    verification: list = field(default_factory=list)
+    temperature_c: dict = field(default_factory=dict)
+    note: str = ""
+    capture_dir: str | None = None
+    session_started: str | None = None               # the session's start (a resumed session: earlier)
+    finished: str = field(default_factory=now_utc)
+    failure: dict | None = None                      # {stage, reason}: failed before or during the run
+    sections: dict = field(default_factory=dict)
+    schema: int = RECORD_SCHEMA
+
+    @classmethod
+    def from_fit(cls, *, device: dict, started: str, method: str, gyro_method: str | None, accel: TriadFit,
+                 gyro: TriadFit | None, poses: list, tolerances: dict, accel_rms_after_mg: float, **kw):
+        """A fitted run: the fit's verdict from its tolerance (the one rule of `passed`)."""
+        return cls(device=device, started=started, method=method, gyro_method=gyro_method,
+                   accel=fit_dict(accel, "mps2") | {"residual_rms_mps2": accel.residual_rms},
+                   gyro=fit_dict(gyro, "rad_s"), poses=poses, tolerances=tolerances,
+                   accel_rms_after_mg=float(accel_rms_after_mg),
+                   passed=fit_passed(accel_rms_after_mg, tolerances), **kw)
+
+    def to_json(self) -> dict:
+        """The record as JSON's types (the form session.json, record.json and the history keep)."""
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "sections"}
+        if d["failure"] is None:
+            del d["failure"]
+        return jsonable(d | self.sections)
+
+    @classmethod
+    def from_json(cls, d: dict) -> "CalibrationRecord":
+        """A stored record, validated (ValueError naming every problem)."""
+        validate_result(d)
+        known = {f.name for f in fields(cls)} - {"sections"}
+        return cls(**{k: v for k, v in d.items() if k in known},
+                   sections={k: v for k, v in d.items() if k not in known})
+
+
+def fit_passed(accel_rms_after_mg: float, tolerances: dict) -> bool:
+    """The fit's verdict: the RMS of |a| − g over the poses after calibration within tolerance."""
+    return bool(accel_rms_after_mg <= tolerances["accel_rms_mg"])
+
+
+def verdict(record: dict, write_requested: bool) -> tuple[bool, list[str]]:
+    """The run's verdict, the one rule for a session, a fixture's board and the history: the
+    fit passed, what was to be written was written and verified, no failure, and every
+    measurement within its limit. Returns (passed, the reasons it did not)."""
+    why = []
+    if record.get("failure"):
+        f = record["failure"]
+        why.append(f"failed at {f.get('stage')}: {f.get('reason')}")
+    elif not record.get("passed"):
+        rms, tol = record.get("accel_rms_after_mg"), (record.get("tolerances") or {}).get("accel_rms_mg")
+        why.append("fit out of tolerance" + (f": |a| − g RMS {rms:.3f} mg > {tol:g} mg"
+                                             if rms is not None and tol is not None else ""))
+    elif write_requested and not record.get("verified"):
+        why.append("written parameters not verified")
+    why += [f"{m['name']} = {m['value']:.4g} {m['unit']} outside its limit" for m in record.get("measurements") or []
+            if not m.get("passed") and m.get("value") is not None]
+    return not why, why
 
 
 # ------------------------------------------------------------------ validation
