@@ -9,6 +9,7 @@ import sqlite3
 import numpy as np
 import pytest
 from imubench.cli import main as imubench
+from imubench.cli.history_text import format_device_report
 from imubench.results import history as H
 from imubench.results.history import (
     AmbiguousDevice,
@@ -328,7 +329,7 @@ def test_parameters_not_estimated_are_left_out_of_drift(db):
     assert q["gyro_scale_ppm"]["axes"]["x"]["steps"] == []          # 500 ppm -> 0 is not a drift
     assert len(q["gyro_bias_dps"]["axes"]["x"]["steps"]) == 1
     assert rep["drift"]["flagged"] == []
-    text = H.format_device_report(rep)
+    text = format_device_report(rep)
     assert "+0.0 (not estimated)" in text
     assert "gyro scale [ppm]: fewer than two runs estimated it" in text
 

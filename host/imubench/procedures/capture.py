@@ -200,7 +200,7 @@ class PoseCapture:
         angles = [np.degrees(np.arccos(np.clip(d @ (v / np.linalg.norm(v)), -1, 1))) for _, v in plan]
         k = int(np.argmin(angles))
         done = self.captured
-        if angles[k] > 20.0:
+        if angles[k] > DETECT_TOL_DEG:
             return (f"the board is not in a missing attitude (up along board {np.round(d, 2).tolist()}); "
                     f"{len(plan)} missing, e.g. {plan[0][0]}")
         name, direction = plan[k]

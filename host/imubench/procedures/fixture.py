@@ -50,7 +50,8 @@ from imubench.procedures.writeback import VerifyFailed
 from imubench.results.record import CalibrationRecord, device_ident, jsonable, now_utc, verdict
 from imubench.results.atomic import write_json_atomic
 from imubench.wire import params as PR
-from imubench.wire.protocol_gen import ParamsWhich, SampleStatus
+from imubench.wire.ids import SENSOR_BAD_BITS, SENSOR_NAMES
+from imubench.wire.protocol_gen import ParamsWhich
 
 @dataclass
 class Station:
@@ -280,9 +281,7 @@ class BoardSession(Session):
             raise BoardFailed("link", f"link lost: {e}") from None
         bad = int(np.bitwise_or.reduce(b.status)) if len(b) else 0
         if bad:
-            names = [n for bit, n in ((SampleStatus.ACCEL_BAD, "accelerometer"), (SampleStatus.GYRO_X_BAD, "gyro X"),
-                                      (SampleStatus.GYRO_Y_BAD, "gyro Y"), (SampleStatus.GYRO_Z_BAD, "gyro Z"))
-                     if bad & bit]
+            names = [n for bit, n in zip(SENSOR_BAD_BITS, SENSOR_NAMES) if bad & bit]
             self._leave_plate()
             raise BoardFailed("sensor", f"{', '.join(names)} flagged bad during capture "
                                         f"({int(np.count_nonzero(b.status))} of {len(b)} samples): a faulted sensor; "

@@ -29,7 +29,7 @@ from imubench.device.link import Device
 from imubench.procedures.capture import PoseCapture
 from imubench.procedures.config import PoseRecord, SessionConfig, Tolerances  # noqa: F401 - where callers found them
 from imubench.procedures.errors import SessionAborted
-from imubench.procedures.poses import enough_attitudes, pose_words, suggest_next
+from imubench.procedures.poses import DETECT_TOL_DEG, enough_attitudes, pose_words, suggest_next
 from imubench.procedures.presenter import TURN_POSE_SUFFIX, Presenter  # noqa: F401 - TURN_POSE_SUFFIX: where callers found it
 from imubench.procedures.virtual import SimPresenter  # noqa: F401 - where callers found it
 from imubench.procedures.writeback import (  # noqa: F401 - wear_warning: where callers found it
@@ -44,7 +44,7 @@ from imubench.results.record import CalibrationRecord, device_ident, jsonable, n
 from imubench.results.sessionfile import SESSION_SCHEMA, SessionFileError, load_state
 from imubench.wire import params as PR
 from imubench.wire.decoder import SampleBlock
-from imubench.wire.ids import board_name, uid_text
+from imubench.wire.ids import SENSOR_BAD_BITS, SENSOR_NAMES, board_name, uid_text
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
 
@@ -129,7 +129,7 @@ class Session:
     # ---------------------------------------------------------------- health
     def check_health(self) -> dict:
         info = self.dev.info()
-        names = ["ADXL355", "gyro X", "gyro Y", "gyro Z"]
+        names = SENSOR_NAMES
         missing = [n for i, n in enumerate(names) if not info.sensors_present >> i & 1]
         if missing:
             raise SessionAborted(f"sensors missing: {', '.join(missing)} (device info) — check wiring and power; "
@@ -143,10 +143,7 @@ class Session:
         rejected = self.dev.link.decoder.stats.frames_rejected - before
         problems = []
         if bad:
-            from imubench.wire.protocol_gen import SampleStatus
-            which = [n for bit, n in zip((SampleStatus.ACCEL_BAD, SampleStatus.GYRO_X_BAD, SampleStatus.GYRO_Y_BAD,
-                                          SampleStatus.GYRO_Z_BAD), names)
-                     if np.any(b.status & bit)]
+            which = [n for bit, n in zip(SENSOR_BAD_BITS, names) if np.any(b.status & bit)]
             problems.append(f"{bad} of {len(b)} samples flagged bad" + (f" ({', '.join(which)})" if which else "")
                             + ": sensor faults, parity or SPI errors")
         if faults:
@@ -361,7 +358,7 @@ class Session:
                 if phase == "settle":
                     recent.append(b)
                     d = acc.mean(axis=0) / np.linalg.norm(acc.mean(axis=0))
-                    if still and st.n >= hold_n and d @ np.array(axis) > np.cos(np.radians(20)):
+                    if still and st.n >= hold_n and d @ np.array(axis) > np.cos(np.radians(DETECT_TOL_DEG)):
                         run = SampleBlock.concat(recent)
                         got = [run[len(run) - min(st.n, len(run)):]]
                         phase = "turn"

@@ -115,7 +115,6 @@ class SettleTimeout(ImubenchError):
         self.rate_c_per_min = [float(v) for v in rate_c_per_min]
 
 
-SENSOR_NAMES = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
 TEMP_RESOLUTION_C = 0.2        # one LSB of the ADXRS450 temperature (the ADXL355's: 1/9.05 °C)
 
 

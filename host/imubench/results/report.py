@@ -33,12 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
+from imubench import units as U
 from imubench.results.atomic import write_text_atomic
 from imubench.results.numbers import pm as _pm_sigma
 from imubench.results.sessionfile import load_state
 from imubench.wire.ids import byte_ids_text, pid_text, sn_text
 
-G0 = 9.80665
+G0 = U.G0_MPS2
 RAD2DEG = 180.0 / math.pi
 AXES = ("x", "y", "z")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -782,7 +783,7 @@ def parameter_rows(result: dict) -> list[tuple[str, str]]:
     in mg (accelerometer) or °/s (gyro)."""
     from imubench.results.numbers import pm
     rows = []
-    for kind, unit, bkey, bscale in (("accel", "mg", "b_mps2", 1e3 / 9.80665), ("gyro", "°/s", "b_rad_s", 180 / math.pi)):
+    for kind, unit, bkey, bscale in (("accel", "mg", "b_mps2", 1e3 / G0), ("gyro", "°/s", "b_rad_s", 180 / math.pi)):
         fit = (result or {}).get(kind)
         if not isinstance(fit, dict):
             continue
