@@ -80,8 +80,12 @@ lint: system-deps
 	cppcheck --enable=warning,style,performance,portability --error-exitcode=1 --inline-suppr --quiet \
 	    -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim -Ifirmware/boards/sim/models $(CPPCHECK_DIRS)
 
+# Both cores (pytest-xdist): a module's tests stay on one worker (--dist loadscope), so module-
+# and session-scoped fixtures (a virtual bench, a database server) are set up once per worker;
+# the 30 slowest tests are listed at the end, to see where the time goes.
+PYTEST_WORKERS ?= 2
 test: system-deps venv c-tests sim firmware
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadscope --durations=30
 
 demo: system-deps venv sim
 	$(PY) -m imubench.cli.demo
