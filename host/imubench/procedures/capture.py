@@ -115,17 +115,8 @@ class PoseCapture:
                 now_dir = st.mean if still else acc.mean(axis=0)
                 k, ang = detect_attitude(now_dir, full_plan)
                 now_name = full_plan[k][0] if k is not None else None
-                hint = ""
+                hint = self._hint(st.state, now_dir, now_name, ang, todo_names)
                 frac = 0.0
-                if st.state == "moving":
-                    pass                             # no hint while the person is still turning it
-                elif k is None:
-                    near = full_plan[int(np.argmin(plan_angles_deg(now_dir, full_plan)))]
-                    hint = (f"the board is in no planned attitude: {ang:.0f}° from the nearest, "
-                            f"{near[0]} ({pose_words(near[1])}); turn it until it is within "
-                            f"{DETECT_TOL_DEG:.0f}° of a missing one")
-                elif now_name not in todo_names:
-                    hint = f"{now_name} is already captured: present one of the {len(plan)} missing"
                 if (st.state == "settling" and not hint and k is not None and st.still_s > 0
                         and not judged):
                     # quiet, not yet for settle_s: the first half of the card's bar
@@ -187,6 +178,19 @@ class PoseCapture:
                     raise SessionAborted(f"no still attitude from the plan within {self.cfg.pose_timeout_s:g} s "
                                          f"({len(plan)} missing, e.g. {name}); the board must stay still for "
                                          f"{self.cfg.settle_s + self.cfg.hold_s:g} s in each attitude")
+
+    def _hint(self, state: str, now_dir: np.ndarray, now_name: str | None, ang: float, todo_names: set) -> str:
+        """What to tell the person about the attitude the board is in ("" when it is a missing one)."""
+        if state == "moving":
+            return ""                             # no hint while the person is still turning it
+        if now_name is None:
+            near = self.full_plan[int(np.argmin(plan_angles_deg(now_dir, self.full_plan)))]
+            return (f"the board is in no planned attitude: {ang:.0f}° from the nearest, "
+                    f"{near[0]} ({pose_words(near[1])}); turn it until it is within "
+                    f"{DETECT_TOL_DEG:.0f}° of a missing one")
+        if now_name not in todo_names:
+            return f"{now_name} is already captured: present one of the {len(self.plan)} missing"
+        return ""
 
     def _tell(self, msg: str, last: str) -> str:
         if msg != last:

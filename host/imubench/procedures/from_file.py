@@ -180,7 +180,6 @@ class FileAnalysis:
         self.say(f"  note: {text}")
 
     def run(self) -> dict:
-        from imubench.calib import accel as CA
         from imubench.calib import gyro as CG
         from imubench.calib.static import detect_static, require_static
         from imubench.calib.turns import detect_turns
@@ -230,27 +229,7 @@ class FileAnalysis:
         self.say(f"still intervals: {len(keep)} found by the data (window {cfg.window_s:g} s, k = {ivs.k:g} × the "
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
                                             for f, i in zip(self.faces, keep)))
-        # ---- accelerometer fit
-        self.method = cfg.method
-        if cfg.method == "auto":
-            try:
-                CA.check_observability(means, "multi_position")
-                self.method = "multi"
-                self.say("method: multi-position |a| = g (the attitudes constrain its 9 parameters)")
-            except CalibrationError as e:
-                self.method = "six"
-                self.say(f"method: six-position (the multi-position fit cannot be used: {e})")
-        if self.method == "six":
-            accel = CA.six_position(means, sigmas, skip_non_faces=True)
-        else:
-            CA.check_observability(means, "multi_position")
-            init = None
-            try:
-                init = CA.six_position(means, sigmas, skip_non_faces=True)
-            except CalibrationError:
-                pass
-            accel = CA.multi_position(means, sigmas, init=init)
-        self.accel = accel
+        accel = self._fit_accel(means, sigmas)
         # ---- gyro
         brk = [b for b, _ in rec.breaks]
         fg = rec.gyro_factor()
@@ -301,6 +280,33 @@ class FileAnalysis:
             gyro = self._gyro_fit(gyr, fs, keep, up, bias, brk, clip)
         self.gyro = gyro
         return self._result(means, sigmas)
+
+    def _fit_accel(self, means: np.ndarray, sigmas: np.ndarray) -> TriadFit:
+        """The accelerometer fit: six-position, multi-position, or (auto) multi when the
+        attitudes constrain its 9 parameters."""
+        from imubench.calib import accel as CA
+        cfg = self.cfg
+        self.method = cfg.method
+        if cfg.method == "auto":
+            try:
+                CA.check_observability(means, "multi_position")
+                self.method = "multi"
+                self.say("method: multi-position |a| = g (the attitudes constrain its 9 parameters)")
+            except CalibrationError as e:
+                self.method = "six"
+                self.say(f"method: six-position (the multi-position fit cannot be used: {e})")
+        if self.method == "six":
+            accel = CA.six_position(means, sigmas, skip_non_faces=True)
+        else:
+            CA.check_observability(means, "multi_position")
+            init = None
+            try:
+                init = CA.six_position(means, sigmas, skip_non_faces=True)
+            except CalibrationError:
+                pass
+            accel = CA.multi_position(means, sigmas, init=init)
+        self.accel = accel
+        return accel
 
     def _part_turns(self, gyr, acc, keep, up, accel) -> list:
         """Turns from the file's named parts (*_rot), for files cut tightly around each turn."""
