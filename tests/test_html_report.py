@@ -13,7 +13,8 @@ from imubench.cli import main as imubench
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
 from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for
-from imubench.results.report import PNG_MAGIC, build_report
+from imubench.results.report import build_report
+from imubench.results.report_html import PNG_MAGIC
 
 ROOT = Path(__file__).resolve().parent.parent
 
