@@ -146,6 +146,46 @@ THERMAL_FIELDS = (("accel_bias_tc", "mps2_per_c", "accel bias", "µg/°C", 1e6 /
                   ("gyro_scale_tc", "per_c", "gyro scale", "ppm/°C", 1e6))
 
 
+def seq(x, n=3) -> list:
+    """x as a list of n entries (None where x has none, or is not a list)."""
+    x = x if isinstance(x, (list, tuple)) else []
+    return [x[k] if k < len(x) else None for k in range(n)]
+
+
+def _thermal_drift_and_write(data: dict) -> list[str]:
+    """The thermal section's drift table (before and after writing the coefficients) and the
+    write-back's outcome."""
+    out = []
+
+    before, after = data.get("drift_before"), data.get("drift_after")
+    if isinstance(before, dict):
+        after = after if isinstance(after, dict) else {}
+        out.append("<h3>Drift of the device's calibrated output over the sweep (max − min)</h3>")
+        rows = []
+        for i, (label, key, unit, scale, fmt) in enumerate(
+                [(f"accel {a}", "accel_drift_mps2", "mg", 1e3 / G0, "{:.4f}") for a in AXES]
+                + [("|accel|", "accel_drift_mps2", "mg", 1e3 / G0, "{:.4f}")]
+                + [(f"gyro {a}", "gyro_drift_rad_s", "°/s", RAD2DEG, "{:.5f}") for a in AXES]):
+            k = i if i < 4 else i - 4
+            b, a = _f(seq(before.get(key), 4)[k]) * scale, _f(seq(after.get(key), 4)[k]) * scale
+            ratio = b / a if math.isfinite(a) and a > 0 and math.isfinite(b) else math.nan
+            rows.append([esc(f"{label} [{unit}]"), esc(_num(b, fmt)), esc(_num(a, fmt)), esc(_num(ratio, "{:.0f}x"))])
+        out.append(_table(["quantity", "before writing", "after writing", "before / after"], rows))
+        out.append(f"<p>level, +Z up, at {esc(', '.join(_num(c, '{:g}') for c in before.get('set_c') or []))} °C "
+                   "(set points); before: the parameters the device had, after: with the temperature coefficients "
+                   "written.</p>")
+    wb = data.get("write")
+    if isinstance(wb, dict):
+        if wb.get("verified"):
+            out.append(f"<p>written to the device: generation {esc(wb.get('generation'))}, read back bit-exactly, "
+                       f"saved, rebooted and read back again ({esc(', '.join(map(str, wb.get('steps') or [])))}).</p>")
+        else:
+            restored = {True: "the previous parameters are active again", False: "the previous parameters are NOT "
+                        "active", None: "whether the previous parameters are active is unknown"}.get(wb.get("previous_restored"))
+            out.append(f'<p class="note">write-back failed: {esc(wb.get("error"))}; {esc(restored)}.</p>')
+    return out
+
+
 def _thermal_section(path: Path | None, session_uid: str | None = None) -> str:
     out = ['<h2 id="temperature">Temperature</h2>']
     data = _load_part(path, "temperature", "no thermal data given; run imubench thermal --out DIR and pass "
@@ -153,10 +193,6 @@ def _thermal_section(path: Path | None, session_uid: str | None = None) -> str:
     if data is None:
         return "\n".join(out)
     out.append(f"<p>from {esc(Path(path).name)}</p>")
-
-    def seq(x, n=3) -> list:
-        x = x if isinstance(x, (list, tuple)) else []
-        return [x[k] if k < len(x) else None for k in range(n)]
 
     def pm(v, s, fmt, scale):                  # value ± sigma in display units, to sigma's precision
         return esc(_pm_sigma(v, s, scale=scale, fixed_text="not measured"))
@@ -233,32 +269,7 @@ def _thermal_section(path: Path | None, session_uid: str | None = None) -> str:
             out.append("<h3>Gyro turntable, (ω₊ − ω₋)/2</h3>")
             out.append(_table(["set [°C]", "x [°/s]", "y [°/s]", "z [°/s]"], rows))
 
-    before, after = data.get("drift_before"), data.get("drift_after")
-    if isinstance(before, dict):
-        after = after if isinstance(after, dict) else {}
-        out.append("<h3>Drift of the device's calibrated output over the sweep (max − min)</h3>")
-        rows = []
-        for i, (label, key, unit, scale, fmt) in enumerate(
-                [(f"accel {a}", "accel_drift_mps2", "mg", 1e3 / G0, "{:.4f}") for a in AXES]
-                + [("|accel|", "accel_drift_mps2", "mg", 1e3 / G0, "{:.4f}")]
-                + [(f"gyro {a}", "gyro_drift_rad_s", "°/s", RAD2DEG, "{:.5f}") for a in AXES]):
-            k = i if i < 4 else i - 4
-            b, a = _f(seq(before.get(key), 4)[k]) * scale, _f(seq(after.get(key), 4)[k]) * scale
-            ratio = b / a if math.isfinite(a) and a > 0 and math.isfinite(b) else math.nan
-            rows.append([esc(f"{label} [{unit}]"), esc(_num(b, fmt)), esc(_num(a, fmt)), esc(_num(ratio, "{:.0f}x"))])
-        out.append(_table(["quantity", "before writing", "after writing", "before / after"], rows))
-        out.append(f"<p>level, +Z up, at {esc(', '.join(_num(c, '{:g}') for c in before.get('set_c') or []))} °C "
-                   "(set points); before: the parameters the device had, after: with the temperature coefficients "
-                   "written.</p>")
-    wb = data.get("write")
-    if isinstance(wb, dict):
-        if wb.get("verified"):
-            out.append(f"<p>written to the device: generation {esc(wb.get('generation'))}, read back bit-exactly, "
-                       f"saved, rebooted and read back again ({esc(', '.join(map(str, wb.get('steps') or [])))}).</p>")
-        else:
-            restored = {True: "the previous parameters are active again", False: "the previous parameters are NOT "
-                        "active", None: "whether the previous parameters are active is unknown"}.get(wb.get("previous_restored"))
-            out.append(f'<p class="note">write-back failed: {esc(wb.get("error"))}; {esc(restored)}.</p>')
+    out += _thermal_drift_and_write(data)
 
     from imubench.results.thermal import plot_thermal
     with tempfile.TemporaryDirectory() as td:
