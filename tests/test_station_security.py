@@ -126,6 +126,32 @@ def test_a_foreign_host_is_refused(served, operator):
     still_serves(served, operator)
 
 
+def test_an_ssh_tunnel_on_another_port_is_served_only_when_allowed(tmp_path):
+    """ssh -L 9000:127.0.0.1:PORT: the browser says Host localhost:9000 and that Origin; the
+    station serves it only with --allow-origin http://localhost:9000 (Server(allow_origins))."""
+    station = Station(workdir=tmp_path, allow_sim=False, history=False)
+    server = Server(station, allow_origins=["http://localhost:9000"]).start()
+    try:
+        head = ("POST /api/hello HTTP/1.1\nHost: {h}\nOrigin: http://{h}\nContent-Type: application/json\n"
+                "Content-Length: 2\nConnection: close\n")
+        assert raw_request(server.port, head.format(h="localhost:9000"), b"{}")[0] == 200
+        assert raw_request(server.port, head.format(h=f"127.0.0.1:{server.port}"), b"{}")[0] == 200
+        code, text = raw_request(server.port, head.format(h="localhost:9001"), b"{}")
+        assert code == 403 and "served as" in text
+    finally:
+        server.stop()
+        station.close()
+
+
+def test_the_page_cannot_be_framed_and_a_report_runs_no_script(served):
+    with urllib.request.urlopen(served.url, timeout=10) as r:
+        csp = r.headers["Content-Security-Policy"]
+        assert "frame-ancestors 'none'" in csp and "default-src 'self'" in csp and r.headers["X-Frame-Options"] == "DENY"
+    with pytest.raises(urllib.error.HTTPError) as e:
+        urllib.request.urlopen(served.url + "report/x/report.html", timeout=10)
+    assert e.value.code == 404 and e.value.headers["Content-Security-Policy"].startswith("default-src 'none'")
+
+
 # ------------------------------------------------------------------------- Origin and JSON
 def test_state_changes_need_the_pages_origin_and_a_json_body(served, operator):
     port = served.port

@@ -101,6 +101,12 @@ def _json_refusal(status: int, message: str):
 
 
 SAFE_METHODS = ("GET", "HEAD")
+# on every response: no framing (clickjacking of Start/Stop), no sniffing, no referrer; the page
+# loads only its own script, style and pictures; a report (HTML built from a session) runs no
+# script at all, so no text in it can act as the page
+PAGE_CSP = ("default-src 'self'; img-src 'self' data:; object-src 'none'; base-uri 'none'; "
+            "form-action 'self'; frame-ancestors 'none'")
+REPORT_CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'; base-uri 'none'; frame-ancestors 'none'"
 
 
 class PageGuard:
@@ -113,6 +119,8 @@ class PageGuard:
     - a state-changing request (not GET/HEAD) without the page's Origin           403
     - ... or whose body is not JSON (text/plain and forms: no simple requests)  415
     - a body larger than MAX_BODY_BYTES (read no further)                        413
+    and adds to every response a Content-Security-Policy (the page: its own files only, never
+    framed; a report: no script), X-Frame-Options, nosniff and no referrer.
     """
 
     def __init__(self, app, access: PageAccess):
@@ -128,9 +136,17 @@ class PageGuard:
             body, refusal = await _bounded_body(receive, headers)
             if refusal is None:
                 receive = _replay(body, receive)
+        csp = REPORT_CSP if scope["path"].startswith("/report/") else PAGE_CSP
+        extra = [(b"content-security-policy", csp.encode()), (b"x-frame-options", b"DENY"),
+                 (b"x-content-type-options", b"nosniff"), (b"referrer-policy", b"no-referrer")]
+
+        async def send_with_headers(m):
+            if m["type"] == "http.response.start":
+                m = {**m, "headers": [*m.get("headers", []), *extra]}
+            await send(m)
         if refusal is not None:
-            return await _json_refusal(*refusal)(scope, receive, send)
-        return await self.app(scope, receive, send)
+            return await _json_refusal(*refusal)(scope, receive, send_with_headers)
+        return await self.app(scope, receive, send_with_headers)
 
     def refusal(self, scope, headers) -> tuple[int, str] | None:
         a = self.access
