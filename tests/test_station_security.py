@@ -202,6 +202,7 @@ def test_identity_is_issued_by_the_server_never_taken_from_a_request(served, ope
     code, body = other.call("api/claim", {"key": DEVICE})
     assert code == 200 and body["yours"] is False
     assert "driven from another page" in error_of(other.call("api/stop", {"key": DEVICE}))
+    assert "shows no device 'socket://127.0.0.1:9'" in error_of(other.call("api/resume", {"key": "socket://127.0.0.1:9"}))
     still_serves(served, operator)
 
 

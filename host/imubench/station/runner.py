@@ -125,6 +125,7 @@ class Station:
         return key
 
     def resume(self, key: str, token: str | None) -> None:
+        self._known(key)
         if not self.state.owns(key, token):
             raise StationError(f"{key[:80]} is driven from another page: this page only watches it", status=409)
         with self._lock:
@@ -142,12 +143,17 @@ class Station:
             self._launch(key, dict(b.config), Path(b.session_dir), resume=True)
 
     def stop(self, key: str, token: str | None) -> None:
+        self._known(key)
         if not self.state.owns(key, token):
             raise StationError(f"{key[:80]} is driven from another page: this page only watches it", status=409)
         ui = self._ui.get(key)
         if ui is None or not self.running(key):
             raise StationError(f"no session is running on {key[:80]}")
         ui.stop()
+
+    def _known(self, key: str) -> None:
+        if key not in self.state.boards:
+            raise StationError(f"this station shows no device {key[:80]!r}", status=404)
 
     def running(self, key: str) -> bool:
         t = self._threads.get(key)
