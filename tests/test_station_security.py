@@ -259,6 +259,9 @@ def test_port_options_on_the_command_line_fail_in_one_line():
     r = subprocess.run([sys.executable, "-m", "imubench", "station", "--allow-origin", "evil.example"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "is not an origin like http://localhost:9000" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "imubench", "station", "--allow-port-host", "socket://10.0.0.5:4000"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "is not a host (an IP address or a name" in r.stderr, r.stderr
 
 
 # ------------------------------------------------------------------------- bad values

@@ -29,6 +29,22 @@ def _handler(s: str) -> str:
     return name
 
 
+def _port_host(s: str) -> str:
+    """--allow-port-host: *, an IP address, or a host name (no scheme, no port)."""
+    import argparse
+    import ipaddress
+    import re
+    h = s.strip()
+    if h == "*" or re.fullmatch(r"[A-Za-z0-9]([A-Za-z0-9-]{0,62})(\.[A-Za-z0-9]([A-Za-z0-9-]{0,62}))*", h):
+        return h
+    try:
+        ipaddress.ip_address(h.strip("[]"))
+        return h
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not a host (an IP address or a name, no scheme or port; "
+                                         "* any)") from None
+
+
 def _origin(s: str) -> str:
     import argparse
     from imubench.station.security import origin_authority
@@ -47,7 +63,7 @@ def add_web(p) -> None:
     p.add_argument("--allow-port-handler", type=_handler, action="append", default=[], metavar="NAME",
                    help="let the page open ports of this pyserial URL handler too (spy, loop, hwgrep, alt, cp2110; "
                         "spy:// never with file=); by default only serial devices, socket:// and rfc2217://")
-    p.add_argument("--allow-port-host", action="append", default=[], metavar="HOST",
+    p.add_argument("--allow-port-host", type=_port_host, action="append", default=[], metavar="HOST",
                    help="let the page open socket:// and rfc2217:// ports on HOST (an IP or a name; * any); "
                         "by default only on this machine, so that no page makes the station connect elsewhere")
     p.add_argument("--allow-origin", type=_origin, action="append", default=[], metavar="URL",
