@@ -7,9 +7,10 @@ machine may drive it:
     PageAccess   the addresses the page is served as (127.0.0.1 / localhost / [::1] with the
                  served port, and any --allow-origin); the Host and Origin a request must carry
     PageGuard    ASGI middleware in front of every route: a Host the page is not served as is
-                 refused (DNS rebinding; Starlette's TrustedHostMiddleware refuses foreign names
-                 first, this adds the port), a state-changing request needs this page's Origin
-                 and a JSON body, a cross-site fetch of the API is refused, and bodies are bounded
+                 refused with the address to open instead (DNS rebinding; Starlette's
+                 TrustedHostMiddleware behind it checks the name again), a state-changing
+                 request needs this page's Origin and a JSON body, a cross-site fetch of the API
+                 is refused, and bodies are bounded
     PortPolicy   the device ports a page may open: serial devices, socket:// and rfc2217:// on
                  this machine; other hosts and other pyserial URL handlers only when the command
                  line allows them; spy:// never writes a file
@@ -111,9 +112,9 @@ REPORT_CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'; base
 
 class PageGuard:
     """ASGI middleware: refuses, with a 4xx and a one-line reason, every request that does not
-    come from the page as served here. Starlette's TrustedHostMiddleware (wrapped outside this
-    one by guard()) has already refused a Host whose name is not the page's; here:
-    - Host with a port the page is not served on (e.g. localhost:OTHER)          403
+    come from the page as served here:
+    - a Host that is not one of the page's host:port (evil.example:PORT, the DNS-rebinding
+      case; localhost:OTHER; none)                                               403
     - any /api/ request a browser marks cross-site or same-site (Sec-Fetch-Site)  403
     - a request carrying an Origin that is not the page's                         403
     - a state-changing request (not GET/HEAD) without the page's Origin           403
@@ -205,10 +206,13 @@ def _replay(body: bytes, receive):
 
 
 def guard(app, access: PageAccess):
-    """The app behind TrustedHostMiddleware (foreign host names, the DNS-rebinding case, are
-    refused before anything of ours runs) and PageGuard (port, Origin, JSON, body size)."""
+    """The app behind PageGuard (Host with the port, Origin, JSON, body size; a refusal says
+    which address to open) and, inside it, Starlette's TrustedHostMiddleware: a second,
+    independent check of the host name by the library's own Host parser, so that a mistake
+    in PageGuard alone does not let a rebinding site in. (TrustedHostMiddleware alone is not
+    enough: it ignores the port and answers only "Invalid host header".)"""
     from starlette.middleware.trustedhost import TrustedHostMiddleware
-    return TrustedHostMiddleware(PageGuard(app, access), allowed_hosts=access.hostnames, www_redirect=False)
+    return PageGuard(TrustedHostMiddleware(app, allowed_hosts=access.hostnames, www_redirect=False), access)
 
 
 # ------------------------------------------------------------------ what: the request body

@@ -3,9 +3,10 @@ uvicorn, bound to 127.0.0.1 only. Live updates are server-sent events: one snaps
 station's state (station.state) each time it changes, at most ten a second.
 
 Only the operator's own browser drives it (station.security; docs/production.md): every
-request passes TrustedHostMiddleware and PageGuard (Host with the served port, the page's
-Origin and a JSON body for every POST, bounded bodies); a browser's identity is an HttpOnly,
-SameSite=Strict cookie the server issues (POST /api/hello), never a token from a body or URL.
+request passes PageGuard (Host with the served port, the page's Origin and a JSON body for
+every POST, bounded bodies) and TrustedHostMiddleware (the host name, again); a browser's
+identity is an HttpOnly, SameSite=Strict cookie the server issues (POST /api/hello), never a
+token from a body or a URL.
 
     GET  /                     the page (static/station.html)
     GET  /static/...           its CSS and JS (package data; nothing from the network)
