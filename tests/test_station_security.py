@@ -294,6 +294,9 @@ def test_bad_values_are_refused_with_the_reason(served, operator):
     for q in ("pose.svg?up=1e999,0,0", "pose.svg?up=nan,0,1", "turn.svg?axis=0,0,1&rate=1e999",
               "turn.svg?axis=0,0,1&angle=nan", "turn.svg?axis=0,0,1&rate=abc"):
         assert error_of(operator.call(q)), q
+    for q in ("pose.svg?up=1e300,1e300,0", "pose.svg?up=0,1e-320,0", "turn.svg?axis=1e300,0,0&rate=5"):
+        code, svg = operator.call(q)                          # extreme but valid: drawn, not NaN
+        assert code == 200 and svg.startswith("<svg") and "nan" not in svg.lower(), q
     still_serves(served, operator)
 
 

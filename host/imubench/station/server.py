@@ -247,8 +247,9 @@ def _vector(text) -> tuple:
     except ValueError:
         v = ()
     if len(v) != 3 or not any(v) or not all(math.isfinite(x) for x in v):
-        raise StationError("give a direction as x,y,z (board frame), not all zero")
-    return v
+        raise StationError("give a direction as x,y,z (board frame), finite numbers, not all zero")
+    big = max(abs(x) for x in v)            # scaled to at most 1: 1e300 or 1e-320 draw as 1
+    return tuple(x / big for x in v)
 
 
 def _finite(x):
