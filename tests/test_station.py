@@ -100,6 +100,7 @@ def test_one_page_owns_a_device_the_others_watch(monkeypatch):
     assert st.claim("socket://a:1", other) is None
     # an owner that went away (no page open for the grace time) gives the device up
     st.stream_closed(owner)
+    assert {b["key"]: b["owned"] for b in st.snapshot(other)["boards"]}["socket://a:1"] is False   # the pages may claim it
     assert st.claim("socket://a:1", other) == other
 
 

@@ -203,13 +203,15 @@ class StationState:
     def snapshot(self, token: str | None = None) -> dict:
         with self._lock:
             boards = []
+            now = time.monotonic()
             for b in self.boards.values():
                 d = asdict(b)
                 d.pop("owner")
                 d.pop("owner_seen")
                 d.pop("by_page")
                 d["yours"] = bool(token and b.owner == token)
-                d["owned"] = b.owner is not None
+                # driven by a page still there: a device whose driver is gone is free to claim
+                d["owned"] = b.owner is not None and (self._present(b.owner) or now - b.owner_seen < OWNER_GRACE_S)
                 boards.append(copy.deepcopy(d))
             return {"version": self.version, "mode": self.mode, "sim": self.sim_available, "boards": boards}
 
