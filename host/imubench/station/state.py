@@ -1,6 +1,9 @@
 """What the station's pages show, keyed per device: one DeviceBoard per device, so that a
 multi-board fixture can show one column per board. Thread-safe: the session threads write,
-the server's event streams wait for a new version and send a snapshot."""
+every change calls the on_change callbacks (the server wakes its event streams on its event
+loop, no thread each) and they send a snapshot. Also who is who: the identities the server
+issued (one per browser), which one drives each device, how many event streams each has
+open; each bounded (MAX_*)."""
 from __future__ import annotations
 
 import copy
@@ -214,8 +217,3 @@ class StationState:
                 d["owned"] = b.owner is not None and (self._present(b.owner) or now - b.owner_seen < OWNER_GRACE_S)
                 boards.append(copy.deepcopy(d))
             return {"version": self.version, "mode": self.mode, "sim": self.sim_available, "boards": boards}
-
-    def wait(self, version: int, timeout: float) -> int:
-        with self._lock:
-            self._lock.wait_for(lambda: self.version != version or self.closed, timeout=timeout)
-            return self.version
