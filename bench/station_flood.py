@@ -105,7 +105,11 @@ def start_once(op: Client, server_state) -> float:
 
 
 def main() -> int:
-    tmp = tempfile.mkdtemp(prefix="station-flood-")
+    with tempfile.TemporaryDirectory(prefix="station-flood-") as tmp:
+        return run(tmp)
+
+
+def run(tmp: str) -> int:
     proc = subprocess.Popen([sys.executable, "-m", "imubench", "station", "--http-port", "0", "--dir", tmp,
                              "--db", os.path.join(tmp, "h.sqlite")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
