@@ -40,7 +40,7 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
         page = browser.new_page(viewport={"width": 1280, "height": 1400})
         page.set_default_timeout(90_000)
         page.goto(server.url)
-        assert page.locator("#setup").is_visible()
+        page.locator("#setup").wait_for()          # shown once the state has arrived (after the load event)
         # a six-position choice warns that it needs a square fixture
         page.select_option("#method", "six")
         assert page.locator("#six-warning").is_visible()

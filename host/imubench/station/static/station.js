@@ -218,9 +218,8 @@
     } catch (e) { $("#setup-error").textContent = e.message; }
   };
 
-  // this browser's identity first (the cookie), then the state and its live updates
-  post("/api/hello", {}).catch((e) => { $("#conn").textContent = "refused: " + e.message; }).finally(() => {
-    fetch("/api/state").then((r) => r.json()).then((s) => { last = s; render(s); }).catch(() => {});
-    reconnect();
-  });
+  // the state at once (what any page may see); the live updates once this browser has its
+  // identity (the cookie), so that they say which devices it drives
+  fetch("/api/state").then((r) => r.json()).then((s) => { if (!last) { last = s; render(s); } }).catch(() => {});
+  post("/api/hello", {}).catch((e) => { $("#conn").textContent = "refused: " + e.message; }).finally(reconnect);
 })();
