@@ -459,13 +459,14 @@ def _run_station(a, cfg) -> int:
         lock = threading.Lock()
 
         def on_event(st: dict) -> None:         # one line per board and stage (called from the boards' threads)
-            key = (st["stage"], st["state"])
+            key = (st["stage"], st["state"], bool(st.get("waiting")))
             with lock:
                 if last.get(st["slot"]) != key:
                     last[st["slot"]] = key
                     who = st["uid"] or st["port"]
                     print(f"  slot {st['slot']} {who}: {st['state'] if st['state'] != 'running' else st['stage']}"
-                          + (f" ({st['reason']})" if st["reason"] else ""), flush=True)
+                          + (f" ({st['reason']})" if st["reason"] else "")
+                          + (f": {st['waiting']}" if st.get("waiting") else ""), flush=True)
         if a.ui == "web":
             res = _station_on_page(a, cfg, ports, directory, mover, station, db, on_event)
         else:
