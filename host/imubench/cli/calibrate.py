@@ -79,6 +79,7 @@ def register(sub) -> None:
     p.add_argument("--closure", action="store_true",
                    help="after a verified write-back, run the closure check (imubench closure) into DIR/closure: "
                         "the virtual bench drives a closed path, or you carry the board around one")
+    p.set_defaults(sim_speed=None)      # None: SIM_SPEED, capped for many boards (_station_sim_speed)
     p.add_argument("--sim-boards", type=_board_count, default=1, metavar="N",
                    help="with --sim: N virtual devices on one virtual fixture (each its own random truth and serial "
                         "numbers, seeds --sim-seed, --sim-seed + 1, ...): one station session")
@@ -201,7 +202,26 @@ def _check_history(db) -> None:
                            "start the database or fix --db (or IMUBENCH_DB); nothing was captured") from None
 
 
+SIM_SPEED = 20.0
+#: samples per second of host time the virtual fixture's boards may send together when
+#: --sim-speed is not given: the host decodes every board's stream in Python, on the same
+#: cores as the virtual devices; past this the links fall behind (16 boards at speed 20 and
+#: 500 Hz, 160000 samples/s, left stop_stream unanswered behind the backlog on a loaded
+#: 2-core machine). A real line runs at speed 1: bench/multi_dut.py measures that.
+SIM_SAMPLES_PER_S = 80_000
+
+
+def _station_sim_speed(boards: int, rate_hz: float) -> float:
+    """The virtual fixture's speed when none is given: SIM_SPEED, or less for many boards."""
+    return min(SIM_SPEED, max(1.0, SIM_SAMPLES_PER_S / (boards * rate_hz)))
+
+
 def run(a) -> int:
+    if getattr(a, "sim_speed", None) is None:
+        a.sim_speed_given = False
+        a.sim_speed = SIM_SPEED
+    else:
+        a.sim_speed_given = True
     if a.db and Path(a.db).is_dir():
         raise UsageError(f"--db {a.db} is a directory", f"give the database file, e.g. {Path(a.db) / 'history.sqlite'}")
     _check_history(a.db or (a.station_file or {}).get("db"))
@@ -436,6 +456,11 @@ def _run_station(a, cfg) -> int:
     with ExitStack() as stack:
         if a.sim:
             from imubench.device.sim import VirtualBench
+            if not a.sim_speed_given and _station_sim_speed(a.sim_boards, cfg.rate_hz) < a.sim_speed:
+                a.sim_speed = _station_sim_speed(a.sim_boards, cfg.rate_hz)
+                print(f"virtual devices at speed {a.sim_speed:g} (not {SIM_SPEED:g}): {a.sim_boards} boards at "
+                      f"{cfg.rate_hz:g} Hz send {a.sim_boards * cfg.rate_hz * a.sim_speed:.0f} samples/s, what the "
+                      "host decodes alongside them; --sim-speed X to choose")
             benches = [stack.enter_context(VirtualBench(speed=a.sim_speed, seed=a.sim_seed + k, truth="random",
                                                         target=a.target))
                        for k in range(a.sim_boards)]
@@ -447,7 +472,7 @@ def _run_station(a, cfg) -> int:
                 _inject_sim_fault(benches[slot - 1], sensor)
             mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed)
             print(f"{len(benches)} virtual devices with random truth (seeds {a.sim_seed}..{a.sim_seed + len(benches) - 1}) "
-                  "on one virtual fixture")
+                  f"on one virtual fixture, speed {a.sim_speed:g}")
         else:
             from imubench.cli.terminal import HumanPresenter
             mover = HumanPresenter()
