@@ -209,11 +209,15 @@ SIM_SPEED = 20.0
 #: 500 Hz, 160000 samples/s, left stop_stream unanswered behind the backlog on a loaded
 #: 2-core machine). A real line runs at speed 1: bench/multi_dut.py measures that.
 SIM_SAMPLES_PER_S = 80_000
+#: with the station page (--ui web) the host also serves the page's events: half of that
+#: (8 boards at speed 20 on the page lost samples on the loaded machine; at speed 10 none)
+SIM_SAMPLES_PER_S_PAGE = 40_000
 
 
-def _station_sim_speed(boards: int, rate_hz: float) -> float:
+def _station_sim_speed(boards: int, rate_hz: float, page: bool = False) -> float:
     """The virtual fixture's speed when none is given: SIM_SPEED, or less for many boards."""
-    return min(SIM_SPEED, max(1.0, SIM_SAMPLES_PER_S / (boards * rate_hz)))
+    budget = SIM_SAMPLES_PER_S_PAGE if page else SIM_SAMPLES_PER_S
+    return min(SIM_SPEED, max(1.0, budget / (boards * rate_hz)))
 
 
 def run(a) -> int:
@@ -456,11 +460,13 @@ def _run_station(a, cfg) -> int:
     with ExitStack() as stack:
         if a.sim:
             from imubench.device.sim import VirtualBench
-            if not a.sim_speed_given and _station_sim_speed(a.sim_boards, cfg.rate_hz) < a.sim_speed:
-                a.sim_speed = _station_sim_speed(a.sim_boards, cfg.rate_hz)
+            capped = _station_sim_speed(a.sim_boards, cfg.rate_hz, page=a.ui == "web")
+            if not a.sim_speed_given and capped < a.sim_speed:
+                a.sim_speed = capped
                 print(f"virtual devices at speed {a.sim_speed:g} (not {SIM_SPEED:g}): {a.sim_boards} boards at "
                       f"{cfg.rate_hz:g} Hz send {a.sim_boards * cfg.rate_hz * a.sim_speed:.0f} samples/s, what the "
-                      "host decodes alongside them; --sim-speed X to choose")
+                      "host decodes alongside them" + (" and the page" if a.ui == "web" else "")
+                      + "; --sim-speed X to choose")
             benches = [stack.enter_context(VirtualBench(speed=a.sim_speed, seed=a.sim_seed + k, truth="random",
                                                         target=a.target))
                        for k in range(a.sim_boards)]
@@ -528,12 +534,11 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
         page.board_event(st["port"], st)
 
     uis = {port: page.adopt(port, options, k + 1) for k, port in enumerate(ports)}   # the columns in slot order
-
     def run() -> None:
         try:
             box["res"] = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=both,
                                      link_timeout_s=a.link_timeout, baudrate=a.baud,
-                                     pages=lambda slot, port: uis[port])
+                                     pages=lambda slot, port: uis[port], on_plate=page.plate_event)
             for b in box["res"].boards:   # verdicts, parameters and reports on the columns
                 page.board_result(b.port, box["res"].results.get(b.slot) or {}, directory / f"slot-{b.slot}",
                                   b.run_id)

@@ -218,6 +218,10 @@ class Plate:
         self.moving = True
         self.position = {"kind": move.kind, "key": _key_text(move.key), "serves": list(move.serves),
                          "waiting": list(move.waiting), "move": self.moves + 1}
+        if isinstance(move.key, str) and len(args) > 1 and args[1] is not None:     # an attitude: which way is up
+            from imubench.procedures.poses import pose_words
+            up = np.asarray(args[1], float)
+            self.position.update(up=[float(x) for x in up], words=pose_words(up))
         self._refresh_waits()
         self._cv.release()
         try:
@@ -586,6 +590,7 @@ class FixtureRun:
             raise SessionAborted(f"{self.dir} already holds a station session: give another --dir")
         self._save_station()
         self.say(self.deadlines_text())
+        self._on_move({"deadlines": self.deadlines_text()})
         threads = [threading.Thread(target=self._board, args=(slot,), name=f"board-{slot}", daemon=True)
                    for slot in self.boards]
         for t in threads:

@@ -32,6 +32,8 @@ class DeviceBoard:
     resumable: bool = False
     done_seq: int = 0                                 # how many poses are done (order of capture)
     suggested: str | None = None                      # the missing attitude that helps the fit most
+    fixture: dict = field(default_factory=dict)       # a station session's board: slot, stage, state,
+                                                      # message, progress, reason, waiting (fixture.BoardStatus)
     owner: str | None = field(default=None, repr=False)
     owner_seen: float = 0.0
 
@@ -44,6 +46,7 @@ class StationState:
         self.mode = "idle"                    # "idle": the page chooses; "session": started by the command
         self.sim_available = True             # the page may choose the virtual bench
         self.closed = False                   # the server is stopping: event streams end
+        self.plate: dict = {}                 # a station session's plate: its last move, the deadlines
 
     def close(self) -> None:
         """Wake every event stream and let it end (before the web server stops, so that no
@@ -112,7 +115,14 @@ class StationState:
                 d["yours"] = bool(token and b.owner == token)
                 d["owned"] = b.owner is not None
                 boards.append(copy.deepcopy(d))
-            return {"version": self.version, "mode": self.mode, "sim": self.sim_available, "boards": boards}
+            return {"version": self.version, "mode": self.mode, "sim": self.sim_available, "boards": boards,
+                    "plate": copy.deepcopy(self.plate)}
+
+    def set_plate(self, **kw) -> None:
+        """A station session's plate: what it presents now (fixture.Plate's move), the deadlines."""
+        with self._lock:
+            self.plate.update(kw)
+            self._bump()
 
     def wait(self, version: int, timeout: float) -> int:
         with self._lock:
