@@ -212,3 +212,43 @@ def test_a_healthy_line_needs_no_more_moves_than_its_most_demanding_board(monkey
             t.join(20)
         assert not any(t.is_alive() for t in ts)
         assert len(mover.moves) == max(needs.values()), (seed, needs)
+
+
+def test_eight_real_boards_with_the_defaults_two_faulted(tmp_path):
+    """End to end, once: 8 virtual devices (random truths) on the virtual plate with the
+    command's defaults (adaptive multi-position, gyro bias, write-back, verification; no
+    attitude timeout given: the station session sets its own). Slot 3's gyro is faulted from
+    the start, slot 6's link dies after its fourth attitude. Every other board passes; the
+    two fail with their stage and reason; no wait at the plate went past its deadline."""
+    from imubench.device.sim import VirtualBench
+    from imubench.procedures.fixture import FixtureRun, PlatePresenter, Station
+    from imubench.procedures.session import SessionConfig
+    benches = []
+    try:
+        for k in range(8):
+            benches.append(VirtualBench(speed=10, seed=700 + k, truth="random"))
+        benches[2].inject("gyro_fault_bits", sensor="gyro_y", bits=0x10, persistent=True)
+        cut = threading.Event()
+
+        def on_event(st):
+            if st["slot"] == 6 and st["message"].startswith("[5/") and not cut.is_set():
+                cut.set()
+                benches[5].inject("link_drop", count=10**9)
+        cfg = SessionConfig(method="multi", gyro="bias", adaptive=True, pose_timeout_s=None)
+        run = FixtureRun([vb.port_url for vb in benches], tmp_path / "st", cfg, PlatePresenter(benches, quiet=True),
+                         station=Station("S-e2e"), db=str(tmp_path / "h.sqlite"), on_event=on_event,
+                         link_timeout_s=3.0, say=lambda s: None, plots=False)
+        res = run.run()
+    finally:
+        for vb in benches:
+            vb.close()
+    states = {b.slot: (b.state, b.stage) for b in res.boards}
+    want = {k: ("passed", "done") for k in range(1, 9)} | {3: ("failed", "health"), 6: ("failed", "link")}
+    assert cut.is_set() and states == want, [(b.slot, b.reason) for b in res.boards]
+    assert all(b.reason for b in res.boards if b.state == "failed")
+    assert run.cfg.pose_timeout_s == FX.POSE_TIMEOUT_S
+    assert all(w["waited_s"] <= w["deadline_s"] for w in run.plate.waits) and run.plate.waits
+    for slot in (1, 2, 4, 5, 7, 8):
+        rec = res.results[slot]
+        assert rec["verified"] and rec["adaptive"] and len(rec["poses"]) >= 12
+        assert rec["link"]["samples_missing"] == 0
