@@ -252,3 +252,45 @@ def test_eight_real_boards_with_the_defaults_two_faulted(tmp_path):
         rec = res.results[slot]
         assert rec["verified"] and rec["adaptive"] and len(rec["poses"]) >= 12
         assert rec["link"]["samples_missing"] == 0
+
+
+def test_a_board_stopped_while_it_waits_leaves_the_plate_at_once(monkeypatch):
+    """Stop on the page (check() raises) reaches a board waiting at the plate: it leaves,
+    and the plate no longer waits for it."""
+    monkeypatch.setattr(Plate, "CHECK_S", 0.002)
+    clock, phases, ref = Clock(), {}, []
+    mover = Mover(clock, ref, phases)
+    plate = Plate(mover, [1, 2, 3])
+    ref.append(plate)
+    stop = threading.Event()
+
+    class Stopped(Exception):
+        pass
+
+    def check():
+        if stop.is_set():
+            raise Stopped("stopped on the page")
+    got = {}
+
+    def waiter():           # slot 1 waits for verification while slot 3 still needs attitudes
+        try:
+            plate.request(1, Need("verify", ("+Z",)), {"+Z": ("+Z", None, 0, 3)}, clock=clock, check=check)
+        except Stopped as e:
+            got[1] = str(e)
+    t = threading.Thread(target=waiter)
+    t.start()
+    threading.Thread(target=lambda: got.setdefault(2, plate.request(2, Need("verify", ("+Z",)),
+                                                                    {"+Z": ("+Z", None, 0, 3)}, clock=clock))).start()
+    threading.Event().wait(0.05)
+    assert t.is_alive() and not mover.moves          # slot 3 has not asked yet: nothing moves
+    stop.set()
+    t.join(5)
+    assert not t.is_alive() and got[1] == "stopped on the page" and 1 not in plate.live
+    assert plate.waits[-1]["outcome"] == "stopped"
+    assert plate.request(3, Need("pose", ("a",)), {"a": ("a", None)}, clock=clock) == "a"
+    plate.leave(3)
+    for _ in range(500):
+        if 2 in got:
+            break
+        threading.Event().wait(0.01)
+    assert got.get(2) == "+Z" and [m[1] for m in mover.moves] == ["a", "+Z"]

@@ -7,9 +7,13 @@ The boards are mounted on one plate, so they see the same attitudes and the same
 motion. Each board runs the ordinary guided session (imubench.procedures.session: health
 check, rest, poses, turns, fit, write-back, verification) in its own thread on its own link,
 in its own session directory (DIR/slot-K). The plate is shared: a board's session that asks
-for the next attitude or turn waits at the Plate until every board still running has asked
-for it, then the plate is moved once (by the operator, or on the virtual bench by a
-PlatePresenter that moves every virtual device) and all of them go on. A board that fails
+for its next move (any attitude it still misses, a turn, a verification attitude) waits at
+the Plate until every board still running has asked; then the plate makes the move that
+serves the most boards (procedures.schedule: the attitudes boards still need first, the most
+shared first; turns; verification last), by the operator or on the virtual bench by a
+PlatePresenter that moves every virtual device, and the boards it serves go on. Every wait
+has a deadline in device time (PLATE_TIMEOUT_S at the plate, POSE_TIMEOUT_S for a presented
+attitude): past it that board fails with the stage and the reason. A board that fails
 (its link lost, a sensor faulted, its fit refused or out of tolerance, its write-back or
 verification failed) leaves the plate with its stage and reason, and the others carry on:
 the verdict is per board.
@@ -153,10 +157,11 @@ class Plate:
 
     # ------------------------------------------------------------ asking
     def request(self, slot: int, need: Need, args: dict, clock: Callable[[], float] | None = None,
-                stage: str = "poses"):
+                stage: str = "poses", check: Callable[[], None] | None = None):
         """Wait until the plate presents something `need` accepts; returns its key (None when
         this board is no longer on the plate). args: {key: the mover's arguments for it}.
-        Raises BoardFailed(stage, why) when the wait passes its deadline (device time)."""
+        Raises BoardFailed(stage, why) when the wait passes its deadline (device time), and
+        whatever check() raises (a Stop on the page) after leaving the plate."""
         with self._cv:
             if slot not in self.live:
                 return None
@@ -176,6 +181,13 @@ class Plate:
                     if not self.moving and set(self.needs) >= self.live:
                         self._move()
                         continue
+                    if check is not None:
+                        try:
+                            check()
+                        except BaseException:
+                            self._log(slot, need, waited, "stopped")
+                            self._drop(slot)
+                            raise
                     if t0 is not None:
                         waited = clock() - t0
                         if waited > self.deadline_s:
@@ -339,7 +351,7 @@ class BoardPresenter:
                          progress=len(done) / max(total, 1))
         need = Need("pose", tuple(n for n, _ in todo), prefer=self.suggested)
         args = {n: (n, np.asarray(d, float)) for n, d in todo}
-        key = self.run.plate.request(self.slot, need, args, clock=self.clock, stage="poses")
+        key = self.run.plate.request(self.slot, need, args, clock=self.clock, stage="poses", check=self._check_page)
         if key is not None:
             self.run._update(self.slot, message=f"[{len(done) + 1}/{total}] {key}")
             if self.page is not None:
@@ -363,7 +375,7 @@ class BoardPresenter:
                 self.page.pose_event(name, "capturing", {"progress": 0.0})
         need = Need("verify" if verify else "turn", (name,))
         self.run.plate.request(self.slot, need, {name: (name, np.asarray(direction, float), index, total)},
-                               clock=self.clock, stage=stage)
+                               clock=self.clock, stage=stage, check=self._check_page)
         self.discard()
 
     def present_turn(self, axis, rate_dps, duration_s):
@@ -373,7 +385,7 @@ class BoardPresenter:
             self.page.present_turn(axis, rate_dps, duration_s)
         key = (tuple(float(x) for x in np.round(np.asarray(axis, float), 6)), float(rate_dps))
         self.run.plate.request(self.slot, Need("turn", (key,)), {key: (np.asarray(axis, float), rate_dps, duration_s)},
-                               clock=self.clock, stage="turntable")
+                               clock=self.clock, stage="turntable", check=self._check_page)
         self.discard()
 
     def progress(self, label, fraction):
