@@ -96,6 +96,11 @@ def register(sub) -> None:
     p.add_argument("--link-timeout", type=positive_float, default=10.0, metavar="S",
                    help="with several boards: a board that sends nothing for S seconds has lost its link and "
                         "is marked failed (the others go on)")
+    p.add_argument("--plate-timeout", type=positive_float, default=None, metavar="S",
+                   help="with several boards: a board waits at most S seconds of device time for the plate to "
+                        "present what it needs (the other boards' attitudes come first), else it fails and the "
+                        f"others go on (default {PLATE_TIMEOUT_VIRTUAL_S:g} on the virtual bench, "
+                        f"{PLATE_TIMEOUT_HAND_S:g} when a person moves the plate)")
     _add_from_file(p)
     p.set_defaults(run=run)
 
@@ -203,6 +208,10 @@ def _check_history(db) -> None:
 
 
 SIM_SPEED = 20.0
+#: a station session's plate deadline (fixture.Plate) when --plate-timeout is not given: the
+#: virtual plate moves in a few seconds; a person may take a minute per attitude
+PLATE_TIMEOUT_VIRTUAL_S = 300.0
+PLATE_TIMEOUT_HAND_S = 1200.0
 #: samples per second of host time the virtual fixture's boards may send together when
 #: --sim-speed is not given: the host decodes every board's stream in Python, on the same
 #: cores as the virtual devices; past this the links fall behind (16 boards at speed 20 and
@@ -250,6 +259,9 @@ def run(a) -> int:
         raise UsageError("--redo goes with --resume DIR", "give the session directory to continue")
     if a.resume and a.dir:
         raise UsageError("--dir and --resume exclude each other", "--resume DIR continues the session in DIR")
+    if a.plate_timeout is not None and not _station_session(a):
+        raise UsageError("--plate-timeout goes with several boards on one fixture",
+                         "give --port once per board (or --sim --sim-boards N), or drop it")
     if a.resume and _station_session(a):
         raise UsageError("--resume continues a one-board session; a station session with several boards is "
                          "started afresh", "run it again with --dir NEW_DIR (each board's captures stay in DIR/slot-K)")
@@ -485,6 +497,8 @@ def _run_station(a, cfg) -> int:
             mover.say(f"{len(ports)} boards on the fixture: every instruction is for the whole plate")
         print(f"station {station.station_id}, session directory {directory} (DIR/slot-K per board); "
               f"records go to {_shown(db)}")
+        plate_timeout = a.plate_timeout = (a.plate_timeout if a.plate_timeout is not None else
+                                           PLATE_TIMEOUT_VIRTUAL_S if a.sim else PLATE_TIMEOUT_HAND_S)
         last: dict[int, tuple] = {}
         import threading
         lock = threading.Lock()
@@ -502,7 +516,7 @@ def _run_station(a, cfg) -> int:
             res = _station_on_page(a, cfg, ports, directory, mover, station, db, on_event)
         else:
             res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
-                              link_timeout_s=a.link_timeout, baudrate=a.baud)
+                              link_timeout_s=a.link_timeout, baudrate=a.baud, plate_timeout_s=plate_timeout)
     print()
     print(_station_table(res))
     print(f"station session {res.session_id}: {len(res.passed)} of {len(res.boards)} boards passed "
@@ -538,7 +552,8 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
         try:
             box["res"] = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=both,
                                      link_timeout_s=a.link_timeout, baudrate=a.baud,
-                                     pages=lambda slot, port: uis[port], on_plate=page.plate_event)
+                                     pages=lambda slot, port: uis[port], on_plate=page.plate_event,
+                                     plate_timeout_s=a.plate_timeout)
             for b in box["res"].boards:   # verdicts, parameters and reports on the columns
                 page.board_result(b.port, box["res"].results.get(b.slot) or {}, directory / f"slot-{b.slot}",
                                   b.run_id)

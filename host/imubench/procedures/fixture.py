@@ -171,6 +171,8 @@ class Plate:
             self._refresh_waits()
             try:
                 while True:
+                    if t0 is not None:
+                        waited = clock() - t0
                     if slot in self.served:
                         key = self.served.pop(slot)
                         self._log(slot, need, waited, "served")
@@ -188,9 +190,7 @@ class Plate:
                             self._log(slot, need, waited, "stopped")
                             self._drop(slot)
                             raise
-                    if t0 is not None:
-                        waited = clock() - t0
-                        if waited > self.deadline_s:
+                    if t0 is not None and waited > self.deadline_s:
                             why = self._why_late(slot, need, waited)
                             self._log(slot, need, waited, "deadline")
                             self._drop(slot)
