@@ -294,3 +294,29 @@ def test_a_board_stopped_while_it_waits_leaves_the_plate_at_once(monkeypatch):
             break
         threading.Event().wait(0.01)
     assert got.get(2) == "+Z" and [m[1] for m in mover.moves] == ["a", "+Z"]
+
+
+def test_boards_waiting_at_the_plate_do_not_spin():
+    """Fifteen boards wait at the plate (done with their attitudes) while the sixteenth is
+    busy elsewhere for a second: the waiting costs next to no CPU (the issue's hang kept
+    most of a core busy). Default wake-up period, real condition waits."""
+    import time
+    clock, phases, ref = Clock(), {}, []
+    mover = Mover(clock, ref, phases)
+    plate = Plate(mover, list(range(1, 17)))
+    ref.append(plate)
+    ts = [threading.Thread(target=plate.request, args=(s, Need("verify", ("+Z",)), {"+Z": ("+Z", None, 0, 3)}),
+                           kwargs={"clock": clock}, daemon=True) for s in range(1, 16)]
+    for t in ts:
+        t.start()
+    threading.Event().wait(0.2)
+    cpu0, wall0 = time.process_time(), time.monotonic()
+    threading.Event().wait(1.0)                 # slot 16 is fitting and writing back
+    cpu = time.process_time() - cpu0
+    wall = time.monotonic() - wall0
+    assert all(t.is_alive() for t in ts) and not mover.moves
+    assert cpu < 0.1 * wall, f"{cpu:.3f} s of CPU in {wall:.2f} s of waiting"
+    plate.request(16, Need("verify", ("+Z",)), {"+Z": ("+Z", None, 0, 3)}, clock=clock)
+    for t in ts:
+        t.join(5)
+    assert not any(t.is_alive() for t in ts) and [m[1] for m in mover.moves] == ["+Z"]

@@ -130,6 +130,12 @@
       else if (state === "failed") v = "FAILED " + (b.result && b.result.verdict ? b.result.verdict
         : F.reason ? `at ${F.stage}: ${F.reason}` : b.error || "");
       else if (waiting) v = F.waiting;
+      else if (F.stage === "poses" && b.live && b.live.state) {      // what the board sees now
+        const L = b.live;
+        v = L.state === "moving" ? "moving" : L.attitude ? `now in ${L.attitude}: ${L.state === "still" ? "holding" : L.state}` +
+          (L.hold ? `, ${fmt(100 * L.hold, 0)} % of the hold` : "") + (L.sigma_mg != null ? `, σ of |a| ${fmt(L.sigma_mg * 1000, 0)} µg` : "")
+          : "in no planned attitude";
+      }
       $(".verdict-text", t).textContent = v;
       t.title = v;
     }
