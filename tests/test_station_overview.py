@@ -10,7 +10,8 @@ in Debian's chromium (Playwright, as tests/test_station_browser.py), at 16 and a
 * 8 boards end to end: `imubench calibrate --sim --sim-boards 8 --sim-fault 3:gyro_y --ui web`,
   the whole session on the page: seven tiles PASSED, slot 3 FAILED at health with its reason,
   the plate's attitude on top, a click opens a column whose report link serves the report.
-  The screenshot is docs/station-overview-8.png.
+  The screenshots are docs/station-overview-8.png and docs/station-board-column.png (slot 2's
+  column, opened by a click).
 """
 from __future__ import annotations
 
@@ -184,6 +185,7 @@ def test_eight_boards_on_the_page_end_to_end(tmp_path, browser):
         with urllib.request.urlopen(url.rstrip("/") + href, timeout=30) as r:
             assert r.status == 200 and b"imubench" in r.read()
         assert col.locator(".verdict").text_content().startswith("PASSED")
+        col.screenshot(path=str(DOCS / "station-board-column.png"))
     finally:
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=90)

@@ -191,10 +191,10 @@ class Plate:
                             self._drop(slot)
                             raise
                     if t0 is not None and waited > self.deadline_s:
-                            why = self._why_late(slot, need, waited)
-                            self._log(slot, need, waited, "deadline")
-                            self._drop(slot)
-                            raise BoardFailed(stage, why)
+                        why = self._why_late(slot, need, waited)
+                        self._log(slot, need, waited, "deadline")
+                        self._drop(slot)
+                        raise BoardFailed(stage, why)
                     self._cv.wait(self.CHECK_S)
             finally:
                 self.needs.pop(slot, None)
