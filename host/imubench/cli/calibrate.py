@@ -214,13 +214,14 @@ PLATE_TIMEOUT_VIRTUAL_S = 300.0
 PLATE_TIMEOUT_HAND_S = 1200.0
 #: samples per second of host time the virtual fixture's boards may send together when
 #: --sim-speed is not given: the host decodes every board's stream in Python, on the same
-#: cores as the virtual devices; past this the links fall behind (16 boards at speed 20 and
-#: 500 Hz, 160000 samples/s, left stop_stream unanswered behind the backlog on a loaded
-#: 2-core machine). A real line runs at speed 1: bench/multi_dut.py measures that.
-SIM_SAMPLES_PER_S = 80_000
-#: with the station page (--ui web) the host also serves the page's events: half of that
-#: (8 boards at speed 20 on the page lost samples on the loaded machine; at speed 10 none)
-SIM_SAMPLES_PER_S_PAGE = 40_000
+#: cores as the virtual devices; past this the links fall behind on this project's loaded
+#: 2-core machine (16 boards at speed 20 and 500 Hz, 160000 samples/s, left stop_stream
+#: unanswered behind the backlog; 8 boards at speed 20, 80000 samples/s, lost samples on one
+#: board in one run of three). A real line runs at speed 1: bench/multi_dut.py measures that.
+SIM_SAMPLES_PER_S = 40_000
+#: with the station page (--ui web) the host also serves the page's events (8 boards at speed
+#: 20 on the page lost samples on two boards)
+SIM_SAMPLES_PER_S_PAGE = 30_000
 
 
 def _station_sim_speed(boards: int, rate_hz: float, page: bool = False) -> float:
@@ -500,18 +501,21 @@ def _run_station(a, cfg) -> int:
         plate_timeout = a.plate_timeout = (a.plate_timeout if a.plate_timeout is not None else
                                            PLATE_TIMEOUT_VIRTUAL_S if a.sim else PLATE_TIMEOUT_HAND_S)
         last: dict[int, tuple] = {}
+        waits: dict[int, str | None] = {}
         import threading
         lock = threading.Lock()
 
         def on_event(st: dict) -> None:         # one line per board and stage (called from the boards' threads)
-            key = (st["stage"], st["state"], bool(st.get("waiting")))
+            key = (st["stage"], st["state"])
             with lock:
+                who = st["uid"] or st["port"]
                 if last.get(st["slot"]) != key:
                     last[st["slot"]] = key
-                    who = st["uid"] or st["port"]
                     print(f"  slot {st['slot']} {who}: {st['state'] if st['state'] != 'running' else st['stage']}"
-                          + (f" ({st['reason']})" if st["reason"] else "")
-                          + (f": {st['waiting']}" if st.get("waiting") else ""), flush=True)
+                          + (f" ({st['reason']})" if st["reason"] else ""), flush=True)
+                if st.get("waiting") and waits.get(st["slot"]) is None:      # starts waiting for the others
+                    print(f"  slot {st['slot']} {who}: {st['waiting']}", flush=True)
+                waits[st["slot"]] = st.get("waiting")
         if a.ui == "web":
             res = _station_on_page(a, cfg, ports, directory, mover, station, db, on_event)
         else:
