@@ -6,12 +6,12 @@ in Debian's chromium (Playwright, as tests/test_station_browser.py), at 16 and a
   the deadlines), so every kind of tile is on screen at once; the overview must fit 1366 x 768
   without scrolling, every tile legible (slot, device ID, stage, progress, verdict with the
   reason), the plate shown once, a board's column on a click. The screenshot is
-  docs/station-overview-16.png.
+  build/test-artifacts/station-overview-16.png (docs/ has a copy).
 * 8 boards end to end: `imubench calibrate --sim --sim-boards 8 --sim-fault 3:gyro_y --ui web`,
   the whole session on the page: seven tiles PASSED, slot 3 FAILED at health with its reason,
   the plate's attitude on top, a click opens a column whose report link serves the report.
-  The screenshots are docs/station-overview-8.png and docs/station-board-column.png (slot 2's
-  column, opened by a click).
+  The screenshots are build/test-artifacts/station-overview-8.png and station-board-column.png
+  (slot 2's column, opened by a click); docs/ has copies.
 """
 from __future__ import annotations
 
@@ -29,7 +29,8 @@ from imubench.station.runner import Station
 from imubench.station.server import Server
 
 CHROMIUM = Path("/usr/bin/chromium")
-DOCS = Path(__file__).resolve().parents[1] / "docs"
+# the screenshots (docs/ holds copies of them: a test run leaves the documentation untouched)
+SHOTS = Path(__file__).resolve().parents[1] / "build" / "test-artifacts"
 FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
          "--disable-sync", "--no-first-run"]
 SCREEN = {"width": 1366, "height": 768}
@@ -129,8 +130,8 @@ def test_sixteen_boards_fit_one_1366x768_screen(tmp_path, browser):
         assert "for slots 1, 2, 6, 7; slots 4, 8, 12, 16 wait" in plate.text_content()
         assert "300 s for the plate" in plate.text_content()
         assert page.locator(".board-col:not(.closed)").count() == 0                  # columns on demand only
-        DOCS.mkdir(exist_ok=True)
-        page.screenshot(path=str(DOCS / "station-overview-16.png"))
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(SHOTS / "station-overview-16.png"))
         # a click opens that board's column (its cards), a second click closes it
         tiles.nth(6).click()
         col = page.locator('.board-col[data-key="/dev/ttyUSB6"]')
@@ -176,8 +177,8 @@ def test_eight_boards_on_the_page_end_to_end(tmp_path, browser):
         assert "at health" in verdicts[2] and "gyro" in verdicts[2], verdicts
         assert all(re.fullmatch(r"[0-9A-F]{24}", tiles.nth(i).locator(".uid").text_content()) for i in range(8))
         assert "verification attitude" in page.locator("#plate").text_content()
-        DOCS.mkdir(exist_ok=True)
-        page.screenshot(path=str(DOCS / "station-overview-8.png"))
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(SHOTS / "station-overview-8.png"))
         tiles.nth(1).click()
         col = page.locator(".board-col:not(.closed)")
         col.wait_for(state="visible")
@@ -185,7 +186,7 @@ def test_eight_boards_on_the_page_end_to_end(tmp_path, browser):
         with urllib.request.urlopen(url.rstrip("/") + href, timeout=30) as r:
             assert r.status == 200 and b"imubench" in r.read()
         assert col.locator(".verdict").text_content().startswith("PASSED")
-        col.screenshot(path=str(DOCS / "station-board-column.png"))
+        col.screenshot(path=str(SHOTS / "station-board-column.png"))
     finally:
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=90)
