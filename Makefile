@@ -108,3 +108,4 @@ bench: venv
 	$(PY) bench/real_data.py
 	$(PY) bench/arm_cycles.py
 	$(PY) bench/session_time.py
+	$(PY) bench/station_flood.py

@@ -17,7 +17,15 @@ from imubench.cli.common import (
     positive_float,
     stream_rate,
 )
-from imubench.cli.calibrate_station import _inject_sim_fault, _run_station, _sim_fault, _station_session
+from imubench.cli.calibrate_station import (
+    PLATE_TIMEOUT_HAND_S,
+    PLATE_TIMEOUT_VIRTUAL_S,
+    SIM_SPEED,
+    _inject_sim_fault,
+    _run_station,
+    _sim_fault,
+    _station_session,
+)
 from imubench.cli.station import add_web
 from imubench.results.record import verdict
 
@@ -81,6 +89,7 @@ def register(sub) -> None:
     p.add_argument("--closure", action="store_true",
                    help="after a verified write-back, run the closure check (imubench closure) into DIR/closure: "
                         "the virtual bench drives a closed path, or you carry the board around one")
+    p.set_defaults(sim_speed=None)      # None: SIM_SPEED, capped for many boards (_station_sim_speed)
     p.add_argument("--sim-boards", type=_board_count, default=1, metavar="N",
                    help="with --sim: N virtual devices on one virtual fixture (each its own random truth and serial "
                         "numbers, seeds --sim-seed, --sim-seed + 1, ...): one station session")
@@ -97,6 +106,11 @@ def register(sub) -> None:
     p.add_argument("--link-timeout", type=positive_float, default=10.0, metavar="S",
                    help="with several boards: a board that sends nothing for S seconds has lost its link and "
                         "is marked failed (the others go on)")
+    p.add_argument("--plate-timeout", type=positive_float, default=None, metavar="S",
+                   help="with several boards: a board waits at most S seconds of device time for the plate to "
+                        "present what it needs (the other boards' attitudes come first), else it fails and the "
+                        f"others go on (default {PLATE_TIMEOUT_VIRTUAL_S:g} on the virtual bench, "
+                        f"{PLATE_TIMEOUT_HAND_S:g} when a person moves the plate)")
     _add_from_file(p)
     p.set_defaults(run=run)
 
@@ -204,6 +218,11 @@ def _check_history(db) -> None:
 
 
 def run(a) -> int:
+    if getattr(a, "sim_speed", None) is None:
+        a.sim_speed_given = False
+        a.sim_speed = SIM_SPEED
+    else:
+        a.sim_speed_given = True
     if a.db and Path(a.db).is_dir():
         raise UsageError(f"--db {a.db} is a directory", f"give the database file, e.g. {Path(a.db) / 'history.sqlite'}")
     _check_history(a.db or (a.station_file or {}).get("db"))
@@ -228,6 +247,9 @@ def run(a) -> int:
         raise UsageError("--redo goes with --resume DIR", "give the session directory to continue")
     if a.resume and a.dir:
         raise UsageError("--dir and --resume exclude each other", "--resume DIR continues the session in DIR")
+    if a.plate_timeout is not None and not _station_session(a):
+        raise UsageError("--plate-timeout goes with several boards on one fixture",
+                         "give --port once per board (or --sim --sim-boards N), or drop it")
     if a.resume and _station_session(a):
         raise UsageError("--resume continues a one-board session; a station session with several boards is "
                          "started afresh", "run it again with --dir NEW_DIR (each board's captures stay in DIR/slot-K)")
@@ -293,10 +315,11 @@ def run(a) -> int:
 def _run_web(a, cfg, directory: Path) -> int:
     """The session on the station page: served until Ctrl-C, so that a failed or stopped
     session can be resumed there; the exit code is the last session's verdict."""
-    from imubench.cli.station import serve_page
+    from imubench.cli.station import port_policy, serve_page
     from imubench.station.runner import SIM_KEY, Station
     station = Station(workdir=directory.parent, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed,
-                      allow_sim=a.sim, person={"offset_deg": (a.sim_tilt, a.sim_tilt)} if a.sim_tilt else None)
+                      allow_sim=a.sim, person={"offset_deg": (a.sim_tilt, a.sim_tilt)} if a.sim_tilt else None,
+                      ports=port_policy(a))
     station.state.mode = "session"
     key = SIM_KEY if a.sim else a.port
     if not key:
