@@ -266,6 +266,7 @@ class Station:
         """A station session's board status (procedures.fixture.BoardStatus) on its column."""
         def f(b):
             b.device = {**b.device, "slot": st["slot"], "uid": st.get("uid") or b.device.get("uid"), "url": st["port"]}
+            b.fixture = {k: st.get(k) for k in ("slot", "stage", "state", "message", "progress", "reason", "waiting")}
             if st["state"] == "running":
                 b.phase = {"turntable": "turns", "health": "start", "connect": "start"}.get(st["stage"], st["stage"])
                 if st["stage"] in ("write", "verify"):  # the fixture writes and verifies each board itself
@@ -282,6 +283,14 @@ class Station:
                     if c["state"] == "capturing":
                         c["state"], c["progress"] = "todo", 0.0
         self.state.update(key, f)
+
+    def plate_event(self, ev: dict) -> None:
+        """The plate of a station session, shown once for the whole fixture: its move
+        (procedures.fixture.Plate: kind, key, serves, waiting, move) or {"deadlines": text}."""
+        if "deadlines" in ev:
+            self.state.set_plate(deadlines=ev["deadlines"])
+        else:
+            self.state.set_plate(move=dict(ev))
 
     def board_result(self, key: str, record: dict, d: Path, run_id=None) -> None:
         """A station session's board is over: its verdict, parameters and report on its column

@@ -43,6 +43,8 @@ class DeviceBoard:
     resumable: bool = False
     done_seq: int = 0                                 # how many poses are done (order of capture)
     suggested: str | None = None                      # the missing attitude that helps the fit most
+    fixture: dict = field(default_factory=dict)       # a station session's board: slot, stage, state,
+                                                      # message, progress, reason, waiting (fixture.BoardStatus)
     owner: str | None = field(default=None, repr=False)
     owner_seen: float = 0.0
     by_page: bool = field(default=False, repr=False)  # added by a page's claim (bounded), not by a command
@@ -59,6 +61,7 @@ class StationState:
         self.clients: dict[str, float] = {}   # identity the server issued -> last seen (monotonic)
         self.streams: dict[str | None, int] = {}   # open event streams per identity (None: no identity)
         self._watchers: list = []             # called (under the lock) at every change: async streams wake
+        self.plate: dict = {}                 # a station session's plate: its last move, the deadlines
 
     def on_change(self, fn) -> None:
         """Call fn() at every change (from whichever thread makes it; keep it short)."""
@@ -216,4 +219,11 @@ class StationState:
                 # driven by a page still there: a device whose driver is gone is free to claim
                 d["owned"] = b.owner is not None and (self._present(b.owner) or now - b.owner_seen < OWNER_GRACE_S)
                 boards.append(copy.deepcopy(d))
-            return {"version": self.version, "mode": self.mode, "sim": self.sim_available, "boards": boards}
+            return {"version": self.version, "mode": self.mode, "sim": self.sim_available, "boards": boards,
+                    "plate": copy.deepcopy(self.plate)}
+
+    def set_plate(self, **kw) -> None:
+        """A station session's plate: what it presents now (fixture.Plate's move), the deadlines."""
+        with self._lock:
+            self.plate.update(kw)
+            self._bump()

@@ -55,13 +55,97 @@
       }
       renderBoard(b);
     }
+    renderOverview(snap);
     const watching = snap.boards.filter((b) => b.owned && !b.yours);
-    $("#role").textContent = mine.length ? "you drive " + mine.map((b) => b.key).join(", ")
+    const slots = mine.every((b) => b.device && b.device.slot) && mine.length > 1;
+    $("#role").textContent = mine.length ? "you drive " + (slots ? "slots " + mine.map((b) => b.device.slot).join(", ")
+      : mine.map((b) => b.key).join(", "))
       : watching.length ? "read-only: watching" : "";
     $("#role").className = "pill " + (mine.length ? "done" : watching.length ? "readonly" : "");
     const busy = mine.some((b) => b.status === "running");
     $("#setup").hidden = !(snap.mode === "idle" && !busy);
     $("#use-sim").parentElement.hidden = !snap.sim;
+  }
+
+  // ------------------------------------------------------------------ a station session's overview
+  // every board at a glance (slot, device, stage, progress, verdict), the plate once; a board's
+  // full column on demand (click its tile)
+  let selected = null;
+  const tiles = {};
+  const STAGES = { waiting: "waiting", connect: "connecting", health: "health check", rest: "rest: noise and gyro bias",
+    poses: "attitudes", turntable: "turntable turns", fit: "fit", write: "write-back", verify: "verification",
+    record: "recording", done: "done", sensor: "capture", link: "link" };
+
+  function overall(b) {
+    const F = b.fixture || {};
+    if (F.state === "passed") return 1;
+    const done = b.plan.filter((c) => c.state === "done").length;
+    const adaptive = b.config && b.config.capture === "adaptive" && b.method === "multi";
+    const need = adaptive ? Math.max(12, done + (b.targets && b.targets.reached ? 0 : 1)) : (b.plan.length || 1);
+    const m = /^\[(\d+)\/(\d+)\]/.exec(F.message || "");
+    return { connect: 0.02, health: 0.04, rest: 0.07, poses: 0.1 + 0.6 * Math.min(1, done / need), turntable: 0.7,
+      fit: 0.72, write: 0.76, verify: 0.8 + 0.2 * (m ? (m[1] - 1) / m[2] : 0), record: 1, done: 1 }[F.stage] || 0;
+  }
+
+  function renderOverview(snap) {
+    const fixture = snap.boards.length > 1 && snap.boards.every((b) => b.device && b.device.slot);
+    $("#overview").hidden = !fixture;
+    $("#boards").classList.toggle("overview-on", fixture);
+    if (!fixture) return;
+    const P = snap.plate || {}, M = P.move;
+    const kindWords = { pose: "attitude", verify: "verification attitude", turn: "turn" };
+    $(".plate-now", $("#plate")).innerHTML = M ? `${kindWords[M.kind] || M.kind} <b>${esc(M.key)}</b>` +
+      (M.words ? ` (${esc(M.words)})` : "") + ` <small>move ${M.move}</small>` : "not moved yet";
+    $(".plate-for", $("#plate")).textContent = M ? `for slot${M.serves.length > 1 ? "s" : ""} ${M.serves.join(", ")}` +
+      (M.waiting.length ? `; slot${M.waiting.length > 1 ? "s" : ""} ${M.waiting.join(", ")} wait` : "") : "";
+    $(".plate-deadlines", $("#plate")).textContent = P.deadlines || "";
+    const sorted = [...snap.boards].sort((x, y) => x.device.slot - y.device.slot);
+    for (const b of sorted) {
+      let t = tiles[b.key];
+      if (!t) {
+        t = document.createElement("div");
+        t.className = "tile";
+        t.dataset.key = b.key;
+        t.innerHTML = `<div class="top"><span class="slot"></span><span class="uid"></span><span class="state"></span></div>` +
+          `<div class="stage"></div><div class="msg"></div><div class="bar"><div class="bar-fill"></div></div><div class="verdict-text"></div>`;
+        t.onclick = () => { selected = selected === b.key ? null : b.key; if (last) render(last);
+          if (selected && cols[selected]) cols[selected].scrollIntoView({ block: "start" }); };
+        $("#tiles").appendChild(t);
+        tiles[b.key] = t;
+      }
+      const F = b.fixture || {};
+      const state = b.result ? (b.result.status === "pass" ? "passed" : "failed") : F.state === "passed" ? "passed"
+        : F.state === "failed" || b.status === "failed" ? "failed" : "running";
+      const waiting = state === "running" && !!F.waiting;
+      t.className = "tile " + state + (waiting ? " waiting" : "") + (selected === b.key ? " selected" : "");
+      t.dataset.state = state;
+      $(".slot", t).textContent = F.slot || b.device.slot;
+      $(".uid", t).textContent = b.device.uid || "(no device ID yet)";
+      $(".uid", t).title = b.device.url || b.key;
+      $(".state", t).textContent = state === "running" ? (waiting ? "waits" : "running") : state;
+      const done = b.plan.filter((c) => c.state === "done").length;
+      let stage = STAGES[F.stage] || F.stage || b.phase || "";
+      if (F.stage === "poses" || (done && state === "running" && F.stage !== "verify")) stage += ` · ${done} captured` +
+        (b.targets && b.targets.reached ? ", targets reached" : "");
+      $(".stage", t).textContent = (state === "running" ? "" : "stopped at ") + stage;
+      if (state === "passed") $(".stage", t).textContent = `${done} attitudes, written and verified`;
+      $(".msg", t).textContent = state === "running" ? F.message || "" : b.device.url || "";
+      $(".bar-fill", t).style.width = fmt(100 * (state === "passed" ? 1 : overall(b)), 0) + "%";
+      let v = "";
+      if (state === "passed") v = "PASSED" + (b.result ? ": " + b.result.verdict : "");
+      else if (state === "failed") v = "FAILED " + (b.result && b.result.verdict ? b.result.verdict
+        : F.reason ? `at ${F.stage}: ${F.reason}` : b.error || "");
+      else if (waiting) v = F.waiting;
+      else if (F.stage === "poses" && b.live && b.live.state) {      // what the board sees now
+        const L = b.live;
+        v = L.state === "moving" ? "moving" : L.attitude ? `now in ${L.attitude}: ${L.state === "still" ? "holding" : L.state}` +
+          (L.hold ? `, ${fmt(100 * L.hold, 0)} % of the hold` : "") + (L.sigma_mg != null ? `, σ of |a| ${fmt(L.sigma_mg * 1000, 0)} µg` : "")
+          : "in no planned attitude";
+      }
+      $(".verdict-text", t).textContent = v;
+      t.title = v;
+    }
+    for (const k of Object.keys(cols)) cols[k].classList.toggle("closed", selected !== k);
   }
 
   function column(key) {
@@ -167,7 +251,7 @@
   function renderCards(el, b) {
     const box = $(".cards", el);
     const done = b.plan.filter((c) => c.state === "done").length;
-    const order = b.config && b.config.fixture ? "the fixture presents them in the plan's order, every board at once" : "present them in any order";
+    const order = b.config && b.config.fixture ? "the plate presents what the boards still need, the most shared first" : "present them in any order";
     $(".cards-title", el).textContent = b.plan.length ? `Attitudes: ${done} of ${b.plan.length} captured — ${order}` +
       (b.config && b.config.capture === "adaptive" && b.method === "multi" ? "; the session stops as soon as the targets are reached" : "") : "";
     const here = (b.live || {}).attitude;
