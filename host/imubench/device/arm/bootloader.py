@@ -555,6 +555,7 @@ class BootloaderServer:
                 act, rom.action = rom.action, None
                 if act[0] == "power_cut":
                     self.power_cuts += 1
+                    lib.simlib_set_state(0, 0, 0, 0, 0, self.power_cuts, 0)
                     self.log("power cut: the board restarts in its bootloader (BOOT0 high)")
                     lib.simlib_power_cycle_models()
                     lib.simlib_link_reset()
