@@ -1,0 +1,232 @@
+"""The register maps checked against ST's own description (CMSIS-SVD, ../shared/reference/svd).
+
+The firmware's register headers (firmware/boards/stm32f1/stm32f1.h, stm32f4/stm32f4.h,
+common_arm/arm_board.h for USART and SPI, common_arm/cortex_m.h for the core) and the
+emulator's peripheral models (imubench.device.arm) were written by the same team, so a
+misreading of the reference manual could hide in both. Here every base address, register
+offset and bit/field the headers define, and every register of the peripherals the emulator
+models (reset value, bits that read back after a write: reserved bits must not, read-only
+bits must not change), are compared with the SVD files, parsed with cmsis-svd (the CMSIS-SVD
+project's own parser: it resolves derivedFrom peripherals and inherited sizes/access/reset
+values, which a hand-written xml.etree walk would have to re-implement).
+
+The SVD files' known errors (their README, checked against RM0008 / RM0090) are listed in
+SVD_ERRATA with the manual's value, which wins."""
+from __future__ import annotations
+
+import re
+from functools import lru_cache
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SVD_DIR = ROOT.parent / "shared" / "reference" / "svd"
+if not SVD_DIR.is_dir():
+    SVD_DIR = Path("/work/shared/reference/svd")
+SVD = {"f103": SVD_DIR / "STM32F103xx.svd", "f4": SVD_DIR / "STM32F405.svd"}
+HEADERS = {"f103": ["firmware/boards/stm32f1/stm32f1.h", "firmware/boards/common_arm/arm_board.h"],
+           "f4": ["firmware/boards/stm32f4/stm32f4.h", "firmware/boards/common_arm/arm_board.h"]}
+
+# Known errors of the SVD files (README beside them), as (chip, peripheral, register) -> what
+# the reference manual says instead.
+SVD_ERRATA = {
+    ("f4", "PWR", "CR"): {"extra_fields": {"VOS": (14, 1)}},             # VOS missing in the SVD
+    ("f4", "USART1", "SR"): {"reset": 0x000000C0},                        # SVD: 0x00C00000
+    ("f4", "GPIOA", "OSPEEDR"): {"reset": 0x0C000000},                    # RM0090 8.4.3 (SVD differs)
+    ("f4", "FLASH", "OPTCR"): {"reset": 0x0FFFAAED},                      # RM0090 3.9.7 (SVD differs)
+}
+
+# The headers' names that differ from the SVD's field names (define suffix -> SVD field prefix)
+FIELD_ALIAS = {
+    ("RCC", "PLLCFGR", "M"): "PLLM", ("RCC", "PLLCFGR", "N"): "PLLN", ("RCC", "PLLCFGR", "P"): "PLLP",
+    ("RCC", "PLLCFGR", "Q"): "PLLQ", ("RCC", "PLLCFGR", "SRC"): "PLLSRC",
+    ("DMA", "LIFCR", "ALL0"): "C", ("DMA", "LIFCR", "ALL3"): "C", ("DMA", "HIFCR", "ALL7"): "C",
+    ("DMA", "IFCR", "ALL"): "C", ("DMA", "ISR", "GIF"): "GIF", ("DMA", "ISR", "TCIF"): "TCIF",
+    ("DMA", "ISR", "TEIF"): "TEIF", ("SPI", "CR1", "BR"): "BR",
+    ("USART", "SR", "NE"): ("NE", "NF"),      # RM0090 calls the F4's noise flag NF (same bit 2)
+}
+# Function-like bit macros: the argument that fills the field (its largest legal value)
+MACRO_ARG = {"RCC_PLLCFGR_M": 63, "RCC_PLLCFGR_N": 432, "RCC_PLLCFGR_P": 8, "RCC_PLLCFGR_Q": 15,
+             "FLASH_ACR_LATENCY": 7, "FLASH_CR_SNB": 11, "DMA_SCR_CHSEL": 7, "RCC_CFGR_PLLMUL": 16,
+             "DMA_ISR_GIF": 7, "DMA_ISR_TCIF": 7, "DMA_ISR_TEIF": 7, "DMA_IFCR_ALL": 7}
+NOT_IN_SVD = {"UID"}          # the unique ID is system memory, not a peripheral in the SVD
+
+
+@lru_cache(maxsize=None)
+def device(chip: str):
+    from cmsis_svd.parser import SVDParser
+    return SVDParser.for_xml_file(str(SVD[chip])).get_device()
+
+
+def periph(chip: str, name: str):
+    for p in device(chip).peripherals:
+        if p.name == name:
+            return p
+    raise KeyError(f"{chip}: no peripheral {name} in {SVD[chip].name}")
+
+
+def register(chip: str, pname: str, rname: str):
+    for r in periph(chip, pname).registers:
+        if r.name == rname:
+            return r
+    raise KeyError(f"{chip}: no register {pname}.{rname} in {SVD[chip].name}")
+
+
+def fields(chip: str, pname: str, rname: str) -> dict[str, tuple[int, int, str]]:
+    r = register(chip, pname, rname)
+    out = {f.name: (f.bit_offset, f.bit_width, (f.access or r.access).value if (f.access or r.access) else
+                    "read-write") for f in r.fields}
+    for n, (o, w) in SVD_ERRATA.get((chip, pname, rname), {}).get("extra_fields", {}).items():
+        out[n] = (o, w, "read-write")
+    return out
+
+
+def field_mask(o: int, w: int) -> int:
+    return ((1 << w) - 1) << o
+
+
+# ------------------------------------------------------------------ the headers' macros
+def _macros(paths: list[str]) -> dict[str, tuple[list[str] | None, str]]:
+    out: dict[str, tuple[list[str] | None, str]] = {}
+    for p in paths:
+        text = (ROOT / p).read_text()
+        text = re.sub(r"/\*.*?\*/", " ", text, flags=re.S)
+        for m in re.finditer(r"^#define\s+(\w+)(\(([^)]*)\))?[ \t]+(.+)$", text, flags=re.M):
+            name, args, body = m.group(1), m.group(3), m.group(4).strip()
+            out[name] = ([a.strip() for a in args.split(",")] if args is not None else None, body)
+    return out
+
+
+def _evaluate(macros, name: str, args: tuple = ()):
+    params, body = macros[name]
+    body = re.sub(r"\(uint32_t\)", "", body)
+    body = re.sub(r"\b(0x[0-9A-Fa-f]+|\d+)u\b", r"\1", body)
+    body = re.sub(r"IB_REG(32|16|8)\(", "(", body)
+    env = {}
+    if params:
+        env.update(dict(zip(params, args)))
+    for other in set(re.findall(r"\b[A-Z][A-Z0-9_]+\b", body)) - set(env):
+        if other in macros and macros[other][0] is None:
+            env[other] = _evaluate(macros, other)
+    body = body.replace("/", "//")
+    return eval(body, {"__builtins__": {}}, env)   # noqa: S307 - the repo's own header expressions
+
+
+BASE_NAME = {"FLASH_R": "FLASH"}
+
+
+def _reg_instances(chip: str, name: str, params):
+    """(SVD peripheral, SVD register, argument tuple) for a register macro."""
+    pfx, _, rest = name.partition("_")
+    if pfx == "GPIO":
+        if rest == "AFR":
+            return [("GPIOA", "AFRL", (0x40020000, 0)), ("GPIOA", "AFRH", (0x40020000, 1))]
+        base = periph(chip, "GPIOA").base_address
+        return [("GPIOA", rest, (base,))]
+    if pfx in ("USART", "SPI"):
+        p = pfx + "1"
+        return [(p, rest, (periph(chip, p).base_address,))]
+    if pfx == "DMA2":                          # DMA2_SCR(s) -> S<s>CR
+        if params:
+            return [("DMA2", f"S{s}{rest[1:]}", (s,)) for s in range(8)]
+        return [("DMA2", rest, ())]
+    if pfx == "DMA1":
+        if params:
+            return [("DMA1", f"{rest}{n}", (n,)) for n in range(1, 8)]
+        return [("DMA1", rest, ())]
+    return [(pfx, rest, ())]
+
+
+def header_registers(chip: str):
+    macros = _macros(HEADERS[chip])
+    out = []
+    for name, (params, body) in macros.items():
+        if "IB_REG32(" in body and not name.startswith(("STK_", "NVIC_", "SCB_")):
+            for p, r, args in _reg_instances(chip, name, params):
+                out.append((name, p, r, _evaluate(macros, name, args)))
+    return out
+
+
+@pytest.mark.parametrize("chip", ["f103", "f4"])
+def test_every_base_address_the_firmware_defines(chip):
+    macros = _macros(HEADERS[chip])
+    pre = "F1_" if chip == "f103" else "F4_"
+    bases = {n[len(pre):-5]: _evaluate(macros, n) for n in macros if n.startswith(pre) and n.endswith("_BASE")}
+    assert len(bases) >= 8
+    for name, addr in bases.items():
+        if name in NOT_IN_SVD:
+            continue
+        assert periph(chip, BASE_NAME.get(name, name)).base_address == addr, name
+
+
+@pytest.mark.parametrize("chip", ["f103", "f4"])
+def test_every_register_offset_the_firmware_defines(chip):
+    regs = header_registers(chip)
+    assert len(regs) >= 20
+    for name, p, r, addr in regs:
+        svd = register(chip, p, r)
+        assert periph(chip, p).base_address + svd.address_offset == addr, (name, p, r, hex(addr))
+
+
+def _bit_macros(chip: str):
+    """(macro, SVD peripheral, register, field token, value) for every bit/field define."""
+    macros = _macros(HEADERS[chip])
+    regs = {n: (p, r) for n, p, r, _ in header_registers(chip)}
+    reg_names = sorted({n for n in regs}, key=len, reverse=True)
+    out = []
+    for name, (params, body) in macros.items():
+        if "IB_REG" in body or name.endswith(("_BASE", "_H")) or name.startswith(("IB_", "F1_", "F4_", "STK_",
+                                                                                    "NVIC_", "SCB_")):
+            continue
+        if name in ("FLASH_KEY1", "FLASH_KEY2", "FLASH_SR_ERRORS") or name.startswith("DMA_HIFCR_ALL7") is False \
+                and name.endswith("_SHIFT") and name != "SPI_CR1_BR_SHIFT":
+            continue
+        reg = next((rn for rn in reg_names if name.startswith(rn + "_")), None)
+        if reg is None and name.startswith("DMA_"):          # DMA_SCR_EN, DMA_LISR_.., DMA_CCR_..
+            rest = name[4:]
+            rname = rest.split("_")[0]
+            p = "DMA2" if chip == "f4" else "DMA1"
+            r = {"SCR": "S0CR", "CCR": "CCR1"}.get(rname, rname)
+            token = rest[len(rname) + 1:]
+            pfx_alias = "DMA"
+        elif reg is not None:
+            p, r = regs[reg]
+            if name.startswith(("DMA2_", "DMA1_")):
+                continue
+            token = name[len(reg) + 1:]
+            rname = reg.split("_", 1)[1]
+            pfx_alias = reg.split("_")[0]
+        else:
+            continue
+        if name == "SPI_CR1_BR_SHIFT":
+            value = 7 << _evaluate(macros, name)
+            token = "BR"
+        elif params:
+            value = _evaluate(macros, name, (MACRO_ARG[name],))
+        else:
+            value = _evaluate(macros, name)
+        if value == 0:
+            continue                                     # a field value of 0 (e.g. SW_HSI)
+        out.append((name, p, r, pfx_alias, rname, token, value))
+    return out
+
+
+@pytest.mark.parametrize("chip", ["f103", "f4"])
+def test_every_bit_and_field_the_firmware_defines(chip):
+    """Each define's bits lie in the SVD field of its name (never in a reserved bit)."""
+    checked = 0
+    for name, p, r, pfx, rname, token, value in _bit_macros(chip):
+        f = fields(chip, p, r)
+        head = re.sub(r"\d+$", "", token.split("_")[0])
+        want = FIELD_ALIAS.get((pfx, rname, token.split("_")[0]), FIELD_ALIAS.get((pfx, rname, head), head))
+        wants = want if isinstance(want, tuple) else (want,)
+        match = {n: v for n, v in f.items() if re.sub(r"\d+$", "", n) in wants or n == token.split("_")[0]
+                 or (want == "C" and n.startswith("C"))}
+        assert match, (name, p, r, token, sorted(f))
+        allowed = 0
+        for o, w, _acc in match.values():
+            allowed |= field_mask(o, w)
+        assert value & ~allowed == 0, (name, hex(value), hex(allowed), sorted(match))
+        checked += 1
+    assert checked >= 40
