@@ -247,8 +247,8 @@ def test_every_bit_and_field_the_firmware_defines(chip):
 
 # ------------------------------------------------------------------ the emulator's models
 # The peripherals the emulator models (SVD name -> the model's attribute on Machine)
-MODELLED = {"f103": ["RCC", "FLASH", "GPIOA", "AFIO", "SPI1", "USART1", "DMA1"],
-            "f4": ["RCC", "FLASH", "GPIOA", "PWR", "SPI1", "USART1", "DMA2"]}
+MODELLED = {"f103": ["RCC", "FLASH", "GPIOA", "AFIO", "SPI1", "USART1", "DMA1", "NVIC"],
+            "f4": ["RCC", "FLASH", "GPIOA", "PWR", "SPI1", "USART1", "DMA2", "STK", "NVIC"]}
 # Registers whose write has a side effect the probe must not trigger (data registers, the
 # flash key sequence): their reset value is checked, not their write behaviour.
 NO_WRITE = {"DR", "KEYR", "OPTKEYR", "BSRR", "BRR", "LIFCR", "HIFCR", "IFCR"}
@@ -259,7 +259,7 @@ UNMODELLED_OK = {
     ("RCC", "CIR"), ("RCC", "BDCR"), ("RCC", "CSR"), ("RCC", "SSCGR"), ("RCC", "PLLI2SCFGR"),
     ("FLASH", "OBR"), ("FLASH", "WRPR"), ("FLASH", "OPTKEYR"), ("FLASH", "OPTCR"),
     ("SPI1", "CRCPR"), ("SPI1", "RXCRCR"), ("SPI1", "TXCRCR"), ("SPI1", "I2SCFGR"),
-    ("USART1", "GTPR"), ("PWR", "CSR"),
+    ("USART1", "GTPR"), ("PWR", "CSR"), ("NVIC", "ICTR"), ("NVIC", "STIR"),
 }
 
 PROBE = r'''
@@ -278,7 +278,12 @@ m = Machine(t, str(root / "build/arm" / t.image / "imubench.elf"), None, lib, os
             log=lambda s: None)
 pwr = type("P", (), {"read": lambda self, o, s: m.rcc.pwr_read(o, s),
                      "write": lambda self, o, s, v: m.rcc.pwr_write(o, s, v)})()
-obj = {"RCC": m.rcc, "FLASH": m.flash, "GPIOA": m.gpio["GPIOA"], "AFIO": m.afio, "PWR": pwr,
+stk = type("S", (), {"read": lambda self, o, s: m.systick.read(o, m.now()),
+                     "write": lambda self, o, s, v: m.systick.write(o, v, m.now())})()
+NV = 0x100 if sys.argv[1] == "f4" else 0      # the F4's SVD starts the NVIC at 0xE000E100
+nvic = type("N", (), {"read": lambda self, o, s: m.nvic.read(o + NV, s),
+                      "write": lambda self, o, s, v: m.nvic.write(o + NV, s, v)})()
+obj = {"RCC": m.rcc, "FLASH": m.flash, "GPIOA": m.gpio["GPIOA"], "AFIO": m.afio, "PWR": pwr, "STK": stk, "NVIC": nvic,
        "SPI1": m.spi, "USART1": m.usart, "DMA1": m.dma, "DMA2": m.dma}
 timed = {"SPI1", "USART1", "DMA1", "DMA2"}
 out = {}
@@ -341,6 +346,9 @@ MODEL_NOTES = {
     ("f103", "RCC", "CR", "ro"): 0x02020002,
     ("f4", "RCC", "CR", "ro"): 0x02020002,
     ("f103", "FLASH", "ACR", "ro"): 0x20,
+    # the SVD lists core registers with reset value 0 (README: a known error); STK_CALIB is
+    # implementation-defined (SKEW, TENMS = 10 ms of HCLK / 8 at reset): the model's own value
+    ("f4", "STK", "CALIB", "reset"): 0xFFFFFFFF,
 }
 
 
@@ -450,3 +458,49 @@ def test_the_deviations_found_are_fixed_f4():
     assert got[1] == 1 << 10                                  # D cache on: DCRST not written
     assert got[2] == got[3] and got[4] == got[3] + 1
     assert got[5] == 0x24003010
+
+
+# ------------------------------------------------------------------ the core (cortex_m.h)
+CORE_FIELD_ALIAS = {"SCB_AIRCR_VECTKEY": "VECTKEYSTAT"}     # the key field: VECTKEY on write, VECTKEYSTAT read
+
+
+def _core_register(chip: str, addr: int):
+    for p in device(chip).peripherals:
+        for r in p.registers:
+            if p.base_address + r.address_offset == addr:
+                return p.name, r
+    return None, None
+
+
+@pytest.mark.parametrize("chip", ["f103", "f4"])
+def test_the_core_registers_the_firmware_defines(chip):
+    """cortex_m.h (SysTick, NVIC, SCB; ARMv7-M, the same on both cores) against the SVD's core
+    peripherals: the F4's SVD lists STK, NVIC, SCB and FPU_CPACR; the F103's only the NVIC."""
+    macros = _macros(["firmware/boards/common_arm/cortex_m.h"])
+    regs = {}
+    checked = 0
+    for name, (params, body) in macros.items():
+        if not ("IB_REG" in body and name.startswith(("STK_", "NVIC_", "SCB_"))):
+            continue
+        instances = [((n,), f"{name.split('_', 1)[1]}{n}") for n in range(2)] if params and name != "NVIC_IPR_BYTE" \
+            else ([((0,), "IPR0")] if name == "NVIC_IPR_BYTE" else [((), name.split("_", 1)[1])])
+        for args, rname in instances:
+            addr = _evaluate(macros, name, args)
+            p, r = _core_register(chip, addr)
+            if p is None:
+                assert chip == "f103" and not name.startswith("NVIC_"), (name, hex(addr))
+                continue
+            assert r.name == rname, (name, hex(addr), p, r.name)
+            regs[name] = r
+            checked += 1
+    for name, (params, body) in macros.items():
+        reg = next((rn for rn in sorted(regs, key=len, reverse=True) if name.startswith(rn + "_")), None)
+        if reg is None or params:
+            continue
+        value = _evaluate(macros, name)
+        want = CORE_FIELD_ALIAS.get(name, name[len(reg) + 1:])
+        f = {fl.name: (fl.bit_offset, fl.bit_width) for fl in regs[reg].fields}
+        assert want in f, (name, sorted(f))
+        assert value & ~field_mask(*f[want]) == 0, (name, hex(value))
+        checked += 1
+    assert checked >= (4 if chip == "f103" else 14)
