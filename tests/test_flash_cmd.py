@@ -64,6 +64,8 @@ def env(tmp_path, monkeypatch):
     images["elf"].write_bytes(b"\x7fELF fake image")
     images["bin"].write_bytes(bytes(range(256)) * 37 + b"tail")
     images["hex"].write_text(":00000001FF\n")
+    images["port"] = tmp_path / "ttyUSB7"          # stands for the adapter's device node
+    images["port"].write_text("")
 
     def install(*tools):
         for t in tools:
@@ -140,17 +142,26 @@ def test_stlink_needs_a_bin_image(env, capsys):
 def test_serial_bootloader_command_line(env):
     install, calls, img = env
     install("stm32flash")
-    assert imubench(["flash", "--board", "f103", "--port", "/dev/ttyUSB7", "--image", str(img["hex"])]) == 0
-    assert calls() == [["stm32flash", "/dev/ttyUSB7"],
+    assert imubench(["flash", "--board", "f103", "--port", str(img["port"]), "--image", str(img["hex"])]) == 0
+    assert calls() == [["stm32flash", str(img["port"])],
                        ["stm32flash", "-S", "0x08000000:0", "-w", str(img["hex"]), "-v", "-g", "0x08000000",
-                        "/dev/ttyUSB7"]]
+                        str(img["port"])]]
+
+
+def test_serial_port_that_does_not_exist(env, capsys):
+    install, calls, img = env
+    install("stm32flash")
+    assert imubench(["flash", "--board", "f103", "--port", "/dev/ttyUSB9-none", "--image", str(img["hex"])]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "/dev/ttyUSB9-none: no such serial port" in err[0]
+    assert calls() == []
 
 
 def test_serial_verify_mismatch_is_one_line(env, monkeypatch, capsys):
     install, calls, img = env
     install("stm32flash")
     monkeypatch.setenv("FAKE_VERIFY_FAIL", "1")
-    assert imubench(["flash", "--board", "f103", "--port", "/dev/ttyUSB7", "--image", str(img["hex"])]) == 1
+    assert imubench(["flash", "--board", "f103", "--port", str(img["port"]), "--image", str(img["hex"])]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["imubench flash: error: verify failed: Failed to verify at address 0x08000100, "
                    "expected 0x12 and found 0xff; see docs/firmware.md, Flashing"]
@@ -160,9 +171,9 @@ def test_serial_refuses_another_chip_before_erasing(env, monkeypatch, capsys):
     install, calls, img = env
     install("stm32flash")
     monkeypatch.setenv("FAKE_PID", "0x0413")
-    assert imubench(["flash", "--board", "f103", "--port", "/dev/ttyUSB7", "--image", str(img["hex"])]) == 2
+    assert imubench(["flash", "--board", "f103", "--port", str(img["port"]), "--image", str(img["hex"])]) == 2
     assert "product ID 0x413 (f4), not the f103's 0x410: nothing erased" in capsys.readouterr().err
-    assert calls() == [["stm32flash", "/dev/ttyUSB7"]]                      # the write never ran
+    assert calls() == [["stm32flash", str(img["port"])]]                      # the write never ran
 
 
 def test_serial_needs_a_port(env, capsys):
@@ -194,13 +205,14 @@ def test_requested_probe_missing(env, capsys):
 @pytest.mark.parametrize("tool,args", [
     ("openocd", ["--probe", "openocd"]),
     ("st-flash", ["--probe", "stlink"]),
-    ("stm32flash", ["--probe", "serial", "--port", "/dev/ttyS9"]),
+    ("stm32flash", ["--probe", "serial", "--port", "PORT"]),
 ])
 def test_tool_failure_exits_non_zero_with_its_output(env, monkeypatch, capsys, tool, args):
     install, calls, img = env
     install(*TOOLS)
     monkeypatch.setenv("FAKE_FAIL", tool)
     ext = {"openocd": "elf", "st-flash": "bin", "stm32flash": "hex"}[tool]
+    args = [str(img["port"]) if x == "PORT" else x for x in args]
     assert imubench(["flash", "--board", "f103", "--image", str(img[ext]), *args]) == 1
     cap = capsys.readouterr()
     assert f"{tool} failed (exit 1)" in cap.err or tool == "stm32flash"

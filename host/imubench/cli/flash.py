@@ -30,6 +30,7 @@ def run(a) -> int:
         _run,
         build_firmware,
         check_image_board,
+        check_port,
         choose_probe,
         image_bytes,
         plan,
@@ -52,6 +53,8 @@ def run(a) -> int:
         if not p.image.exists():
             raise FlashError(f"no image {p.image}" + ("" if a.image else "; run `make firmware`"), 2)
         tag = check_image_board(a.board, p.image)       # before anything is erased
+        if probe == "serial":
+            check_port(a.port)
         if tag is None:
             print(f"note: {p.image.name} carries no imubench board tag: its chip cannot be checked", flush=True)
         print(f"flashing {p.image} to the {a.board} via {probe} ({PROBES[probe][2]})", flush=True)

@@ -120,7 +120,8 @@ def run_sim(a) -> int:
         host, port = bench.control_address
         print(f"control channel (JSON lines): {host}:{port}", flush=True)
         print(f"flash file: {bench.flash}", flush=True)
-        print(f"try: IMUBENCH_PORT={bench.port_url} imubench monitor", flush=True)
+        print(f"try: IMUBENCH_PORT={bench.port_url} imubench monitor"
+              + (" (once flashed: Go starts the image)" if a.boot0 else ""), flush=True)
         try:
             return _until_stopped(lambda: bench.running, "the virtual device")
         except CommandError as e:

@@ -183,6 +183,12 @@ def check_image_board(board: str, image: Path) -> dict | None:
     return tag
 
 
+def check_port(port: str) -> None:
+    if not os.path.exists(port):
+        raise FlashError(f"{port}: no such serial port (the USB-serial adapter on USART1 PA9/PA10, "
+                         "e.g. /dev/ttyUSB0; `ls /dev/ttyUSB* /dev/ttyACM*` lists them)", 2)
+
+
 def is_pty(port: str) -> bool:
     return os.path.realpath(port).startswith("/dev/pts/")
 
