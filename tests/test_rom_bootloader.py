@@ -276,7 +276,9 @@ def test_stm32flash_writes_starts_and_a_reflash_keeps_the_calibration(name, tmp_
 # ------------------------------------------------------------- what goes wrong at a bench
 def test_bench_faults_power_cut_wrong_chip_not_a_bootloader(tmp_path, capsys):
     """Power cut half way through the write: stm32flash fails, the board is not bricked (the
-    bootloader is in ROM), the next imubench flash writes it again and it boots. An F103
+    bootloader is in ROM), the next imubench flash writes it again and it boots. The link
+    dropped mid-write: the bootloader waits for the rest of the frame, the next flash asks for
+    a reset, after which it writes the board again. An F103
     image for an F4 (board tag) and an F103 flash of an F4 chip (product ID) are refused
     before anything is erased; a port with a running image is not a bootloader."""
     _stm32flash()
@@ -296,6 +298,31 @@ def test_bench_faults_power_cut_wrong_chip_not_a_bootloader(tmp_path, capsys):
         assert "power cut during the write" in vb.log
         assert vb.status()["power_cuts"] == 1
         rc, out = _flash("f103", vb.pty, hex103, capsys)    # the next flash writes it again
+        assert rc == 0, out + vb.log
+        assert "device: board STM32F103" in out
+        # the link dropped half way (the adapter pulled: stm32flash killed mid-write)
+        import time
+        waiting = vb.log.count("waiting for 0x7F")
+        vb.power_cut()                                      # a reset, BOOT0 still high: the bootloader
+        deadline = time.monotonic() + 10
+        while vb.log.count("waiting for 0x7F") == waiting and time.monotonic() < deadline:
+            time.sleep(0.05)
+        ops0 = vb.flash_ops()
+        p = subprocess.Popen(["stm32flash", "-m", "8n1", "-S", f"0x08000000:{len(image_bytes(hex103))}", "-w",
+                              str(hex103), "-v", "-g", "0x08000000", vb.pty],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 30
+        while vb.flash_ops() < ops0 + n_pages + 10 and time.monotonic() < deadline:   # 10 blocks written
+            time.sleep(0.002)
+        p.kill()
+        p.wait()
+        assert "Go 0x08000000" not in vb.log.split("bootloader: erased")[-1]    # it never finished
+        # the bootloader waits for the rest of the Write Memory frame (AN3155 has no timeout), as
+        # the chip does: the next flash says to reset it; after a reset (BOOT0 still high) it works
+        rc, out = _flash("f103", vb.pty, hex103, capsys)
+        assert rc == 1 and "does not answer as an STM32 bootloader" in out and "reset" in out, out
+        vb.power_cut()
+        rc, out = _flash("f103", vb.pty, hex103, capsys)
         assert rc == 0, out + vb.log
         assert "device: board STM32F103" in out
     code = Path(str(flash) + ".code")

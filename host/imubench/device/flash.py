@@ -264,7 +264,8 @@ def _run(step: Step, board: str | None = None) -> str:
         pid = parse_product_id(text)
         if rc != 0 or pid is None:
             raise FlashError(f"{step.argv[-1]} does not answer as an STM32 bootloader (stm32flash exit {rc}): "
-                             "check the adapter's TX/RX on PA10/PA9, BOOT0 high and a reset; nothing written", 1)
+                             "check the adapter's TX/RX on PA10/PA9, set BOOT0 high and press reset (also after a "
+                             "flash cut off half way: the bootloader waits for the rest of it); nothing written", 1)
         if board is not None and pid != PRODUCT_ID[board]:
             other = {v: k for k, v in PRODUCT_ID.items()}.get(pid, f"chip 0x{pid:03X}")
             raise FlashError(f"the bootloader on {step.argv[-1]} reports product ID 0x{pid:03X} ({other}), "
