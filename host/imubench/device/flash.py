@@ -249,14 +249,20 @@ def plan(board: str, probe: str, image: Path | None, port: str | None, tmpdir: P
 def _run(step: Step, board: str | None = None) -> str:
     print(f"$ {step.shell()}", flush=True)
     try:
-        p = subprocess.Popen(step.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                             errors="replace")
+        p = subprocess.Popen(step.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     except OSError as e:
         raise FlashError(f"cannot run {step.argv[0]}: {e}", 2) from e
+    # chunks, not lines: the tools draw their progress with carriage returns on one line
+    import codecs
+    dec = codecs.getincrementaldecoder("utf-8")(errors="replace")
     out = []
-    for line in p.stdout:
-        out.append(line)
-        sys.stdout.write(line)
+    while True:
+        chunk = p.stdout.read1(4096)
+        if not chunk:
+            break
+        text = dec.decode(chunk)
+        out.append(text)
+        sys.stdout.write(text)
         sys.stdout.flush()
     rc = p.wait()
     text = "".join(out)
