@@ -238,7 +238,7 @@ class RomBootloader:
             for i in range(0, len(data) - 1, 2):
                 cur = old[i] | old[i + 1] << 8
                 val = data[i] | data[i + 1] << 8
-                if cur != 0xFFFF and val != 0 and cur != val:
+                if cur != 0xFFFF and val != 0:        # PM0075 2.3.3: PGERR, nothing programmed
                     self.log(f"bootloader: write to 0x{addr + i:08X}: half-word not erased (PGERR)")
                     return False
                 new[i:i + 2] = data[i:i + 2]
