@@ -115,6 +115,8 @@ def run_sim(a) -> int:
             pid = bench.info.get("bootloader", {}).get("product_id", "?")
             print(f"BOOT0 high: the ROM bootloader (product ID {pid}) waits on {bench.port_url}; "
                   f"flash it: imubench flash --board {a.target} --probe serial --port {bench.port_url}", flush=True)
+            print("  (AN3155 frames are 8E1; a pty carries no parity, so imubench flash gives stm32flash -m 8n1 "
+                  "there)", flush=True)
         if bench.pty and bench.pty != bench.port_url:
             print(f"  also on the pseudo-terminal {bench.pty}", flush=True)
         host, port = bench.control_address
