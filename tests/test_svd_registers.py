@@ -504,3 +504,40 @@ def test_the_core_registers_the_firmware_defines(chip):
         assert value & ~field_mask(*f[want]) == 0, (name, hex(value))
         checked += 1
     assert checked >= (4 if chip == "f103" else 14)
+
+
+# ------------------------------------------------- the emulator's memory map and interrupts
+def _interrupts(chip: str) -> dict[str, int]:
+    out = {}
+    for p in device(chip).peripherals:
+        for i in p.interrupts or []:
+            out[i.name] = i.value
+    return out
+
+
+@pytest.mark.parametrize("chip", ["f103", "f4"])
+def test_the_emulators_map_and_the_firmwares_interrupts(chip):
+    """targets.py's peripheral bases (where the emulator maps each model) and the interrupt
+    numbers of the emulator and the firmware (F1_IRQ_*, F4_IRQ_*) against the SVD."""
+    from imubench.device.arm.targets import TARGETS
+    t = TARGETS[chip]
+    dma = "DMA1" if chip == "f103" else "DMA2"
+    for name, base in t.periph.items():
+        assert periph(chip, dma if name == "DMA" else name).base_address == base, name
+    irq = _interrupts(chip)
+    assert t.irq_usart1 == irq["USART1"]
+    assert t.irq_dma_tx == irq["DMA1_Channel4" if chip == "f103" else "DMA2_Stream7"]   # USART1_TX
+    macros = _macros(HEADERS[chip])
+    pre = "F1_IRQ_" if chip == "f103" else "F4_IRQ_"
+    names = {"DMA1_CH2": "DMA1_Channel2", "DMA1_CH4": "DMA1_Channel4", "DMA2_STREAM0": "DMA2_Stream0",
+             "DMA2_STREAM7": "DMA2_Stream7", "SPI1": "SPI1", "USART1": "USART1"}
+    n = 0
+    for m in macros:
+        if m.startswith(pre) and m != pre + "COUNT":
+            assert irq[names[m[len(pre):]]] == _evaluate(macros, m), m
+            n += 1
+    assert n >= 4
+    # the vector table covers every interrupt of the chip (the F4 SVD also lists the F429's
+    # LCD-TFT, 88/89, which the F405/407 do not have: RM0090 table 61 ends at FPU, 81)
+    real = {k: v for k, v in irq.items() if not k.startswith("LCD_TFT")}
+    assert _evaluate(macros, pre + "COUNT") > max(real.values())
