@@ -13,7 +13,7 @@ HOST   := $(BUILD)/host
 # chromium renders the HTML report in tests/test_html_report.py (headless, nothing downloaded);
 # postgresql is the server tests/test_production_db.py starts in a temporary directory (the shared
 # history database of a production line).
-SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium postgresql
+SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium postgresql stm32flash
 
 CC_HOST  ?= gcc
 CFLAGS_HOST := -std=c11 -O2 -g -Wall -Wextra -Werror -Wshadow -Wstrict-prototypes \

@@ -122,6 +122,9 @@ class VirtualBench:
     flash     parameter flash file; None = a temporary file kept for this object's lifetime
               (restart() keeps it, so saved parameters survive)
     pty       also expose the link on a pseudo-terminal (`.pty`)
+    boot0     (f103, f4) BOOT0 high: the board starts in its ROM bootloader (AN3155) on the link,
+              for stm32flash on the pty; with it low the board boots what its flash holds
+    elf       (f103, f4) the images the board can run (the first one is in a new board's flash)
     tcp       expose the link on TCP 127.0.0.1 (True = a free port, or a port number)
     """
 
@@ -129,10 +132,15 @@ class VirtualBench:
                  flash: str | os.PathLike | None = None, pty: bool = False,
                  baud: int = 2000000, *, tcp: bool | int = True, control_port: int = 0,
                  uid: str | None = None, binary: str | os.PathLike | None = None,
-                 startup_timeout: float = 15.0, start: bool = True, target: str = "host"):
+                 startup_timeout: float = 15.0, start: bool = True, target: str = "host",
+                 boot0: bool = False, elf: Sequence[str | os.PathLike] | None = None):
         if target not in TARGETS:
             raise ValueError(f"target must be one of {', '.join(TARGETS)}")
         self.target = target
+        if (boot0 or elf) and target == "host":
+            raise ValueError("boot0 and elf are settings of the ARM targets (f103, f4)")
+        self.boot0 = bool(boot0)            # BOOT0 high: the ROM bootloader (stm32flash on the pty)
+        self.elf = [str(e) for e in elf] if elf else []   # images the board may run (the first: factory)
         if truth not in ("default", "random"):
             raise ValueError("truth must be 'default' or 'random'")
         if not pty and tcp is False:
@@ -183,6 +191,10 @@ class VirtualBench:
                 "--control", str(control_port)]
         if self.pty_enabled:
             args.append("--pty")
+        if self.boot0:
+            args.append("--boot0")
+        for e in self.elf:
+            args += ["--elf", e]
         if tcp_port is not None:
             args += ["--tcp", str(tcp_port)]
         if self.uid:

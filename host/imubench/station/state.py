@@ -61,12 +61,12 @@ class StationState:
         self.clients: dict[str, float] = {}   # identity the server issued -> last seen (monotonic)
         self.streams: dict[str | None, int] = {}   # open event streams per identity (None: no identity)
         self._watchers: list = []             # called (under the lock) at every change: async streams wake
+        self.plate: dict = {}                 # a station session's plate: its last move, the deadlines
 
     def on_change(self, fn) -> None:
         """Call fn() at every change (from whichever thread makes it; keep it short)."""
         with self._lock:
             self._watchers.append(fn)
-        self.plate: dict = {}                 # a station session's plate: its last move, the deadlines
 
     def close(self) -> None:
         """Wake every event stream and let it end (before the web server stops, so that no
