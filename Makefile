@@ -10,8 +10,8 @@ BUILD  := build
 HOST   := $(BUILD)/host
 
 # Debian packages the host build and tests need (installed when missing, as root);
-# chromium renders the HTML report in tests/test_html_report.py (headless, nothing downloaded);
-# postgresql is the server tests/test_production_db.py starts in a temporary directory (the shared
+# chromium renders the HTML report in tests/results/test_report.py (headless, nothing downloaded);
+# postgresql is the server tests/results/test_production_db.py starts in a temporary directory (the shared
 # history database of a production line).
 SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium postgresql stm32flash
 

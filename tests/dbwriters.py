@@ -1,4 +1,4 @@
-"""Worker processes for the concurrent-writer tests (tests/test_production_db.py): importable
+"""Worker processes for the concurrent-writer tests (tests/results/test_production_db.py): importable
 by a spawned child, which gets the parent's sys.path."""
 from __future__ import annotations
 

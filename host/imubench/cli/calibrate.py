@@ -35,7 +35,7 @@ SIX_WARNING = ("warning: --method six needs a square fixture (a machined cube ag
                "faces are degrees off square and the fit fails; --method multi needs none")
 GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "none")
 # imubench.recordings.FORMATS and imubench.results.paramfiles.WRITERS, named here so that building
-# the parser loads neither (tests/test_from_file.py checks they agree)
+# the parser loads neither (tests/procedures/test_from_file.py checks they agree)
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
 WRITERS = ("params", "imutk", "imucal", "ardupilot")
 

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from imubench.device.sim import SimError, VirtualBench, build_sim, repo_root
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="session")

@@ -1,6 +1,6 @@
 """The pieces of the person's session without a browser: attitudes in words and pictures, live
 detection, any order with a hint and no timeout, adaptive capture, the station's ownership and
-its errors (tests/test_station_browser.py drives the whole page in chromium)."""
+its errors (tests/station/test_station_browser.py drives the whole page in chromium)."""
 from __future__ import annotations
 
 import json

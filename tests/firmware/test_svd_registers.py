@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SVD_DIR = ROOT.parent / "shared" / "reference" / "svd"
 if not SVD_DIR.is_dir():
     SVD_DIR = Path("/work/shared/reference/svd")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 LINT = Path(sys.executable).with_name("lint-imports")
 
 
@@ -49,7 +49,7 @@ def test_a_broken_rule_fails(tmp_path, path, line, contract):
     shutil.copytree(ROOT / "host" / "imubench", pkg, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(ROOT / ".importlinter", tmp_path / ".importlinter")
     with open(pkg / path, "a") as f:
-        f.write(f"\n{line}  # noqa: E402,F401 - broken on purpose by tests/test_architecture.py\n")
+        f.write(f"\n{line}  # noqa: E402,F401 - broken on purpose by tests/repo/test_architecture.py\n")
     r = lint(tmp_path, tmp_path)
     assert r.returncode != 0, r.stdout
     broken = [ln for ln in r.stdout.splitlines() if ln.endswith("BROKEN")]

@@ -342,7 +342,7 @@ def test_qemu_board_is_reaped(firmware_built):
 # ----------------------------------------------------------------- paramstore.py vs the C store
 
 CHECKER_C = r"""
-/* ps_checker: the C parameter store on a RAM flash, for tests/test_qemu.py.
+/* ps_checker: the C parameter store on a RAM flash, for tests/device/test_qemu.py.
  *   ps_checker load PU SLOT_SIZE FILE        FILE = slot 0 then slot 1 (2 * SLOT_SIZE bytes)
  *   ps_checker save PU SLOT_SIZE FILE OUT    payload FILE saved on blank flash; OUT = flash
  *   ps_checker clear PU SLOT_SIZE OUT        clear on blank flash; OUT = flash

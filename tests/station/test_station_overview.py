@@ -1,5 +1,5 @@
 """One screen for the operator (issue 24): a station session's overview on the station page,
-in Debian's chromium (Playwright, as tests/test_station_browser.py), at 16 and at 8 boards.
+in Debian's chromium (Playwright, as tests/station/test_station_browser.py), at 16 and at 8 boards.
 
 * 16 boards: the page's state is fed what a station session publishes (fixture.BoardStatus per
   board: running, waiting for the others, passed, failed with long reasons; the plate's move and
@@ -30,7 +30,7 @@ from imubench.station.server import Server
 
 CHROMIUM = Path("/usr/bin/chromium")
 # the screenshots (docs/ holds copies of them: a test run leaves the documentation untouched)
-SHOTS = Path(__file__).resolve().parents[1] / "build" / "test-artifacts"
+SHOTS = Path(__file__).resolve().parents[2] / "build" / "test-artifacts"
 FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
          "--disable-sync", "--no-first-run"]
 SCREEN = {"width": 1366, "height": 768}

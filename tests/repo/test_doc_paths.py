@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 DOCS = sorted([ROOT / "README.md", *(ROOT / "docs").glob("*.md"), ROOT / "protocol" / "SPEC.md"])
 
 NAME = re.compile(r"\bimubench(?:\.[A-Za-z_]\w*)+")

@@ -16,7 +16,7 @@ from imubench.procedures.session import Session, SessionConfig, SimPresenter, pl
 from imubench.results.report import build_report
 from imubench.results.report_html import PNG_MAGIC
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 NOTE = 'bench A <script>alert("x")</script> & co'
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import doctest
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_library_md_examples_run(monkeypatch):

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from imubench.cli import main as imubench
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 STANDIN = """#!/bin/sh
 name=$(/usr/bin/basename "$0")
@@ -54,7 +54,7 @@ def env(tmp_path, monkeypatch):
     monkeypatch.delenv("FAKE_READ_SRC", raising=False)
     monkeypatch.setenv("FAKE_PID", "0x0410")
     # no board behind a stand-in: the identity read after the start is stubbed (the real
-    # one is tested against the emulated bootloader, tests/test_rom_bootloader.py)
+    # one is tested against the emulated bootloader, tests/device/test_rom_bootloader.py)
     import imubench.cli.flash as cli_flash
     monkeypatch.setattr(cli_flash, "_print_identity", lambda port: print(f"identity of the board on {port}"))
     monkeypatch.delenv("FAKE_VERIFY_FAIL", raising=False)

@@ -23,7 +23,7 @@ from imubench.results.export import junit_xml, measurements_of, session_dict
 from imubench.results.history import History, SchemaError
 from pgserver import PgServer
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 V1_FILE = DATA / "history-v1.sqlite"     # written by imubench at commit cdd83b2 (history schema 1)
 UID_A = "0123456789ABCDEF01234567"
 UID_B = "0123FFFF89ABCDEF01234567"

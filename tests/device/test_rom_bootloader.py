@@ -27,7 +27,7 @@ from imubench.device.sim import VirtualBench
 from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for
 from imubench.wire.protocol_gen import ParamSource, ParamsWhich
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 PARAM_UNITS = {"f103": {62, 63}, "f4": {10, 11}}     # the parameter pages / sectors
 
 
