@@ -37,12 +37,7 @@ class SimPresenter(Presenter):
             self.vb.rotate(axis, rate_dps=self.rate_dps, duration_s=angle / self.rate_dps, wait=True)
 
     def present_pose(self, name, direction, index, total):
-        d = np.asarray(direction, dtype=float)
-        if self.tilt_deg:
-            perp = np.cross(d, self.rng.normal(size=3))
-            perp /= np.linalg.norm(perp)
-            t = np.radians(self.tilt_deg)
-            d = np.cos(t) * d + np.sin(t) * perp
+        d = _tilted(direction, self.tilt_deg, self.rng) if self.tilt_deg else np.asarray(direction, dtype=float)
         self.say(f"[{index + 1}/{total}] virtual bench presents {name}")
         self._rotate_to(d)
 
@@ -209,17 +204,13 @@ class SimPerson(SimPresenter):
 
     def _legs(self, cur, target) -> list[dict]:
         """One hand move (a random 3-8 s, minimum jerk) turning gravity direction cur into target."""
-        cur = np.asarray(cur, float) / np.linalg.norm(cur)
-        target = np.asarray(target, float) / np.linalg.norm(target)
-        axis = np.cross(target, cur)
-        s, c = float(np.linalg.norm(axis)), float(np.clip(cur @ target, -1.0, 1.0))
-        angle = math.degrees(math.atan2(s, c))
-        if s < 1e-9:
-            axis = np.cross(cur, [1.0, 0.0, 0.0] if abs(cur[0]) < 0.9 else [0.0, 1.0, 0.0])
-        axis /= np.linalg.norm(axis)
+        turn = rotation_to(cur, target)
         t = float(self.rng.uniform(*self.move_s))
         self.moves_s += t
-        return [{"duration_s": t, "axis": axis.tolist(), "turn_deg": angle}] if angle > 1e-6 else []
+        if turn is None:
+            return []
+        axis, angle = turn
+        return [{"duration_s": t, "axis": [float(x) for x in axis], "turn_deg": angle}] if angle > 1e-6 else []
 
     def _move_to(self, target) -> None:
         self.vb.path(self._legs(self._gravity(), target) + self._tremor_legs(), wait=False)
