@@ -5,7 +5,7 @@ VirtualBench(target="f103") starts it the way it starts the host build:
 
     --tcp PORT --control PORT --flash FILE --speed X --seed N --truth default|random
     --uid HEX24 --baud B (the image sets its own baud rate: only 2000000 is accepted)
-    --elf FILE (default build/arm/<target>/imubench.elf)  --no-hse (the crystal does not start)
+    --elf FILE (default: the image imubench.device.artifacts finds: the package's or build/arm's)  --no-hse (the crystal does not start)
 
 It exits on SIGTERM/SIGINT/SIGHUP, on the control command "quit" and when its parent dies.
 """
@@ -20,12 +20,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-from .simlib import SimLibError, lib_path, load
+from imubench.device import artifacts
+
+from .simlib import SimLibError, load
 from .targets import TARGETS
-
-
-def _repo_root() -> Path:
-    return Path(__file__).resolve().parents[4]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,15 +56,19 @@ def main(argv: list[str] | None = None) -> int:
             uid = b""
         if len(uid) != 12:
             ap.error("--uid must be 24 hex digits")
-    root = _repo_root()
     target = TARGETS[a.target]
-    elf = Path(a.elf) if a.elf else root / "build" / "arm" / target.image / "imubench.elf"
+    try:   # nothing is built here: VirtualBench (arm_command) built it before starting this process
+        elf = Path(a.elf) if a.elf else artifacts.arm_image(target.image, build=False)
+        lib_file = artifacts.models_library(build=False)
+    except artifacts.ArtifactError as e:
+        print(f"imubench-arm: {e}", file=sys.stderr)
+        return 2
     map_path = elf.with_suffix(".map")
     if not elf.is_file():
         print(f"imubench-arm: {elf} is missing: build the images with `make firmware`", file=sys.stderr)
         return 2
     try:
-        lib = load(lib_path(root))
+        lib = load(lib_file)
     except SimLibError as e:
         print(f"imubench-arm: {e}", file=sys.stderr)
         return 2
