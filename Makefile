@@ -18,6 +18,10 @@ SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium postgresql
 CC_HOST  ?= gcc
 CFLAGS_HOST := -std=c11 -O2 -g -Wall -Wextra -Werror -Wshadow -Wstrict-prototypes \
                -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim/models -I$(HOST)/gen
+# added to every C compile, host and ARM (setup.py, the wheel build, maps the source directory
+# away with -ffile-prefix-map so that the wheel and the one built from the sdist are the same)
+EXTRA_CFLAGS ?=
+CFLAGS_HOST += $(EXTRA_CFLAGS)
 # Portable firmware code (core, drivers) and the simulator's sensor models: compiled
 # for the host into one static library that the C unit tests link against.
 FW_PORTABLE_SRC := $(wildcard firmware/core/*.c firmware/drivers/*.c firmware/boards/sim/models/*.c)
