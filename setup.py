@@ -38,7 +38,10 @@ from setuptools.dist import Distribution
 try:
     from setuptools.command.bdist_wheel import bdist_wheel
 except ImportError:                       # setuptools < 70.1: the wheel package's command
-    from wheel.bdist_wheel import bdist_wheel
+    try:
+        from wheel.bdist_wheel import bdist_wheel
+    except ImportError:                   # no wheel package: this setuptools builds no wheels at all
+        bdist_wheel = None
 
 ROOT = Path(__file__).resolve().parent
 REVISION_FILE = "REVISION"
@@ -89,9 +92,13 @@ def build_native(build_dir: Path, dest: Path, version: str) -> None:
         rel = build_dir.relative_to(ROOT)      # relative: the link maps name the same paths
     except ValueError:
         rel = build_dir
+    # from scratch every time: objects of an earlier build carry its build id in their debug
+    # info (-g3 records the -D macros), which would make this wheel differ from the sdist's
+    shutil.rmtree(build_dir, ignore_errors=True)
     prefix_map = f"-ffile-prefix-map={ROOT}=."
     targets = [f"{rel}/host/imubench-sim", f"{rel}/host/libimumodels.so", *(f"arm-{i}" for i in IMAGES)]
-    cmd = ["make", "-s", "-C", str(ROOT), f"BUILD={rel}", f"ARM_BUILD_ID={revision[:15]}",
+    jobs = [] if "-j" in os.environ.get("MAKEFLAGS", "") else [f"-j{os.cpu_count() or 1}"]
+    cmd = ["make", "-s", *jobs, "-C", str(ROOT), f"BUILD={rel}", f"ARM_BUILD_ID={revision[:15]}",
            f"EXTRA_CFLAGS={prefix_map}", *targets]
     print("imubench: building the virtual device and the STM32 images: " + " ".join(cmd), flush=True)
     r = subprocess.run(cmd, stdout=sys.stdout, stderr=sys.stderr)
@@ -137,9 +144,12 @@ class BuildPyWithNative(build_py):
     """build_py, then the compiled parts into imubench/_data (not for an editable install)."""
 
     def run(self):
-        super().run()
         if getattr(self, "editable_mode", False):
-            return
+            return super().run()
+        # setuptools never removes a module deleted from the tree since the last build from
+        # build/lib: start from an empty package so that the wheel is exactly this tree
+        shutil.rmtree(Path(self.build_lib) / "imubench", ignore_errors=True)
+        super().run()
         build_temp = Path(self.get_finalized_command("build").build_temp).resolve()
         build_native(build_temp / "native", Path(self.build_lib).resolve() / "imubench" / "_data",
                      self.distribution.get_version())
@@ -163,13 +173,16 @@ class PlatformDistribution(Distribution):
         return True
 
 
-class PlatformWheel(bdist_wheel):
-    """A platform wheel (it carries a Linux executable and shared library), for any Python 3:
-    nothing in it is built against the Python C API (the library is loaded through ctypes)."""
+cmdclass = {"build_py": BuildPyWithNative, "sdist": SdistWithRevision}
+if bdist_wheel is not None:
+    class PlatformWheel(bdist_wheel):
+        """A platform wheel (it carries a Linux executable and shared library), for any Python 3:
+        nothing in it is built against the Python C API (the library is loaded through ctypes)."""
 
-    def get_tag(self):
-        _, _, plat = super().get_tag()
-        return "py3", "none", plat
+        def get_tag(self):
+            _, _, plat = super().get_tag()
+            return "py3", "none", plat
 
+    cmdclass["bdist_wheel"] = PlatformWheel
 
-setup(distclass=PlatformDistribution, cmdclass={"build_py": BuildPyWithNative, "sdist": SdistWithRevision, "bdist_wheel": PlatformWheel})
+setup(distclass=PlatformDistribution, cmdclass=cmdclass)
