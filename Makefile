@@ -30,7 +30,7 @@ C_TEST_SRC := $(wildcard tests/c/test_*.c)
 C_TEST_BIN := $(patsubst tests/c/%.c,$(HOST)/tests/%,$(C_TEST_SRC)) $(HOST)/tests/vector_harness \
               $(HOST)/tests/param_check_harness
 
-.PHONY: all test demo venv system-deps c-tests clean bench sim lint
+.PHONY: all test demo venv system-deps c-tests clean bench sim lint dist
 
 all: c-tests
 
@@ -88,10 +88,18 @@ test: system-deps venv c-tests sim firmware
 	$(PY) -m pytest
 
 demo: system-deps venv sim
-	$(PY) -m imubench.cli.demo
+	$(PY) -m imubench demo
 
 clean:
 	rm -rf $(BUILD)
+
+# The release: the sdist, then the platform wheel built from it (setup.py compiles the virtual
+# device, the models library and the STM32 images into the package), both into dist/.
+# README.md, Install, says how to install either.
+dist: system-deps venv
+	@rm -rf dist
+	$(PY) -m build --outdir dist .
+	@ls -l dist
 
 include firmware/arm.mk
 

@@ -178,6 +178,13 @@ def test_calibrate_sim_on_the_f103_image(env):
     assert "calibration PASSED" in r.stdout, r.stdout[-3000:]
 
 
+def test_demo(env):
+    r = run(env, "imubench", "demo", "--dir", str(env["work"] / "demo"), timeout=600)
+    assert r.stdout.startswith("imubench demo: a guided calibration session on the virtual device")
+    assert "calibration shrinks the closure error" in r.stdout and "calibration PASSED" in r.stdout, r.stdout[-3000:]
+    assert (env["work"] / "demo" / "history.sqlite").is_file()
+
+
 def test_version(env):
     r = run(env, "imubench", "--version")
     lines = r.stdout.splitlines()

@@ -17,7 +17,6 @@ It needs nothing but the installed package: the virtual device comes with the wh
 """
 from __future__ import annotations
 
-import sys
 import tempfile
 from pathlib import Path
 
@@ -33,25 +32,26 @@ def register(sub) -> None:
 
 
 def run(a) -> int:
-    return main(a.dir)
-
-
-def main(work: Path | None = None) -> int:
-    from imubench.cli.main import main as imubench
+    from imubench.cli import calibrate
+    from imubench.cli.common import Parser, UsageError
     from imubench.device.sim import build_sim
     build_sim()
+    work = a.dir
     if work is None:
         work = Path(tempfile.mkdtemp(prefix="imubench-demo-"))
     elif work.exists() and (not work.is_dir() or any(work.iterdir())):
-        from imubench.cli.common import UsageError
         raise UsageError(f"{work} exists and is not an empty directory", "give a new or empty --dir")
     work.mkdir(parents=True, exist_ok=True)
     print("imubench demo: a guided calibration session on the virtual device (random truth errors;")
     print(f"               the virtual bench presents the attitudes and turns the table). Files in {work}\n")
-    return imubench(["calibrate", "--sim", "--sim-seed", "7", "--method", "multi", "--gyro", "turntable",
-                     "--dir", str(work / "session"), "--db", str(work / "history.sqlite"),
-                     "--note", "imubench demo", "--closure"])
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    # `imubench calibrate ...` through calibrate's own parser (not cli.main's: main imports this module)
+    ap = Parser(prog="imubench")
+    calibrate.register(ap.add_subparsers(dest="cmd", required=True, parser_class=Parser))
+    session = ap.parse_args(["calibrate", "--sim", "--sim-seed", "7", "--method", "multi", "--gyro", "turntable",
+                             "--dir", str(work / "session"), "--db", str(work / "history.sqlite"),
+                             "--note", "imubench demo", "--closure"])
+    try:
+        return session.run(session)
+    finally:
+        if hasattr(session, "on_interrupt"):
+            a.on_interrupt = session.on_interrupt     # the Ctrl-C hint (how to resume) reaches cli.main
