@@ -116,3 +116,4 @@ bench: venv
 	$(PY) bench/real_data.py
 	$(PY) bench/arm_cycles.py
 	$(PY) bench/session_time.py
+	$(PY) bench/wheel_install.py
