@@ -116,4 +116,5 @@ bench: venv
 	$(PY) bench/real_data.py
 	$(PY) bench/arm_cycles.py
 	$(PY) bench/session_time.py
+	$(PY) bench/station_flood.py
 	$(PY) bench/wheel_install.py

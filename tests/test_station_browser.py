@@ -40,7 +40,7 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
         page = browser.new_page(viewport={"width": 1280, "height": 1400})
         page.set_default_timeout(90_000)
         page.goto(server.url)
-        assert page.locator("#setup").is_visible()
+        page.locator("#setup").wait_for()          # shown once the state has arrived (after the load event)
         # a six-position choice warns that it needs a square fixture
         page.select_option("#method", "six")
         assert page.locator("#six-warning").is_visible()
@@ -66,7 +66,7 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
         wcol.locator(".owner", has_text="read-only").wait_for()
         assert not wcol.locator("button.stop").is_visible()
         refused = watcher.request.post(server.url + "api/stop", data={"key": SIM_KEY},
-                                       headers={"X-Station-Token": "not-the-owner"})
+                                       headers={"Origin": server.url.rstrip("/")})   # its own cookie
         assert refused.status == 409 and "another page" in refused.json()["error"]
         assert col.locator(".owner", has_text="you drive").is_visible()
         page.bring_to_front()              # a page in the background gets no animation frames

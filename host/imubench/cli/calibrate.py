@@ -291,10 +291,11 @@ def run(a) -> int:
 def _run_web(a, cfg, directory: Path) -> int:
     """The session on the station page: served until Ctrl-C, so that a failed or stopped
     session can be resumed there; the exit code is the last session's verdict."""
-    from imubench.cli.station import serve_page
+    from imubench.cli.station import port_policy, serve_page
     from imubench.station.runner import SIM_KEY, Station
     station = Station(workdir=directory.parent, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed,
-                      allow_sim=a.sim, person={"offset_deg": (a.sim_tilt, a.sim_tilt)} if a.sim_tilt else None)
+                      allow_sim=a.sim, person={"offset_deg": (a.sim_tilt, a.sim_tilt)} if a.sim_tilt else None,
+                      ports=port_policy(a))
     station.state.mode = "session"
     key = SIM_KEY if a.sim else a.port
     if not key:
@@ -488,10 +489,10 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
     session until Ctrl-C; Ctrl-C during the session stops every board where it is."""
     import threading
 
-    from imubench.cli.station import serve_page
+    from imubench.cli.station import port_policy, serve_page
     from imubench.procedures.fixture import run_fixture
     from imubench.station.runner import Station as Page
-    page = Page(workdir=directory, db=db, allow_sim=False, history=False)
+    page = Page(workdir=directory, db=db, allow_sim=False, history=False, ports=port_policy(a))
     page.state.mode = "session"
     options = {"port": ", ".join(ports), "method": cfg.method, "gyro": a.gyro, "capture": a.capture,
                "write": cfg.write, "note": cfg.note, "rate_hz": cfg.rate_hz, "fixture": True}

@@ -1,8 +1,9 @@
 // imubench station page: renders the station's state (server-sent events from /api/events)
 // one column per device; the page that owns a device drives it, any other page watches.
+// Who this browser is: an HttpOnly, SameSite=Strict cookie the server issues (POST /api/hello);
+// the page never sees it. The browser sends it, and this page's Origin, with every request.
 "use strict";
 (function () {
-  let token = sessionStorage.getItem("imubench-token") || "";
   const cols = {};                 // device key -> column element
   const cardStates = {};           // key/name -> last state seen (for the transition log)
   window.__transitions = [];
@@ -14,30 +15,35 @@
   const fmt = (x, d) => (x == null || !isFinite(x) ? "–" : Number(x).toFixed(d));
 
   async function post(path, body) {
-    const r = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json", "X-Station-Token": token }, body: JSON.stringify(body) });
+    const r = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
+      credentials: "same-origin" });
     const j = await r.json().catch(() => ({}));
     if (!r.ok) throw new Error(j.error || r.statusText);
     return j;
   }
 
   async function claim(key) {
-    const j = await post("/api/claim", { key: key, token: token });
-    if (j.token) { token = j.token; sessionStorage.setItem("imubench-token", token); reconnect(); }
-    return !!j.token;
+    const j = await post("/api/claim", { key: key });
+    return !!j.yours;
   }
 
   // ------------------------------------------------------------------ events
   let es = null;
   function reconnect() {
     if (es) es.close();
-    es = new EventSource("/api/events?token=" + encodeURIComponent(token));
+    es = new EventSource("/api/events");          // same origin: the identity cookie goes with it
     es.onopen = () => { $("#conn").textContent = "live"; };
-    es.onerror = () => { window.__streamErrors += 1; $("#conn").textContent = "reconnecting…"; };
+    es.onerror = () => {
+      window.__streamErrors += 1;
+      $("#conn").textContent = "reconnecting…";
+      // refused (e.g. too many pages open): EventSource gives up; try again a little later
+      if (es.readyState === EventSource.CLOSED) setTimeout(reconnect, 3000);
+    };
     es.onmessage = (ev) => { last = JSON.parse(ev.data); render(last); };
   }
 
   const claiming = {};
-  let claimChain = Promise.resolve();   // one claim at a time: every device of a session gets this page's one token
+  let claimChain = Promise.resolve();   // one claim at a time
   function render(snap) {
     const mine = snap.boards.filter((b) => b.yours);
     $("#boards").classList.toggle("multi", snap.boards.length > 1);
@@ -212,6 +218,8 @@
     } catch (e) { $("#setup-error").textContent = e.message; }
   };
 
-  fetch("/api/state").then((r) => r.json()).then((s) => { last = s; render(s); }).catch(() => {});
-  reconnect();
+  // the state at once (what any page may see); the live updates once this browser has its
+  // identity (the cookie), so that they say which devices it drives
+  fetch("/api/state").then((r) => r.json()).then((s) => { if (!last) { last = s; render(s); } }).catch(() => {});
+  post("/api/hello", {}).catch((e) => { $("#conn").textContent = "refused: " + e.message; }).finally(reconnect);
 })();
