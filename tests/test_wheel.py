@@ -257,7 +257,7 @@ def test_station_serves_its_page(env):
         js = urllib.request.urlopen(m.group(1) + "static/station.js", timeout=10).read().decode()
         assert "imubench station page" in js
         state = json.loads(urllib.request.urlopen(m.group(1) + "api/state", timeout=10).read())
-        assert state
+        assert state["sim"] is True          # --sim: the virtual bench is offered on the page
     finally:
         _stop(p)
 
