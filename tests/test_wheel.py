@@ -18,6 +18,7 @@ import hashlib
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -162,9 +163,9 @@ def test_wheel_build_without_the_arm_compiler_fails_loudly(tmp_path):
     tools = tmp_path / "bin"
     tools.mkdir()
     for t in ("make", "gcc", "git"):
-        w = subprocess.run(["which", t], capture_output=True, text=True).stdout.strip()
-        if w:
-            (tools / t).symlink_to(w)
+        w = shutil.which(t)
+        assert w, f"{t} is needed to build the wheel (make system-deps)"
+        (tools / t).symlink_to(w)
     r = subprocess.run([sys.executable, str(ROOT / "setup.py"), "-q", "build_py", "--build-lib", str(tmp_path / "lib")],
                        cwd=ROOT, env={**os.environ, "PATH": str(tools)}, capture_output=True, text=True, timeout=120)
     assert r.returncode != 0
