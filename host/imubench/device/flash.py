@@ -5,7 +5,8 @@
 
 The image is the board's imubench.{elf,bin,hex} that imubench.device.artifacts finds: the
 installed package's (built with the wheel, nothing to build), or the checkout's
-build/arm/<board>/, built first with `make -s firmware` (unless --image or --no-build is given). Probes and the exact commands run:
+build/arm/<board>/, built first with `make -s firmware` (unless --image or --no-build is
+given). Probes and the exact commands run:
 
   openocd   ST-LINK through OpenOCD (Debian package openocd); programs, verifies, resets:
               openocd -f interface/stlink.cfg -f target/stm32f1x.cfg (stm32f4x.cfg)
