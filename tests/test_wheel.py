@@ -246,6 +246,7 @@ def test_sim_f4_and_info(env):
                                             "print(json.dumps(a.build_info()))").stdout)["images"]["f4"]
     assert re.search(rf"board \S*[Ff]4\S*, firmware {re.escape(fw['fw_version'])} \({re.escape(fw['fw_build'])}",
                      r.stdout), r.stdout
+    assert "  firmware: the same as this imubench's f4 image" in r.stdout.splitlines(), r.stdout
 
 
 def test_station_serves_its_page(env):
