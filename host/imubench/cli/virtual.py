@@ -135,7 +135,7 @@ def run_qemu(a) -> int:
     from imubench.device.qemu import ROOT, QemuBoard
     page = a.params.read_bytes() if a.params else None
     with QemuBoard(a.board, page, build=not a.no_build) as q:
-        print(f"QEMU {q.machine} running {q.elf.relative_to(ROOT) if q.elf.is_relative_to(ROOT) else q.elf}",
+        print(f"QEMU {q.machine} running {q.elf.relative_to(ROOT) if ROOT and q.elf.is_relative_to(ROOT) else q.elf}",
               flush=True)
         print(f"device on {q.port_url}  (the guest starts when the first client connects)", flush=True)
         print(f"try: imubench info --port {q.port_url}; Ctrl-C to stop", flush=True)

@@ -5,7 +5,8 @@ VirtualBench(target="f103") starts it the way it starts the host build:
 
     --tcp PORT --control PORT --flash FILE --speed X --seed N --truth default|random
     --uid HEX24 --baud B (the image sets its own baud rate: only 2000000 is accepted)
-    --elf FILE (default build/arm/<target>/imubench.elf; repeatable: every ELF given is an image
+    --elf FILE (default: the image imubench.device.artifacts finds, the package's or build/arm's;
+               repeatable: every ELF given is an image
                the board can run, see below)  --no-hse (the crystal does not start)
     --pty      the serial port on a pseudo-terminal (its path in the start-up line's "pty")
     --boot0    BOOT0 high: the board starts in the STM32 ROM bootloader on USART1 (AN3155,
@@ -31,12 +32,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-from .simlib import SimLibError, lib_path, load
+from imubench.device import artifacts
+
+from .simlib import SimLibError, load
 from .targets import TARGETS
-
-
-def _repo_root() -> Path:
-    return Path(__file__).resolve().parents[4]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -68,16 +67,27 @@ def main(argv: list[str] | None = None) -> int:
             uid = b""
         if len(uid) != 12:
             ap.error("--uid must be 24 hex digits")
-    root = _repo_root()
     target = TARGETS[a.target]
-    default_elf = root / "build" / "arm" / target.image / "imubench.elf"
+    # nothing is built here: VirtualBench (arm_command) built it before starting this process
+    try:
+        lib_file = artifacts.models_library(build=False)
+    except artifacts.ArtifactError as e:
+        print(f"imubench-arm: {e}", file=sys.stderr)
+        return 2
+    try:
+        default_elf = artifacts.arm_image(target.image, build=False)
+    except artifacts.ArtifactError as e:
+        if not a.elf:
+            print(f"imubench-arm: {e}", file=sys.stderr)
+            return 2
+        default_elf = None          # --elf names the images the board can run
     elfs = [Path(e) for e in a.elf] if a.elf else [default_elf]
     elf = elfs[0]
     if not elf.is_file():
         print(f"imubench-arm: {elf} is missing: build the images with `make firmware`", file=sys.stderr)
         return 2
     try:
-        lib = load(lib_path(root))
+        lib = load(lib_file)
     except SimLibError as e:
         print(f"imubench-arm: {e}", file=sys.stderr)
         return 2
@@ -101,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
 
     code_file = code_path(flash)
     candidates = [str(e) for e in elfs if e.is_file()]
-    if default_elf.is_file() and str(default_elf) not in candidates:
+    if default_elf is not None and default_elf.is_file() and str(default_elf) not in candidates:
         candidates.append(str(default_elf))
     if a.boot0 and not os.path.exists(code_file):
         # the board comes with the first image in its code pages (factory-programmed)
