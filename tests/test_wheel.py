@@ -289,7 +289,7 @@ def test_users_own_project_uses_the_fixtures(env):
 
 def test_flash_dry_run_names_the_packaged_image(env):
     r = run(env, "imubench", "flash", "--board", "f103", "--probe", "serial", "--port", "/dev/null", "--dry-run")
-    m = re.search(r"stm32flash -w (\S+imubench\.hex) -v -g 0x0 /dev/null", r.stdout)
+    m = re.search(r"stm32flash -S 0x08000000:\d+ -w (\S+imubench\.hex) -v -g 0x08000000 /dev/null", r.stdout)
     assert m, r.stdout
     image = Path(m.group(1))
     assert image.is_file() and image.resolve().is_relative_to(env["base"].resolve())
