@@ -116,6 +116,9 @@ STATION_KEYS = {"station", "operator", "fixture", "db", "ports", "baud"}
 def _station_file(s: str) -> dict:
     """A station file (TOML), checked for what it holds before anything is opened."""
     import argparse
+
+    from imubench.errors import ImubenchError
+    from imubench.files import read_text
     try:
         import tomllib
     except ImportError:                     # Python 3.10
@@ -124,8 +127,8 @@ def _station_file(s: str) -> dict:
     if not path.is_file():
         raise argparse.ArgumentTypeError(f"{s} is not a file")
     try:
-        d = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        d = tomllib.loads(read_text(path, what="the station file"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, ImubenchError) as e:
         raise argparse.ArgumentTypeError(f"{s} is not a TOML station file: {e}") from None
     unknown = set(d) - STATION_KEYS
     if unknown:

@@ -17,6 +17,7 @@ from imubench.cli.common import (
     stream_rate,
 )
 from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
+from imubench.files import MAX_CAPTURE_BYTES, atomic_output, read_bytes
 from imubench.wire.decoder import decode_bytes
 from imubench.wire.ids import board_name, byte_ids_text, pid_text, sn_text, uid_text
 from imubench.wire.protocol_gen import (
@@ -67,7 +68,7 @@ def _enum_name(enum, value) -> str:
 
 
 def run_decode(a) -> int:
-    data = a.file.read_bytes()
+    data = read_bytes(a.file, MAX_CAPTURE_BYTES, "the capture")
     msgs, raw, cal, stats = decode_bytes(data)
     if data and not stats.frames_ok:
         raise CommandError(
@@ -126,15 +127,17 @@ def run_decode(a) -> int:
             cols["accel_counts"] = block.accel_counts
             cols["gyro_counts"] = block.gyro_counts
         if a.npz:
-            np.savez_compressed(a.npz, **cols)
+            with atomic_output(a.npz, binary=True) as fh:
+                np.savez_compressed(fh, **cols)
             print(f"  wrote {a.npz}")
         if a.csv:
             header = ("t_us,sample_index,status,ax_mps2,ay_mps2,az_mps2,wx_rad_s,wy_rad_s,wz_rad_s,"
                       "accel_temp_c,gyro_x_temp_c,gyro_y_temp_c,gyro_z_temp_c")
             table = np.column_stack([block.t_us, block.sample_index, block.status, acc, gyr,
                                      cols["accel_temp_c"], cols["gyro_temp_c"]])
-            np.savetxt(a.csv, table, delimiter=",", header=header, comments="",
-                       fmt=["%d", "%d", "%d"] + ["%.9g"] * 10)
+            with atomic_output(a.csv, newline="") as fh:
+                np.savetxt(fh, table, delimiter=",", header=header, comments="",
+                           fmt=["%d", "%d", "%d"] + ["%.9g"] * 10)
             print(f"  wrote {a.csv}")
     return 0
 

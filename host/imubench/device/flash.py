@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from imubench.errors import ImubenchError
+from imubench.files import MAX_IMAGE_BYTES, read_bytes
 
 ROOT = Path(__file__).resolve().parents[3]
 FLASH_BASE = 0x08000000
@@ -143,9 +144,9 @@ def _run(step: Step) -> None:
                                                                   " and printed nothing")
                          + "; check the probe's cable, the board's power and BOOT0", 1)
     if step.verify_against is not None:
-        want = step.verify_against.read_bytes()
+        want = read_bytes(step.verify_against, MAX_IMAGE_BYTES, "the image")
         try:
-            got = step.readback.read_bytes()
+            got = read_bytes(step.readback, MAX_IMAGE_BYTES, "the read-back")
         except OSError as e:
             raise FlashError(f"verify failed: {step.argv[0]} read produced no file ({e})", 1) from e
         if got[:len(want)] != want or len(got) < len(want):
