@@ -18,6 +18,7 @@ from imubench.cli.common import (
 )
 from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
 from imubench.files import MAX_CAPTURE_BYTES, atomic_output, read_bytes
+from imubench.text import one_line
 from imubench.wire.decoder import decode_bytes
 from imubench.wire.ids import board_name, byte_ids_text, pid_text, sn_text, uid_text
 from imubench.wire.protocol_gen import (
@@ -149,7 +150,7 @@ def _print_info(info) -> None:
     for i, n in enumerate(names):
         sensors.append(f"{n} {'ok' if info.sensors_present >> i & 1 else 'MISSING'}")
     print(f"device: board {board_name(info.board)}, firmware {'.'.join(map(str, info.fw_version))} "
-          f"({info.fw_build}), protocol {info.protocol_version}, MCU UID {uid}")
+          f"({one_line(info.fw_build)}), protocol {info.protocol_version}, MCU UID {uid}")
     print(f"  clock {_enum_name(ClockSource, info.clock_source)}, uptime {info.uptime_ms / 1000:.1f} s, "
           f"baud {info.baud or '-'}; " + ", ".join(sensors))
     print(f"  ADXL355 IDs {byte_ids_text(info.accel_ids)}, range ±{info.accel_range_g} g; "

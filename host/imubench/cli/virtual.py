@@ -6,6 +6,7 @@
 """
 from __future__ import annotations
 
+import shlex
 import signal
 import threading
 import time
@@ -128,7 +129,7 @@ def run_qemu(a) -> int:
         print(f"QEMU {q.machine} running {q.elf.relative_to(ROOT) if q.elf.is_relative_to(ROOT) else q.elf}",
               flush=True)
         print(f"device on {q.port_url}  (the guest starts when the first client connects)", flush=True)
-        print(f"try: imubench info --port {q.port_url}; Ctrl-C to stop", flush=True)
+        print(f"try: imubench info --port {shlex.quote(q.port_url)}; Ctrl-C to stop", flush=True)
         try:
             return _until_stopped(q.alive, "QEMU")
         except CommandError as e:

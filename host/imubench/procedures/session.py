@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import os
+import shlex
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -225,7 +226,7 @@ class Session:
         else:
             self.dir.mkdir(parents=True, exist_ok=True)
             if self.state_path.exists():
-                raise SessionAborted(f"{self.dir} already holds a session: use --resume {self.dir}, or another --dir")
+                raise SessionAborted(f"{self.dir} already holds a session: use --resume {shlex.quote(str(self.dir))}, or another --dir")
             self.started = _now()
             self.save()
 
