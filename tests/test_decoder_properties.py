@@ -471,8 +471,8 @@ def reference_stats(data: bytes, frames, rejected) -> tuple[dict, dict]:
                 exp["frames_missing"] += ahead - 1
         if not replay:
             last = f.seq
-            if f.timestamp_us - ts_last < -(1 << 31):
-                off += U32
+            d = (f.timestamp_us - ts_last) % U32            # SPEC.md: the step mod 2^32, in [-2^31, 2^31)
+            off = ts_last + off + (d - U32 if d >= (1 << 31) else d) - f.timestamp_us
             ts_last = f.timestamp_us
         t = f.timestamp_us + off
         if f.type not in streams:

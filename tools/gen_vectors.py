@@ -250,11 +250,17 @@ def main() -> int:
                  "out_of_range", "fault_event reserved 0x80"))
 
     OUT.parent.mkdir(parents=True, exist_ok=True)
+    # the signed step between two u32 device times (SPEC.md, Header fields): both sides agree
+    H = 1 << 31
+    steps = [(0, 0), (1, 0), (0, 1), (H - 1, 0), (H, 0), (H + 1, 0), (0, H), (0xFFFFFFFF, 0), (0, 0xFFFFFFFF),
+             (0x7FFF0000, 0xFFFF0000), (0xFFFF0000, 0x7FFF0000), (0x7FFF0001, 0xFFFF0000), (5, 0xFFFFFFF0)]
+    time_steps = [{"now": now, "prev": prev, "step_us": ((now - prev + H) & 0xFFFFFFFF) - H} for now, prev in steps]
     doc = {
         "protocol_version": P.PROTOCOL_VERSION,
         "about": "Shared test vectors. frame_hex includes the 0x00 delimiter. expect is 'ok' or the "
                  "rejection reason (protocol/SPEC.md, Receiving). Fields are flattened by path.",
         "vectors": V,
+        "time_steps": time_steps,
     }
     OUT.write_text(json.dumps(doc, indent=1) + "\n")
     print(f"wrote {OUT.relative_to(ROOT)}: {len(V)} vectors")

@@ -214,6 +214,8 @@ def explain(e: BaseException, cmd: str) -> tuple[str, int]:
             return f"{e.filename}: no space left on the disk; free some space (everything written so far is kept)", \
                 EXIT_FAILED
         return line(e, "check the disk (everything written so far is kept)"), EXIT_FAILED
+    if kind("NewerFirmware"):
+        return line(e, "update imubench (pip install -U imubench) to a version that knows this firmware"), EXIT_FAILED
     if kind("LinkTimeout"):
         return line(e, "check the power, the cable, --baud and that the board runs imubench firmware "
                        "(imubench flash; imubench info)"), EXIT_FAILED

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import signal
 import sys
 import time
@@ -37,7 +38,8 @@ def register(sub) -> None:
     p.add_argument("file", type=existing_file, metavar="FILE", help="the recorded stream")
     p.add_argument("--npz", type=new_file, metavar="OUT", help="write the samples to a .npz file")
     p.add_argument("--csv", type=new_file, metavar="OUT", help="write the samples to a CSV file (SI units)")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--json", action="store_true",
+                   help="print the summary as strict JSON (a number that is not finite is written as null)")
     p.set_defaults(run=run_decode)
     p = sub.add_parser("monitor", help="stream and show live values",
                        description="Stream from a device and print one line of means, noise and link counters "
@@ -68,6 +70,16 @@ def _enum_name(enum, value) -> str:
         return f"unknown ({value})"
 
 
+def _finite_or_null(x):
+    if isinstance(x, dict):
+        return {k: _finite_or_null(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_null(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
 def run_decode(a) -> int:
     data = read_bytes(a.file, MAX_CAPTURE_BYTES, "the capture")
     msgs, raw, cal, stats = decode_bytes(data)
@@ -81,7 +93,7 @@ def run_decode(a) -> int:
         kinds[MsgType(m.type).name.lower()] = kinds.get(MsgType(m.type).name.lower(), 0) + 1
     summary = {"file": str(a.file), "bytes": len(data), "messages": kinds, "decoder": stats.as_dict()}
     for name, b in (("raw", raw), ("calibrated", cal)):
-        if b is None:
+        if b is None or not len(b):
             continue
         acc, gyr = b.si()
         dur = (b.t_us[-1] - b.t_us[0]) / 1e6 if len(b) > 1 else 0.0
@@ -95,9 +107,9 @@ def run_decode(a) -> int:
             "samples_flagged_bad": int(np.count_nonzero(b.status)),
         }
     if a.json:
-        # strict JSON: a NaN or infinity (which the decoder does not let through) is an error
-        # here, never a bare NaN that JSON readers refuse
-        print(json.dumps(summary, allow_nan=False))
+        # strict JSON: a number that is not finite (an overflow of values the decoder let through)
+        # is written as null, documented in --help, never a bare NaN that JSON readers refuse
+        print(json.dumps(_finite_or_null(summary), allow_nan=False))
     else:
         print(f"{a.file}: {len(data)} bytes")
         st = stats

@@ -161,7 +161,7 @@ def run_param_page(a) -> int:
         rec = cleared_record(generation=a.generation, program_unit=lay.program_unit)
     else:
         try:
-            fields = json.loads(read_text(a.params, what="the parameter file")) if a.params else {}
+            fields = json.loads(read_text(a.params, what="the parameter file", errors="replace")) if a.params else {}
         except ValueError as e:
             raise CommandError(f"{a.params} is not JSON ({e})", "give a JSON object of Params fields") from None
         params = PR.from_json(fields, partial=True)
