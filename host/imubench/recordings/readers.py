@@ -66,7 +66,10 @@ _UNIT_SUFFIX_GYR = {"rad_s": "rad_s", "dps": "dps"}
 def _open_text(path: Path):
     """A text file (gzip-compressed by its suffix), refused unless it is a regular file."""
     if path.suffix == ".gz":
-        return io.TextIOWrapper(gzip.GzipFile(fileobj=open_input(path), mode="rb"), newline="")
+        raw = open_input(path)
+        g = gzip.GzipFile(fileobj=raw, mode="rb")
+        g.myfileobj = raw           # GzipFile closes the file it holds there (as when it opened it)
+        return io.TextIOWrapper(g, newline="")
     return open_input(path, binary=False, newline="")
 
 
