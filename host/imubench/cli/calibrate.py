@@ -19,7 +19,7 @@ from imubench.cli.common import (
     stream_rate,
 )
 from imubench.cli.station import add_web
-from imubench.text import one_line
+from imubench.text import one_line, printable
 
 METHODS = ("multi", "six")
 CAPTURES = ("adaptive", "plan")
@@ -653,7 +653,8 @@ def _run_from_file(a) -> int:
                      writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol)
     directory = Path(a.dir or f"imubench-file-{path.stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: "nothing is kept from an interrupted analysis; run the command again"
-    result, fa = calibrate_recording(rec, directory, cfg)
+    # what the analysis says quotes the file (its column names, its parts): printed safe
+    result, fa = calibrate_recording(rec, directory, cfg, say=lambda line: print(printable(line)))
     print()
     print(segmentation_table(result))
     print()
@@ -661,7 +662,7 @@ def _run_from_file(a) -> int:
     ann = annotation_table(result)
     if ann:
         print()
-        print(ann)
+        print(printable(ann))           # the part names come from the file
     _print_fit(None)(result)
     for key, unit in (("accel_counts_per_g", "counts per g"), ("gyro_counts_per_dps", "counts per °/s")):
         if key in result:
