@@ -104,7 +104,7 @@ def test_a_newer_firmwares_info_is_named_not_called_a_damaged_link(capsys):
 
 def test_a_killed_hosts_virtual_device_folder_does_not_stay(tmp_path):
     """A host killed with SIGKILL cannot remove its virtual device's folder; on main it stayed
-    for ever. Now the folder names its owner and the next virtual device removes it."""
+    for ever. Now the sim, which watches its parent, removes it when the parent is gone."""
     env = {**os.environ, "TMPDIR": str(tmp_path)}
     host = subprocess.Popen([sys.executable, "-c",
                              "import time\nfrom imubench.device.sim import VirtualBench\n"
@@ -113,16 +113,34 @@ def test_a_killed_hosts_virtual_device_folder_does_not_stay(tmp_path):
     try:
         folder, sim_pid = host.stdout.readline().split()
         assert os.path.isdir(folder) and os.path.dirname(folder) == str(tmp_path)
+        assert sorted(os.listdir(folder)) == ["flash.bin", "owner.json", "sim.log"]
     finally:
         host.send_signal(signal.SIGKILL)
         host.wait(timeout=10)
-    deadline = time.monotonic() + 5
-    while time.monotonic() < deadline and os.path.exists(f"/proc/{sim_pid}"):
-        time.sleep(0.05)                       # the sim exits with its parent (it watches it)
-    assert os.path.isdir(folder)               # nobody could remove it
-    other = tmp_path / "imubench-vbench-not-ours"
-    other.mkdir()                              # no owner file: not ours to remove
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and (os.path.exists(folder) or os.path.exists(f"/proc/{sim_pid}")):
+        time.sleep(0.05)
+    assert not os.path.exists(folder) and not os.path.exists(f"/proc/{sim_pid}")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_folders_of_dead_owners_are_swept_by_the_next_virtual_device(tmp_path):
+    """Where the sim could not clean up (the ARM targets, a sim killed too), the next virtual
+    device removes the folders whose owner is dead, and only those."""
+    from imubench.device.sim import OWNER_FILE, TMP_PREFIX, _start_time
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True)
+    gone = {"pid": int(dead.stdout), "started": "1"}
+    folders = {}
+    for name, owner in (("dead", gone), ("alive", {"pid": os.getpid(), "started": _start_time(os.getpid())}),
+                        ("reused", {"pid": os.getpid(), "started": "1"}), ("no-owner", None)):
+        d = tmp_path / f"{TMP_PREFIX}{name}"
+        d.mkdir()
+        (d / "sim.log").write_text("x")
+        if owner is not None:
+            (d / OWNER_FILE).write_text(json.dumps(owner))
+        folders[name] = d
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
     subprocess.run([sys.executable, "-c", "from imubench.device.sim import VirtualBench\n"
                     "VirtualBench(start=False).close()"], env=env, check=True, timeout=60)
-    assert not os.path.exists(folder) and other.is_dir()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["imubench-vbench-not-ours"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"{TMP_PREFIX}alive", f"{TMP_PREFIX}no-owner"]

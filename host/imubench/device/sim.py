@@ -253,6 +253,8 @@ class VirtualBench:
             args += ["--tcp", str(tcp_port)]
         if self.uid:
             args += ["--uid", self.uid]
+        if self.target == "host":
+            args += ["--orphan-cleanup", self._tmpdir]      # a SIGKILLed host's folder goes with the sim
         log = open(self.log_path, "ab")
         try:
             log.write(f"--- {' '.join(args)}\n".encode())
