@@ -110,6 +110,7 @@ bench: venv
 	$(PY) bench/decode_throughput.py
 	$(PY) bench/sim_stream.py
 	$(PY) bench/core_instructions.py
+	$(PY) bench/read_memory.py
 	$(PY) bench/calib_solve.py
 	@$(MAKE) --no-print-directory sim firmware
 	$(PY) bench/multi_dut.py

@@ -195,3 +195,15 @@ def test_link_budget_frame_sizes_of_the_spec():
     assert "| raw | 16 | 260 | 16.25 |" in spec and "| calibrated | 8 | 236 | 29.5 |" in spec
     load_4k_921600 = 260 * 250 * 10 / 921600
     assert f"**{load_4k_921600:.1%}**".replace("%", " %") in spec
+
+
+# ---------------------------------------------------------------------- time steps (SPEC.md, Header fields)
+def test_time_steps_are_the_same_on_both_sides(c_harness):
+    """The signed step between two u32 device times, exactly 2^31 included (a step back), from
+    the Python decoder and the C helper ib_time_step_us, against the shared vectors."""
+    from imubench.wire.decoder import time_step_us
+    steps = DOC["time_steps"]
+    assert any(s["step_us"] == -(1 << 31) for s in steps)                 # the boundary is in the set
+    assert [time_step_us(s["now"], s["prev"]) for s in steps] == [s["step_us"] for s in steps]
+    lines = _run_harness(c_harness, "".join(f"step {s['now']} {s['prev']}\n" for s in steps))
+    assert lines == [f"step {s['step_us']}" for s in steps]

@@ -127,6 +127,11 @@ enum ib_params_which {
 #define IB_BATCH_FLAGS_SPI_ERROR (1u << 5) /* at least one bus transfer failed in the batch */
 #define IB_BATCH_FLAGS_SAMPLES_DROPPED (1u << 6) /* samples were dropped before this batch (see sample_index) */
 
+#define IB_SENSOR_MASK_ACCEL (1u << 0)
+#define IB_SENSOR_MASK_GYRO_X (1u << 1)
+#define IB_SENSOR_MASK_GYRO_Y (1u << 2)
+#define IB_SENSOR_MASK_GYRO_Z (1u << 3)
+
 /* Message ids (frame byte 1). */
 #define IB_MSG_PING 0x01u /* h2d */
 #define IB_MSG_GET_INFO 0x02u /* h2d */
@@ -172,14 +177,14 @@ void ib_params_unpack(const uint8_t *in, ib_params_t *v);
 typedef struct {
     uint32_t sample_index; /* [samples] index of the first sample since start_stream */
     uint16_t period_us; /* [us] sample period */
-    uint8_t count; /* samples in this batch */
+    uint8_t count; /* samples in this batch (an empty batch is never sent: refused) */
     uint8_t sensor_flags; /* batch_flags bits */
     uint16_t accel_temp_counts; /* [counts] ADXL355 TEMP, 12 bits (last of the batch) */
     uint8_t accel_status; /* OR of the ADXL355 STATUS reads in the batch */
     uint8_t accel_range_g; /* [g] ADXL355 range of these samples: 2, 4 or 8 */
     int16_t gyro_temp_counts[3]; /* [counts] ADXRS450 TEM >> 6, signed 10 bits, X/Y/Z */
     uint8_t gyro_faults[3]; /* OR over the batch of response bits 7:1 (PLL,Q,NVM,POR,PWR,CST,CHK); bit 0 = a parity error was seen */
-    uint8_t reserved2;
+    uint8_t reserved2; /* 0 (anything else is refused) */
 } ib_batch_header_t;
 
 #define IB_BATCH_HEADER_SIZE 22u
@@ -234,7 +239,7 @@ typedef struct {
     uint8_t mode;
     uint8_t batch; /* [samples] samples per frame, 0 = automatic (about 250 frames/s) */
     uint8_t accel_range_g; /* [g] 2, 4 or 8; 0 = keep the current range */
-    uint8_t reserved[3];
+    uint8_t reserved[3]; /* 0 (anything else is refused) */
 } ib_msg_start_stream_t;
 
 #define IB_MSG_START_STREAM_SIZE 8u /* fixed part of the payload */
@@ -262,7 +267,7 @@ void ib_msg_set_params_unpack(const uint8_t *in, ib_msg_set_params_t *v);
 /* Answered by params_readback, then ack. */
 typedef struct {
     uint8_t which;
-    uint8_t reserved[3];
+    uint8_t reserved[3]; /* 0 (anything else is refused) */
 } ib_msg_get_params_t;
 
 #define IB_MSG_GET_PARAMS_SIZE 4u /* fixed part of the payload */
@@ -308,7 +313,7 @@ void ib_msg_self_test_unpack(const uint8_t *in, ib_msg_self_test_t *v);
 /* Answered by stats, then ack. */
 typedef struct {
     uint8_t reset; /* 1 = zero the counters after reporting them */
-    uint8_t reserved[3];
+    uint8_t reserved[3]; /* 0 (anything else is refused) */
 } ib_msg_get_stats_t;
 
 #define IB_MSG_GET_STATS_SIZE 4u /* fixed part of the payload */
@@ -371,7 +376,7 @@ void ib_msg_params_readback_unpack(const uint8_t *in, ib_msg_params_readback_t *
 /* Counters since boot (or the last reset); sent on get_stats and once a second while streaming (request_id 0). */
 typedef struct {
     uint16_t request_id;
-    uint16_t reserved;
+    uint16_t reserved; /* 0 (anything else is refused) */
     uint32_t frames_sent; /* [frames] */
     uint32_t frames_dropped; /* [frames] frames not sent because the link was full */
     uint32_t samples_produced; /* [samples] */
@@ -393,7 +398,7 @@ typedef struct {
     uint8_t sensor;
     uint8_t kind;
     uint8_t active; /* 1 = the fault appeared, 0 = it cleared */
-    uint8_t reserved;
+    uint8_t reserved; /* 0 (anything else is refused) */
     uint32_t detail;
 } ib_msg_fault_event_t;
 
@@ -408,7 +413,7 @@ typedef struct {
     uint8_t tested; /* bit per sensor enum value: 1 = present and tested */
     int32_t accel_delta_counts[3]; /* [counts] self-test response X/Y/Z */
     uint8_t gyro_chk_faults[3]; /* fault byte seen during CHK (all 7 bits expected) */
-    uint8_t reserved;
+    uint8_t reserved; /* 0 (anything else is refused) */
 } ib_msg_self_test_result_t;
 
 #define IB_MSG_SELF_TEST_RESULT_SIZE 20u /* fixed part of the payload */

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import shlex
 import signal
 from pathlib import Path
 
@@ -58,7 +59,7 @@ def run(a) -> int:
     out.mkdir(parents=True, exist_ok=True)
     cap = out / "capture.bin"
     if cap.exists() and cap.stat().st_size:
-        raise CommandError(f"{cap} exists", f"analyse it with --analyse {cap}, or choose another --out")
+        raise CommandError(f"{cap} exists", f"analyse it with --analyse {shlex.quote(str(cap))}, or choose another --out")
     stop = {"now": False}
     old = None
     try:
@@ -76,5 +77,5 @@ def run(a) -> int:
     analyse_capture([cap], out, rate_hz=float(a.rate))
     if why not in ("done", "interrupted"):
         raise CommandError(f"the recording ended early ({why}); what was recorded is analysed in {out}",
-                           f"record again, or analyse more files with --analyse {cap} FILE...")
+                           f"record again, or analyse more files with --analyse {shlex.quote(str(cap))} FILE...")
     return 0

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import shlex
 import sys
 from contextlib import nullcontext
 from pathlib import Path
@@ -18,6 +19,7 @@ from imubench.cli.common import (
     stream_rate,
 )
 from imubench.cli.station import add_web
+from imubench.text import one_line, printable
 
 METHODS = ("multi", "six")
 CAPTURES = ("adaptive", "plan")
@@ -122,6 +124,9 @@ STATION_KEYS = {"station", "operator", "fixture", "db", "ports", "baud"}
 def _station_file(s: str) -> dict:
     """A station file (TOML), checked for what it holds before anything is opened."""
     import argparse
+
+    from imubench.errors import ImubenchError
+    from imubench.files import read_text
     try:
         import tomllib
     except ImportError:                     # Python 3.10
@@ -130,8 +135,8 @@ def _station_file(s: str) -> dict:
     if not path.is_file():
         raise argparse.ArgumentTypeError(f"{s} is not a file")
     try:
-        d = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        d = tomllib.loads(read_text(path, what="the station file"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, ImubenchError) as e:
         raise argparse.ArgumentTypeError(f"{s} is not a TOML station file: {e}") from None
     unknown = set(d) - STATION_KEYS
     if unknown:
@@ -278,7 +283,7 @@ def run(a) -> int:
         return _run_station(a, cfg)
     directory = Path(a.resume or a.dir or f"imubench-session-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: (f"everything captured is kept in {directory}; continue with: "
-                              f"imubench calibrate --resume {directory}" + (" --sim" if a.sim else "")
+                              f"imubench calibrate --resume {shlex.quote(str(directory))}" + (" --sim" if a.sim else "")
                               if (directory / "session.json").exists() else "nothing was captured")
     if a.ui == "web":
         if a.redo or a.closure:
@@ -305,7 +310,7 @@ def run(a) -> int:
             params_before = _params_or_none(dev)        # for the record: the block before anything is written
             result, sess = run_session(dev, directory, cfg, ui, resume=bool(a.resume), redo=a.redo,
                                        on_start=lambda s: print(f"session directory: {s.dir} (raw captures and "
-                                                                f"state; --resume {s.dir} continues it)"),
+                                                                f"state; --resume {shlex.quote(str(s.dir))} continues it)"),
                                        report=_print_fit(vb))
             if a.closure and result["written"] and "closure" not in result:
                 result["closure"] = _closure_after_session(dev, vb, sess.dir / "closure")
@@ -362,7 +367,7 @@ def _run_web(a, cfg, directory: Path) -> int:
     if b is None or not b.result or b.result["status"] != "pass":
         raise CommandError("the calibration did not pass" if b is not None and b.result else
                            "the session did not finish", f"everything captured is kept in {directory}; "
-                           f"continue with: imubench calibrate --resume {directory} --ui web")
+                           f"continue with: imubench calibrate --resume {shlex.quote(str(directory))} --ui web")
     return 0
 
 
@@ -525,7 +530,7 @@ def _run_station(a, cfg) -> int:
     print()
     print(_station_table(res))
     print(f"station session {res.session_id}: {len(res.passed)} of {len(res.boards)} boards passed "
-          f"({res.wall_s:.0f} s); `imubench history --export {res.session_id} --format junit` exports it")
+          f"({res.wall_s:.0f} s); `imubench history --export {shlex.quote(str(res.session_id))} --format junit` exports it")
     if res.failed:
         raise CommandError(f"{len(res.failed)} of {len(res.boards)} boards failed: "
                            + "; ".join(f"slot {b.slot} at {b.stage}" for b in res.boards if b.state != "passed"),
@@ -686,7 +691,7 @@ def _run_from_file(a) -> int:
     if opts.get("topic") and (fmt or "") not in ("", "rosbag"):
         raise UsageError("--topic is for ROS bags", "drop it, or give --format rosbag")
     rec = read(path, fmt, **opts)
-    print(f"recording: {rec.source} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz ({rec.duration_s:.1f} s); "
+    print(f"recording: {one_line(rec.source)} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz ({rec.duration_s:.1f} s); "
           f"{rec.unit_text()}")
     tol = Tolerances() if a.tolerance_mg is None else Tolerances(accel_rms_mg=a.tolerance_mg)
     try:
@@ -699,7 +704,8 @@ def _run_from_file(a) -> int:
                      writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol)
     directory = Path(a.dir or f"imubench-file-{path.stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: "nothing is kept from an interrupted analysis; run the command again"
-    result, fa = calibrate_recording(rec, directory, cfg)
+    # what the analysis says quotes the file (its column names, its parts): printed safe
+    result, fa = calibrate_recording(rec, directory, cfg, say=lambda line: print(printable(line)))
     print()
     print(segmentation_table(result))
     print()
@@ -707,7 +713,7 @@ def _run_from_file(a) -> int:
     ann = annotation_table(result)
     if ann:
         print()
-        print(ann)
+        print(printable(ann))           # the part names come from the file
     _print_fit(None)(result)
     for key, unit in (("accel_counts_per_g", "counts per g"), ("gyro_counts_per_dps", "counts per °/s")):
         if key in result:
@@ -719,9 +725,9 @@ def _run_from_file(a) -> int:
         print(f"  gyro note: {w}")
     for kind, files in result.get("exports", {}).items():
         if files:
-            print(f"{kind}: {', '.join(files)}")
-    print(f"session directory: {directory} (session.json, residuals.png, segmentation.png)")
-    print(f"report: {result['report']}")
+            print(f"{kind}: {one_line(', '.join(files))}")
+    print(f"session directory: {one_line(directory)} (session.json, residuals.png, segmentation.png)")
+    print(f"report: {one_line(result['report'])}")
     _record_history(result, a.db, directory / "session.json")
     print("\ncalibration " + ("PASSED" if result["passed"] else "FAILED") + " (fitted from a file; nothing is written "
           "to a device)")

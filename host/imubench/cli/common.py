@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 from imubench.device.link import DEFAULT_BAUD, PORT_ENV
+from imubench.text import one_line
 from imubench.wire.protocol_gen import STREAM_RATES_HZ
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -63,7 +64,7 @@ class Parser(argparse.ArgumentParser):
         super().__init__(*a, **kw)
 
     def error(self, message: str):  # noqa: D401 - argparse's hook
-        sys.stderr.write(f"{self.prog}: error: {message}; see '{self.prog} --help'\n")
+        sys.stderr.write(one_line(f"{self.prog}: error: {message}; see '{self.prog} --help'") + "\n")
         sys.exit(EXIT_USAGE)
 
 
@@ -215,6 +216,8 @@ def explain(e: BaseException, cmd: str) -> tuple[str, int]:
         return line(e, "check the disk (everything written so far is kept)"), EXIT_FAILED
     if kind("ProtocolVersionError"):
         return str(e), EXIT_FAILED
+    if kind("NewerFirmware"):
+        return line(e, "update imubench (pip install -U imubench) to a version that knows this firmware"), EXIT_FAILED
     if kind("LinkTimeout"):
         return line(e, "check the power, the cable, --baud and that the board runs imubench firmware "
                        "(imubench flash; imubench info)"), EXIT_FAILED

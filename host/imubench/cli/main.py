@@ -29,6 +29,7 @@ from imubench.cli import (
     virtual,
 )
 from imubench.cli.common import EXIT_INTERRUPTED, Parser, debug_enabled, explain
+from imubench.text import one_line
 
 # the order of `imubench --help`: a session first, then what follows it, then the tools
 MODULES = (calibrate, station, history, report, closure, allan, attitude, thermal, stream, virtual, flash, demo)
@@ -121,7 +122,7 @@ def _say(line: str) -> None:
         sys.stdout.flush()
     except (OSError, ValueError):
         pass
-    print(line, file=sys.stderr, flush=True)
+    print(one_line(line), file=sys.stderr, flush=True)       # free text (a file name, a reason) acts on no terminal
 
 
 if __name__ == "__main__":

@@ -50,6 +50,7 @@ from pathlib import Path
 
 from imubench.device import artifacts
 from imubench.errors import ImubenchError
+from imubench.files import MAX_IMAGE_BYTES, read_bytes
 
 ROOT = artifacts.checkout_root()      # None when installed from a wheel
 FLASH_BASE = 0x08000000
@@ -288,9 +289,9 @@ def _run(step: Step, board: str | None = None) -> str:
                                                                   " and printed nothing")
                          + "; check the probe's cable, the board's power and BOOT0", 1)
     if step.verify_against is not None:
-        want = step.verify_against.read_bytes()
+        want = read_bytes(step.verify_against, MAX_IMAGE_BYTES, "the image")
         try:
-            got = step.readback.read_bytes()
+            got = read_bytes(step.readback, MAX_IMAGE_BYTES, "the read-back")
         except OSError as e:
             raise FlashError(f"verify failed: {step.argv[0]} read produced no file ({e})", 1) from e
         if got[:len(want)] != want or len(got) < len(want):

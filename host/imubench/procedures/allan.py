@@ -19,6 +19,7 @@ from imubench.device.link import (
     LinkTimeout,
 )
 from imubench.errors import NotACapture
+from imubench.files import MAX_CAPTURE_BYTES, open_growing, read_bytes
 from imubench.results.allan import format_readoffs, plot_allan
 from imubench.results.atomic import write_json_atomic
 from imubench.wire.decoder import decode_bytes
@@ -29,7 +30,7 @@ from imubench.wire.protocol_gen import MsgType
 def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=print) -> dict:
     """Decode capture file(s), convert raw counts to SI, run allan() on accel and gyro,
     write allan.json and the two PNGs to out_dir; returns the summary dict."""
-    data = b"".join(Path(p).read_bytes() for p in paths)
+    data = b"".join(read_bytes(p, MAX_CAPTURE_BYTES, "the capture") for p in paths)
     msgs, raw, _cal, stats = decode_bytes(data)
     infos = [m.msg for m in msgs if m.type == MsgType.INFO]     # record() asks for one into the capture
     if raw is None or len(raw) < 16:
@@ -71,7 +72,7 @@ def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int 
     stop = stop if stop is not None else {"now": False}
     want = int(round(duration_s * rate_hz))
     why = "done"
-    with open(capture_path, "ab", buffering=0) as cap:
+    with open_growing(capture_path, buffering=0) as cap:
         dev = Device.open(port, baudrate=baud, capture=cap, timeout=3.0)   # no port: nothing to record
         with dev:
             info = dev.info()            # its reply goes into the capture: the file names its device

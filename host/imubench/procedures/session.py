@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import os
+import shlex
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,6 +30,7 @@ from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
 from imubench.device.link import Device
 from imubench.errors import ImubenchError
+from imubench.files import MAX_CAPTURE_BYTES, open_growing, read_bytes
 from imubench.procedures.poses import (
     DETECT_TOL_DEG,
     Targets,
@@ -224,7 +226,7 @@ class Session:
         else:
             self.dir.mkdir(parents=True, exist_ok=True)
             if self.state_path.exists():
-                raise SessionAborted(f"{self.dir} already holds a session: use --resume {self.dir}, or another --dir")
+                raise SessionAborted(f"{self.dir} already holds a session: use --resume {shlex.quote(str(self.dir))}, or another --dir")
             self.started = _now()
             self.save()
 
@@ -554,7 +556,7 @@ class Session:
         """A new continuous stream, captured to its own file as it arrives."""
         self.stream_no = 1 + max([p.stream for p in self.poses] + [getattr(self, "stream_no", 0)])
         old = self.dev.link.capture
-        self.dev.link.capture = open(self.dir / f"capture-{self.stream_no}.bin", "ab")
+        self.dev.link.capture = open_growing(self.dir / f"capture-{self.stream_no}.bin")
         if old is not None:
             old.close()
         self.dev.start_stream(self.cfg.rate_hz)
@@ -830,7 +832,7 @@ class Session:
         gyro_all, intervals, dirs = [], [], []
         offset = 0
         for k, poses in sorted(by_stream.items()):
-            _, raw, _, st = decode_bytes((self.dir / f"capture-{k}.bin").read_bytes())
+            _, raw, _, st = decode_bytes(read_bytes(self.dir / f"capture-{k}.bin", MAX_CAPTURE_BYTES, "the capture"))
             if raw is None or st.samples_missing:
                 raise CalibrationError(f"stream {k} has gaps ({st.samples_missing} samples lost): "
                                        "the rotation method needs every sample between poses")

@@ -42,6 +42,7 @@ from imubench import units as U
 from imubench.results import db as DB
 from imubench.results.export import measurement_text, measurements_of
 from imubench.results.numbers import pm
+from imubench.text import one_line
 from imubench.wire.ids import parse_id, sn_text
 
 SCHEMA_VERSION = DB.SCHEMA_VERSION   # of the database (results.db: the tables and their migrations)
@@ -779,11 +780,11 @@ def format_device_report(rep: dict) -> str:
         out.append("  status".ljust(_LABEL_W) + f"passed {_yes(s['passed'])}, written {_yes(s['written'])}, "
                    f"verified {_yes(s['verified'])}")
         if s.get("failure"):
-            out.append("  failed".ljust(_LABEL_W) + f"at {s['failed_stage']}: {s['failure']}")
+            out.append("  failed".ljust(_LABEL_W) + one_line(f"at {s['failed_stage']}: {s['failure']}"))
         for m in s.get("measurements") or []:
             out.append("  measured".ljust(_LABEL_W) + f"{m['name']} = {measurement_text(m)}")
         if s["note"]:
-            out.append("  note".ljust(_LABEL_W) + s["note"])
+            out.append("  note".ljust(_LABEL_W) + one_line(s["note"]))
     out.append("")
     out += _format_drift(rep["drift"], len(runs))
     return "\n".join(out)

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench.results.atomic import write_json_atomic, write_text_atomic
+from imubench.text import one_line
 
 WRITERS = ("params", "imutk", "imucal", "ardupilot")
 
@@ -91,7 +92,7 @@ def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> s
     worst = float(np.max(np.abs(dropped)))
     # the largest |a| error the dropped cross-axis terms make at 1 g, over the six faces
     err_mg = max(float(np.linalg.norm(np.linalg.inv(np.diag(np.diag(m))) @ (m @ e) - e)) for e in np.eye(3)) * 1e3
-    lines = [f"# {comment}" if comment else "# imubench calibration",
+    lines = [f"# {one_line(comment)}" if comment else "# imubench calibration",      # a comment stays one line
              "# ArduPilot: corrected = INS_ACCSCAL * (raw - INS_ACCOFFS), per axis, m/s² (AP_InertialSensor)",
              f"# ArduPilot has no cross-axis terms: dropped off-diagonal of M up to {worst:.2e} "
              f"(≈ {err_mg:.2f} mg at 1 g); frame: the axes of the recording (ArduPilot applies these after "

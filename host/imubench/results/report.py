@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from imubench.files import MAX_JSON_BYTES
 from imubench.results.atomic import write_text_atomic
 from imubench.results.numbers import pm as _pm_sigma
 from imubench.results.sessionfile import load_state
@@ -98,6 +99,24 @@ def read_png(path, within=None, max_bytes: int = MAX_PLOT_BYTES) -> bytes | None
     real path (symlinks resolved) is outside the directory `within`: a report is sent on its
     own, so it carries no file from elsewhere on the disk, and never blocks (a FIFO) or reads
     without end (a device)."""
+    data = read_within(path, within, max_bytes)
+    if data is not None and not data.startswith(PNG_MAGIC):
+        raise Refused(f"{path} is not a PNG")
+    return data
+
+
+def read_json_within(path, within=None, max_bytes: int = MAX_JSON_BYTES):
+    """The JSON at path, read as read_within reads (a symlink out of `within`, by default the
+    directory the file is named in, is refused: the report embeds no file from elsewhere);
+    None when there is no such file. Raises Refused, or ValueError when it does not parse."""
+    path = Path(path).absolute()
+    data = read_within(path, path.parent if within is None else within, max_bytes)
+    return None if data is None else json.loads(data)
+
+
+def read_within(path, within=None, max_bytes: int = MAX_PLOT_BYTES) -> bytes | None:
+    """The bytes of the regular file at path (at most max_bytes; never a FIFO or a device),
+    None when there is none; with `within`, refused unless its real path is inside it."""
     path = Path(path)
     if within is not None:
         base = Path(within).resolve()
@@ -120,8 +139,6 @@ def read_png(path, within=None, max_bytes: int = MAX_PLOT_BYTES) -> bytes | None
         data = fh.read(max_bytes + 1)
     if len(data) > max_bytes:
         raise Refused(f"{path} is more than the limit of {max_bytes} bytes")
-    if not data.startswith(PNG_MAGIC):
-        raise Refused(f"{path} is not a PNG")
     return data
 
 
@@ -169,18 +186,22 @@ def _missing(what: str, how: str) -> str:
     return f'<p class="missing">{esc(what)}: not measured in this session ({esc(how)}).</p>'
 
 
-def _load_json(path: Path | None, what: str, how: str, out: list[str]):
+def _load_json(path: Path | None, what: str, how: str, out: list[str], within=None):
     """The JSON at path, or None after appending to out why there is none: "not measured"
-    (with how to get it) when the file is absent, "unreadable" when it does not parse."""
-    if path is None or not Path(path).is_file():
-        out.append(_missing(what, how))
-        return None
+    (with how to get it) when the file is absent, "refused" when it is a link out of `within`
+    (default: its own directory) or not a regular file, "unreadable" when it does not parse."""
     try:
-        return json.loads(Path(path).read_text())
+        data = None if path is None else read_json_within(path, within)
+    except Refused as e:
+        out.append(f'<p class="foreign"><b>refused</b>: {esc(what)} data not embedded ({esc(e)}).</p>')
+        return None
     except (OSError, ValueError) as e:
         out.append(f'<p class="missing">{esc(what)} data {esc(path)}: unreadable ({esc(e)}); '
                    "not measured in this session.</p>")
         return None
+    if data is None:
+        out.append(_missing(what, how))
+    return data
 
 
 def _version() -> str:
@@ -208,10 +229,11 @@ def _foreign(data, session_uid: str | None, what: str) -> tuple[str | None, str]
     return None, "same"
 
 
-def _load_part(path: Path | None, what: str, how: str, out: list[str], session_uid: str | None, label: str):
+def _load_part(path: Path | None, what: str, how: str, out: list[str], session_uid: str | None, label: str,
+               within=None):
     """_load_json, then the device check: None (after appending why to out) when the file is
     missing, unreadable or from another device; a note is appended when it names no device."""
-    data = _load_json(path, what, how, out)
+    data = _load_json(path, what, how, out, within)
     if data is None:
         return None
     refusal, state = _foreign(data, session_uid, label)
@@ -434,11 +456,11 @@ def _calibration_section(session_dir: Path, state: dict) -> str:
 
 
 # ------------------------------------------------------------------ noise
-def _noise_section(allan_dir: Path | None, session_uid: str | None = None) -> str:
+def _noise_section(allan_dir: Path | None, session_uid: str | None = None, within=None) -> str:
     out = ['<h2 id="noise">Noise (Allan deviation)</h2>']
     res = _load_part(allan_dir / "allan.json" if allan_dir is not None else None, "noise",
                      "no allan.json; record one with imubench allan and give --allan DIR", out, session_uid,
-                     "noise recording")
+                     "noise recording", within)
     if res is None:
         return "\n".join(out)
     from imubench.analysis.allan import duration_text, usual_units
@@ -494,7 +516,7 @@ def _attitude_numbers(png: Path | None) -> dict | None:
     if png is None:
         return None
     try:
-        data = json.loads(Path(png).with_suffix(".json").read_text())
+        data = read_json_within(Path(png).with_suffix(".json"))
     except (OSError, ValueError):
         return None
     return data if isinstance(data, dict) and data.get("kind") == "imubench attitude" else None
@@ -686,11 +708,11 @@ def closure_verdict(data: dict) -> tuple[bool, str] | None:
     return verdict_of(z, floor)
 
 
-def _closure_section(directory: Path | None, session_uid: str | None = None) -> str:
+def _closure_section(directory: Path | None, session_uid: str | None = None, within=None) -> str:
     out = ['<h2 id="closure">Closure check</h2>']
     path = directory / "closure.json" if directory is not None else None
     data = _load_part(path, "closure check", "run imubench calibrate --closure, or imubench closure --out DIR "
-                      "and give --closure DIR", out, session_uid, "closure check")
+                      "and give --closure DIR", out, session_uid, "closure check", within)
     if data is None:
         return "\n".join(out)
     if not isinstance(data, dict) or "after" not in data:
@@ -797,17 +819,18 @@ def parameter_rows(result: dict) -> list[tuple[str, str]]:
     return rows
 
 
-def _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid) -> list[tuple]:
+def _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid,
+           closure_within=None, allan_within=None) -> list[tuple]:
     """(name, anchor, status, words) of every part of the report: status pass / fail /
     incomplete / info / foreign (another device: refused) / missing."""
     parts = [("calibration", "calibration", *_calibration_part(state, result))]
 
-    def load(path):
+    def load(path, within=None):
         try:
-            return json.loads(Path(path).read_text())
-        except (OSError, ValueError, TypeError):
+            return read_json_within(path, within)
+        except (OSError, ValueError, TypeError, Refused):
             return None
-    c = load(closure_dir / "closure.json") if closure_dir is not None else None
+    c = load(closure_dir / "closure.json", closure_within) if closure_dir is not None else None
     if c is None:
         parts.append(("closure check", "closure", "missing", "give --closure DIR (imubench closure --out DIR, or calibrate --closure)"))
     elif _foreign(c, uid, "")[1] == "foreign":
@@ -817,7 +840,7 @@ def _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, ui
     else:
         ok, words = closure_verdict(c)
         parts.append(("closure check", "closure", "pass" if ok else "fail", words))
-    a = load(allan_dir / "allan.json") if allan_dir is not None else None
+    a = load(allan_dir / "allan.json", allan_within) if allan_dir is not None else None
     if a is None:
         parts.append(("noise", "noise", "missing", "give --allan DIR (imubench allan --out DIR)"))
     elif _foreign(a, uid, "")[1] == "foreign":
@@ -901,6 +924,10 @@ def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, 
     state = load_state(session_dir)
     result = state.get("result") or {}
     out_path = Path(out_path) if out_path is not None else session_dir / "report.html"
+    # JSON is embedded only from the directory it was asked from: the session directory for
+    # the parts found there by default, the directory given for the others (read_json_within)
+    allan_within = Path(allan_dir) if allan_dir is not None else session_dir
+    closure_within = Path(closure_dir) if closure_dir is not None else session_dir
     allan_dir = Path(allan_dir) if allan_dir is not None else session_dir
     device = result.get("device") if isinstance(result.get("device"), dict) else {}
     uid = str(device.get("mcu_uid", "")).upper() or None
@@ -909,10 +936,11 @@ def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, 
     attitude_png = Path(attitude_png) if attitude_png else None
     thermal_json = Path(thermal_json) if thermal_json else None
 
-    sections = [_calibration_section(session_dir, state), _closure_section(closure_dir, uid),
-                _noise_section(allan_dir, uid), _attitude_section(attitude_png, uid),
+    sections = [_calibration_section(session_dir, state), _closure_section(closure_dir, uid, closure_within),
+                _noise_section(allan_dir, uid, allan_within), _attitude_section(attitude_png, uid),
                 _thermal_section(thermal_json, uid)]
-    parts = _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid)
+    parts = _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid, closure_within,
+                   allan_within)
     overall, verdict = _verdict_box(parts, device, uid or "")
     toc = ('<nav class="toc"><b>Contents</b><ol>' + "".join(
         f'<li><a href="#{esc(a)}">{esc(n)}</a>{"" if s != "missing" else " (not measured)"}</li>'

@@ -120,6 +120,13 @@ class BatchFlags(enum.IntFlag):
     SAMPLES_DROPPED = 1 << 6
 
 
+class SensorMask(enum.IntFlag):
+    ACCEL = 1 << 0
+    GYRO_X = 1 << 1
+    GYRO_Y = 1 << 2
+    GYRO_Z = 1 << 3
+
+
 class MsgType(enum.IntEnum):
     PING = 0x01
     GET_INFO = 0x02
@@ -733,13 +740,17 @@ MESSAGES_BY_NAME = {d.name: d for d in MESSAGES.values()}
 # the bound; 'finite': None; 'flags': mask of the allowed bits.
 VALUE_REASONS = {'enum': 'bad_enum', 'min': 'out_of_range', 'max': 'out_of_range', 'finite': 'not_finite', 'flags': 'bad_flags'}
 VALUE_RULES = {
-    0x03: ((1, 1, 'mode', 'enum', frozenset({0, 1})), (3, 1, 'accel_range_g', 'enum', frozenset({0, 2, 4, 8})),),
-    0x06: ((0, 1, 'which', 'enum', frozenset({0, 1})),),
-    0x81: ((6, 1, 'clock_source', 'enum', frozenset({0, 1, 2, 3})), (21, 1, 'accel_range_g', 'enum', frozenset({2, 4, 8})), (32, 1, 'stream_state', 'enum', frozenset({0, 1, 2})), (33, 1, 'param_source', 'enum', frozenset({0, 1, 2})),),
+    0x03: ((1, 1, 'mode', 'enum', frozenset({0, 1})), (3, 1, 'accel_range_g', 'enum', frozenset({0, 2, 4, 8})), (4, 3, 'reserved', 'max', 0),),
+    0x06: ((0, 1, 'which', 'enum', frozenset({0, 1})), (1, 3, 'reserved', 'max', 0),),
+    0x0B: ((1, 3, 'reserved', 'max', 0),),
+    0x80: ((2, 1, 'error', 'enum', frozenset({0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13})),),
+    0x81: ((6, 1, 'clock_source', 'enum', frozenset({0, 1, 2, 3})), (20, 1, 'sensors_present', 'flags', 0x0F), (21, 1, 'accel_range_g', 'enum', frozenset({2, 4, 8})), (32, 1, 'stream_state', 'enum', frozenset({0, 1, 2})), (33, 1, 'param_source', 'enum', frozenset({0, 1, 2})),),
     0x82: ((1, 1, 'which', 'enum', frozenset({0, 1})), (2, 1, 'source', 'enum', frozenset({0, 1, 2})),),
-    0x84: ((0, 1, 'sensor', 'enum', frozenset({0, 1, 2, 3})), (1, 1, 'kind', 'enum', frozenset({1, 2, 3, 4, 5, 6, 7})), (2, 1, 'active', 'enum', frozenset({0, 1})),),
-    0x90: ((1, 1, 'header.period_us', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})),),
-    0x91: ((1, 1, 'header.period_us', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})),),
+    0x83: ((1, 1, 'reserved', 'max', 0),),
+    0x84: ((0, 1, 'sensor', 'enum', frozenset({0, 1, 2, 3})), (1, 1, 'kind', 'enum', frozenset({1, 2, 3, 4, 5, 6, 7})), (2, 1, 'active', 'enum', frozenset({0, 1})), (3, 1, 'reserved', 'max', 0),),
+    0x85: ((1, 1, 'passed', 'flags', 0x0F), (2, 1, 'tested', 'flags', 0x0F), (9, 1, 'reserved', 'max', 0),),
+    0x90: ((1, 1, 'header.period_us', 'min', 1), (2, 1, 'header.count', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})), (13, 1, 'header.reserved2', 'max', 0),),
+    0x91: ((1, 1, 'header.period_us', 'min', 1), (2, 1, 'header.count', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})), (13, 1, 'header.reserved2', 'max', 0),),
 }
 RECORD_RULES = {
     'cal_sample': (('accel_mps2', 'finite', None), ('rate_rad_s', 'finite', None), ('status', 'flags', 0x0F),),
