@@ -5,6 +5,7 @@ the command line end to end and the guided session's known-angle turn step."""
 from __future__ import annotations
 
 import json
+import re
 import sqlite3
 import subprocess
 import sys
@@ -14,7 +15,6 @@ import numpy as np
 import pytest
 
 from imu_synth import G0, ferraris_session, write_csv
-from imubench.calib import NotObservable
 from imubench.procedures.from_file import FileAnalysis, FileConfig
 from imubench.recordings import RecordingError, from_arrays, read
 from imubench.results import paramfiles
@@ -56,7 +56,8 @@ def test_csv_by_common_names_with_time_in_ms(session, tmp_path):
     assert sorted(set(fa.faces)) == ["+X", "+Y", "+Z", "-X", "-Y", "-Z"]
     # a better declared hand (a stop to turn against) gives smaller sigmas, in proportion
     fa2, _ = _analyse(rec, angle_sigma_deg=0.25)
-    assert np.allclose(np.diag(fa2.gyro.sigma_m) / np.diag(fa.gyro.sigma_m), 0.25, rtol=0.05)
+    sig = [np.diag(np.array(f.gyro_parts["fits"]["turns"]["sigma_m"])) for f in (fa, fa2)]
+    assert np.allclose(sig[1] / sig[0], 0.25, rtol=0.05)
 
 
 def test_csv_columns_mapped_by_option_and_by_profile(session, tmp_path):
@@ -222,9 +223,18 @@ def test_implausible_units_are_refused_with_the_numbers(session):
     rec = from_arrays(ua, np.degrees(ug), rate_hz=FS, accel_unit_name="g", gyro_unit_name="dps")
     with pytest.raises(RecordingError, match=r"implausible.*9\.8.*g, far from 1 g.*declare --accel-unit mps2"):
         _analyse(rec)
+    # a gyro unit that only looks wrong: used, with a warning and its numbers; the accelerometer result stands
     rec = from_arrays(ua, np.degrees(ug), rate_hz=FS, accel_unit_name="mps2", gyro_unit_name="rad_s")
-    with pytest.raises(RecordingError, match=r"gyro unit.*implausible.*--gyro-unit dps"):
-        _analyse(rec)
+    fa, res = _analyse(rec)
+    assert any("declared gyro unit (rad/s) is doubtful" in n and "°/s" in n and "the declared unit is used" in n
+               for n in res["notes"])
+    assert res["passed"] and res["gyro_refused"] and res["verdict"].startswith("accelerometer calibrated")
+    assert "gyro not:" in res["verdict"]
+    # rates at rest no MEMS gyro's bias reaches leave no doubt: the gyro is refused, the accelerometer kept
+    rec = from_arrays(ua, np.degrees(ug) + 3.0, rate_hz=FS, accel_unit_name="mps2", gyro_unit_name="rad_s")
+    fa, res = _analyse(rec)
+    assert "the unit is wrong" in res["gyro_refused"] and "--gyro-unit dps" in res["gyro_refused"]
+    assert res["gyro"] is None and res["passed"] and res["accel"]["m"]
 
 
 # ------------------------------------------------------------------ timing
@@ -238,8 +248,10 @@ def test_gap_inside_a_turn_makes_it_unusable_with_the_reason(session):
     rec = from_arrays(ua[keep], ug[keep], t_s=t[keep])
     assert rec.timing["gaps"][0]["missing"] == 20
     fa = FileAnalysis(rec, FileConfig(gyro="turns"), say=lambda s: None)
-    with pytest.raises(NotObservable, match=r"turn about \+X.*not continuous inside the turn"):
-        fa.run()
+    res = fa.run()            # the gyro's turns are refused; the accelerometer's result is kept
+    assert re.search(r"turn about \+X.*not continuous inside the turn", res["gyro_refused"])
+    assert res["gyro"]["method"] == "bias" and res["passed"]
+    assert res["verdict"].startswith("accelerometer calibrated") and "gyro not: known-angle turns" in res["verdict"]
     # the same gap inside a rest changes nothing that matters
     rest = [e for e in events if e[0] == "rest"][1]
     keep = np.ones(len(ua), bool)
@@ -326,7 +338,7 @@ def test_cli_end_to_end(session, tmp_path):
     assert "method: six-position (the multi-position fit cannot be used: too few poses: 12 given, 6 distinct" in out
     assert json.loads((tmp_path / "out" / "session.json").read_text())["config"]["method"] == "six"
     assert "turn about +X" in out and "turn about +Y" in out and "turn about +Z" in out
-    assert "gyro (turns):" in out and "three turns determine M exactly" in out
+    assert "gyro (turns+rotation):" in out and "known-angle turns and the rotation method combined (consistent" in out
     assert "recorded in the history as run 1" in out
     assert lines[-1] == "calibration PASSED (fitted from a file; nothing is written to a device)"
     d = tmp_path / "out"

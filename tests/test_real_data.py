@@ -64,21 +64,26 @@ def test_six_position_and_known_angle_fits_succeed_with_sigmas(si):
     assert r["accel_rms_after_mg"] < 1.5
     assert si["held_out"]["rms_after_mg"] < 2.0 and len(si["held_out"]["rests"]) == 7
     assert np.all(np.abs(after - 1) < 3e-3)
-    g = fa.gyro
-    assert g.method == "turns" and np.all(np.isfinite(g.sigma_m)) and np.all(np.diag(g.sigma_m) < 5e-3)
+    g = fa.gyro           # the known-angle turns and the rotation method, combined (consistent)
+    assert g.method == "turns+rotation" and np.all(np.isfinite(g.sigma_m)) and np.all(np.diag(g.sigma_m) < 5e-3)
     turns = r["turns"]
     assert [round(t["before_deg"]) for t in turns] == [-370, -354, -359]
-    assert all(abs(t["after_deg"] - t["known_deg"]) < 1e-6 for t in turns)   # exact: three turns, 9 unknowns
-    assert "cannot check the fit" in g.extra["warnings"][0]
+    assert all(abs(t["after_deg"] - t["known_deg"]) < 1.5 for t in turns)   # within the hand's placement
+    assert "cannot check the fit" in r["gyro_parts"]["fits"]["turns"]["extra"]["warnings"][0]
 
 
 def test_multi_position_on_six_faces_is_refused_with_the_reason(si):
     assert "6 distinct attitudes" in si["multi_refusal"] and "needs at least 9" in si["multi_refusal"]
 
 
-def test_the_rotation_method_is_refused_on_this_session_with_its_reason(si):
-    refused = si["result"]["gyro_parts"]["refused"]
-    assert "only in the + direction" in refused["rotation"]
+def test_the_rotation_method_is_used_on_this_session_though_y_turns_one_way(si):
+    """Board Y is turned one way only in this session: with the rest bias known that constrains
+    its scale (decided by the σ, not refused by rule), and the result agrees with the turns."""
+    parts = si["result"]["gyro_parts"]
+    assert parts["refused"] == {}
+    rot = parts["fits"]["rotation"]
+    assert np.all(np.array(rot["sigma_m"]) < 0.01) and rot["extra"]["reduced_chi2"] > 0
+    assert "consistent" in " ".join(si["result"]["notes"]) or si["analysis"].gyro.method == "turns+rotation"
 
 
 def test_counts_fit_agrees_with_imucals_own_calibration(counts):
@@ -103,7 +108,9 @@ def test_si_and_counts_files_are_not_the_same_calibration_state(si, counts):
     x = real_data.si_vs_counts(si, counts)
     assert np.abs(x["accel"]["z_bias"]).min() > 10
     assert np.abs(x["accel"]["z_cross"]).max() > 3.5
-    assert np.abs(x["gyro"]["z_cross"]).max() < 2.5
+    # the SI gyro now also has the rotation method (the counts file cannot: cut at every part), so
+    # its cross-axis σ is smaller and the difference reaches ~3σ (g-sensitivity, see above)
+    assert np.abs(x["gyro"]["z_cross"]).max() < 3.5
 
 
 def test_bench_script_prints_the_figures():
