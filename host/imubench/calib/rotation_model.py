@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import optimize
 
-from imubench.calib.gyro import (
+from imubench.calib.rotint import (
     _quat_chain,
     _quat_matrix,
     _quat_matrix_cf,
