@@ -422,3 +422,56 @@ def test_guided_session_known_angle_turns_on_the_virtual_bench(tmp_path):
     a_true = np.asarray(truth["accel"]["m"])
     sig_session = np.asarray(result["accel"]["sigma_m"])
     assert np.abs(fa.accel.m - a_true).max() < 4 * sig_session.max()
+
+
+# ------------------------------------------------------------------ issue 26: other people's recordings
+def test_headerless_table_read_by_position(session, tmp_path):
+    """A log of six numbers a line and no header (mikoff/imu-calib's .log): read by position,
+    found as csv from its content whatever its extension, and said so."""
+    ua, ug, truth, _ = session
+    p = tmp_path / "imu0.log"
+    np.savetxt(p, np.column_stack([ua, ug]), fmt="%.6f", delimiter=" ")
+    rec = read(p, rate_hz=FS, accel_unit="mps2", gyro_unit="rad_s")
+    assert rec.fmt == "csv" and np.allclose(rec.accel, ua, atol=1e-6) and np.allclose(rec.gyro, ug, atol=1e-6)
+    assert any("no header row: 6 columns read as ax ay az gx gy gz" in n for n in rec.notes)
+    # the columns in another order, by 1-based position
+    q = tmp_path / "swapped.txt"
+    np.savetxt(q, np.column_stack([ug, ua]), fmt="%.6f")
+    rec2 = read(q, rate_hz=FS, accel_unit="mps2", gyro_unit="rad_s",
+                columns={"gx": "1", "gy": "2", "gz": "3", "ax": "4", "ay": "5", "az": "6"})
+    assert np.allclose(rec2.accel, ua, atol=1e-6)
+    with pytest.raises(RecordingError, match="no header row: map the columns by position"):
+        read(q, rate_hz=FS, accel_unit="mps2", gyro_unit="rad_s", columns={"ax": "AccX"})
+
+
+def test_explicit_gyro_method_refused_keeps_the_accelerometer_and_exits_1(session, tmp_path):
+    """--gyro rotation on a recording whose motions cannot give it: the accelerometer's result is
+    printed, kept in session.json and the history, exported; the verdict says why; exit 1."""
+    ua, ug, _, events = session
+    rests = [e for e in events if e[0] == "rest"]
+    cut = rests[5][2]                         # the six faces: five motions, fewer than the method needs
+    p = write_csv(tmp_path / "short.csv", ua[:cut] / G0, np.degrees(ug[:cut]), FS)
+    db = tmp_path / "h.sqlite"
+    r = _cli(["--from", str(p), "--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "rotation", "--method", "six",
+              "--dir", "out", "--db", str(db), "--export", "imucal"], tmp_path)
+    if "not enough still poses" in r.stderr:
+        pytest.fail("the synthetic session's first rests are not six faces: " + r.stderr)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "Traceback" not in r.stdout + r.stderr
+    assert "verdict: accelerometer calibrated" in r.stdout and "gyro not: rotation_method:" in r.stdout
+    assert "calibration PARTIAL" in r.stdout
+    assert "--gyro rotation was refused" in r.stderr and "the accelerometer result is kept" in r.stderr
+    state = json.loads((tmp_path / "out" / "session.json").read_text())
+    assert state["result"]["accel"]["m"] and state["result"]["gyro_refused"].startswith("rotation_method:")
+    assert list((tmp_path / "out").glob("*.imucal.json"))
+    with sqlite3.connect(db) as con:
+        assert con.execute("SELECT count(*) FROM runs").fetchone()[0] == 1
+
+
+def test_live_six_with_rotation_is_refused_before_capture(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--sim", "--method", "six", "--gyro",
+                        "rotation", "--dir", "s", "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=60, stdin=subprocess.DEVNULL)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "6 attitudes give 5 motion(s)" in r.stderr and "nothing was captured" in r.stderr
+    assert not (tmp_path / "s").exists()
