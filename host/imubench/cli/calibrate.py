@@ -218,7 +218,8 @@ def run(a) -> int:
     if a.gyro == "auto":
         raise UsageError("--gyro auto is for recordings (--from FILE)",
                          "a session needs its gyro method chosen: rotation, turns, turntable or bias")
-    problem = live_plan_problem(a.method or "multi", a.gyro)
+    from imubench.procedures.poses import plan_problem
+    problem = plan_problem(a.method or "multi", a.gyro)
     if problem and not a.resume:
         raise UsageError(problem[0], problem[1] + "; nothing was captured")
     if a.rate is None:
@@ -296,20 +297,6 @@ def run(a) -> int:
                               if result["passed"] and cfg.write and not result["verified"] else ""),
                            f"see the tables above and {directory / 'residuals.png'}")
     return 0
-
-
-def live_plan_problem(method: str, gyro: str) -> tuple[str, str] | None:
-    """(problem, what to do) when a session's accelerometer plan cannot give its gyro method what it
-    needs, known before anything is captured; None when it can."""
-    if gyro == "rotation":
-        from imubench.calib.gyro import MIN_MOTIONS
-        from imubench.procedures.session import plan_for
-        poses = len(plan_for(method))
-        if poses - 1 < MIN_MOTIONS:
-            return (f"--method {method} --gyro rotation: {poses} attitudes give {poses - 1} motion(s) between them; "
-                    f"the rotation method needs at least {MIN_MOTIONS} (12-24 recommended)",
-                    "use --method multi (its attitudes give the motions), or --gyro turns / turntable / bias")
-    return None
 
 
 def _run_web(a, cfg, directory: Path) -> int:
