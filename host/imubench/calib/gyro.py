@@ -716,3 +716,18 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
     _check_fit_quality(fit, model, m0, ang, ang0, max_residual_deg)
     _check_sigma_limit(sol.m_cov, max_sigma, eps_perp, min_turn, cov_b is not None)
     return fit
+
+
+def rotation_residuals(gyro, fs_hz: float, static_intervals, gravity_dirs, m, motion_bias) -> np.ndarray:
+    """(k − 1,) degrees: for a given M and the bias during each motion ((k − 1, 3) or (3,) rad/s),
+    the angle between the gravity direction the gyro predicts after each motion and the one
+    measured at the next rest — the rotation method's residual, for motions a fit did not use
+    (held out) as well as those it did."""
+    from imubench.calib import rotation_model as RM
+    u, iv, g = _check_rotation_inputs(gyro, fs_hz, static_intervals, gravity_dirs)
+    k = len(iv)
+    if k < 2:
+        raise CalibrationError("rotation_residuals: at least two static intervals")
+    mo = RM.motions(u, fs_hz, iv, g, np.zeros(k), np.ones(k - 1, bool))
+    model = RM.GravityModel(mo, np.broadcast_to(np.asarray(motion_bias, float), (k - 1, 3)))
+    return np.degrees(model.angles(np.asarray(m, float).reshape(9)))

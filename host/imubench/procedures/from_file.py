@@ -200,6 +200,7 @@ class FileAnalysis:
         self.fg = rec.gyro_factor()
         self._bias: TriadFit | None = None
         self.gyro_refused: str | None = None
+        self.gsens: dict | None = None
 
     def _note(self, text: str) -> None:
         self.notes.append(text)
@@ -335,6 +336,8 @@ class FileAnalysis:
         self.rest_index = longest
         bias = CG.gyro_bias(gyr[keep[longest].start:keep[longest].stop], fs) if cfg.gyro else None
         self._bias = bias
+        self._acc_g = accel.correct(acc) / U.G0_MPS2           # calibrated specific force per sample, g
+        self._f_rest_g = accel.correct(means) / U.G0_MPS2
         if bias is not None:
             self.say(f"gyro bias from the longest still interval ({keep[longest].t_start_s:.1f} s, "
                      f"{keep[longest].duration_s:.1f} s)")
@@ -354,6 +357,44 @@ class FileAnalysis:
         if cfg.gyro in ("turns", "rotation", "auto"):
             return self._gyro_fit(gyr, fs, keep, up, bias, brk, clip)
         return bias
+
+    def _rotation_bias(self, gyr, fs, keep, bias: TriadFit) -> tuple[np.ndarray, TriadFit]:
+        """The gyro series and bias the gyro fits use: b + G·f(t) when the rests resolve a
+        g-sensitivity G (calib.gsens, G ≠ 0 at p < 0.01; the series is corrected by G·f, f the calibrated
+        specific force in g), else the rests' weighted mean bias (bench/real_data.py: on real
+        hand-held recordings one rest's bias is the weak point, the mean of all rests does better)."""
+        from imubench.calib import gyro as CG
+        from imubench.calib.gsens import DPS, fit_gsens
+        from imubench.calib.gyro import _cov12
+        means = np.array([gyr[i.start:i.stop].mean(axis=0) for i in keep])
+        sig = np.array([CG._mean_uncertainty(gyr[i.start:i.stop], min_cluster=max(1, int(round(0.02 * fs))))["sigma"]
+                        for i in keep])
+        self.gsens = {"applied": False}
+        try:
+            gs = fit_gsens(means, sig, self._f_rest_g)
+            self.gsens.update(g_dps_per_g=(gs.g * DPS).tolist(), sigma_dps_per_g=(gs.sigma_g * DPS).tolist(),
+                              beyond_2sigma=gs.resolved.tolist(), p_zero=gs.p_zero, b_rad_s=gs.b.tolist(),
+                              reduced_chi2=gs.extra["reduced_chi2"])
+            if gs.significant:
+                self.gsens["applied"] = True
+                self.say(gs.summary())
+                self._note("the rotation method integrates the gyro less the bias b + G·f(t) its g-sensitivity "
+                           "predicts (f the calibrated specific force); b is the bias at zero specific force")
+                return gyr - self._acc_g @ gs.g.T, TriadFit(
+                    method="bias", m=np.eye(3), b=gs.b.copy(), cov=_cov12(b_cov=gs.cov[9:, 9:]),
+                    estimated=np.array([False] * 9 + [True] * 3), extra=dict(bias.extra, source="g-sensitivity fit"))
+            self.gsens["why_not"] = f"G does not differ from zero (p = {gs.p_zero:.2g} ≥ 0.01)"
+        except CalibrationError as e:
+            self.gsens["why_not"] = str(e)
+        w = 1.0 / sig**2
+        b = np.sum(w * means, axis=0) / np.sum(w, axis=0)
+        red = np.sum(w * (means - b) ** 2, axis=0) / max(len(keep) - 1, 1)
+        sb = np.sqrt(1.0 / np.sum(w, axis=0) * np.maximum(red, 1.0))
+        self._note(f"the rotation method's bias: the weighted mean of the {len(keep)} rests' gyro means (g-sensitivity "
+                   f"not applied: {self.gsens['why_not']})")
+        return gyr, TriadFit(method="bias", m=np.eye(3), b=b, cov=_cov12(b_cov=np.diag(sb**2)),
+                             estimated=np.array([False] * 9 + [True] * 3),
+                             extra=dict(bias.extra, source="weighted mean of the rests"))
 
     def _part_turns(self, gyr, acc, keep, up, accel) -> list:
         """Turns from the file's named parts (*_rot), for files cut tightly around each turn."""
@@ -379,6 +420,8 @@ class FileAnalysis:
         cfg = self.cfg
         fits: dict[str, TriadFit] = {}
         errs: dict[str, CalibrationError] = {}
+        u_rot, b_rot = self._rotation_bias(gyr, fs, keep, bias)
+        bias = b_rot                    # the bias every gyro fit reports: the rests' mean or b of b + G·f
         try:
             fits["turns"] = known_angle_turns(self.turns, bias, noise_density_rad_s_rthz=bias.extra[
                 "noise_density_rad_s_rthz"], angle_sigma_deg=cfg.angle_sigma_deg, axis_sigma_deg=cfg.axis_sigma_deg)
@@ -392,7 +435,7 @@ class FileAnalysis:
                 self._note(f"motion {j} ({keep[j].stop / fs:.1f}–{keep[j + 1].start / fs:.1f} s) not used by the "
                            f"rotation method: the recording is not continuous inside it (break at sample {inside[0]})")
         try:
-            fits["rotation"] = CG.rotation_method(gyr, fs, [(i.start, i.stop) for i in keep], up, bias,
+            fits["rotation"] = CG.rotation_method(u_rot, fs, [(i.start, i.stop) for i in keep], up, b_rot,
                                                   max_rate_rad_s=clip, exclude_motions=bad)
         except CalibrationError as e:
             errs["rotation"] = e
@@ -472,7 +515,7 @@ class FileAnalysis:
             "source": source, "segmentation": seg, "turns": turns, "gyro_parts": _jsonable(self.gyro_parts),
             "notes": list(self.notes), "annotation": annotation, "device_name": name,
             "tolerance_source": tol_text, "gyro_refused": self.gyro_refused, "verdict": verdict,
-            "accel_noise_ug_rthz": self.accel_noise_ug,
+            "accel_noise_ug_rthz": self.accel_noise_ug, "gsens": self.gsens,
         }
         if not rec.accel_scaled:
             result["accel_counts_per_g"] = (accel.m / self.fa * U.G0_MPS2).tolist()
