@@ -254,13 +254,16 @@ class TurntableSegment(NamedTuple):
     axis: the table's rotation axis in the board frame (normalised here);
     table_rate_rad_s: the table's rate about that axis (right-hand rule; negative = other way);
     sigma: optional 1-sigma uncertainty of this segment's MEAN reading, rad/s (scalar or per
-    axis); estimated from the data when None.
+    axis); estimated from the data when None. specific_force_g: optional, see below.
     """
 
     rates: np.ndarray
     axis: np.ndarray
     table_rate_rad_s: float
     sigma: float | np.ndarray | None = None
+    specific_force_g: np.ndarray | None = None   # (3,) the board's mean specific force in g during the
+                                                 # segment (calibrated accelerometer): with gsens=, the
+                                                 # bias predicted for it, G·f, is taken off the reading
 
 
 def _segments(segments) -> list[TurntableSegment]:
@@ -269,8 +272,9 @@ def _segments(segments) -> list[TurntableSegment]:
         if isinstance(s, dict):
             s = TurntableSegment(**s)
         s = tuple(s)
-        if len(s) not in (3, 4):
-            raise CalibrationError(f"segment {i}: expected (rates, axis, table_rate_rad_s[, sigma])")
+        if len(s) not in (3, 4, 5):
+            raise CalibrationError(f"segment {i}: expected (rates, axis, table_rate_rad_s[, sigma[, "
+                                   "specific_force_g]])")
         rates = _as_rates(s[0], f"segment {i} rates")
         if len(rates) < 2:
             raise CalibrationError(f"segment {i}: needs at least 2 samples")
@@ -285,7 +289,10 @@ def _segments(segments) -> list[TurntableSegment]:
             np.asarray(s[3], float), (3,)).copy()
         if sig is not None and not (np.all(np.isfinite(sig)) and np.all(sig > 0)):
             raise CalibrationError(f"segment {i}: sigma must be positive")
-        out.append(TurntableSegment(rates, ax, w, sig))
+        f = None if len(s) < 5 or s[4] is None else np.asarray(s[4], float).reshape(3)
+        if f is not None and not np.all(np.isfinite(f)):
+            raise CalibrationError(f"segment {i}: specific_force_g must be finite")
+        out.append(TurntableSegment(rates, ax, w, sig, f))
     return out
 
 
@@ -325,7 +332,8 @@ def _check_sigma_limit_m(method: str, m_cov: np.ndarray, max_sigma: float) -> No
                             + f" above the limit {max_sigma:g}: add segments (longer, or at higher rates)")
 
 
-def turntable(segments, bias: TriadFit | np.ndarray | None = None, *, max_sigma: float = 0.01) -> TriadFit:
+def turntable(segments, bias: TriadFit | np.ndarray | None = None, *, max_sigma: float = 0.01,
+              gsens=None) -> TriadFit:
     """M and b from turntable segments at known constant rates.
 
     segments: iterable of TurntableSegment or tuples (rates (n,3) rad/s, axis (3,) unit vector
@@ -337,7 +345,9 @@ def turntable(segments, bias: TriadFit | np.ndarray | None = None, *, max_sigma:
     bias: None → b is fitted with M; every board axis must then be turned both ways (the
     sum/difference of the two directions separates bias from scale). A TriadFit (e.g. from
     gyro_bias on a rest recording) → b is fixed to it and its uncertainty propagated into M;
-    a plain (3,) array → b fixed and taken as exact (its covariance NaN).
+    a plain (3,) array → b fixed and taken as exact (its covariance NaN). gsens: a g-sensitivity
+    (calib.gsens.GSensFit, or G (3, 3) in rad/s per g): each segment's reading is taken less G·f
+    (its specific_force_g), so b is then the bias at zero specific force.
 
     The covariance comes from the segment sigmas; it is scaled by the reduced chi-square when
     that is significantly above 1 (p < 0.01: unmodelled errors such as table-rate error or
@@ -353,6 +363,12 @@ def turntable(segments, bias: TriadFit | np.ndarray | None = None, *, max_sigma:
     S = len(segs)
     w = np.array([s.table_rate_rad_s * s.axis for s in segs])            # (S, 3) true rates
     ubar = np.array([s.rates.mean(axis=0) for s in segs])                 # (S, 3)
+    if gsens is not None:               # the g-sensitivity's share of each segment's bias, G·f
+        gm = np.asarray(gsens.g if hasattr(gsens, "g") else gsens, float).reshape(3, 3)
+        missing = [i for i, s in enumerate(segs) if s.specific_force_g is None]
+        if missing:
+            raise CalibrationError(f"turntable: gsens given but segment {missing[0]} has no specific_force_g")
+        ubar = ubar - np.array([gm @ s.specific_force_g for s in segs])
     sig = np.empty((S, 3))
     for i, s in enumerate(segs):
         sig[i] = s.sigma if s.sigma is not None else _mean_uncertainty(s.rates)["sigma"]
