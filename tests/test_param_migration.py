@@ -93,3 +93,60 @@ def test_a_layout1_block_is_used_and_the_next_save_writes_layout2(tmp_path, targ
             act = d.get_params(ParamsWhich.ACTIVE)
             assert act.source == ParamSource.FLASH and _pack(act.params) == _pack(q)
             assert math.isclose(act.params.gyro_g_rad_s_per_mps2[0], q.gyro_g_rad_s_per_mps2[0])
+
+
+# ------------------------------------------------------------------ g-sensitivity through a whole session
+def _gsens_session(tmp_path, target: str):
+    """A whole session with random truth (every ADXRS450 with its g-sensitivity): multi-position on
+    the host build; on the ARM images (slow: the emulator) six faces held 1 s and shorter reads,
+    which resolve G less well (its σ ≈ 0.015 °/s/g) but exercise the same code in the image."""
+    host = target == "host"
+    from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for, rotation_to
+    from imubench.wire.protocol_gen import ParamsWhich as W
+    with VirtualBench(speed=20 if target == "host" else 0, seed=31, truth="random", target=target) as vb:
+        vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)
+        with Device.open(vb.port_url, timeout=5.0) as dev:
+            method = "multi" if host else "six"
+            s = Session(dev, tmp_path / "s", SessionConfig(method=method, gyro="bias", write=True,
+                                                           hold_s=2.0 if host else 1.0),
+                        SimPresenter(vb, quiet=True))
+            result = s.run(plan_for(method))
+            s.write_back(s.accel_fit, s.gyro_fit, cal_id=9)
+            truth = vb.get_truth()
+            active = dev.get_params(W.ACTIVE).params
+            # the calibrated stream, still, in two attitudes whose specific force differs by 2 g
+            rates = []
+            for up in ([0, 0, 1], [0, 0, -1], [1, 0, 0]):
+                turn = rotation_to(vb.status()["gravity_board"], np.array(up, float))
+                if turn is not None:
+                    vb.rotate(turn[0], turn[1] / 1.0, duration_s=1.0)
+                dev.start_stream(200, calibrated=True)
+                dev.discard_buffered()
+                w = dev.read(n_samples=2000 if host else 600, calibrated=True, timeout=120.0).rate_rad_s.astype(float)
+                dev.stop_stream()
+                rates.append((w.mean(axis=0), w.std(axis=0, ddof=1) / math.sqrt(len(w))))
+    return result, truth, active, rates
+
+
+@pytest.mark.parametrize("target", ["host"])     # the images: tests/test_arm_images.py's whole session
+def test_session_recovers_g_sensitivity_and_the_device_applies_it(tmp_path, target):
+    result, truth, active, rates = _gsens_session(tmp_path, target)
+    g = result["gsens"]
+    assert g["applied"], g
+    g_true = np.array([t["gsens_rad_s_per_mps2"] for t in truth["gyro"]]) * 9.80665 * 180 / math.pi   # °/s per g
+    z = (np.array(g["g_dps_per_g"]) - g_true) / np.array(g["sigma_dps_per_g"])
+    assert np.all(np.abs(z) < 4.5), z
+    assert np.abs(g_true).max() > 0.02                       # the random truth has a visible G
+    np.testing.assert_allclose(np.array(active.gyro_g_rad_s_per_mps2).reshape(3, 3),
+                               np.array(g["g_dps_per_g"]) * math.pi / 180 / 9.80665, rtol=1e-5, atol=1e-12)
+    # no rate change between attitudes beyond noise: Z up vs Z down (2 g apart) and X up. The
+    # tolerance: 4σ of the stream means' noise and of G's error over the change in f; without G
+    # the change would be G_true·Δf, beyond it on some axis (checked, so the test can fail)
+    (m0, s0), *others = rates
+    sig_g = np.array(g["sigma_dps_per_g"])
+    for (m1, s1), df in zip(others, (np.array([0, 0, -2.0]), np.array([1.0, 0, -1.0]))):
+        d = np.degrees(m1 - m0)
+        tol = 4.0 * np.sqrt(np.degrees(s0) ** 2 + np.degrees(s1) ** 2 + (sig_g**2) @ (df**2))
+        assert np.all(np.abs(d) < tol), (d, tol)
+        if df[2] == -2.0 and target == "host":   # the host's 26 poses resolve G well enough to show it
+            assert np.any(np.abs(g_true @ df) > tol), (g_true @ df, tol)

@@ -84,9 +84,12 @@ class GSensFit:
         return "gyro g-sensitivity G (°/s per g), " + word + ":\n" + "\n".join(rows)
 
 
-def fit_gsens(rest_means, rest_sigmas, f_g, *, max_sigma_dps_per_g: float = MAX_SIGMA_DPS_PER_G) -> GSensFit:
+def fit_gsens(rest_means, rest_sigmas, f_g, *, max_sigma_dps_per_g: float = MAX_SIGMA_DPS_PER_G,
+              sigma_from_scatter: bool = False) -> GSensFit:
     """b and G from the rests' gyro means (k, 3) rad/s, their 1σ (k, 3) rad/s, and the rests'
-    specific force f (k, 3) in g (the calibrated accelerometer's mean, ≈ unit "up")."""
+    specific force f (k, 3) in g (the calibrated accelerometer's mean, ≈ unit "up").
+    sigma_from_scatter: the given sigmas are relative weights only (e.g. all ones); the
+    covariance is scaled by the reduced χ² whatever its value."""
     u = np.asarray(rest_means, float)
     s = np.asarray(rest_sigmas, float)
     f = np.asarray(f_g, float)
@@ -126,8 +129,10 @@ def fit_gsens(rest_means, rest_sigmas, f_g, *, max_sigma_dps_per_g: float = MAX_
         cov[np.ix_(idx, idx)] = C
     dof = 3 * k - 12
     red = chi2 / dof if dof > 0 else float("nan")
-    if dof > 0 and red > 1.0:
+    if dof > 0 and (red > 1.0 or sigma_from_scatter):
         cov *= red
+    elif sigma_from_scatter:
+        raise NotObservable(f"g-sensitivity: {k} rests leave no degree of freedom to estimate the noise from")
     fit = GSensFit(b=b, g=G, cov=cov, chi2=chi2, dof=dof, residuals=resid,
                    extra={"reduced_chi2": red, "n_rests": k,
                           "rest_scatter_dps": float(np.sqrt(np.mean(resid**2))) * DPS})
