@@ -106,3 +106,61 @@ def test_allan_from_refuses_a_unit_the_data_contradict_and_stray_options(still, 
     assert "Traceback" not in r.stderr
     r = _allan(["--export", "kalibr", "--duration", "1m"], tmp_path)
     assert r.returncode == 2 and "--export goes with --from FILE" in r.stderr
+
+
+# ------------------------------------------------------------------ the calibration in Kalibr's, PX4's, imu_calib's files
+@pytest.fixture(scope="module")
+def calibration(tmp_path_factory):
+    from imu_synth import ferraris_session
+
+    from imubench.procedures.from_file import FileAnalysis, FileConfig
+    from imubench.recordings import from_arrays
+    ua, ug, truth, _ = ferraris_session(fs=100.0, seed=3)
+    rec = from_arrays(ua, ug, rate_hz=100.0, accel_unit_name="mps2", gyro_unit_name="rad_s")
+    fa = FileAnalysis(rec, FileConfig(gyro="turns"), say=lambda s: None)
+    fa.run()
+    return fa, ua, tmp_path_factory.mktemp("cal")
+
+
+def _write(kind, fa, d, gsens=None):
+    from imubench.results import paramfiles
+    return paramfiles.write(kind, d / "cal", accel=fa.accel, gyro=fa.gyro, accel_factor=1.0, gyro_factor=1.0,
+                            accel_unit="mps2", gyro_unit="rad_s", scaled=True, comment="test", gsens=gsens)
+
+
+def test_kalibr_intrinsics_read_back_with_and_without_g(calibration):
+    fa, _, d = calibration
+    f, = _write("kalibr", fa, d)
+    k = yaml.safe_load(f.read_text())["imu0"]
+    assert k["model"] == "scale-misalignment" and "A" not in k["gyroscopes"]
+    assert np.allclose(k["accelerometers"]["M"], fa.accel.m) and np.allclose(k["gyroscopes"]["M"], fa.gyro.m)
+    assert np.array(k["gyroscopes"]["C_gyro_i"]).shape == (3, 3)
+    g = np.radians([[0.03, 0, 0], [0, -0.02, 0.01], [0, 0, 0.04]])        # rad/s per g
+    f, = _write("kalibr", fa, d, gsens=g)
+    k = yaml.safe_load(f.read_text())["imu0"]
+    assert k["model"] == "scale-misalignment-gsensitivity"
+    assert np.allclose(k["gyroscopes"]["A"], g / 9.80665)                 # (rad/s)/(m/s²), Kalibr's unit
+
+
+def test_imu_calib_yaml_reproduces_our_correction(calibration):
+    fa, ua, d = calibration
+    f, = _write("imu-calib", fa, d)
+    c = yaml.safe_load(f.read_text())
+    sm, bias = np.array(c["SM"], float).reshape(3, 3), np.array(c["bias"], float)
+    assert len(c["SM"]) == 9 and len(c["bias"]) == 3
+    raw = ua[:500]
+    np.testing.assert_allclose(raw @ sm.T - bias, fa.accel.correct(raw), atol=1e-9)   # corrected = SM·raw − bias
+
+
+def test_px4_params_as_qgroundcontrol_reads_them(calibration):
+    fa, ua, d = calibration
+    f, = _write("px4", fa, d, gsens=np.zeros((3, 3)))
+    rows = [ln.split("\t") for ln in f.read_text().splitlines() if ln and not ln.startswith("#")]
+    assert all(len(r) == 5 and r[:2] == ["1", "1"] and r[4] == "9" for r in rows)
+    p = {r[2]: float(r[3]) for r in rows}
+    assert set(p) == {f"CAL_ACC0_{a}{k}" for a in "XYZ" for k in ("OFF", "SCALE")} | {f"CAL_GYRO0_{a}OFF" for a in "XYZ"}
+    off = np.array([p[f"CAL_ACC0_{a}OFF"] for a in "XYZ"])
+    scale = np.array([p[f"CAL_ACC0_{a}SCALE"] for a in "XYZ"])
+    assert np.allclose(off, fa.accel.b) and np.allclose(scale, 1 / np.diag(fa.accel.m))
+    text = f.read_text()
+    assert "PX4 cannot hold" in text and "cross-axis" in text and "no gyro scale" in text and "g-sensitivity" in text

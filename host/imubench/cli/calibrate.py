@@ -27,7 +27,7 @@ GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "auto", "none")
 # imubench.recordings.FORMATS and imubench.results.paramfiles.WRITERS, named here so that building
 # the parser loads neither (tests/test_from_file.py checks they agree)
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
-WRITERS = ("params", "imutk", "imucal", "ardupilot")
+WRITERS = ("params", "imutk", "imucal", "ardupilot", "kalibr", "px4", "imu-calib")
 
 
 def rate_hz(s: str) -> float:
@@ -179,8 +179,9 @@ def _add_from_file(p) -> None:
     g.add_argument("--annotation", type=existing_file, metavar="JSON",
                    help="imucal's section list, to compare the segmentation with")
     g.add_argument("--export", action="append", default=[], choices=WRITERS, metavar="|".join(WRITERS),
-                   help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON or ArduPilot's "
-                        "parameters (repeatable)")
+                   help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON, ArduPilot's "
+                        "parameters, Kalibr's IMU intrinsics, PX4's CAL_ACC0/CAL_GYRO0 parameters or ROS imu_calib's "
+                        "YAML (repeatable)")
     g.add_argument("--tolerance-mg", type=positive_float, metavar="MG",
                    help="pass when the RMS of |a| − g over the still intervals after calibration is at most this "
                         "(default: the device's, 1 mg)")

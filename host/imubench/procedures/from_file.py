@@ -618,14 +618,19 @@ def _safe(name: str) -> str:
 def _write_one(kind: str, prefix: Path, fa: FileAnalysis, result: dict, paramfiles) -> list[Path]:
     rec = fa.rec
     comment = f"imubench from {Path(rec.source.split(' + ')[0]).name}, {result['finished']}"
-    if kind in ("params", "ardupilot") and not (rec.accel_scaled and (rec.gyro_scaled or fa.gyro is None)):
+    if kind in paramfiles.SI_WRITERS and not (rec.accel_scaled and (rec.gyro_scaled or fa.gyro is None)):
         raise RecordingError("needs SI parameters, i.e. a declared nominal scale of the raw counts "
                              "(--accel-scale / --gyro-scale); imutk and imucal take counts as they are")
     params = None
+    gs = fa.gsens or {}
+    gsens = np.radians(np.array(gs["g_dps_per_g"])) if gs.get("applied") else None     # rad/s per g
     if kind == "params":
+        from imubench.calib.gsens import GSensFit
         from imubench.procedures.session import params_from_fits
         from imubench.wire import params as PR
-        params = params_from_fits(fa.accel, fa.gyro, PR.identity(), 0)
+        g_fit = None if gsens is None else GSensFit(b=np.zeros(3), g=gsens, cov=np.zeros((12, 12)), chi2=0.0, dof=0,
+                                                    residuals=np.zeros((0, 3)))
+        params = params_from_fits(fa.accel, fa.gyro, PR.identity(), 0, g_fit)
     return paramfiles.write(kind, prefix, accel=fa.accel, gyro=fa.gyro, accel_factor=fa.fa, gyro_factor=fa.fg,
                         accel_unit=rec.accel_unit, gyro_unit=rec.gyro_unit, scaled=rec.accel_scaled,
-                        params=params, comment=comment)
+                        params=params, comment=comment, gsens=gsens)
