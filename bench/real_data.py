@@ -120,11 +120,17 @@ def si_vs_counts(si: dict, counts: dict) -> dict:
 SHARED = Path(__import__("os").environ.get("IMUBENCH_REAL_DATA", str(ROOT.parent.parent / "shared" / "data")))
 # (name, path, read options): the recordings of other IMUs that can be read without asking (units,
 # rate as their READMEs state them); shared ones are used when ../shared/data is there
+MIKOFF = ROOT / "tests" / "data" / "mikoff"        # gzip copies of ../shared/data/mikoff (MIT)
+
+
+def _mikoff(name: str) -> Path:
+    shared = SHARED / "mikoff" / name
+    return shared if shared.exists() else MIKOFF / f"{name}.gz"
+
+
 RECORDINGS = [
-    ("mikoff imu0 (MPU-9150)", SHARED / "mikoff" / "imu0.log", {"rate_hz": 100.0, "accel_unit": "mps2",
-                                                                "gyro_unit": "rad_s"}),
-    ("mikoff imu1 (MPU-9150)", SHARED / "mikoff" / "imu1.log", {"rate_hz": 100.0, "accel_unit": "mps2",
-                                                                "gyro_unit": "rad_s"}),
+    ("mikoff imu0 (MPU-9150)", _mikoff("imu0.log"), {"rate_hz": 100.0, "accel_unit": "mps2", "gyro_unit": "rad_s"}),
+    ("mikoff imu1 (MPU-9150)", _mikoff("imu1.log"), {"rate_hz": 100.0, "accel_unit": "mps2", "gyro_unit": "rad_s"}),
     ("imucal Ferraris (SI)", SI_FILE, {"rate_hz": 102.4, "accel_unit": "mps2", "gyro_unit": "dps"}),
     ("imucal annotated (counts)", COUNTS_FILE, {"rate_hz": 204.8, "accel_unit": "counts", "gyro_unit": "counts"}),
 ]
