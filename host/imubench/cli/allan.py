@@ -32,6 +32,13 @@ def parse_duration(s: str) -> float:
     return v
 
 
+def rate_hz(s: str) -> float:
+    """allan's --rate: as calibrate's (a positive number here; a protocol stream rate when a
+    device records, any rate for a file's --from — checked in run())."""
+    from imubench.cli.calibrate import rate_hz as calibrate_rate
+    return calibrate_rate(s)
+
+
 def register(sub) -> None:
     p = sub.add_parser("allan", help="record for hours and read the Allan deviation (noise terms)",
                        description="Record a resting IMU for a long time (every byte on disk as it arrives) and "
@@ -40,7 +47,7 @@ def register(sub) -> None:
     add_port(p)
     p.add_argument("--duration", type=parse_duration, default=None,
                    help="recording length in device time: 90s, 30m, 2h, 1h30m (required unless --analyse)")
-    p.add_argument("--rate", type=positive_float, metavar="HZ", default=None,
+    p.add_argument("--rate", type=rate_hz, metavar="HZ", default=None,
                    help="sample rate in Hz: the device's stream rate (default 100), or with --from the file's rate "
                         "when it has no time column")
     p.add_argument("--out", type=out_dir, default=Path("allan-out"), help="output directory")
