@@ -13,11 +13,15 @@ HOST   := $(BUILD)/host
 # chromium renders the HTML report in tests/test_html_report.py (headless, nothing downloaded);
 # postgresql is the server tests/test_production_db.py starts in a temporary directory (the shared
 # history database of a production line).
-SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium postgresql
+SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium postgresql stm32flash
 
 CC_HOST  ?= gcc
 CFLAGS_HOST := -std=c11 -O2 -g -Wall -Wextra -Werror -Wshadow -Wstrict-prototypes \
                -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim/models -I$(HOST)/gen
+# added to every C compile, host and ARM (setup.py, the wheel build, maps the source directory
+# away with -ffile-prefix-map so that the wheel and the one built from the sdist are the same)
+EXTRA_CFLAGS ?=
+CFLAGS_HOST += $(EXTRA_CFLAGS)
 # Portable firmware code (core, drivers) and the simulator's sensor models: compiled
 # for the host into one static library that the C unit tests link against.
 FW_PORTABLE_SRC := $(wildcard firmware/core/*.c firmware/drivers/*.c firmware/boards/sim/models/*.c)
@@ -26,7 +30,7 @@ C_TEST_SRC := $(wildcard tests/c/test_*.c)
 C_TEST_BIN := $(patsubst tests/c/%.c,$(HOST)/tests/%,$(C_TEST_SRC)) $(HOST)/tests/vector_harness \
               $(HOST)/tests/param_check_harness
 
-.PHONY: all test demo venv system-deps c-tests clean bench sim lint
+.PHONY: all test demo venv system-deps c-tests clean bench sim lint dist
 
 all: c-tests
 
@@ -84,10 +88,18 @@ test: system-deps venv c-tests sim firmware
 	$(PY) -m pytest
 
 demo: system-deps venv sim
-	$(PY) -m imubench.cli.demo
+	$(PY) -m imubench demo
 
 clean:
 	rm -rf $(BUILD)
+
+# The release: the sdist, then the platform wheel built from it (setup.py compiles the virtual
+# device, the models library and the STM32 images into the package), both into dist/.
+# README.md, Install, says how to install either.
+dist: system-deps venv
+	@rm -rf dist
+	$(PY) -m build --outdir dist .
+	@ls -l dist
 
 include firmware/arm.mk
 
@@ -104,3 +116,5 @@ bench: venv
 	$(PY) bench/real_data.py
 	$(PY) bench/arm_cycles.py
 	$(PY) bench/session_time.py
+	$(PY) bench/station_flood.py
+	$(PY) bench/wheel_install.py

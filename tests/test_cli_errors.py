@@ -100,7 +100,7 @@ CASES = (
        ("qemu", ["--board", "f7"], 2, ["invalid choice: 'f7'"]),
        ("sim", ["--truth", "perfect"], 2, ["invalid choice: 'perfect'"]),
        ("sim", ["--target", "f7"], 2, ["invalid choice: 'f7'", "f103"]),
-       ("sim", ["--target", "f4", "--pty"], 2, ["--pty is not available with --target f4", "socket://"]),
+       ("sim", ["--boot0"], 2, ["--boot0 is a setting of the STM32 boards", "--target f103"]),
        ("sim", ["--target", "f103", "--baud", "115200"], 2, ["cannot change the f103 image's baud rate"]),
        ("calibrate", ["--sim", "--target", "stm32"], 2, ["invalid choice: 'stm32'"]),
        ("calibrate", ["--redo", "+X"], 2, ["--redo goes with --resume"]),

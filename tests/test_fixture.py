@@ -15,6 +15,7 @@ from imubench.cli import main as imubench
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
 from imubench.procedures.fixture import FixtureRun, Plate, PlatePresenter, Station
+from imubench.procedures.schedule import Need
 from imubench.procedures.session import SessionConfig
 from imubench.results.calibration import truth_in_fit_frame
 from imubench.results.history import History
@@ -180,7 +181,7 @@ def test_the_plate_moves_once_when_every_live_board_asked_and_stops_waiting_for_
             if leave_after is not None and i == leave_after:
                 plate.leave(slot)
                 return
-            plate.request(slot, "pose", p, (p, None, i, len(poses)))
+            plate.request(slot, Need("verify", (p,)), {p: (p, None, i, len(poses))})
             done.append((slot, p))
         plate.leave(slot)
     ts = [threading.Thread(target=board, args=(1, ["a", "b", "c"])),
@@ -267,15 +268,26 @@ def test_a_one_board_session_records_the_production_fields_too(tmp_path, capsys)
     assert {m["name"] for m in run["measurements"]} >= {"accel_norm_rms_mg", "params_written"}
 
 
-def test_boards_out_of_step_get_one_move_and_a_warning():
-    mover, said = _Mover(), []
-    plate = Plate(mover, [1, 2], say=said.append)
-    t = threading.Thread(target=plate.request, args=(2, "pose", "b", ("b", None, 1, 6)))
+def test_a_board_still_needing_an_attitude_is_served_before_another_boards_verification():
+    """Issue 24: slot 1 went on to verification while slot 2 still needed an attitude; the
+    plate presents slot 2's attitude first (slot 1 waits, visibly), then the verification."""
+    mover, waits = _Mover(), []
+    plate = Plate(mover, [1, 2], on_wait=lambda s, t: waits.append((s, t)))
+    got = {}
+
+    def slot2():
+        got[2] = plate.request(2, Need("pose", ("+Y-Z edge", "-X-Z edge")), {"+Y-Z edge": ("+Y-Z edge", None),
+                                                                            "-X-Z edge": ("-X-Z edge", None)})
+        plate.leave(2)
+    t = threading.Thread(target=slot2)
     t.start()
-    plate.request(1, "pose", "a", ("a", None, 0, 6))
+    got[1] = plate.request(1, Need("verify", ("+Z up (level)",)), {"+Z up (level)": ("+Z up (level)", None, 0, 3)})
     t.join(5)
-    assert not t.is_alive() and mover.moves == ["a"]           # the first slot's move, once
-    assert said and "asked for different moves" in said[0] and "pose a" in said[0] and "pose b" in said[0]
+    assert not t.is_alive()
+    assert mover.moves == ["+Y-Z edge", "+Z up (level)"] and got == {1: "+Z up (level)", 2: "+Y-Z edge"}
+    assert any(s == 1 and t and "waits for slot 2 to come to verification" in t and "deadline 300 s device time" in t
+               for s, t in waits)
+    assert waits[-1] == (1, None) or (1, None) in waits          # no longer waiting once served
 
 
 def test_a_refused_fit_fails_that_board_only(tmp_path, monkeypatch):

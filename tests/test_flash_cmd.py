@@ -24,6 +24,13 @@ if [ "$name" = "st-flash" ] && [ "$1" = "read" ] && [ -n "$FAKE_READ_SRC" ]; the
   /bin/cp "$FAKE_READ_SRC" "$2"
 fi
 echo "$name: stand-in ran"
+if [ "$name" = "stm32flash" ] && [ -n "$FAKE_PID" ]; then
+  echo "Device ID    : $FAKE_PID (stand-in)"
+fi
+if [ -n "$FAKE_VERIFY_FAIL" ] && [ "$name" = "stm32flash" ] && [ "$1" = "-S" ]; then
+  echo "Failed to verify at address 0x08000100, expected 0x12 and found 0xff" >&2
+  exit 1
+fi
 if [ "$FAKE_FAIL" = "$name" ]; then
   echo "Error: $name stand-in: no target connected" >&2
   exit 1
@@ -45,12 +52,20 @@ def env(tmp_path, monkeypatch):
     monkeypatch.setenv("FAKE_LOG", str(log))
     monkeypatch.delenv("FAKE_FAIL", raising=False)
     monkeypatch.delenv("FAKE_READ_SRC", raising=False)
+    monkeypatch.setenv("FAKE_PID", "0x0410")
+    # no board behind a stand-in: the identity read after the start is stubbed (the real
+    # one is tested against the emulated bootloader, tests/test_rom_bootloader.py)
+    import imubench.cli.flash as cli_flash
+    monkeypatch.setattr(cli_flash, "_print_identity", lambda port: print(f"identity of the board on {port}"))
+    monkeypatch.delenv("FAKE_VERIFY_FAIL", raising=False)
     img = tmp_path / "img"
     img.mkdir()
     images = {ext: img / f"imubench.{ext}" for ext in ("elf", "bin", "hex")}
     images["elf"].write_bytes(b"\x7fELF fake image")
     images["bin"].write_bytes(bytes(range(256)) * 37 + b"tail")
     images["hex"].write_text(":00000001FF\n")
+    images["port"] = tmp_path / "ttyUSB7"          # stands for the adapter's device node
+    images["port"].write_text("")
 
     def install(*tools):
         for t in tools:
@@ -127,8 +142,38 @@ def test_stlink_needs_a_bin_image(env, capsys):
 def test_serial_bootloader_command_line(env):
     install, calls, img = env
     install("stm32flash")
-    assert imubench(["flash", "--board", "f103", "--port", "/dev/ttyUSB7", "--image", str(img["hex"])]) == 0
-    assert calls() == [["stm32flash", "-w", str(img["hex"]), "-v", "-g", "0x0", "/dev/ttyUSB7"]]
+    assert imubench(["flash", "--board", "f103", "--port", str(img["port"]), "--image", str(img["hex"])]) == 0
+    assert calls() == [["stm32flash", str(img["port"])],
+                       ["stm32flash", "-S", "0x08000000:0", "-w", str(img["hex"]), "-v", "-g", "0x08000000",
+                        str(img["port"])]]
+
+
+def test_serial_port_that_does_not_exist(env, capsys):
+    install, calls, img = env
+    install("stm32flash")
+    assert imubench(["flash", "--board", "f103", "--port", "/dev/ttyUSB9-none", "--image", str(img["hex"])]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "/dev/ttyUSB9-none: no such serial port" in err[0]
+    assert calls() == []
+
+
+def test_serial_verify_mismatch_is_one_line(env, monkeypatch, capsys):
+    install, calls, img = env
+    install("stm32flash")
+    monkeypatch.setenv("FAKE_VERIFY_FAIL", "1")
+    assert imubench(["flash", "--board", "f103", "--port", str(img["port"]), "--image", str(img["hex"])]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["imubench flash: error: verify failed: Failed to verify at address 0x08000100, "
+                   "expected 0x12 and found 0xff; see docs/firmware.md, Flashing"]
+
+
+def test_serial_refuses_another_chip_before_erasing(env, monkeypatch, capsys):
+    install, calls, img = env
+    install("stm32flash")
+    monkeypatch.setenv("FAKE_PID", "0x0413")
+    assert imubench(["flash", "--board", "f103", "--port", str(img["port"]), "--image", str(img["hex"])]) == 2
+    assert "product ID 0x413 (f4), not the f103's 0x410: nothing erased" in capsys.readouterr().err
+    assert calls() == [["stm32flash", str(img["port"])]]                      # the write never ran
 
 
 def test_serial_needs_a_port(env, capsys):
@@ -160,18 +205,21 @@ def test_requested_probe_missing(env, capsys):
 @pytest.mark.parametrize("tool,args", [
     ("openocd", ["--probe", "openocd"]),
     ("st-flash", ["--probe", "stlink"]),
-    ("stm32flash", ["--probe", "serial", "--port", "/dev/ttyS9"]),
+    ("stm32flash", ["--probe", "serial", "--port", "PORT"]),
 ])
 def test_tool_failure_exits_non_zero_with_its_output(env, monkeypatch, capsys, tool, args):
     install, calls, img = env
     install(*TOOLS)
     monkeypatch.setenv("FAKE_FAIL", tool)
     ext = {"openocd": "elf", "st-flash": "bin", "stm32flash": "hex"}[tool]
+    args = [str(img["port"]) if x == "PORT" else x for x in args]
     assert imubench(["flash", "--board", "f103", "--image", str(img[ext]), *args]) == 1
     cap = capsys.readouterr()
-    assert f"{tool} failed (exit 1)" in cap.err
+    assert f"{tool} failed (exit 1)" in cap.err or tool == "stm32flash"
     assert f"Error: {tool} stand-in: no target connected" in cap.out + cap.err
     assert len(calls()) == 1                                                # stops at the first failure
+    if tool == "stm32flash":
+        assert "does not answer as an STM32 bootloader" in cap.err
 
 
 def test_dry_run_runs_nothing(env, capsys):
@@ -192,7 +240,9 @@ def test_dry_run_with_a_probe_needs_no_tool(env, capsys):
     _install, calls, img = env
     assert imubench(["flash", "--board", "f103", "--probe", "serial", "--port", "/dev/ttyUSB0", "--dry-run",
                        "--image", str(img["hex"])]) == 0
-    assert f"stm32flash -w {img['hex']} -v -g 0x0 /dev/ttyUSB0" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"stm32flash -S 0x08000000:0 -w {img['hex']} -v -g 0x08000000 /dev/ttyUSB0" in out
+    assert "stm32flash /dev/ttyUSB0" in out
 
 
 def test_missing_image(env, tmp_path, capsys):

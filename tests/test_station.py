@@ -84,18 +84,24 @@ def test_human_presenter_lists_missing_attitudes_and_names_the_one_held(capsys):
 def test_one_page_owns_a_device_the_others_watch(monkeypatch):
     import imubench.station.state as S
     st = StationState()
-    owner = st.claim("socket://a:1", None)
-    assert owner and st.owns("socket://a:1", owner)
-    assert st.claim("socket://a:1", "someone-else") is None            # read-only
+    owner, other = st.new_client(), st.new_client()           # identities the server issues
+    assert owner != other and st.client(owner) == owner and st.client("made-up") is None
+    assert st.claim("socket://a:1", owner) == owner and st.owns("socket://a:1", owner)
+    assert st.claim("socket://a:1", other) is None                    # read-only
     assert st.claim("socket://a:1", owner) == owner                   # the owner again (a reload)
-    assert st.claim("socket://b:2", "someone-else") == "someone-else"  # another device is free
-    snap = st.snapshot("someone-else")
+    assert st.claim("socket://b:2", other) == other                   # another device is free
+    snap = st.snapshot(other)
     mine = {b["key"]: b["yours"] for b in snap["boards"]}
     assert mine == {"socket://a:1": False, "socket://b:2": True}
     assert all("owner" not in b for b in snap["boards"])              # tokens never leave the server
-    # an owner that went away (no event stream for the grace time) gives the device up
     monkeypatch.setattr(S, "OWNER_GRACE_S", 0.0)
-    assert st.claim("socket://a:1", "someone-else") == "someone-else"
+    # an owner whose page is open (its event stream) keeps the device, however long ago it spoke
+    st.stream_opened(owner)
+    assert st.claim("socket://a:1", other) is None
+    # an owner that went away (no page open for the grace time) gives the device up
+    st.stream_closed(owner)
+    assert {b["key"]: b["owned"] for b in st.snapshot(other)["boards"]}["socket://a:1"] is False   # the pages may claim it
+    assert st.claim("socket://a:1", other) == other
 
 
 def test_station_options_are_checked_with_one_line_each():
@@ -112,15 +118,18 @@ def test_station_options_are_checked_with_one_line_each():
 
 
 def test_station_server_answers_bad_requests_in_one_line(tmp_path):
+    import http.cookiejar
     from imubench.station.server import Server
     server = Server(Station(workdir=tmp_path, allow_sim=False)).start()
+    origin = server.url.rstrip("/")
+    opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
     try:
-        def call(path, data=None, token=None):
+        def call(path, data=None):
+            # as the page does it: its Origin, JSON, the identity cookie the server set
             req = urllib.request.Request(server.url + path, data=None if data is None else json.dumps(data).encode(),
-                                         headers={"Content-Type": "application/json",
-                                                  **({"X-Station-Token": token} if token else {})})
+                                         headers={"Content-Type": "application/json", "Origin": origin})
             try:
-                with urllib.request.urlopen(req, timeout=10) as r:
+                with opener.open(req, timeout=10) as r:
                     return r.status, r.read().decode()
             except urllib.error.HTTPError as e:
                 return e.code, e.read().decode()
@@ -132,9 +141,11 @@ def test_station_server_answers_bad_requests_in_one_line(tmp_path):
         code, svg = call("pose.svg?up=1,0,0")
         assert code == 200 and svg.startswith("<svg")
         code, body = call("api/start", {"port": "socket://127.0.0.1:1"})
-        assert code == 400 and "owns no device" in json.loads(body)["error"]
-        token = json.loads(call("api/claim", {"key": "socket://127.0.0.1:1"})[1])["token"]
-        code, body = call("api/start", {"port": "socket://127.0.0.1:1", "gyro": "spin"}, token)
+        assert code == 403 and "no identity on the station" in json.loads(body)["error"]
+        assert call("api/hello", {})[0] == 200                        # the page's first request: its cookie
+        code, body = call("api/claim", {"key": "socket://127.0.0.1:1"})
+        assert code == 200 and json.loads(body) == {"key": "socket://127.0.0.1:1", "yours": True}
+        code, body = call("api/start", {"port": "socket://127.0.0.1:1", "gyro": "spin"})
         assert code == 400 and json.loads(body)["error"].startswith("gyro must be one of")
         assert call("report/none/report.html")[0] == 404
         code, svg = call("turn.svg?axis=0,0,1&angle=360")          # a known-angle turn by hand

@@ -40,7 +40,7 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
         page = browser.new_page(viewport={"width": 1280, "height": 1400})
         page.set_default_timeout(90_000)
         page.goto(server.url)
-        assert page.locator("#setup").is_visible()
+        page.locator("#setup").wait_for()          # shown once the state has arrived (after the load event)
         # a six-position choice warns that it needs a square fixture
         page.select_option("#method", "six")
         assert page.locator("#six-warning").is_visible()
@@ -66,7 +66,7 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
         wcol.locator(".owner", has_text="read-only").wait_for()
         assert not wcol.locator("button.stop").is_visible()
         refused = watcher.request.post(server.url + "api/stop", data={"key": SIM_KEY},
-                                       headers={"X-Station-Token": "not-the-owner"})
+                                       headers={"Origin": server.url.rstrip("/")})   # its own cookie
         assert refused.status == 409 and "another page" in refused.json()["error"]
         assert col.locator(".owner", has_text="you drive").is_visible()
         page.bring_to_front()              # a page in the background gets no animation frames
@@ -175,13 +175,19 @@ def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
         assert [n.split(":")[0] for n in names] == ["slot 1", "slot 2", "slot 3"], names
         assert verdicts[0].startswith("PASSED") and verdicts[2].startswith("PASSED"), verdicts
         assert verdicts[1].startswith("FAILED") and "health" in verdicts[1] and "gyro" in verdicts[1].lower(), verdicts
+        order = []
         for k in (0, 2):
             col = cols.nth(k)
             done = col.locator(".card.done")
             n = done.count()
             assert n >= 12
-            seqs = [int(done.nth(i).get_attribute("data-seq")) for i in range(n)]
-            assert seqs == list(range(1, n + 1))          # the fixture presents the plan in order
+            seqs = {done.nth(i).get_attribute("data-name"): int(done.nth(i).get_attribute("data-seq")) for i in range(n)}
+            assert sorted(seqs.values()) == list(range(1, n + 1))
+            order.append(seqs)
+        common = order[0].keys() & order[1].keys()  # the plate presents the same attitudes to both, in step
+        assert len(common) >= 12 and all(order[0][c] == order[1][c] for c in common), order
+        for k in (0, 2):
+            col = cols.nth(k)
             assert col.locator(".steps .step.running").count() == 0
             assert col.locator(".steps .step[data-kind=verify]").count() == 1
             assert col.locator(".params tr").count() >= 12          # accelerometer M and b at least

@@ -465,6 +465,12 @@ static void b_reboot(void *ctx)
     }
 }
 
+/* The image's own tag: the board it is built for and its build id, found by `imubench flash`
+ * in the .bin/.hex/.elf it is given (an F4 image is refused for an F103 before anything is
+ * erased). KEEP in sections.ld keeps it in spite of --gc-sections. */
+__attribute__((used, section(".ib_image_tag"))) const char ib_image_tag[] =
+    "imubench-image board=" CHIP_BOARD_NAME " build=" IB_BUILD_ID;
+
 /* ------------------------------------------------------------------ main */
 
 int main(void)

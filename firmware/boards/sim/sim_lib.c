@@ -70,6 +70,12 @@ int sim_streaming(void) { return g_sim.core.stream_state != IB_STREAM_STATE_STOP
 
 /* ------------------------------------------------------------------ set-up */
 
+/* The ARM emulator's --pty (the ROM bootloader's port for stm32flash, and the image's USART1
+ * after it): set before simlib_open. */
+static int g_want_pty;
+void simlib_set_pty(int on) { g_want_pty = on; }
+const char *simlib_pty_name(void) { return g_sim.link.pty_master >= 0 ? g_sim.link.pty_name : ""; }
+
 int simlib_open(uint64_t seed, int truth_random, const uint8_t *uid, int tcp_port, int control_port,
                 double speed)
 {
@@ -80,7 +86,7 @@ int simlib_open(uint64_t seed, int truth_random, const uint8_t *uid, int tcp_por
     s->speed = speed;
     s->truth_random = truth_random;
     s->baud = SIM_DEFAULT_BAUD;
-    if (sim_link_open(&s->link, 0, tcp_port, s->baud) != 0) {
+    if (sim_link_open(&s->link, g_want_pty, tcp_port, s->baud) != 0) {
         return -1;
     }
     /* The emulated USART is the UART: bytes reach this ring when they have been shifted
@@ -265,7 +271,8 @@ void simlib_flash_boot(void) { g_sim.flash.ops_since_boot = 0; }
 void simlib_link_fds(int *listen_fd, int *client_fd)
 {
     *listen_fd = g_sim.link.tcp_listen;
-    *client_fd = g_sim.link.tcp_client;
+    /* the connected peer: a TCP client, else the pty (whose bytes go to the same rings) */
+    *client_fd = g_sim.link.tcp_client >= 0 ? g_sim.link.tcp_client : g_sim.link.pty_master;
 }
 
 int simlib_link_accept(void) { return sim_link_accept(&g_sim.link); }

@@ -76,7 +76,8 @@ static int pll_start(uint32_t src, uint32_t m)
     if (!wait_reg(&RCC_CR, RCC_CR_PLLRDY, 0u)) {
         return 0;
     }
-    RCC_PLLCFGR = RCC_PLLCFGR_M(m) | RCC_PLLCFGR_N(336u) | RCC_PLLCFGR_P(2u) | src | RCC_PLLCFGR_Q(7u);
+    RCC_PLLCFGR = (RCC_PLLCFGR & RCC_PLLCFGR_RESERVED) | RCC_PLLCFGR_M(m) | RCC_PLLCFGR_N(336u) |
+                  RCC_PLLCFGR_P(2u) | src | RCC_PLLCFGR_Q(7u);
     RCC_CR |= RCC_CR_PLLON;
     if (!wait_reg(&RCC_CR, RCC_CR_PLLRDY, RCC_CR_PLLRDY)) {
         RCC_CR &= ~RCC_CR_PLLON;

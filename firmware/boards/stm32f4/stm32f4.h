@@ -59,6 +59,9 @@
 #define RCC_PLLCFGR_P(x) ((uint32_t)((x) / 2u - 1u) << 16) /* 2,4,6,8: SYSCLK = VCO / P */
 #define RCC_PLLCFGR_SRC_HSE (1u << 22)
 #define RCC_PLLCFGR_Q(x) ((uint32_t)(x) << 24) /* 2..15: 48 MHz domain = VCO / Q */
+/* The reserved bits (RM0090 7.3.2: "must be kept at reset value"; bit 29 resets to 1):
+ * a write of PLLCFGR keeps them as read. */
+#define RCC_PLLCFGR_RESERVED 0xF0BC8000u
 #define RCC_CFGR_SW_MASK (3u << 0)
 #define RCC_CFGR_SW_HSI (0u << 0)
 #define RCC_CFGR_SW_PLL (2u << 0)

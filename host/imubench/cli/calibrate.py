@@ -81,6 +81,7 @@ def register(sub) -> None:
     p.add_argument("--closure", action="store_true",
                    help="after a verified write-back, run the closure check (imubench closure) into DIR/closure: "
                         "the virtual bench drives a closed path, or you carry the board around one")
+    p.set_defaults(sim_speed=None)      # None: SIM_SPEED, capped for many boards (_station_sim_speed)
     p.add_argument("--sim-boards", type=_board_count, default=1, metavar="N",
                    help="with --sim: N virtual devices on one virtual fixture (each its own random truth and serial "
                         "numbers, seeds --sim-seed, --sim-seed + 1, ...): one station session")
@@ -97,6 +98,11 @@ def register(sub) -> None:
     p.add_argument("--link-timeout", type=positive_float, default=10.0, metavar="S",
                    help="with several boards: a board that sends nothing for S seconds has lost its link and "
                         "is marked failed (the others go on)")
+    p.add_argument("--plate-timeout", type=positive_float, default=None, metavar="S",
+                   help="with several boards: a board waits at most S seconds of device time for the plate to "
+                        "present what it needs (the other boards' attitudes come first), else it fails and the "
+                        f"others go on (default {PLATE_TIMEOUT_VIRTUAL_S:g} on the virtual bench, "
+                        f"{PLATE_TIMEOUT_HAND_S:g} when a person moves the plate)")
     _add_from_file(p)
     p.set_defaults(run=run)
 
@@ -204,7 +210,35 @@ def _check_history(db) -> None:
                            "start the database or fix --db (or IMUBENCH_DB); nothing was captured") from None
 
 
+SIM_SPEED = 20.0
+#: a station session's plate deadline (fixture.Plate) when --plate-timeout is not given: the
+#: virtual plate moves in a few seconds; a person may take a minute per attitude
+PLATE_TIMEOUT_VIRTUAL_S = 300.0
+PLATE_TIMEOUT_HAND_S = 1200.0
+#: samples per second of host time the virtual fixture's boards may send together when
+#: --sim-speed is not given: the host decodes every board's stream in Python, on the same
+#: cores as the virtual devices; past this the links fall behind on this project's loaded
+#: 2-core machine (16 boards at speed 20 and 500 Hz, 160000 samples/s, left stop_stream
+#: unanswered behind the backlog; 8 boards at speed 20, 80000 samples/s, lost samples on one
+#: board in one run of three). A real line runs at speed 1: bench/multi_dut.py measures that.
+SIM_SAMPLES_PER_S = 40_000
+#: with the station page (--ui web) the host also serves the page's events (8 boards at speed
+#: 20 on the page lost samples on two boards)
+SIM_SAMPLES_PER_S_PAGE = 30_000
+
+
+def _station_sim_speed(boards: int, rate_hz: float, page: bool = False) -> float:
+    """The virtual fixture's speed when none is given: SIM_SPEED, or less for many boards."""
+    budget = SIM_SAMPLES_PER_S_PAGE if page else SIM_SAMPLES_PER_S
+    return min(SIM_SPEED, max(1.0, budget / (boards * rate_hz)))
+
+
 def run(a) -> int:
+    if getattr(a, "sim_speed", None) is None:
+        a.sim_speed_given = False
+        a.sim_speed = SIM_SPEED
+    else:
+        a.sim_speed_given = True
     if a.db and Path(a.db).is_dir():
         raise UsageError(f"--db {a.db} is a directory", f"give the database file, e.g. {Path(a.db) / 'history.sqlite'}")
     _check_history(a.db or (a.station_file or {}).get("db"))
@@ -238,6 +272,9 @@ def run(a) -> int:
         raise UsageError("--redo goes with --resume DIR", "give the session directory to continue")
     if a.resume and a.dir:
         raise UsageError("--dir and --resume exclude each other", "--resume DIR continues the session in DIR")
+    if a.plate_timeout is not None and not _station_session(a):
+        raise UsageError("--plate-timeout goes with several boards on one fixture",
+                         "give --port once per board (or --sim --sim-boards N), or drop it")
     if a.resume and _station_session(a):
         raise UsageError("--resume continues a one-board session; a station session with several boards is "
                          "started afresh", "run it again with --dir NEW_DIR (each board's captures stay in DIR/slot-K)")
@@ -303,10 +340,11 @@ def run(a) -> int:
 def _run_web(a, cfg, directory: Path) -> int:
     """The session on the station page: served until Ctrl-C, so that a failed or stopped
     session can be resumed there; the exit code is the last session's verdict."""
-    from imubench.cli.station import serve_page
+    from imubench.cli.station import port_policy, serve_page
     from imubench.station.runner import SIM_KEY, Station
     station = Station(workdir=directory.parent, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed,
-                      allow_sim=a.sim, person={"offset_deg": (a.sim_tilt, a.sim_tilt)} if a.sim_tilt else None)
+                      allow_sim=a.sim, person={"offset_deg": (a.sim_tilt, a.sim_tilt)} if a.sim_tilt else None,
+                      ports=port_policy(a))
     station.state.mode = "session"
     key = SIM_KEY if a.sim else a.port
     if not key:
@@ -448,6 +486,13 @@ def _run_station(a, cfg) -> int:
     with ExitStack() as stack:
         if a.sim:
             from imubench.device.sim import VirtualBench
+            capped = _station_sim_speed(a.sim_boards, cfg.rate_hz, page=a.ui == "web")
+            if not a.sim_speed_given and capped < a.sim_speed:
+                a.sim_speed = capped
+                print(f"virtual devices at speed {a.sim_speed:g} (not {SIM_SPEED:g}): {a.sim_boards} boards at "
+                      f"{cfg.rate_hz:g} Hz send {a.sim_boards * cfg.rate_hz * a.sim_speed:.0f} samples/s, what the "
+                      "host decodes alongside them" + (" and the page" if a.ui == "web" else "")
+                      + "; --sim-speed X to choose")
             benches = [stack.enter_context(VirtualBench(speed=a.sim_speed, seed=a.sim_seed + k, truth="random",
                                                         target=a.target))
                        for k in range(a.sim_boards)]
@@ -459,30 +504,36 @@ def _run_station(a, cfg) -> int:
                 _inject_sim_fault(benches[slot - 1], sensor)
             mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed)
             print(f"{len(benches)} virtual devices with random truth (seeds {a.sim_seed}..{a.sim_seed + len(benches) - 1}) "
-                  "on one virtual fixture")
+                  f"on one virtual fixture, speed {a.sim_speed:g}")
         else:
             from imubench.cli.terminal import HumanPresenter
             mover = HumanPresenter()
             mover.say(f"{len(ports)} boards on the fixture: every instruction is for the whole plate")
         print(f"station {station.station_id}, session directory {directory} (DIR/slot-K per board); "
               f"records go to {_shown(db)}")
+        plate_timeout = a.plate_timeout = (a.plate_timeout if a.plate_timeout is not None else
+                                           PLATE_TIMEOUT_VIRTUAL_S if a.sim else PLATE_TIMEOUT_HAND_S)
         last: dict[int, tuple] = {}
+        waits: dict[int, str | None] = {}
         import threading
         lock = threading.Lock()
 
         def on_event(st: dict) -> None:         # one line per board and stage (called from the boards' threads)
             key = (st["stage"], st["state"])
             with lock:
+                who = st["uid"] or st["port"]
                 if last.get(st["slot"]) != key:
                     last[st["slot"]] = key
-                    who = st["uid"] or st["port"]
                     print(f"  slot {st['slot']} {who}: {st['state'] if st['state'] != 'running' else st['stage']}"
                           + (f" ({st['reason']})" if st["reason"] else ""), flush=True)
+                if st.get("waiting") and waits.get(st["slot"]) is None:      # starts waiting for the others
+                    print(f"  slot {st['slot']} {who}: {st['waiting']}", flush=True)
+                waits[st["slot"]] = st.get("waiting")
         if a.ui == "web":
             res = _station_on_page(a, cfg, ports, directory, mover, station, db, on_event)
         else:
             res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
-                              link_timeout_s=a.link_timeout, baudrate=a.baud)
+                              link_timeout_s=a.link_timeout, baudrate=a.baud, plate_timeout_s=plate_timeout)
     print()
     print(_station_table(res))
     print(f"station session {res.session_id}: {len(res.passed)} of {len(res.boards)} boards passed "
@@ -500,10 +551,10 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
     session until Ctrl-C; Ctrl-C during the session stops every board where it is."""
     import threading
 
-    from imubench.cli.station import serve_page
+    from imubench.cli.station import port_policy, serve_page
     from imubench.procedures.fixture import run_fixture
     from imubench.station.runner import Station as Page
-    page = Page(workdir=directory, db=db, allow_sim=False, history=False)
+    page = Page(workdir=directory, db=db, allow_sim=False, history=False, ports=port_policy(a))
     page.state.mode = "session"
     options = {"port": ", ".join(ports), "method": cfg.method, "gyro": a.gyro, "capture": a.capture,
                "write": cfg.write, "note": cfg.note, "rate_hz": cfg.rate_hz, "fixture": True}
@@ -514,12 +565,12 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
         page.board_event(st["port"], st)
 
     uis = {port: page.adopt(port, options, k + 1) for k, port in enumerate(ports)}   # the columns in slot order
-
     def run() -> None:
         try:
             box["res"] = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=both,
                                      link_timeout_s=a.link_timeout, baudrate=a.baud,
-                                     pages=lambda slot, port: uis[port])
+                                     pages=lambda slot, port: uis[port], on_plate=page.plate_event,
+                                     plate_timeout_s=a.plate_timeout)
             for b in box["res"].boards:   # verdicts, parameters and reports on the columns
                 page.board_result(b.port, box["res"].results.get(b.slot) or {}, directory / f"slot-{b.slot}",
                                   b.run_id)

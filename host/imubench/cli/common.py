@@ -213,6 +213,8 @@ def explain(e: BaseException, cmd: str) -> tuple[str, int]:
             return f"{e.filename}: no space left on the disk; free some space (everything written so far is kept)", \
                 EXIT_FAILED
         return line(e, "check the disk (everything written so far is kept)"), EXIT_FAILED
+    if kind("ProtocolVersionError"):
+        return str(e), EXIT_FAILED
     if kind("LinkTimeout"):
         return line(e, "check the power, the cable, --baud and that the board runs imubench firmware "
                        "(imubench flash; imubench info)"), EXIT_FAILED
@@ -233,9 +235,10 @@ def explain(e: BaseException, cmd: str) -> tuple[str, int]:
         return line(e, "imubench history --db PATH lists the devices a database holds"), EXIT_FAILED
     if kind("InvalidParams"):
         return line(f"invalid parameters: {e}", "nothing was written"), EXIT_FAILED
-    if kind("SimError", "QemuError"):
-        return line(e, "run `make sim` / `make firmware` in the source checkout, or rerun with --debug"), \
-            EXIT_FAILED
+    if kind("SimError", "QemuError", "ArtifactError"):
+        from imubench.device.artifacts import installed
+        return line(e, "rerun with --debug" if installed() else
+                    "run `make sim` / `make firmware` in the source checkout, or rerun with --debug"), EXIT_FAILED
     if kind("FlashError"):
         return line(e, "see docs/firmware.md, Flashing"), getattr(e, "code", EXIT_FAILED)
     if kind("ImubenchError"):

@@ -29,7 +29,10 @@ def run(a) -> int:
         FlashError,
         _run,
         build_firmware,
+        check_image_board,
+        check_port,
         choose_probe,
+        image_bytes,
         plan,
     )
     image = Path(a.image).resolve() if a.image else None
@@ -49,8 +52,39 @@ def run(a) -> int:
         p = plan(a.board, probe, image, a.port, Path(tmp))
         if not p.image.exists():
             raise FlashError(f"no image {p.image}" + ("" if a.image else "; run `make firmware`"), 2)
+        tag = check_image_board(a.board, p.image)       # before anything is erased
+        if probe == "serial":
+            check_port(a.port)
+        if tag is None:
+            print(f"note: {p.image.name} carries no imubench board tag: its chip cannot be checked", flush=True)
         print(f"flashing {p.image} to the {a.board} via {probe} ({PROBES[probe][2]})", flush=True)
         for s in p.steps:
-            _run(s)
+            _run(s, a.board)
+        data = image_bytes(p.image)
+        import hashlib
+        print(f"image: build {tag['build'] if tag else 'unknown'}, {len(data)} bytes, "
+              f"sha256 {hashlib.sha256(data).hexdigest()}", flush=True)
+    if probe == "serial":
+        _print_identity(a.port)
     print("done", flush=True)
     return 0
+
+
+def _print_identity(port: str) -> None:
+    """The booted board's identity, as `imubench info` prints it (the image runs on the same
+    USART1 the bootloader used)."""
+    import time
+
+    from imubench.cli.stream import _print_info
+    from imubench.device.flash import FlashError
+    from imubench.device.link import Device, DeviceError, LinkError
+    last = None
+    for _ in range(3):
+        time.sleep(0.5)
+        try:
+            with Device.open(port) as dev:
+                _print_info(dev.info())
+            return
+        except (DeviceError, LinkError, OSError) as e:
+            last = e
+    raise FlashError(f"written, but the board did not answer on {port} after the start: {last}", 1)

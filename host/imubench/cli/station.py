@@ -19,11 +19,62 @@ def _http_port(s: str) -> int:
     return v
 
 
+def _handler(s: str) -> str:
+    import argparse
+    from imubench.station.security import PORT_HANDLERS
+    name = s.lower().removesuffix("://")
+    if name not in PORT_HANDLERS:
+        raise argparse.ArgumentTypeError(f"{s!r} is not a pyserial URL handler to allow ({', '.join(PORT_HANDLERS)}; "
+                                         "serial devices, socket:// and rfc2217:// are always allowed)")
+    return name
+
+
+def _port_host(s: str) -> str:
+    """--allow-port-host: *, an IP address, or a host name (no scheme, no port)."""
+    import argparse
+    import ipaddress
+    import re
+    h = s.strip()
+    if h == "*" or re.fullmatch(r"[A-Za-z0-9]([A-Za-z0-9-]{0,62})(\.[A-Za-z0-9]([A-Za-z0-9-]{0,62}))*", h):
+        return h
+    try:
+        ipaddress.ip_address(h.strip("[]"))
+        return h
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not a host (an IP address or a name, no scheme or port; "
+                                         "* any)") from None
+
+
+def _origin(s: str) -> str:
+    import argparse
+    from imubench.station.security import origin_authority
+    try:
+        origin_authority(s)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return s
+
+
 def add_web(p) -> None:
-    """--http-port and --open, the same for `station` and `calibrate --ui web`."""
+    """--http-port, --open and what the page may do, the same for `station` and `calibrate --ui web`."""
     p.add_argument("--http-port", type=_http_port, default=0, metavar="N",
                    help="port of the station page on 127.0.0.1 (0: any free port; the address is printed)")
     p.add_argument("--open", action="store_true", help="open the page in the default browser")
+    p.add_argument("--allow-port-handler", type=_handler, action="append", default=[], metavar="NAME",
+                   help="let the page open ports of this pyserial URL handler too (spy, loop, hwgrep, alt, cp2110; "
+                        "spy:// never with file=); by default only serial devices, socket:// and rfc2217://")
+    p.add_argument("--allow-port-host", type=_port_host, action="append", default=[], metavar="HOST",
+                   help="let the page open socket:// and rfc2217:// ports on HOST (an IP or a name; * any); "
+                        "by default only on this machine, so that no page makes the station connect elsewhere")
+    p.add_argument("--allow-origin", type=_origin, action="append", default=[], metavar="URL",
+                   help="also serve the page as URL, e.g. http://localhost:9000 for an SSH tunnel whose local "
+                        "port differs from --http-port (docs/production.md, 'Who can drive the station page')")
+
+
+def port_policy(a):
+    """The ports the page may open, from --allow-port-handler and --allow-port-host."""
+    from imubench.station.security import PortPolicy
+    return PortPolicy(handlers=getattr(a, "allow_port_handler", ()), hosts=getattr(a, "allow_port_host", ()))
 
 
 def register(sub) -> None:
@@ -64,7 +115,8 @@ def serve_page(station, a, until=None, start=lambda: None) -> None:
     from imubench.station.runner import StationError
     from imubench.station.server import Server
     try:
-        serve_forever(Server(station, port=a.http_port), a.open, until=until, then=start)
+        serve_forever(Server(station, port=a.http_port, allow_origins=getattr(a, "allow_origin", ())), a.open,
+                      until=until, then=start)
     except KeyboardInterrupt:
         pass
     except StationError as e:
@@ -73,7 +125,8 @@ def serve_page(station, a, until=None, start=lambda: None) -> None:
 
 def run(a) -> int:
     from imubench.station.runner import Station
-    station = Station(workdir=a.dir, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed, allow_sim=a.sim)
+    station = Station(workdir=a.dir, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed, allow_sim=a.sim,
+                      ports=port_policy(a))
     try:
         serve_page(station, a)
     finally:

@@ -20,6 +20,7 @@ from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
 from imubench.wire.decoder import decode_bytes
 from imubench.wire.ids import board_name, byte_ids_text, pid_text, sn_text, uid_text
 from imubench.wire.protocol_gen import (
+    Board,
     ClockSource,
     MsgType,
     ParamSource,
@@ -156,9 +157,36 @@ def _print_info(info) -> None:
           f"generation {info.param_generation}); stream {_enum_name(StreamState, info.stream_state)}")
 
 
+# the boards `imubench flash` writes -> their image in this imubench (imubench.device.artifacts)
+_FLASHABLE = {Board.STM32F103: "f103", Board.STM32F4: "f4"}
+
+
+def _firmware_note(info) -> str | None:
+    """How the device's firmware compares with the image this imubench would flash onto it."""
+    image = _FLASHABLE.get(info.board)
+    if image is None:
+        return None
+    from imubench.device.artifacts import build_info
+    try:
+        ours = build_info()["images"].get(image)
+    except Exception:  # noqa: BLE001 - a note, never a reason for info to fail
+        return None
+    if not ours:
+        return None
+    fw = ".".join(map(str, info.fw_version))
+    if fw == ours["fw_version"] and info.fw_build == ours["fw_build"][:15]:
+        return f"  firmware: the same as this imubench's {image} image"
+    return (f"  firmware: this imubench's {image} image is {ours['fw_version']} ({ours['fw_build']}); "
+            f"imubench flash --board {image} writes it")
+
+
 def run_info(a) -> int:
     with Device.open(a.port, baudrate=a.baud) as dev:
-        _print_info(dev.info())
+        info = dev.info()
+    _print_info(info)
+    note = _firmware_note(info)
+    if note:
+        print(note)
     return 0
 
 

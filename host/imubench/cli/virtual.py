@@ -39,6 +39,10 @@ def register(sub) -> None:
                    help="expose the link on TCP 127.0.0.1:PORT (0 = a free port; the default without --pty)")
     p.add_argument("--control", type=int, default=0, metavar="PORT", help="control channel port (0 = a free port)")
     p.add_argument("--baud", type=baud, default=2000000, help="link speed the device reports")
+    p.add_argument("--boot0", action="store_true",
+                   help="(--target f103|f4) BOOT0 high: start in the STM32 ROM bootloader (AN3155) for "
+                        "stm32flash / imubench flash --probe serial on the --pty; without it the board boots "
+                        "what its flash holds (FILE.code next to --flash)")
     add_target(p)
     p.set_defaults(run=run_sim)
 
@@ -97,23 +101,29 @@ def run_sim(a) -> int:
     from imubench.device.sim import VirtualBench
     tcp: bool | int = a.tcp if a.tcp is not None else (False if a.pty else True)
     if a.target != "host":
-        if a.pty:
-            raise UsageError(f"--pty is not available with --target {a.target}",
-                             "use the TCP endpoint (socket://...) it prints")
         if a.baud != 2000000:
             raise UsageError(f"--baud cannot change the {a.target} image's baud rate (2000000)",
                              "leave --baud out")
+    elif a.boot0:
+        raise UsageError("--boot0 is a setting of the STM32 boards", "give --target f103 or --target f4")
     with VirtualBench(speed=a.speed, seed=a.seed, truth=a.truth, flash=a.flash, pty=a.pty,
-                      baud=a.baud, tcp=tcp, control_port=a.control, target=a.target) as bench:
+                      baud=a.baud, tcp=tcp, control_port=a.control, target=a.target, boot0=a.boot0) as bench:
         what = ("firmware core + sensor models" if a.target == "host" else
                 f"the exact {a.target} image under the ARM emulator + sensor models")
         print(f"virtual device ({what}, speed {a.speed:g}) on {bench.port_url}", flush=True)
+        if a.boot0:
+            pid = bench.info.get("bootloader", {}).get("product_id", "?")
+            print(f"BOOT0 high: the ROM bootloader (product ID {pid}) waits on {bench.port_url}; "
+                  f"flash it: imubench flash --board {a.target} --probe serial --port {bench.port_url}", flush=True)
+            print("  (AN3155 frames are 8E1; a pty carries no parity, so imubench flash gives stm32flash -m 8n1 "
+                  "there)", flush=True)
         if bench.pty and bench.pty != bench.port_url:
             print(f"  also on the pseudo-terminal {bench.pty}", flush=True)
         host, port = bench.control_address
         print(f"control channel (JSON lines): {host}:{port}", flush=True)
         print(f"flash file: {bench.flash}", flush=True)
-        print(f"try: IMUBENCH_PORT={bench.port_url} imubench monitor", flush=True)
+        print(f"try: IMUBENCH_PORT={bench.port_url} imubench monitor"
+              + (" (once flashed: Go starts the image)" if a.boot0 else ""), flush=True)
         try:
             return _until_stopped(lambda: bench.running, "the virtual device")
         except CommandError as e:
@@ -125,7 +135,7 @@ def run_qemu(a) -> int:
     from imubench.device.qemu import ROOT, QemuBoard
     page = a.params.read_bytes() if a.params else None
     with QemuBoard(a.board, page, build=not a.no_build) as q:
-        print(f"QEMU {q.machine} running {q.elf.relative_to(ROOT) if q.elf.is_relative_to(ROOT) else q.elf}",
+        print(f"QEMU {q.machine} running {q.elf.relative_to(ROOT) if ROOT and q.elf.is_relative_to(ROOT) else q.elf}",
               flush=True)
         print(f"device on {q.port_url}  (the guest starts when the first client connects)", flush=True)
         print(f"try: imubench info --port {q.port_url}; Ctrl-C to stop", flush=True)

@@ -76,6 +76,21 @@ class CaptureError(LinkError):
         self.filename = str(path)
 
 
+class ProtocolVersionError(LinkError):
+    """The device sends intact frames of another protocol version: nothing it says can be read."""
+
+    def __init__(self, url: str, device_version: int):
+        from imubench import __version__
+        newer = device_version > P.PROTOCOL_VERSION
+        super().__init__(
+            f"the device on {url} speaks protocol version {device_version}, this imubench {__version__} "
+            f"speaks version {P.PROTOCOL_VERSION}: "
+            + ("install a newer imubench, or flash this one's firmware (imubench flash)" if newer else
+               "flash this imubench's firmware onto it (imubench flash), or use the imubench it was built with"))
+        self.device_version = device_version
+        self.url = url
+
+
 class LinkTimeout(TimeoutError):
     """No ack arrived for a command after all retries."""
 
@@ -170,6 +185,11 @@ class Link:
                         break
                 with self._cond:
                     frames = self.decoder.feed(data)
+                    if self.decoder.foreign_version is not None:
+                        # another protocol version: say so at once, before any timeout or
+                        # half-understood reply (every request now fails with this error)
+                        self.error = ProtocolVersionError(self.url, self.decoder.foreign_version)
+                        break
                     if frames:
                         for f in frames:
                             self._dispatch(f)

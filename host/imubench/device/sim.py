@@ -4,7 +4,7 @@
     from imubench.device.sim import VirtualBench
     from imubench.device.link import Device
 
-    with VirtualBench(speed=20, seed=1) as bench:         # builds and starts imubench-sim
+    with VirtualBench(speed=20, seed=1) as bench:         # starts imubench-sim
         with Device.open(bench.port_url) as dev:         # socket://127.0.0.1:PORT
             dev.start_stream(rate_hz=1000)
             bench.rotate("z", rate_dps=90, duration_s=1)  # turntable: 90 deg about board Z
@@ -36,11 +36,10 @@ import weakref
 from pathlib import Path
 from typing import Any, Sequence
 
+from imubench.device import artifacts
 from imubench.errors import ImubenchError
 
 __all__ = ["SimError", "TARGETS", "VirtualBench", "arm_command", "build_sim", "repo_root"]
-
-SIM_BIN_REL = Path("build") / "host" / "imubench-sim"
 
 # What runs the firmware: "host" = the core and drivers built for Linux (imubench-sim);
 # "f103" / "f4" = the exact STM32 image under the ARM emulator (imubench.device.arm), against
@@ -49,28 +48,21 @@ TARGETS = ("host", "f103", "f4")
 
 
 def arm_command(target: str) -> list[str]:
-    """Build what the ARM emulator needs (`make sim firmware`) and return the command that
-    starts it for `target` (the options are imubench-sim's)."""
+    """The command that starts the ARM emulator for `target` (the options are imubench-sim's),
+    after making sure its image and the models library are there (imubench.device.artifacts:
+    the installed package's, or the checkout's built with `make` first)."""
     import sys
-    root = repo_root()
-    if target not in _ARM_BUILT:
-        try:
-            r = subprocess.run(["make", "-s", "-C", str(root), "sim", f"arm-{target}"], capture_output=True,
-                               text=True)
-        except FileNotFoundError as e:
-            raise SimError("`make` not found: install make and a C compiler (gcc) to build the "
-                           "virtual device") from e
-        if r.returncode != 0:
-            raise SimError(f"building the {target} image and the models library failed (exit "
-                           f"{r.returncode}):\n{r.stdout}{r.stderr}".rstrip())
-        _ARM_BUILT.add(target)
+    try:
+        artifacts.models_library()
+        elf = artifacts.arm_image(target)
+    except artifacts.ArtifactError as e:
+        raise SimError(str(e)) from e
+    if not elf.is_file():
+        raise SimError(f"the {target} image {elf} is missing: build the images with `make firmware`")
     host = str(Path(__file__).resolve().parents[2])   # this imubench package, not another one
     code = (f"import sys; sys.path.insert(0, {host!r}); "
             "from imubench.device.arm.__main__ import main; sys.exit(main())")
     return [sys.executable, "-c", code, "--target", target]
-
-
-_ARM_BUILT: set[str] = set()
 
 
 class SimError(ImubenchError, RuntimeError):
@@ -79,26 +71,18 @@ class SimError(ImubenchError, RuntimeError):
 
 def repo_root() -> Path:
     """The source checkout this package lives in (host/imubench/device/sim.py -> repo root)."""
-    root = Path(__file__).resolve().parents[3]
-    if not (root / "Makefile").is_file() or not (root / "firmware").is_dir():
-        raise SimError(f"{root} is not an imubench source checkout: the virtual device is built "
-                       "from firmware/ with `make sim`")
+    root = artifacts.checkout_root()
+    if root is None:
+        raise SimError(f"{artifacts.PACKAGE} does not run from an imubench source checkout")
     return root
 
 
 def build_sim() -> Path:
-    """Build the simulator (`make -s sim` in the repo) and return the binary's path."""
-    root = repo_root()
+    """The simulator's executable: the installed package's, or the checkout's (`make -s sim`)."""
     try:
-        r = subprocess.run(["make", "-s", "-C", str(root), "sim"], capture_output=True, text=True)
-    except FileNotFoundError as e:
-        raise SimError("`make` not found: install make and a C compiler (gcc) to build the "
-                       "virtual device") from e
-    binary = root / SIM_BIN_REL
-    if r.returncode != 0 or not binary.is_file():
-        raise SimError(f"building the virtual device failed (make -s sim, exit {r.returncode}):\n"
-                       f"{r.stdout}{r.stderr}".rstrip())
-    return binary
+        return artifacts.sim_binary()
+    except artifacts.ArtifactError as e:
+        raise SimError(str(e)) from e
 
 
 _LIVE: "weakref.WeakSet[VirtualBench]" = weakref.WeakSet()
@@ -122,6 +106,9 @@ class VirtualBench:
     flash     parameter flash file; None = a temporary file kept for this object's lifetime
               (restart() keeps it, so saved parameters survive)
     pty       also expose the link on a pseudo-terminal (`.pty`)
+    boot0     (f103, f4) BOOT0 high: the board starts in its ROM bootloader (AN3155) on the link,
+              for stm32flash on the pty; with it low the board boots what its flash holds
+    elf       (f103, f4) the images the board can run (the first one is in a new board's flash)
     tcp       expose the link on TCP 127.0.0.1 (True = a free port, or a port number)
     """
 
@@ -129,10 +116,15 @@ class VirtualBench:
                  flash: str | os.PathLike | None = None, pty: bool = False,
                  baud: int = 2000000, *, tcp: bool | int = True, control_port: int = 0,
                  uid: str | None = None, binary: str | os.PathLike | None = None,
-                 startup_timeout: float = 15.0, start: bool = True, target: str = "host"):
+                 startup_timeout: float = 15.0, start: bool = True, target: str = "host",
+                 boot0: bool = False, elf: Sequence[str | os.PathLike] | None = None):
         if target not in TARGETS:
             raise ValueError(f"target must be one of {', '.join(TARGETS)}")
         self.target = target
+        if (boot0 or elf) and target == "host":
+            raise ValueError("boot0 and elf are settings of the ARM targets (f103, f4)")
+        self.boot0 = bool(boot0)            # BOOT0 high: the ROM bootloader (stm32flash on the pty)
+        self.elf = [str(e) for e in elf] if elf else []   # images the board may run (the first: factory)
         if truth not in ("default", "random"):
             raise ValueError("truth must be 'default' or 'random'")
         if not pty and tcp is False:
@@ -183,6 +175,10 @@ class VirtualBench:
                 "--control", str(control_port)]
         if self.pty_enabled:
             args.append("--pty")
+        if self.boot0:
+            args.append("--boot0")
+        for e in self.elf:
+            args += ["--elf", e]
         if tcp_port is not None:
             args += ["--tcp", str(tcp_port)]
         if self.uid:

@@ -7,9 +7,13 @@ The boards are mounted on one plate, so they see the same attitudes and the same
 motion. Each board runs the ordinary guided session (imubench.procedures.session: health
 check, rest, poses, turns, fit, write-back, verification) in its own thread on its own link,
 in its own session directory (DIR/slot-K). The plate is shared: a board's session that asks
-for the next attitude or turn waits at the Plate until every board still running has asked
-for it, then the plate is moved once (by the operator, or on the virtual bench by a
-PlatePresenter that moves every virtual device) and all of them go on. A board that fails
+for its next move (any attitude it still misses, a turn, a verification attitude) waits at
+the Plate until every board still running has asked; then the plate makes the move that
+serves the most boards (procedures.schedule: the attitudes boards still need first, the most
+shared first; turns; verification last), by the operator or on the virtual bench by a
+PlatePresenter that moves every virtual device, and the boards it serves go on. Every wait
+has a deadline in device time (PLATE_TIMEOUT_S at the plate, POSE_TIMEOUT_S for a presented
+attitude): past it that board fails with the stage and the reason. A board that fails
 (its link lost, a sensor faulted, its fit refused or out of tolerance, its write-back or
 verification failed) leaves the plate with its stage and reason, and the others carry on:
 the verdict is per board.
@@ -52,6 +56,7 @@ from imubench.procedures.session import (
     plan_for,
     rotation_to,
 )
+from imubench.procedures.schedule import PHASES, Need, next_move, still_needed
 from imubench.results.atomic import write_json_atomic
 from imubench.wire import params as PR
 from imubench.wire.ids import board_name, uid_text
@@ -88,6 +93,7 @@ class BoardStatus:
     reason: str | None = None
     run_id: int | None = None
     directory: str = ""
+    waiting: str | None = None      # done with a phase, waiting for the other boards: for whom, till when
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -102,72 +108,221 @@ class BoardFailed(Exception):
 
 
 # ---------------------------------------------------------------- the plate
-class Plate:
-    """The fixture all boards share. Each board's session asks for a move (an attitude or a
-    turn); the move is made once, when every board still running has asked for it. A board
-    that stops leaves, and the plate no longer waits for it."""
+#: how long a board waits at the plate for what it needs, in device time (the board's own
+#: samples), by default: the other boards' attitudes, write-backs and verifications included
+PLATE_TIMEOUT_S = 300.0
+#: how long a presented attitude may take to be held still, in device time, when the
+#: session's config says "wait" (a station session has no wait without an end)
+POSE_TIMEOUT_S = 120.0
 
-    def __init__(self, mover, slots: list[int], say=lambda s: None):
+_PHASE_WORDS = {"pose": "attitudes", "turn": "turntable turns", "verify": "verification"}
+
+
+class Plate:
+    """The fixture all boards share. Each board's session asks for what it needs next (a
+    schedule.Need: any of its missing attitudes, a turn, a verification attitude) and waits;
+    when every board still running has asked, the plate makes the move schedule.next_move
+    picks (the attitudes the boards still need first, the most shared first; then turns;
+    verification last) and the boards it serves go on; the others keep waiting. A board that
+    stops leaves, and the plate no longer waits for it.
+
+    Every wait has a deadline in device time (`deadline_s`, measured on the waiting board's
+    own samples through `clock`): past it the board leaves the plate and its session fails
+    with the stage and the reason (BoardFailed); the others go on. The waits are kept in
+    `waits` (slot, kind, waited_s, deadline_s, outcome). No polling loop burns a core: a
+    waiting board sleeps on a condition, waking 4 times a second to look at its clock."""
+
+    CHECK_S = 0.25
+
+    def __init__(self, mover, slots: list[int], say=lambda s: None, deadline_s: float = PLATE_TIMEOUT_S,
+                 on_wait: Callable[[int, str | None], None] | None = None,
+                 on_move: Callable[[dict], None] | None = None):
         self.mover = mover
         self.live = set(slots)
-        self.asked: dict[int, tuple] = {}
+        self.needs: dict[int, Need] = {}
+        self.args: dict[int, dict] = {}           # slot -> {key: the mover's arguments}
+        self.phase: dict[int, str] = {}           # slot -> the kind of its last need
+        self.served: dict[int, object] = {}       # slot -> the key presented for it, not yet taken
         self.moves = 0
+        self.pose_moves = 0
+        self.moving = False
+        self.position: dict = {}                  # the plate's last move: kind, key, serves, waiting
+        self.waits: list[dict] = []
+        self.deadline_s = float(deadline_s)
         self.say = say
+        self.on_wait = on_wait
+        self.on_move = on_move
+        self._wait_text: dict[int, str | None] = {}
         self._cv = threading.Condition()
 
-    def request(self, slot: int, kind: str, key, args: tuple) -> None:
+    # ------------------------------------------------------------ asking
+    def request(self, slot: int, need: Need, args: dict, clock: Callable[[], float] | None = None,
+                stage: str = "poses", check: Callable[[], None] | None = None):
+        """Wait until the plate presents something `need` accepts; returns its key (None when
+        this board is no longer on the plate). args: {key: the mover's arguments for it}.
+        Raises BoardFailed(stage, why) when the wait passes its deadline (device time), and
+        whatever check() raises (a Stop on the page) after leaving the plate."""
         with self._cv:
             if slot not in self.live:
-                return
-            gen = self.moves
-            self.asked[slot] = (kind, key, args)
-            self._move_if_all_asked()
-            while self.moves == gen and slot in self.live:
-                self._cv.wait(0.2)
+                return None
+            self.needs[slot], self.args[slot], self.phase[slot] = need, args, need.kind
+            t0 = clock() if clock is not None else None
+            waited = 0.0
+            self._refresh_waits()
+            try:
+                while True:
+                    if t0 is not None:
+                        waited = clock() - t0
+                    if slot in self.served:
+                        key = self.served.pop(slot)
+                        self._log(slot, need, waited, "served")
+                        return key
+                    if slot not in self.live:
+                        self._log(slot, need, waited, "left")
+                        return None
+                    if not self.moving and set(self.needs) >= self.live:
+                        self._move()
+                        continue
+                    if check is not None:
+                        try:
+                            check()
+                        except BaseException:
+                            self._log(slot, need, waited, "stopped")
+                            self._drop(slot)
+                            raise
+                    if t0 is not None and waited > self.deadline_s:
+                        why = self._why_late(slot, need, waited)
+                        self._log(slot, need, waited, "deadline")
+                        self._drop(slot)
+                        raise BoardFailed(stage, why)
+                    self._cv.wait(self.CHECK_S)
+            finally:
+                self.needs.pop(slot, None)
+                self.args.pop(slot, None)
+                self._set_wait(slot, None)
 
     def leave(self, slot: int) -> None:
         with self._cv:
-            self.live.discard(slot)
-            self.asked.pop(slot, None)
-            self._move_if_all_asked()
-            self._cv.notify_all()
+            self._drop(slot)
 
-    def _move_if_all_asked(self) -> None:
-        if not self.live or not set(self.asked) >= self.live:
-            return
-        requests = [self.asked[s] for s in sorted(self.live)]
-        kinds = {(k, key) for k, key, _ in requests}
-        if len(kinds) > 1:      # boards out of step: move for the first; the others wait past it
-            self.say("warning: the boards asked for different moves ("
-                     + ", ".join(sorted(f"{k} {key}" for k, key in kinds)) + f"); presenting {requests[0][1]}")
-        kind, _, args = requests[0]
+    def _drop(self, slot: int) -> None:
+        self.live.discard(slot)
+        self.needs.pop(slot, None)
+        self.args.pop(slot, None)
+        self.served.pop(slot, None)
+        self._set_wait(slot, None)
+        self._refresh_waits()
+        self._cv.notify_all()
+
+    def _log(self, slot: int, need: Need, waited: float, outcome: str) -> None:
+        self.waits.append({"slot": slot, "kind": need.kind, "waited_s": float(waited),
+                           "deadline_s": self.deadline_s, "outcome": outcome})
+
+    # ------------------------------------------------------------ moving
+    def _move(self) -> None:
+        """Make the next move (called with the lock held; released while the plate moves)."""
+        move = next_move({s: n for s, n in self.needs.items() if s in self.live})
+        args = self.args[move.serves[0]][move.key]
+        if move.kind == "pose":
+            total = self.pose_moves + len(still_needed(self.needs))
+            args = (*args[:2], self.pose_moves, total)
+            self.pose_moves += 1
+        self.moving = True
+        self.position = {"kind": move.kind, "key": _key_text(move.key), "serves": list(move.serves),
+                         "waiting": list(move.waiting), "move": self.moves + 1}
+        if isinstance(move.key, str) and len(args) > 1 and args[1] is not None:     # an attitude: which way is up
+            from imubench.procedures.poses import pose_words
+            up = np.asarray(args[1], float)
+            self.position.update(up=[float(x) for x in up], words=pose_words(up))
+        self._refresh_waits()
+        self._cv.release()
         try:
-            if kind == "pose":
-                self.mover.present_pose(*args)
-            else:
+            if move.waiting:
+                self.say(f"  plate: {_key_text(move.key)} for slot{'s' if len(move.serves) > 1 else ''} "
+                         f"{_slots(move.serves)}; slot{'s' if len(move.waiting) > 1 else ''} "
+                         f"{_slots(move.waiting)} wait{'' if len(move.waiting) > 1 else 's'}")
+            if self.on_move is not None:
+                self.on_move(dict(self.position))
+            if move.kind == "turn":
                 self.mover.present_turn(*args)
+            else:
+                self.mover.present_pose(*args)
+        except Exception as e:  # noqa: BLE001 - the boards find out (no attitude comes, their deadline)
+            self.say(f"warning: the plate could not make the move {_key_text(move.key)}: {e}")
         finally:
-            self.asked.clear()
-            self.moves += 1
-            self._cv.notify_all()
+            self._cv.acquire()
+            self.moving = False
+        for s in move.serves:
+            if s in self.live and s in self.needs:
+                self.served[s] = move.key
+                del self.needs[s]
+        self.moves += 1
+        self._cv.notify_all()
+
+    # ------------------------------------------------------------ who waits for whom
+    def _refresh_waits(self) -> None:
+        """A board whose need comes in a later phase than another running board's (done with
+        its attitudes while others still need theirs) says so, with its deadline."""
+        for s, need in self.needs.items():
+            if s in self.served:
+                continue
+            rank = PHASES.index(need.kind)
+            before = sorted(t for t in self.live if t != s and PHASES.index(self.phase.get(t, "pose")) < rank)
+            text = None
+            if before:
+                text = (f"waits for slot{'s' if len(before) > 1 else ''} {_slots(before)} to come to "
+                        f"{_PHASE_WORDS[need.kind]} (the plate serves what they need first); "
+                        f"deadline {self.deadline_s:g} s device time")
+            self._set_wait(s, text)
+
+    def _set_wait(self, slot: int, text: str | None) -> None:
+        if self._wait_text.get(slot) != text:
+            self._wait_text[slot] = text
+            if self.on_wait is not None:
+                try:
+                    self.on_wait(slot, text)
+                except Exception:  # noqa: BLE001 - a broken listener must not stop the plate
+                    pass
+
+    def _why_late(self, slot: int, need: Need, waited: float) -> str:
+        what = ("one of its missing attitudes (" + ", ".join(map(_key_text, need.keys[:4]))
+                + (", ..." if len(need.keys) > 4 else "") + ")") if need.kind == "pose" else _key_text(need.keys[0])
+        busy = sorted(t for t in self.live if t != slot and t not in self.needs)
+        held = f"; slot{'s' if len(busy) > 1 else ''} {_slots(busy)} did not come back to the plate" if busy else ""
+        return (f"waited {waited:.0f} s (device time) for the plate to present {what}, past its deadline of "
+                f"{self.deadline_s:g} s{held}; the other boards went on")
+
+
+def _key_text(key) -> str:
+    if isinstance(key, tuple) and len(key) == 2 and isinstance(key[0], tuple):
+        return f"turn {key[1]:+.0f} °/s about {list(key[0])}"
+    return str(key)
+
+
+def _slots(slots) -> str:
+    return ", ".join(str(s) for s in slots)
 
 
 class BoardPresenter:
     """One board's Presenter: instructions go to its status, moves to the shared plate. With
     `page` (a station page's presenter for this board's column, imubench.station.presenter)
     the session's live view, pose cards, fit and steps go there too; the plate stays the one
-    that moves (the poses come in the plan's order, every board in step)."""
+    that moves: a board asks it for any of the attitudes it still misses (present_todo), and
+    the plate presents what most boards need (procedures.schedule). `clock()` is the board's
+    device time in seconds (its samples so far): the plate's deadlines are counted on it."""
 
-    PAGE_HOOKS = ("present_plan", "present_rest", "pose_event", "live", "suggest", "targets", "step")
+    PAGE_HOOKS = ("present_plan", "present_rest", "pose_event", "live", "targets", "step")
 
-    def __init__(self, run: "FixtureRun", slot: int, discard=lambda: None, page=None):
+    def __init__(self, run: "FixtureRun", slot: int, discard=lambda: None, page=None,
+                 clock: Callable[[], float] | None = None):
         self.run, self.slot = run, slot
         self.discard = discard          # drop what the board sent while it waited for the plate
         self.page = page
+        self.clock = clock
+        self.suggested = None
 
     def __getattr__(self, name):
-        # the session's optional hooks (session._hook): only the page's, and never present_todo
-        # (a fixture's poses are directed: the plate presents them to every board at once)
+        # the session's optional hooks (session._hook): only the page's
         page = self.__dict__.get("page")
         if page is not None and name in self.PAGE_HOOKS:
             return getattr(page, name)
@@ -182,19 +337,45 @@ class BoardPresenter:
         if self.page is not None:
             self.page.check_stop()      # stopped on the page (or the station closed): this board stops here
 
+    def suggest(self, name) -> None:
+        """The missing attitude that helps this board's fit most: its vote at the plate."""
+        self.suggested = name
+        if self.page is not None:
+            self.page.suggest(name)
+
+    def present_todo(self, todo, done, total):
+        """The attitudes this board still misses, in any order: the plate presents one of
+        them (the one most boards miss) when every board has asked."""
+        self._check_page()
+        self.run._update(self.slot, stage="poses", message=f"{len(done)} of {total} captured; waiting for the plate",
+                         progress=len(done) / max(total, 1))
+        need = Need("pose", tuple(n for n, _ in todo), prefer=self.suggested)
+        args = {n: (n, np.asarray(d, float)) for n, d in todo}
+        key = self.run.plate.request(self.slot, need, args, clock=self.clock, stage="poses", check=self._check_page)
+        if key is not None:
+            self.run._update(self.slot, message=f"[{len(done) + 1}/{total}] {key}")
+            if self.page is not None:
+                self.page.pose_event(key, "capturing", {"progress": 0.0})
+        # while this board waited for the others, its samples of the old attitude piled up: they
+        # are in the raw capture, but the session's wait for the new attitude starts now
+        self.discard()
+
     def present_pose(self, name, direction, index, total):
+        """A directed attitude: one of verification (after the write-back), or of a known-angle
+        turn; every board asks for it in the same order."""
         self._check_page()
         st = self.run.boards[self.slot]
-        stage = "verify" if st.stage in ("write", "verify") else "poses"
+        verify = st.stage in ("write", "verify")
+        stage = "verify" if verify else "poses"
         self.run._update(self.slot, stage=stage, message=f"[{index + 1}/{total}] {name}", progress=index / max(total, 1))
         if self.page is not None:
-            if stage == "verify":
+            if verify:
                 self.page.present_pose(name, direction, index, total)
             else:
                 self.page.pose_event(name, "capturing", {"progress": 0.0})
-        self.run.plate.request(self.slot, "pose", name, (name, np.asarray(direction, float), index, total))
-        # while this board waited for the others, its samples of the old attitude piled up: they
-        # are in the raw capture, but the session's wait for the new attitude starts now
+        need = Need("verify" if verify else "turn", (name,))
+        self.run.plate.request(self.slot, need, {name: (name, np.asarray(direction, float), index, total)},
+                               clock=self.clock, stage=stage, check=self._check_page)
         self.discard()
 
     def present_turn(self, axis, rate_dps, duration_s):
@@ -202,8 +383,9 @@ class BoardPresenter:
         self.run._update(self.slot, stage="turntable", message=f"turn {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()}")
         if self.page is not None:
             self.page.present_turn(axis, rate_dps, duration_s)
-        key = (tuple(np.round(np.asarray(axis, float), 6)), float(rate_dps))
-        self.run.plate.request(self.slot, "turn", key, (np.asarray(axis, float), rate_dps, duration_s))
+        key = (tuple(float(x) for x in np.round(np.asarray(axis, float), 6)), float(rate_dps))
+        self.run.plate.request(self.slot, Need("turn", (key,)), {key: (np.asarray(axis, float), rate_dps, duration_s)},
+                               clock=self.clock, stage="turntable", check=self._check_page)
         self.discard()
 
     def progress(self, label, fraction):
@@ -346,12 +528,16 @@ class FixtureRun:
     def __init__(self, ports: list[str], directory, cfg: SessionConfig, mover, station: Station | None = None,
                  db=None, on_event: Callable[[dict], None] | None = None, link_timeout_s: float = 10.0,
                  baudrate: int | None = None, say=print, plots: bool = True,
-                 pages: Callable[[int, str], object] | None = None):
+                 pages: Callable[[int, str], object] | None = None, plate_timeout_s: float = PLATE_TIMEOUT_S,
+                 on_plate: Callable[[dict], None] | None = None):
         if not ports:
             raise ValueError("no boards: give at least one port")
         self.ports = list(ports)
         self.dir = Path(directory)
-        self.cfg = cfg
+        # a station session has no wait without an end: a presented attitude is held still
+        # within pose_timeout_s of device time, or that board fails (the others go on)
+        self.cfg = cfg if cfg.pose_timeout_s is not None else dataclasses.replace(cfg, pose_timeout_s=POSE_TIMEOUT_S)
+        self.on_plate = on_plate        # on_plate(move): the plate's current attitude or turn, for a page
         self.station = station or Station()
         self.db = db
         self.on_event = on_event
@@ -364,7 +550,8 @@ class FixtureRun:
                            f"{uuid.uuid4().hex[:6]}")
         self.boards = {k + 1: BoardStatus(slot=k + 1, port=p, directory=str(self.dir / f"slot-{k + 1}"))
                        for k, p in enumerate(self.ports)}
-        self.plate = Plate(mover, list(self.boards), say=say)
+        self.plate = Plate(mover, list(self.boards), say=say, deadline_s=plate_timeout_s,
+                           on_wait=self._on_wait, on_move=self._on_move)
         self.results: dict[int, dict] = {}
         self._lock = threading.Lock()
 
@@ -380,6 +567,22 @@ class FixtureRun:
                 self.on_event(snap)
             except Exception:  # noqa: BLE001 - a broken listener must not fail a board
                 pass
+
+    def _on_wait(self, slot: int, text: str | None) -> None:
+        self._update(slot, waiting=text)
+
+    def _on_move(self, move: dict) -> None:
+        if self.on_plate is not None:
+            try:
+                self.on_plate(move)
+            except Exception:  # noqa: BLE001 - a broken listener must not stop the plate
+                pass
+
+    def deadlines_text(self) -> str:
+        return (f"deadlines (device time): a board waits at most {self.plate.deadline_s:g} s for the plate "
+                f"(the attitudes other boards still need first, verification last) and "
+                f"{self.cfg.pose_timeout_s:g} s for a presented attitude to be held still; past one it fails "
+                "with the stage and the reason, and the others go on")
 
     def snapshot(self) -> list[dict]:
         with self._lock:
@@ -398,6 +601,8 @@ class FixtureRun:
         if (self.dir / "station.json").exists():
             raise SessionAborted(f"{self.dir} already holds a station session: give another --dir")
         self._save_station()
+        self.say(self.deadlines_text())
+        self._on_move({"deadlines": self.deadlines_text()})
         threads = [threading.Thread(target=self._board, args=(slot,), name=f"board-{slot}", daemon=True)
                    for slot in self.boards]
         for t in threads:
@@ -434,9 +639,11 @@ class FixtureRun:
             info_dev = _device_ident(info)
             self._update(slot, uid=info_dev["mcu_uid"], message=f"{info_dev['board']} {info_dev['mcu_uid']}")
             params_before = dev.get_params(ParamsWhich.ACTIVE).params
+            stats, rate = dev.link.decoder.stats, float(self.cfg.rate_hz)
             sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
                                 BoardPresenter(self, slot, discard=dev.discard_buffered,
-                                               page=self.pages(slot, st.port) if self.pages else None))
+                                               page=self.pages(slot, st.port) if self.pages else None,
+                                               clock=lambda: stats.samples / rate))
             sess.board_run, sess.slot, sess.link_timeout_s = self, slot, self.link_timeout_s
             try:
                 result = sess.run(plan_for(self.cfg.method))

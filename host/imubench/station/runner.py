@@ -9,16 +9,16 @@ from pathlib import Path
 
 from imubench.errors import ImubenchError
 from imubench.station.presenter import SessionStopped, WebPresenter
-from imubench.station.state import StationState
+from imubench.station.security import PortPolicy, StationError, bool_field, int_field, text_field
+from imubench.station.state import Refused, StationState
 
 SIM_KEY = "sim"
 METHODS = ("multi", "six")
 GYRO_METHODS = ("bias", "turntable", "rotation", "turns", "none")
 CAPTURES = ("adaptive", "plan")
-
-
-class StationError(ImubenchError, ValueError):
-    """A request the station cannot do (bad option, device busy, not yours); says why."""
+OPTIONS = ("port", "method", "gyro", "capture", "write", "note", "rate_hz")
+NOTE_CHARS = 500
+__all__ = ["Station", "StationError", "SIM_KEY"]
 
 
 class Station:
@@ -28,11 +28,14 @@ class Station:
     db          history database (None: the user's default, as `imubench calibrate`)
     sim_speed, sim_seed, person   the virtual bench ("sim" device): its speed, seed, and the
                 SimPerson's keyword arguments (procedures.person) who presents the attitudes
+    ports       the PortPolicy of the ports a page may open (default: serial devices, socket://
+                and rfc2217:// on this machine)
     """
 
     def __init__(self, state: StationState | None = None, workdir: str | Path = ".", db=None,
                  sim_speed: float = 20.0, sim_seed: int = 1, person: dict | None = None, history: bool = True,
-                 allow_sim: bool = True):
+                 allow_sim: bool = True, ports: PortPolicy | None = None):
+        self.ports = ports or PortPolicy()
         self.state = state or StationState()
         self.state.sim_available = allow_sim
         self.workdir = Path(workdir)
@@ -49,12 +52,25 @@ class Station:
         self.persons: dict[str, object] = {}          # the SimPerson of the last sim run (tests read its order)
 
     # ----------------------------------------------------------------- requests
-    def options(self, raw: dict) -> dict:
-        """The page's options, checked: a StationError names the first bad one."""
-        o = {"port": str(raw.get("port") or "").strip(), "method": raw.get("method") or "multi",
-             "gyro": raw.get("gyro") or "bias", "capture": raw.get("capture") or "adaptive",
-             "write": bool(raw.get("write", True)), "note": str(raw.get("note") or "")[:500],
-             "rate_hz": int(raw.get("rate_hz") or 500)}
+    def options(self, raw: dict, page: bool = False) -> dict:
+        """The options, checked: a StationError names the first bad one. page: they come from
+        the page (every type strict, unknown names refused, the port checked against
+        self.ports); else from the command line (already checked there)."""
+        from imubench.wire.protocol_gen import STREAM_RATES_HZ
+        if page:
+            unknown = [k for k in raw if k not in OPTIONS]
+            if unknown:
+                raise StationError(f"unknown option {unknown[0][:32]!r} (the options are {', '.join(OPTIONS)})")
+        note = raw.get("note") or ""
+        if not page and isinstance(note, str):
+            note = note[:NOTE_CHARS]
+        o = {"port": text_field(raw, "port", 256).strip(),
+             "method": text_field(raw, "method", 32) or "multi",
+             "gyro": text_field(raw, "gyro", 32) or "bias",
+             "capture": text_field(raw, "capture", 32) or "adaptive",
+             "write": bool_field(raw, "write", True),
+             "note": text_field({"note": note}, "note", NOTE_CHARS),
+             "rate_hz": int_field(raw, "rate_hz", 500, STREAM_RATES_HZ)}
         if o["port"] == SIM_KEY and not self.state.sim_available:
             raise StationError("the virtual bench is not offered: start the station with --sim")
         if not o["port"]:
@@ -66,16 +82,37 @@ class Station:
         problem = plan_problem(o["method"], o["gyro"])
         if problem:                                   # refused before anything is captured
             raise StationError(f"{problem[0].replace('--', '')}: {problem[1].replace('--', '')}")
+        if page:
+            self.check_port(o["port"])
         return o
+
+    def check_port(self, key: str) -> str:
+        """A device a page may name: the virtual bench (if offered), a device the station
+        shows already, or a port self.ports allows."""
+        if key == SIM_KEY:
+            if not self.state.sim_available:
+                raise StationError("the virtual bench is not offered: start the station with --sim")
+            return key
+        if isinstance(key, str) and key in self.state.boards:
+            return key
+        return self.ports.check(key)
+
+    def claim(self, key: str, token: str) -> bool:
+        """A page asks to drive the device (token: its identity, issued by the server)."""
+        self.check_port(key)
+        try:
+            return self.state.claim(key, token) == token
+        except Refused as e:
+            raise StationError(str(e), status=429) from None
 
     def start(self, raw: dict, token: str | None, directory: str | Path | None = None, resume: bool = False) -> str:
         """Start a session with the page's options on their device; returns the device key.
         token None: started by the command (`imubench calibrate --ui web`); the first page to
         open then owns the device."""
-        o = self.options(raw)
+        o = self.options(raw, page=token is not None)
         key = o["port"]
-        if token is not None and self.state.claim(key, token) != token:
-            raise StationError(f"{key} is driven from another page: this page only watches it")
+        if token is not None and not self.claim(key, token):
+            raise StationError(f"{key} is driven from another page: this page only watches it", status=409)
         with self._lock:
             if self.running(key):
                 raise StationError(f"a session is already running on {key}")
@@ -92,8 +129,9 @@ class Station:
         return key
 
     def resume(self, key: str, token: str | None) -> None:
+        self._known(key)
         if not self.state.owns(key, token):
-            raise StationError(f"{key} is driven from another page: this page only watches it")
+            raise StationError(f"{key[:80]} is driven from another page: this page only watches it", status=409)
         with self._lock:
             if self.running(key):
                 raise StationError(f"a session is already running on {key}")
@@ -109,12 +147,17 @@ class Station:
             self._launch(key, dict(b.config), Path(b.session_dir), resume=True)
 
     def stop(self, key: str, token: str | None) -> None:
+        self._known(key)
         if not self.state.owns(key, token):
-            raise StationError(f"{key} is driven from another page: this page only watches it")
+            raise StationError(f"{key[:80]} is driven from another page: this page only watches it", status=409)
         ui = self._ui.get(key)
         if ui is None or not self.running(key):
-            raise StationError(f"no session is running on {key}")
+            raise StationError(f"no session is running on {key[:80]}")
         ui.stop()
+
+    def _known(self, key: str) -> None:
+        if key not in self.state.boards:
+            raise StationError(f"this station shows no device {key[:80]!r}", status=404)
 
     def running(self, key: str) -> bool:
         t = self._threads.get(key)
@@ -227,6 +270,7 @@ class Station:
         """A station session's board status (procedures.fixture.BoardStatus) on its column."""
         def f(b):
             b.device = {**b.device, "slot": st["slot"], "uid": st.get("uid") or b.device.get("uid"), "url": st["port"]}
+            b.fixture = {k: st.get(k) for k in ("slot", "stage", "state", "message", "progress", "reason", "waiting")}
             if st["state"] == "running":
                 b.phase = {"turntable": "turns", "health": "start", "connect": "start"}.get(st["stage"], st["stage"])
                 if st["stage"] in ("write", "verify"):  # the fixture writes and verifies each board itself
@@ -243,6 +287,14 @@ class Station:
                     if c["state"] == "capturing":
                         c["state"], c["progress"] = "todo", 0.0
         self.state.update(key, f)
+
+    def plate_event(self, ev: dict) -> None:
+        """The plate of a station session, shown once for the whole fixture: its move
+        (procedures.fixture.Plate: kind, key, serves, waiting, move) or {"deadlines": text}."""
+        if "deadlines" in ev:
+            self.state.set_plate(deadlines=ev["deadlines"])
+        else:
+            self.state.set_plate(move=dict(ev))
 
     def board_result(self, key: str, record: dict, d: Path, run_id=None) -> None:
         """A station session's board is over: its verdict, parameters and report on its column

@@ -2,12 +2,19 @@
 uvicorn, bound to 127.0.0.1 only. Live updates are server-sent events: one snapshot of the
 station's state (station.state) each time it changes, at most ten a second.
 
+Only the operator's own browser drives it (station.security; docs/production.md): every
+request passes PageGuard (Host with the served port, the page's Origin and a JSON body for
+every POST, bounded bodies) and TrustedHostMiddleware (the host name, again); a browser's
+identity is an HttpOnly, SameSite=Strict cookie the server issues (POST /api/hello), never a
+token from a body or a URL.
+
     GET  /                     the page (static/station.html)
     GET  /static/...           its CSS and JS (package data; nothing from the network)
+    POST /api/hello            {}: this browser's identity cookie (issued here if it has none)
     GET  /api/state            a snapshot (JSON)
-    GET  /api/events?token=T   server-sent events: snapshots as they change
-    POST /api/claim            {key}: own the device if it is free -> {token | null}
-    POST /api/start            {port, method, gyro, capture, write, note} (X-Station-Token)
+    GET  /api/events           server-sent events: snapshots as they change (the cookie says whose)
+    POST /api/claim            {key}: drive the device if it is free -> {key, yours}
+    POST /api/start            {port, method, gyro, capture, write, note, rate_hz} (claims the device)
     POST /api/stop, /api/resume  {key} (the owner only)
     GET  /pose.svg?up=x,y,z    the board in that attitude (results.boardpic)
     GET  /turn.svg?axis=x,y,z&rate=R  (or &angle=A: a turn by hand)
@@ -29,24 +36,105 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
 from imubench.station.runner import Station, StationError
+from imubench.station.security import PageAccess, guard, parse_body
+from imubench.station.state import Refused
 
 EVENT_MIN_INTERVAL_S = 0.1
 KEEPALIVE_S = 10.0
+MAX_CONNECTIONS = 256           # uvicorn answers 503 past this many connections at once
 
 
-def create_app(station: Station) -> Starlette:
+class _Changes:
+    """Wakes the event streams on the server's event loop when the state changes (from any
+    thread): streams wait here, not in a thread of the pool the commands use."""
+
+    def __init__(self, state):
+        self.state = state
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.event: asyncio.Event | None = None
+        state.on_change(self._changed)
+
+    def _changed(self) -> None:
+        loop = self.loop
+        if loop is not None:
+            try:
+                loop.call_soon_threadsafe(self._fire)
+            except RuntimeError:            # the loop is closed: the server has stopped
+                pass
+
+    def _fire(self) -> None:
+        ev, self.event = self.event, asyncio.Event()
+        ev.set()
+
+    async def wait(self, version: int, timeout: float) -> None:
+        if self.loop is None:
+            self.loop, self.event = asyncio.get_running_loop(), asyncio.Event()
+        ev = self.event
+        if self.state.version != version or self.state.closed:
+            return
+        try:
+            await asyncio.wait_for(ev.wait(), timeout)
+        except asyncio.TimeoutError:
+            pass
+
+
+class _Stream(StreamingResponse):
+    """A streaming response that gives its slot back however it ends (even unstarted)."""
+
+    def __init__(self, content, release, **kw):
+        super().__init__(content, **kw)
+        self._release = release
+
+    async def __call__(self, scope, receive, send):
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self._release()
+
+
+def create_app(station: Station, access: PageAccess | None = None):
+    """The station's ASGI app, guarded (security.guard): access says which Host and Origin
+    are the page's (its port is set once the server is bound)."""
     state = station.state
+    access = access or PageAccess()
+    changes = _Changes(state)
 
     async def page(request: Request):
         from importlib.resources import files
         return Response((files("imubench.station") / "static" / "station.html").read_text(encoding="utf-8"),
                         media_type="text/html; charset=utf-8", headers={"Cache-Control": "no-store"})
 
+    def identity(request: Request) -> str | None:
+        return state.client(request.cookies.get(access.cookie_name))
+
+    def need_identity(request: Request) -> str:
+        tok = identity(request)
+        if tok is None:
+            raise StationError("this page has no identity on the station (a cookie it issues): reload the page",
+                               status=403)
+        return tok
+
+    async def hello(request: Request):
+        await body(request)
+        tok = identity(request)
+        r = JSONResponse({"ok": True}, headers={"Cache-Control": "no-store"})
+        if tok is None:
+            try:
+                tok = state.new_client()
+            except Refused as e:
+                raise StationError(str(e), status=429) from None
+            r.set_cookie(access.cookie_name, tok, httponly=True, samesite="strict", path="/")
+        return r
+
     async def snapshot(request: Request):
-        return JSONResponse(_finite(state.snapshot(request.query_params.get("token"))))
+        return JSONResponse(_finite(state.snapshot(identity(request))), headers={"Cache-Control": "no-store"})
 
     async def events(request: Request):
-        token = request.query_params.get("token")
+        token = identity(request)
+        try:
+            state.stream_opened(token)
+        except Refused as e:
+            raise StationError(str(e), status=429) from None
 
         async def stream():
             version = -1
@@ -55,10 +143,10 @@ def create_app(station: Station) -> Starlette:
                 if state.closed or await request.is_disconnected():
                     return
                 state.seen(token)
-                new = await asyncio.to_thread(state.wait, version, KEEPALIVE_S)
+                await changes.wait(version, KEEPALIVE_S)
                 if state.closed:
                     return
-                if new == version:
+                if state.version == version:
                     yield ": keep-alive\n\n"
                     continue
                 wait = EVENT_MIN_INTERVAL_S - (time.monotonic() - last_send)
@@ -69,44 +157,40 @@ def create_app(station: Station) -> Starlette:
                 last_send = time.monotonic()
                 yield f"data: {json.dumps(_finite(snap), allow_nan=False, default=_num)}\n\n"
 
-        return StreamingResponse(stream(), media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
+        return _Stream(stream(), lambda: state.stream_closed(token), media_type="text/event-stream",
+                       headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
 
     async def body(request: Request) -> dict:
-        try:
-            d = await request.json()
-        except ValueError:
-            d = None
-        if not isinstance(d, dict):
-            raise StationError("the request must be a JSON object")
-        return d
+        return parse_body(await request.body())     # PageGuard has bounded it already
 
-    def token_of(request: Request) -> str | None:
-        return request.headers.get("x-station-token") or None
+    def key_of(d: dict) -> str:
+        key = d.get("key")
+        if not isinstance(key, str) or not key:
+            raise StationError("which device? give key (a string)")
+        if len(key) > 256:
+            raise StationError(f"a key of {len(key)} characters: at most 256")
+        return key
 
     async def claim(request: Request):
         d = await body(request)
-        key = str(d.get("key") or "")
-        if not key:
-            raise StationError("which device? give key")
-        return JSONResponse({"key": key, "token": state.claim(key, d.get("token") or token_of(request))})
+        key = key_of(d)
+        tok = need_identity(request)
+        return JSONResponse({"key": key, "yours": station.claim(key, tok)})
 
     async def start(request: Request):
         d = await body(request)
-        tok = token_of(request)
-        if not tok:
-            raise StationError("this page owns no device: reload it")
+        tok = need_identity(request)
         key = await asyncio.to_thread(station.start, d, tok)
         return JSONResponse({"key": key})
 
     async def stop(request: Request):
         d = await body(request)
-        station.stop(str(d.get("key") or ""), token_of(request))
+        station.stop(key_of(d), need_identity(request))
         return JSONResponse({"ok": True})
 
     async def resume(request: Request):
         d = await body(request)
-        station.resume(str(d.get("key") or ""), token_of(request))
+        station.resume(key_of(d), need_identity(request))
         return JSONResponse({"ok": True})
 
     async def pose_svg(request: Request):
@@ -123,6 +207,8 @@ def create_app(station: Station) -> Starlette:
             angle = None if angle is None else float(angle)
         except ValueError:
             raise StationError("rate (°/s) and angle (°) must be numbers") from None
+        if any(x is not None and not (math.isfinite(x) and abs(x) <= 1e4) for x in (rate, angle)):
+            raise StationError("rate (°/s) and angle (°) must be numbers within ±10000")
         if rate is None and angle is None:
             rate = 0.0
         return Response(draw(axis, rate_dps=rate, angle_deg=angle), media_type="image/svg+xml")
@@ -134,16 +220,19 @@ def create_app(station: Station) -> Starlette:
         return FileResponse(p, media_type="text/html")
 
     async def bad_request(request: Request, exc: StationError):
-        return JSONResponse({"error": str(exc)}, status_code=409 if "another page" in str(exc) else 400)
+        return JSONResponse({"error": str(exc)}, status_code=getattr(exc, "status", 400),
+                            headers={"Cache-Control": "no-store"})
 
     from importlib.resources import files
     static_dir = str(files("imubench.station") / "static")
-    routes = [Route("/", page), Route("/api/state", snapshot), Route("/api/events", events),
+    routes = [Route("/", page), Route("/api/hello", hello, methods=["POST"]),
+              Route("/api/state", snapshot), Route("/api/events", events),
               Route("/api/claim", claim, methods=["POST"]), Route("/api/start", start, methods=["POST"]),
               Route("/api/stop", stop, methods=["POST"]), Route("/api/resume", resume, methods=["POST"]),
               Route("/pose.svg", pose_svg), Route("/turn.svg", turn_svg),
               Route("/report/{key}/report.html", report), Mount("/static", StaticFiles(directory=static_dir))]
-    return Starlette(routes=routes, exception_handlers={StationError: bad_request})
+    app = Starlette(routes=routes, exception_handlers={StationError: bad_request})
+    return guard(app, access)
 
 
 @lru_cache(maxsize=64)
@@ -154,12 +243,13 @@ def _pose_svg(up: tuple) -> str:
 
 def _vector(text) -> tuple:
     try:
-        v = tuple(float(x) for x in str(text).split(","))
+        v = tuple(float(x) for x in str(text)[:100].split(","))
     except ValueError:
         v = ()
-    if len(v) != 3 or not any(v):
-        raise StationError("give a direction as x,y,z (board frame), not all zero")
-    return v
+    if len(v) != 3 or not any(v) or not all(math.isfinite(x) for x in v):
+        raise StationError("give a direction as x,y,z (board frame), finite numbers, not all zero")
+    big = max(abs(x) for x in v)            # scaled to at most 1: 1e300 or 1e-320 draw as 1
+    return tuple(x / big for x in v)
 
 
 def _finite(x):
@@ -182,13 +272,17 @@ def _num(x):
 
 
 class Server:
-    """uvicorn serving the station on 127.0.0.1:port (0: a free port; .port is the real one)."""
+    """uvicorn serving the station on 127.0.0.1:port (0: a free port; .port is the real one).
+    allow_origins: origins besides http://127.0.0.1:PORT (and localhost, [::1]) the page may be
+    opened as (--allow-origin, e.g. the local end of an SSH tunnel on another port)."""
 
-    def __init__(self, station: Station, port: int = 0, host: str = "127.0.0.1"):
+    def __init__(self, station: Station, port: int = 0, host: str = "127.0.0.1", allow_origins=()):
         import uvicorn
         self.station = station
-        self.config = uvicorn.Config(create_app(station), host=host, port=port, log_level="warning",
-                                     lifespan="off", access_log=False, timeout_graceful_shutdown=1)
+        self.access = PageAccess(allow_origins)
+        self.config = uvicorn.Config(create_app(station, self.access), host=host, port=port, log_level="warning",
+                                     lifespan="off", access_log=False, timeout_graceful_shutdown=1,
+                                     limit_concurrency=MAX_CONNECTIONS)
         self.server = uvicorn.Server(self.config)
         self.thread: threading.Thread | None = None
 
@@ -215,6 +309,7 @@ class Server:
             sock.close()
             raise StationError(f"the station cannot listen on {self.config.host}:{self.config.port}: "
                                f"{e.strerror or e}") from None
+        self.access.bind(sock.getsockname()[1])
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [sock]}, name="station server",
                                        daemon=True)
         self.thread.start()

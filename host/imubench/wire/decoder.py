@@ -197,6 +197,7 @@ class StreamDecoder:
         self.max_pending_samples = max_pending_samples
         self._buf = bytearray()
         self._discarding = False     # inside an over-long run with no delimiter
+        self.foreign_version: int | None = None   # the first other protocol version an intact frame had
         self._last_seq: int | None = None
         self._raw = _Pending()
         self._cal = _Pending()
@@ -263,6 +264,8 @@ class StreamDecoder:
             version, mtype, seq, ts = _HDR.unpack_from(raw)
             if version != P.PROTOCOL_VERSION:
                 st.bad_version += 1
+                if self.foreign_version is None:
+                    self.foreign_version = version
                 continue
             if mtype == 0x90 or mtype == 0x91:
                 d = _RAW if mtype == 0x90 else _CAL

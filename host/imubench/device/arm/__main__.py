@@ -5,7 +5,19 @@ VirtualBench(target="f103") starts it the way it starts the host build:
 
     --tcp PORT --control PORT --flash FILE --speed X --seed N --truth default|random
     --uid HEX24 --baud B (the image sets its own baud rate: only 2000000 is accepted)
-    --elf FILE (default build/arm/<target>/imubench.elf)  --no-hse (the crystal does not start)
+    --elf FILE (default: the image imubench.device.artifacts finds, the package's or build/arm's;
+               repeatable: every ELF given is an image
+               the board can run, see below)  --no-hse (the crystal does not start)
+    --pty      the serial port on a pseudo-terminal (its path in the start-up line's "pty")
+    --boot0    BOOT0 high: the board starts in the STM32 ROM bootloader on USART1 (AN3155,
+               bootloader.py), for stm32flash on the pty; Go starts the image written, and
+               every reset (power cut, reboot) enters the bootloader again
+
+The flash: the parameter pages are FILE (--flash), the code pages FILE.code. A board whose
+FILE.code does not exist yet holds the first --elf image (as if programmed at the factory);
+once FILE.code exists (the bootloader wrote it) a reset with BOOT0 low boots whatever it
+holds, run as the --elf image whose code it matches; a blank, half-written or unknown image
+does not run (the core stays in reset, as a hard-faulting board would: reflash it).
 
 It exits on SIGTERM/SIGINT/SIGHUP, on the control command "quit" and when its parent dies.
 """
@@ -20,19 +32,18 @@ import sys
 import tempfile
 from pathlib import Path
 
-from .simlib import SimLibError, lib_path, load
+from imubench.device import artifacts
+
+from .simlib import SimLibError, load
 from .targets import TARGETS
-
-
-def _repo_root() -> Path:
-    return Path(__file__).resolve().parents[4]
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m imubench.device.arm",
                                  description="the exact STM32 image against the virtual device's sensor models")
     ap.add_argument("--target", choices=sorted(TARGETS), required=True)
-    ap.add_argument("--elf")
+    ap.add_argument("--elf", action="append")
+    ap.add_argument("--boot0", action="store_true")
     ap.add_argument("--tcp", type=int, default=0)
     ap.add_argument("--control", type=int, default=0)
     ap.add_argument("--flash")
@@ -44,8 +55,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pty", action="store_true")
     ap.add_argument("--no-hse", action="store_true")
     a = ap.parse_args(argv)
-    if a.pty:
-        ap.error("--pty is not supported for the ARM targets: use the TCP endpoint (socket://)")
     if a.baud != 2000000:
         ap.error("the image configures its own baud rate (2000000): --baud cannot change it")
     if not (0 <= a.speed <= 1e6):
@@ -58,15 +67,27 @@ def main(argv: list[str] | None = None) -> int:
             uid = b""
         if len(uid) != 12:
             ap.error("--uid must be 24 hex digits")
-    root = _repo_root()
     target = TARGETS[a.target]
-    elf = Path(a.elf) if a.elf else root / "build" / "arm" / target.image / "imubench.elf"
-    map_path = elf.with_suffix(".map")
+    # nothing is built here: VirtualBench (arm_command) built it before starting this process
+    try:
+        lib_file = artifacts.models_library(build=False)
+    except artifacts.ArtifactError as e:
+        print(f"imubench-arm: {e}", file=sys.stderr)
+        return 2
+    try:
+        default_elf = artifacts.arm_image(target.image, build=False)
+    except artifacts.ArtifactError as e:
+        if not a.elf:
+            print(f"imubench-arm: {e}", file=sys.stderr)
+            return 2
+        default_elf = None          # --elf names the images the board can run
+    elfs = [Path(e) for e in a.elf] if a.elf else [default_elf]
+    elf = elfs[0]
     if not elf.is_file():
         print(f"imubench-arm: {elf} is missing: build the images with `make firmware`", file=sys.stderr)
         return 2
     try:
-        lib = load(lib_path(root))
+        lib = load(lib_file)
     except SimLibError as e:
         print(f"imubench-arm: {e}", file=sys.stderr)
         return 2
@@ -76,27 +97,71 @@ def main(argv: list[str] | None = None) -> int:
         tmpdir = tempfile.mkdtemp(prefix="imubench-arm-")
         flash = os.path.join(tmpdir, "flash.bin")
 
-    if lib.simlib_open(a.seed, 1 if a.truth == "random" else 0, uid, a.tcp, a.control, a.speed) != 0:
+    lib.simlib_set_pty(1 if a.pty else 0)
+    tcp = a.tcp if not a.pty or a.tcp else -1     # --pty alone: no TCP endpoint
+    if lib.simlib_open(a.seed, 1 if a.truth == "random" else 0, uid, tcp, a.control, a.speed) != 0:
         print("imubench-arm: cannot open the serial endpoint / control channel", file=sys.stderr)
         return 1
 
-    from .machine import Machine, Server
+    from .bootloader import BootloaderServer, FlashFile, RomBootloader, code_path
+    from .machine import Machine, Server, flash_segments, match_elf
+
+    def log(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    code_file = code_path(flash)
+    candidates = [str(e) for e in elfs if e.is_file()]
+    if default_elf is not None and default_elf.is_file() and str(default_elf) not in candidates:
+        candidates.append(str(default_elf))
+    if a.boot0 and not os.path.exists(code_file):
+        # the board comes with the first image in its code pages (factory-programmed)
+        try:
+            code = FlashFile(code_file, target.param_base - target.flash_base)
+            for addr, data in flash_segments(str(elf), target):
+                code.write(addr - target.flash_base, data)
+        except (OSError, ValueError) as e:
+            print(f"imubench-arm: {e}", file=sys.stderr)
+            return 2
+
+    def new_machine(elf_path: str, t0: float) -> Machine:
+        mp = Path(elf_path).with_suffix(".map")
+        return Machine(target, elf_path, str(mp) if mp.is_file() else None, lib, flash, seed=a.seed,
+                       hse=not a.no_hse, t0=t0, boot0=a.boot0)
+
+    def boot_elf() -> str | None:
+        """The image the code pages hold (None: nothing the emulator can run)."""
+        if not os.path.exists(code_file):
+            return str(elf)
+        with open(code_file, "rb") as f:
+            code = f.read()
+        return match_elf(code, candidates, target)
+
     try:
-        machine = Machine(target, str(elf), str(map_path) if map_path.is_file() else None, lib, flash,
-                          seed=a.seed, hse=not a.no_hse)
+        first = None if a.boot0 else boot_elf()
+        if not a.boot0 and first is None:
+            print(f"imubench-arm: the code pages ({code_file}) hold no image the emulator knows "
+                  f"(blank, half written, or not one of --elf): start it with --boot0 and flash it",
+                  file=sys.stderr)
+            return 2
+        machine = new_machine(first, 0.0) if first else None
     except (ValueError, KeyError, OSError) as e:
         print(f"imubench-arm: {e}", file=sys.stderr)
         return 2
-    server = Server(machine, lib, a.speed)
     uidb = (ctypes.c_uint8 * 12)()
     lib.simlib_uid(uidb)
     port = lib.simlib_tcp_port()
     ctl = lib.simlib_control_port()
-    line = {"pty": None, "port_url": f"socket://127.0.0.1:{port}", "tcp_port": port,
+    pty_name = lib.simlib_pty_name().decode() or None
+    line = {"pty": pty_name, "port_url": f"socket://127.0.0.1:{port}" if port >= 0 else pty_name,
+            "tcp_port": port if port >= 0 else None,
             "control": f"127.0.0.1:{ctl}", "control_port": ctl, "pid": os.getpid(),
             "flash": os.path.realpath(flash), "seed": a.seed, "speed": a.speed, "baud": a.baud,
             "truth": a.truth, "uid": bytes(uidb).hex(), "build": f"arm-{a.target}",
-            "target": a.target, "elf": str(elf), "cpi": target.cpi}
+            "target": a.target, "elf": str(elf), "cpi": target.cpi, "boot0": a.boot0,
+            "code_flash": os.path.realpath(code_file) if os.path.exists(code_file) else None}
+    if a.boot0:
+        line["bootloader"] = {"framing": "8E1 (AN3155; a pty cannot show parity)",
+                              "product_id": "0x%03X" % (0x410 if a.target == "f103" else 0x413)}
     print(json.dumps(line), flush=True)
 
     stop = {"sig": 0}
@@ -109,14 +174,51 @@ def main(argv: list[str] | None = None) -> int:
 
     def should_stop() -> bool:
         return bool(stop["sig"]) or (parent != 1 and os.getppid() != parent)
+    rom = None
+    t_dev = 0.0
     try:
-        server.serve(should_stop)
+        while not should_stop():
+            if machine is None:
+                if rom is None:
+                    rom = RomBootloader(target, FlashFile(code_file, target.param_base - target.flash_base),
+                                        FlashFile(flash, target.param_size), bytes(uidb), lib, log)
+                else:
+                    rom.code = FlashFile(code_file, target.param_base - target.flash_base)
+                    rom.params = FlashFile(flash, target.param_size)
+                    rom.reset()
+                log(f"[imubench-arm {a.target}] ROM bootloader (BOOT0 high): waiting for 0x7F")
+                bl = BootloaderServer(rom, lib, a.speed, t_dev, log)
+                act = bl.serve(should_stop)
+                t_dev = bl.now()
+                if act[0] == "stop":
+                    break
+                if act[0] == "reset":
+                    continue                   # BOOT0 still high: the bootloader again
+                image = boot_elf()
+                if image is None:
+                    log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: the code pages hold no image the "
+                        "emulator knows (blank, half written or not one of --elf): the core does not run; "
+                        "reset (power cut) into the bootloader and flash it again")
+                    continue
+                log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: starting {image}")
+                machine = new_machine(image, t_dev)
+            server = Server(machine, lib, a.speed)
+            server.serve(should_stop)
+            t_dev = machine.now()
+            machine.flash.close()
+            if not machine.exit_to_rom:
+                machine = None
+                break
+            machine = None
     finally:
-        machine.flash.close()
+        if machine is not None:
+            machine.flash.close()
         lib.simlib_close()
         if tmpdir is not None:
             try:
-                os.unlink(flash)
+                for f in (flash, code_path(flash)):
+                    if os.path.exists(f):
+                        os.unlink(f)
                 os.rmdir(tmpdir)
             except OSError:
                 pass

@@ -417,9 +417,9 @@ class DmaF4(_TxDma):
                 if was and not value & 1:
                     self.sndtr[s] = self.remaining(t)
                     self.stop(t)
-                    self.scr[s] = value & 0x0FFFFFFE
+                    self.scr[s] = value & 0x0FEFFFFE
                 elif not was and value & 1:
-                    self.scr[s] = value & 0x0FFFFFFF
+                    self.scr[s] = value & 0x0FEFFFFF
                     if self.flags:
                         self.m.log("DMA2 stream 7 enabled with its flags set: RM0090 10.3.17 forbids it")
                     if (value >> 6) & 3 != 1 or (value >> 25) & 7 != 4:
@@ -427,11 +427,11 @@ class DmaF4(_TxDma):
                     else:
                         self._start(self.sm0ar[s], self.spar[s], self.sndtr[s], t)
                 else:
-                    self.scr[s] = value & 0x0FFFFFFF if not was else (self.scr[s] & 1) | (value & 0x0FFFFFFE)
+                    self.scr[s] = value & 0x0FEFFFFF if not was else (self.scr[s] & 1) | (value & 0x0FEFFFFE)
                 self._irq_check()
             elif s in self.SPI_S:
                 was = self.scr[s] & 1
-                self.scr[s] = value & 0x0FFFFFFF
+                self.scr[s] = value & 0x0FEFFFFF
                 if was and not value & 1:
                     self.spi_abort(t)
                 elif not was and value & 1:
@@ -439,7 +439,7 @@ class DmaF4(_TxDma):
                         self.m.log(f"DMA2 stream {s} enabled with its flags set: RM0090 10.3.17 forbids it")
                     self.spi_try_start(t)
             else:
-                self.scr[s] = value & 0x0FFFFFFF
+                self.scr[s] = value & 0x0FEFFFFF
         elif not self.scr[s] & 1:
             if reg == 0x4:
                 self.sndtr[s] = value & 0xFFFF
@@ -450,4 +450,4 @@ class DmaF4(_TxDma):
             elif reg == 0x10:
                 self.sm1ar[s] = value
             elif reg == 0x14:
-                self.sfcr[s] = value & 0xBF
+                self.sfcr[s] = (value & 0x87) | (self.sfcr[s] & 0x38)   # FS (5:3) is read-only

@@ -168,19 +168,19 @@ class FlashF1(Flash):
 
     def write(self, off: int, size: int, value: int) -> None:
         if off == 0x00:
-            self.acr = value & 0x1F
+            self.acr = (value & 0x1F) | (0x20 if value & 0x10 else 0)   # PRFTBS (RO) follows PRFTBE
         elif off == 0x04:
             self._key(value)
         elif off == 0x0C:
             self.sr &= ~(value & (self.SR_PGERR | self.SR_WRPRTERR | self.SR_EOP))
         elif off == 0x10:
             if value & self.CR_LOCK:
-                self.cr = value & ~self.CR_LOCK & 0x1277
+                self.cr = value & ~self.CR_LOCK & 0x1677
                 self._lock()
                 return
             if self.locked:
                 return
-            self.cr = value & 0x1277
+            self.cr = value & 0x1677     # PG PER MER OPTPG OPTER STRT OPTWRE ERRIE EOPIE
             if value & self.CR_STRT:
                 self.cr &= ~self.CR_STRT
                 if self.cr & self.CR_PER:
@@ -240,7 +240,8 @@ class FlashF4(Flash):
 
     def write(self, off: int, size: int, value: int) -> None:
         if off == 0x00:
-            self.acr = value & 0x1F07 & ~0x1800  # ICRST/DCRST read as 0
+            dcrst = value & 0x1000 if not self.acr & 0x400 else self.acr & 0x1000
+            self.acr = (value & 0x0707) | dcrst   # ICRST is write-only (reads 0); DCRST only while DCEN = 0
         elif off == 0x04:
             self._key(value)
         elif off == 0x0C:

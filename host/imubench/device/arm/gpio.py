@@ -62,12 +62,15 @@ class GpioF1:
         elif off == 0x14:  # BRR
             self._set_odr(self.odr & ~value)
         elif off == 0x18:
-            self.lckr = value
+            self.lckr = value & 0x1FFFF
         else:
             self.m.unmodelled(self.name, off, size, value)
 
 
 class AfioF1:
+    # EVCR, MAPR (SWJ_CFG 26:24 is write-only: reads 0), EXTICR1-4, MAPR2 (RM0008 9.4)
+    WRITABLE = {0x0: 0xFF, 0x4: 0x001FFFFF, 0x8: 0xFFFF, 0xC: 0xFFFF, 0x10: 0xFFFF, 0x14: 0xFFFF, 0x1C: 0x7E0}
+
     def __init__(self, machine):
         self.m = machine
         self.regs: dict[int, int] = {}
@@ -79,8 +82,8 @@ class AfioF1:
         return self.regs.get(off, 0)
 
     def write(self, off: int, size: int, value: int) -> None:
-        if off in (0x0, 0x4, 0x8, 0xC, 0x10, 0x14, 0x1C):
-            self.regs[off] = value
+        if off in self.WRITABLE:
+            self.regs[off] = value & self.WRITABLE[off]
             if off == 0x4 and value & 1:
                 self.m.log("AFIO: SPI1 remapped (MAPR.SPI1_REMAP): the board wires the default pins")
         else:
@@ -139,7 +142,7 @@ class GpioF4:
                 value = value & 0xFFFF
             self._set_odr((self.odr & ~(value >> 16)) | (value & 0xFFFF))
         elif off in self.regs:
-            self.regs[off] = value
+            self.regs[off] = value & {0x04: 0xFFFF, 0x1C: 0x1FFFF}.get(off, 0xFFFFFFFF)   # OTYPER, LCKR
             if off == 0x00:
                 self.m.pins_changed(self.name, self.odr, self.odr)
         else:

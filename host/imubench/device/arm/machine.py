@@ -94,9 +94,29 @@ def code_regions(map_path: str, target: Target) -> bytearray:
     return regions
 
 
+def flash_segments(elf_path: str, target: Target) -> list[tuple[int, bytes]]:
+    """The loadable bytes an image puts into the code pages."""
+    img = ElfImage(elf_path)
+    return [(a, d) for a, d in img.segments if target.flash_base <= a < target.param_base]
+
+
+def match_elf(code: bytes, candidates: list[str], target: Target) -> str | None:
+    """The ELF (of those the emulator was given) whose code is what the code pages hold: the
+    emulator runs an image through its symbols (fast-forward hooks), so a flash written by a
+    tool (stm32flash) is run as the ELF it matches. None: blank, half written or unknown."""
+    for path in candidates:
+        try:
+            segs = flash_segments(path, target)
+        except (OSError, ValueError):
+            continue
+        if segs and all(code[a - target.flash_base:a - target.flash_base + len(d)] == d for a, d in segs):
+            return path
+    return None
+
+
 class Machine:
     def __init__(self, target: Target, elf_path: str, map_path: str | None, lib, flash_path: str,
-                 seed: int = 1, hse: bool = True, log=None):
+                 seed: int = 1, hse: bool = True, log=None, t0: float = 0.0, boot0: bool = False):
         self.target = target
         self.lib = lib
         self._log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
@@ -105,6 +125,9 @@ class Machine:
         f1 = target.name == "f103"
         self.rcc = RccF1(self, hse) if f1 else RccF4(self, hse)
         self.clock = Clock(lib, target.cpi, self.rcc.sysclk_hz())
+        self.clock._t_base = t0       # device time goes on across a bootloader session
+        self.boot0 = boot0            # a reset enters the ROM bootloader instead of the image
+        self.exit_to_rom = False
         self.nvic = Nvic(self, target.n_irq)
         self.systick = SysTick(self)
         if f1:
@@ -534,9 +557,16 @@ class Machine:
             self.usart.reset()
             self.lib.simlib_link_reset()
             self.log(f"{why}: power-cycling the sensors and the MCU")
+            if self.boot0:
+                self.exit_to_rom = True
+                return
             self.power_on()
         else:
             self.reboots += 1
+            if self.boot0:
+                self.log(f"reset ({why}): BOOT0 is high, the ROM bootloader starts")
+                self.exit_to_rom = True
+                return
             self.log(f"reset ({why}): restarting the image")
             self._reset_all()
 
@@ -553,6 +583,8 @@ class Machine:
                 return
             if self.reset_req is not None:
                 self.take_reset()
+                if self.exit_to_rom:
+                    return
                 continue
             self._process(now)
             while True:
@@ -629,9 +661,9 @@ class Server:
         self.m = machine
         self.lib = lib
         self.speed = speed
-        lib.simlib_set_time(0)
+        lib.simlib_set_time(round(machine.now() * 1e6))
         self.anchor_wall = time.monotonic()
-        self.anchor_dev = 0.0
+        self.anchor_dev = machine.now()
         self.slips = 0
         self.quit = False
         self._bp_since: float | None = None
@@ -643,7 +675,7 @@ class Server:
         lib, m = self.lib, self.m
         pfd = (simlib.PollFd * 16)()
         last_wall = time.monotonic()
-        while not self.quit and not should_stop():
+        while not self.quit and not should_stop() and not m.exit_to_rom:
             wall = time.monotonic()
             sp = lib.simlib_speed()
             if sp != self.speed:  # control channel set_speed
@@ -705,6 +737,8 @@ class Server:
             if k == RESET_POWER_CUT:
                 m.request_reset("power_cut", "power cut (control channel)")
                 m.take_reset()
+                if m.exit_to_rom:
+                    break
             m.usart.schedule_rx(m.now())
 
     def _io(self, pfd, timeout: float) -> None:

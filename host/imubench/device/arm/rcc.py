@@ -93,14 +93,17 @@ class RccF1:
                 value |= 1 << 24  # PLLON cannot be cleared while the PLL clocks the system
             self.cr = value & 0x010D00F9 | (self.cr & 0xFF00)
         elif off == 0x04:
-            self.cfgr = value & 0x07FFFFF3
+            self.cfgr = value & 0x077FFFF3
         elif off in self.regs:
-            self.regs[off] = value
+            self.regs[off] = value & self.WRITABLE.get(off, 0xFFFFFFFF)
         else:
             self.m.unmodelled("RCC", off, size, value)
             return
         self._sws_last = self._sws()
         self.m.clock_changed()
+
+    # the bits the F103 family defines (ST's SVD; tests/test_svd_registers.py), the rest reserved
+    WRITABLE = {0x0C: 0x0038FFFD, 0x10: 0x3AFEC9FF, 0x14: 0x557, 0x18: 0x0038FFFD, 0x1C: 0x3AFEC9FF}
 
 
 class RccF4:
@@ -182,19 +185,30 @@ class RccF4:
         if off == 0x00:
             if self._sws() == 2 and not value & (1 << 24):
                 value |= 1 << 24
-            self.cr = value & 0x0F0D00F9 | (self.cr & 0xFF00)
+            self.cr = value & 0x050D00F9 | (self.cr & 0xFF00)   # PLLI2SRDY (27) read-only
         elif off == 0x04:
             if not self.cr & (1 << 24):  # PLL configuration only while the PLL is off
-                self.pllcfgr = value & 0x0F437FFF
+                if not value & self.PLLCFGR_KEEP:
+                    self.m.log("RCC_PLLCFGR written with reserved bit 29 cleared (RM0090 7.3.2: keep at reset value 1)")
+                    self.m.unmodelled_count += 1
+                self.pllcfgr = value & 0x0F437FFF | self.PLLCFGR_KEEP
         elif off == 0x08:
             self.cfgr = value & 0xFFFFFCF3
         elif off in self.regs:
-            self.regs[off] = value
+            w = self.WRITABLE.get(off, 0xFFFFFFFF)
+            self.regs[off] = value & w | self.RESET_KEEP.get(off, 0) & ~w
         else:
             self.m.unmodelled("RCC", off, size, value)
             return
         self._sws_last = self._sws()
         self.m.clock_changed()
+
+    RESET_KEEP = {0x54: 0x30}   # AHB2LPENR 5:4 (CRYP/HASH of the F415/417): reserved here, reset value 1
+    PLLCFGR_KEEP = 1 << 29    # reserved, reset value 1, "must be kept at reset value"
+    # the bits the F405/407 define (ST's SVD; tests/test_svd_registers.py), the rest reserved
+    WRITABLE = {0x10: 0x226011FF, 0x14: 0xC1, 0x18: 0x1, 0x20: 0x36FEC9FF, 0x24: 0x75933, 0x30: 0x7E7411FF,
+                0x34: 0xC1, 0x38: 0x1, 0x40: 0x36FEC9FF, 0x44: 0x75F33, 0x50: 0x7E6791FF, 0x54: 0xC1, 0x58: 0x1,
+                0x60: 0x36FEC9FF, 0x64: 0x75F33}
 
     # PWR (0x40007000)
     def pwr_read(self, off: int, size: int) -> int:
@@ -207,7 +221,7 @@ class RccF4:
 
     def pwr_write(self, off: int, size: int, value: int) -> None:
         if off == 0x0:
-            self.pwr_cr = value & 0x4F3FF
+            self.pwr_cr = value & 0x43FF    # F405/407 (RM0090 5.4.1); bits 12+ of the F42x are reserved
         elif off == 0x4:
             self.pwr_csr = value & 0x300
         else:

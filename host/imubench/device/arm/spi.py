@@ -43,6 +43,7 @@ class Spi:
         self.cr1 = 0
         self.cr2 = 0
         self.crcpr = 7
+        self.i2spr = 0x0002          # RM0008 25.5.9 / RM0090 28.5.9: I2SDIV = 2
         self.rxne = False
         self.ovr = False
         self.dr_rx = 0
@@ -173,7 +174,9 @@ class Spi:
             return self.cr2
         if off == 0x10:
             return self.crcpr
-        if off in (0x14, 0x18, 0x1C, 0x20):
+        if off == 0x20:
+            return self.i2spr
+        if off in (0x14, 0x18, 0x1C):
             return 0
         self.m.unmodelled("SPI1", off, size, None)
         return 0
@@ -185,7 +188,7 @@ class Spi:
             if self.cr1 & CR1_SPE and not self.cr1 & (1 << 9):
                 self.m.log("SPI1: hardware NSS (SSM = 0) is not modelled")
         elif off == 0x4:
-            self.cr2 = value & 0xF7
+            self.cr2 = value & (0xF7 if self.m.target.name == "f4" else 0xE7)   # FRF (bit 4): F4 only
             if self.cr2 & 3:
                 self.m.dma.spi_try_start(t)
         elif off == 0xC:
@@ -214,6 +217,8 @@ class Spi:
             # looks at it; the images use no SPI interrupt)
         elif off == 0x10:
             self.crcpr = value & 0xFFFF
+        elif off == 0x20:
+            self.i2spr = value & 0x3FF
         elif off == 0x8:
             if not value & (1 << 4):
                 pass  # CRCERR write-0-to-clear: no CRC modelled

@@ -54,7 +54,7 @@ class Usart:
     def frame_time(self) -> float:
         brr = max(self.brr, 16)
         div = brr / 16.0
-        over8 = self.cr1 & (1 << 15)
+        over8 = self.cr1 & (1 << 15)      # F4 only: the F1's CR1 bit 15 is reserved (masked)
         baud = self.m.rcc.pclk2_hz() / ((8 if over8 else 16) * div)
         return 10.0 / baud
 
@@ -201,15 +201,15 @@ class Usart:
         elif off == 0x8:
             self.brr = value & 0xFFFF
         elif off == 0xC:
-            self.cr1 = value & 0xBFFF
+            self.cr1 = value & (0xBFFF if self.m.target.name == "f4" else 0x3FFF)
             self.schedule_rx(t)
             self._irq_check()
         elif off == 0x10:
-            self.cr2 = value & 0x7F7F
+            self.cr2 = value & 0x7F6F
             if value & 0x3000:
                 self.m.log("USART1: stop bits other than 1 are not modelled")
         elif off == 0x14:
-            self.cr3 = value & 0xFFF
+            self.cr3 = value & (0xFFF if self.m.target.name == "f4" else 0x7FF)   # ONEBIT: F4 only
         elif off == 0x18:
             self.gtpr = value & 0xFFFF
         else:

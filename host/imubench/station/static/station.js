@@ -1,8 +1,9 @@
 // imubench station page: renders the station's state (server-sent events from /api/events)
 // one column per device; the page that owns a device drives it, any other page watches.
+// Who this browser is: an HttpOnly, SameSite=Strict cookie the server issues (POST /api/hello);
+// the page never sees it. The browser sends it, and this page's Origin, with every request.
 "use strict";
 (function () {
-  let token = sessionStorage.getItem("imubench-token") || "";
   const cols = {};                 // device key -> column element
   const cardStates = {};           // key/name -> last state seen (for the transition log)
   window.__transitions = [];
@@ -14,30 +15,35 @@
   const fmt = (x, d) => (x == null || !isFinite(x) ? "–" : Number(x).toFixed(d));
 
   async function post(path, body) {
-    const r = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json", "X-Station-Token": token }, body: JSON.stringify(body) });
+    const r = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
+      credentials: "same-origin" });
     const j = await r.json().catch(() => ({}));
     if (!r.ok) throw new Error(j.error || r.statusText);
     return j;
   }
 
   async function claim(key) {
-    const j = await post("/api/claim", { key: key, token: token });
-    if (j.token) { token = j.token; sessionStorage.setItem("imubench-token", token); reconnect(); }
-    return !!j.token;
+    const j = await post("/api/claim", { key: key });
+    return !!j.yours;
   }
 
   // ------------------------------------------------------------------ events
   let es = null;
   function reconnect() {
     if (es) es.close();
-    es = new EventSource("/api/events?token=" + encodeURIComponent(token));
+    es = new EventSource("/api/events");          // same origin: the identity cookie goes with it
     es.onopen = () => { $("#conn").textContent = "live"; };
-    es.onerror = () => { window.__streamErrors += 1; $("#conn").textContent = "reconnecting…"; };
+    es.onerror = () => {
+      window.__streamErrors += 1;
+      $("#conn").textContent = "reconnecting…";
+      // refused (e.g. too many pages open): EventSource gives up; try again a little later
+      if (es.readyState === EventSource.CLOSED) setTimeout(reconnect, 3000);
+    };
     es.onmessage = (ev) => { last = JSON.parse(ev.data); render(last); };
   }
 
   const claiming = {};
-  let claimChain = Promise.resolve();   // one claim at a time: every device of a session gets this page's one token
+  let claimChain = Promise.resolve();   // one claim at a time
   function render(snap) {
     const mine = snap.boards.filter((b) => b.yours);
     $("#boards").classList.toggle("multi", snap.boards.length > 1);
@@ -49,13 +55,97 @@
       }
       renderBoard(b);
     }
+    renderOverview(snap);
     const watching = snap.boards.filter((b) => b.owned && !b.yours);
-    $("#role").textContent = mine.length ? "you drive " + mine.map((b) => b.key).join(", ")
+    const slots = mine.every((b) => b.device && b.device.slot) && mine.length > 1;
+    $("#role").textContent = mine.length ? "you drive " + (slots ? "slots " + mine.map((b) => b.device.slot).join(", ")
+      : mine.map((b) => b.key).join(", "))
       : watching.length ? "read-only: watching" : "";
     $("#role").className = "pill " + (mine.length ? "done" : watching.length ? "readonly" : "");
     const busy = mine.some((b) => b.status === "running");
     $("#setup").hidden = !(snap.mode === "idle" && !busy);
     $("#use-sim").parentElement.hidden = !snap.sim;
+  }
+
+  // ------------------------------------------------------------------ a station session's overview
+  // every board at a glance (slot, device, stage, progress, verdict), the plate once; a board's
+  // full column on demand (click its tile)
+  let selected = null;
+  const tiles = {};
+  const STAGES = { waiting: "waiting", connect: "connecting", health: "health check", rest: "rest: noise and gyro bias",
+    poses: "attitudes", turntable: "turntable turns", fit: "fit", write: "write-back", verify: "verification",
+    record: "recording", done: "done", sensor: "capture", link: "link" };
+
+  function overall(b) {
+    const F = b.fixture || {};
+    if (F.state === "passed") return 1;
+    const done = b.plan.filter((c) => c.state === "done").length;
+    const adaptive = b.config && b.config.capture === "adaptive" && b.method === "multi";
+    const need = adaptive ? Math.max(12, done + (b.targets && b.targets.reached ? 0 : 1)) : (b.plan.length || 1);
+    const m = /^\[(\d+)\/(\d+)\]/.exec(F.message || "");
+    return { connect: 0.02, health: 0.04, rest: 0.07, poses: 0.1 + 0.6 * Math.min(1, done / need), turntable: 0.7,
+      fit: 0.72, write: 0.76, verify: 0.8 + 0.2 * (m ? (m[1] - 1) / m[2] : 0), record: 1, done: 1 }[F.stage] || 0;
+  }
+
+  function renderOverview(snap) {
+    const fixture = snap.boards.length > 1 && snap.boards.every((b) => b.device && b.device.slot);
+    $("#overview").hidden = !fixture;
+    $("#boards").classList.toggle("overview-on", fixture);
+    if (!fixture) return;
+    const P = snap.plate || {}, M = P.move;
+    const kindWords = { pose: "attitude", verify: "verification attitude", turn: "turn" };
+    $(".plate-now", $("#plate")).innerHTML = M ? `${kindWords[M.kind] || M.kind} <b>${esc(M.key)}</b>` +
+      (M.words ? ` (${esc(M.words)})` : "") + ` <small>move ${M.move}</small>` : "not moved yet";
+    $(".plate-for", $("#plate")).textContent = M ? `for slot${M.serves.length > 1 ? "s" : ""} ${M.serves.join(", ")}` +
+      (M.waiting.length ? `; slot${M.waiting.length > 1 ? "s" : ""} ${M.waiting.join(", ")} wait` : "") : "";
+    $(".plate-deadlines", $("#plate")).textContent = P.deadlines || "";
+    const sorted = [...snap.boards].sort((x, y) => x.device.slot - y.device.slot);
+    for (const b of sorted) {
+      let t = tiles[b.key];
+      if (!t) {
+        t = document.createElement("div");
+        t.className = "tile";
+        t.dataset.key = b.key;
+        t.innerHTML = `<div class="top"><span class="slot"></span><span class="uid"></span><span class="state"></span></div>` +
+          `<div class="stage"></div><div class="msg"></div><div class="bar"><div class="bar-fill"></div></div><div class="verdict-text"></div>`;
+        t.onclick = () => { selected = selected === b.key ? null : b.key; if (last) render(last);
+          if (selected && cols[selected]) cols[selected].scrollIntoView({ block: "start" }); };
+        $("#tiles").appendChild(t);
+        tiles[b.key] = t;
+      }
+      const F = b.fixture || {};
+      const state = b.result ? (b.result.status === "pass" ? "passed" : "failed") : F.state === "passed" ? "passed"
+        : F.state === "failed" || b.status === "failed" ? "failed" : "running";
+      const waiting = state === "running" && !!F.waiting;
+      t.className = "tile " + state + (waiting ? " waiting" : "") + (selected === b.key ? " selected" : "");
+      t.dataset.state = state;
+      $(".slot", t).textContent = F.slot || b.device.slot;
+      $(".uid", t).textContent = b.device.uid || "(no device ID yet)";
+      $(".uid", t).title = b.device.url || b.key;
+      $(".state", t).textContent = state === "running" ? (waiting ? "waits" : "running") : state;
+      const done = b.plan.filter((c) => c.state === "done").length;
+      let stage = STAGES[F.stage] || F.stage || b.phase || "";
+      if (F.stage === "poses" || (done && state === "running" && F.stage !== "verify")) stage += ` · ${done} captured` +
+        (b.targets && b.targets.reached ? ", targets reached" : "");
+      $(".stage", t).textContent = (state === "running" ? "" : "stopped at ") + stage;
+      if (state === "passed") $(".stage", t).textContent = `${done} attitudes, written and verified`;
+      $(".msg", t).textContent = state === "running" ? F.message || "" : b.device.url || "";
+      $(".bar-fill", t).style.width = fmt(100 * (state === "passed" ? 1 : overall(b)), 0) + "%";
+      let v = "";
+      if (state === "passed") v = "PASSED" + (b.result ? ": " + b.result.verdict : "");
+      else if (state === "failed") v = "FAILED " + (b.result && b.result.verdict ? b.result.verdict
+        : F.reason ? `at ${F.stage}: ${F.reason}` : b.error || "");
+      else if (waiting) v = F.waiting;
+      else if (F.stage === "poses" && b.live && b.live.state) {      // what the board sees now
+        const L = b.live;
+        v = L.state === "moving" ? "moving" : L.attitude ? `now in ${L.attitude}: ${L.state === "still" ? "holding" : L.state}` +
+          (L.hold ? `, ${fmt(100 * L.hold, 0)} % of the hold` : "") + (L.sigma_mg != null ? `, σ of |a| ${fmt(L.sigma_mg * 1000, 0)} µg` : "")
+          : "in no planned attitude";
+      }
+      $(".verdict-text", t).textContent = v;
+      t.title = v;
+    }
+    for (const k of Object.keys(cols)) cols[k].classList.toggle("closed", selected !== k);
   }
 
   function column(key) {
@@ -161,7 +251,7 @@
   function renderCards(el, b) {
     const box = $(".cards", el);
     const done = b.plan.filter((c) => c.state === "done").length;
-    const order = b.config && b.config.fixture ? "the fixture presents them in the plan's order, every board at once" : "present them in any order";
+    const order = b.config && b.config.fixture ? "the plate presents what the boards still need, the most shared first" : "present them in any order";
     $(".cards-title", el).textContent = b.plan.length ? `Attitudes: ${done} of ${b.plan.length} captured — ${order}` +
       (b.config && b.config.capture === "adaptive" && b.method === "multi" ? "; the session stops as soon as the targets are reached" : "") : "";
     const here = (b.live || {}).attitude;
@@ -212,6 +302,8 @@
     } catch (e) { $("#setup-error").textContent = e.message; }
   };
 
-  fetch("/api/state").then((r) => r.json()).then((s) => { last = s; render(s); }).catch(() => {});
-  reconnect();
+  // the state at once (what any page may see); the live updates once this browser has its
+  // identity (the cookie), so that they say which devices it drives
+  fetch("/api/state").then((r) => r.json()).then((s) => { if (!last) { last = s; render(s); } }).catch(() => {});
+  post("/api/hello", {}).catch((e) => { $("#conn").textContent = "refused: " + e.message; }).finally(reconnect);
 })();

@@ -1,0 +1,197 @@
+#!/usr/bin/env python3
+"""The station page under a flood (issue 25): how much memory the server holds after the
+bounded attacks, and how long /api/start takes while pages hold event streams open.
+
+Starts `imubench station` in its own process on 127.0.0.1 (any free port), lets an operator's
+client claim a device, then
+  1. floods it: 200 claims of devices with 256-character keys, 100 new browsers, 20 bodies
+     of 50 MB (announced) and 20 sent chunked, 100 JSON texts nested 5000 deep, 200 event
+     streams opened at once (kept open), and reports the server's resident memory (VmRSS)
+     before and after, with how many requests were refused;
+  2. measures /api/start (median and worst of 5) with 0, 20, 60 and 200 event streams open,
+     and whether another browser could take the operator's device while they were.
+
+Target: memory after the flood within 50 MB of before; /api/start under 0.5 s with 200
+streams open (it was delayed 30 s by 20 streams, and stopped by 200, before issue 25).
+
+    python bench/station_flood.py
+
+Prints a table and a final JSON line.
+"""
+from __future__ import annotations
+
+import http.cookiejar
+import json
+import os
+import re
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.error
+import urllib.request
+
+DEVICE = "socket://127.0.0.1:1"          # nothing listens: a started session fails at once
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        kb = int(re.search(r"VmRSS:\s+(\d+)", f.read()).group(1))
+    return kb / 1024
+
+
+class Client:
+    def __init__(self, url: str):
+        self.url = url
+        self.opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
+        self.cookie_jar = self.opener.handlers
+
+    def call(self, path, data=None, raw=None):
+        body = raw if raw is not None else None if data is None else json.dumps(data).encode()
+        req = urllib.request.Request(self.url + path, data=body, headers={
+            "Content-Type": "application/json", "Origin": self.url.rstrip("/")})
+        try:
+            with self.opener.open(req, timeout=60) as r:
+                return r.status, json.loads(r.read() or b"null")
+        except urllib.error.HTTPError as e:
+            return e.code, json.loads(e.read() or b"null")
+
+    def cookie(self) -> str:
+        for h in self.opener.handlers:
+            if isinstance(h, urllib.request.HTTPCookieProcessor):
+                return "; ".join(f"{c.name}={c.value}" for c in h.cookiejar)
+        return ""
+
+
+def send_raw(port: int, head: str, body_chunks=()) -> int:
+    s = socket.create_connection(("127.0.0.1", port), timeout=30)
+    try:
+        s.sendall(head.replace("\n", "\r\n").encode() + b"\r\n")
+        for c in body_chunks:
+            try:
+                s.sendall(c)
+            except OSError:
+                break
+        data = s.recv(4096)
+        return int(data.split()[1]) if data else 0
+    except OSError:
+        return 0
+    finally:
+        s.close()
+
+
+def open_stream(port: int, cookie: str = "") -> tuple[socket.socket, int]:
+    s = socket.create_connection(("127.0.0.1", port), timeout=30)
+    s.sendall((f"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+               + (f"Cookie: {cookie}\r\n" if cookie else "") + "\r\n").encode())
+    head = s.recv(65536)
+    return s, int(head.split()[1])
+
+
+def start_once(op: Client, server_state) -> float:
+    t0 = time.perf_counter()
+    code, body = op.call("api/start", {"port": DEVICE, "write": False})
+    dt = time.perf_counter() - t0
+    assert code == 200, body
+    t_end = time.monotonic() + 30
+    while time.monotonic() < t_end:                  # the session fails at once (nothing listens)
+        st = server_state()
+        if next(b for b in st["boards"] if b["key"] == DEVICE)["status"] != "running":
+            break
+        time.sleep(0.05)
+    return dt
+
+
+def main() -> int:
+    with tempfile.TemporaryDirectory(prefix="station-flood-") as tmp:
+        return run(tmp)
+
+
+def run(tmp: str) -> int:
+    proc = subprocess.Popen([sys.executable, "-m", "imubench", "station", "--http-port", "0", "--dir", tmp,
+                             "--db", os.path.join(tmp, "h.sqlite")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    out = {}
+    try:
+        line = proc.stdout.readline()
+        url = re.search(r"(http://127\.0\.0\.1:\d+/)", line).group(1)
+        port = int(url.rsplit(":", 1)[1].strip("/"))
+        op = Client(url)
+        assert op.call("api/hello", {})[0] == 200
+        assert op.call("api/claim", {"key": DEVICE})[1]["yours"]
+        state = lambda: op.call("api/state")[1]       # noqa: E731
+        start_once(op, state)                         # warm: imports of the session code
+        out["rss_before_mb"] = rss_mb(proc.pid)
+
+        refused = {}
+        others = [Client(url) for _ in range(4)]
+        for c in others:
+            c.call("api/hello", {})
+        for k in range(200):
+            key = f"socket://127.0.0.1:{1024 + k}?" + "x" * 200
+            code, _ = others[k % 4].call("api/claim", {"key": key[:256]})
+            refused[code] = refused.get(code, 0) + 1
+        for _ in range(100):
+            code, _ = Client(url).call("api/hello", {})
+            refused[code] = refused.get(code, 0) + 1
+        post = (f"POST /api/claim HTTP/1.1\nHost: 127.0.0.1:{port}\nOrigin: http://127.0.0.1:{port}\n"
+                "Content-Type: application/json\n")
+        for _ in range(20):
+            code = send_raw(port, post + f"Content-Length: {50 << 20}\n")
+            refused[code] = refused.get(code, 0) + 1
+        chunk = b"%x\r\n%s\r\n" % (1 << 20, b" " * (1 << 20))
+        for _ in range(20):
+            code = send_raw(port, post + "Transfer-Encoding: chunked\n", [chunk] * 50)
+            refused[code] = refused.get(code, 0) + 1
+        for _ in range(100):
+            code, _ = op.call("api/start", raw=b"[" * 5000 + b"]" * 5000)
+            refused[code] = refused.get(code, 0) + 1
+        socks = []
+        for _ in range(200):
+            s, code = open_stream(port)
+            refused[code] = refused.get(code, 0) + 1
+            (socks.append(s) if code == 200 else s.close())
+        time.sleep(1.0)
+        out["rss_after_flood_mb"] = rss_mb(proc.pid)
+        out["answers"] = {str(k): v for k, v in sorted(refused.items())}
+        for s in socks:
+            s.close()
+        time.sleep(1.0)
+
+        print(f"server memory (VmRSS): {out['rss_before_mb']:.0f} MB before, {out['rss_after_flood_mb']:.0f} MB "
+              f"after the flood (answers by HTTP status: {out['answers']})")
+        print(f"{'streams opened':>15} {'served':>7} {'start median s':>15} {'start worst s':>14}  device kept")
+        out["start"] = []
+        own, _ = open_stream(port, op.cookie())        # the operator's page is open
+        for n in (0, 20, 60, 200):
+            socks = []
+            for _ in range(n):
+                s, code = open_stream(port)
+                (socks.append(s) if code == 200 else s.close())
+            times = [start_once(op, state) for _ in range(5)]
+            thief = Client(url)
+            thief.call("api/hello", {})
+            kept = thief.call("api/claim", {"key": DEVICE})[1]["yours"] is False
+            row = {"streams": n, "served": len(socks), "median_s": statistics.median(times), "worst_s": max(times),
+                   "kept": kept}
+            out["start"].append(row)
+            print(f"{n:>15} {len(socks):>7} {row['median_s']:>15.3f} {row['worst_s']:>14.3f}  {'yes' if kept else 'NO'}")
+            for s in socks:
+                s.close()
+            time.sleep(0.5)
+        own.close()
+        out["rss_end_mb"] = rss_mb(proc.pid)
+    finally:
+        proc.terminate()
+        try:
+            proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,397 @@
+"""Who may drive the station page, and what a page may ask for (docs/production.md, "Who can
+drive the station page").
+
+The page controls hardware and writes files, so only the operator's own browser on this
+machine may drive it:
+
+    PageAccess   the addresses the page is served as (127.0.0.1 / localhost / [::1] with the
+                 served port, and any --allow-origin); the Host and Origin a request must carry
+    PageGuard    ASGI middleware in front of every route: a Host the page is not served as is
+                 refused with the address to open instead (DNS rebinding; Starlette's
+                 TrustedHostMiddleware behind it checks the name again), a state-changing
+                 request needs this page's Origin and a JSON body, a cross-site fetch of the API
+                 is refused, and bodies are bounded
+    PortPolicy   the device ports a page may open: serial devices, socket:// and rfc2217:// on
+                 this machine; other hosts and other pyserial URL handlers only when the command
+                 line allows them; spy:// never writes a file
+    parse_body   a request's JSON object, bounded in size and depth, values scalars only
+
+Each refusal is a StationError with a one-line reason and an HTTP status (4xx).
+"""
+from __future__ import annotations
+
+import ipaddress
+import json
+import math
+import os
+import re
+import stat
+from urllib.parse import parse_qs, urlsplit
+
+from imubench.errors import ImubenchError
+
+MAX_BODY_BYTES = 16 * 1024          # the page's largest request (start: a port and a note) is < 1 KiB
+MAX_JSON_DEPTH = 1                  # every request is one flat object of scalars
+MAX_JSON_KEYS = 16
+MAX_KEY_CHARS = 32                  # a JSON member name
+MAX_PORT_CHARS = 256                # a device port URL (also the key of its column)
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
+# pyserial's URL handlers besides socket:// and rfc2217:// (serial.urlhandler.protocol_*)
+PORT_HANDLERS = ("alt", "cp2110", "hwgrep", "loop", "spy")
+ALWAYS_HANDLERS = ("socket", "rfc2217")
+SPY_OPTIONS = ("color", "raw", "all")           # spy://'s "file" option writes a file: never from a page
+
+
+class StationError(ImubenchError, ValueError):
+    """A request the station cannot do (bad option, device busy, not yours); says why.
+    status: the HTTP status the page gets (400 unless said otherwise)."""
+
+    def __init__(self, message: str, status: int = 400):
+        super().__init__(message)
+        self.status = status
+
+
+# ------------------------------------------------------------------ who: Host and Origin
+class PageAccess:
+    """The authorities (host:port) the page is served as: 127.0.0.1, localhost and [::1] with
+    the served port (known once bound), plus the origins the command line adds
+    (--allow-origin http://localhost:9000, for an SSH tunnel whose local port differs)."""
+
+    def __init__(self, extra_origins=()):
+        self.port: int | None = None
+        self.extra = [origin_authority(o) for o in extra_origins]
+
+    def bind(self, port: int) -> None:
+        self.port = int(port)
+
+    @property
+    def authorities(self) -> set[str]:
+        own = {f"{h}:{self.port}" for h in LOOPBACK_NAMES} if self.port else set()
+        return own | set(self.extra)
+
+    @property
+    def hostnames(self) -> list[str]:
+        return list(LOOPBACK_NAMES) + sorted({a.rsplit(":", 1)[0] for a in self.extra})
+
+    @property
+    def origins(self) -> set[str]:
+        return {f"http://{a}" for a in self.authorities}
+
+    @property
+    def cookie_name(self) -> str:
+        # cookies are not kept apart by port: two stations on one machine must not share one
+        return f"imubench-station-{self.port}"
+
+
+def origin_authority(origin: str) -> str:
+    """'http://localhost:9000' -> 'localhost:9000' (the form --allow-origin takes)."""
+    p = urlsplit(origin.strip())
+    try:
+        port = p.port
+    except ValueError:
+        port = None
+    if p.scheme != "http" or not p.hostname or port is None or p.path not in ("", "/") or p.query:
+        raise ValueError(f"{origin!r} is not an origin like http://localhost:9000 (http, a host and a port)")
+    host = f"[{p.hostname}]" if ":" in p.hostname else p.hostname
+    return f"{host.lower()}:{port}"
+
+
+def _json_refusal(status: int, message: str):
+    from starlette.responses import JSONResponse
+    return JSONResponse({"error": message}, status_code=status, headers={"Cache-Control": "no-store"})
+
+
+SAFE_METHODS = ("GET", "HEAD")
+# on every response: no framing (clickjacking of Start/Stop), no sniffing, no referrer; the page
+# loads only its own script, style and pictures; a report (HTML built from a session) runs no
+# script at all, so no text in it can act as the page
+PAGE_CSP = ("default-src 'self'; img-src 'self' data:; object-src 'none'; base-uri 'none'; "
+            "form-action 'self'; frame-ancestors 'none'")
+REPORT_CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'; base-uri 'none'; frame-ancestors 'none'"
+
+
+class PageGuard:
+    """ASGI middleware: refuses, with a 4xx and a one-line reason, every request that does not
+    come from the page as served here:
+    - a Host that is not one of the page's host:port (evil.example:PORT, the DNS-rebinding
+      case; localhost:OTHER; none)                                               403
+    - any /api/ request a browser marks cross-site or same-site (Sec-Fetch-Site)  403
+    - a request carrying an Origin that is not the page's                         403
+    - a state-changing request (not GET/HEAD) without the page's Origin           403
+    - ... or whose body is not JSON (text/plain and forms: no simple requests)  415
+    - a body larger than MAX_BODY_BYTES (read no further)                        413
+    and adds to every response a Content-Security-Policy (the page: its own files only, never
+    framed; a report: no script), X-Frame-Options, nosniff and no referrer.
+    """
+
+    def __init__(self, app, access: PageAccess):
+        self.app = app
+        self.access = access
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
+        refusal = self.refusal(scope, headers)
+        if refusal is None and scope["method"] not in SAFE_METHODS:
+            body, refusal = await _bounded_body(receive, headers)
+            if refusal is None:
+                receive = _replay(body, receive)
+        csp = REPORT_CSP if scope["path"].startswith("/report/") else PAGE_CSP
+        extra = [(b"content-security-policy", csp.encode()), (b"x-frame-options", b"DENY"),
+                 (b"x-content-type-options", b"nosniff"), (b"referrer-policy", b"no-referrer")]
+
+        async def send_with_headers(m):
+            if m["type"] == "http.response.start":
+                m = {**m, "headers": [*m.get("headers", []), *extra]}
+            await send(m)
+        if refusal is not None:
+            return await _json_refusal(*refusal)(scope, receive, send_with_headers)
+        return await self.app(scope, receive, send_with_headers)
+
+    def refusal(self, scope, headers) -> tuple[int, str] | None:
+        a = self.access
+        host = headers.get("host", "").lower()
+        if host not in a.authorities:
+            return 403, (f"this page is served as http://127.0.0.1:{a.port}/ only, not as {host or 'no Host'}: "
+                         "open it there (a foreign Host is how a DNS-rebinding site reaches the station)")
+        site = headers.get("sec-fetch-site")
+        if scope["path"].startswith("/api/") and site in ("cross-site", "same-site"):
+            return 403, f"a {site} request to the station's API is refused: only its own page drives it"
+        origin = headers.get("origin")
+        if origin is not None and origin not in a.origins:
+            return 403, f"requests from {origin} are refused: only the station's own page drives it"
+        if scope["method"] in SAFE_METHODS:
+            return None
+        if origin is None:
+            return 403, (f"a request that changes the station needs the page's Origin "
+                         f"(http://127.0.0.1:{a.port}): send it from the station page")
+        ctype = headers.get("content-type", "").split(";")[0].strip().lower()
+        if ctype != "application/json":
+            return 415, f"send JSON (Content-Type: application/json), not {ctype or 'no Content-Type'}"
+        return None
+
+
+async def _bounded_body(receive, headers) -> tuple[bytes, tuple[int, str] | None]:
+    too_big = (413, f"the request body is larger than {MAX_BODY_BYTES // 1024} KiB")
+    try:
+        if int(headers.get("content-length", "0")) > MAX_BODY_BYTES:
+            return b"", too_big
+    except ValueError:
+        return b"", (400, "Content-Length is not a number")
+    parts, n = [], 0
+    while True:
+        m = await receive()
+        if m["type"] != "http.request":
+            return b"", (400, "the client went away before sending its request")
+        chunk = m.get("body", b"")
+        n += len(chunk)
+        if n > MAX_BODY_BYTES:
+            return b"", too_big
+        parts.append(chunk)
+        if not m.get("more_body"):
+            return b"".join(parts), None
+
+
+def _replay(body: bytes, receive):
+    sent = False
+
+    async def again():
+        nonlocal sent
+        if not sent:
+            sent = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()
+    return again
+
+
+def guard(app, access: PageAccess):
+    """The app behind PageGuard (Host with the port, Origin, JSON, body size; a refusal says
+    which address to open) and, inside it, Starlette's TrustedHostMiddleware: a second,
+    independent check of the host name by the library's own Host parser, so that a mistake
+    in PageGuard alone does not let a rebinding site in. (TrustedHostMiddleware alone is not
+    enough: it ignores the port and answers only "Invalid host header".)"""
+    from starlette.middleware.trustedhost import TrustedHostMiddleware
+    return PageGuard(TrustedHostMiddleware(app, allowed_hosts=access.hostnames, www_redirect=False), access)
+
+
+# ------------------------------------------------------------------ what: the request body
+def parse_body(raw: bytes) -> dict:
+    """A request's JSON: one object of at most MAX_JSON_KEYS members whose values are strings,
+    numbers, booleans or null (nothing nested), NaN and Infinity refused."""
+    depth = _depth(raw)
+    if depth > MAX_JSON_DEPTH:
+        raise StationError(f"JSON nested {depth} deep: the station takes one flat object")
+
+    def constant(name):
+        raise StationError(f"{name} is not a JSON number")
+    try:
+        d = json.loads(raw.decode("utf-8"), parse_constant=constant)
+    except UnicodeDecodeError:
+        raise StationError("the request body is not UTF-8") from None
+    except ValueError as e:
+        if isinstance(e, StationError):
+            raise
+        raise StationError(f"the request body is not JSON: {e.args[0] if e.args else e}") from None
+    if not isinstance(d, dict):
+        raise StationError("the request must be a JSON object")
+    if len(d) > MAX_JSON_KEYS:
+        raise StationError(f"the request has {len(d)} members: at most {MAX_JSON_KEYS}")
+    for k in d:
+        if len(k) > MAX_KEY_CHARS:
+            raise StationError(f"a member name of {len(k)} characters: at most {MAX_KEY_CHARS}")
+    return d
+
+
+def _depth(raw: bytes) -> int:
+    """The nesting depth of a JSON text (strings skipped), without parsing it."""
+    depth = deepest = 0
+    in_str = esc = False
+    for c in raw:
+        if in_str:
+            if esc:
+                esc = False
+            elif c == 0x5C:             # backslash
+                esc = True
+            elif c == 0x22:             # quote
+                in_str = False
+        elif c == 0x22:
+            in_str = True
+        elif c in (0x5B, 0x7B):         # [ {
+            depth += 1
+            deepest = max(deepest, depth)
+        elif c in (0x5D, 0x7D):
+            depth -= 1
+    return deepest
+
+
+def text_field(d: dict, name: str, max_chars: int, default: str = "") -> str:
+    v = d.get(name)
+    if v is None:
+        return default
+    if not isinstance(v, str):
+        raise StationError(f"{name} must be a string, not {_kind(v)}")
+    if len(v) > max_chars:
+        raise StationError(f"{name} is {len(v)} characters long: at most {max_chars}")
+    return v
+
+
+def bool_field(d: dict, name: str, default: bool) -> bool:
+    v = d.get(name)
+    if v is None:
+        return default
+    if not isinstance(v, bool):
+        raise StationError(f"{name} must be true or false (a JSON boolean), not {_kind(v)}")
+    return v
+
+
+def int_field(d: dict, name: str, default: int, allowed) -> int:
+    v = d.get(name)
+    if v is None:
+        return default
+    if isinstance(v, bool) or not isinstance(v, int) or v not in allowed:
+        choices = ", ".join(str(x) for x in sorted(allowed))
+        raise StationError(f"{name} must be one of {choices}, not {_kind(v)}")
+    return v
+
+
+def _kind(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return repr(v[:40] + ("…" if len(v) > 40 else ""))
+    if isinstance(v, float) and not math.isfinite(v):
+        return "a number out of range"
+    return repr(v) if isinstance(v, (int, float)) else type(v).__name__
+
+
+# ------------------------------------------------------------------ what: the device port
+SERIAL_PATH = re.compile(r"/dev/(tty[A-Za-z0-9_.-]+|cu\.[A-Za-z0-9_.-]+|rfcomm[0-9]+"
+                         r"|serial/by-(id|path)/[A-Za-z0-9_.:@+-]+)")
+SERIAL_TARGET = re.compile(r"/dev/(tty[A-Za-z0-9_.-]+|cu\.[A-Za-z0-9_.-]+|rfcomm[0-9]+)")
+WINDOWS_PORT = re.compile(r"(\\\\\.\\)?COM[0-9]{1,3}", re.I)
+URL = re.compile(r"([A-Za-z][A-Za-z0-9+.-]*)://(.*)", re.S)
+
+
+class PortPolicy:
+    """The ports a page may open (the command line opens any: it is the operator's).
+
+    handlers  pyserial URL handlers allowed besides socket:// and rfc2217:// (--allow-port-handler)
+    hosts     hosts other than this machine that socket:// and rfc2217:// may reach
+              (--allow-port-host; "*" any): a page must not make the station connect anywhere
+    """
+
+    def __init__(self, handlers=(), hosts=()):
+        for h in handlers:
+            if h not in PORT_HANDLERS:
+                raise ValueError(f"{h!r} is not a pyserial URL handler the station knows "
+                                 f"({', '.join(PORT_HANDLERS)}; socket and rfc2217 are always allowed)")
+        self.handlers = tuple(handlers)
+        self.hosts = {h.strip("[]").lower() for h in hosts}
+
+    def check(self, port: str) -> str:
+        """The port, if a page may open it; else a StationError saying why and what allows it."""
+        if not isinstance(port, str) or not port:
+            raise StationError("give the device's port (e.g. /dev/ttyUSB0, socket://HOST:PORT)")
+        if len(port) > MAX_PORT_CHARS:
+            raise StationError(f"a port of {len(port)} characters: at most {MAX_PORT_CHARS}")
+        if any(ord(c) < 0x21 or ord(c) == 0x7F for c in port):
+            raise StationError("a port has no spaces or control characters")
+        m = URL.fullmatch(port)
+        if m is None:
+            return self._serial(port)
+        scheme = m.group(1).lower()
+        if scheme in ALWAYS_HANDLERS:
+            return self._network(port, scheme)
+        if scheme not in self.handlers:
+            allowed = "socket:// and rfc2217://" + "".join(f", {h}://" for h in self.handlers)
+            raise StationError(f"{scheme}:// ports are not opened from the page (serial devices, {allowed} are); "
+                               f"start the station with --allow-port-handler {scheme} to allow them")
+        if scheme == "spy":
+            parts = urlsplit(port)
+            opts = parse_qs(parts.query, True)             # the way pyserial's spy handler reads them
+            bad = [o for o in opts if o not in SPY_OPTIONS]
+            if bad:
+                raise StationError(f"spy:// option {bad[0]!r} is refused from the page (it takes "
+                                   f"{', '.join(SPY_OPTIONS)}; its log goes to the station's terminal)")
+            inner = parts.netloc + parts.path               # what spy:// opens: a serial device
+            self._serial(inner)
+        return port
+
+    def _serial(self, path: str) -> str:
+        if WINDOWS_PORT.fullmatch(path):
+            return path
+        if not SERIAL_PATH.fullmatch(path) or "/../" in path or path.endswith("/.."):
+            raise StationError(f"{path[:80]!r} is not a serial device (/dev/ttyUSB0, /dev/ttyACM0, "
+                               "/dev/serial/by-id/..., COM3) nor socket://HOST:PORT or rfc2217://HOST:PORT")
+        if os.path.lexists(path):
+            real = os.path.realpath(path)
+            try:
+                is_chr = stat.S_ISCHR(os.stat(real).st_mode)
+            except OSError:
+                is_chr = False
+            if not SERIAL_TARGET.fullmatch(real) or not is_chr:
+                raise StationError(f"{path} is not a serial device (it is {real})")
+        return path
+
+    def _network(self, port: str, scheme: str) -> str:
+        p = urlsplit(port)
+        try:
+            num = p.port
+        except ValueError:
+            num = None
+        if not p.hostname or num is None or not 0 < num < 65536:
+            raise StationError(f"{scheme}:// needs a host and a port number: {scheme}://HOST:PORT")
+        if _loopback(p.hostname) or "*" in self.hosts or p.hostname.lower() in self.hosts:
+            return port
+        raise StationError(f"{p.hostname} is not this machine: a page opens {scheme}:// ports on this machine only; "
+                           f"start the station with --allow-port-host {p.hostname} to reach it")
+
+
+def _loopback(host: str) -> bool:
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False

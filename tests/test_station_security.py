@@ -1,0 +1,510 @@
+"""The station page attacked as a hostile party would (issue 25, "The page"), only ever against
+127.0.0.1 and in bounded loops: a foreign Host (DNS rebinding, also in a real Chromium with a
+host-resolver rule), cross-site and simple requests, tokens from a body or a URL, ports that
+are not a device (spy:// writing a file, socket:// anywhere), unbounded bodies, keys, boards,
+clients and event streams, bad types. Every attack is refused with a 4xx and a one-line
+reason, and the page keeps serving its operator, who keeps the device."""
+from __future__ import annotations
+
+import http.client
+import http.cookiejar
+import json
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from imubench.station import state as S
+from imubench.station.runner import Station, StationError
+from imubench.station.security import MAX_BODY_BYTES, PortPolicy
+from imubench.station.server import Server
+
+DEVICE = "socket://127.0.0.1:1"          # nothing listens there: a started session fails at once
+
+
+class Client:
+    """A browser as the station's page uses it: the page's Origin, JSON, the cookie jar."""
+
+    def __init__(self, server: Server, origin: str | None = None):
+        self.base = server.url
+        self.origin = server.url.rstrip("/") if origin is None else origin
+        self.jar = http.cookiejar.CookieJar()
+        self.opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(self.jar))
+
+    def call(self, path: str, data=None, headers=None, raw: bytes | None = None):
+        body = raw if raw is not None else None if data is None else json.dumps(data).encode()
+        h = {"Content-Type": "application/json", **({"Origin": self.origin} if self.origin else {}), **(headers or {})}
+        req = urllib.request.Request(self.base + path, data=body, headers=h)
+        try:
+            with self.opener.open(req, timeout=20) as r:
+                text = r.read().decode()
+                return r.status, (json.loads(text) if r.headers.get_content_type() == "application/json" else text)
+        except urllib.error.HTTPError as e:
+            text = e.read().decode()
+            return e.code, (json.loads(text) if e.headers.get_content_type() == "application/json" else text)
+
+    def hello(self) -> "Client":
+        code, body = self.call("api/hello", {})
+        assert code == 200, body
+        return self
+
+    @property
+    def cookie(self) -> str:
+        return "; ".join(f"{c.name}={c.value}" for c in self.jar)
+
+
+def raw_request(port: int, head: str, body: bytes = b"") -> tuple[int, str]:
+    """One request written byte for byte (any Host, any header); the status and body."""
+    with socket.create_connection(("127.0.0.1", port), timeout=20) as s:
+        s.sendall(head.replace("\n", "\r\n").encode() + b"\r\n" + body)
+        data = b""
+        while chunk := s.recv(65536):
+            data += chunk
+    head_out, _, rest = data.partition(b"\r\n\r\n")
+    return int(head_out.split()[1]), rest.decode(errors="replace")
+
+
+def error_of(code_body) -> str:
+    code, body = code_body
+    assert 400 <= code < 500, (code, body)
+    text = body["error"] if isinstance(body, dict) else body
+    assert text and "\n" not in text.strip() and "Traceback" not in text, text
+    return text
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    station = Station(workdir=tmp_path_factory.mktemp("station"), allow_sim=False, history=False)
+    server = Server(station).start()
+    try:
+        yield server
+    finally:
+        server.stop()
+        station.close()
+
+
+@pytest.fixture(scope="module")
+def operator(served):
+    """The operator's page: it drives DEVICE for the whole module."""
+    op = Client(served).hello()
+    code, body = op.call("api/claim", {"key": DEVICE})
+    assert code == 200 and body["yours"] is True, body
+    return op
+
+
+def still_serves(served, operator) -> None:
+    """The page is up, the operator still drives DEVICE and can start a session on it."""
+    code, snap = operator.call("api/state")
+    assert code == 200 and {b["key"]: b["yours"] for b in snap["boards"]}.get(DEVICE) is True, snap
+    code, body = operator.call("api/start", {"port": DEVICE, "write": False})
+    assert code == 200 and body == {"key": DEVICE}, body
+    served.station.wait(DEVICE, timeout=30)
+
+
+# ------------------------------------------------------------------------- Host
+def test_a_foreign_host_is_refused(served, operator, monkeypatch):
+    port = served.port
+    for host in (f"evil.example:{port}", f"127.0.0.1.evil.example:{port}", "evil.example", f"127.0.0.1:{port}@evil"):
+        text = error_of(raw_request(port, f"GET /api/state HTTP/1.1\nHost: {host}\nConnection: close\n"))
+        assert f"served as http://127.0.0.1:{port}/ only, not as {host.lower()}" in text, (host, text)
+    # the right name on another port (a proxy, another service): refused with the reason
+    text = error_of(raw_request(port, f"GET /api/state HTTP/1.1\nHost: localhost:{port + 1}\nConnection: close\n"))
+    assert f"served as http://127.0.0.1:{port}/ only" in text and "DNS-rebinding" in text
+    # no Host at all (HTTP/1.0)
+    assert "not as no Host" in error_of(raw_request(port, "GET /api/state HTTP/1.0\n"))
+    # a POST from a rebinding page: refused before its body is read
+    code, _ = raw_request(port, f"POST /api/claim HTTP/1.1\nHost: evil.example:{port}\nOrigin: http://evil.example:{port}\n"
+                                f"Content-Type: application/json\nContent-Length: 16\nConnection: close\n", b'{"key": "sim"}  ')
+    assert code == 403
+    # behind PageGuard, Starlette's TrustedHostMiddleware checks the name on its own: were
+    # PageGuard to let evil.example through, the library still refuses it
+    from imubench.station.security import PageAccess
+    monkeypatch.setattr(PageAccess, "authorities", property(lambda a: {f"evil.example:{port}", f"127.0.0.1:{port}"}))
+    code, text = raw_request(port, f"GET /api/state HTTP/1.1\nHost: evil.example:{port}\nConnection: close\n")
+    assert code == 400 and text == "Invalid host header"
+    monkeypatch.undo()
+    for host in (f"127.0.0.1:{port}", f"localhost:{port}", f"[::1]:{port}"):   # the page's own names
+        assert raw_request(port, f"GET /api/state HTTP/1.1\nHost: {host}\nConnection: close\n")[0] == 200
+    still_serves(served, operator)
+
+
+def test_an_ssh_tunnel_on_another_port_is_served_only_when_allowed(tmp_path):
+    """ssh -L 9000:127.0.0.1:PORT: the browser says Host localhost:9000 and that Origin; the
+    station serves it only with --allow-origin http://localhost:9000 (Server(allow_origins))."""
+    station = Station(workdir=tmp_path, allow_sim=False, history=False)
+    server = Server(station, allow_origins=["http://localhost:9000"]).start()
+    try:
+        head = ("POST /api/hello HTTP/1.1\nHost: {h}\nOrigin: http://{h}\nContent-Type: application/json\n"
+                "Content-Length: 2\nConnection: close\n")
+        assert raw_request(server.port, head.format(h="localhost:9000"), b"{}")[0] == 200
+        assert raw_request(server.port, head.format(h=f"127.0.0.1:{server.port}"), b"{}")[0] == 200
+        code, text = raw_request(server.port, head.format(h="localhost:9001"), b"{}")
+        assert code == 403 and "served as" in text
+    finally:
+        server.stop()
+        station.close()
+
+
+def test_the_page_cannot_be_framed_and_a_report_runs_no_script(served):
+    with urllib.request.urlopen(served.url, timeout=10) as r:
+        csp = r.headers["Content-Security-Policy"]
+        assert "frame-ancestors 'none'" in csp and "default-src 'self'" in csp and r.headers["X-Frame-Options"] == "DENY"
+    with pytest.raises(urllib.error.HTTPError) as e:
+        urllib.request.urlopen(served.url + "report/x/report.html", timeout=10)
+    assert e.value.code == 404 and e.value.headers["Content-Security-Policy"].startswith("default-src 'none'")
+
+
+# ------------------------------------------------------------------------- Origin and JSON
+def test_state_changes_need_the_pages_origin_and_a_json_body(served, operator):
+    port = served.port
+    evil = Client(served, origin=f"http://evil.example:{port}")
+    assert "requests from http://evil.example" in error_of(evil.call("api/claim", {"key": DEVICE}))
+    none = Client(served, origin="")
+    assert "needs the page's Origin" in error_of(none.call("api/hello", {}))
+    other_port = Client(served, origin=f"http://127.0.0.1:{port + 1}")       # another local service's page
+    assert error_of(other_port.call("api/claim", {"key": DEVICE}))
+    # the simple requests any site may send without asking: text/plain and forms
+    for ctype, body in (("text/plain", b'{"key": "socket://127.0.0.1:1"}'),
+                        ("application/x-www-form-urlencoded", b"key=socket%3A%2F%2F127.0.0.1%3A1"),
+                        ("multipart/form-data; boundary=x", b"--x\r\nContent-Disposition: form-data; name=key\r\n\r\nk\r\n--x--")):
+        code, out = operator.call("api/claim", raw=body, headers={"Content-Type": ctype})
+        assert code == 415 and "send JSON" in out["error"], (ctype, code, out)
+    # a browser's own word that the request is cross-site
+    assert "cross-site request" in error_of(operator.call("api/state", headers={"Sec-Fetch-Site": "cross-site"}))
+    # a cross-origin read of the state or the events
+    assert error_of(evil.call("api/state"))
+    assert error_of(evil.call("api/events"))
+    still_serves(served, operator)
+
+
+# ------------------------------------------------------------------------- tokens
+def test_identity_is_issued_by_the_server_never_taken_from_a_request(served, operator):
+    code, body = operator.call("api/hello", {})
+    assert code == 200
+    # the cookie: HttpOnly, SameSite=Strict, named for this port; never in a body
+    r = urllib.request.urlopen(urllib.request.Request(served.url + "api/hello", data=b"{}", headers={
+        "Content-Type": "application/json", "Origin": served.url.rstrip("/")}), timeout=10)
+    set_cookie = r.headers["Set-Cookie"]
+    assert f"imubench-station-{served.port}=" in set_cookie
+    assert "httponly" in set_cookie.lower() and "samesite=strict" in set_cookie.lower() and "path=/" in set_cookie.lower()
+    assert json.loads(r.read()) == {"ok": True}
+    # a token in the body or the URL is nobody; a cookie the server did not issue is nobody
+    stranger = Client(served)
+    for path, data, headers in (("api/claim", {"key": DEVICE, "token": "mine"}, {}),
+                                ("api/claim?token=mine", {"key": DEVICE}, {}),
+                                ("api/stop", {"key": DEVICE}, {"X-Station-Token": "mine"}),
+                                ("api/claim", {"key": DEVICE}, {"Cookie": f"imubench-station-{served.port}=forged"})):
+        assert "no identity on the station" in error_of(stranger.call(path, data, headers)), path
+    # the owner's cookie value never reaches another page: the state does not carry it
+    code, snap = stranger.call("api/state")
+    owner_cookie = next(c.value for c in operator.jar)
+    assert owner_cookie not in json.dumps(snap) and all(b["yours"] is False for b in snap["boards"])
+    # another browser with its own identity only watches the operator's device
+    other = Client(served).hello()
+    code, body = other.call("api/claim", {"key": DEVICE})
+    assert code == 200 and body["yours"] is False
+    assert "driven from another page" in error_of(other.call("api/stop", {"key": DEVICE}))
+    assert "shows no device 'socket://127.0.0.1:9'" in error_of(other.call("api/resume", {"key": "socket://127.0.0.1:9"}))
+    still_serves(served, operator)
+
+
+# ------------------------------------------------------------------------- ports
+def test_the_ports_a_page_may_open(tmp_path):
+    target = tmp_path / "victim.txt"
+    target.write_text("keep me\n")
+    p = PortPolicy()
+    for ok in ("/dev/ttyUSB0", "/dev/ttyACM3", "/dev/serial/by-id/usb-STM_VCP_123-if00", "COM7",
+               "socket://127.0.0.1:4000", "socket://localhost:4000", "rfc2217://[::1]:2217"):
+        assert p.check(ok) == ok
+    refused = {f"spy://loop://?file={target}": "spy:// ports are not opened",
+               "loop://": "--allow-port-handler loop", "hwgrep://USB": "--allow-port-handler hwgrep",
+               "alt:///dev/ttyUSB0?class=PosixPollSerial": "--allow-port-handler alt",
+               "socket://10.1.2.3:4000": "--allow-port-host 10.1.2.3",
+               "rfc2217://evil.example:2217": "--allow-port-host evil.example",
+               "socket://127.0.0.1": "needs a host and a port", "socket://127.0.0.1:http": "needs a host and a port",
+               "/etc/passwd": "not a serial device", "/dev/../etc/passwd": "not a serial device",
+               "/dev/tty": "not a serial device", "/dev/zero": "not a serial device",
+               str(target): "not a serial device", "/dev/ttyUSB0 ; rm": "no spaces",
+               "x" * 300: "at most 256"}
+    for port, why in refused.items():
+        with pytest.raises(StationError, match=why.replace("+", r"\+").replace("?", r"\?")):
+            p.check(port)
+    # allowed on the command line: spy:// and loop://, but spy:// never writes a file
+    p = PortPolicy(handlers=("spy", "loop"), hosts=("10.1.2.3",))
+    assert p.check("loop://") == "loop://" and p.check("spy:///dev/ttyUSB0?color") == "spy:///dev/ttyUSB0?color"
+    assert p.check("socket://10.1.2.3:4000") == "socket://10.1.2.3:4000"
+    for port in (f"spy://loop://?file={target}", f"spy:///dev/ttyUSB0?fil%65={target}", f"spy:///dev/ttyUSB0?raw&file={target}"):
+        with pytest.raises(StationError, match="spy:// option 'file' is refused"):
+            p.check(port)
+    with pytest.raises(StationError, match="not a serial device"):
+        p.check("spy://socket://10.9.9.9:1")                 # what spy:// wraps is checked too
+    with pytest.raises(ValueError, match="not a pyserial URL handler"):
+        PortPolicy(handlers=("ftp",))
+    assert target.read_text() == "keep me\n"
+
+
+def test_a_page_cannot_open_other_ports_through_the_server(served, operator, tmp_path):
+    target = tmp_path / "victim.txt"
+    target.write_text("keep me\n")
+    for port in (f"spy://loop://?file={target}", "socket://10.1.2.3:4000", "/etc/passwd"):
+        assert error_of(operator.call("api/claim", {"key": port}))
+        assert error_of(operator.call("api/start", {"port": port, "write": False}))
+    assert target.read_text() == "keep me\n"
+    assert not any(k.startswith(("spy", "socket://10")) for k in served.station.state.boards)
+    still_serves(served, operator)
+
+
+def test_port_options_on_the_command_line_fail_in_one_line():
+    r = subprocess.run([sys.executable, "-m", "imubench", "station", "--allow-port-handler", "ftp"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "'ftp' is not a pyserial URL handler to allow" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "imubench", "station", "--allow-origin", "evil.example"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "is not an origin like http://localhost:9000" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "imubench", "station", "--allow-port-host", "socket://10.0.0.5:4000"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "is not a host (an IP address or a name" in r.stderr, r.stderr
+
+
+# ------------------------------------------------------------------------- bad values
+def test_bad_values_are_refused_with_the_reason(served, operator):
+    cases = [({"port": DEVICE, "write": "false"}, "write must be true or false (a JSON boolean), not 'false'"),
+             ({"port": DEVICE, "rate_hz": "abc"}, "rate_hz must be one of"),
+             ({"port": DEVICE, "rate_hz": 123}, "not 123"),
+             ({"port": DEVICE, "rate_hz": True}, "not true"),
+             ({"port": DEVICE, "note": "n" * 501}, "note is 501 characters long: at most 500"),
+             ({"port": DEVICE, "note": 5}, "note must be a string"),
+             ({"port": DEVICE, "method": ["multi"]}, "nested 2 deep"),
+             ({"port": DEVICE, "retries": 3}, "unknown option 'retries'"),
+             ({"port": 5}, "port must be a string")]
+    for data, why in cases:
+        assert why in error_of(operator.call("api/start", data)), data
+    for raw, why in ((b'{"port": "%s", "rate_hz": 1e999}' % DEVICE.encode(), "not a number out of range"),
+                     (b'{"port": "%s", "rate_hz": NaN}' % DEVICE.encode(), "NaN is not a JSON number"),
+                     (b"[" * 5000 + b"]" * 5000, "nested 5000 deep"),
+                     (b'{"key": ' * 1500, "nested 1500 deep"),
+                     (b"[1, 2]", "must be a JSON object"), (b"{", "not JSON"), (b"\xff\xfe", "not UTF-8"),
+                     (b'{"%s": 1}' % (b"k" * 100), "a member name of 100 characters")):
+        assert why in error_of(operator.call("api/start", raw=raw)), raw[:40]
+    for q in ("pose.svg?up=1e999,0,0", "pose.svg?up=nan,0,1", "turn.svg?axis=0,0,1&rate=1e999",
+              "turn.svg?axis=0,0,1&angle=nan", "turn.svg?axis=0,0,1&rate=abc"):
+        assert error_of(operator.call(q)), q
+    for q in ("pose.svg?up=1e300,1e300,0", "pose.svg?up=0,1e-320,0", "turn.svg?axis=1e300,0,0&rate=5"):
+        code, svg = operator.call(q)                          # extreme but valid: drawn, not NaN
+        assert code == 200 and svg.startswith("<svg") and "nan" not in svg.lower(), q
+    still_serves(served, operator)
+
+
+# ------------------------------------------------------------------------- bounds
+def test_bodies_keys_boards_and_clients_are_bounded(served, operator):
+    port = served.port
+    # a 50 MB body: refused from its Content-Length, nothing read
+    code, text = raw_request(port, f"POST /api/claim HTTP/1.1\nHost: 127.0.0.1:{port}\nOrigin: http://127.0.0.1:{port}\n"
+                                   f"Content-Type: application/json\nContent-Length: {50 << 20}\nConnection: close\n")
+    assert code == 413 and f"larger than {MAX_BODY_BYTES // 1024} KiB" in text
+    # ... and chunked, without a length: read up to the bound only
+    chunk = b"%x\r\n%s\r\n" % (8192, b" " * 8192)
+    code, text = raw_request(port, f"POST /api/claim HTTP/1.1\nHost: 127.0.0.1:{port}\nOrigin: http://127.0.0.1:{port}\n"
+                                   f"Content-Type: application/json\nTransfer-Encoding: chunked\nConnection: close\n",
+                             chunk * 4 + b"0\r\n\r\n")
+    assert code == 413
+    assert "at most 256" in error_of(operator.call("api/claim", {"key": "socket://127.0.0.1:" + "1" * 300}))
+    # 200 claims of distinct devices from other browsers: the list stops at its bound, the
+    # operator's device stays
+    clients = [Client(served).hello() for _ in range(4)]
+    refused = 0
+    for k in range(200):
+        code, body = clients[k % 4].call("api/claim", {"key": f"socket://127.0.0.1:{20000 + k}"})
+        if code == 429:
+            refused += 1
+            assert "devices already" in body["error"]
+        else:
+            assert code == 200
+    st = served.station.state
+    assert sum(b.by_page for b in st.boards.values()) <= S.MAX_PAGE_BOARDS and refused >= 200 - S.MAX_PAGE_BOARDS
+    assert DEVICE in st.boards
+    # 100 browsers: the oldest that own nothing and have no page open make way; at most MAX_CLIENTS
+    for _ in range(100):
+        Client(served).hello()
+    assert len(st.clients) <= S.MAX_CLIENTS
+    still_serves(served, operator)
+
+
+def _open_stream(port: int, cookie: str | None = None) -> tuple[socket.socket, int]:
+    s = socket.create_connection(("127.0.0.1", port), timeout=20)
+    s.sendall((f"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nAccept: text/event-stream\r\n"
+               + (f"Cookie: {cookie}\r\n" if cookie else "") + "\r\n").encode())
+    head = b""
+    while b"\r\n\r\n" not in head:
+        chunk = s.recv(4096)
+        if not chunk:
+            break
+        head += chunk
+    return s, int(head.split()[1])
+
+
+def test_event_streams_are_bounded_and_never_hold_up_the_commands(served, operator, monkeypatch):
+    """200 pages open the event stream: the first MAX_STREAMS are served, the rest get a 429 (too many);
+    /api/start answers at once all the while, and the operator keeps the device although it
+    has not spoken for longer than the grace time (its page is open)."""
+    port = served.port
+    own, code = _open_stream(port, operator.cookie)          # the operator's page
+    assert code == 200
+    socks, codes = [], []
+    try:
+        for _ in range(200):
+            s, code = _open_stream(port)
+            codes.append(code)
+            (socks.append(s) if code == 200 else s.close())
+        assert codes.count(200) == S.MAX_STREAMS and codes.count(429) == 200 - S.MAX_STREAMS, codes
+        t0 = time.monotonic()
+        still_serves(served, operator)                         # start while the streams are open
+        start_s = time.monotonic() - t0
+        assert start_s < 15, start_s                           # was 30 s with 20 streams, never with 200
+        # another browser tries to take the device over: the owner's page is open, it stays
+        monkeypatch.setattr(S, "OWNER_GRACE_S", 0.0)
+        thief = Client(served).hello()
+        code, body = thief.call("api/claim", {"key": DEVICE})
+        assert code == 200 and body["yours"] is False
+        # the streams the page opened are still live: a change reaches them
+        own.settimeout(20)
+        assert b"data: " in own.recv(65536) or b"data: " in own.recv(65536)
+    finally:
+        for s in socks:
+            s.close()
+        own.close()
+    t_end = time.monotonic() + 20                              # the slots come back
+    while served.station.state.streams and time.monotonic() < t_end:
+        time.sleep(0.1)
+    assert sum(served.station.state.streams.values()) == 0
+
+
+# ------------------------------------------------------------------------- a real browser
+CHROMIUM = Path("/usr/bin/chromium")
+FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+         "--disable-sync", "--no-first-run",
+         "--host-resolver-rules=MAP evil.example 127.0.0.1",
+         # let the hostile page's requests reach the station: it is the station that must refuse them
+         "--disable-features=PrivateNetworkAccessSendPreflights,PrivateNetworkAccessRespectPreflightResults,"
+         "BlockInsecurePrivateNetworkRequests,LocalNetworkAccessChecks"]
+
+HOSTILE = """<!DOCTYPE html><title>cats</title><script>
+window.done = (async () => {
+  const out = {};
+  const post = (path, body, type) => fetch(path, {method: "POST", headers: {"Content-Type": type || "application/json"},
+                                                  body: JSON.stringify(body)})
+    .then(async (r) => [r.status, await r.text()]).catch((e) => ["failed", String(e)]);
+  out.hello = await post("/api/hello", {});
+  out.claim = await post("/api/claim", {key: "DEVICE", token: "mine"});
+  out.plain = await post("/api/claim", {key: "DEVICE"}, "text/plain");
+  out.start = await post("/api/start", {port: "DEVICE", write: true});
+  out.state = await fetch("/api/state").then(async (r) => [r.status, await r.text()]).catch((e) => ["failed", String(e)]);
+  out.events = await new Promise((res) => { const es = new EventSource("/api/events");
+    es.onmessage = (m) => { es.close(); res(["read", m.data]); };
+    es.onerror = () => { es.close(); res(["refused", ""]); }; });
+  return out;
+})();
+</script>"""
+
+CROSS_SITE = """<!DOCTYPE html><title>cats</title><script>
+window.done = (async () => {
+  const T = "STATION";
+  const tries = [
+    fetch(T + "api/claim", {method: "POST", mode: "no-cors", credentials: "include", headers: {"Content-Type": "text/plain"},
+                             body: JSON.stringify({key: "DEVICE"})}),
+    fetch(T + "api/start", {method: "POST", mode: "no-cors", credentials: "include", headers: {"Content-Type": "text/plain"},
+                             body: JSON.stringify({port: "DEVICE", write: true})}),
+    fetch(T + "api/stop", {method: "POST", credentials: "include", headers: {"Content-Type": "application/json"},
+                            body: JSON.stringify({key: "DEVICE"})}),
+    fetch(T + "api/state", {credentials: "include"}).then((r) => r.text()),
+  ];
+  const out = [];
+  for (const t of tries) out.push(await t.then((r) => (r && r.type) || "read", (e) => "blocked"));
+  const f = document.createElement("form");
+  f.method = "POST"; f.action = T + "api/claim"; f.enctype = "text/plain"; f.target = "sink";
+  const i = document.createElement("input"); i.name = '{"key": "DEVICE", "x": "'; i.value = '"}'; f.appendChild(i);
+  const sink = document.createElement("iframe"); sink.name = "sink"; document.body.appendChild(sink);
+  document.body.appendChild(f); f.submit();
+  await new Promise((r) => setTimeout(r, 1500));
+  return out;
+})();
+</script>"""
+
+
+def test_a_hostile_page_in_chromium_cannot_drive_the_station(served, operator, monkeypatch):
+    """DNS rebinding in a real Chromium: evil.example resolves to 127.0.0.1 (a host-resolver
+    rule), its page (served by the attacker before the rebinding; here by Playwright's route)
+    then calls the station same-origin. Every call is refused by the station, the operator's
+    page (a real one, in another browser context) keeps driving. Then an ordinary cross-site
+    page (no rebinding) tries simple requests and a form: the state does not change."""
+    if not CHROMIUM.is_file():
+        pytest.fail("chromium is missing: `make system-deps` installs Debian's chromium (SYSTEM_PKGS)")
+    from playwright.sync_api import sync_playwright
+    from imubench.station import security
+    port = served.port
+    st = served.station.state
+    served.station.wait(DEVICE, timeout=30)
+    refused = []                                   # what reached the station and was refused there
+    refusal = security.PageGuard.refusal
+
+    def record(self, scope, headers):
+        r = refusal(self, scope, headers)
+        if r is not None:
+            refused.append((scope["method"], scope["path"], r[0]))
+        return r
+    monkeypatch.setattr(security.PageGuard, "refusal", record)
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
+        try:
+            ctx = browser.new_context()
+            page = ctx.new_page()                          # the operator's real page
+            page.goto(served.url)
+            page.wait_for_function("() => document.querySelector('#conn').textContent === 'live'")
+            claimed = page.evaluate("""fetch('/api/claim', {method: 'POST', headers: {'Content-Type': 'application/json'},
+                                       body: JSON.stringify({key: 'sim-free-device'})}).then((r) => r.status)""")
+            assert claimed == 400                          # not a port: the real page's requests are checked too
+            boards_before = {k: (b.status, b.owner, b.session_dir) for k, b in st.boards.items()}
+            version_before = st.version
+
+            # 1. DNS rebinding: the hostile page at http://evil.example:PORT, same-origin with the station
+            evil = browser.new_context()
+            hostile = evil.new_page()
+            hostile.route(f"http://evil.example:{port}/", lambda r: r.fulfill(
+                status=200, content_type="text/html", body=HOSTILE.replace("DEVICE", DEVICE)))
+            hostile.goto(f"http://evil.example:{port}/")
+            out = hostile.evaluate("window.done")
+            for name in ("hello", "claim", "plain", "start", "state"):
+                status, text = out[name]
+                assert status == 403 and "DNS-rebinding" in text, (name, out[name])   # the station refused it
+            assert out["events"][0] == "refused", out["events"]
+            # the hostile page loaded from the station itself (after the rebinding) is refused too
+            resp = hostile.goto(f"http://evil.example:{port}/api/state")
+            assert resp.status == 403
+
+            assert {("POST", "/api/hello", 403), ("POST", "/api/start", 403), ("GET", "/api/events", 403)} <= set(refused)
+            refused.clear()
+
+            # 2. an ordinary cross-site page in the operator's own browser (its cookie is there)
+            cross = ctx.new_page()
+            cross.route(f"http://evil.example:{port + 1}/", lambda r: r.fulfill(
+                status=200, content_type="text/html",
+                body=CROSS_SITE.replace("DEVICE", DEVICE).replace("STATION", served.url)))
+            cross.goto(f"http://evil.example:{port + 1}/")
+            cross.evaluate("window.done")
+            # the station saw them and refused them (not merely the browser)
+            for call in (("POST", "/api/claim"), ("POST", "/api/start"), ("GET", "/api/state")):
+                assert (*call, 403) in refused, (call, refused)
+            assert refused.count(("POST", "/api/claim", 403)) == 2, refused      # the fetch and the form
+            # nothing changed: no board added or taken, no session started
+            assert {k: (b.status, b.owner, b.session_dir) for k, b in st.boards.items()} == boards_before
+            assert st.version == version_before, "a hostile page changed the station's state"
+            # the operator's page is still live and still drives
+            assert page.locator("#conn").text_content() == "live"
+            still_serves(served, operator)
+        finally:
+            browser.close()
