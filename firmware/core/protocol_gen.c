@@ -24,6 +24,7 @@ size_t ib_params_pack(const ib_params_t *v, uint8_t *out)
     n += 4;
     ib_put_u32(out + n, v->cal_id);
     n += 4;
+    for (size_t i = 0; i < 9u; i++, n += 4) ib_put_f32(out + n, v->gyro_g_rad_s_per_mps2[i]);
     return n;
 }
 
@@ -46,6 +47,7 @@ void ib_params_unpack(const uint8_t *in, ib_params_t *v)
     n += 4;
     v->cal_id = ib_get_u32(in + n);
     n += 4;
+    for (size_t i = 0; i < 9u; i++, n += 4) v->gyro_g_rad_s_per_mps2[i] = ib_get_f32(in + n);
     (void)n;
 }
 

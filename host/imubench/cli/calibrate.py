@@ -25,11 +25,11 @@ METHODS = ("multi", "six")
 CAPTURES = ("adaptive", "plan")
 SIX_WARNING = ("warning: --method six needs a square fixture (a machined cube against a square): held by hand the "
                "faces are degrees off square and the fit fails; --method multi needs none")
-GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "none")
+GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "auto", "none")
 # imubench.recordings.FORMATS and imubench.results.paramfiles.WRITERS, named here so that building
 # the parser loads neither (tests/test_from_file.py checks they agree)
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
-WRITERS = ("params", "imutk", "imucal", "ardupilot")
+WRITERS = ("params", "imutk", "imucal", "ardupilot", "kalibr", "px4", "imu-calib")
 
 
 def rate_hz(s: str) -> float:
@@ -57,10 +57,12 @@ def register(sub) -> None:
     p.add_argument("--ui", choices=("terminal", "web"), default="terminal",
                    help="terminal prompts, or the station page in the browser (imubench station)")
     add_web(p)
-    p.add_argument("--gyro", choices=GYRO_METHODS, default="bias",
+    p.add_argument("--gyro", choices=GYRO_METHODS, default=None,
                    help="gyro method: scale and misalignment from a turntable, from the rotations between "
                         "attitudes, or from known-angle turns by hand (one full turn on a table about X, Y and Z "
-                        "pointing up); only the bias at rest, or none")
+                        "pointing up); only the bias at rest, or none. Default: bias for a device; with --from, "
+                        "auto (known-angle turns and/or the rotation method, whatever the recording supports; "
+                        "the bias at rest when neither can be used, and the output says why)")
     p.add_argument("--dir", type=out_dir, metavar="DIR",
                    help="session directory (default: ./imubench-session-<time>)")
     p.add_argument("--resume", type=existing_dir, metavar="DIR", help="continue the session in DIR")
@@ -188,8 +190,9 @@ def _add_from_file(p) -> None:
     g.add_argument("--annotation", type=existing_file, metavar="JSON",
                    help="imucal's section list, to compare the segmentation with")
     g.add_argument("--export", action="append", default=[], choices=WRITERS, metavar="|".join(WRITERS),
-                   help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON or ArduPilot's "
-                        "parameters (repeatable)")
+                   help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON, ArduPilot's "
+                        "parameters, Kalibr's IMU intrinsics, PX4's CAL_ACC0/CAL_GYRO0 parameters or ROS imu_calib's "
+                        "YAML (repeatable)")
     g.add_argument("--tolerance-mg", type=positive_float, metavar="MG",
                    help="pass when the RMS of |a| − g over the still intervals after calibration is at most this "
                         "(default: the device's, 1 mg)")
@@ -250,6 +253,15 @@ def run(a) -> int:
     if stray:
         raise UsageError(f"--{stray[0].replace('_', '-')} goes with --from FILE",
                          "drop it to calibrate a device, or give the recording with --from")
+    if a.gyro is None:
+        a.gyro = "bias"
+    if a.gyro == "auto":
+        raise UsageError("--gyro auto is for recordings (--from FILE)",
+                         "a session needs its gyro method chosen: rotation, turns, turntable or bias")
+    from imubench.procedures.poses import plan_problem
+    problem = plan_problem(a.method or "multi", a.gyro)
+    if problem and not a.resume:
+        raise UsageError(problem[0], problem[1] + "; nothing was captured")
     if a.rate is None:
         a.rate = 500
     try:
@@ -694,6 +706,8 @@ def _run_from_file(a) -> int:
     print(f"recording: {one_line(rec.source)} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz ({rec.duration_s:.1f} s); "
           f"{rec.unit_text()}")
     tol = Tolerances() if a.tolerance_mg is None else Tolerances(accel_rms_mg=a.tolerance_mg)
+    if a.gyro is None:
+        a.gyro = "auto"
     try:
         annotation = read_annotation(a.annotation) if a.annotation else None
     except RecordingError as e:
@@ -701,7 +715,8 @@ def _run_from_file(a) -> int:
     cfg = FileConfig(method=a.method or "auto", gyro=None if a.gyro == "none" else a.gyro, turn_deg=a.turn_angle,
                      angle_sigma_deg=a.turn_sigma, axis_sigma_deg=a.turn_axis_sigma,
                      gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
-                     writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol)
+                     writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol,
+                     tolerance_from_imu=a.tolerance_mg is None)
     directory = Path(a.dir or f"imubench-file-{path.stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: "nothing is kept from an interrupted analysis; run the command again"
     # what the analysis says quotes the file (its column names, its parts): printed safe
@@ -729,10 +744,18 @@ def _run_from_file(a) -> int:
     print(f"session directory: {one_line(directory)} (session.json, residuals.png, segmentation.png)")
     print(f"report: {one_line(result['report'])}")
     _record_history(result, a.db, directory / "session.json")
-    print("\ncalibration " + ("PASSED" if result["passed"] else "FAILED") + " (fitted from a file; nothing is written "
-          "to a device)")
+    print(f"tolerance: {result['tolerance_source']}")
+    refused_asked = bool(result.get("gyro_refused")) and a.gyro in ("turns", "rotation", "bias")
+    print(f"\nverdict: {result['verdict']}")
+    print("calibration " + ("PASSED" if result["passed"] and not result.get("gyro_refused") else
+                            "PARTIAL" if result["passed"] else "FAILED")
+          + " (fitted from a file; nothing is written to a device)")
     if not result["passed"]:
         raise CommandError(f"the RMS of |a| − g after calibration, {result['accel_rms_after_mg']:.3g} mg, is above "
-                           f"the tolerance {tol.accel_rms_mg:g} mg",
+                           f"the tolerance {result['tolerances']['accel_rms_mg']:.3g} mg",
                            f"see {directory / 'residuals.png'}; --tolerance-mg sets another tolerance")
+    if refused_asked:
+        raise CommandError(f"--gyro {a.gyro} was refused: {result['gyro_refused']}",
+                           f"the accelerometer result is kept in {directory / 'session.json'} and the history; "
+                           "--gyro auto takes what the recording supports")
     return 0

@@ -777,19 +777,23 @@ class Session:
             accel = CA.multi_position(means, sigmas, init=init)
         gyro = None
         rest_gyr = np.asarray(self.rest["gyro"]) if self.rest.get("gyro") is not None else None
+        self.gsens = self._gsens(accel, rest_gyr) if self.cfg.gyro else None
         if self.cfg.gyro == "bias":
             gyro = CG.gyro_bias(rest_gyr, self.cfg.rate_hz)
         elif self.cfg.gyro == "turntable":
             gyro = CG.turntable(segments, bias=CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
         elif self.cfg.gyro == "rotation":
-            gyro = self._rotation_fit(accel, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
+            gyro = self._rotation_fit(accel, CG.gyro_bias(rest_gyr, self.cfg.rate_hz), self.gsens)
         elif self.cfg.gyro == "turns":
             gyro = self._known_turns_fit(accel, turn_runs, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
+        if gyro is not None and self.gsens is not None:   # b + G·f: the bias at zero specific force
+            gyro = _with_bias(gyro, self.gsens)
         frame_note = None
         if self.cfg.method == "multi" and self.cfg.gyro == "turntable":
             accel, frame_note = self._align_frames(accel, gyro, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
         self.accel_fit, self.gyro_fit = accel, gyro
         result = self._result(ident, accel, gyro)
+        result["gsens"] = getattr(self, "gsens_report", None)
         result["accel_frame"] = accel.extra.get("frame", "board")
         result["bench_time_s"] = getattr(self, "bench_time_s", None)
         result["adaptive"] = bool(self.cfg.adaptive)
@@ -822,8 +826,29 @@ class Session:
                     f"{np.round(phi, 3).tolist()} ° (about board x, y, z)")
         return aligned, None
 
-    def _rotation_fit(self, accel: TriadFit, bias: TriadFit) -> TriadFit:
-        """Gyro M from the motions between consecutive poses of one stream (on disk)."""
+    def _gsens(self, accel: TriadFit, rest_gyr):
+        """The gyro's g-sensitivity from the poses' gyro means against their calibrated specific
+        force (calib.gsens), or None when the poses cannot separate it. The ADXRS450 has one
+        (0.03 °/s/g typical), so it is always part of the model when it can be fitted: b is then
+        the bias at zero specific force and G goes to the device; p_zero says whether this
+        session alone resolves it. Reported in self.gsens_report."""
+        from imubench.calib.gsens import DPS, fit_gsens
+        means = np.array([p.gyro_mean_rad_s for p in self.poses])
+        f = accel.correct(np.array([p.mean_mps2 for p in self.poses])) / U.G0_MPS2
+        try:
+            gs = fit_gsens(means, np.ones_like(means), f, sigma_from_scatter=True)
+        except CalibrationError as e:
+            self.gsens_report = {"applied": False, "why_not": str(e)}
+            return None
+        self.gsens_report = {"applied": True, "resolved": bool(gs.significant), "g_dps_per_g": (gs.g * DPS).tolist(),
+                             "sigma_dps_per_g": (gs.sigma_g * DPS).tolist(), "p_zero": gs.p_zero,
+                             "b_rad_s": gs.b.tolist()}
+        self.ui.say(gs.summary())
+        return gs
+
+    def _rotation_fit(self, accel: TriadFit, bias: TriadFit, gsens=None) -> TriadFit:
+        """Gyro M from the motions between consecutive poses of one stream (on disk); with a
+        g-sensitivity the gyro is integrated less G·f(t) (f the calibrated specific force)."""
         from imubench.calib import gyro as CG
         from imubench.wire.decoder import decode_bytes
         by_stream: dict[int, list[PoseRecord]] = {}
@@ -837,7 +862,9 @@ class Session:
                 raise CalibrationError(f"stream {k} has gaps ({st.samples_missing} samples lost): "
                                        "the rotation method needs every sample between poses")
             idx0 = int(raw.sample_index[0])
-            _, gyr = raw.si()
+            acc, gyr = raw.si()
+            if gsens is not None:
+                gyr = gyr - (accel.correct(acc) / U.G0_MPS2) @ gsens.g.T
             poses = sorted(poses, key=lambda p: p.start_index)
             for p in poses:
                 intervals.append((offset + p.start_index - idx0, offset + p.stop_index - idx0))
@@ -848,6 +875,9 @@ class Session:
         if len(by_stream) > 1:
             raise CalibrationError("the rotation method needs all poses in one continuous stream; "
                                    "this session was resumed — use --gyro bias or turntable, or start a new session")
+        if gsens is not None:
+            bias = TriadFit(method="bias", m=np.eye(3), b=gsens.b.copy(), cov=CG._cov12(b_cov=gsens.cov[9:, 9:]),
+                            estimated=np.array([False] * 9 + [True] * 3), extra=dict(bias.extra))
         return CG.rotation_method(np.concatenate(gyro_all), self.cfg.rate_hz, intervals, np.array(dirs), bias)
 
     def _result(self, ident: dict, accel: TriadFit, gyro: TriadFit | None) -> dict:
@@ -921,7 +951,7 @@ class Session:
         """set_params, read back bit-exactly, save, reboot, read back again. On any failure
         the previous parameters are put back (and saved again if they were saved)."""
         old = self.dev.get_params(ParamsWhich.ACTIVE)
-        new = params_from_fits(accel, gyro, old.params, cal_id)
+        new = params_from_fits(accel, gyro, old.params, cal_id, getattr(self, "gsens", None))
         PR.validate(new)                                      # the device's own checks, first here
         return write_verified(self.dev, new, previous=old.params, say=self.ui.say)
 
@@ -993,8 +1023,24 @@ def write_verified(dev: Device, new: Params, previous: Params | None = None,
 
 
 # ------------------------------------------------------------------- helpers
-def params_from_fits(accel: TriadFit | None, gyro: TriadFit | None, base: Params, cal_id: int) -> Params:
-    """The device parameter block from fits (fields a fit does not cover keep `base`)."""
+def _with_bias(fit: TriadFit, gsens) -> TriadFit:
+    """fit with b (and its covariance) replaced by the g-sensitivity fit's bias at zero
+    specific force (M and its covariance kept)."""
+    cov = np.array(fit.cov, dtype=float)
+    cov[9:, :] = np.nan
+    cov[:, 9:] = np.nan
+    cov[9:, 9:] = gsens.cov[9:, 9:]
+    extra = dict(fit.extra, bias_source="g-sensitivity fit (b at zero specific force)")
+    return TriadFit(method=fit.method, m=fit.m, b=gsens.b.copy(), cov=cov, residual_rms=fit.residual_rms,
+                    residuals=fit.residuals, dof=fit.dof, estimated=np.array(list(fit.estimated[:9]) + [True] * 3),
+                    extra=extra)
+
+
+def params_from_fits(accel: TriadFit | None, gyro: TriadFit | None, base: Params, cal_id: int,
+                     gsens=None) -> Params:
+    """The device parameter block from fits (fields a fit does not cover keep `base`). A gyro
+    fit sets the g-sensitivity too: gsens's G (calib.gsens, rad/s per g; stored per m/s²), or
+    zero without one (the bias then holds it at the attitudes of the fit)."""
     p = Params.from_values(base.values())
     if accel is not None:
         p.accel_m = tuple(float(v) for v in np.asarray(accel.m).ravel())
@@ -1002,6 +1048,8 @@ def params_from_fits(accel: TriadFit | None, gyro: TriadFit | None, base: Params
     if gyro is not None:
         p.gyro_m = tuple(float(v) for v in np.asarray(gyro.m).ravel())
         p.gyro_b_rad_s = tuple(float(v) for v in gyro.b)
+        g = np.zeros(9) if gsens is None else np.asarray(gsens.g, float).ravel() / U.G0_MPS2
+        p.gyro_g_rad_s_per_mps2 = tuple(float(v) for v in g)
     p.cal_time_unix_s = int(time.time())
     p.cal_id = cal_id & 0xFFFFFFFF
     return p

@@ -1,10 +1,14 @@
 """The file formats a recording is read from (imubench.recordings.read):
 
-- ``csv``: any CSV with a header row. Columns are mapped by name (``columns`` = {"ax": name,
+- ``csv``: any CSV (comma, semicolon, tab or space separated). With a header row, columns are
+  mapped by name (``columns`` = {"ax": name,
   ..., "gz": name, "t": name}, from ``--columns`` or a profile file), else found among common
   names (acc_x/ax/accel_x..., gyr_x/gx/gyro_x..., t/time/timestamp) and said so. Time from the
   column (its unit declared, or in its name: t_s, t_ms, t_us, t_ns) or from ``rate_hz``. Units
-  declared, or in the column names as our own CSV writes them (ax_mps2, wx_rad_s).
+  declared, or in the column names as our own CSV writes them (ax_mps2, wx_rad_s). Without a
+  header (the first line is numbers, e.g. mikoff/imu-calib's logs) columns are taken by position:
+  six columns are ``ax ay az gx gy gz``, seven ``t ax ay az gx gy gz`` (said in a note), or
+  ``columns`` maps keys to 1-based positions (``ax=2,...``).
 - ``imutk``: imu_tk's ASCII files, one per sensor, each line "t x y z" (t in seconds): the
   accelerometer file and ``gyro_file``.
 - ``imucal``: imucal's CSV layouts: a session (``n_samples,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z``)
@@ -99,6 +103,15 @@ def _header(path: Path) -> tuple[list[str], str]:
     return cols, delim
 
 
+def _numeric(cols: list[str]) -> bool:
+    """True when every field of a line is a number (a headerless table)."""
+    try:
+        [float(c) for c in cols]
+    except ValueError:
+        return False
+    return bool(cols)
+
+
 def _chunks(path: Path, header: bool):
     """Lists of at most CHUNK_LINES data lines of a text file (after its header line when it has
     one; blank lines and # comments skipped): the file is streamed, never held whole."""
@@ -173,6 +186,12 @@ def detect_format(path) -> str:
         if low[:1] == ["n_samples"] or low[:2] == ["part", "samples"]:
             return "imucal"
         return "csv"
+    try:                                  # any other name: a text table of numbers is read as csv
+        cols, _ = _header(p)
+    except (UnicodeDecodeError, OSError):
+        cols = []
+    if len(cols) in (6, 7) and _numeric(cols):
+        return "csv"
     raise RecordingError(f"cannot tell the format of {p.name} from its name: give --format "
                          f"({'|'.join(FORMATS)})")
 
@@ -218,6 +237,9 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
              time_unit: str | None = None, rate_hz: float | None = None, accel_unit: str | None = None,
              gyro_unit: str | None = None, **opt) -> Recording:
     cols, delim = _header(path)
+    if _numeric(cols):
+        return _read_headerless(path, cols, delim, columns=columns, time_unit=time_unit, rate_hz=rate_hz,
+                                accel_unit=accel_unit, gyro_unit=gyro_unit, **opt)
     low = {c.lower(): i for i, c in enumerate(cols)}
     notes = []
     mapping = dict(columns or {})
@@ -280,6 +302,46 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
         if unit not in _TIME_SUFFIX:
             raise RecordingError(f"--time-unit {unit!r}: one of s, ms, us, ns")
         t = data[:, 6] * _TIME_SUFFIX[unit]
+    return from_arrays(data[:, :3], data[:, 3:6], t_s=t, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
+                       source=str(path), fmt="csv", notes=notes, **_common(opt))
+
+
+def _read_headerless(path: Path, cols: list[str], delim: str, *, columns: dict | None, time_unit: str | None,
+                     rate_hz: float | None, accel_unit: str | None, gyro_unit: str | None, **opt) -> Recording:
+    """A table of numbers without a header: columns by position (1-based in ``columns``)."""
+    n = len(cols)
+    notes = []
+    if columns:
+        try:
+            pos = {k: int(v) - 1 for k, v in columns.items()}
+        except ValueError:
+            raise RecordingError(f"{path.name} has no header row: map the columns by position (from 1), "
+                                 "e.g. --columns ax=1,ay=2,az=3,gx=4,gy=5,gz=6[,t=7]") from None
+        bad = [k for k in pos if k not in (*KEYS, "t")]
+        if bad or not all(k in pos for k in KEYS) or not all(0 <= v < n for v in pos.values()):
+            raise RecordingError(f"--columns: map ax ay az gx gy gz (and optionally t) to positions 1..{n}")
+    elif n == 6:
+        pos = dict(zip(KEYS, range(6)))
+        notes.append("no header row: 6 columns read as ax ay az gx gy gz (map others with --columns ax=1,...)")
+    elif n == 7:
+        pos = dict(zip(("t",) + KEYS, range(7)))
+        notes.append("no header row: 7 columns read as t ax ay az gx gy gz (map others with --columns ax=2,...)")
+    else:
+        raise RecordingError(f"{path.name} has no header row and {n} columns: map them by position with "
+                             "--columns ax=1,ay=2,az=3,gx=4,gy=5,gz=6[,t=7]")
+    if rate_hz:
+        pos.pop("t", None)
+    use = [pos[k] for k in KEYS] + ([pos["t"]] if "t" in pos else [])
+    data = _load(path, delim, use, header=False)
+    au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, path.name)
+    t = None
+    if "t" in pos:
+        if not time_unit:
+            raise RecordingError(f"{path.name}: the time column (position {pos['t'] + 1}) does not say its unit: "
+                                 "give --time-unit s|ms|us|ns, or --rate HZ to ignore it")
+        if time_unit not in _TIME_SUFFIX:
+            raise RecordingError(f"--time-unit {time_unit!r}: one of s, ms, us, ns")
+        t = data[:, 6] * _TIME_SUFFIX[time_unit]
     return from_arrays(data[:, :3], data[:, 3:6], t_s=t, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
                        source=str(path), fmt="csv", notes=notes, **_common(opt))
 

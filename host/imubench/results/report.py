@@ -372,6 +372,10 @@ def _before_after_html(result: dict) -> str:
     verdict = "no tolerance given" if tol is None else \
         f"tolerance {tol:g} mg RMS: {'PASS' if ra <= tol else 'FAIL'}"
     out += f"<p>RMS of |a| − g over {len(names)} poses: before {rb:.3f} mg, after {ra:.4f} mg; {esc(verdict)}</p>"
+    if result.get("tolerance_source"):          # a recording of another IMU: where its tolerance comes from
+        out += f"<p>tolerance: {esc(result['tolerance_source'])}</p>"
+    if result.get("verdict"):                   # calibrate --from: what was calibrated, what not and why
+        out += f"<p><b>{esc(result['verdict'])}</b></p>"
     vnames, vafter, _vs = _verification(result)
     if len(vnames):
         vtol = _tol(result, "verify_mg")
@@ -824,6 +828,9 @@ def _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, ui
     """(name, anchor, status, words) of every part of the report: status pass / fail /
     incomplete / info / foreign (another device: refused) / missing."""
     parts = [("calibration", "calibration", *_calibration_part(state, result))]
+    if result.get("gyro_refused") and parts[0][2] == "pass":     # calibrate --from: the gyro part was refused
+        parts[0] = ("calibration", "calibration", "incomplete",
+                    f"{parts[0][3]}; gyro not calibrated: {result['gyro_refused']}")
 
     def load(path, within=None):
         try:
