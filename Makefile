@@ -18,6 +18,10 @@ SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium postgresql stm32flash
 CC_HOST  ?= gcc
 CFLAGS_HOST := -std=c11 -O2 -g -Wall -Wextra -Werror -Wshadow -Wstrict-prototypes \
                -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim/models -I$(HOST)/gen
+# added to every C compile, host and ARM (setup.py, the wheel build, maps the source directory
+# away with -ffile-prefix-map so that the wheel and the one built from the sdist are the same)
+EXTRA_CFLAGS ?=
+CFLAGS_HOST += $(EXTRA_CFLAGS)
 # Portable firmware code (core, drivers) and the simulator's sensor models: compiled
 # for the host into one static library that the C unit tests link against.
 FW_PORTABLE_SRC := $(wildcard firmware/core/*.c firmware/drivers/*.c firmware/boards/sim/models/*.c)
@@ -26,7 +30,7 @@ C_TEST_SRC := $(wildcard tests/c/test_*.c)
 C_TEST_BIN := $(patsubst tests/c/%.c,$(HOST)/tests/%,$(C_TEST_SRC)) $(HOST)/tests/vector_harness \
               $(HOST)/tests/param_check_harness
 
-.PHONY: all test demo venv system-deps c-tests clean bench sim lint
+.PHONY: all test demo venv system-deps c-tests clean bench sim lint dist
 
 all: c-tests
 
@@ -88,10 +92,18 @@ test: system-deps venv c-tests sim firmware
 	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadscope --durations=30
 
 demo: system-deps venv sim
-	$(PY) -m imubench.cli.demo
+	$(PY) -m imubench demo
 
 clean:
 	rm -rf $(BUILD)
+
+# The release: the sdist, then the platform wheel built from it (setup.py compiles the virtual
+# device, the models library and the STM32 images into the package), both into dist/.
+# README.md, Install, says how to install either.
+dist: system-deps venv
+	@rm -rf dist
+	$(PY) -m build --outdir dist .
+	@ls -l dist
 
 include firmware/arm.mk
 
@@ -102,6 +114,7 @@ bench: venv
 	$(PY) bench/decode_throughput.py
 	$(PY) bench/sim_stream.py
 	$(PY) bench/core_instructions.py
+	$(PY) bench/read_memory.py
 	$(PY) bench/calib_solve.py
 	@$(MAKE) --no-print-directory sim firmware
 	$(PY) bench/multi_dut.py
@@ -109,3 +122,4 @@ bench: venv
 	$(PY) bench/arm_cycles.py
 	$(PY) bench/session_time.py
 	$(PY) bench/station_flood.py
+	$(PY) bench/wheel_install.py

@@ -116,6 +116,157 @@ def si_vs_counts(si: dict, counts: dict) -> dict:
     return out
 
 
+# ------------------------------------------------------------------ every real recording: the gyro's residual
+SHARED = Path(__import__("os").environ.get("IMUBENCH_REAL_DATA", str(ROOT.parent.parent / "shared" / "data")))
+# (name, path, read options): the recordings of other IMUs that can be read without asking (units,
+# rate as their READMEs state them); shared ones are used when ../shared/data is there
+MIKOFF = ROOT / "tests" / "data" / "mikoff"        # gzip copies of ../shared/data/mikoff (MIT)
+
+
+def _mikoff(name: str) -> Path:
+    shared = SHARED / "mikoff" / name
+    return shared if shared.exists() else MIKOFF / f"{name}.gz"
+
+
+RECORDINGS = [
+    ("mikoff imu0 (MPU-9150)", _mikoff("imu0.log"), {"rate_hz": 100.0, "accel_unit": "mps2", "gyro_unit": "rad_s"}),
+    ("mikoff imu1 (MPU-9150)", _mikoff("imu1.log"), {"rate_hz": 100.0, "accel_unit": "mps2", "gyro_unit": "rad_s"}),
+    ("imucal Ferraris (SI)", SI_FILE, {"rate_hz": 102.4, "accel_unit": "mps2", "gyro_unit": "dps"}),
+    ("imucal annotated (counts)", COUNTS_FILE, {"rate_hz": 204.8, "accel_unit": "counts", "gyro_unit": "counts"}),
+]
+VARIANTS = ("one start bias", "all rests' mean bias", "between-rests bias", "G", "G + between-rests bias")
+
+
+def _folds(n: int) -> list[list[int]]:
+    return [list(range(0, n, 2)), list(range(1, n, 2))]
+
+
+def gyro_residuals(path, opts) -> dict:
+    """The rotation method's residual (angle between predicted and measured gravity after each
+    motion, °) on one recording, in sample and on held-out motions (two folds: fit on the even
+    motions, evaluate on the odd ones and back), for four models of the bias during a motion:
+    the first rest's (one start bias), the mean of the two rests around the motion, b + G·f(t)
+    with G fitted on all the rests, and b + G·f(t) with the remaining rest-to-rest change
+    interpolated. G's fit (with σ) or why it was refused."""
+    from imubench.calib import gyro as CG
+    from imubench.calib.gsens import fit_gsens
+    rec = read(path, **opts)
+    fa = FileAnalysis(rec, FileConfig(gyro="auto"), say=_quiet)
+    fa.run()
+    fs = rec.fs_hz
+    if fa.fg is None:
+        return {"refused": "the gyro has no scale (counts without turns to scale them)"}
+    gyr = rec.gyro * fa.fg
+    acc_g = fa.accel.correct(rec.accel * fa.fa) / G0_MPS2            # calibrated specific force, g
+    iv = [(i.start, i.stop) for i in fa.intervals]
+    k = len(iv)
+    up = np.array([acc_g[a:z].mean(axis=0) for a, z in iv])
+    f_rest = up.copy()
+    up = up / np.linalg.norm(up, axis=1)[:, None]
+    brk = [b for b, _ in rec.breaks]
+    broken = [j for j in range(k - 1) if any(iv[j][1] - 1 < b <= iv[j + 1][0] for b in brk)]
+    out = {"rests": k, "motions": k - 1 - len(broken), "excluded": broken}
+    if k - 1 - len(broken) < 2 * CG.MIN_MOTIONS:
+        out["refused"] = (f"{k - 1 - len(broken)} continuous motions between rests: too few for the rotation method "
+                          f"in two folds ({2 * CG.MIN_MOTIONS} needed)")
+        return out
+    means = np.array([gyr[a:z].mean(axis=0) for a, z in iv])
+    sig = np.array([CG._mean_uncertainty(gyr[a:z], min_cluster=max(1, int(0.02 * fs)))["sigma"] for a, z in iv])
+    rest0 = CG.gyro_bias(gyr[iv[0][0]:iv[0][1]], fs)
+    try:
+        gs = fit_gsens(means, sig, f_rest)
+        out["G_dps_per_g"] = (gs.g * 180 / math.pi).tolist()
+        out["G_sigma_dps_per_g"] = (gs.sigma_g * 180 / math.pi).tolist()
+        out["G_resolved"] = gs.resolved.tolist()
+        out["G_summary"] = gs.summary()
+        out["rest_scatter_dps"] = {"one bias": float(np.sqrt(np.mean((means - means.mean(0)) ** 2)) * 180 / math.pi),
+                                   "b + G·f": gs.extra["rest_scatter_dps"]}
+    except CalibrationError as e:
+        gs = None
+        out["G_refused"] = str(e)
+    series = {}
+    between = 0.5 * (means[:-1] + means[1:])
+    series["one start bias"] = (gyr, np.broadcast_to(rest0.b, (k - 1, 3)))
+    series["all rests' mean bias"] = (gyr, np.broadcast_to(np.average(means, axis=0, weights=1 / sig**2),
+                                                           (k - 1, 3)))   # control: what averaging alone gives
+    series["between-rests bias"] = (gyr, between)
+    if gs is not None:
+        ug = gyr - acc_g @ gs.g.T
+        mg = np.array([ug[a:z].mean(axis=0) for a, z in iv])
+        series["G"] = (ug, np.broadcast_to(gs.b, (k - 1, 3)))
+        series["G + between-rests bias"] = (ug, 0.5 * (mg[:-1] + mg[1:]))
+    res = {}
+    for name, (u, mb) in series.items():
+        row = {}
+        try:
+            f = CG.rotation_method(u, fs, iv, up, rest0, motion_bias=mb, exclude_motions=broken, max_sigma=1.0,
+                                   max_residual_deg=90.0, max_rate_rad_s=None)
+            row["in_sample_rms_deg"] = float(np.sqrt(np.mean(f.extra["angle_residuals_deg"] ** 2)))
+            row["m_diag"] = np.diag(f.m).tolist()
+        except CalibrationError as e:
+            row["in_sample_refused"] = str(e)
+        held = []
+        usable = [j for j in range(k - 1) if j not in broken]
+        for fold in _folds(len(usable)):
+            test = [usable[i] for i in fold]
+            try:
+                f = CG.rotation_method(u, fs, iv, up, rest0, motion_bias=mb, exclude_motions=broken + test,
+                                       max_sigma=1.0, max_residual_deg=90.0, max_rate_rad_s=None)
+            except CalibrationError as e:
+                row["held_out_refused"] = str(e)
+                break
+            ang = CG.rotation_residuals(u, fs, iv, up, f.m, mb)
+            held.extend(ang[test].tolist())
+        if "held_out_refused" not in row:
+            row["held_out_rms_deg"] = float(np.sqrt(np.mean(np.square(held))))
+        res[name] = row
+    out["variants"] = res
+    return out
+
+
+def all_recordings() -> list[tuple[str, dict]]:
+    out = []
+    for name, path, opts in RECORDINGS:
+        if not Path(path).exists():
+            out.append((name, {"refused": f"{path} not here"}))
+            continue
+        out.append((name, gyro_residuals(path, opts)))
+    return out
+
+
+def print_gyro_residuals(rows) -> None:
+    print("\n== the gyro on every real recording: rotation-method residual (angle between predicted and measured "
+          "gravity after each motion, RMS °) ==")
+    print(f"{'recording':<28} {'motions':>7}  " + "  ".join(f"{v:>22}" for v in VARIANTS))
+    print(f"{'':<28} {'':>7}  " + "  ".join(f"{'in sample / held out':>22}" for _ in VARIANTS))
+    for name, r in rows:
+        if "variants" not in r:
+            print(f"{name:<28} {r.get('motions', '-'):>7}  {r['refused']}")
+            continue
+        cells = []
+        for v in VARIANTS:
+            c = r["variants"].get(v)
+            if c is None:
+                cells.append(f"{'(no G)':>22}")
+                continue
+            a = f"{c['in_sample_rms_deg']:.3f}" if "in_sample_rms_deg" in c else "refused"
+            b = f"{c['held_out_rms_deg']:.3f}" if "held_out_rms_deg" in c else "refused"
+            cells.append(f"{a + ' / ' + b:>22}")
+        print(f"{name:<28} {r['motions']:>7}  " + "  ".join(cells))
+    for name, r in rows:
+        for v, c in r.get("variants", {}).items():
+            for key in ("in_sample_refused", "held_out_refused"):
+                if key in c:
+                    print(f"{name}, {v}: {key.split('_refused')[0].replace('_', ' ')} refused: {c[key]}")
+    for name, r in rows:
+        if "G_summary" in r:
+            sc = r["rest_scatter_dps"]
+            print(f"{name}: {r['G_summary']}\n  rest-to-rest gyro scatter: {sc['one bias']:.4f} °/s about one "
+                  f"bias, {sc['b + G·f']:.4f} °/s about b + G·f")
+        elif "G_refused" in r:
+            print(f"{name}: G not fitted: {r['G_refused']}")
+
+
 def _m(m, fmt="{:+9.5f}") -> str:
     return "\n".join("    " + " ".join(fmt.format(v) for v in row) for row in np.asarray(m))
 
@@ -168,6 +319,8 @@ def main() -> int:
         print(f"{kind}: bias in its axis's own scale [{unit}]: SI " + ", ".join(f"{v * sc:+.2f}" for v in k["bias_si"])
               + "; counts " + ", ".join(f"{v * sc:+.2f}" for v in k["bias_counts"])
               + "; difference / σ " + ", ".join(f"{v:+.0f}" for v in k["z_bias"]))
+    rows = all_recordings()
+    print_gyro_residuals(rows)
     summary = {
         "si_rests": len(r["segmentation"]), "si_faces": sorted(set(s["face"] for s in r["segmentation"])),
         "si_turns": [t["label"] for t in r["turns"] if t["usable"]],
@@ -182,6 +335,9 @@ def main() -> int:
         "counts_vs_imucal_max_z_gyro_diag": float(np.abs(np.diag(c["z_gyr"])).max()),
         "counts_vs_imucal_max_z_gyro": float(np.abs(c["z_gyr"]).max()),
         "si_vs_counts_max_z_accel_bias": float(np.abs(x["accel"]["z_bias"]).max()),
+        "gyro_residual_deg": {name: {v: {k2: round(c[k2], 4) for k2 in ("in_sample_rms_deg", "held_out_rms_deg")
+                                         if k2 in c} for v, c in r.get("variants", {}).items()} for name, r in rows},
+        "g_resolved": {name: int(np.sum(r["G_resolved"])) for name, r in rows if "G_resolved" in r},
     }
     print("\n" + json.dumps(summary))
     return 0

@@ -30,6 +30,7 @@ ARM_CFLAGS := -std=c11 -Os -g3 -Wall -Wextra -Werror -Wshadow -Wstrict-prototype
               -ffunction-sections -fdata-sections -fno-common -fstack-usage \
               -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/common_arm \
               '-DIB_BUILD_ID="$(ARM_BUILD_ID)"'
+ARM_CFLAGS += $(EXTRA_CFLAGS)
 ARM_LDFLAGS := -nostartfiles --specs=nano.specs --specs=nosys.specs -Wl,--gc-sections \
                -Wl,--no-warn-rwx-segments -Lfirmware/boards/common_arm
 

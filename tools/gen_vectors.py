@@ -141,7 +141,6 @@ def main() -> int:
     V.append(good("raw_batch_16", G.RawBatch(header=hdr), 200, 30864000, records=raw_recs))
     hdr1 = G.BatchHeader(sample_index=0, period_us=1000, count=1, accel_range_g=8)
     V.append(good("raw_batch_1", G.RawBatch(header=hdr1), 201, 0, records={k: v[:1] for k, v in raw_recs.items()}))
-    V.append(good("raw_batch_empty", G.RawBatch(header=G.BatchHeader(sample_index=5, period_us=1000, count=0, accel_range_g=2)), 202, 0, records={}))
     cal_recs = {
         "accel_mps2": np.array([[f32(0.01 * k), f32(-9.80665), f32(9.80665 + k)] for k in range(8)], dtype=np.float32),
         "rate_rad_s": np.array([[f32(0.5 * k), f32(-1e-3), f32(3.14159)] for k in range(8)], dtype=np.float32),
@@ -224,12 +223,44 @@ def main() -> int:
     V.append(bad("fault_event_kind_undefined", payload_frame(G.FaultEvent(sensor=1, kind=0, active=1), 218),
                  "bad_enum", "fault kind 0 is not defined"))
 
+    # values no definition allows (issue 25): refused, never delivered
+    V.append(bad("raw_batch_empty", payload_frame(G.RawBatch(header=G.BatchHeader(sample_index=5, period_us=1000, count=0,
+                                                                                  accel_range_g=2)), 202, {}),
+                 "out_of_range", "count 0: an empty batch carries nothing and is never sent"))
+    V.append(bad("ack_error_undefined", payload_frame(G.Ack(request_id=41, command=0x05, error=200, value=0), 219),
+                 "bad_enum", "error 200 is not an error code (codes come only with a protocol version)"))
+    V.append(bad("self_test_bit_for_no_sensor", payload_frame(G.SelfTestResult(request_id=46, passed=0b10001, tested=0b1111), 220),
+                 "bad_flags", "passed bit 4: there is no sensor 4"))
+    V.append(bad("info_sensor_bit_for_no_sensor", payload_frame(G.Info(
+        request_id=0, protocol_version=P.PROTOCOL_VERSION, board=2, clock_source=2, sensors_present=0x80,
+        accel_range_g=4, stream_state=0, param_source=0), 221),
+                 "bad_flags", "sensors_present bit 7: there is no sensor 7"))
+    V.append(bad("info_clock_source_undefined", payload_frame(G.Info(
+        request_id=0, protocol_version=P.PROTOCOL_VERSION, board=2, clock_source=9, sensors_present=0b1111,
+        accel_range_g=4, stream_state=0, param_source=0), 222),
+                 "bad_enum", "clock_source 9: not defined here (a newer firmware's; the host says so)"))
+    V.append(bad("batch_reserved_nonzero", payload_frame(G.RawBatch(header=replace(hdr1, reserved2=1)), 223, one_raw),
+                 "out_of_range", "reserved2 1: reserved fields are 0"))
+    V.append(bad("start_stream_reserved_nonzero",
+                 payload_frame(G.StartStream(rate_hz=1000, mode=0, batch=0, reserved=(0, 0, 4)), 224),
+                 "out_of_range", "reserved byte 2 is 4 (the device nacks it BAD_ARGUMENT)"))
+    V.append(bad("stats_reserved_nonzero", payload_frame(G.Stats(request_id=0, reserved=1), 225),
+                 "out_of_range", "stats reserved 1"))
+    V.append(bad("fault_event_reserved_nonzero", payload_frame(G.FaultEvent(sensor=1, kind=2, active=1, reserved=0x80), 226),
+                 "out_of_range", "fault_event reserved 0x80"))
+
     OUT.parent.mkdir(parents=True, exist_ok=True)
+    # the signed step between two u32 device times (SPEC.md, Header fields): both sides agree
+    H = 1 << 31
+    steps = [(0, 0), (1, 0), (0, 1), (H - 1, 0), (H, 0), (H + 1, 0), (0, H), (0xFFFFFFFF, 0), (0, 0xFFFFFFFF),
+             (0x7FFF0000, 0xFFFF0000), (0xFFFF0000, 0x7FFF0000), (0x7FFF0001, 0xFFFF0000), (5, 0xFFFFFFF0)]
+    time_steps = [{"now": now, "prev": prev, "step_us": ((now - prev + H) & 0xFFFFFFFF) - H} for now, prev in steps]
     doc = {
         "protocol_version": P.PROTOCOL_VERSION,
         "about": "Shared test vectors. frame_hex includes the 0x00 delimiter. expect is 'ok' or the "
                  "rejection reason (protocol/SPEC.md, Receiving). Fields are flattened by path.",
         "vectors": V,
+        "time_steps": time_steps,
     }
     OUT.write_text(json.dumps(doc, indent=1) + "\n")
     print(f"wrote {OUT.relative_to(ROOT)}: {len(V)} vectors")

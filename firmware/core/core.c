@@ -153,14 +153,28 @@ uint8_t ib_core_check_params(const ib_params_t *p, ib_triad_corr_t *accel, ib_tr
     if (!finite_f(p->accel_t_ref_c) || !finite_f(p->gyro_t_ref_c)) {
         return IB_ERROR_PARAM_NOT_FINITE;
     }
+    for (unsigned k = 0; k < 9; k++) {
+        if (!finite_f(p->gyro_g_rad_s_per_mps2[k])) {
+            return IB_ERROR_PARAM_NOT_FINITE;
+        }
+    }
     uint8_t e = check_triad(p->accel_m, p->accel_b_mps2, p->accel_bias_tc_mps2_per_c, p->accel_scale_tc_per_c,
                             p->accel_t_ref_c, IB_LIMIT_ACCEL_BIAS_MAX_MPS2, IB_LIMIT_ACCEL_BIAS_TC_MAX_MPS2_PER_C,
                             accel);
     if (e != IB_ERROR_OK) {
         return e;
     }
-    return check_triad(p->gyro_m, p->gyro_b_rad_s, p->gyro_bias_tc_rad_s_per_c, p->gyro_scale_tc_per_c,
-                       p->gyro_t_ref_c, IB_LIMIT_GYRO_BIAS_MAX_RAD_S, IB_LIMIT_GYRO_BIAS_TC_MAX_RAD_S_PER_C, gyro);
+    e = check_triad(p->gyro_m, p->gyro_b_rad_s, p->gyro_bias_tc_rad_s_per_c, p->gyro_scale_tc_per_c,
+                    p->gyro_t_ref_c, IB_LIMIT_GYRO_BIAS_MAX_RAD_S, IB_LIMIT_GYRO_BIAS_TC_MAX_RAD_S_PER_C, gyro);
+    if (e != IB_ERROR_OK) {
+        return e;
+    }
+    for (unsigned k = 0; k < 9; k++) { /* g-sensitivity last (SPEC.md, Parameters on the device) */
+        if (fabsf(p->gyro_g_rad_s_per_mps2[k]) > IB_LIMIT_GYRO_G_MAX_RAD_S_PER_MPS2) {
+            return IB_ERROR_PARAM_OUT_OF_RANGE;
+        }
+    }
+    return IB_ERROR_OK;
 }
 
 /* ib_core_correct in two parts: what depends on the temperatures only (the stream reads them
@@ -213,6 +227,28 @@ static void set_factory(ib_core_t *c)
     c->param_source = IB_PARAM_SOURCE_FACTORY;
 }
 
+/* Layout 1 of the parameter block: layout 2 without its last field, gyro_g (9 float32). */
+#define IB_PARAMS_SIZE_V1 (IB_PARAMS_SIZE - 36u)
+_Static_assert(IB_PARAM_BLOCK_VERSION == 2u, "read_stored migrates layout 1 to layout 2: update it");
+
+/* The stored parameter block, read into p: today's layout, or layout 1 (today's without gyro_g,
+ * its prefix) migrated with G = 0. Returns 1 when a block was read. */
+static int read_stored(const ib_flash_if_t *fl, ib_params_t *p, ib_ps_info_t *info)
+{
+    uint8_t blob[IB_PARAMS_SIZE];
+    ib_ps_status_t st = ib_ps_load(fl, IB_PARAM_BLOCK_VERSION, blob, sizeof blob, info);
+    if (st == IB_PS_OK && info->payload_len == IB_PARAMS_SIZE) {
+        ib_params_unpack(blob, p);
+        return 1;
+    }
+    if (st == IB_PS_ERR_PAYLOAD_VERSION && info->payload_version == 1u && info->payload_len == IB_PARAMS_SIZE_V1) {
+        memset(blob + IB_PARAMS_SIZE_V1, 0, IB_PARAMS_SIZE - IB_PARAMS_SIZE_V1); /* G = 0: +0.0f is all zero bits */
+        ib_params_unpack(blob, p);
+        return 1;
+    }
+    return 0;
+}
+
 static void load_params(ib_core_t *c)
 {
     set_factory(c);
@@ -221,16 +257,14 @@ static void load_params(ib_core_t *c)
     if (!c->board->flash) {
         return;
     }
-    uint8_t blob[IB_PARAMS_SIZE];
     ib_ps_info_t info;
-    ib_ps_status_t st = ib_ps_load(c->board->flash, IB_PARAM_BLOCK_VERSION, blob, sizeof blob, &info);
+    ib_params_t p;
+    int ok = read_stored(c->board->flash, &p, &info);
     c->param_generation = info.generation;
     c->param_slot = (int8_t)info.slot;
-    if (st != IB_PS_OK || info.payload_len != IB_PARAMS_SIZE) {
-        return; /* none, cleared, other version: factory defaults, flagged in info */
+    if (!ok) {
+        return; /* none, cleared, unknown version: factory defaults, flagged in info */
     }
-    ib_params_t p;
-    ib_params_unpack(blob, &p);
     ib_triad_corr_t a, g;
     if (ib_core_check_params(&p, &a, &g) != IB_ERROR_OK) {
         return; /* a stored block that fails today's checks is not applied */
@@ -525,6 +559,10 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
             w[k] = (float)rate[k] * RAD_PER_GYRO_COUNT;
         }
         correct_apply(&c->corr_accel, u, c->cal_bdt[0], c->cal_den[0], cs.accel_mps2);
+        const float *gs = c->params.gyro_g_rad_s_per_mps2; /* g-sensitivity: w − G·a first */
+        for (int k = 0; k < 3; k++) {
+            w[k] -= gs[k * 3] * cs.accel_mps2[0] + gs[k * 3 + 1] * cs.accel_mps2[1] + gs[k * 3 + 2] * cs.accel_mps2[2];
+        }
         correct_apply(&c->corr_gyro, w, c->cal_bdt[1], c->cal_den[1], cs.rate_rad_s);
         cs.status = status;
         rec = c->batch_buf + IB_HEADER_SIZE + IB_BATCH_HEADER_SIZE + (size_t)c->batch_n * IB_CAL_SAMPLE_SIZE;
@@ -991,13 +1029,8 @@ static void execute(ib_core_t *c, const ib_frame_t *f)
             r.source = c->param_source;
             r.params = c->params;
         } else if (m.which == IB_PARAMS_WHICH_STORED) {
-            uint8_t blob[IB_PARAMS_SIZE];
             ib_ps_info_t info;
-            ib_ps_status_t st = c->board->flash ? ib_ps_load(c->board->flash, IB_PARAM_BLOCK_VERSION, blob,
-                                                            sizeof blob, &info)
-                                                : IB_PS_ERR_NO_VALID_SLOT;
-            if (st == IB_PS_OK && info.payload_len == IB_PARAMS_SIZE) {
-                ib_params_unpack(blob, &r.params);
+            if (c->board->flash && read_stored(c->board->flash, &r.params, &info)) {
                 r.source = IB_PARAM_SOURCE_FLASH;
             } else {
                 identity_params(&r.params);

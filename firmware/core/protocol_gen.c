@@ -24,6 +24,7 @@ size_t ib_params_pack(const ib_params_t *v, uint8_t *out)
     n += 4;
     ib_put_u32(out + n, v->cal_id);
     n += 4;
+    for (size_t i = 0; i < 9u; i++, n += 4) ib_put_f32(out + n, v->gyro_g_rad_s_per_mps2[i]);
     return n;
 }
 
@@ -46,6 +47,7 @@ void ib_params_unpack(const uint8_t *in, ib_params_t *v)
     n += 4;
     v->cal_id = ib_get_u32(in + n);
     n += 4;
+    for (size_t i = 0; i < 9u; i++, n += 4) v->gyro_g_rad_s_per_mps2[i] = ib_get_f32(in + n);
     (void)n;
 }
 
@@ -676,6 +678,10 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
             uint8_t x = ib_get_u8(payload + 4u + i * 1u);
             if (x != 0 && x != 2 && x != 4 && x != 8) return IB_VALUE_BAD_ENUM;
         }
+        for (size_t i = 0; i < 3u; i++) { /* reserved */
+            uint8_t x = ib_get_u8(payload + 5u + i * 1u);
+            if (x > 0) return IB_VALUE_OUT_OF_RANGE;
+        }
         return IB_VALUE_OK;
     }
     case IB_MSG_GET_PARAMS: {
@@ -683,12 +689,34 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
             uint8_t x = ib_get_u8(payload + 0u + i * 1u);
             if (x != 0 && x != 1) return IB_VALUE_BAD_ENUM;
         }
+        for (size_t i = 0; i < 3u; i++) { /* reserved */
+            uint8_t x = ib_get_u8(payload + 1u + i * 1u);
+            if (x > 0) return IB_VALUE_OUT_OF_RANGE;
+        }
+        return IB_VALUE_OK;
+    }
+    case IB_MSG_GET_STATS: {
+        for (size_t i = 0; i < 3u; i++) { /* reserved */
+            uint8_t x = ib_get_u8(payload + 1u + i * 1u);
+            if (x > 0) return IB_VALUE_OUT_OF_RANGE;
+        }
+        return IB_VALUE_OK;
+    }
+    case IB_MSG_ACK: {
+        for (size_t i = 0; i < 1u; i++) { /* error */
+            uint8_t x = ib_get_u8(payload + 3u + i * 1u);
+            if (x != 0 && x != 1 && x != 2 && x != 3 && x != 4 && x != 5 && x != 6 && x != 7 && x != 8 && x != 9 && x != 10 && x != 11 && x != 12 && x != 13) return IB_VALUE_BAD_ENUM;
+        }
         return IB_VALUE_OK;
     }
     case IB_MSG_INFO: {
         for (size_t i = 0; i < 1u; i++) { /* clock_source */
             uint8_t x = ib_get_u8(payload + 7u + i * 1u);
             if (x != 0 && x != 1 && x != 2 && x != 3) return IB_VALUE_BAD_ENUM;
+        }
+        for (size_t i = 0; i < 1u; i++) { /* sensors_present */
+            uint8_t x = ib_get_u8(payload + 36u + i * 1u);
+            if ((x & ~0xFu) != 0u) return IB_VALUE_BAD_FLAGS;
         }
         for (size_t i = 0; i < 1u; i++) { /* accel_range_g */
             uint8_t x = ib_get_u8(payload + 37u + i * 1u);
@@ -715,6 +743,13 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
         }
         return IB_VALUE_OK;
     }
+    case IB_MSG_STATS: {
+        for (size_t i = 0; i < 1u; i++) { /* reserved */
+            uint16_t x = ib_get_u16(payload + 2u + i * 2u);
+            if (x > 0) return IB_VALUE_OUT_OF_RANGE;
+        }
+        return IB_VALUE_OK;
+    }
     case IB_MSG_FAULT_EVENT: {
         for (size_t i = 0; i < 1u; i++) { /* sensor */
             uint8_t x = ib_get_u8(payload + 0u + i * 1u);
@@ -728,11 +763,34 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
             uint8_t x = ib_get_u8(payload + 2u + i * 1u);
             if (x != 0 && x != 1) return IB_VALUE_BAD_ENUM;
         }
+        for (size_t i = 0; i < 1u; i++) { /* reserved */
+            uint8_t x = ib_get_u8(payload + 3u + i * 1u);
+            if (x > 0) return IB_VALUE_OUT_OF_RANGE;
+        }
+        return IB_VALUE_OK;
+    }
+    case IB_MSG_SELF_TEST_RESULT: {
+        for (size_t i = 0; i < 1u; i++) { /* passed */
+            uint8_t x = ib_get_u8(payload + 2u + i * 1u);
+            if ((x & ~0xFu) != 0u) return IB_VALUE_BAD_FLAGS;
+        }
+        for (size_t i = 0; i < 1u; i++) { /* tested */
+            uint8_t x = ib_get_u8(payload + 3u + i * 1u);
+            if ((x & ~0xFu) != 0u) return IB_VALUE_BAD_FLAGS;
+        }
+        for (size_t i = 0; i < 1u; i++) { /* reserved */
+            uint8_t x = ib_get_u8(payload + 19u + i * 1u);
+            if (x > 0) return IB_VALUE_OUT_OF_RANGE;
+        }
         return IB_VALUE_OK;
     }
     case IB_MSG_RAW_BATCH: {
         for (size_t i = 0; i < 1u; i++) { /* header.period_us */
             uint16_t x = ib_get_u16(payload + 4u + i * 2u);
+            if (x < 1) return IB_VALUE_OUT_OF_RANGE;
+        }
+        for (size_t i = 0; i < 1u; i++) { /* header.count */
+            uint8_t x = ib_get_u8(payload + 6u + i * 1u);
             if (x < 1) return IB_VALUE_OUT_OF_RANGE;
         }
         for (size_t i = 0; i < 1u; i++) { /* header.sensor_flags */
@@ -742,6 +800,10 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
         for (size_t i = 0; i < 1u; i++) { /* header.accel_range_g */
             uint8_t x = ib_get_u8(payload + 11u + i * 1u);
             if (x != 2 && x != 4 && x != 8) return IB_VALUE_BAD_ENUM;
+        }
+        for (size_t i = 0; i < 1u; i++) { /* header.reserved2 */
+            uint8_t x = ib_get_u8(payload + 21u + i * 1u);
+            if (x > 0) return IB_VALUE_OUT_OF_RANGE;
         }
         return IB_VALUE_OK;
     }
@@ -750,6 +812,10 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
             uint16_t x = ib_get_u16(payload + 4u + i * 2u);
             if (x < 1) return IB_VALUE_OUT_OF_RANGE;
         }
+        for (size_t i = 0; i < 1u; i++) { /* header.count */
+            uint8_t x = ib_get_u8(payload + 6u + i * 1u);
+            if (x < 1) return IB_VALUE_OUT_OF_RANGE;
+        }
         for (size_t i = 0; i < 1u; i++) { /* header.sensor_flags */
             uint8_t x = ib_get_u8(payload + 7u + i * 1u);
             if ((x & ~0x7Fu) != 0u) return IB_VALUE_BAD_FLAGS;
@@ -757,6 +823,10 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
         for (size_t i = 0; i < 1u; i++) { /* header.accel_range_g */
             uint8_t x = ib_get_u8(payload + 11u + i * 1u);
             if (x != 2 && x != 4 && x != 8) return IB_VALUE_BAD_ENUM;
+        }
+        for (size_t i = 0; i < 1u; i++) { /* header.reserved2 */
+            uint8_t x = ib_get_u8(payload + 21u + i * 1u);
+            if (x > 0) return IB_VALUE_OUT_OF_RANGE;
         }
         for (size_t r = IB_MSG_CAL_BATCH_SIZE; r + IB_CAL_SAMPLE_SIZE <= len; r += IB_CAL_SAMPLE_SIZE) {
             for (size_t i = 0; i < 3u; i++) { /* accel_mps2 */

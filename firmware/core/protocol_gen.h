@@ -5,16 +5,16 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#define IB_PROTOCOL_VERSION 2u
+#define IB_PROTOCOL_VERSION 3u
 #define IB_SAVE_UNCHANGED_FLAG 0x80000000u  /* save_params ack value: already stored */
 #define IB_MAX_PAYLOAD 256u
 #define IB_HEADER_SIZE 8u
 #define IB_CRC_SIZE 4u
 #define IB_MAX_FRAME 268u /* header + payload + CRC, before COBS */
 #define IB_MAX_ENCODED (268u + (268u / 254u) + 1u) /* COBS, without the 0x00 */
-#define IB_PARAM_BLOCK_VERSION 1u
+#define IB_PARAM_BLOCK_VERSION 2u
 /* longest command payload (commands have fixed layouts): what the retry cache keeps */
-#define IB_MAX_COMMAND_PAYLOAD 160u
+#define IB_MAX_COMMAND_PAYLOAD 196u
 /* start_stream rates (SPEC.md, Streaming) */
 #define IB_STREAM_RATES_HZ {4000u, 2000u, 1000u, 800u, 500u, 400u, 250u, 200u, 160u, 125u, 100u, 80u, 50u, 40u, 25u, 20u}
 #define IB_STREAM_RATES_COUNT 16u
@@ -32,6 +32,7 @@
 #define IB_LIMIT_SCALE_TC_MAX_PER_C 0x1.0624de0000000p-10f /* 0.001 as float32 */
 #define IB_LIMIT_T_REF_MIN_C (-0x1.4000000000000p+5f) /* -40.0 as float32 */
 #define IB_LIMIT_T_REF_MAX_C 0x1.f400000000000p+6f /* 125.0 as float32 */
+#define IB_LIMIT_GYRO_G_MAX_RAD_S_PER_MPS2 0x1.d29dc80000000p-10f /* 0.00178 as float32 */
 
 /* Error codes carried in ack.error (0 = acknowledged; anything else is a nack). */
 enum ib_error {
@@ -127,6 +128,11 @@ enum ib_params_which {
 #define IB_BATCH_FLAGS_SPI_ERROR (1u << 5) /* at least one bus transfer failed in the batch */
 #define IB_BATCH_FLAGS_SAMPLES_DROPPED (1u << 6) /* samples were dropped before this batch (see sample_index) */
 
+#define IB_SENSOR_MASK_ACCEL (1u << 0)
+#define IB_SENSOR_MASK_GYRO_X (1u << 1)
+#define IB_SENSOR_MASK_GYRO_Y (1u << 2)
+#define IB_SENSOR_MASK_GYRO_Z (1u << 3)
+
 /* Message ids (frame byte 1). */
 #define IB_MSG_PING 0x01u /* h2d */
 #define IB_MSG_GET_INFO 0x02u /* h2d */
@@ -148,7 +154,7 @@ enum ib_params_which {
 #define IB_MSG_RAW_BATCH 0x90u /* d2h */
 #define IB_MSG_CAL_BATCH 0x91u /* d2h */
 
-/* Calibration parameters (docs/conventions.md): u = M·x + b per triad, the device applies x = M⁻¹·(u − b − bias_tc·(T − t_ref)) / (1 + scale_tc·(T − t_ref)) per axis. M row-major. */
+/* Calibration parameters (docs/conventions.md): u = M·x + b per triad, the device applies x = M⁻¹·(u − b − bias_tc·(T − t_ref)) / (1 + scale_tc·(T − t_ref)) per axis; for the gyro also − G·a inside the bracket, a the calibrated specific force in m/s². M and G row-major. Layout 2; layout 1 is the same without gyro_g (a stored layout-1 block is read with G = 0). */
 typedef struct {
     float accel_m[9]; /* [1] accelerometer scale/misalignment matrix, row-major */
     float accel_b_mps2[3]; /* [m/s^2] accelerometer bias */
@@ -162,9 +168,10 @@ typedef struct {
     float gyro_t_ref_c; /* [degC] */
     uint32_t cal_time_unix_s; /* [s] when the host computed these (0 = never) */
     uint32_t cal_id; /* host's calibration run id (0 = none) */
+    float gyro_g_rad_s_per_mps2[9]; /* [rad/s/(m/s^2)] gyro g-sensitivity G, row-major: the gyro reads b + G·a more at specific force a (layout 2) */
 } ib_params_t;
 
-#define IB_PARAMS_SIZE 160u
+#define IB_PARAMS_SIZE 196u
 size_t ib_params_pack(const ib_params_t *v, uint8_t *out);
 void ib_params_unpack(const uint8_t *in, ib_params_t *v);
 
@@ -172,14 +179,14 @@ void ib_params_unpack(const uint8_t *in, ib_params_t *v);
 typedef struct {
     uint32_t sample_index; /* [samples] index of the first sample since start_stream */
     uint16_t period_us; /* [us] sample period */
-    uint8_t count; /* samples in this batch */
+    uint8_t count; /* samples in this batch (an empty batch is never sent: refused) */
     uint8_t sensor_flags; /* batch_flags bits */
     uint16_t accel_temp_counts; /* [counts] ADXL355 TEMP, 12 bits (last of the batch) */
     uint8_t accel_status; /* OR of the ADXL355 STATUS reads in the batch */
     uint8_t accel_range_g; /* [g] ADXL355 range of these samples: 2, 4 or 8 */
     int16_t gyro_temp_counts[3]; /* [counts] ADXRS450 TEM >> 6, signed 10 bits, X/Y/Z */
     uint8_t gyro_faults[3]; /* OR over the batch of response bits 7:1 (PLL,Q,NVM,POR,PWR,CST,CHK); bit 0 = a parity error was seen */
-    uint8_t reserved2;
+    uint8_t reserved2; /* 0 (anything else is refused) */
 } ib_batch_header_t;
 
 #define IB_BATCH_HEADER_SIZE 22u
@@ -234,7 +241,7 @@ typedef struct {
     uint8_t mode;
     uint8_t batch; /* [samples] samples per frame, 0 = automatic (about 250 frames/s) */
     uint8_t accel_range_g; /* [g] 2, 4 or 8; 0 = keep the current range */
-    uint8_t reserved[3];
+    uint8_t reserved[3]; /* 0 (anything else is refused) */
 } ib_msg_start_stream_t;
 
 #define IB_MSG_START_STREAM_SIZE 8u /* fixed part of the payload */
@@ -255,14 +262,14 @@ typedef struct {
     ib_params_t params;
 } ib_msg_set_params_t;
 
-#define IB_MSG_SET_PARAMS_SIZE 160u /* fixed part of the payload */
+#define IB_MSG_SET_PARAMS_SIZE 196u /* fixed part of the payload */
 size_t ib_msg_set_params_pack(const ib_msg_set_params_t *v, uint8_t *out);
 void ib_msg_set_params_unpack(const uint8_t *in, ib_msg_set_params_t *v);
 
 /* Answered by params_readback, then ack. */
 typedef struct {
     uint8_t which;
-    uint8_t reserved[3];
+    uint8_t reserved[3]; /* 0 (anything else is refused) */
 } ib_msg_get_params_t;
 
 #define IB_MSG_GET_PARAMS_SIZE 4u /* fixed part of the payload */
@@ -308,7 +315,7 @@ void ib_msg_self_test_unpack(const uint8_t *in, ib_msg_self_test_t *v);
 /* Answered by stats, then ack. */
 typedef struct {
     uint8_t reset; /* 1 = zero the counters after reporting them */
-    uint8_t reserved[3];
+    uint8_t reserved[3]; /* 0 (anything else is refused) */
 } ib_msg_get_stats_t;
 
 #define IB_MSG_GET_STATS_SIZE 4u /* fixed part of the payload */
@@ -364,14 +371,14 @@ typedef struct {
     ib_params_t params;
 } ib_msg_params_readback_t;
 
-#define IB_MSG_PARAMS_READBACK_SIZE 168u /* fixed part of the payload */
+#define IB_MSG_PARAMS_READBACK_SIZE 204u /* fixed part of the payload */
 size_t ib_msg_params_readback_pack(const ib_msg_params_readback_t *v, uint8_t *out);
 void ib_msg_params_readback_unpack(const uint8_t *in, ib_msg_params_readback_t *v);
 
 /* Counters since boot (or the last reset); sent on get_stats and once a second while streaming (request_id 0). */
 typedef struct {
     uint16_t request_id;
-    uint16_t reserved;
+    uint16_t reserved; /* 0 (anything else is refused) */
     uint32_t frames_sent; /* [frames] */
     uint32_t frames_dropped; /* [frames] frames not sent because the link was full */
     uint32_t samples_produced; /* [samples] */
@@ -393,7 +400,7 @@ typedef struct {
     uint8_t sensor;
     uint8_t kind;
     uint8_t active; /* 1 = the fault appeared, 0 = it cleared */
-    uint8_t reserved;
+    uint8_t reserved; /* 0 (anything else is refused) */
     uint32_t detail;
 } ib_msg_fault_event_t;
 
@@ -408,7 +415,7 @@ typedef struct {
     uint8_t tested; /* bit per sensor enum value: 1 = present and tested */
     int32_t accel_delta_counts[3]; /* [counts] self-test response X/Y/Z */
     uint8_t gyro_chk_faults[3]; /* fault byte seen during CHK (all 7 bits expected) */
-    uint8_t reserved;
+    uint8_t reserved; /* 0 (anything else is refused) */
 } ib_msg_self_test_result_t;
 
 #define IB_MSG_SELF_TEST_RESULT_SIZE 20u /* fixed part of the payload */

@@ -58,6 +58,16 @@ static inline float ib_get_f32(const uint8_t *p)
     return v;
 }
 
+/* The step from device time `prev` to `now` (both u32 microseconds that wrap every 2^32 us):
+ * (now - prev) mod 2^32 taken in [-2^31, 2^31), so a step of exactly 2^31 us is -2^31, a step
+ * back, on both sides (protocol/SPEC.md, Header fields; the host's wire.decoder.time_step_us).
+ * Written without converting an out-of-range unsigned value to int32_t (implementation-defined). */
+static inline int32_t ib_time_step_us(uint32_t now, uint32_t prev)
+{
+    uint32_t d = now - prev;
+    return d < 0x80000000u ? (int32_t)d : -(int32_t)(0xFFFFFFFFu - d) - 1;
+}
+
 /* Sign-extend the low `width` bits of `raw` (1..32). */
 static inline int32_t ib_sign_extend(uint32_t raw, unsigned width)
 {

@@ -59,6 +59,7 @@ static const ib_desc_field_t ib_msg_set_params_desc[] = {
     {"params.gyro_t_ref_c", 'f', offsetof(ib_msg_set_params_t, params.gyro_t_ref_c), 1, 4},
     {"params.cal_time_unix_s", 'u', offsetof(ib_msg_set_params_t, params.cal_time_unix_s), 1, 4},
     {"params.cal_id", 'u', offsetof(ib_msg_set_params_t, params.cal_id), 1, 4},
+    {"params.gyro_g_rad_s_per_mps2", 'f', offsetof(ib_msg_set_params_t, params.gyro_g_rad_s_per_mps2), 9, 4},
     {NULL, 0, 0, 0, 0}
 };
 
@@ -139,6 +140,7 @@ static const ib_desc_field_t ib_msg_params_readback_desc[] = {
     {"params.gyro_t_ref_c", 'f', offsetof(ib_msg_params_readback_t, params.gyro_t_ref_c), 1, 4},
     {"params.cal_time_unix_s", 'u', offsetof(ib_msg_params_readback_t, params.cal_time_unix_s), 1, 4},
     {"params.cal_id", 'u', offsetof(ib_msg_params_readback_t, params.cal_id), 1, 4},
+    {"params.gyro_g_rad_s_per_mps2", 'f', offsetof(ib_msg_params_readback_t, params.gyro_g_rad_s_per_mps2), 9, 4},
     {NULL, 0, 0, 0, 0}
 };
 

@@ -7,6 +7,7 @@
  *          "r I PATH V..." per record field, then "end"
  *   encode NAME SEQ TS NREC   followed by "f PATH V..." / "r I PATH V..." lines, then "end"
  *       -> "hex HEX" (the whole frame with its 0x00) or "err REASON"
+ *   step NOW PREV   (u32 device times) -> "step N": ib_time_step_us, the signed step
  * Values: integers in decimal, floats as %.9g (exact for float32), char arrays as hex.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -17,6 +18,7 @@
 
 #include "frame.h"
 #include "protocol_desc_gen.h"
+#include "wire.h"
 
 #define MAX_LINE 4096
 
@@ -245,6 +247,13 @@ int main(void)
             do_decode(line + 7);
         } else if (strncmp(line, "encode ", 7) == 0) {
             do_encode(line + 7);
+        } else if (strncmp(line, "step ", 5) == 0) {
+            unsigned long now = 0, prev = 0;
+            if (sscanf(line + 5, "%lu %lu", &now, &prev) == 2) {
+                printf("step %ld\n", (long)ib_time_step_us((uint32_t)now, (uint32_t)prev));
+            } else {
+                printf("err usage\n");
+            }
         } else if (line[0]) {
             printf("err usage\n");
         }

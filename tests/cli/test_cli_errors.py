@@ -144,8 +144,8 @@ CASES = (
        ("closure", ["--analyse", "{closure}"], 1, ["closure.json", "damaged"]),
        ("param-page", ["--layout", "f103", "--params", "{png}", "-o", "{tmp}/page.bin"], 1, ["not JSON"]),
        ("param-page", ["--layout", "f103", "--params", "{capture}", "-o", "{tmp}/page.bin"], 1, ["not JSON"])]
-    # a full disk
-    + [("decode", ["{capture}", "--csv", "{full}"], 1, ["no space left"])]
+    # a device as an output (it was the way to a full disk): outputs are regular files only
+    + [("decode", ["{capture}", "--csv", "{full}"], 1, ["/dev/full is a character device, not a regular file"])]
     # not a command at all
     + [("calibrat", [], 2, ["invalid choice: 'calibrat'"])]
 )

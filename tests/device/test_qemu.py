@@ -381,7 +381,7 @@ int main(int argc, char **argv)
         FILE *f = fopen(argv[4], "rb"); if (!f) return 2;
         size_t got = fread(mem, 1, 2 * slot_size, f); fclose(f); (void)got;
         uint8_t pay[4096];
-        ib_ps_status_t st = ib_ps_load(&fl, 1, pay, sizeof pay, &info);
+        ib_ps_status_t st = ib_ps_load(&fl, PV, pay, sizeof pay, &info);
         printf("status=%d slot=%d gen=%u pv=%u len=%u cleared=%d",
                (int)st, info.slot, (unsigned)info.generation, (unsigned)info.payload_version,
                (unsigned)info.payload_len, (int)info.cleared);
@@ -401,7 +401,7 @@ int main(int argc, char **argv)
         uint8_t pay[4096];
         FILE *f = fopen(argv[4], "rb"); if (!f) return 2;
         size_t n = fread(pay, 1, sizeof pay, f); fclose(f);
-        st = ib_ps_save(&fl, 1, pay, n, &info);
+        st = ib_ps_save(&fl, PV, pay, n, &info);
         out = argv[5];
     } else {
         st = ib_ps_clear(&fl, &info);
@@ -421,7 +421,8 @@ def checker(tmp_path_factory) -> Path:
     src = d / "ps_checker.c"
     src.write_text(CHECKER_C)
     exe = d / "ps_checker"
-    r = subprocess.run(["gcc", "-std=c11", "-O1", "-Wall", "-Wextra", "-Werror", "-I", str(ROOT / "firmware/core"),
+    r = subprocess.run(["gcc", "-std=c11", "-O1", "-Wall", "-Wextra", "-Werror", f"-DPV={PS.PARAM_BLOCK_VERSION}u",
+                        "-I", str(ROOT / "firmware/core"),
                         str(src), str(ROOT / "firmware/core/param_store.c"), str(ROOT / "firmware/core/crc32c.c"),
                         "-o", str(exe)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
@@ -486,8 +487,8 @@ def test_paramstore_crc_salt_rule(checker, tmp_path, bad_crc):
     """A payload whose salt-0 CRC is 0xFFFFFFFF or 0 must be written with salt 1, by both."""
     pu, slot_size = 4, 1024
     p0 = PS.params_payload(sample_params(2))
-    hdr0 = PS.HEADER.pack(PS.MAGIC, PS.FORMAT, 1, 1, len(p0), 0, 0)
-    payload = p0[:-4] + crc_forge(hdr0 + p0[:-4], bad_crc)    # cal_id chosen to hit the bad CRC
+    hdr0 = PS.HEADER.pack(PS.MAGIC, PS.FORMAT, PS.PARAM_BLOCK_VERSION, 1, len(p0), 0, 0)
+    payload = p0[:-4] + crc_forge(hdr0 + p0[:-4], bad_crc)    # the last 4 bytes chosen to hit the bad CRC
     assert PS.crc32c(hdr0 + payload) == bad_crc
     rec = PS.build_record(payload, generation=1, program_unit=pu)
     assert rec[15] == 1                                        # crc_salt

@@ -19,6 +19,7 @@ F32 = np.float32
 ACCEL_M, ACCEL_B, GYRO_M, GYRO_B = range(0, 9), range(9, 12), range(12, 21), range(21, 24)
 A_BTC, A_STC, G_BTC, G_STC = range(24, 27), range(27, 30), range(30, 33), range(33, 36)
 T_REF = (36, 37)
+GYRO_G = range(40, 49)          # layout 2: after cal_time_unix_s and cal_id
 
 
 @pytest.fixture(scope="module")
@@ -118,6 +119,11 @@ def _blocks() -> list[list]:
                 v[slot] = float(rng.uniform(-1.02, 1.02) * LIMITS[lim]) if rng.random() < 0.3 else 0.0
         for slot in T_REF:
             v[slot] = float(rng.uniform(-45, 130)) if rng.random() < 0.2 else 25.0
+        for slot in GYRO_G:
+            lim = LIMITS["gyro_g_max_rad_s_per_mps2"]
+            v[slot] = float(rng.uniform(-1.02, 1.02) * lim) if rng.random() < 0.1 else 0.0
+            if rng.random() < 0.002:
+                v[slot] = float(rng.choice([float("nan"), float("inf"), lim, -lim]))
         if rng.random() < 0.1:                        # some exactly at a limit
             slot = int(rng.integers(0, 38))
             v[slot] = float(rng.choice([1, -1])) * float(rng.choice(list(LIMITS_F32.values())))
@@ -138,7 +144,8 @@ def _wire(values: list) -> bytes:
     float32 range: ±inf, which is what a device would be sent)."""
     with np.errstate(all="ignore"):
         floats = np.array(values[:38], dtype=np.float64).astype(np.float32)
-    return floats.astype("<f4").tobytes() + struct.pack("<II", *values[38:])
+        g = np.array(values[40:49], dtype=np.float64).astype(np.float32)
+    return floats.astype("<f4").tobytes() + struct.pack("<II", *values[38:40]) + g.astype("<f4").tobytes()
 
 
 def test_host_and_device_give_the_same_code_for_every_block(harness):

@@ -5,6 +5,7 @@ the command line end to end and the guided session's known-angle turn step."""
 from __future__ import annotations
 
 import json
+import re
 import sqlite3
 import subprocess
 import sys
@@ -14,7 +15,6 @@ import numpy as np
 import pytest
 
 from imu_synth import G0, ferraris_session, write_csv
-from imubench.calib import NotObservable
 from imubench.procedures.from_file import FileAnalysis, FileConfig
 from imubench.recordings import RecordingError, from_arrays, read
 from imubench.results import paramfiles
@@ -56,7 +56,8 @@ def test_csv_by_common_names_with_time_in_ms(session, tmp_path):
     assert sorted(set(fa.faces)) == ["+X", "+Y", "+Z", "-X", "-Y", "-Z"]
     # a better declared hand (a stop to turn against) gives smaller sigmas, in proportion
     fa2, _ = _analyse(rec, angle_sigma_deg=0.25)
-    assert np.allclose(np.diag(fa2.gyro.sigma_m) / np.diag(fa.gyro.sigma_m), 0.25, rtol=0.05)
+    sig = [np.diag(np.array(f.gyro_parts["fits"]["turns"]["sigma_m"])) for f in (fa, fa2)]
+    assert np.allclose(sig[1] / sig[0], 0.25, rtol=0.05)
 
 
 def test_csv_columns_mapped_by_option_and_by_profile(session, tmp_path):
@@ -222,9 +223,18 @@ def test_implausible_units_are_refused_with_the_numbers(session):
     rec = from_arrays(ua, np.degrees(ug), rate_hz=FS, accel_unit_name="g", gyro_unit_name="dps")
     with pytest.raises(RecordingError, match=r"implausible.*9\.8.*g, far from 1 g.*declare --accel-unit mps2"):
         _analyse(rec)
+    # a gyro unit that only looks wrong: used, with a warning and its numbers; the accelerometer result stands
     rec = from_arrays(ua, np.degrees(ug), rate_hz=FS, accel_unit_name="mps2", gyro_unit_name="rad_s")
-    with pytest.raises(RecordingError, match=r"gyro unit.*implausible.*--gyro-unit dps"):
-        _analyse(rec)
+    fa, res = _analyse(rec)
+    assert any("declared gyro unit (rad/s) is doubtful" in n and "°/s" in n and "the declared unit is used" in n
+               for n in res["notes"])
+    assert res["passed"] and res["gyro_refused"] and res["verdict"].startswith("accelerometer calibrated")
+    assert "gyro not:" in res["verdict"]
+    # rates at rest no MEMS gyro's bias reaches leave no doubt: the gyro is refused, the accelerometer kept
+    rec = from_arrays(ua, np.degrees(ug) + 3.0, rate_hz=FS, accel_unit_name="mps2", gyro_unit_name="rad_s")
+    fa, res = _analyse(rec)
+    assert "the unit is wrong" in res["gyro_refused"] and "--gyro-unit dps" in res["gyro_refused"]
+    assert res["gyro"] is None and res["passed"] and res["accel"]["m"]
 
 
 # ------------------------------------------------------------------ timing
@@ -238,8 +248,10 @@ def test_gap_inside_a_turn_makes_it_unusable_with_the_reason(session):
     rec = from_arrays(ua[keep], ug[keep], t_s=t[keep])
     assert rec.timing["gaps"][0]["missing"] == 20
     fa = FileAnalysis(rec, FileConfig(gyro="turns"), say=lambda s: None)
-    with pytest.raises(NotObservable, match=r"turn about \+X.*not continuous inside the turn"):
-        fa.run()
+    res = fa.run()            # the gyro's turns are refused; the accelerometer's result is kept
+    assert re.search(r"turn about \+X.*not continuous inside the turn", res["gyro_refused"])
+    assert res["gyro"]["method"] == "bias" and res["passed"]
+    assert res["verdict"].startswith("accelerometer calibrated") and "gyro not: known-angle turns" in res["verdict"]
     # the same gap inside a rest changes nothing that matters
     rest = [e for e in events if e[0] == "rest"][1]
     keep = np.ones(len(ua), bool)
@@ -326,7 +338,7 @@ def test_cli_end_to_end(session, tmp_path):
     assert "method: six-position (the multi-position fit cannot be used: too few poses: 12 given, 6 distinct" in out
     assert json.loads((tmp_path / "out" / "session.json").read_text())["config"]["method"] == "six"
     assert "turn about +X" in out and "turn about +Y" in out and "turn about +Z" in out
-    assert "gyro (turns):" in out and "three turns determine M exactly" in out
+    assert "gyro (turns+rotation):" in out and "known-angle turns and the rotation method combined (consistent" in out
     assert "recorded in the history as run 1" in out
     assert lines[-1] == "calibration PASSED (fitted from a file; nothing is written to a device)"
     d = tmp_path / "out"
@@ -410,3 +422,56 @@ def test_guided_session_known_angle_turns_on_the_virtual_bench(tmp_path):
     a_true = np.asarray(truth["accel"]["m"])
     sig_session = np.asarray(result["accel"]["sigma_m"])
     assert np.abs(fa.accel.m - a_true).max() < 4 * sig_session.max()
+
+
+# ------------------------------------------------------------------ issue 26: other people's recordings
+def test_headerless_table_read_by_position(session, tmp_path):
+    """A log of six numbers a line and no header (mikoff/imu-calib's .log): read by position,
+    found as csv from its content whatever its extension, and said so."""
+    ua, ug, truth, _ = session
+    p = tmp_path / "imu0.log"
+    np.savetxt(p, np.column_stack([ua, ug]), fmt="%.6f", delimiter=" ")
+    rec = read(p, rate_hz=FS, accel_unit="mps2", gyro_unit="rad_s")
+    assert rec.fmt == "csv" and np.allclose(rec.accel, ua, atol=1e-6) and np.allclose(rec.gyro, ug, atol=1e-6)
+    assert any("no header row: 6 columns read as ax ay az gx gy gz" in n for n in rec.notes)
+    # the columns in another order, by 1-based position
+    q = tmp_path / "swapped.txt"
+    np.savetxt(q, np.column_stack([ug, ua]), fmt="%.6f")
+    rec2 = read(q, rate_hz=FS, accel_unit="mps2", gyro_unit="rad_s",
+                columns={"gx": "1", "gy": "2", "gz": "3", "ax": "4", "ay": "5", "az": "6"})
+    assert np.allclose(rec2.accel, ua, atol=1e-6)
+    with pytest.raises(RecordingError, match="no header row: map the columns by position"):
+        read(q, rate_hz=FS, accel_unit="mps2", gyro_unit="rad_s", columns={"ax": "AccX"})
+
+
+def test_explicit_gyro_method_refused_keeps_the_accelerometer_and_exits_1(session, tmp_path):
+    """--gyro rotation on a recording whose motions cannot give it: the accelerometer's result is
+    printed, kept in session.json and the history, exported; the verdict says why; exit 1."""
+    ua, ug, _, events = session
+    rests = [e for e in events if e[0] == "rest"]
+    cut = rests[5][2]                         # the six faces: five motions, fewer than the method needs
+    p = write_csv(tmp_path / "short.csv", ua[:cut] / G0, np.degrees(ug[:cut]), FS)
+    db = tmp_path / "h.sqlite"
+    r = _cli(["--from", str(p), "--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "rotation", "--method", "six",
+              "--dir", "out", "--db", str(db), "--export", "imucal"], tmp_path)
+    if "not enough still poses" in r.stderr:
+        pytest.fail("the synthetic session's first rests are not six faces: " + r.stderr)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "Traceback" not in r.stdout + r.stderr
+    assert "verdict: accelerometer calibrated" in r.stdout and "gyro not: rotation_method:" in r.stdout
+    assert "calibration PARTIAL" in r.stdout
+    assert "--gyro rotation was refused" in r.stderr and "the accelerometer result is kept" in r.stderr
+    state = json.loads((tmp_path / "out" / "session.json").read_text())
+    assert state["result"]["accel"]["m"] and state["result"]["gyro_refused"].startswith("rotation_method:")
+    assert list((tmp_path / "out").glob("*.imucal.json"))
+    with sqlite3.connect(db) as con:
+        assert con.execute("SELECT count(*) FROM runs").fetchone()[0] == 1
+
+
+def test_live_six_with_rotation_is_refused_before_capture(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--sim", "--method", "six", "--gyro",
+                        "rotation", "--dir", "s", "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=60, stdin=subprocess.DEVNULL)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "6 attitudes give 5 motion(s)" in r.stderr and "nothing was captured" in r.stderr
+    assert not (tmp_path / "s").exists()

@@ -113,6 +113,8 @@ def test_station_options_are_checked_with_one_line_each():
     with pytest.raises(StationError, match="start the station with --sim"):
         s.options({"port": "sim"})
     assert s.options({"port": "/dev/ttyUSB0"})["method"] == "multi"     # multi is the default
+    with pytest.raises(StationError, match="6 attitudes give 5 motion.*rotation method needs at least 6"):
+        s.options({"port": "/dev/ttyUSB0", "method": "six", "gyro": "rotation"})     # refused before capture
 
 
 def test_station_server_answers_bad_requests_in_one_line(tmp_path):

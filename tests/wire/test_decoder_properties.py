@@ -112,7 +112,7 @@ def _struct_values(fmt: str, rnd: random.Random, style: str) -> tuple:
 
 def _valid_values(cls, values: tuple) -> tuple:
     """The values with every field that breaks its rule in the definition (VALUE_RULES: enum,
-    values, min, flags) set to an allowed one, so that the frame is valid."""
+    values, min, max, flags) set to an allowed one, so that the frame is valid."""
     vals = list(values)
     mtype = P.MESSAGES_BY_NAME[P.message_name(cls())].id
     for slot, n, _path, kind, arg in G.VALUE_RULES.get(mtype, ()):
@@ -120,6 +120,8 @@ def _valid_values(cls, values: tuple) -> tuple:
             if kind == "enum" and vals[k] not in arg:
                 vals[k] = sorted(arg)[vals[k] % len(arg)]
             elif kind == "min" and vals[k] < arg:
+                vals[k] = arg
+            elif kind == "max" and vals[k] > arg:
                 vals[k] = arg
             elif kind == "flags":
                 vals[k] &= arg
@@ -181,7 +183,7 @@ def _make_item(kind, msg, seq, t_true, records=None) -> Item:
 
 
 @st.composite
-def streams(draw, min_size=0, max_size=24, kinds=("msg", "raw", "cal"), min_count=0,
+def streams(draw, min_size=0, max_size=24, kinds=("msg", "raw", "cal"), min_count=1,
             device_drops=False, wrap=False):
     """Consecutive seq numbers (from a random start, so they may wrap at 2^16), one
     consecutive sample_index run per batch kind, non-decreasing timestamps.
@@ -469,8 +471,8 @@ def reference_stats(data: bytes, frames, rejected) -> tuple[dict, dict]:
                 exp["frames_missing"] += ahead - 1
         if not replay:
             last = f.seq
-            if f.timestamp_us - ts_last < -(1 << 31):
-                off += U32
+            d = (f.timestamp_us - ts_last) % U32            # SPEC.md: the step mod 2^32, in [-2^31, 2^31)
+            off = ts_last + off + (d - U32 if d >= (1 << 31) else d) - f.timestamp_us
             ts_last = f.timestamp_us
         t = f.timestamp_us + off
         if f.type not in streams:

@@ -109,10 +109,11 @@ def test_backward_timestamp_is_counted_and_not_delivered():
 
 
 def test_empty_batch_with_huge_index_is_rejected_not_four_billion_missing():
-    """Before: one empty batch with sample_index near 2^32 added ~4e9 missing samples."""
+    """Before: one empty batch with sample_index near 2^32 added ~4e9 missing samples. Now an
+    empty batch is refused by its field rule (count ≥ 1: out_of_range) before the stream sees it."""
     data = raw_batch(1, 0) + raw_batch(2, 0xFFFF_FF00, n=0, ts=1000 + 16 * PERIOD_US) + raw_batch(3, 16)
     _, raw, _, s = decode_bytes(data)
-    assert s.samples_missing == 0 and s.batches_index_jump == 1
+    assert s.samples_missing == 0 and s.out_of_range == 1 and s.seq_gaps == 1
     assert list(raw.sample_index) == list(range(32))
 
 

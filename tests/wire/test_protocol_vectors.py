@@ -169,10 +169,10 @@ def test_worked_example_of_the_spec():
     """protocol/SPEC.md works one ping frame out by hand; the codec must agree."""
     from imubench.wire.protocol_gen import Ping
     assert P.encode(Ping(nonce=0x12345678), seq=7, timestamp_us=99).hex(" ") == \
-        "04 02 01 07 02 63 01 01 09 78 56 34 12 93 1a b9 93 00"
+        "04 03 01 07 02 63 01 01 09 78 56 34 12 a3 ce c8 a2 00"
     assert P.crc32c(bytes.fromhex("020107006300000078563412")) == 0x93B91A93
     spec = (ROOT / "protocol" / "SPEC.md").read_text()
-    assert "04 02 01 07 02 63 01 01 09 78 56 34 12 93 1a b9 93 00" in spec
+    assert "04 03 01 07 02 63 01 01 09 78 56 34 12 a3 ce c8 a2 00" in spec
     assert P.crc32c(b"123456789") == 0xE3069283
 
 
@@ -195,3 +195,15 @@ def test_link_budget_frame_sizes_of_the_spec():
     assert "| raw | 16 | 260 | 16.25 |" in spec and "| calibrated | 8 | 236 | 29.5 |" in spec
     load_4k_921600 = 260 * 250 * 10 / 921600
     assert f"**{load_4k_921600:.1%}**".replace("%", " %") in spec
+
+
+# ---------------------------------------------------------------------- time steps (SPEC.md, Header fields)
+def test_time_steps_are_the_same_on_both_sides(c_harness):
+    """The signed step between two u32 device times, exactly 2^31 included (a step back), from
+    the Python decoder and the C helper ib_time_step_us, against the shared vectors."""
+    from imubench.wire.decoder import time_step_us
+    steps = DOC["time_steps"]
+    assert any(s["step_us"] == -(1 << 31) for s in steps)                 # the boundary is in the set
+    assert [time_step_us(s["now"], s["prev"]) for s in steps] == [s["step_us"] for s in steps]
+    lines = _run_harness(c_harness, "".join(f"step {s['now']} {s['prev']}\n" for s in steps))
+    assert lines == [f"step {s['step_us']}" for s in steps]

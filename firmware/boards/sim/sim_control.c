@@ -28,7 +28,7 @@
  *   wait_idle         {temperature: bool (also wait for a ramp to end; default false)}
  *   set_truth         {accel: {m: 3x3 | 9, bias_mps2, noise_n, rw_k, bias_tc, scale_tc,
  *                      st_force_g}, gyro: [{sens: [3], bias_rad_s, noise_n, bias_rw_k,
- *                      bias_tempco_rad_s_per_c, scale_tempco_per_c} | null, x3] or
+ *                      bias_tempco_rad_s_per_c, scale_tempco_per_c, gsens_rad_s_per_mps2} | null, x3] or
  *                      {x: {...}, y: ..., z: ...}}  partial updates; accel vectors may be
  *                      given as one number for all three axes
  *   randomize_truth   {seed (default: the process seed)}
@@ -769,11 +769,16 @@ static int parse_gyro_truth(req_t *q, int n, sim_adxrs450_truth_t *t, const char
     if (d->nodes[n].type != SJ_OBJ) {
         return fail("%s must be an object or null", who);
     }
-    if (check_keys(q, n, "sens,bias_rad_s,noise_n,bias_rw_k,bias_tempco_rad_s_per_c,scale_tempco_per_c") != 0) {
+    if (check_keys(q, n, "sens,bias_rad_s,noise_n,bias_rw_k,bias_tempco_rad_s_per_c,scale_tempco_per_c,"
+                         "gsens_rad_s_per_mps2") != 0) {
         return -1;
     }
     int k;
     if ((k = sj_get(d, n, "sens")) >= 0 && node_vec(d, k, "sens", t->sens, 3, 0) != 0) {
+        return -1;
+    }
+    if ((k = sj_get(d, n, "gsens_rad_s_per_mps2")) >= 0 &&
+        node_vec(d, k, "gsens_rad_s_per_mps2", t->gsens_rad_s_per_mps2, 3, 0) != 0) {
         return -1;
     }
     static const char *names[] = {"bias_rad_s", "noise_n", "bias_rw_k", "bias_tempco_rad_s_per_c",
@@ -920,6 +925,7 @@ static int cmd_get_truth(req_t *q)
         put_num(r, "bias_rw_k", t->bias_rw_k);
         put_num(r, "bias_tempco_rad_s_per_c", t->bias_tempco_rad_s_per_c);
         put_num(r, "scale_tempco_per_c", t->scale_tempco_per_c);
+        put_vec(r, "gsens_rad_s_per_mps2", t->gsens_rad_s_per_mps2, 3);
         put_num(r, "true_bias_rad_s", sim_adxrs450_true_bias_rad_s(m));
         put_num(r, "rw_bias_rad_s", m->bias_rw_rad_s);
         put_u64(r, "serial", m->serial);

@@ -53,6 +53,8 @@ sim_t g_sim;
 
 static volatile sig_atomic_t g_signal;
 static pid_t g_parent; /* 0: do not watch */
+static int g_parent_gone;
+static const char *g_orphan_dir; /* --orphan-cleanup DIR: the host's folder, removed if it dies */
 
 #define MAX_LAG_WALL_US 200000.0 /* CPU behind by more than this (wall) -> slip the anchor */
 #define IDLE_POLL_MS 20
@@ -239,7 +241,7 @@ static void usage(FILE *f)
     fprintf(f,
             "usage: imubench-sim [--pty] [--tcp PORT] [--control PORT] [--flash FILE]\n"
             "                    [--speed X] [--seed N] [--truth default|random] [--baud B]\n"
-            "                    [--uid HEX24]\n"
+            "                    [--uid HEX24] [--orphan-cleanup DIR]\n"
             "  --pty          expose the device's serial port on a new pseudo-terminal\n"
             "  --tcp PORT     ... and/or on TCP 127.0.0.1:PORT (0 = free port; the default\n"
             "                 when neither --pty nor --tcp is given)\n"
@@ -249,7 +251,10 @@ static void usage(FILE *f)
             "  --seed N       seed of the sensor models (default 1)\n"
             "  --truth T      default | random (the sensors' errors drawn from the seed)\n"
             "  --baud B       link speed that drains the TX buffer (default 2000000)\n"
-            "  --uid HEX24    MCU unique id, 12 bytes in hex (default: from the seed)\n");
+            "  --uid HEX24    MCU unique id, 12 bytes in hex (default: from the seed)\n"
+            "  --orphan-cleanup DIR  when the parent process dies (a host killed with\n"
+            "                 SIGKILL cannot clean up), remove DIR's flash.bin, sim.log and\n"
+            "                 owner.json and then DIR itself (the host's temporary folder)\n");
 }
 
 static int parse_u64(const char *s, uint64_t *out)
@@ -360,6 +365,7 @@ static void main_loop(void)
             last_parent_check = now;
             if (getppid() != g_parent) {
                 sim_log("parent process %ld is gone: exiting", (long)g_parent);
+                g_parent_gone = 1;
                 break;
             }
         }
@@ -502,6 +508,16 @@ static void cleanup_tmp(void)
     if (g_tmpdir[0]) {
         rmdir(g_tmpdir);
     }
+    if (g_orphan_dir && g_parent_gone) {
+        /* only the files the host puts there: a folder holding anything else stays */
+        static const char *const names[] = {"flash.bin", "sim.log", "owner.json"};
+        char p[1024];
+        for (size_t k = 0; k < sizeof names / sizeof names[0]; k++) {
+            snprintf(p, sizeof p, "%s/%s", g_orphan_dir, names[k]);
+            unlink(p);
+        }
+        rmdir(g_orphan_dir);
+    }
 }
 
 int main(int argc, char **argv)
@@ -548,6 +564,8 @@ int main(int argc, char **argv)
             s->baud = (uint32_t)v;
         } else if (!strcmp(a, "--uid") && parse_uid(val, uid) == 0) {
             have_uid = 1;
+        } else if (!strcmp(a, "--orphan-cleanup")) {
+            g_orphan_dir = val;
         } else {
             fprintf(stderr, "imubench-sim: bad option or value: %s %s\n", a, val);
             usage(stderr);

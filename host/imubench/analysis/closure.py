@@ -33,7 +33,8 @@ def corrected(block: SampleBlock, params: Params) -> tuple[np.ndarray, np.ndarra
     the device applies them (imubench.wire.params.correct, per-sample sensor temperatures)."""
     acc, gyr = block.si()
     ta, tg = _temperatures(block)
-    return PR.correct(PR.accel(params), acc, ta), PR.correct(PR.gyro(params), gyr, tg)
+    a = PR.correct(PR.accel(params), acc, ta)
+    return a, PR.correct(PR.gyro(params), gyr, tg, accel_mps2=a)     # the gyro's G·a, as the device
 
 
 def closure_from_block(block: SampleBlock, params: Params, rest_s: float = 2.0, g_mps2: float = G0,

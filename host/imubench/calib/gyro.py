@@ -31,9 +31,21 @@ import math
 from typing import NamedTuple, Sequence
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import stats
 
 from imubench.calib import CalibrationError, NotObservable, TriadFit
+from imubench.calib.rotint import (  # noqa: F401 - the integration kernels, used here and by rotation_model
+    _qmul,
+    _quat_chain,
+    _quat_matrix,
+    _quat_matrix_cf,
+    _quat_prefix,
+    _rotate,
+    _rotvec_quat,
+    _skew_rows,
+    _step_vectors,
+    _tangent_basis,
+)
 
 __all__ = [
     "TurntableSegment",
@@ -109,135 +121,6 @@ def _mean_uncertainty(y: np.ndarray, min_cluster: int = 1, rrw2: np.ndarray | No
         np.sqrt(n2 / half + n2 / (n - half)), 1e-300)
     out.update(sigma=np.maximum(np.sqrt(var), white), n2=n2, drift_z=dz, method="allan")
     return out
-
-
-def _rotvec_quat(phi: np.ndarray) -> np.ndarray:
-    """Unit quaternions (4, ...) = (w, x, y, z) of rotation vectors given component-first,
-    phi (3, ...)."""
-    half = 0.5 * np.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-    s = 0.5 * np.sinc(half * (1.0 / math.pi))          # sin(θ/2)/θ, smooth at 0
-    q = np.empty((4,) + phi.shape[1:])
-    q[0] = np.cos(half)
-    np.multiply(phi, s, out=q[1:])
-    return q
-
-
-def _quat_chain(q: np.ndarray) -> np.ndarray:
-    """Ordered Hamilton product q₀⊗q₁⊗…⊗q_{L-1} along the last axis of q (4, ..., L)."""
-    while q.shape[-1] > 1:
-        if q.shape[-1] % 2:
-            pad = np.zeros(q.shape[:-1] + (1,))
-            pad[0] = 1.0
-            q = np.concatenate([q, pad], axis=-1)
-        a0, a1, a2, a3 = q[..., 0::2]
-        b0, b1, b2, b3 = q[..., 1::2]
-        out = np.empty(q.shape[:-1] + (q.shape[-1] // 2,))
-        out[0] = a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3
-        out[1] = a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2
-        out[2] = a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1
-        out[3] = a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0
-        q = out
-    return q[..., 0]
-
-
-def _qmul(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Hamilton product of quaternion arrays (4, ...), broadcasting; into out if given."""
-    a0, a1, a2, a3 = a
-    b0, b1, b2, b3 = b
-    if out is None:
-        out = np.empty((4,) + np.broadcast_shapes(a0.shape, b0.shape))
-    r0 = a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3
-    r1 = a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2
-    r2 = a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1
-    out[3] = a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0
-    out[0], out[1], out[2] = r0, r1, r2
-    return out
-
-
-def _quat_prefix(q: np.ndarray) -> np.ndarray:
-    """Inclusive prefix products q₀⊗…⊗q_k along the last axis of q (4, J, n), by blocks of
-    about √n (two short sequential passes of vectorised products)."""
-    n = q.shape[-1]
-    bl = max(1, int(math.ceil(math.sqrt(n))))
-    nb = -(-n // bl)
-    pad = nb * bl - n
-    if pad:
-        ident = np.zeros(q.shape[:-1] + (pad,))
-        ident[0] = 1.0
-        q = np.concatenate([q, ident], axis=-1)
-    qb = np.ascontiguousarray(np.moveaxis(q.reshape(q.shape[:-1] + (nb, bl)), -1, 1))  # (4, bl, ..., nb)
-    for i in range(1, bl):                       # within each block
-        _qmul(qb[:, i - 1], qb[:, i], out=qb[:, i])
-    carry = np.empty(qb[:, 0].shape)             # (4, ..., nb): product of all earlier blocks
-    carry[..., 0] = 0.0
-    carry[0, ..., 0] = 1.0
-    for j in range(1, nb):
-        _qmul(carry[..., j - 1], qb[:, -1, ..., j - 1], out=carry[..., j])
-    out = _qmul(carry[:, None], qb)              # (4, bl, ..., nb)
-    return np.moveaxis(out, 1, -1).reshape(q.shape)[..., :n]
-
-
-def _quat_matrix_cf(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices component-first (3, 3, ...) of unit quaternions (4, ...)."""
-    w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of quaternions (4, ...) (normalised here)."""
-    q = q / np.sqrt(np.sum(q * q, axis=0))
-    w, x, y, z = q
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
-
-
-def _step_vectors(x: np.ndarray, h: float, lens: np.ndarray | None = None,
-                  step_mask: np.ndarray | None = None, coning: bool = True) -> np.ndarray:
-    """Rotation vector of each step between consecutive samples; component-first: x (3, ..., L)
-    → (3, ..., L-1).
-
-    The rate is taken as a smooth signal sampled at the sample instants: the integral over a
-    step uses cubic interpolation through the four nearest samples, h·(−x₋₁ + 13x₀ + 13x₁ −
-    x₂)/24 (one-sided quadratic, h·(5x₀ + 8x₁ − x₂)/12, at the first and last step), plus the
-    second Magnus (coning) term h²/12·x₀ × x₁; the local error is O(h⁵). Constant rates are
-    integrated exactly. lens: for x (3, J, L) holding J padded runs, the number of valid
-    samples of each run; step_mask (J, L-1) zeroes the steps beyond a run's end.
-    """
-    L = x.shape[-1]
-    x0, x1 = x[..., :-1], x[..., 1:]
-    phi = x0 + x1
-    phi *= 0.5 * h
-    if L >= 4:
-        phi[..., 1:-1] += (h / 24.0) * ((x[..., 1:-2] + x[..., 2:-1]) - (x[..., :-3] + x[..., 3:]))
-    if L >= 3:
-        first = (h / 12.0) * (5.0 * x[..., 0] + 8.0 * x[..., 1] - x[..., 2])
-        if lens is None:
-            phi[..., 0] = first
-            phi[..., -1] = (h / 12.0) * (5.0 * x[..., -1] + 8.0 * x[..., -2] - x[..., -3])
-        else:
-            lens = np.asarray(lens)
-            rows = np.flatnonzero(lens >= 3)
-            last = lens[rows] - 1
-            phi[:, rows, 0] = first[:, rows]
-            phi[:, rows, last - 1] = (h / 12.0) * (5.0 * x[:, rows, last] + 8.0 * x[:, rows, last - 1]
-                                                   - x[:, rows, last - 2])
-    c = (h * h / 12.0) if coning else 0.0
-    phi[0] += c * (x0[1] * x1[2] - x0[2] * x1[1])
-    phi[1] += c * (x0[2] * x1[0] - x0[0] * x1[2])
-    phi[2] += c * (x0[0] * x1[1] - x0[1] * x1[0])
-    if step_mask is not None:
-        phi *= step_mask
-    return phi
-
-
-def _rotate(phi: np.ndarray) -> np.ndarray:
-    """Product of the step rotations exp([φ_k]×), phi component-first (3, ..., L) → (..., 3, 3)."""
-    return _quat_matrix(_quat_chain(_rotvec_quat(phi)))
 
 
 def integrate_rotation(rates, fs_hz: float) -> np.ndarray:
@@ -371,13 +254,16 @@ class TurntableSegment(NamedTuple):
     axis: the table's rotation axis in the board frame (normalised here);
     table_rate_rad_s: the table's rate about that axis (right-hand rule; negative = other way);
     sigma: optional 1-sigma uncertainty of this segment's MEAN reading, rad/s (scalar or per
-    axis); estimated from the data when None.
+    axis); estimated from the data when None. specific_force_g: optional, see below.
     """
 
     rates: np.ndarray
     axis: np.ndarray
     table_rate_rad_s: float
     sigma: float | np.ndarray | None = None
+    specific_force_g: np.ndarray | None = None   # (3,) the board's mean specific force in g during the
+                                                 # segment (calibrated accelerometer): with gsens=, the
+                                                 # bias predicted for it, G·f, is taken off the reading
 
 
 def _segments(segments) -> list[TurntableSegment]:
@@ -386,8 +272,9 @@ def _segments(segments) -> list[TurntableSegment]:
         if isinstance(s, dict):
             s = TurntableSegment(**s)
         s = tuple(s)
-        if len(s) not in (3, 4):
-            raise CalibrationError(f"segment {i}: expected (rates, axis, table_rate_rad_s[, sigma])")
+        if len(s) not in (3, 4, 5):
+            raise CalibrationError(f"segment {i}: expected (rates, axis, table_rate_rad_s[, sigma[, "
+                                   "specific_force_g]])")
         rates = _as_rates(s[0], f"segment {i} rates")
         if len(rates) < 2:
             raise CalibrationError(f"segment {i}: needs at least 2 samples")
@@ -402,7 +289,10 @@ def _segments(segments) -> list[TurntableSegment]:
             np.asarray(s[3], float), (3,)).copy()
         if sig is not None and not (np.all(np.isfinite(sig)) and np.all(sig > 0)):
             raise CalibrationError(f"segment {i}: sigma must be positive")
-        out.append(TurntableSegment(rates, ax, w, sig))
+        f = None if len(s) < 5 or s[4] is None else np.asarray(s[4], float).reshape(3)
+        if f is not None and not np.all(np.isfinite(f)):
+            raise CalibrationError(f"segment {i}: specific_force_g must be finite")
+        out.append(TurntableSegment(rates, ax, w, sig, f))
     return out
 
 
@@ -413,7 +303,37 @@ def _direction_coverage(vecs: np.ndarray, threshold: float) -> list[tuple[int, b
             for k in range(3)]
 
 
-def turntable(segments, bias: TriadFit | np.ndarray | None = None) -> TriadFit:
+def _check_turntable_design(design: np.ndarray, fix_b: bool) -> None:
+    """Refuse when the segments leave a parameter with no information (σ unbounded), naming it:
+    with b fitted, one rate per axis cannot separate scale from bias (two rates, or both ways, can)."""
+    dn = design / np.maximum(np.linalg.norm(design, axis=0), 1e-300)
+    _, sv, sv_vt = np.linalg.svd(dn, full_matrices=True)
+    if sv.size == design.shape[1] and sv[-1] >= 1e-6 * sv[0]:
+        return
+    v = sv_vt[-1]
+    if not fix_b and abs(v[3]) > 0.1:
+        ax = [_AXES[i] for i in range(3) if abs(v[i]) > 0.1]
+        raise NotObservable(
+            "turntable: the bias and the response to rotation about board " + ", ".join(ax) + " cannot be "
+            "separated (σ unbounded): every segment about that axis has the same rate. Add a segment the "
+            "other way (or at another rate), or pass bias= from a rest recording (gyro_bias)")
+    v = v[:3] / max(np.linalg.norm(v[:3]), 1e-300)
+    raise NotObservable(
+        "turntable: the segments' rate vectors do not span 3-D; nothing constrains the response to "
+        f"rotation along {np.round(v, 3).tolist()} (board frame; σ unbounded). Turn the board about three "
+        "independent axes")
+
+
+def _check_sigma_limit_m(method: str, m_cov: np.ndarray, max_sigma: float) -> None:
+    sig = np.sqrt(np.maximum(np.diag(m_cov), 0.0))
+    over = np.flatnonzero(~(sig <= max_sigma))
+    if over.size:
+        raise NotObservable(f"{method}: " + ", ".join(f"m{i // 3}{i % 3} σ {sig[i]:.3g}" for i in over)
+                            + f" above the limit {max_sigma:g}: add segments (longer, or at higher rates)")
+
+
+def turntable(segments, bias: TriadFit | np.ndarray | None = None, *, max_sigma: float = 0.01,
+              gsens=None) -> TriadFit:
     """M and b from turntable segments at known constant rates.
 
     segments: iterable of TurntableSegment or tuples (rates (n,3) rad/s, axis (3,) unit vector
@@ -425,13 +345,16 @@ def turntable(segments, bias: TriadFit | np.ndarray | None = None) -> TriadFit:
     bias: None → b is fitted with M; every board axis must then be turned both ways (the
     sum/difference of the two directions separates bias from scale). A TriadFit (e.g. from
     gyro_bias on a rest recording) → b is fixed to it and its uncertainty propagated into M;
-    a plain (3,) array → b fixed and taken as exact (its covariance NaN).
+    a plain (3,) array → b fixed and taken as exact (its covariance NaN). gsens: a g-sensitivity
+    (calib.gsens.GSensFit, or G (3, 3) in rad/s per g): each segment's reading is taken less G·f
+    (its specific_force_g), so b is then the bias at zero specific force.
 
     The covariance comes from the segment sigmas; it is scaled by the reduced chi-square when
     that is significantly above 1 (p < 0.01: unmodelled errors such as table-rate error or
     wobble), see extra["cov_scaled"]. residuals: per segment (S, 3), ū − (M·w + b), rad/s.
-    Raises NotObservable when an axis was turned only one way (b fitted) or the segments'
-    rate vectors do not span 3-D; CalibrationError when a segment's reading is far from its
+    Observability by the numbers: NotObservable when a parameter has no information (b fitted
+    and every segment about an axis at the same rate; rate vectors not spanning 3-D) or an
+    entry of M's 1σ exceeds max_sigma, naming it; CalibrationError when a segment's reading is far from its
     table rate (wrong axis or sign).
     """
     segs = _segments(segments)
@@ -440,6 +363,12 @@ def turntable(segments, bias: TriadFit | np.ndarray | None = None) -> TriadFit:
     S = len(segs)
     w = np.array([s.table_rate_rad_s * s.axis for s in segs])            # (S, 3) true rates
     ubar = np.array([s.rates.mean(axis=0) for s in segs])                 # (S, 3)
+    if gsens is not None:               # the g-sensitivity's share of each segment's bias, G·f
+        gm = np.asarray(gsens.g if hasattr(gsens, "g") else gsens, float).reshape(3, 3)
+        missing = [i for i, s in enumerate(segs) if s.specific_force_g is None]
+        if missing:
+            raise CalibrationError(f"turntable: gsens given but segment {missing[0]} has no specific_force_g")
+        ubar = ubar - np.array([gm @ s.specific_force_g for s in segs])
     sig = np.empty((S, 3))
     for i, s in enumerate(segs):
         sig[i] = s.sigma if s.sigma is not None else _mean_uncertainty(s.rates)["sigma"]
@@ -460,33 +389,8 @@ def turntable(segments, bias: TriadFit | np.ndarray | None = None) -> TriadFit:
             f"{np.round(segs[i].axis, 3).tolist()}; check the axis and the sign (right-hand rule, "
             "board X forward, Y left, Z up)")
 
-    mag = np.linalg.norm(w, axis=1)
-    if not fix_b:
-        missing = []
-        for k, pos, neg in _direction_coverage(w / np.maximum(mag, 1e-300)[:, None] * (mag > 0)[:, None], 0.5):
-            if not (pos and neg):
-                which = "in neither direction" if not (pos or neg) else (
-                    "only in the + direction" if pos else "only in the − direction")
-                missing.append(f"{_AXES[k]} ({which})")
-        if missing:
-            raise NotObservable(
-                "turntable: board axis " + ", ".join(missing) + " was not turned both ways; "
-                "with b fitted from the segments each axis needs a + and a − rate (the "
-                "difference gives the scale, the sum the bias). Add the missing direction(s), "
-                "or pass bias= from a rest recording (gyro_bias)")
-
     design = np.column_stack([w, np.ones(S)]) if not fix_b else w.copy()
-    dn = design / np.maximum(np.linalg.norm(design, axis=0), 1e-300)
-    _, sv, sv_vt = np.linalg.svd(dn, full_matrices=False)
-    if sv.size < design.shape[1] or sv[-1] < 1e-6 * sv[0]:
-        v = sv_vt[-1, :3]
-        v = v / max(np.linalg.norm(v), 1e-300)
-        raise NotObservable(
-            "turntable: the segments' rate vectors do not span 3-D"
-            + (" (with a bias)" if not fix_b else "")
-            + f"; nothing constrains the response to rotation along {np.round(v, 3).tolist()} "
-            "(board frame). Turn the board about three independent axes")
-
+    _check_turntable_design(design, fix_b)
     p = design.shape[1]
     m = np.empty((3, 3))
     b = b_fixed.copy() if fix_b else np.empty(3)
@@ -562,69 +466,27 @@ def turntable(segments, bias: TriadFit | np.ndarray | None = None) -> TriadFit:
     if np.max(np.abs(m - np.eye(3))) > 0.2:
         raise CalibrationError(f"turntable: fitted M is far from identity ({np.round(m, 3).tolist()}); "
                                "check the segments' axes and signs")
+    _check_sigma_limit_m("turntable", m_cov, max_sigma)
     return fit
 
 
 # ---------------------------------------------------------------------------- rotation method
-def _skew_rows(v: np.ndarray) -> np.ndarray:
-    """(k, 3, 3) cross-product matrices [v]× of the rows of v (k, 3)."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
-    return out
-
-
-def _tangent_basis(g: np.ndarray) -> np.ndarray:
-    """(k, 2, 3): two orthonormal vectors perpendicular to each unit vector g (k, 3)."""
-    a = np.where((np.abs(g[:, 0]) < 0.9)[:, None], np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
-    e1 = a - np.sum(a * g, axis=1)[:, None] * g
-    e1 /= np.linalg.norm(e1, axis=1)[:, None]
-    e2 = np.cross(g, e1)
-    return np.stack([e1, e2], axis=1)
 
 
 _COLUMN_NAMES = {0: "first column (m00, m10, m20: the response to rotation about X)",
                  1: "second column (m01, m11, m21: the response to rotation about Y)",
                  2: "third column (m02, m12, m22: the response to rotation about Z)"}
+MAX_SIGMA_M = 0.01          # default limit of any entry's 1σ in the rotation method (1 % of scale, 0.57°)
+MIN_MOTIONS = 6
 
 
-def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, init_m=None, *,
-                    gravity_sigma=0.0, max_rate_rad_s: float | None = _ADXRS450_RANGE_RAD_S,
-                    min_turn_deg: float = 30.0, max_residual_deg: float = 1.0,
-                    exclude_motions=()) -> TriadFit:
-    """Gyro M without a turntable, from rotations between static poses (imu_tk's method).
-
-    gyro: (n, 3) readings u in rad/s at fs_hz. static_intervals: k half-open sample ranges
-    (start, stop), in time order, where the board was still. gravity_dirs: (k, 3) the
-    calibrated accelerometer's specific-force direction (i.e. "up", +Z when level) in the board
-    frame for each interval; normalised here. bias: (3,) rad/s or a TriadFit (gyro_bias of the
-    rest recording; its uncertainty is propagated into M). init_m: starting M (identity).
-
-    Motion j runs from the last sample of interval j to the first sample of interval j+1. With
-    x = M⁻¹(u − b) integrated (integrate_rotation) to R_j, the board's attitude after the motion
-    in its frame before it, the gravity direction seen by the board is predicted as
-    g_pred = R_jᵀ·g_j and compared with g_{j+1}: two residual components (radians) along a
-    basis perpendicular to g_{j+1}, weighted by the expected noise of the motion (gyro white
-    noise estimated in the static intervals × √duration, and gravity_sigma, rad per direction,
-    scalar or (k,)). M's 9 entries are fitted by scipy.optimize.least_squares; the covariance
-    is the Jacobian's, scaled by the reduced chi-square, plus the bias uncertainty propagated
-    through the fit. M is relative to the accelerometer's frame (gravity_dirs define it).
-
-    Observability: a motion informs about rotation about an axis only when that axis is off the
-    vertical; each board axis must be turned both ways (≥ min_turn_deg, counted on the part of
-    the turn perpendicular to gravity), so at least 6 motions; 12–24 are recommended (2
-    constraints per motion, 9 parameters, and enough spare to estimate the noise).
-    NotObservable otherwise, naming the axis and the column of M it leaves undetermined.
-
-    exclude_motions: indices j of motions (from interval j to j+1) to leave out, e.g. those
-    with a gap in the recording (the integral would miss part of the rotation).
-    """
+# the rotation method's front end: small named checks, then calib.rotation_model's solver
+def _check_rotation_inputs(gyro, fs_hz, static_intervals, gravity_dirs):
+    """(u, intervals (k, 2), unit gravity directions (k, 3)), or CalibrationError naming the input."""
     u = _as_rates(gyro, "gyro")
     n = len(u)
     if not fs_hz > 0:
         raise CalibrationError("fs_hz must be positive")
-    h = 1.0 / fs_hz
     iv = np.asarray(static_intervals, dtype=np.int64).reshape(-1, 2) if len(static_intervals) else \
         np.zeros((0, 2), np.int64)
     k = len(iv)
@@ -634,266 +496,254 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
     gn = np.linalg.norm(g, axis=1)
     if not np.all(np.isfinite(g)) or np.any(gn < 1e-9):
         raise CalibrationError("gravity_dirs: every direction must be a finite non-zero vector")
-    g = g / gn[:, None]
     for i, (a, z) in enumerate(iv):
         if not (0 <= a < z <= n):
             raise CalibrationError(f"static interval {i} = ({a}, {z}) is empty or outside 0..{n}")
         if i and a < iv[i - 1, 1]:
             raise CalibrationError(f"static intervals {i - 1} and {i} overlap or are out of order")
+    return u, iv, g / gn[:, None]
+
+
+def _kept_motions(k: int, exclude_motions) -> np.ndarray:
     keep = np.ones(max(k - 1, 0), dtype=bool)
     for j in exclude_motions:
         if 0 <= int(j) < len(keep):
             keep[int(j)] = False
-    J = int(keep.sum())
-    if J < 6:
+    return keep
+
+
+def _check_motion_count(J: int, k: int) -> None:
+    if J < MIN_MOTIONS:
         raise NotObservable(
-            f"rotation_method: {max(J, 0)} motion(s) between {k} static poses; at least 6 are "
-            "needed (each board axis turned both ways while off the vertical: 2 constraints per "
-            "motion for the 9 entries of M) and 12–24 are recommended (e.g. ±90° and ±180° about "
-            "X, Y and Z from different poses) so the noise can be estimated from the residuals")
+            f"rotation_method: {max(J, 0)} motion(s) between {k} static poses; at least {MIN_MOTIONS} are "
+            "needed (2 constraints per motion for the 9 entries of M, and spare ones to estimate the noise) "
+            "and 12–24 are recommended (e.g. ±90° and ±180° about X, Y and Z from different poses)")
+
+
+def _check_clipping(u: np.ndarray, max_rate_rad_s: float | None) -> None:
+    if max_rate_rad_s is None:
+        return
+    over = np.flatnonzero(np.max(np.abs(u), axis=1) >= max_rate_rad_s)
+    if over.size:
+        raise CalibrationError(
+            f"rotation_method: {over.size} samples at or beyond ±{math.degrees(max_rate_rad_s):.0f} °/s "
+            f"(first at sample {over[0]}): the gyro may have clipped; turn slower")
+
+
+def _excitation(mo, m0: np.ndarray, b_motion: np.ndarray) -> np.ndarray:
+    """(J, 3) rad: each motion's integrated rotation perpendicular to gravity (for the report:
+    a turn about the vertical does not move gravity and informs nothing)."""
+    P0 = np.linalg.inv(m0)
+    U = np.moveaxis(mo.Uc, 0, -1)
+    X0 = (U - b_motion[:, None, :]) @ P0.T
+    X0[~mo.valid] = 0.0
+    J = mo.J
+    eps = mo.h * (X0.sum(axis=1) - 0.5 * X0[:, 0] - 0.5 * X0[np.arange(J), mo.lens - 1])
+    gm = mo.g_prev + mo.g_next
+    gmn = np.linalg.norm(gm, axis=1)
+    gbar = np.where((gmn > 0.5)[:, None], gm / np.maximum(gmn, 1e-300)[:, None], mo.g_prev)
+    return eps - np.sum(eps * gbar, axis=1)[:, None] * gbar
+
+
+def _param_names(idx) -> str:
+    return ", ".join(f"m{i // 3}{i % 3}" for i in idx)
+
+
+def _null_hint(idx, eps_perp: np.ndarray, min_turn_rad: float) -> str:
+    """What to record for the entries idx that the motions leave undetermined."""
+    cols = sorted({int(i) % 3 for i in idx})
+    out = []
+    for c in cols:
+        pos = bool(np.any(eps_perp[:, c] >= min_turn_rad))
+        neg = bool(np.any(eps_perp[:, c] <= -min_turn_rad))
+        what = ("no turn about board {a} with {a} off the vertical" if not (pos or neg) else
+                "turns about board {a} only in the " + ("+" if pos else "−") + " direction")
+        out.append(what.format(a=_AXES[c]) + f" (M's {_COLUMN_NAMES[c]})")
+    return "; ".join(out)
+
+
+def _check_observable(model, m0: np.ndarray, cov_b, eps_perp: np.ndarray, min_turn_rad: float) -> None:
+    """Before the fit: refuse when the motions leave some combination of M's entries with no
+    information at all (its σ is unbounded), naming the entries and what to record."""
+    from imubench.calib.rotation_model import parameter_sigmas
+    sig, null = parameter_sigmas(model, m0.ravel(), 1.0, cov_b)
+    if np.any(np.isinf(sig)):
+        idx = np.flatnonzero(np.isinf(sig))
+        raise NotObservable(
+            f"rotation_method: the motions leave {_param_names(idx)} undetermined (σ unbounded): "
+            f"{_null_hint(idx, eps_perp, min_turn_rad)}. Turn the board about that axis while it is off the "
+            "vertical (a turn about the vertical does not move gravity), both ways and from several attitudes")
+
+
+def _check_sigma_limit(m_cov: np.ndarray, max_sigma: float, eps_perp, min_turn_rad: float,
+                       bias_known: bool) -> None:
+    """After the fit: refuse when an entry of M is known no better than max_sigma, naming it."""
+    sig = np.sqrt(np.maximum(np.diag(m_cov), 0.0))
+    over = np.flatnonzero(~(sig <= max_sigma))
+    if over.size:
+        worst = int(over[np.argmax(np.where(np.isfinite(sig[over]), sig[over], np.inf))])
+        raise NotObservable(
+            f"rotation_method: {_param_names(over)} known only to "
+            + ", ".join(f"σ {sig[i]:.3g}" for i in over)
+            + f" (limit {max_sigma:g}; worst m{worst // 3}{worst % 3}): "
+            + _null_hint(over, eps_perp, min_turn_rad)
+            + (". The rest bias's uncertainty is propagated: a longer rest, or turns both ways, shrink it"
+               if bias_known else ""))
+
+
+def _axis_flip_hint(model, m0: np.ndarray, ang0: np.ndarray) -> str:
+    """A reversed gyro axis: the gravity prediction with that axis negated fits far better."""
+    best = None
+    for flips in ((1, 1, -1), (1, -1, 1), (-1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1), (-1, -1, -1)):
+        af = model.angles((m0 * np.asarray(flips, float)[:, None]).ravel())
+        rms = float(np.sqrt(np.mean(af**2)))
+        if best is None or rms < best[0]:
+            best = (rms, flips)
+    if best is not None and best[0] < math.radians(10.0) and best[0] < 0.2 * float(np.sqrt(np.mean(ang0**2))):
+        return (" The data fit far better with gyro axis " + ", ".join(_AXES[i] for i in range(3) if best[1][i] < 0)
+                + " reversed: check that axis's sign (right-hand rule).")
+    return ""
+
+
+def _check_fit_quality(fit: TriadFit, model, m0, ang, ang0, max_residual_deg: float) -> None:
+    if fit.residual_rms > math.radians(max_residual_deg):
+        worst = np.argsort(ang)[::-1][:3]
+        raise CalibrationError(
+            f"rotation_method: the gyro does not explain the gravity directions (RMS angle residual "
+            f"{math.degrees(fit.residual_rms):.2f}° after the fit, limit {max_residual_deg:g}°; worst motions "
+            + ", ".join(f"{int(i)} ({math.degrees(ang[i]):.1f}°)" for i in worst)
+            + "). Check the static intervals (a pose moved, an interval spans a motion), the "
+            "gravity directions (one per interval, board frame) and gyro clipping."
+            + _axis_flip_hint(model, m0, ang0))
+    if np.max(np.abs(fit.m - np.eye(3))) > 0.2:
+        raise CalibrationError(
+            f"rotation_method: fitted M is far from identity ({np.round(fit.m, 3).tolist()}); check "
+            "the static intervals, the gravity directions (board frame, +Z up when level) and the "
+            "gyro axes' signs")
+
+
+def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, init_m=None, *,
+                    gravity_sigma=0.0, max_rate_rad_s: float | None = _ADXRS450_RANGE_RAD_S,
+                    min_turn_deg: float = 30.0, max_residual_deg: float = 1.0,
+                    max_sigma: float = MAX_SIGMA_M, exclude_motions=(), motion_bias=None) -> TriadFit:
+    """Gyro M without a turntable, from rotations between static poses (imu_tk's method).
+
+    gyro: (n, 3) readings u in rad/s at fs_hz. static_intervals: k half-open sample ranges
+    (start, stop), in time order, where the board was still. gravity_dirs: (k, 3) the
+    calibrated accelerometer's specific-force direction (i.e. "up", +Z when level) in the board
+    frame for each interval; normalised here. bias: (3,) rad/s or a TriadFit (gyro_bias of the
+    rest recording; its uncertainty is propagated into M). init_m: starting M (identity).
+    motion_bias: optional (k − 1, 3) rad/s, the bias during each motion (e.g. the bias the
+    g-sensitivity predicts, calib.gsens), used instead of bias's b in the integration; bias's
+    covariance still stands for its uncertainty.
+
+    Motion j runs from the last sample of interval j to the first sample of interval j+1; the
+    model and solver are calib.rotation_model's (residuals: the angle between the predicted and
+    the measured gravity after each motion, two components weighted by the motion's expected
+    noise: gyro white noise from the rests × √duration, and gravity_sigma, rad per direction,
+    scalar or (k,)). The covariance is the Jacobian's, scaled by the reduced chi-square, plus
+    the bias uncertainty propagated through the fit. M is relative to the accelerometer's frame.
+
+    Observability is decided by the numbers: the fit is refused (NotObservable) only when an
+    entry of M has no information (σ unbounded: no turn about that axis off the vertical; or a
+    turn in one direction while the bias is unknown) or its 1σ after the fit exceeds max_sigma,
+    and the message names the entries, their σ and the limit. A turn in one direction does
+    constrain the scale when the bias is known: its uncertainty decides. At least 6 motions;
+    12–24 are recommended.
+
+    exclude_motions: indices j of motions (from interval j to j+1) to leave out, e.g. those
+    with a gap in the recording (the integral would miss part of the rotation).
+    """
+    from imubench.calib import rotation_model as RM
+    u, iv, g = _check_rotation_inputs(gyro, fs_hz, static_intervals, gravity_dirs)
+    k = len(iv)
+    keep = _kept_motions(k, exclude_motions)
+    J = int(keep.sum())
+    _check_motion_count(J, k)
     b, cov_b = _bias_input(bias)
     m0 = np.eye(3) if init_m is None else np.asarray(init_m, dtype=np.float64).reshape(3, 3)
+    if abs(np.linalg.det(m0)) < 1e-12:
+        raise CalibrationError("init_m is singular")
+    _check_clipping(u, max_rate_rad_s)
     gsig = np.broadcast_to(np.asarray(gravity_sigma, float), (k,)).astype(float)
-
-    if max_rate_rad_s is not None:
-        over = np.flatnonzero(np.max(np.abs(u), axis=1) >= max_rate_rad_s)
-        if over.size:
-            raise CalibrationError(
-                f"rotation_method: {over.size} samples at or beyond ±{math.degrees(max_rate_rad_s):.0f} °/s "
-                f"(first at sample {over[0]}): the gyro may have clipped; turn slower")
-
-    # motions: samples [stop_j - 1, start_{j+1}] inclusive
-    starts = iv[:-1, 1][keep] - 1
-    ends = iv[1:, 0][keep]
-    lens = ends - starts + 1
-    L = int(lens.max())
-    idx = starts[:, None] + np.arange(L)[None, :]
-    valid = np.arange(L)[None, :] < lens[:, None]
-    idx = np.where(valid, idx, starts[:, None])
-    U = u[idx]                                                     # (J, L, 3)
-    step_mask = (np.arange(L - 1)[None, :] < (lens - 1)[:, None])  # (J, L-1)
-    dur = (lens - 1) * h
-
-    # gyro white noise from the static intervals (weights only; the covariance is rescaled)
-    dev = np.concatenate([u[a:z] - u[a:z].mean(axis=0) for a, z in iv])
-    nst = int(sum(z - a for a, z in iv))
-    if nst - k >= 3:
-        var = np.sum(dev**2, axis=0) / (nst - k)
+    mo = RM.motions(u, fs_hz, iv, g, gsig, keep)
+    if motion_bias is None:
+        b_motion = np.broadcast_to(b, (J, 3))
     else:
-        var = np.zeros(3)
-    nd = np.sqrt(var * h)                                          # rad/s/√Hz
-    nd2 = max(float(np.mean(nd**2)), 1e-18)
-    msig = np.sqrt(nd2 * dur + gsig[:-1][keep] ** 2 + gsig[1:][keep] ** 2)     # (J,) rad per component
-    msig = np.maximum(msig, 1e-12)
-    gp0, gn1 = g[:-1][keep], g[1:][keep]
-    T = _tangent_basis(gn1)                                         # (J, 2, 3)
+        mb = np.asarray(motion_bias, float)
+        if mb.shape != (k - 1, 3) or not np.all(np.isfinite(mb)):
+            raise CalibrationError(f"motion_bias: expected ({k - 1}, 3) finite rad/s, one per motion")
+        b_motion = mb[keep]
+    model = RM.GravityModel(mo, b_motion)
+    eps_perp = _excitation(mo, m0, model.b)
+    min_turn = math.radians(min_turn_deg)
+    _check_observable(model, m0, cov_b, eps_perp, min_turn)
 
-    Uc = np.ascontiguousarray(np.moveaxis(U, -1, 0))                # (3, J, L)
-
-    def rotations(mflat: np.ndarray, bb: np.ndarray = b) -> np.ndarray:
-        P = np.linalg.inv(mflat.reshape(3, 3))
-        X = np.tensordot(P, Uc, axes=1) - (P @ bb)[:, None, None]
-        return _rotate(_step_vectors(X, h, lens, step_mask))         # (J, 3, 3)
-
-    def residual(mflat: np.ndarray, bb: np.ndarray = b) -> np.ndarray:
-        gp = np.einsum("jca,jc->ja", rotations(mflat, bb), gp0)      # Rᵀ g_prev
-        return (np.einsum("jkc,jc->jk", T, gp) / msig[:, None]).ravel()
-
-    dstep = 1e-7
-
-    def jac_fd(mflat: np.ndarray) -> np.ndarray:
-        """Forward-difference Jacobian of residual() w.r.t. M (a check on jac_m)."""
-        r0 = residual(mflat)
-        jm = np.empty((r0.size, 9))
-        for i in range(9):
-            xx = mflat.copy()
-            xx[i] += dstep
-            jm[:, i] = (residual(xx) - r0) / dstep
-        return jm
-
-    # quadrature-weighted (u − b) per step: the linear part of φ is P·v_lin
-    vlin = _step_vectors(Uc - b[:, None, None], h, lens, step_mask, coning=False)  # (3, J, L-1)
-    gx = _skew_rows(gp0)                                            # (J, 3, 3) [g_prev]×
-
-    def jac_m(mflat: np.ndarray, with_bias: bool = False):
-        """Analytic Jacobian of residual() w.r.t. M (row-major), and optionally w.r.t. b.
-
-        A perturbation of the step rotation vectors δφ_k changes the motion's rotation as
-        δR = [δθ]×·R with δθ = Σ_k A_{k+1}·J_r(φ_k)·δφ_k in the start frame (A_{k+1} the
-        attitude after step k, J_r ≈ I − ½[φ_k]×); δφ_k = δP·v_k (coning term's derivative
-        neglected, relative size ~h·|ω|/6) and δP = −P·δM·P. Then δ(Rᵀg) = Rᵀ·(g × δθ).
-        """
-        P = np.linalg.inv(mflat.reshape(3, 3))
-        X = np.tensordot(P, Uc, axes=1) - (P @ b)[:, None, None]
-        phi = _step_vectors(X, h, lens, step_mask)
-        q = _rotvec_quat(phi)
-        A = _quat_matrix_cf(_quat_prefix(q))                        # (3, 3, J, L-1)
-        R = _quat_matrix(_quat_chain(q))                            # (J, 3, 3)
-        # Q_k = A_{k+1}·(I − ½[φ_k]×)
-        Q = A.copy()
-        hp = 0.5 * phi
-        # A·[hp]×: column a of [hp]× is hp × e_a
-        Q[:, 0] -= A[:, 1] * hp[2] - A[:, 2] * hp[1]
-        Q[:, 1] -= A[:, 2] * hp[0] - A[:, 0] * hp[2]
-        Q[:, 2] -= A[:, 0] * hp[1] - A[:, 1] * hp[0]
-        dth_dp = np.einsum("cajk,bjk->jcab", Q, vlin)               # ∂θ/∂P_ab (J, 3, 3, 3)
-        dth_dm = -np.einsum("jcab,ae,fb->jcef", dth_dp, P, P).reshape(J, 3, 9)
-        W = np.einsum("jkc,jdc,jde->jke", T, R, gx) / msig[:, None, None]   # T·Rᵀ·[g]× /σ
-        jm = np.einsum("jke,jep->jkp", W, dth_dm).reshape(2 * J, 9)
-        if not with_bias:
-            return jm
-        dth_db = -h * np.einsum("cajk,jk,ad->jcd", Q, step_mask.astype(float), P)   # (J, 3, 3)
-        jb = np.einsum("jke,jep->jkp", W, dth_db).reshape(2 * J, 3)
-        return jm, jb
-
-    # --- observability by rule: turns about each axis, both ways, with the axis off vertical
-    try:
-        P0 = np.linalg.inv(m0)
-    except np.linalg.LinAlgError as e:
-        raise CalibrationError("init_m is singular") from e
-    X0 = (U - b) @ P0.T
-    X0[~valid] = 0.0
-    eps = h * (X0.sum(axis=1) - 0.5 * X0[:, 0] - 0.5 * X0[np.arange(J), lens - 1])  # (J, 3) rad
-    gm = gp0 + gn1
-    gmn = np.linalg.norm(gm, axis=1)
-    gbar = np.where((gmn > 0.5)[:, None], gm / np.maximum(gmn, 1e-300)[:, None], gp0)
-    eps_perp = eps - np.sum(eps * gbar, axis=1)[:, None] * gbar
-    thr = math.radians(min_turn_deg)
-    problems = []
-    for ax, pos, neg in _direction_coverage(eps_perp, thr):
-        if pos and neg:
-            continue
-        if not (pos or neg):
-            problems.append(f"no turn about board {_AXES[ax]} (≥ {min_turn_deg:g}° with {_AXES[ax]} "
-                            f"off the vertical): M's {_COLUMN_NAMES[ax]} is not observable")
-        else:
-            problems.append(f"board {_AXES[ax]} was turned only in the {'+' if pos else '−'} "
-                            f"direction: M's {_COLUMN_NAMES[ax]} cannot be separated from a bias "
-                            "error; turn it the other way too")
-    if problems:
-        raise NotObservable("rotation_method: " + "; ".join(problems)
-                            + ". Each board axis needs turns both ways while it is horizontal-ish "
-                            "(a turn about the vertical does not change the gravity direction)")
-
-    sol = optimize.least_squares(residual, m0.ravel(), jac=jac_m, method="lm",
-                                 xtol=1e-10, ftol=1e-10, gtol=1e-10)
-    mhat = sol.x.reshape(3, 3)
-    rw = residual(sol.x)
-    if cov_b is not None:
-        Jm, Jb = jac_m(sol.x, with_bias=True)
-    else:
-        Jm = jac_m(sol.x)
+    sol = RM.solve(model, m0, cov_b)
+    if not sol.converged:
+        raise CalibrationError(f"rotation_method: the fit did not converge ({sol.message})")
     jac_check = None
     if _CHECK_JACOBIAN:
-        jf = jac_fd(sol.x)
-        jbf = np.empty((rw.size, 3))
-        for i in range(3):
-            bb = b.copy()
-            bb[i] += dstep
-            jbf[:, i] = (residual(sol.x, bb) - rw) / dstep
-        jb = jac_m(sol.x, with_bias=True)[1]
-        jac_check = (float(np.max(np.abs(Jm - jf)) / np.max(np.abs(jf))),
+        jm, jb = model.jacobian(sol.m.ravel(), with_bias=True)
+        jmf, jbf = model.jacobian_fd(sol.m.ravel())
+        jac_check = (float(np.max(np.abs(jm - jmf)) / np.max(np.abs(jmf))),
                      float(np.max(np.abs(jb - jbf)) / np.max(np.abs(jbf))))
-    cn = np.linalg.norm(Jm, axis=0)
-    svals, vt = np.linalg.svd(Jm / np.maximum(cn, 1e-300), full_matrices=False)[1:]
-    if np.any(cn < 1e-9 * max(cn.max(), 1e-300)) or svals[-1] < 1e-7 * svals[0]:
-        null = vt[-1]
-        names = [f"m{i // 3}{i % 3}" for i in np.flatnonzero(np.abs(null) > 0.3)]
-        raise NotObservable("rotation_method: the motions leave a combination of "
-                            + ", ".join(names) + " undetermined; add turns about other axes and "
-                            "from other poses")
-    JtJ = Jm.T @ Jm
-    C = np.linalg.inv(JtJ)
-    chi2 = float(rw @ rw)
-    if cov_b is not None:
-        # the rest-bias error is common to all motions: residual covariance I + Jb·Σb·Jbᵀ
-        Lb = np.linalg.cholesky(cov_b + 1e-30 * np.eye(3))
-        Z = Jb @ Lb
-        v = Z.T @ rw
-        chi2 -= float(v @ np.linalg.solve(np.eye(3) + Z.T @ Z, v))
-    dof = rw.size - 9
-    s2 = chi2 / dof if dof > 0 else float("nan")
-    m_cov = C * s2 if dof > 0 else C
-    mb_cov = None
-    b_cov = None
-    if cov_b is not None:
-        G = -C @ (Jm.T @ Jb)                                       # dM/db (9, 3)
-        m_cov = m_cov + G @ cov_b @ G.T
-        mb_cov = G @ cov_b
-        b_cov = cov_b
-    cov = _cov12(m_cov, b_cov, mb_cov)
-
-    R = rotations(sol.x)
-    gp = np.einsum("jba,jb->ja", R, gp0)
-    ang = np.arctan2(np.linalg.norm(np.cross(gp, gn1), axis=1), np.sum(gp * gn1, axis=1))
-    R0 = rotations(m0.ravel())
-    gq = np.einsum("jba,jb->ja", R0, gp0)
-    ang0 = np.arctan2(np.linalg.norm(np.cross(gq, gn1), axis=1), np.sum(gq * gn1, axis=1))
+    cov = _cov12(sol.m_cov, cov_b, sol.mb_cov)
+    ang = model.angles(sol.m.ravel())
+    ang0 = model.angles(m0.ravel())
+    R = model.rotations(sol.m.ravel())
     turn = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1, 1)))
-
     warnings = []
     if J < 12:
-        warnings.append(f"only {J} motions: the reduced chi-square (dof {dof}) that scales the "
-                        f"covariance is itself uncertain by ±{100 / math.sqrt(2 * dof):.0f} %; "
+        warnings.append(f"only {J} motions: the reduced chi-square (dof {sol.dof}) that scales the "
+                        f"covariance is itself uncertain by ±{100 / math.sqrt(2 * sol.dof):.0f} %; "
                         "12-24 motions are recommended")
     fit = TriadFit(
         method="rotation",
-        m=mhat,
+        m=sol.m,
         b=b.copy(),
         cov=cov,
         residual_rms=float(np.sqrt(np.mean(ang**2))),
         residuals=ang,
-        dof=dof,
+        dof=sol.dof,
         estimated=np.array([True] * 9 + [cov_b is not None] * 3),
         extra={
             "angle_residuals_deg": np.degrees(ang),
             "angle_residuals_initial_deg": np.degrees(ang0),
             "motion_angles_deg": turn,
-            "motion_duration_s": dur,
+            "motion_duration_s": mo.dur,
             "excitation_deg": np.degrees(eps_perp),
-            "motion_sigma_rad": msig,
-            "noise_density_rad_s_rthz": nd,
-            "chi2": chi2,
-            "reduced_chi2": s2,
-            "nfev": int(sol.nfev),
-            "converged": bool(sol.status > 0),
+            "motion_sigma_rad": mo.sigma,
+            "noise_density_rad_s_rthz": mo.noise_density,
+            "chi2": sol.chi2,
+            "reduced_chi2": sol.reduced_chi2,
+            "nfev": sol.nfev,
+            "converged": sol.converged,
             "message": sol.message,
             "bias_source": "rest" if cov_b is not None else "given",
+            "motion_bias": "given per motion" if motion_bias is not None else "one bias",
             "n_motions": J,
             "excluded_motions": [int(j) for j in np.flatnonzero(~keep)],
+            "max_sigma": max_sigma,
             "warnings": warnings,
             **({"jacobian_check": jac_check} if jac_check is not None else {}),
         },
     )
-    if not sol.status > 0:
-        raise CalibrationError(f"rotation_method: the fit did not converge ({sol.message})")
-    if fit.residual_rms > math.radians(max_residual_deg):
-        worst = np.argsort(ang)[::-1][:3]
-        hint = ""
-        # a reversed gyro axis: the gravity prediction with that axis negated fits far better
-        best = None
-        for flips in ((1, 1, -1), (1, -1, 1), (-1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1),
-                      (-1, -1, -1)):
-            Rf = rotations((m0 * np.asarray(flips, float)[:, None]).ravel())
-            gf = np.einsum("jba,jb->ja", Rf, gp0)
-            af = np.arctan2(np.linalg.norm(np.cross(gf, gn1), axis=1), np.sum(gf * gn1, axis=1))
-            rms = float(np.sqrt(np.mean(af**2)))
-            if best is None or rms < best[0]:
-                best = (rms, flips)
-        if best is not None and best[0] < math.radians(10.0) and best[0] < 0.2 * float(
-                np.sqrt(np.mean(ang0**2))):
-            hint = (" The data fit far better with gyro axis "
-                    + ", ".join(_AXES[i] for i in range(3) if best[1][i] < 0)
-                    + " reversed: check that axis's sign (right-hand rule).")
-        raise CalibrationError(
-            f"rotation_method: the gyro does not explain the gravity directions (RMS angle residual "
-            f"{math.degrees(fit.residual_rms):.2f}° after the fit; worst motions "
-            + ", ".join(f"{int(i)} ({math.degrees(ang[i]):.1f}°)" for i in worst)
-            + "). Check the static intervals (a pose moved, an interval spans a motion), the "
-            "gravity directions (one per interval, board frame) and gyro clipping." + hint)
-    if np.max(np.abs(mhat - np.eye(3))) > 0.2:
-        raise CalibrationError(
-            f"rotation_method: fitted M is far from identity ({np.round(mhat, 3).tolist()}); check "
-            "the static intervals, the gravity directions (board frame, +Z up when level) and the "
-            "gyro axes' signs")
+    _check_fit_quality(fit, model, m0, ang, ang0, max_residual_deg)
+    _check_sigma_limit(sol.m_cov, max_sigma, eps_perp, min_turn, cov_b is not None)
     return fit
+
+
+def rotation_residuals(gyro, fs_hz: float, static_intervals, gravity_dirs, m, motion_bias) -> np.ndarray:
+    """(k − 1,) degrees: for a given M and the bias during each motion ((k − 1, 3) or (3,) rad/s),
+    the angle between the gravity direction the gyro predicts after each motion and the one
+    measured at the next rest — the rotation method's residual, for motions a fit did not use
+    (held out) as well as those it did."""
+    from imubench.calib import rotation_model as RM
+    u, iv, g = _check_rotation_inputs(gyro, fs_hz, static_intervals, gravity_dirs)
+    k = len(iv)
+    if k < 2:
+        raise CalibrationError("rotation_residuals: at least two static intervals")
+    mo = RM.motions(u, fs_hz, iv, g, np.zeros(k), np.ones(k - 1, bool))
+    model = RM.GravityModel(mo, np.broadcast_to(np.asarray(motion_bias, float), (k - 1, 3)))
+    return np.degrees(model.angles(np.asarray(m, float).reshape(9)))

@@ -228,7 +228,7 @@ def _turn_cov(t: Turn, noise_density, angle_sigma: float, axis_sigma: float) -> 
 
 def known_angle_turns(turns, bias: TriadFit | None = None, *, noise_density_rad_s_rthz=0.0,
                       angle_sigma_deg: float = ANGLE_SIGMA_DEG, axis_sigma_deg: float = AXIS_SIGMA_DEG,
-                      refused=()) -> TriadFit:
+                      refused=(), max_sigma: float = 0.01) -> TriadFit:
     """Gyro M from known-angle turns (Turn objects of detect_turns; unusable ones are left out).
 
     Generalised least squares on s_k = M·(θ_k·a_k): each turn's integral has the covariance of
@@ -238,7 +238,8 @@ def known_angle_turns(turns, bias: TriadFit | None = None, *, noise_density_rad_
     the error budget's alone, and the turns cannot check the fit). bias: the rest bias (its b
     and covariance are carried into the result; M does not depend on it except through the
     turns' own bias, which is the rests' around each turn). Raises NotObservable when the
-    turns' axes do not span three dimensions, naming the axis missing."""
+    turns' axes do not span three dimensions, naming the axis missing, or when an entry of M's
+    1σ exceeds max_sigma, naming the entry, its σ and the limit."""
     use = [t for t in turns if t.usable and t.angle_rad != 0.0]
     why_not = [f"{t.label} at {t.start}: {t.reason}" for t in turns if not t.usable] + list(refused)
     if len(use) < 3:
@@ -279,6 +280,12 @@ def known_angle_turns(turns, bias: TriadFit | None = None, *, noise_density_rad_
     dof = 3 * len(use) - 9
     scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
     cov_m = cov_m * scale
+    sm = np.sqrt(np.maximum(np.diag(cov_m), 0.0))
+    over = np.flatnonzero(~(sm <= max_sigma))
+    if over.size:
+        raise NotObservable("known-angle turns: " + ", ".join(f"m{i // 3}{i % 3} σ {sm[i]:.3g}" for i in over)
+                            + f" above the limit {max_sigma:g}: turns that place the board back more exactly "
+                            "(a stop, a marked edge), more turns, or the rotation method with them")
     cov = np.full((12, 12), np.nan)
     cov[:9, :9] = cov_m
     b = np.zeros(3)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import shlex
 import signal
 from pathlib import Path
 
@@ -12,6 +13,7 @@ from imubench.cli.common import (
     add_port,
     existing_file,
     out_dir,
+    positive_float,
     stream_rate,
 )
 
@@ -31,6 +33,13 @@ def parse_duration(s: str) -> float:
     return v
 
 
+def rate_hz(s: str) -> float:
+    """allan's --rate: as calibrate's (a positive number here; a protocol stream rate when a
+    device records, any rate for a file's --from — checked in run())."""
+    from imubench.cli.calibrate import rate_hz as calibrate_rate
+    return calibrate_rate(s)
+
+
 def register(sub) -> None:
     p = sub.add_parser("allan", help="record for hours and read the Allan deviation (noise terms)",
                        description="Record a resting IMU for a long time (every byte on disk as it arrives) and "
@@ -39,16 +48,80 @@ def register(sub) -> None:
     add_port(p)
     p.add_argument("--duration", type=parse_duration, default=None,
                    help="recording length in device time: 90s, 30m, 2h, 1h30m (required unless --analyse)")
-    p.add_argument("--rate", type=stream_rate, metavar="HZ", default=100, help="sample rate in Hz")
+    p.add_argument("--rate", type=rate_hz, metavar="HZ", default=None,
+                   help="sample rate in Hz: the device's stream rate (default 100), or with --from the file's rate "
+                        "when it has no time column")
     p.add_argument("--out", type=out_dir, default=Path("allan-out"), help="output directory")
     p.add_argument("--analyse", nargs="+", metavar="FILE", type=existing_file,
                    help="analyse existing capture file(s) (e.g. of an interrupted recording) without a device")
     p.add_argument("--progress", type=float, default=5.0, help="seconds between progress lines")
+    g = p.add_argument_group("a long still recording of any IMU (the formats and checks of calibrate --from)")
+    g.add_argument("--from", dest="from_file", metavar="FILE", help="analyse a recording instead of a device")
+    g.add_argument("--format", choices=FORMATS, help="the recording's format (default: from its name and content)")
+    g.add_argument("--gyro-file", type=existing_file, metavar="FILE", help="with --format imutk: the gyro file")
+    g.add_argument("--accel-unit", metavar="UNIT", help="accelerometer unit in the file: mps2, g, mg or counts")
+    g.add_argument("--gyro-unit", metavar="UNIT", help="gyro unit in the file: rad_s, dps or counts")
+    g.add_argument("--accel-scale", type=positive_float, metavar="COUNTS_PER_G", help="nominal scale of raw counts")
+    g.add_argument("--gyro-scale", type=positive_float, metavar="COUNTS_PER_DPS", help="nominal scale of raw counts")
+    g.add_argument("--columns", metavar="KEY=NAME,...", help="CSV columns (as calibrate --from)")
+    g.add_argument("--time-column", metavar="NAME", help="CSV: the time column")
+    g.add_argument("--time-unit", choices=("s", "ms", "us", "ns"), help="CSV: the time column's unit")
+    g.add_argument("--profile", type=existing_file, metavar="TOML", help="a CSV layout file (as calibrate --from)")
+    g.add_argument("--topic", metavar="TOPIC", help="ROS bag: the sensor_msgs/Imu topic")
+    g.add_argument("--device", metavar="NAME", help="a name for the IMU")
+    g.add_argument("--export", action="append", default=[], choices=NOISE_WRITERS, metavar="|".join(NOISE_WRITERS),
+                   help="also write the noise figures as Kalibr's imu.yaml, OpenVINS' kalibr_imu_chain.yaml, "
+                        "VINS-Fusion's IMU keys or imu_utils' output (repeatable; docs/noise.md)")
+    g.add_argument("--imu-topic", metavar="TOPIC", default="/imu0", help="the rostopic written into the exports")
     p.set_defaults(run=run)
+
+
+FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
+NOISE_WRITERS = ("kalibr", "openvins", "vins-fusion", "imu-utils")
+
+
+def _run_from_file(a) -> int:
+    from imubench.cli.calibrate import _columns
+    from imubench.procedures.allan import analyse_recording
+    from imubench.recordings.readers import load_profile, read
+    if a.port or a.analyse or a.duration is not None:
+        raise UsageError("--from analyses a recording: it goes without --port, --analyse and --duration",
+                         "drop those, or drop --from to record a device")
+    path = Path(a.from_file)
+    if not path.exists():
+        raise UsageError(f"--from {path}: no such file or directory", "check the path")
+    opts = load_profile(a.profile) if a.profile else {}
+    fmt = a.format or opts.pop("format", None)
+    opts.pop("format", None)
+    given = {"accel_unit": a.accel_unit, "gyro_unit": a.gyro_unit, "accel_counts_per_g": a.accel_scale,
+             "gyro_counts_per_dps": a.gyro_scale, "rate_hz": a.rate, "time_column": a.time_column,
+             "time_unit": a.time_unit, "topic": a.topic, "gyro_file": a.gyro_file, "device": a.device,
+             "columns": _columns(a.columns) if a.columns else None}
+    opts.update({k: v for k, v in given.items() if v is not None})
+    rec = read(path, fmt, **opts)
+    print(f"recording: {rec.source} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz ({rec.duration_s:.1f} s); "
+          f"{rec.unit_text()}")
+    for n in rec.notes:
+        print(f"  {n}")
+    analyse_recording(rec, a.out, exports=a.export, topic=a.imu_topic)
+    return 0
 
 
 def run(a) -> int:
     from imubench.procedures.allan import analyse_capture, record
+    if a.from_file is not None:
+        return _run_from_file(a)
+    file_only = [k for k in ("format", "gyro_file", "accel_unit", "gyro_unit", "accel_scale", "gyro_scale", "columns",
+                             "time_column", "time_unit", "profile", "topic", "device") if getattr(a, k) is not None]
+    if file_only or a.export:
+        raise UsageError(f"--{(file_only or ['export'])[0].replace('_', '-')} goes with --from FILE",
+                         "give the recording with --from, or drop it")
+    if a.rate is None:
+        a.rate = 100
+    try:
+        a.rate = stream_rate(f"{a.rate:g}")
+    except argparse.ArgumentTypeError as e:
+        raise UsageError(f"--rate {a.rate:g}: {e}", "the device streams at the protocol's rates") from None
     out = a.out
     if a.analyse:
         analyse_capture(a.analyse, out)
@@ -58,7 +131,7 @@ def run(a) -> int:
     out.mkdir(parents=True, exist_ok=True)
     cap = out / "capture.bin"
     if cap.exists() and cap.stat().st_size:
-        raise CommandError(f"{cap} exists", f"analyse it with --analyse {cap}, or choose another --out")
+        raise CommandError(f"{cap} exists", f"analyse it with --analyse {shlex.quote(str(cap))}, or choose another --out")
     stop = {"now": False}
     old = None
     try:
@@ -76,5 +149,5 @@ def run(a) -> int:
     analyse_capture([cap], out, rate_hz=float(a.rate))
     if why not in ("done", "interrupted"):
         raise CommandError(f"the recording ended early ({why}); what was recorded is analysed in {out}",
-                           f"record again, or analyse more files with --analyse {cap} FILE...")
+                           f"record again, or analyse more files with --analyse {shlex.quote(str(cap))} FILE...")
     return 0

@@ -93,6 +93,7 @@ def _steps(a, vb, dev, device: dict) -> int:
 
 def _live(a, dev, device: dict) -> int:
     from imubench.analysis.tilt import accel_tilt, make_filters
+    from imubench.files import open_growing
     from imubench.procedures.attitude import live
     filters = make_filters(a.filter, a.num, a.tau)
     csv_path = a.csv or (f"{a.record}.angles.csv" if a.record else None)
@@ -102,8 +103,8 @@ def _live(a, dev, device: dict) -> int:
     keep = a.plot is not None
     t_all, ang_all = [], {name: ([], []) for name in ["accel"] + [f.name for f in filters]}
     n_total, t_s = 0, 0.0
-    with open(a.record, "ab", buffering=0) if a.record else nullcontext() as capture, \
-            open(csv_path, "w", newline="") if csv_path else nullcontext() as csv_file:
+    with open_growing(a.record, buffering=0) if a.record else nullcontext() as capture, \
+            open_growing(csv_path, append=False, binary=False, newline="") if csv_path else nullcontext() as csv_file:
         writer = None
         if csv_path:
             writer = csv.writer(csv_file)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import shlex
 import sys
 from contextlib import nullcontext
 from pathlib import Path
@@ -28,16 +29,17 @@ from imubench.cli.calibrate_station import (
 )
 from imubench.cli.station import add_web
 from imubench.results.record import verdict
+from imubench.text import one_line, printable
 
 METHODS = ("multi", "six")
 CAPTURES = ("adaptive", "plan")
 SIX_WARNING = ("warning: --method six needs a square fixture (a machined cube against a square): held by hand the "
                "faces are degrees off square and the fit fails; --method multi needs none")
-GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "none")
+GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "auto", "none")
 # imubench.recordings.FORMATS and imubench.results.paramfiles.WRITERS, named here so that building
 # the parser loads neither (tests/procedures/test_from_file.py checks they agree)
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
-WRITERS = ("params", "imutk", "imucal", "ardupilot")
+WRITERS = ("params", "imutk", "imucal", "ardupilot", "kalibr", "px4", "imu-calib")
 
 
 def rate_hz(s: str) -> float:
@@ -65,10 +67,12 @@ def register(sub) -> None:
     p.add_argument("--ui", choices=("terminal", "web"), default="terminal",
                    help="terminal prompts, or the station page in the browser (imubench station)")
     add_web(p)
-    p.add_argument("--gyro", choices=GYRO_METHODS, default="bias",
+    p.add_argument("--gyro", choices=GYRO_METHODS, default=None,
                    help="gyro method: scale and misalignment from a turntable, from the rotations between "
                         "attitudes, or from known-angle turns by hand (one full turn on a table about X, Y and Z "
-                        "pointing up); only the bias at rest, or none")
+                        "pointing up); only the bias at rest, or none. Default: bias for a device; with --from, "
+                        "auto (known-angle turns and/or the rotation method, whatever the recording supports; "
+                        "the bias at rest when neither can be used, and the output says why)")
     p.add_argument("--dir", type=out_dir, metavar="DIR",
                    help="session directory (default: ./imubench-session-<time>)")
     p.add_argument("--resume", type=existing_dir, metavar="DIR", help="continue the session in DIR")
@@ -132,6 +136,9 @@ STATION_KEYS = {"station", "operator", "fixture", "db", "ports", "baud"}
 def _station_file(s: str) -> dict:
     """A station file (TOML), checked for what it holds before anything is opened."""
     import argparse
+
+    from imubench.errors import ImubenchError
+    from imubench.files import read_text
     try:
         import tomllib
     except ImportError:                     # Python 3.10
@@ -140,8 +147,8 @@ def _station_file(s: str) -> dict:
     if not path.is_file():
         raise argparse.ArgumentTypeError(f"{s} is not a file")
     try:
-        d = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        d = tomllib.loads(read_text(path, what="the station file"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, ImubenchError) as e:
         raise argparse.ArgumentTypeError(f"{s} is not a TOML station file: {e}") from None
     unknown = set(d) - STATION_KEYS
     if unknown:
@@ -193,8 +200,9 @@ def _add_from_file(p) -> None:
     g.add_argument("--annotation", type=existing_file, metavar="JSON",
                    help="imucal's section list, to compare the segmentation with")
     g.add_argument("--export", action="append", default=[], choices=WRITERS, metavar="|".join(WRITERS),
-                   help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON or ArduPilot's "
-                        "parameters (repeatable)")
+                   help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON, ArduPilot's "
+                        "parameters, Kalibr's IMU intrinsics, PX4's CAL_ACC0/CAL_GYRO0 parameters or ROS imu_calib's "
+                        "YAML (repeatable)")
     g.add_argument("--tolerance-mg", type=positive_float, metavar="MG",
                    help="pass when the RMS of |a| − g over the still intervals after calibration is at most this "
                         "(default: the device's, 1 mg)")
@@ -232,6 +240,15 @@ def run(a) -> int:
     if stray:
         raise UsageError(f"--{stray[0].replace('_', '-')} goes with --from FILE",
                          "drop it to calibrate a device, or give the recording with --from")
+    if a.gyro is None:
+        a.gyro = "bias"
+    if a.gyro == "auto":
+        raise UsageError("--gyro auto is for recordings (--from FILE)",
+                         "a session needs its gyro method chosen: rotation, turns, turntable or bias")
+    from imubench.procedures.poses import plan_problem
+    problem = plan_problem(a.method or "multi", a.gyro)
+    if problem and not a.resume:
+        raise UsageError(problem[0], problem[1] + "; nothing was captured")
     if a.rate is None:
         a.rate = 500
     try:
@@ -265,7 +282,7 @@ def run(a) -> int:
         return _run_station(a, cfg)
     directory = Path(a.resume or a.dir or f"imubench-session-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: (f"everything captured is kept in {directory}; continue with: "
-                              f"imubench calibrate --resume {directory}" + (" --sim" if a.sim else "")
+                              f"imubench calibrate --resume {shlex.quote(str(directory))}" + (" --sim" if a.sim else "")
                               if (directory / "session.json").exists() else "nothing was captured")
     if a.ui == "web":
         if a.redo or a.closure:
@@ -292,7 +309,7 @@ def run(a) -> int:
             params_before = _params_or_none(dev)        # for the record: the block before anything is written
             result, sess = run_session(dev, directory, cfg, ui, resume=bool(a.resume), redo=a.redo,
                                        on_start=lambda s: print(f"session directory: {s.dir} (raw captures and "
-                                                                f"state; --resume {s.dir} continues it)"),
+                                                                f"state; --resume {shlex.quote(str(s.dir))} continues it)"),
                                        report=_print_fit(vb))
             if a.closure and result["written"] and "closure" not in result:
                 result["closure"] = _closure_after_session(dev, vb, sess.dir / "closure")
@@ -349,7 +366,7 @@ def _run_web(a, cfg, directory: Path) -> int:
     if b is None or not b.result or b.result["status"] != "pass":
         raise CommandError("the calibration did not pass" if b is not None and b.result else
                            "the session did not finish", f"everything captured is kept in {directory}; "
-                           f"continue with: imubench calibrate --resume {directory} --ui web")
+                           f"continue with: imubench calibrate --resume {shlex.quote(str(directory))} --ui web")
     return 0
 
 
@@ -472,9 +489,11 @@ def _run_from_file(a) -> int:
     if opts.get("topic") and (fmt or "") not in ("", "rosbag"):
         raise UsageError("--topic is for ROS bags", "drop it, or give --format rosbag")
     rec = read(path, fmt, **opts)
-    print(f"recording: {rec.source} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz ({rec.duration_s:.1f} s); "
+    print(f"recording: {one_line(rec.source)} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz ({rec.duration_s:.1f} s); "
           f"{rec.unit_text()}")
     tol = Tolerances() if a.tolerance_mg is None else Tolerances(accel_rms_mg=a.tolerance_mg)
+    if a.gyro is None:
+        a.gyro = "auto"
     try:
         annotation = read_annotation(a.annotation) if a.annotation else None
     except RecordingError as e:
@@ -482,10 +501,12 @@ def _run_from_file(a) -> int:
     cfg = FileConfig(method=a.method or "auto", gyro=None if a.gyro == "none" else a.gyro, turn_deg=a.turn_angle,
                      angle_sigma_deg=a.turn_sigma, axis_sigma_deg=a.turn_axis_sigma,
                      gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
-                     writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol)
+                     writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol,
+                     tolerance_from_imu=a.tolerance_mg is None)
     directory = Path(a.dir or f"imubench-file-{path.stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: "nothing is kept from an interrupted analysis; run the command again"
-    result, fa = calibrate_recording(rec, directory, cfg)
+    # what the analysis says quotes the file (its column names, its parts): printed safe
+    result, fa = calibrate_recording(rec, directory, cfg, say=lambda line: print(printable(line)))
     print()
     print(segmentation_table(result))
     print()
@@ -493,7 +514,7 @@ def _run_from_file(a) -> int:
     ann = annotation_table(result)
     if ann:
         print()
-        print(ann)
+        print(printable(ann))           # the part names come from the file
     _print_fit(None)(result)
     for key, unit in (("accel_counts_per_g", "counts per g"), ("gyro_counts_per_dps", "counts per °/s")):
         if key in result:
@@ -505,14 +526,22 @@ def _run_from_file(a) -> int:
         print(f"  gyro note: {w}")
     for kind, files in result.get("exports", {}).items():
         if files:
-            print(f"{kind}: {', '.join(files)}")
-    print(f"session directory: {directory} (session.json, residuals.png, segmentation.png)")
-    print(f"report: {result['report']}")
+            print(f"{kind}: {one_line(', '.join(files))}")
+    print(f"session directory: {one_line(directory)} (session.json, residuals.png, segmentation.png)")
+    print(f"report: {one_line(result['report'])}")
     _record_history(result, a.db, directory / "session.json")
-    print("\ncalibration " + ("PASSED" if result["passed"] else "FAILED") + " (fitted from a file; nothing is written "
-          "to a device)")
+    print(f"tolerance: {result['tolerance_source']}")
+    refused_asked = bool(result.get("gyro_refused")) and a.gyro in ("turns", "rotation", "bias")
+    print(f"\nverdict: {result['verdict']}")
+    print("calibration " + ("PASSED" if result["passed"] and not result.get("gyro_refused") else
+                            "PARTIAL" if result["passed"] else "FAILED")
+          + " (fitted from a file; nothing is written to a device)")
     if not result["passed"]:
         raise CommandError(f"the RMS of |a| − g after calibration, {result['accel_rms_after_mg']:.3g} mg, is above "
-                           f"the tolerance {tol.accel_rms_mg:g} mg",
+                           f"the tolerance {result['tolerances']['accel_rms_mg']:.3g} mg",
                            f"see {directory / 'residuals.png'}; --tolerance-mg sets another tolerance")
+    if refused_asked:
+        raise CommandError(f"--gyro {a.gyro} was refused: {result['gyro_refused']}",
+                           f"the accelerometer result is kept in {directory / 'session.json'} and the history; "
+                           "--gyro auto takes what the recording supports")
     return 0

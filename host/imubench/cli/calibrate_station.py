@@ -3,6 +3,7 @@ verdict per board, on the terminal or the station page; and the virtual boards' 
 from __future__ import annotations
 
 import datetime as _dt
+import shlex
 from pathlib import Path
 
 from imubench.cli.common import CommandError, UsageError
@@ -139,7 +140,7 @@ def _run_station(a, cfg) -> int:
     print()
     print(_station_table(res))
     print(f"station session {res.session_id}: {len(res.passed)} of {len(res.boards)} boards passed "
-          f"({res.wall_s:.0f} s); `imubench history --export {res.session_id} --format junit` exports it")
+          f"({res.wall_s:.0f} s); `imubench history --export {shlex.quote(str(res.session_id))} --format junit` exports it")
     if res.failed:
         raise CommandError(f"{len(res.failed)} of {len(res.boards)} boards failed: "
                            + "; ".join(f"slot {b.slot} at {b.stage}" for b in res.boards if b.state != "passed"),

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import shlex
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -60,7 +61,7 @@ def run(a) -> int:
     out = Path(a.out or f"imubench-closure-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     if (out / "capture.bin").exists():
         raise CommandError(f"{out / 'capture.bin'} exists",
-                           f"imubench closure --analyse {out} recomputes it, or choose another --out")
+                           f"imubench closure --analyse {shlex.quote(str(out))} recomputes it, or choose another --out")
     recording_hint = (lambda: f"the recording in {out} is incomplete; drive the path again with another --out"
                       if (out / "capture.bin").exists() else "nothing was recorded")
     a.on_interrupt = recording_hint

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 from imubench.device.link import DEFAULT_BAUD, PORT_ENV
+from imubench.text import one_line
 from imubench.wire.protocol_gen import STREAM_RATES_HZ
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -63,7 +64,7 @@ class Parser(argparse.ArgumentParser):
         super().__init__(*a, **kw)
 
     def error(self, message: str):  # noqa: D401 - argparse's hook
-        sys.stderr.write(f"{self.prog}: error: {message}; see '{self.prog} --help'\n")
+        sys.stderr.write(one_line(f"{self.prog}: error: {message}; see '{self.prog} --help'") + "\n")
         sys.exit(EXIT_USAGE)
 
 
@@ -213,6 +214,10 @@ def explain(e: BaseException, cmd: str) -> tuple[str, int]:
             return f"{e.filename}: no space left on the disk; free some space (everything written so far is kept)", \
                 EXIT_FAILED
         return line(e, "check the disk (everything written so far is kept)"), EXIT_FAILED
+    if kind("ProtocolVersionError"):
+        return str(e), EXIT_FAILED
+    if kind("NewerFirmware"):
+        return line(e, "update imubench (pip install -U imubench) to a version that knows this firmware"), EXIT_FAILED
     if kind("LinkTimeout"):
         return line(e, "check the power, the cable, --baud and that the board runs imubench firmware "
                        "(imubench flash; imubench info)"), EXIT_FAILED
@@ -233,9 +238,10 @@ def explain(e: BaseException, cmd: str) -> tuple[str, int]:
         return line(e, "imubench history --db PATH lists the devices a database holds"), EXIT_FAILED
     if kind("InvalidParams"):
         return line(f"invalid parameters: {e}", "nothing was written"), EXIT_FAILED
-    if kind("SimError", "QemuError"):
-        return line(e, "run `make sim` / `make firmware` in the source checkout, or rerun with --debug"), \
-            EXIT_FAILED
+    if kind("SimError", "QemuError", "ArtifactError"):
+        from imubench.device.artifacts import installed
+        return line(e, "rerun with --debug" if installed() else
+                    "run `make sim` / `make firmware` in the source checkout, or rerun with --debug"), EXIT_FAILED
     if kind("FlashError"):
         return line(e, "see docs/firmware.md, Flashing"), getattr(e, "code", EXIT_FAILED)
     if kind("ImubenchError"):

@@ -1,4 +1,4 @@
-"""`make demo`: a whole guided calibration session on the virtual device.
+"""`imubench demo` (and `make demo`): a whole guided calibration session on the virtual device.
 
 The virtual device (firmware core + drivers + register-level sensor models, imubench.device.sim)
 is started with random, non-trivial truth errors (scale, misalignment and bias of every sensor).
@@ -10,27 +10,48 @@ reads them back, saves, reboots, verifies the device's own calibrated output, re
 run in a history database, and prints the recovered parameters beside the truth with their
 uncertainties. Then the closure check: the virtual bench drives a closed 3-D path and the
 accelerations are integrated with and without the new calibration. Everything is written to
-a temporary session directory.
+a temporary session directory (--dir DIR to keep it somewhere else).
+
+It needs nothing but the installed package: the virtual device comes with the wheel
+(imubench.device.artifacts), or is built with `make sim` in the source checkout.
 """
 from __future__ import annotations
 
-import sys
 import tempfile
 from pathlib import Path
 
-from imubench.cli.main import main as imubench
-from imubench.device.sim import build_sim
+
+def register(sub) -> None:
+    p = sub.add_parser("demo", help="a whole guided calibration session on the virtual device",
+                       description="A guided calibration session on the virtual device with random truth "
+                                   "errors (multi-position + turntable), write-back, verification, history and "
+                                   "the closure check; the recovered parameters are printed beside the truth.")
+    p.add_argument("--dir", metavar="DIR", type=Path,
+                   help="where the session and its history database go (default: a new temporary directory)")
+    p.set_defaults(run=run)
 
 
-def main() -> int:
+def run(a) -> int:
+    from imubench.cli import calibrate
+    from imubench.cli.common import Parser, UsageError
+    from imubench.device.sim import build_sim
     build_sim()
-    work = Path(tempfile.mkdtemp(prefix="imubench-demo-"))
+    work = a.dir
+    if work is None:
+        work = Path(tempfile.mkdtemp(prefix="imubench-demo-"))
+    elif work.exists() and (not work.is_dir() or any(work.iterdir())):
+        raise UsageError(f"{work} exists and is not an empty directory", "give a new or empty --dir")
+    work.mkdir(parents=True, exist_ok=True)
     print("imubench demo: a guided calibration session on the virtual device (random truth errors;")
     print(f"               the virtual bench presents the attitudes and turns the table). Files in {work}\n")
-    return imubench(["calibrate", "--sim", "--sim-seed", "7", "--method", "multi", "--gyro", "turntable",
-                     "--dir", str(work / "session"), "--db", str(work / "history.sqlite"),
-                     "--note", "make demo", "--closure"])
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    # `imubench calibrate ...` through calibrate's own parser (not cli.main's: main imports this module)
+    ap = Parser(prog="imubench")
+    calibrate.register(ap.add_subparsers(dest="cmd", required=True, parser_class=Parser))
+    session = ap.parse_args(["calibrate", "--sim", "--sim-seed", "7", "--method", "multi", "--gyro", "turntable",
+                             "--dir", str(work / "session"), "--db", str(work / "history.sqlite"),
+                             "--note", "imubench demo", "--closure"])
+    try:
+        return session.run(session)
+    finally:
+        if hasattr(session, "on_interrupt"):
+            a.on_interrupt = session.on_interrupt     # the Ctrl-C hint (how to resume) reaches cli.main

@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 from imubench.cli.common import UsageError
+from imubench.text import printable
 
 
 def _db_target(s: str):
@@ -106,17 +107,17 @@ def run(a) -> int:
         if a.yield_by:
             rows = h.yield_table(a.yield_by, since=a.since, station=a.station)
             print(json.dumps(strict_json({"database": shown, "by": a.yield_by, "yield": rows}), indent=1)
-                  if a.json else T.format_yield(rows, a.yield_by, shown))
+                  if a.json else printable(T.format_yield(rows, a.yield_by, shown)))
             return 0
         if a.failed:
             runs = h.failures(since=a.since, station=a.station)
             print(json.dumps(strict_json({"database": shown, "failed": [_brief(r) for r in runs]}), indent=1)
-                  if a.json else T.format_failures(runs, shown))
+                  if a.json else printable(T.format_failures(runs, shown)))
             return 0
         if a.sessions:
             rows = h.sessions(since=a.since, station=a.station)
             print(json.dumps({"database": shown, "sessions": rows}, indent=1) if a.json
-                  else T.format_sessions(rows, shown))
+                  else printable(T.format_sessions(rows, shown)))
             return 0
         if a.export:
             from imubench.results.export import junit_xml, session_json
@@ -134,13 +135,13 @@ def run(a) -> int:
             if a.json:
                 print(json.dumps(strict_json({"database": shown, "devices": devs}), indent=1))
             else:
-                print(T.format_devices(devs, shown))
+                print(printable(T.format_devices(devs, shown)))
             return 0
         rep = H.device_report(h, a.device)
     if a.json:
         print(json.dumps(strict_json({"database": shown, **rep}), indent=1, allow_nan=False))
     else:
-        print(T.format_device_report(rep))
+        print(printable(T.format_device_report(rep)))
     return 0
 
 

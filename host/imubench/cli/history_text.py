@@ -8,6 +8,7 @@ import math
 from imubench.results.export import measurement_text
 from imubench.results.numbers import pm
 from imubench.results.record import _parse_time
+from imubench.text import one_line
 from imubench.wire.ids import sn_text
 
 _AXES = ("x", "y", "z")
@@ -95,11 +96,11 @@ def format_device_report(rep: dict) -> str:
         out.append("  status".ljust(_LABEL_W) + f"passed {_yes(s['passed'])}, written {_yes(s['written'])}, "
                    f"verified {_yes(s['verified'])}")
         if s.get("failure"):
-            out.append("  failed".ljust(_LABEL_W) + f"at {s['failed_stage']}: {s['failure']}")
+            out.append("  failed".ljust(_LABEL_W) + one_line(f"at {s['failed_stage']}: {s['failure']}"))
         for m in s.get("measurements") or []:
             out.append("  measured".ljust(_LABEL_W) + f"{m['name']} = {measurement_text(m)}")
         if s["note"]:
-            out.append("  note".ljust(_LABEL_W) + s["note"])
+            out.append("  note".ljust(_LABEL_W) + one_line(s["note"]))
     out.append("")
     out += _format_drift(rep["drift"], len(runs))
     return "\n".join(out)

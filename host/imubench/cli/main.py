@@ -19,6 +19,7 @@ from imubench.cli import (
     attitude,
     calibrate,
     closure,
+    demo,
     flash,
     history,
     report,
@@ -28,9 +29,10 @@ from imubench.cli import (
     virtual,
 )
 from imubench.cli.common import EXIT_INTERRUPTED, Parser, debug_enabled, explain
+from imubench.text import one_line
 
 # the order of `imubench --help`: a session first, then what follows it, then the tools
-MODULES = (calibrate, station, history, report, closure, allan, attitude, thermal, stream, virtual, flash)
+MODULES = (calibrate, station, history, report, closure, allan, attitude, thermal, stream, virtual, flash, demo)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,7 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
                 description="Hardware-in-the-loop bench for calibrating MEMS IMUs (ADXL355 + ADXRS450 on an STM32).\n"
                             "Every command that talks to a device takes --port URL (default: $IMUBENCH_PORT).\n"
                             "README.md lists the commands; docs/ has the methods.")
-    ap.add_argument("--version", action="version", version=f"imubench {__version__}")
+    ap.add_argument("--version", action=_Version, nargs=0,
+                    help="the package version, the source revision and the firmware images' versions")
     ap.add_argument("--debug", action="store_true",
                     help="show the full traceback of an error (also: IMUBENCH_DEBUG=1)")
     sub = ap.add_subparsers(dest="cmd", required=True, metavar="COMMAND", parser_class=Parser)
@@ -49,6 +52,19 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                        help="show the full traceback of an error (also: IMUBENCH_DEBUG=1)")
     return ap
+
+
+class _Version(argparse.Action):
+    """--version: computed when asked (the checkout's revision needs git), then exit 0."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from imubench.device.artifacts import version_text
+        try:
+            text = version_text()
+        except Exception as e:  # noqa: BLE001 - a damaged install still says its version
+            text = f"imubench {__version__} (compiled parts unreadable: {e})"
+        print(text, flush=True)
+        parser.exit(0)
 
 
 def main(argv=None) -> int:
@@ -106,7 +122,7 @@ def _say(line: str) -> None:
         sys.stdout.flush()
     except (OSError, ValueError):
         pass
-    print(line, file=sys.stderr, flush=True)
+    print(one_line(line), file=sys.stderr, flush=True)       # free text (a file name, a reason) acts on no terminal
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import signal
 import sys
 import time
@@ -17,9 +18,12 @@ from imubench.cli.common import (
     stream_rate,
 )
 from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
+from imubench.files import MAX_CAPTURE_BYTES, atomic_output, read_bytes
+from imubench.text import one_line
 from imubench.wire.decoder import decode_bytes
 from imubench.wire.ids import SENSOR_NAMES, board_name, byte_ids_text, pid_text, sn_text, uid_text
 from imubench.wire.protocol_gen import (
+    Board,
     ClockSource,
     MsgType,
     ParamSource,
@@ -35,7 +39,8 @@ def register(sub) -> None:
     p.add_argument("file", type=existing_file, metavar="FILE", help="the recorded stream")
     p.add_argument("--npz", type=new_file, metavar="OUT", help="write the samples to a .npz file")
     p.add_argument("--csv", type=new_file, metavar="OUT", help="write the samples to a CSV file (SI units)")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--json", action="store_true",
+                   help="print the summary as strict JSON (a number that is not finite is written as null)")
     p.set_defaults(run=run_decode)
     p = sub.add_parser("monitor", help="stream and show live values",
                        description="Stream from a device and print one line of means, noise and link counters "
@@ -66,8 +71,18 @@ def _enum_name(enum, value) -> str:
         return f"unknown ({value})"
 
 
+def _finite_or_null(x):
+    if isinstance(x, dict):
+        return {k: _finite_or_null(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_null(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
 def run_decode(a) -> int:
-    data = a.file.read_bytes()
+    data = read_bytes(a.file, MAX_CAPTURE_BYTES, "the capture")
     msgs, raw, cal, stats = decode_bytes(data)
     if data and not stats.frames_ok:
         raise CommandError(
@@ -79,7 +94,7 @@ def run_decode(a) -> int:
         kinds[MsgType(m.type).name.lower()] = kinds.get(MsgType(m.type).name.lower(), 0) + 1
     summary = {"file": str(a.file), "bytes": len(data), "messages": kinds, "decoder": stats.as_dict()}
     for name, b in (("raw", raw), ("calibrated", cal)):
-        if b is None:
+        if b is None or not len(b):
             continue
         acc, gyr = b.si()
         dur = (b.t_us[-1] - b.t_us[0]) / 1e6 if len(b) > 1 else 0.0
@@ -93,9 +108,9 @@ def run_decode(a) -> int:
             "samples_flagged_bad": int(np.count_nonzero(b.status)),
         }
     if a.json:
-        # strict JSON: a NaN or infinity (which the decoder does not let through) is an error
-        # here, never a bare NaN that JSON readers refuse
-        print(json.dumps(summary, allow_nan=False))
+        # strict JSON: a number that is not finite (an overflow of values the decoder let through)
+        # is written as null, documented in --help, never a bare NaN that JSON readers refuse
+        print(json.dumps(_finite_or_null(summary), allow_nan=False))
     else:
         print(f"{a.file}: {len(data)} bytes")
         st = stats
@@ -126,15 +141,17 @@ def run_decode(a) -> int:
             cols["accel_counts"] = block.accel_counts
             cols["gyro_counts"] = block.gyro_counts
         if a.npz:
-            np.savez_compressed(a.npz, **cols)
+            with atomic_output(a.npz, binary=True) as fh:
+                np.savez_compressed(fh, **cols)
             print(f"  wrote {a.npz}")
         if a.csv:
             header = ("t_us,sample_index,status,ax_mps2,ay_mps2,az_mps2,wx_rad_s,wy_rad_s,wz_rad_s,"
                       "accel_temp_c,gyro_x_temp_c,gyro_y_temp_c,gyro_z_temp_c")
             table = np.column_stack([block.t_us, block.sample_index, block.status, acc, gyr,
                                      cols["accel_temp_c"], cols["gyro_temp_c"]])
-            np.savetxt(a.csv, table, delimiter=",", header=header, comments="",
-                       fmt=["%d", "%d", "%d"] + ["%.9g"] * 10)
+            with atomic_output(a.csv, newline="") as fh:
+                np.savetxt(fh, table, delimiter=",", header=header, comments="",
+                           fmt=["%d", "%d", "%d"] + ["%.9g"] * 10)
             print(f"  wrote {a.csv}")
     return 0
 
@@ -145,7 +162,7 @@ def _print_info(info) -> None:
     for i, n in enumerate(SENSOR_NAMES):
         sensors.append(f"{n} {'ok' if info.sensors_present >> i & 1 else 'MISSING'}")
     print(f"device: board {board_name(info.board)}, firmware {'.'.join(map(str, info.fw_version))} "
-          f"({info.fw_build}), protocol {info.protocol_version}, MCU UID {uid}")
+          f"({one_line(info.fw_build)}), protocol {info.protocol_version}, MCU UID {uid}")
     print(f"  clock {_enum_name(ClockSource, info.clock_source)}, uptime {info.uptime_ms / 1000:.1f} s, "
           f"baud {info.baud or '-'}; " + ", ".join(sensors))
     print(f"  ADXL355 IDs {byte_ids_text(info.accel_ids)}, range ±{info.accel_range_g} g; "
@@ -155,9 +172,36 @@ def _print_info(info) -> None:
           f"generation {info.param_generation}); stream {_enum_name(StreamState, info.stream_state)}")
 
 
+# the boards `imubench flash` writes -> their image in this imubench (imubench.device.artifacts)
+_FLASHABLE = {Board.STM32F103: "f103", Board.STM32F4: "f4"}
+
+
+def _firmware_note(info) -> str | None:
+    """How the device's firmware compares with the image this imubench would flash onto it."""
+    image = _FLASHABLE.get(info.board)
+    if image is None:
+        return None
+    from imubench.device.artifacts import build_info
+    try:
+        ours = build_info()["images"].get(image)
+    except Exception:  # noqa: BLE001 - a note, never a reason for info to fail
+        return None
+    if not ours:
+        return None
+    fw = ".".join(map(str, info.fw_version))
+    if fw == ours["fw_version"] and info.fw_build == ours["fw_build"][:15]:
+        return f"  firmware: the same as this imubench's {image} image"
+    return (f"  firmware: this imubench's {image} image is {ours['fw_version']} ({ours['fw_build']}); "
+            f"imubench flash --board {image} writes it")
+
+
 def run_info(a) -> int:
     with Device.open(a.port, baudrate=a.baud) as dev:
-        _print_info(dev.info())
+        info = dev.info()
+    _print_info(info)
+    note = _firmware_note(info)
+    if note:
+        print(note)
     return 0
 
 

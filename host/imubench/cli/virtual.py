@@ -6,10 +6,10 @@
 """
 from __future__ import annotations
 
+import shlex
 import signal
 import threading
 import time
-from pathlib import Path
 
 from imubench.cli.common import (
     CommandError,
@@ -133,12 +133,13 @@ def run_sim(a) -> int:
 
 def run_qemu(a) -> int:
     from imubench.device.qemu import ROOT, QemuBoard
-    page = a.params.read_bytes() if a.params else None
+    from imubench.files import MAX_IMAGE_BYTES, read_bytes
+    page = read_bytes(a.params, MAX_IMAGE_BYTES, "the parameter page") if a.params else None
     with QemuBoard(a.board, page, build=not a.no_build) as q:
-        print(f"QEMU {q.machine} running {q.elf.relative_to(ROOT) if q.elf.is_relative_to(ROOT) else q.elf}",
+        print(f"QEMU {q.machine} running {q.elf.relative_to(ROOT) if ROOT and q.elf.is_relative_to(ROOT) else q.elf}",
               flush=True)
         print(f"device on {q.port_url}  (the guest starts when the first client connects)", flush=True)
-        print(f"try: imubench info --port {q.port_url}; Ctrl-C to stop", flush=True)
+        print(f"try: imubench info --port {shlex.quote(q.port_url)}; Ctrl-C to stop", flush=True)
         try:
             return _until_stopped(q.alive, "QEMU")
         except CommandError as e:
@@ -157,6 +158,7 @@ def run_fake(a) -> int:
 def run_param_page(a) -> int:
     import json
 
+    from imubench.files import read_text, write_bytes
     from imubench.wire import params as PR
     from imubench.wire.paramstore import (
         LAYOUTS,
@@ -169,13 +171,13 @@ def run_param_page(a) -> int:
         rec = cleared_record(generation=a.generation, program_unit=lay.program_unit)
     else:
         try:
-            fields = json.loads(a.params.read_text()) if a.params else {}
+            fields = json.loads(read_text(a.params, what="the parameter file", errors="replace")) if a.params else {}
         except ValueError as e:
             raise CommandError(f"{a.params} is not JSON ({e})", "give a JSON object of Params fields") from None
         params = PR.from_json(fields, partial=True)
         PR.validate(params)                      # what the device would refuse never reaches a page
         rec = params_record(params, generation=a.generation, program_unit=lay.program_unit)
-    Path(a.output).write_bytes(slot_image(rec, lay.slot_size, a.fill))
+    write_bytes(a.output, slot_image(rec, lay.slot_size, a.fill))
     print(f"{a.output}: {len(rec)}-byte record in a {lay.slot_size}-byte slot; load it at "
           f"0x{lay.slots[0]:08X} (slot 0) or 0x{lay.slots[1]:08X} (slot 1)")
     return 0

@@ -333,7 +333,7 @@ class FakeDevice:
             msg = RawBatch(header=hdr)
         else:
             acc = PR.correct(PR.accel(self.active), accel_g * G0_MPS2)
-            gyr = PR.correct(PR.gyro(self.active), np.deg2rad(rate_dps))
+            gyr = PR.correct(PR.gyro(self.active), np.deg2rad(rate_dps), accel_mps2=acc)
             recs = dict(accel_mps2=acc.astype(np.float32), rate_rad_s=gyr.astype(np.float32), status=np.zeros(n, np.uint8))
             msg = CalBatch(header=hdr)
         f = P.encode(msg, self.seq, ts_first & 0xFFFFFFFF, records=recs)

@@ -3,8 +3,10 @@
     imubench flash --board f103|f4 [--probe openocd|stlink|serial] [--port DEV] [--image PATH]
                    [--no-build] [--dry-run]
 
-The image is build/arm/<board>/imubench.{elf,bin,hex}, built first with `make -s firmware`
-(unless --image or --no-build is given). Probes and the exact commands run:
+The image is the board's imubench.{elf,bin,hex} that imubench.device.artifacts finds: the
+installed package's (built with the wheel, nothing to build), or the checkout's
+build/arm/<board>/, built first with `make -s firmware` (unless --image or --no-build is
+given). Probes and the exact commands run:
 
   openocd   ST-LINK through OpenOCD (Debian package openocd); programs, verifies, resets:
               openocd -f interface/stlink.cfg -f target/stm32f1x.cfg (stm32f4x.cfg)
@@ -46,9 +48,11 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from imubench.device import artifacts
 from imubench.errors import ImubenchError
+from imubench.files import MAX_IMAGE_BYTES, read_bytes
 
-ROOT = Path(__file__).resolve().parents[3]
+ROOT = artifacts.checkout_root()      # None when installed from a wheel
 FLASH_BASE = 0x08000000
 PRODUCT_ID = {"f103": 0x410, "f4": 0x413}      # AN2606 / stm32flash dev_table.c
 TAG_BOARD = {"f103": "stm32f103", "f4": "stm32f4"}
@@ -89,8 +93,8 @@ class Plan:
     steps: list[Step] = field(default_factory=list)
 
 
-def image_paths(board: str, root: Path = ROOT) -> dict[str, Path]:
-    d = root / "build" / "arm" / board
+def image_paths(board: str, root: Path | None = None) -> dict[str, Path]:
+    d = root / "build" / "arm" / board if root is not None else artifacts.image_dir(board)
     return {ext: d / f"imubench.{ext}" for ext in ("elf", "bin", "hex")}
 
 
@@ -285,9 +289,9 @@ def _run(step: Step, board: str | None = None) -> str:
                                                                   " and printed nothing")
                          + "; check the probe's cable, the board's power and BOOT0", 1)
     if step.verify_against is not None:
-        want = step.verify_against.read_bytes()
+        want = read_bytes(step.verify_against, MAX_IMAGE_BYTES, "the image")
         try:
-            got = step.readback.read_bytes()
+            got = read_bytes(step.readback, MAX_IMAGE_BYTES, "the read-back")
         except OSError as e:
             raise FlashError(f"verify failed: {step.argv[0]} read produced no file ({e})", 1) from e
         if got[:len(want)] != want or len(got) < len(want):
@@ -300,6 +304,10 @@ def _run(step: Step, board: str | None = None) -> str:
 
 
 def build_firmware() -> None:
+    if artifacts.installed():
+        return                          # the package's images were built with the wheel
+    if ROOT is None:
+        raise FlashError(str(artifacts.not_found()), 2)
     r = subprocess.run(["make", "-s", "-C", str(ROOT), "firmware"], capture_output=True, text=True)
     if r.returncode != 0:
         last = (r.stderr.strip() or r.stdout.strip() or "no output").splitlines()[-1]

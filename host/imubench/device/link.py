@@ -66,6 +66,18 @@ class NoPort(LinkError):
     """No port was given (no --port, no IMUBENCH_PORT): a usage error, not a link failure."""
 
 
+class NewerFirmware(LinkError):
+    """The device answered with a well-formed info (its CRC good) holding a value this host's
+    protocol definition does not have: a newer firmware, not a damaged link."""
+
+    def __init__(self, url: str, field: str, value, kind: str, allowed=None):
+        what = (f"unknown bits 0x{value & ~allowed & 0xFFFFFFFF:X} in {field}" if kind == "flags" else
+                f"unknown value {value} for {field}")
+        super().__init__(f"newer firmware: {what} (the info from {url} is intact; this imubench does not "
+                         "know that value)")
+        self.field, self.value = field, value
+
+
 class CaptureError(LinkError):
     """The capture file could not be written (a full disk, a removed drive): the stream stops
     rather than go on with bytes that are not on disk. `errno` is the OS error's."""
@@ -74,6 +86,21 @@ class CaptureError(LinkError):
         super().__init__(f"cannot write the capture file {path}: {err.strerror or err}")
         self.errno = err.errno
         self.filename = str(path)
+
+
+class ProtocolVersionError(LinkError):
+    """The device sends intact frames of another protocol version: nothing it says can be read."""
+
+    def __init__(self, url: str, device_version: int):
+        from imubench import __version__
+        newer = device_version > P.PROTOCOL_VERSION
+        super().__init__(
+            f"the device on {url} speaks protocol version {device_version}, this imubench {__version__} "
+            f"speaks version {P.PROTOCOL_VERSION}: "
+            + ("install a newer imubench, or flash this one's firmware (imubench flash)" if newer else
+               "flash this imubench's firmware onto it (imubench flash), or use the imubench it was built with"))
+        self.device_version = device_version
+        self.url = url
 
 
 class LinkTimeout(TimeoutError):
@@ -104,7 +131,28 @@ def resolve_port(url: str | None) -> str:
     if not url:
         raise NoPort(f"no port given; pass --port URL or set {PORT_ENV} "
                         "(a device path like /dev/ttyUSB0, or socket://HOST:PORT, rfc2217://...)")
+    check_network_url(url)
     return url
+
+
+def check_network_url(url: str) -> None:
+    """A socket:// or rfc2217:// URL must name a host and a numeric TCP port: refused here in
+    one line (pyserial would fail with a comparison error on a missing port)."""
+    from urllib.parse import urlsplit
+    scheme = url.partition("://")[0].lower() if "://" in url else ""
+    if scheme not in ("socket", "rfc2217"):
+        return
+    example = f"{scheme}://localhost:5555"
+    try:
+        parts = urlsplit(url)
+        port = parts.port
+    except ValueError:
+        raise NoPort(f"{url}: the port is not a number from 1 to 65535; give {scheme}://HOST:PORT "
+                     f"(e.g. {example})") from None
+    if port is None:
+        raise NoPort(f"{url} names no TCP port; give {scheme}://HOST:PORT (e.g. {example})")
+    if not 0 < port < 65536:
+        raise NoPort(f"{url}: port {port} is not from 1 to 65535; give {scheme}://HOST:PORT (e.g. {example})")
 
 
 @dataclass
@@ -170,6 +218,11 @@ class Link:
                         break
                 with self._cond:
                     frames = self.decoder.feed(data)
+                    if self.decoder.foreign_version is not None:
+                        # another protocol version: say so at once, before any timeout or
+                        # half-understood reply (every request now fails with this error)
+                        self.error = ProtocolVersionError(self.url, self.decoder.foreign_version)
+                        break
                     if frames:
                         for f in frames:
                             self._dispatch(f)
@@ -243,6 +296,9 @@ class Link:
                             raise DeviceError(ack.command, ack.error, ack.value)
                         if expect is None or any(isinstance(m, expect) for m in pend.data):
                             return ack, pend.data
+                        newer = self.decoder.refused_info if expect is Info else None
+                        if newer is not None and newer[0] == rid:
+                            raise NewerFirmware(self.url, *newer[1:])
                         pend.ack = None          # acked, but its data frame was lost: ask again
                         data_lost += 1
             if data_lost:

@@ -4,8 +4,9 @@
         with Device.open(q.port_url) as dev:     # socket://127.0.0.1:PORT
             print(dev.info())
 
-QemuBoard builds the QEMU images first (`make -s firmware`, which installs the ARM
-toolchain and qemu-system-arm through `make system-deps` when run as root), then starts
+QemuBoard takes the QEMU images of the installed package (built with the wheel), or in the
+source checkout builds them first (`make -s firmware`, which installs the ARM toolchain and
+qemu-system-arm through `make system-deps` when run as root), then starts
 
     qemu-system-arm -M stm32vldiscovery|netduinoplus2 -nographic -display none -monitor none
         -serial tcp:127.0.0.1:PORT,server=on,wait=on,nodelay=on
@@ -34,9 +35,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from imubench.device import artifacts
 from imubench.errors import ImubenchError
 
-ROOT = Path(__file__).resolve().parents[3]
+ROOT = artifacts.checkout_root()      # None when installed from a wheel
 QEMU = "qemu-system-arm"
 
 # board -> (QEMU machine, image directory under build/arm, parameter slot 0 address)
@@ -59,8 +61,10 @@ def build_firmware(force: bool = False) -> None:
     global _built
     if _built and not force:
         return
-    if not (ROOT / "Makefile").exists():
-        raise QemuError(f"no Makefile in {ROOT}: cannot build the firmware")
+    if artifacts.installed():
+        return                          # the package's images were built with the wheel
+    if ROOT is None:
+        raise QemuError(str(artifacts.not_found()))
     r = subprocess.run(["make", "-s", "-C", str(ROOT), "firmware"], capture_output=True, text=True)
     if r.returncode != 0:
         raise QemuError(f"`make firmware` failed:\n{r.stdout[-4000:]}\n{r.stderr[-4000:]}")
@@ -68,7 +72,7 @@ def build_firmware(force: bool = False) -> None:
 
 
 def image_path(board: str) -> Path:
-    return ROOT / "build" / "arm" / BOARDS[board][1] / "imubench.elf"
+    return artifacts.image_dir(BOARDS[board][1]) / "imubench.elf"
 
 
 def _free_port() -> int:

@@ -4,7 +4,7 @@
     from imubench.device.sim import VirtualBench
     from imubench.device.link import Device
 
-    with VirtualBench(speed=20, seed=1) as bench:         # builds and starts imubench-sim
+    with VirtualBench(speed=20, seed=1) as bench:         # starts imubench-sim
         with Device.open(bench.port_url) as dev:         # socket://127.0.0.1:PORT
             dev.start_stream(rate_hz=1000)
             bench.rotate("z", rate_dps=90, duration_s=1)  # turntable: 90 deg about board Z
@@ -27,6 +27,7 @@ import os
 import select
 import shutil
 import signal
+import stat
 import socket
 import subprocess
 import tempfile
@@ -36,11 +37,10 @@ import weakref
 from pathlib import Path
 from typing import Any, Sequence
 
+from imubench.device import artifacts
 from imubench.errors import ImubenchError
 
 __all__ = ["SimError", "TARGETS", "VirtualBench", "arm_command", "build_sim", "repo_root"]
-
-SIM_BIN_REL = Path("build") / "host" / "imubench-sim"
 
 # What runs the firmware: "host" = the core and drivers built for Linux (imubench-sim);
 # "f103" / "f4" = the exact STM32 image under the ARM emulator (imubench.device.arm), against
@@ -49,28 +49,21 @@ TARGETS = ("host", "f103", "f4")
 
 
 def arm_command(target: str) -> list[str]:
-    """Build what the ARM emulator needs (`make sim firmware`) and return the command that
-    starts it for `target` (the options are imubench-sim's)."""
+    """The command that starts the ARM emulator for `target` (the options are imubench-sim's),
+    after making sure its image and the models library are there (imubench.device.artifacts:
+    the installed package's, or the checkout's built with `make` first)."""
     import sys
-    root = repo_root()
-    if target not in _ARM_BUILT:
-        try:
-            r = subprocess.run(["make", "-s", "-C", str(root), "sim", f"arm-{target}"], capture_output=True,
-                               text=True)
-        except FileNotFoundError as e:
-            raise SimError("`make` not found: install make and a C compiler (gcc) to build the "
-                           "virtual device") from e
-        if r.returncode != 0:
-            raise SimError(f"building the {target} image and the models library failed (exit "
-                           f"{r.returncode}):\n{r.stdout}{r.stderr}".rstrip())
-        _ARM_BUILT.add(target)
+    try:
+        artifacts.models_library()
+        elf = artifacts.arm_image(target)
+    except artifacts.ArtifactError as e:
+        raise SimError(str(e)) from e
+    if not elf.is_file():
+        raise SimError(f"the {target} image {elf} is missing: build the images with `make firmware`")
     host = str(Path(__file__).resolve().parents[2])   # this imubench package, not another one
     code = (f"import sys; sys.path.insert(0, {host!r}); "
             "from imubench.device.arm.__main__ import main; sys.exit(main())")
     return [sys.executable, "-c", code, "--target", target]
-
-
-_ARM_BUILT: set[str] = set()
 
 
 class SimError(ImubenchError, RuntimeError):
@@ -79,29 +72,86 @@ class SimError(ImubenchError, RuntimeError):
 
 def repo_root() -> Path:
     """The source checkout this package lives in (host/imubench/device/sim.py -> repo root)."""
-    root = Path(__file__).resolve().parents[3]
-    if not (root / "Makefile").is_file() or not (root / "firmware").is_dir():
-        raise SimError(f"{root} is not an imubench source checkout: the virtual device is built "
-                       "from firmware/ with `make sim`")
+    root = artifacts.checkout_root()
+    if root is None:
+        raise SimError(f"{artifacts.PACKAGE} does not run from an imubench source checkout")
     return root
 
 
 def build_sim() -> Path:
-    """Build the simulator (`make -s sim` in the repo) and return the binary's path."""
-    root = repo_root()
+    """The simulator's executable: the installed package's, or the checkout's (`make -s sim`)."""
     try:
-        r = subprocess.run(["make", "-s", "-C", str(root), "sim"], capture_output=True, text=True)
-    except FileNotFoundError as e:
-        raise SimError("`make` not found: install make and a C compiler (gcc) to build the "
-                       "virtual device") from e
-    binary = root / SIM_BIN_REL
-    if r.returncode != 0 or not binary.is_file():
-        raise SimError(f"building the virtual device failed (make -s sim, exit {r.returncode}):\n"
-                       f"{r.stdout}{r.stderr}".rstrip())
-    return binary
+        return artifacts.sim_binary()
+    except artifacts.ArtifactError as e:
+        raise SimError(str(e)) from e
 
 
 _LIVE: "weakref.WeakSet[VirtualBench]" = weakref.WeakSet()
+
+TMP_PREFIX = "imubench-vbench-"
+OWNER_FILE = "owner.json"      # in a virtual device's temporary folder: the process that made it
+
+
+def _start_time(pid: int) -> str | None:
+    """The start time of process pid (Linux: /proc/PID/stat field 22, clock ticks since boot), so
+    that a pid reused by another process is not taken for the owner; None where unknown."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[19].decode()
+    except (OSError, IndexError):
+        return None
+
+
+def _alive(owner: dict) -> bool:
+    pid = owner.get("pid")
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True                     # another user's live process
+    started = owner.get("started")
+    return started is None or _start_time(pid) in (None, started)
+
+
+def owned_tmpdir(prefix: str) -> str:
+    """A fresh temporary folder (mkdtemp) that names its owner (this process: pid and start
+    time, OWNER_FILE). A host killed with SIGKILL cannot remove it, so every new one first
+    removes the folders of this prefix whose owner is dead (sweep_dead_tmpdirs): a folder is
+    never left behind for longer than until the next virtual device starts."""
+    sweep_dead_tmpdirs(prefix)
+    d = tempfile.mkdtemp(prefix=prefix)
+    with open(os.path.join(d, OWNER_FILE), "w", encoding="utf-8") as f:
+        json.dump({"pid": os.getpid(), "started": _start_time(os.getpid())}, f)
+    return d
+
+
+def sweep_dead_tmpdirs(prefix: str, root: str | None = None) -> list[str]:
+    """Remove the folders root/PREFIX* of this user whose OWNER_FILE names a process that is no
+    longer alive; folders without an owner file (another program's, or being created) stay.
+    Returns the folders removed."""
+    root = root or tempfile.gettempdir()
+    removed = []
+    try:
+        names = [n for n in os.listdir(root) if n.startswith(prefix)]
+    except OSError:
+        return removed
+    for n in names:
+        d = os.path.join(root, n)
+        try:
+            st = os.lstat(d)
+            if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid():
+                continue
+            with open(os.path.join(d, OWNER_FILE), encoding="utf-8") as f:
+                owner = json.load(f)
+        except (OSError, ValueError):
+            continue
+        if isinstance(owner, dict) and not _alive(owner):
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+    return removed
 
 
 @atexit.register
@@ -154,7 +204,7 @@ class VirtualBench:
         self.startup_timeout = startup_timeout
         self._tcp_req: int | None = None if tcp is False else (0 if tcp is True else int(tcp))
         self._control_req = int(control_port)
-        self._tmpdir = tempfile.mkdtemp(prefix="imubench-vbench-")
+        self._tmpdir = owned_tmpdir(TMP_PREFIX)
         self.flash = str(Path(flash).resolve()) if flash is not None else os.path.join(self._tmpdir, "flash.bin")
         self.log_path = os.path.join(self._tmpdir, "sim.log")
         self._binary = Path(binary) if binary is not None else None
@@ -199,6 +249,8 @@ class VirtualBench:
             args += ["--tcp", str(tcp_port)]
         if self.uid:
             args += ["--uid", self.uid]
+        if self.target == "host":
+            args += ["--orphan-cleanup", self._tmpdir]      # a SIGKILLed host's folder goes with the sim
         log = open(self.log_path, "ab")
         try:
             log.write(f"--- {' '.join(args)}\n".encode())

@@ -19,6 +19,7 @@ from imubench.device.link import (
     LinkTimeout,
 )
 from imubench.errors import NotACapture
+from imubench.files import MAX_CAPTURE_BYTES, open_growing, read_bytes
 from imubench.results.allan import format_readoffs, plot_allan
 from imubench.results.atomic import write_json_atomic
 from imubench.wire.decoder import decode_bytes
@@ -29,7 +30,7 @@ from imubench.wire.protocol_gen import MsgType
 def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=print) -> dict:
     """Decode capture file(s), convert raw counts to SI, run allan() on accel and gyro,
     write allan.json and the two PNGs to out_dir; returns the summary dict."""
-    data = b"".join(Path(p).read_bytes() for p in paths)
+    data = b"".join(read_bytes(p, MAX_CAPTURE_BYTES, "the capture") for p in paths)
     msgs, raw, _cal, stats = decode_bytes(data)
     infos = [m.msg for m in msgs if m.type == MsgType.INFO]     # record() asks for one into the capture
     if raw is None or len(raw) < 16:
@@ -63,6 +64,54 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
     return res
 
 
+def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=print) -> dict:
+    """The Allan analysis of a recording of any IMU read by imubench.recordings (the formats
+    `calibrate --from` reads, with the same unit and timing checks), written like
+    analyse_capture's, plus each consumer's noise file of `exports` (results.noise_export)."""
+    from imubench.procedures.from_file import check_accel_unit, check_gyro_unit
+    from imubench.recordings import RecordingError
+    from imubench.results.noise_export import write_noise
+    fa, fg = rec.accel_factor(), rec.gyro_factor()
+    if fa is None or fg is None:
+        raise RecordingError("the Allan figures are in SI: give the raw counts' nominal scale (--accel-scale "
+                             "COUNTS_PER_G, --gyro-scale COUNTS_PER_DPS) or declare an SI unit")
+    n = len(rec)
+    if n < 64:
+        raise RecordingError(f"{n} samples: far too few for an Allan analysis (record a still IMU for hours)")
+    chunk = max(1, int(10 * rec.fs_hz))
+    norms = np.array([np.linalg.norm(rec.accel[i:i + chunk].mean(axis=0)) for i in range(0, n - chunk + 1, chunk)]
+                     or [np.linalg.norm(rec.accel.mean(axis=0))])
+    check_accel_unit(rec, norms)                       # refuses only |a| far from 1 g
+    warn = check_gyro_unit(rec, np.median(rec.gyro, axis=0), fg)
+    if warn:
+        log(f"warning: {warn}")
+    for b, why in rec.breaks:
+        log(f"warning: break at sample {b}: {why}; the analysis joins the pieces")
+    acc, gyr = rec.accel * fa, rec.gyro * fg
+    out_dir.mkdir(parents=True, exist_ok=True)
+    name = rec.device or Path(rec.source.split(" + ")[0]).stem
+    res = {"source": [rec.source], "device": {"name": name}, "samples": n, "rate_hz": float(rec.fs_hz),
+           "duration_s": n / rec.fs_hz, "format": rec.fmt, "units": rec.unit_text(),
+           "timing": list(getattr(rec, "notes", [])), "accel": allan(acc, rec.fs_hz), "gyro": allan(gyr, rec.fs_hz)}
+    res["accel_usual"] = {a: usual_units(res["accel"][a], "accel") for a in AXES}
+    res["gyro_usual"] = {a: usual_units(res["gyro"][a], "gyro") for a in AXES}
+    files = {}
+    for kind in dict.fromkeys(exports):
+        ext = {"kalibr": "kalibr-imu.yaml", "openvins": "openvins-kalibr_imu_chain.yaml",
+               "vins-fusion": "vins-fusion-imu.yaml", "imu-utils": "imu_utils.yaml"}[kind]
+        files[kind] = str(write_noise(kind, out_dir / ext, res, topic=topic, name=name))
+    res["exports"] = files
+    write_json_atomic(out_dir / "allan.json", res)
+    plot_allan(res["accel"], out_dir / "allan_accel.png", f"Accelerometer ({name})", "m/s²", "accel")
+    plot_allan(res["gyro"], out_dir / "allan_gyro.png", f"Gyroscope ({name})", "rad/s", "gyro")
+    for line in format_readoffs(res):
+        log(line)
+    for kind, f in files.items():
+        log(f"{kind}: {f}")
+    log(f"wrote {out_dir / 'allan.json'}, {out_dir / 'allan_accel.png'}, {out_dir / 'allan_gyro.png'}")
+    return res
+
+
 def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int = DEFAULT_BAUD,
            progress_s: float = 5.0, stop: dict | None = None, log=print) -> str:
     """Stream raw at rate_hz into capture_path (every byte appended as it arrives) until
@@ -71,7 +120,7 @@ def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int 
     stop = stop if stop is not None else {"now": False}
     want = int(round(duration_s * rate_hz))
     why = "done"
-    with open(capture_path, "ab", buffering=0) as cap:
+    with open_growing(capture_path, buffering=0) as cap:
         dev = Device.open(port, baudrate=baud, capture=cap, timeout=3.0)   # no port: nothing to record
         with dev:
             info = dev.info()            # its reply goes into the capture: the file names its device

@@ -19,6 +19,7 @@ import numpy as np
 from imubench import units as U
 from imubench.analysis.closure import closure_from_block
 from imubench.analysis.strapdown import ClosureError, euler_matrix, yaw_between
+from imubench.files import MAX_CAPTURE_BYTES, read_bytes, read_text
 from imubench.results.atomic import write_json_atomic
 from imubench.results.closure import plot_closure, result_json
 from imubench.wire import params as PR
@@ -113,7 +114,7 @@ def load_params(src: str | None, dev=None) -> Params:
     if src is None or src == "device":
         return dev.get_params(ParamsWhich.ACTIVE).params
     try:
-        data = json.loads(Path(src).read_text())
+        data = json.loads(read_text(src, what="the parameters"))
     except ValueError as e:
         raise ClosureError(f"{src} is not JSON ({e}); give a closure.json or a JSON object of Params fields") from None
     if isinstance(data, dict) and "params" in data:
@@ -129,11 +130,11 @@ def analyse(out_dir: Path, rest_s: float | None = None, g_mps2: float | None = N
             raise ClosureError(f"{out_dir} holds no {name}: it is not a closure recording "
                                "(imubench closure --out DIR writes one)")
     try:
-        meta = json.loads((out_dir / "closure.json").read_text())
+        meta = json.loads(read_text(out_dir / "closure.json"))
         params = PR.from_json(meta["params"])
     except (ValueError, KeyError, TypeError) as e:
         raise ClosureError(f"{out_dir / 'closure.json'} is damaged ({type(e).__name__}: {e})") from None
-    _, raw, _, stats = decode_bytes((out_dir / "capture.bin").read_bytes())
+    _, raw, _, stats = decode_bytes(read_bytes(out_dir / "capture.bin", MAX_CAPTURE_BYTES, "the capture"))
     if raw is None:
         raise ClosureError(f"no raw samples in {out_dir / 'capture.bin'}")
     rest = float(rest_s if rest_s is not None else meta.get("rest_s", 2.0))

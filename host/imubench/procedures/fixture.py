@@ -47,6 +47,7 @@ import numpy as np
 from imubench.calib import CalibrationError
 from imubench.device.link import Device, LinkError, LinkTimeout
 from imubench.errors import ImubenchError
+from imubench.files import open_input, write_text
 from imubench.procedures.errors import SessionAborted
 from imubench.procedures.plate import POSE_TIMEOUT_S, PLATE_TIMEOUT_S, BoardFailed, Plate  # noqa: F401 - where callers found them
 from imubench.procedures.presenter import Presenter
@@ -428,7 +429,7 @@ class FixtureRun:
         except Exception as e:  # noqa: BLE001 - a bug on one board must not stop the others; it is named
             self._fail(slot, self.boards[slot].stage, f"{type(e).__name__}: {e}")
             (self.dir / f"slot-{slot}").mkdir(parents=True, exist_ok=True)
-            (self.dir / f"slot-{slot}" / "error.txt").write_text(traceback.format_exc())
+            write_text(self.dir / f"slot-{slot}" / "error.txt", traceback.format_exc())
         finally:
             self.plate.leave(slot)
             try:
@@ -530,7 +531,7 @@ def capture_ref(d: Path) -> dict:
     listed = []
     for p in files:
         fh = hashlib.sha256()
-        with open(p, "rb") as f:
+        with open_input(p) as f:
             for chunk in iter(lambda: f.read(1 << 20), b""):
                 h.update(chunk)
                 fh.update(chunk)

@@ -31,16 +31,26 @@ from imubench.results.atomic import write_json_atomic
 from imubench.results.record import CalibrationRecord, fit_dict, jsonable, now_utc
 from imubench.results.sessionfile import SESSION_SCHEMA
 
-GYRO_FILE_METHODS = ("bias", "turns", "rotation")
+GYRO_FILE_METHODS = ("auto", "bias", "turns", "rotation")
 ACCEL_PLAUSIBLE_G = (0.8, 1.25)          # still |a| in the declared unit, in g
-GYRO_REST_MAX_DPS = 20.0                 # a MEMS gyro at rest reads less than this (bias)
+GYRO_REST_MAX_DPS = 20.0                 # a MEMS gyro's bias (zero-rate output) stays below this (MPU-6050: ±20 °/s)
+GYRO_REST_REFUSE_DPS = 60.0              # 3× that at rest leaves no doubt: the declared unit is wrong
+# what a class of accelerometer reaches after a linear calibration (RMS of |a| − g over the rests),
+# by its noise density measured at rest: (upper density µg/√Hz, tolerance mg, class, example)
+ACCEL_CLASSES = ((60.0, 1.0, "low-noise MEMS", "ADXL355, 25 µg/√Hz"),
+                 (200.0, 2.0, "mid-range MEMS", "BMI160, 180 µg/√Hz"),
+                 (float("inf"), 3.0, "consumer MEMS", "MPU-6050/MPU-9150, 400 µg/√Hz"))
+RECORD_ADVICE = ("record turns about each board axis while it is off the vertical, both ways and from several "
+                 "attitudes (rotation method: 12-24 motions between rests), or one full turn about X, Y and Z each "
+                 "pointing up with a rest before and after (--gyro turns)")
 _AXES = "XYZ"
 
 
 @dataclass
 class FileConfig:
     method: str = "auto"                 # "six" | "multi" | "auto": multi when the attitudes constrain it, else six
-    gyro: str | None = "bias"            # "bias" | "turns" | "rotation" | None
+    gyro: str | None = "auto"            # "auto" (turns and/or rotation, whatever the recording has) | "bias" |
+                                         # "turns" | "rotation" | None
     turn_deg: float = 360.0              # the known angle of one turn
     angle_sigma_deg: float = 1.0         # hand placement after a turn
     axis_sigma_deg: float = 0.5          # turn axis off the measured vertical
@@ -52,6 +62,7 @@ class FileConfig:
     writers: tuple = ()                  # results.paramfiles.WRITERS to write
     annotation: list | None = None       # (name, start, stop) sections to compare the segmentation with
     tolerances: Tolerances = field(default_factory=Tolerances)
+    tolerance_from_imu: bool = True      # the pass tolerance from this IMU's noise and class (else tolerances')
 
 
 def device_id(name: str) -> str:
@@ -95,35 +106,43 @@ def check_accel_unit(rec: Recording, still_norm: np.ndarray) -> None:
         f"{still_norm.min():.6g} … {still_norm.max():.6g}), i.e. {med:.4g} g, far from 1 g; {hint}")
 
 
-def check_gyro_unit(rec: Recording, rest_rate: np.ndarray, factor: float) -> None:
-    """Refuse a declared gyro unit under which a board at rest would turn fast."""
+def check_gyro_unit(rec: Recording, rest_rate: np.ndarray, factor: float) -> str | None:
+    """A declared gyro unit under which a board at rest would turn: RecordingError when no MEMS
+    gyro's bias comes near (≥ GYRO_REST_REFUSE_DPS), a warning (returned) when it is only
+    unusual (≥ GYRO_REST_MAX_DPS); None when plausible."""
     dps = float(np.max(np.abs(rest_rate))) * factor * 180.0 / math.pi
     if dps <= GYRO_REST_MAX_DPS:
-        return
+        return None
     raw = float(np.max(np.abs(rest_rate)))
     hint = ("the data look like °/s: declare --gyro-unit dps" if rec.gyro_unit == "rad_s" and raw < GYRO_REST_MAX_DPS
             else "if these are raw counts, declare --gyro-unit counts (with --gyro-scale COUNTS_PER_DPS if known)")
-    raise RecordingError(
-        f"the declared gyro unit ({_unit(rec, 1)}) is implausible: at rest (the longest still "
-        f"interval) the gyro reads up to {raw:.4g} in the file, i.e. {dps:.4g} °/s, where a MEMS gyro at rest "
-        f"reads less than {GYRO_REST_MAX_DPS:g} °/s; {hint}")
+    text = (f"the declared gyro unit ({_unit(rec, 1)}) is doubtful: at rest (the longest still interval) the gyro "
+            f"reads up to {raw:.4g} in the file, i.e. {dps:.4g} °/s")
+    if dps >= GYRO_REST_REFUSE_DPS:
+        raise RecordingError(f"{text}, beyond {GYRO_REST_REFUSE_DPS:g} °/s, 3× the largest bias MEMS data sheets "
+                             f"allow (±{GYRO_REST_MAX_DPS:g} °/s): the unit is wrong; {hint}")
+    return (f"{text}, more than a MEMS gyro's bias usually is ({GYRO_REST_MAX_DPS:g} °/s) but possible: the declared "
+            f"unit is used; {hint} if that is wrong")
 
 
-def check_turn_scale(measured_rad: list[float], turn_rad: float, rec: Recording) -> None:
-    """Refuse a declared gyro unit under which the turns between same-attitude rests integrate to
-    far from whole turns (e.g. °/s declared as rad/s: 57 turns each)."""
-    if not measured_rad:
-        return
-    r = float(np.median(np.abs(measured_rad))) / turn_rad
-    if 0.75 <= r <= 4.25 and abs(r - round(r)) <= 0.25:
-        return
-    raise RecordingError(
-        f"the declared gyro unit ({_unit(rec, 1)}) is implausible: the motions about the vertical "
-        f"between rests of the same attitude integrate to {', '.join(f'{math.degrees(abs(m)):.0f}°' for m in measured_rad)} "
-        f"(median {r:.3g} turns of {math.degrees(turn_rad):g}°), not whole turns; "
-        + ("°/s read as rad/s gives 57× the angle: declare --gyro-unit dps" if r > 20 else
-           "rad/s read as °/s gives 1/57 of the angle: declare --gyro-unit rad_s" if r < 0.1 else
-           "check --gyro-unit, --gyro-scale and --turn-angle"))
+def check_turn_scale(measured_rad: list[float], turn_rad: float, rec: Recording) -> str | None:
+    """A warning (never a refusal: the angle of a motion is not known, and returning to an
+    attitude by a small motion is normal) when the motions about the vertical between rests of
+    the same attitude integrate to a constant multiple of whole turns, as °/s read as rad/s
+    (57.3×) or the reverse would; None otherwise."""
+    if len(measured_rad) < 2:
+        return None
+    r = np.abs(np.asarray(measured_rad)) / turn_rad
+    med = float(np.median(r))
+    for factor, fix in ((180.0 / math.pi, "°/s read as rad/s: declare --gyro-unit dps"),
+                        (math.pi / 180.0, "rad/s read as °/s: declare --gyro-unit rad_s")):
+        near = np.abs(r / factor - np.round(r / factor)) < 0.1
+        if np.all(near & (np.round(r / factor) >= 1)):
+            return (f"the motions about the vertical between rests of the same attitude integrate to "
+                    f"{', '.join(f'{math.degrees(abs(m)):.0f}°' for m in measured_rad)} (median {med:.3g} turns of "
+                    f"{math.degrees(turn_rad):g}°): all {len(r)} are whole turns only if the gyro unit is off by "
+                    f"{factor:.4g}× ({fix}); the declared unit is used, as the turns' angles are not known")
+    return None
 
 
 # ------------------------------------------------------------------ segmentation vs annotation
@@ -174,15 +193,17 @@ class FileAnalysis:
         self.gyro_parts: dict = {}
         self.turns: list = []
         self.method = cfg.method        # "auto" becomes "six" or "multi" in run()
+        self.fg = rec.gyro_factor()
+        self._bias: TriadFit | None = None
+        self.gyro_refused: str | None = None
+        self.gsens: dict | None = None
 
     def _note(self, text: str) -> None:
         self.notes.append(text)
         self.say(f"  note: {text}")
 
     def run(self) -> dict:
-        from imubench.calib import gyro as CG
         from imubench.calib.static import detect_static, require_static
-        from imubench.calib.turns import detect_turns
         rec, cfg = self.rec, self.cfg
         self.started = now_utc()
         fs = rec.fs_hz
@@ -200,12 +221,21 @@ class FileAnalysis:
         ivs = detect_static(acc, fs, window_s=cfg.window_s, min_duration_s=cfg.min_still_s)
         dropped = [i for i in ivs if not i.clean]
         keep = [i for i in ivs if i.clean]
+        self.gyro_refused = None        # why the gyro (scale, misalignment; or all of it) was not calibrated
+        warn = None
         if keep:
             check_accel_unit(rec, np.linalg.norm([i.mean for i in keep], axis=1) / fa)
             longest0 = max(keep, key=lambda i: i.n)
-            if rec.gyro_scaled:      # median: robust to a smooth turn inside an accelerometer-still interval
-                check_gyro_unit(rec, np.median(rec.gyro[longest0.start:longest0.stop], axis=0), rec.gyro_factor())
-        if keep:                     # a turn the accelerometer did not see (smooth, about the vertical)
+            if rec.gyro_scaled and cfg.gyro:   # median: robust to a smooth turn inside an accelerometer-still interval
+                try:
+                    warn = check_gyro_unit(rec, np.median(rec.gyro[longest0.start:longest0.stop], axis=0),
+                                           rec.gyro_factor())
+                    if warn:
+                        self._note(warn)
+                except RecordingError as e:  # the accelerometer is still calibrated
+                    self.gyro_refused = str(e)
+                    warn = None
+        if keep and self.gyro_refused is None and not warn:   # a turn the accelerometer did not see (smooth, about the vertical)
             from imubench.calib.turns import split_by_rotation
             n0 = len(keep)
             if rec.gyro_scaled:
@@ -214,7 +244,11 @@ class FileAnalysis:
                 noise = float(np.median([np.max(np.std(rec.gyro[i.start:i.stop], axis=0)) for i in keep]))
                 keep = split_by_rotation(acc, rec.gyro, fs, keep, min_duration_s=cfg.min_still_s,
                                          threshold=20.0 * max(noise, 1e-12))
-            if len(keep) != n0:
+            if len(keep) < min(n0, 9 if cfg.method == "multi" else 6):
+                self._note(f"cutting where the gyro turned would leave {len(keep)} of {n0} still intervals: not cut "
+                           "(check the gyro unit)")
+                keep = [i for i in ivs if i.clean]
+            elif len(keep) != n0:
                 self._note(f"{len(keep) - n0:+d} still intervals after cutting where the gyro turned "
                            "(the accelerometer alone did not show it)")
         for i in dropped:
@@ -230,7 +264,20 @@ class FileAnalysis:
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
                                             for f, i in zip(self.faces, keep)))
         accel = self._fit_accel(means, sigmas)
-        # ---- gyro
+        # ---- gyro: a refusal keeps the accelerometer's result (verdict: "accelerometer calibrated; gyro not")
+        if cfg.gyro and self.gyro_refused is None:
+            try:
+                self.gyro = self._gyro(rec, cfg, fs, keep, acc, means, accel)
+            except CalibrationError as e:
+                self.gyro_refused = str(e)
+                self.gyro = getattr(self, "_bias", None)
+        if self.gyro_refused:
+            self.say(f"gyro not calibrated: {self.gyro_refused}")
+        return self._result(means, sigmas)
+
+    def _gyro(self, rec, cfg, fs, keep, acc, means, accel) -> TriadFit:
+        from imubench.calib import gyro as CG
+        from imubench.calib.turns import detect_turns
         brk = [b for b, _ in rec.breaks]
         fg = rec.gyro_factor()
         up = accel.correct(means)
@@ -254,11 +301,16 @@ class FileAnalysis:
                                 scale_known=False)
             big = [t.measured_rad for t in cand if t.usable]
             big = [m for m in big if abs(m) >= 0.25 * max(np.abs(big))] if big else []
-            check_turn_scale(big, turn_rad, rec)
+            warn = check_turn_scale(big, turn_rad, rec)
+            if warn:
+                self._note(warn)
         self.fg = fg
         gyr = rec.gyro * fg
         self.rest_index = longest
         bias = CG.gyro_bias(gyr[keep[longest].start:keep[longest].stop], fs) if cfg.gyro else None
+        self._bias = bias
+        self._acc_g = accel.correct(acc) / U.G0_MPS2           # calibrated specific force per sample, g
+        self._f_rest_g = accel.correct(means) / U.G0_MPS2
         if bias is not None:
             self.say(f"gyro bias from the longest still interval ({keep[longest].t_start_s:.1f} s, "
                      f"{keep[longest].duration_s:.1f} s)")
@@ -272,14 +324,50 @@ class FileAnalysis:
         for t in self.turns:
             if not t.usable:
                 self._note(f"{t.label} at {t.start / fs:.1f} s not used: {t.reason}")
-        gyro = bias
         if cfg.gyro == "turntable":
             raise CalibrationError("the turntable method needs a turntable's known rates; from a recording use "
                                    "--gyro turns (known-angle turns) or --gyro rotation")
-        if cfg.gyro in ("turns", "rotation"):
-            gyro = self._gyro_fit(gyr, fs, keep, up, bias, brk, clip)
-        self.gyro = gyro
-        return self._result(means, sigmas)
+        if cfg.gyro in ("turns", "rotation", "auto"):
+            return self._gyro_fit(gyr, fs, keep, up, bias, brk, clip)
+        return bias
+
+    def _rotation_bias(self, gyr, fs, keep, bias: TriadFit) -> tuple[np.ndarray, TriadFit]:
+        """The gyro series and bias the gyro fits use: b + G·f(t) when the rests resolve a
+        g-sensitivity G (calib.gsens, G ≠ 0 at p < 0.01; the series is corrected by G·f, f the calibrated
+        specific force in g), else the rests' weighted mean bias (bench/real_data.py: on real
+        hand-held recordings one rest's bias is the weak point, the mean of all rests does better)."""
+        from imubench.calib import gyro as CG
+        from imubench.calib.gsens import DPS, fit_gsens
+        from imubench.calib.gyro import _cov12
+        means = np.array([gyr[i.start:i.stop].mean(axis=0) for i in keep])
+        sig = np.array([CG._mean_uncertainty(gyr[i.start:i.stop], min_cluster=max(1, int(round(0.02 * fs))))["sigma"]
+                        for i in keep])
+        self.gsens = {"applied": False}
+        try:
+            gs = fit_gsens(means, sig, self._f_rest_g)
+            self.gsens.update(g_dps_per_g=(gs.g * DPS).tolist(), sigma_dps_per_g=(gs.sigma_g * DPS).tolist(),
+                              beyond_2sigma=gs.resolved.tolist(), p_zero=gs.p_zero, b_rad_s=gs.b.tolist(),
+                              reduced_chi2=gs.extra["reduced_chi2"])
+            if gs.significant:
+                self.gsens["applied"] = True
+                self.say(gs.summary())
+                self._note("the rotation method integrates the gyro less the bias b + G·f(t) its g-sensitivity "
+                           "predicts (f the calibrated specific force); b is the bias at zero specific force")
+                return gyr - self._acc_g @ gs.g.T, TriadFit(
+                    method="bias", m=np.eye(3), b=gs.b.copy(), cov=_cov12(b_cov=gs.cov[9:, 9:]),
+                    estimated=np.array([False] * 9 + [True] * 3), extra=dict(bias.extra, source="g-sensitivity fit"))
+            self.gsens["why_not"] = f"G does not differ from zero (p = {gs.p_zero:.2g} ≥ 0.01)"
+        except CalibrationError as e:
+            self.gsens["why_not"] = str(e)
+        w = 1.0 / sig**2
+        b = np.sum(w * means, axis=0) / np.sum(w, axis=0)
+        red = np.sum(w * (means - b) ** 2, axis=0) / max(len(keep) - 1, 1)
+        sb = np.sqrt(1.0 / np.sum(w, axis=0) * np.maximum(red, 1.0))
+        self._note(f"the rotation method's bias: the weighted mean of the {len(keep)} rests' gyro means (g-sensitivity "
+                   f"not applied: {self.gsens['why_not']})")
+        return gyr, TriadFit(method="bias", m=np.eye(3), b=b, cov=_cov12(b_cov=np.diag(sb**2)),
+                             estimated=np.array([False] * 9 + [True] * 3),
+                             extra=dict(bias.extra, source="weighted mean of the rests"))
 
     def _fit_accel(self, means: np.ndarray, sigmas: np.ndarray) -> TriadFit:
         """The accelerometer fit: six-position, multi-position, or (auto) multi when the
@@ -332,6 +420,8 @@ class FileAnalysis:
         cfg = self.cfg
         fits: dict[str, TriadFit] = {}
         errs: dict[str, CalibrationError] = {}
+        u_rot, b_rot = self._rotation_bias(gyr, fs, keep, bias)
+        bias = b_rot                    # the bias every gyro fit reports: the rests' mean or b of b + G·f
         try:
             fits["turns"] = known_angle_turns(self.turns, bias, noise_density_rad_s_rthz=bias.extra[
                 "noise_density_rad_s_rthz"], angle_sigma_deg=cfg.angle_sigma_deg, axis_sigma_deg=cfg.axis_sigma_deg)
@@ -345,13 +435,21 @@ class FileAnalysis:
                 self._note(f"motion {j} ({keep[j].stop / fs:.1f}–{keep[j + 1].start / fs:.1f} s) not used by the "
                            f"rotation method: the recording is not continuous inside it (break at sample {inside[0]})")
         try:
-            fits["rotation"] = CG.rotation_method(gyr, fs, [(i.start, i.stop) for i in keep], up, bias,
+            fits["rotation"] = CG.rotation_method(u_rot, fs, [(i.start, i.stop) for i in keep], up, b_rot,
                                                   max_rate_rad_s=clip, exclude_motions=bad)
         except CalibrationError as e:
             errs["rotation"] = e
         why = {k: str(e) for k, e in errs.items()}
         self.gyro_parts = {"fits": {k: fit_dict(v, "rad_s") for k, v in fits.items()}, "refused": why}
-        main, other = cfg.gyro, "rotation" if cfg.gyro == "turns" else "turns"
+        if cfg.gyro == "auto":
+            if not fits:
+                raise CalibrationError("neither known-angle turns nor the rotation method could be used: "
+                                       + "; ".join(f"{k}: {v}" for k, v in why.items()))
+            main = "rotation" if "rotation" in fits else "turns"
+            self.say(f"gyro: {' and '.join(sorted(fits))} (--gyro auto: what the recording supports)")
+        else:
+            main = cfg.gyro
+        other = "rotation" if main == "turns" else "turns"
         if main not in fits:
             raise errs[main]
         if other in fits:
@@ -399,19 +497,64 @@ class FileAnalysis:
         annotation = None
         if cfg.annotation or rec.parts:
             annotation = compare_annotation(cfg.annotation or rec.parts, self.intervals, self.faces, self.turns, fs)
+        tol, tol_text = self._tolerance(sig_g)
+        verdict = verdict_text(rms_after_mg <= tol.accel_rms_mg, rms_after_mg, tol.accel_rms_mg, cfg.gyro,
+                               self.gyro, self.gyro_refused)
         result = CalibrationRecord.from_fit(
             device={"mcu_uid": device_id(name), "board": f"IMU '{name}' (from a file)", "fw_version": "",
                     "fw_build": "", "accel_ids": [], "gyro_pid": [], "gyro_sn": []},
             started=self.started, session_started=self.started, method=self.method, gyro_method=cfg.gyro,
-            accel=accel, gyro=self.gyro, poses=poses, tolerances=asdict(cfg.tolerances),
+            accel=accel, gyro=self.gyro, poses=poses, tolerances=asdict(tol),
             accel_rms_after_mg=rms_after_mg, note=cfg.note,
             sections={"source": source, "segmentation": seg, "turns": turns, "gyro_parts": self.gyro_parts,
-                      "notes": list(self.notes), "annotation": annotation, "device_name": name}).to_json()
+                      "notes": list(self.notes), "annotation": annotation, "device_name": name,
+                      "tolerance_source": tol_text, "gyro_refused": self.gyro_refused, "verdict": verdict,
+                      "accel_noise_ug_rthz": self.accel_noise_ug, "gsens": self.gsens}).to_json()
         if not rec.accel_scaled:
             result["accel_counts_per_g"] = (accel.m / self.fa * U.G0_MPS2).tolist()
         if not rec.gyro_scaled and self.gyro is not None:
             result["gyro_counts_per_dps"] = (self.gyro.m / self.fg * math.pi / 180.0).tolist()
         return result
+
+
+    def _tolerance(self, sig_g: np.ndarray) -> tuple[Tolerances, str]:
+        """The pass tolerance for this IMU: given (--tolerance-mg), or from its class by the
+        accelerometer noise density measured at rest (ACCEL_CLASSES), and never below 3× the RMS
+        its rests' noise alone leaves; with the reason, as printed."""
+        rec, fs = self.rec, self.rec.fs_hz
+        acc = rec.accel * self.fa
+        sd = np.median([np.std(acc[i.start:i.stop], axis=0, ddof=1) for i in self.intervals], axis=0)
+        self.accel_noise_ug = float(np.max(sd) / U.G0_MPS2 * 1e6 / math.sqrt(fs / 2.0))
+        tol = self.cfg.tolerances
+        if not self.cfg.tolerance_from_imu:
+            return tol, f"{tol.accel_rms_mg:g} mg RMS (given)"
+        for top, mg, cls, example in ACCEL_CLASSES:
+            if self.accel_noise_ug <= top:
+                break
+        floor = 3.0 * float(np.sqrt(np.mean(sig_g**2))) * 1e3
+        value = max(mg, floor)
+        why = (f"{value:.3g} mg RMS from this IMU: accelerometer noise {self.accel_noise_ug:.0f} µg/√Hz at rest "
+               f"(worst axis, white over the {fs / 2:g} Hz band), {cls} class ({example}), which a linear "
+               f"calibration brings to about {mg:g} mg"
+               + (f"; raised to 3× the {floor / 3:.2g} mg RMS its rests' noise alone leaves" if floor > mg else "")
+               + "; --tolerance-mg sets another")
+        from dataclasses import replace
+        return replace(tol, accel_rms_mg=value), why
+
+
+def verdict_text(accel_ok: bool, rms_mg: float, tol_mg: float, gyro_method, gyro: TriadFit | None,
+                 refused: str | None) -> str:
+    """One line: what was calibrated, what not and why, and what to record differently."""
+    acc = (f"accelerometer calibrated (|a| − g {rms_mg:.3g} mg RMS, tolerance {tol_mg:.3g} mg)" if accel_ok else
+           f"accelerometer fitted but above its tolerance (|a| − g {rms_mg:.3g} mg RMS > {tol_mg:.3g} mg)")
+    if not gyro_method:
+        return acc + "; gyro not asked for"
+    if refused:
+        kept = "its bias at rest is kept" if gyro is not None else "nothing of it is kept"
+        return f"{acc}; gyro not: {refused} ({kept}). To calibrate it, {RECORD_ADVICE}"
+    if gyro is None or gyro.method == "bias":
+        return acc + "; gyro bias at rest only (scale and misalignment not asked for)"
+    return acc + f"; gyro calibrated ({gyro.method})"
 
 
 # ------------------------------------------------------------------ the whole run
@@ -446,7 +589,7 @@ def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -
     state = {"schema": SESSION_SCHEMA, "started": result["started"],
              "config": {"method": fa.method, "gyro": cfg.gyro, "rate_hz": rec.fs_hz, "hold_s": cfg.min_still_s,
                         "rest_s": 0.0, "settle_s": cfg.window_s, "note": cfg.note, "write": False,
-                        "tolerances": asdict(cfg.tolerances), "from_file": rec.source},
+                        "tolerances": result["tolerances"], "from_file": rec.source},
              "rest": None,
              "poses": [{"name": p["name"], "direction": [0.0, 0.0, 0.0], "mean_mps2": iv.mean.tolist(),
                         "sigma_mean_mps2": iv.sigma_mean.tolist(), "n": int(iv.n), "start_index": int(iv.start),
@@ -468,14 +611,19 @@ def _safe(name: str) -> str:
 def _write_one(kind: str, prefix: Path, fa: FileAnalysis, result: dict, paramfiles) -> list[Path]:
     rec = fa.rec
     comment = f"imubench from {Path(rec.source.split(' + ')[0]).name}, {result['finished']}"
-    if kind in ("params", "ardupilot") and not (rec.accel_scaled and (rec.gyro_scaled or fa.gyro is None)):
+    if kind in paramfiles.SI_WRITERS and not (rec.accel_scaled and (rec.gyro_scaled or fa.gyro is None)):
         raise RecordingError("needs SI parameters, i.e. a declared nominal scale of the raw counts "
                              "(--accel-scale / --gyro-scale); imutk and imucal take counts as they are")
     params = None
+    gs = fa.gsens or {}
+    gsens = np.radians(np.array(gs["g_dps_per_g"])) if gs.get("applied") else None     # rad/s per g
     if kind == "params":
+        from imubench.calib.gsens import GSensFit
         from imubench.procedures.writeback import params_from_fits
         from imubench.wire import params as PR
-        params = params_from_fits(fa.accel, fa.gyro, PR.identity(), 0)
+        g_fit = None if gsens is None else GSensFit(b=np.zeros(3), g=gsens, cov=np.zeros((12, 12)), chi2=0.0, dof=0,
+                                                    residuals=np.zeros((0, 3)))
+        params = params_from_fits(fa.accel, fa.gyro, PR.identity(), 0, g_fit)
     return paramfiles.write(kind, prefix, accel=fa.accel, gyro=fa.gyro, accel_factor=fa.fa, gyro_factor=fa.fg,
                         accel_unit=rec.accel_unit, gyro_unit=rec.gyro_unit, scaled=rec.accel_scaled,
-                        params=params, comment=comment)
+                        params=params, comment=comment, gsens=gsens)

@@ -8,6 +8,7 @@ captured enough: the pose logic of the guided session (imubench.procedures.sessi
     accel_sigmas(fit)                    the accelerometer parameters' sigmas in target units
     enough_attitudes(means, ...)         has an adaptive multi-position session reached its targets?
     suggest_next(done, todo)             the missing attitude that helps the fit most
+    plan_problem(method, gyro)           a method/gyro pair that cannot work, known before capture
 
 The board's connector is on its rear (−X) edge (docs/conventions.md, "Pictures of the board"):
 with X up the connector points to the floor.
@@ -181,3 +182,18 @@ def suggest_next(done_dirs, todo) -> str | None:
         if best_score is None or score < best_score:
             best, best_score = n, score
     return best
+
+
+def plan_problem(method: str, gyro: str | None) -> tuple[str, str] | None:
+    """(problem, what to do) when a session's accelerometer plan cannot give its gyro method what
+    it needs, known before anything is captured; None when it can. The rotation method needs at
+    least calib.gyro.MIN_MOTIONS motions between the planned attitudes."""
+    if gyro == "rotation":
+        from imubench.calib.accel import POSE_PLAN
+        from imubench.calib.gyro import MIN_MOTIONS
+        poses = sum(1 for p in POSE_PLAN if method != "six" or np.count_nonzero(p.vector) == 1)
+        if poses - 1 < MIN_MOTIONS:
+            return (f"--method {method} --gyro rotation: {poses} attitudes give {poses - 1} motion(s) between them; "
+                    f"the rotation method needs at least {MIN_MOTIONS} (12-24 recommended)",
+                    "use --method multi (its attitudes give the motions), or --gyro turns / turntable / bias")
+    return None

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shlex
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -26,6 +27,7 @@ import numpy as np
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
 from imubench.device.link import Device
+from imubench.files import MAX_CAPTURE_BYTES, open_growing, read_bytes
 from imubench.procedures.capture import PoseCapture
 from imubench.procedures.config import PoseRecord, SessionConfig, Tolerances  # noqa: F401 - where callers found them
 from imubench.procedures.errors import SessionAborted
@@ -72,12 +74,14 @@ class Session:
         self.bench_time_s: float | None = None   # device time from the first prompt to the last pose
         self.accel_fit: TriadFit | None = None   # the fits of the last run()
         self.gyro_fit: TriadFit | None = None
+        self.gsens = None                        # the gyro's g-sensitivity fit (calib.gsens), when resolved
+        self.gsens_report: dict | None = None    # what _gsens found, for the record
         if resume:
             self._load()
         else:
             self.dir.mkdir(parents=True, exist_ok=True)
             if self.state_path.exists():
-                raise SessionAborted(f"{self.dir} already holds a session: use --resume {self.dir}, or another --dir")
+                raise SessionAborted(f"{self.dir} already holds a session: use --resume {shlex.quote(str(self.dir))}, or another --dir")
             self.save()
 
     # ------------------------------------------------------------ persistence
@@ -254,7 +258,7 @@ class Session:
         """A new continuous stream, captured to its own file as it arrives."""
         self.stream_no = 1 + max([p.stream for p in self.poses] + [self.stream_no])
         old = self.dev.link.capture
-        self.dev.link.capture = open(self.dir / f"capture-{self.stream_no}.bin", "ab")
+        self.dev.link.capture = open_growing(self.dir / f"capture-{self.stream_no}.bin")
         if old is not None:
             old.close()
         self.dev.start_stream(self.cfg.rate_hz)
@@ -333,19 +337,23 @@ class Session:
             accel = CA.multi_position(means, sigmas, init=init)
         gyro = None
         rest_gyr = np.asarray(self.rest["gyro"]) if self.rest.get("gyro") is not None else None
+        self.gsens = self._gsens(accel, rest_gyr) if self.cfg.gyro else None
         if self.cfg.gyro == "bias":
             gyro = CG.gyro_bias(rest_gyr, self.cfg.rate_hz)
         elif self.cfg.gyro == "turntable":
             gyro = CG.turntable(segments, bias=CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
         elif self.cfg.gyro == "rotation":
-            gyro = self._rotation_fit(accel, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
+            gyro = self._rotation_fit(accel, CG.gyro_bias(rest_gyr, self.cfg.rate_hz), self.gsens)
         elif self.cfg.gyro == "turns":
             gyro = MotionCapture(self.cfg, self.rest, self.ui, self._next_block).known_turns_fit(accel, turn_runs, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
+        if gyro is not None and self.gsens is not None:   # b + G·f: the bias at zero specific force
+            gyro = _with_bias(gyro, self.gsens)
         frame_note = None
         if self.cfg.method == "multi" and self.cfg.gyro == "turntable":
             accel, frame_note = self._align_frames(accel, gyro, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
         self.accel_fit, self.gyro_fit = accel, gyro
         result = self._result(accel, gyro)
+        result["gsens"] = self.gsens_report
         result["accel_frame"] = accel.extra.get("frame", "board")
         result["bench_time_s"] = self.bench_time_s
         result["adaptive"] = bool(self.cfg.adaptive)
@@ -378,8 +386,29 @@ class Session:
                     f"{np.round(phi, 3).tolist()} ° (about board x, y, z)")
         return aligned, None
 
-    def _rotation_fit(self, accel: TriadFit, bias: TriadFit) -> TriadFit:
-        """Gyro M from the motions between consecutive poses of one stream (on disk)."""
+    def _gsens(self, accel: TriadFit, rest_gyr):
+        """The gyro's g-sensitivity from the poses' gyro means against their calibrated specific
+        force (calib.gsens), or None when the poses cannot separate it. The ADXRS450 has one
+        (0.03 °/s/g typical), so it is always part of the model when it can be fitted: b is then
+        the bias at zero specific force and G goes to the device; p_zero says whether this
+        session alone resolves it. Reported in self.gsens_report."""
+        from imubench.calib.gsens import DPS, fit_gsens
+        means = np.array([p.gyro_mean_rad_s for p in self.poses])
+        f = accel.correct(np.array([p.mean_mps2 for p in self.poses])) / U.G0_MPS2
+        try:
+            gs = fit_gsens(means, np.ones_like(means), f, sigma_from_scatter=True)
+        except CalibrationError as e:
+            self.gsens_report = {"applied": False, "why_not": str(e)}
+            return None
+        self.gsens_report = {"applied": True, "resolved": bool(gs.significant), "g_dps_per_g": (gs.g * DPS).tolist(),
+                             "sigma_dps_per_g": (gs.sigma_g * DPS).tolist(), "p_zero": gs.p_zero,
+                             "b_rad_s": gs.b.tolist()}
+        self.ui.say(gs.summary())
+        return gs
+
+    def _rotation_fit(self, accel: TriadFit, bias: TriadFit, gsens=None) -> TriadFit:
+        """Gyro M from the motions between consecutive poses of one stream (on disk); with a
+        g-sensitivity the gyro is integrated less G·f(t) (f the calibrated specific force)."""
         from imubench.calib import gyro as CG
         from imubench.wire.decoder import decode_bytes
         by_stream: dict[int, list[PoseRecord]] = {}
@@ -388,12 +417,14 @@ class Session:
         gyro_all, intervals, dirs = [], [], []
         offset = 0
         for k, poses in sorted(by_stream.items()):
-            _, raw, _, st = decode_bytes((self.dir / f"capture-{k}.bin").read_bytes())
+            _, raw, _, st = decode_bytes(read_bytes(self.dir / f"capture-{k}.bin", MAX_CAPTURE_BYTES, "the capture"))
             if raw is None or st.samples_missing:
                 raise CalibrationError(f"stream {k} has gaps ({st.samples_missing} samples lost): "
                                        "the rotation method needs every sample between poses")
             idx0 = int(raw.sample_index[0])
-            _, gyr = raw.si()
+            acc, gyr = raw.si()
+            if gsens is not None:
+                gyr = gyr - (accel.correct(acc) / U.G0_MPS2) @ gsens.g.T
             poses = sorted(poses, key=lambda p: p.start_index)
             for p in poses:
                 intervals.append((offset + p.start_index - idx0, offset + p.stop_index - idx0))
@@ -404,6 +435,9 @@ class Session:
         if len(by_stream) > 1:
             raise CalibrationError("the rotation method needs all poses in one continuous stream; "
                                    "this session was resumed — use --gyro bias or turntable, or start a new session")
+        if gsens is not None:
+            bias = TriadFit(method="bias", m=np.eye(3), b=gsens.b.copy(), cov=CG._cov12(b_cov=gsens.cov[9:, 9:]),
+                            estimated=np.array([False] * 9 + [True] * 3), extra=dict(bias.extra))
         return CG.rotation_method(np.concatenate(gyro_all), self.cfg.rate_hz, intervals, np.array(dirs), bias)
 
     def _result(self, accel: TriadFit, gyro: TriadFit | None) -> dict:
@@ -459,7 +493,7 @@ class Session:
     def _new_params(self, accel: TriadFit, gyro: TriadFit | None, cal_id: int) -> tuple[Params, Params]:
         """(the block from the fits, the active block it replaces), checked as the device checks."""
         old = self.dev.get_params(ParamsWhich.ACTIVE)
-        new = params_from_fits(accel, gyro, old.params, cal_id)
+        new = params_from_fits(accel, gyro, old.params, cal_id, self.gsens)
         PR.validate(new)                                      # the device's own checks, first here
         return new, old.params
 
@@ -476,6 +510,19 @@ class Session:
         new, old = self._new_params(self.accel_fit, self.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
         return write_and_verify(self.dev, new, old, lambda: self.verify(plan_for("six")[:self.cfg.verify_poses]),
                                 self.cfg.tolerances.verify_mg, self.ui)
+
+
+def _with_bias(fit: TriadFit, gsens) -> TriadFit:
+    """fit with b (and its covariance) replaced by the g-sensitivity fit's bias at zero
+    specific force (M and its covariance kept)."""
+    cov = np.array(fit.cov, dtype=float)
+    cov[9:, :] = np.nan
+    cov[:, 9:] = np.nan
+    cov[9:, 9:] = gsens.cov[9:, 9:]
+    extra = dict(fit.extra, bias_source="g-sensitivity fit (b at zero specific force)")
+    return TriadFit(method=fit.method, m=fit.m, b=gsens.b.copy(), cov=cov, residual_rms=fit.residual_rms,
+                    residuals=fit.residuals, dof=fit.dof, estimated=np.array(list(fit.estimated[:9]) + [True] * 3),
+                    extra=extra)
 
 
 def plan_for(method: str) -> list[tuple[str, np.ndarray]]:

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from imubench import units as U
 from imubench.calib import TriadFit
 from imubench.device.link import Device
 from imubench.procedures.errors import SessionAborted
@@ -149,8 +150,11 @@ def write_and_verify(dev: Device, new: Params, previous: Params, verify: Callabl
 
 
 # ------------------------------------------------------------------- helpers
-def params_from_fits(accel: TriadFit | None, gyro: TriadFit | None, base: Params, cal_id: int) -> Params:
-    """The device parameter block from fits (fields a fit does not cover keep `base`)."""
+def params_from_fits(accel: TriadFit | None, gyro: TriadFit | None, base: Params, cal_id: int,
+                     gsens=None) -> Params:
+    """The device parameter block from fits (fields a fit does not cover keep `base`). A gyro
+    fit sets the g-sensitivity too: gsens's G (calib.gsens, rad/s per g; stored per m/s²), or
+    zero without one (the bias then holds it at the attitudes of the fit)."""
     p = Params.from_values(base.values())
     if accel is not None:
         p.accel_m = tuple(float(v) for v in np.asarray(accel.m).ravel())
@@ -158,6 +162,8 @@ def params_from_fits(accel: TriadFit | None, gyro: TriadFit | None, base: Params
     if gyro is not None:
         p.gyro_m = tuple(float(v) for v in np.asarray(gyro.m).ravel())
         p.gyro_b_rad_s = tuple(float(v) for v in gyro.b)
+        g = np.zeros(9) if gsens is None else np.asarray(gsens.g, float).ravel() / U.G0_MPS2
+        p.gyro_g_rad_s_per_mps2 = tuple(float(v) for v in g)
     p.cal_time_unix_s = int(time.time())
     p.cal_id = cal_id & 0xFFFFFFFF
     return p

@@ -1,10 +1,14 @@
 """The file formats a recording is read from (imubench.recordings.read):
 
-- ``csv``: any CSV with a header row. Columns are mapped by name (``columns`` = {"ax": name,
+- ``csv``: any CSV (comma, semicolon, tab or space separated). With a header row, columns are
+  mapped by name (``columns`` = {"ax": name,
   ..., "gz": name, "t": name}, from ``--columns`` or a profile file), else found among common
   names (acc_x/ax/accel_x..., gyr_x/gx/gyro_x..., t/time/timestamp) and said so. Time from the
   column (its unit declared, or in its name: t_s, t_ms, t_us, t_ns) or from ``rate_hz``. Units
-  declared, or in the column names as our own CSV writes them (ax_mps2, wx_rad_s).
+  declared, or in the column names as our own CSV writes them (ax_mps2, wx_rad_s). Without a
+  header (the first line is numbers, e.g. mikoff/imu-calib's logs) columns are taken by position:
+  six columns are ``ax ay az gx gy gz``, seven ``t ax ay az gx gy gz`` (said in a note), or
+  ``columns`` maps keys to 1-based positions (``ax=2,...``).
 - ``imutk``: imu_tk's ASCII files, one per sensor, each line "t x y z" (t in seconds): the
   accelerometer file and ``gyro_file``.
 - ``imucal``: imucal's CSV layouts: a session (``n_samples,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z``)
@@ -20,12 +24,33 @@ from __future__ import annotations
 
 import csv
 import gzip
+import io
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
+from imubench.files import (
+    MAX_CAPTURE_BYTES,
+    MAX_JSON_BYTES,
+    MAX_LINE_CHARS,
+    FileRefused,
+    MiB,
+    bounded_lines,
+    open_input,
+    read_bytes,
+    read_text,
+)
 from imubench.recordings import FORMATS, Recording, RecordingError, from_arrays
+
+#: the most samples a recording may hold (21 columns of float64 at most: about 3 GiB); a calibration
+#: needs minutes of data, not days
+MAX_SAMPLES = 20_000_000
+#: the lines parsed at a time: text is never held whole, only this many lines of it
+CHUNK_LINES = 65536
+#: what the arrays of one .npz member may take once read (checked from its header before reading)
+MAX_NPZ_MEMBER_BYTES = 1024 * MiB
 
 KEYS = ("ax", "ay", "az", "gx", "gy", "gz")
 _CANDIDATES = {
@@ -43,12 +68,29 @@ _UNIT_SUFFIX_GYR = {"rad_s": "rad_s", "dps": "dps"}
 
 
 def _open_text(path: Path):
-    return gzip.open(path, "rt", newline="") if path.suffix == ".gz" else open(path, newline="")
+    """A text file (gzip-compressed by its suffix), refused unless it is a regular file."""
+    if path.suffix == ".gz":
+        raw = open_input(path)
+        g = gzip.GzipFile(fileobj=raw, mode="rb")
+        g.myfileobj = raw           # GzipFile closes the file it holds there (as when it opened it)
+        return io.TextIOWrapper(g, newline="")
+    return open_input(path, binary=False, newline="")
+
+
+def _lines(f, path: Path):
+    """The lines of f, each bounded (files.bounded_lines); a refusal or a damaged gzip stream
+    is a RecordingError."""
+    try:
+        yield from bounded_lines(f, MAX_LINE_CHARS, str(path))
+    except FileRefused as e:
+        raise RecordingError(str(e)) from None
+    except (OSError, EOFError, UnicodeDecodeError) as e:
+        raise RecordingError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
 
 
 def _header(path: Path) -> tuple[list[str], str]:
     with _open_text(path) as f:
-        for line in f:
+        for line in _lines(f, path):
             if line.strip() and not line.lstrip().startswith("#"):
                 break
         else:
@@ -61,13 +103,66 @@ def _header(path: Path) -> tuple[list[str], str]:
     return cols, delim
 
 
-def _load(path: Path, delim: str, usecols: list[int]) -> np.ndarray:
+def _numeric(cols: list[str]) -> bool:
+    """True when every field of a line is a number (a headerless table)."""
     try:
-        return np.loadtxt(path, delimiter=None if delim == " " else delim, skiprows=1, usecols=usecols,
-                          comments="#", ndmin=2, dtype=np.float64)
+        [float(c) for c in cols]
+    except ValueError:
+        return False
+    return bool(cols)
+
+
+def _chunks(path: Path, header: bool):
+    """Lists of at most CHUNK_LINES data lines of a text file (after its header line when it has
+    one; blank lines and # comments skipped): the file is streamed, never held whole."""
+    with _open_text(path) as f:
+        lines = _lines(f, path)
+        if header:
+            for line in lines:
+                if line.strip() and not line.lstrip().startswith("#"):
+                    break
+        chunk = []
+        for line in lines:
+            if line.strip() and not line.lstrip().startswith("#"):
+                chunk.append(line)
+                if len(chunk) == CHUNK_LINES:
+                    yield chunk
+                    chunk = []
+        if chunk:
+            yield chunk
+
+
+def _load(path: Path, delim: str | None, usecols: list[int] | None, header: bool = True) -> np.ndarray:
+    """The numbers of the columns usecols (all when None) of a text table, parsed CHUNK_LINES
+    lines at a time into one array sized from the file's size (bounded memory: the text of one
+    chunk and the numbers read; no second copy)."""
+    out, n = None, 0
+    size = path.stat().st_size
+    try:
+        for chunk in _chunks(path, header):
+            a = np.loadtxt(chunk, delimiter=None if delim in (" ", None) else delim, usecols=usecols,
+                           comments="#", ndmin=2, dtype=np.float64)
+            if out is None:
+                per_line = max(1.0, sum(map(len, chunk)) / len(chunk))
+                rows = len(a) if len(chunk) < CHUNK_LINES or path.suffix == ".gz" else int(size / per_line * 1.02)
+                out = np.empty((min(max(rows, len(a)), MAX_SAMPLES + 1), a.shape[1]))
+            elif a.shape[1] != out.shape[1]:
+                raise ValueError(f"{a.shape[1]} columns after {n} lines of {out.shape[1]}")
+            if n + len(a) > MAX_SAMPLES:
+                raise RecordingError(f"{path}: more than the limit of {MAX_SAMPLES} samples; cut the recording "
+                                     "(a calibration needs minutes of data)")
+            if n + len(a) > len(out):
+                out = np.resize(out, (min(max(n + len(a), int(len(out) * 1.5)), MAX_SAMPLES + 1), out.shape[1]))
+            out[n:n + len(a)] = a
+            n += len(a)
+    except RecordingError:
+        raise
     except ValueError as e:
         raise RecordingError(f"{path}: not numbers where numbers are expected ({' '.join(str(e).split())[:160]}); "
                              "check the delimiter and the header") from None
+    if out is None:
+        return np.empty((0, len(usecols) if usecols else 0))
+    return out[:n]
 
 
 def detect_format(path) -> str:
@@ -91,6 +186,12 @@ def detect_format(path) -> str:
         if low[:1] == ["n_samples"] or low[:2] == ["part", "samples"]:
             return "imucal"
         return "csv"
+    try:                                  # any other name: a text table of numbers is read as csv
+        cols, _ = _header(p)
+    except (UnicodeDecodeError, OSError):
+        cols = []
+    if len(cols) in (6, 7) and _numeric(cols):
+        return "csv"
     raise RecordingError(f"cannot tell the format of {p.name} from its name: give --format "
                          f"({'|'.join(FORMATS)})")
 
@@ -99,11 +200,21 @@ def read(path, fmt: str | None = None, **opt) -> Recording:
     p = Path(path)
     if not p.exists():
         raise RecordingError(f"{p}: no such file or directory; check the path")
+    if not p.is_dir():
+        _regular(p)                 # a FIFO or a device is refused before anything reads it
     fmt = fmt or detect_format(p)
     if fmt not in FORMATS:
         raise RecordingError(f"unknown format {fmt!r}; one of {', '.join(FORMATS)}")
     return {"csv": read_csv, "imutk": read_imutk, "imucal": read_imucal, "npz": read_npz,
             "capture": read_capture, "rosbag": read_rosbag}[fmt](p, **opt)
+
+
+def _regular(path: Path) -> None:
+    try:
+        with open_input(path):
+            pass
+    except FileRefused as e:
+        raise RecordingError(str(e)) from None
 
 
 def _need_units(opt: dict, what: str) -> tuple[str, str]:
@@ -126,6 +237,9 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
              time_unit: str | None = None, rate_hz: float | None = None, accel_unit: str | None = None,
              gyro_unit: str | None = None, **opt) -> Recording:
     cols, delim = _header(path)
+    if _numeric(cols):
+        return _read_headerless(path, cols, delim, columns=columns, time_unit=time_unit, rate_hz=rate_hz,
+                                accel_unit=accel_unit, gyro_unit=gyro_unit, **opt)
     low = {c.lower(): i for i, c in enumerate(cols)}
     notes = []
     mapping = dict(columns or {})
@@ -192,13 +306,55 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
                        source=str(path), fmt="csv", notes=notes, **_common(opt))
 
 
+def _read_headerless(path: Path, cols: list[str], delim: str, *, columns: dict | None, time_unit: str | None,
+                     rate_hz: float | None, accel_unit: str | None, gyro_unit: str | None, **opt) -> Recording:
+    """A table of numbers without a header: columns by position (1-based in ``columns``)."""
+    n = len(cols)
+    notes = []
+    if columns:
+        try:
+            pos = {k: int(v) - 1 for k, v in columns.items()}
+        except ValueError:
+            raise RecordingError(f"{path.name} has no header row: map the columns by position (from 1), "
+                                 "e.g. --columns ax=1,ay=2,az=3,gx=4,gy=5,gz=6[,t=7]") from None
+        bad = [k for k in pos if k not in (*KEYS, "t")]
+        if bad or not all(k in pos for k in KEYS) or not all(0 <= v < n for v in pos.values()):
+            raise RecordingError(f"--columns: map ax ay az gx gy gz (and optionally t) to positions 1..{n}")
+    elif n == 6:
+        pos = dict(zip(KEYS, range(6)))
+        notes.append("no header row: 6 columns read as ax ay az gx gy gz (map others with --columns ax=1,...)")
+    elif n == 7:
+        pos = dict(zip(("t",) + KEYS, range(7)))
+        notes.append("no header row: 7 columns read as t ax ay az gx gy gz (map others with --columns ax=2,...)")
+    else:
+        raise RecordingError(f"{path.name} has no header row and {n} columns: map them by position with "
+                             "--columns ax=1,ay=2,az=3,gx=4,gy=5,gz=6[,t=7]")
+    if rate_hz:
+        pos.pop("t", None)
+    use = [pos[k] for k in KEYS] + ([pos["t"]] if "t" in pos else [])
+    data = _load(path, delim, use, header=False)
+    au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, path.name)
+    t = None
+    if "t" in pos:
+        if not time_unit:
+            raise RecordingError(f"{path.name}: the time column (position {pos['t'] + 1}) does not say its unit: "
+                                 "give --time-unit s|ms|us|ns, or --rate HZ to ignore it")
+        if time_unit not in _TIME_SUFFIX:
+            raise RecordingError(f"--time-unit {time_unit!r}: one of s, ms, us, ns")
+        t = data[:, 6] * _TIME_SUFFIX[time_unit]
+    return from_arrays(data[:, :3], data[:, 3:6], t_s=t, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
+                       source=str(path), fmt="csv", notes=notes, **_common(opt))
+
+
 # ------------------------------------------------------------------ imu_tk
 def _imutk_file(path: Path, what: str) -> np.ndarray:
+    if not path.exists():
+        raise RecordingError(f"{path}: no such file; check the path")
+    _regular(path)
     try:
-        d = np.loadtxt(path, comments="#", ndmin=2, dtype=np.float64)
-    except ValueError as e:
-        raise RecordingError(f"{path}: not imu_tk's layout (lines of 't x y z' numbers): "
-                             f"{' '.join(str(e).split())[:120]}") from None
+        d = _load(path, None, None, header=False)
+    except RecordingError as e:
+        raise RecordingError(f"not imu_tk's layout (lines of 't x y z' numbers): {e}") from None
     if d.shape[1] != 4:
         raise RecordingError(f"{path} ({what}): {d.shape[1]} columns per line; imu_tk's files have 4 (t x y z)")
     return d
@@ -244,8 +400,7 @@ def read_imucal(path: Path, *, rate_hz: float | None = None, accel_unit: str | N
     breaks = []
     notes = []
     if low[0] == "part":
-        with _open_text(path) as f:
-            names = [r[0] for r in csv.reader(f, delimiter=delim)][1:]
+        names = [r[0] for chunk in _chunks(path, header=True) for r in csv.reader(chunk, delimiter=delim)]
         data = _load(path, delim, idx)
         parts = []
         start = 0
@@ -267,14 +422,50 @@ def read_imucal(path: Path, *, rate_hz: float | None = None, accel_unit: str | N
 def read_annotation(path) -> list[tuple[str, int, int]]:
     """imucal's section list (JSON: name -> {"start", "end"} sample indices), as (name, start, stop)."""
     try:
-        d = json.loads(Path(path).read_text())
+        d = json.loads(read_text(path, MAX_JSON_BYTES, "the section list"))
         return sorted(((str(k), int(v["start"]), int(v["end"])) for k, v in d.items()), key=lambda p: p[1])
+    except FileRefused as e:
+        raise RecordingError(str(e)) from None
     except (ValueError, KeyError, TypeError, AttributeError) as e:
         raise RecordingError(f"{path}: not imucal's section list (name: {{start, end}}): {e}") from None
 
 
 # ------------------------------------------------------------------ our captures
+def _check_npz(path: Path) -> None:
+    """Refuse a .npz whose members would take more than MAX_NPZ_MEMBER_BYTES once read, or
+    that are not what their header says: each member's .npy header (shape, dtype) is read
+    before numpy allocates anything (a 10 MB file may claim gigabytes)."""
+    fmt = np.lib.format
+    try:
+        with open_input(path) as fh, zipfile.ZipFile(fh) as zf:
+            for info in zf.infolist():
+                if not info.filename.endswith(".npy"):
+                    continue
+                with zf.open(info) as m:
+                    version = fmt.read_magic(m)
+                    shape, _fortran, dtype = (fmt.read_array_header_1_0 if version == (1, 0)
+                                              else fmt.read_array_header_2_0)(m, max_header_size=10000)
+                    if dtype.hasobject:
+                        raise RecordingError(f"{path}: member {info.filename} holds Python objects; "
+                                             "imubench's npz holds numbers only")
+                    nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                    if nbytes > MAX_NPZ_MEMBER_BYTES:
+                        raise RecordingError(f"{path}: member {info.filename} declares {nbytes / MiB:.0f} MiB "
+                                             f"(shape {shape}), more than the limit of "
+                                             f"{MAX_NPZ_MEMBER_BYTES / MiB:.0f} MiB")
+                    if nbytes > info.file_size:
+                        raise RecordingError(f"{path}: member {info.filename} declares {nbytes} bytes of data but "
+                                             f"holds {info.file_size}: damaged")
+    except FileRefused as e:
+        raise RecordingError(str(e)) from None
+    except RecordingError:
+        raise
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
+        raise RecordingError(f"{path}: not a .npz file ({e})") from None
+
+
 def read_npz(path: Path, **opt) -> Recording:
+    _check_npz(path)
     try:
         z = np.load(path)
     except (ValueError, OSError) as e:
@@ -300,7 +491,11 @@ def read_npz(path: Path, **opt) -> Recording:
 
 def read_capture(path: Path, **opt) -> Recording:
     from imubench.wire.decoder import decode_bytes
-    _, raw, cal, st = decode_bytes(path.read_bytes())
+    try:
+        data = read_bytes(path, MAX_CAPTURE_BYTES, "the capture")
+    except FileRefused as e:
+        raise RecordingError(str(e)) from None
+    _, raw, cal, st = decode_bytes(data)
     block = raw if raw is not None else cal
     if block is None or len(block) < 3:
         raise RecordingError(f"{path.name}: no samples decoded (frames ok {st.frames_ok}, rejected "
@@ -369,7 +564,9 @@ def load_profile(path) -> dict:
     accel_counts_per_g, gyro_counts_per_dps; rate_hz. Returned as read() options."""
     import tomllib
     try:
-        d = tomllib.loads(Path(path).read_text())
+        d = tomllib.loads(read_text(path, MAX_JSON_BYTES, "profile"))
+    except FileRefused as e:
+        raise RecordingError(str(e)) from None
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise RecordingError(f"profile {path}: {e}") from None
     known = {"columns", "units", "rate_hz", "format", "device"}

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from imubench.analysis.allan import AXES, duration_text, usual_units
+from imubench.results.atomic import save_figure
 
 
 def _fmt(v, f="{:.4g}"):
@@ -73,7 +74,7 @@ def plot_allan(result: dict, path, title: str, unit: str, kind: str | None = Non
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7.5, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=1, frameon=False)
     fig.tight_layout()
-    fig.savefig(str(path))
+    save_figure(fig, path)
 
 
 def format_readoffs(res: dict) -> list[str]:

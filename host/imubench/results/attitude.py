@@ -5,6 +5,8 @@ import math
 
 import numpy as np
 
+from imubench.results.atomic import save_figure
+
 
 def summarize(results: dict) -> str:
     """Text table of settling times and static errors per step and filter, and RMS errors."""
@@ -62,7 +64,7 @@ def plot_steps(results: dict, path) -> None:
         ax.legend(loc="upper left", fontsize=8)
         ex.legend(loc="lower right", fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
 
 
@@ -107,4 +109,4 @@ def plot_live(t_s: np.ndarray, angles: dict, path, title: str = "") -> None:
     axs[0].set_title(title or "roll and pitch from the device's calibrated output", fontsize=10)
     axs[1].set_xlabel("time since the first sample (s)")
     fig.tight_layout()
-    fig.savefig(str(path))
+    save_figure(fig, path)

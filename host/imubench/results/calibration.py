@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
+from imubench.results.atomic import save_figure
 from imubench.results.numbers import pm
 
 ACCEL_TOL_KEY = "accel_rms_mg"      # RMS of |a| − g over the poses after calibration
@@ -169,7 +170,7 @@ def plot_pose_residuals(result: dict, path) -> Path:
     fig.suptitle(title, fontsize=11)
     path.parent.mkdir(parents=True, exist_ok=True)
     # the title also as PNG text, so that what the picture says can be checked without eyes
-    fig.savefig(path, format="png", metadata={"Title": title.replace("\n", " ")})
+    save_figure(fig, path, format="png", metadata={"Title": title.replace("\n", " ")})
     return path
 
 

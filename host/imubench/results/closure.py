@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
+from imubench.results.atomic import save_figure
 
 G0 = U.G0_MPS2
 
@@ -117,6 +118,6 @@ def plot_closure(res: dict, path, truth_path_m: np.ndarray | None = None) -> Pat
     ax.legend(fontsize=7, loc="upper right")
     fig.suptitle(verdict(res)[1], fontsize=10, color="darkgreen" if verdict(res)[0] else "darkred")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return Path(path)

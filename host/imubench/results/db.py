@@ -23,6 +23,7 @@ READ ONLY) so a multi-statement query sees one state of the database.
 """
 from __future__ import annotations
 
+import shlex
 import sqlite3
 from contextlib import contextmanager
 from pathlib import Path
@@ -151,15 +152,56 @@ def is_url(target) -> bool:
     return isinstance(target, str) and "://" in target
 
 
+def _masked(target: str) -> str:
+    """A URL with everything before the last '@' of its authority hidden: shown when the URL
+    cannot be parsed, so that no part of a password ever reaches a message."""
+    scheme, _, rest = target.partition("://")
+    cut = min((i for i in (rest.find("/"), rest.find("?"), rest.find("#")) if i >= 0), default=len(rest))
+    netloc, tail = rest[:cut], rest[cut:]
+    if "@" in netloc:
+        netloc = "***@" + netloc.rsplit("@", 1)[1]
+    return f"{scheme}://{netloc}{tail}"
+
+
 def describe(target) -> str:
-    """The target for messages: a path as given, a URL without its password."""
+    """The target for messages: a path as given, a URL without its password (SQLAlchemy's
+    own rendering, hide_password)."""
     if not is_url(target):
         return str(target)
     from sqlalchemy.engine import make_url
     try:
+        if _authority(target).count("@") > 1:
+            return _masked(target)
         return make_url(target).render_as_string(hide_password=True)
-    except Exception:  # noqa: BLE001 - a malformed URL is shown as given, minus nothing secret
-        return target.split("@")[-1]
+    except Exception:  # noqa: BLE001 - a malformed URL is shown without what could be secret
+        return _masked(target)
+
+
+def _authority(target: str) -> str:
+    rest = target.partition("://")[2]
+    cut = min((i for i in (rest.find("/"), rest.find("?"), rest.find("#")) if i >= 0), default=len(rest))
+    return rest[:cut]
+
+
+def check_url(target: str) -> None:
+    """Refuse, with its own one-line message, a database URL SQLAlchemy would misread: an '@'
+    in the password (it would take the rest for the host, and show half the password), a
+    port that is not a number (a bare ValueError inside SQLAlchemy)."""
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+    auth = _authority(target)
+    if auth.count("@") > 1:
+        raise DatabaseError(f"the database URL {_masked(target)} has more than one '@' before its host; write an "
+                            "'@' in the user name or password as %40 (percent-encoding, RFC 3986)")
+    try:
+        make_url(target)
+    except ValueError:
+        hostport = auth.rsplit("@", 1)[-1]
+        port = hostport.rsplit("]", 1)[-1].partition(":")[2] if hostport.startswith("[") else hostport.partition(":")[2]
+        raise DatabaseError(f"the database URL {_masked(target)} has a port that is not a number "
+                            f"({port!r}); give postgresql://USER@HOST[:PORT]/DBNAME with PORT a number") from None
+    except ArgumentError as e:
+        raise DatabaseError(f"the database URL {_masked(target)} cannot be read ({e})") from None
 
 
 def _pg_url(url: str) -> str:
@@ -173,6 +215,7 @@ def _pg_url(url: str) -> str:
 def make_engine(target, *, readonly: bool = False, timeout_s: float = 10.0) -> Engine:
     """An engine for a path (SQLite) or a postgresql:// URL."""
     if is_url(target):
+        check_url(target)
         try:
             eng = create_engine(_pg_url(target), poolclass=NullPool,
                                 connect_args={"connect_timeout": max(1, int(timeout_s)),
@@ -315,7 +358,7 @@ def prepare(conn: Connection, name: str, readonly: bool = False) -> int:
             raise SchemaError(f"{name} is empty: not an imubench history database")
         if version < SCHEMA_VERSION:
             raise SchemaError(f"{name} has history schema {version}: record one run with this imubench "
-                              f"(or run `imubench history --upgrade --db {name}`) to upgrade it to {SCHEMA_VERSION}")
+                              f"(or run `imubench history --upgrade --db {shlex.quote(str(name))}`) to upgrade it to {SCHEMA_VERSION}")
         return version
     if version == SCHEMA_VERSION:
         return version

@@ -27,6 +27,7 @@ import math
 import xml.etree.ElementTree as ET
 
 from imubench.results.numbers import significant
+from imubench.text import xml_text
 
 RAD_TO_DEG = 180.0 / math.pi
 
@@ -224,5 +225,10 @@ def junit_xml(runs: list[dict]) -> str:
         tot["errors"] += errs
     for k, v in tot.items():
         root.set(k, str(v))
+    for el in root.iter():           # free text (a station name, a failure reason) stays well-formed XML
+        for k, v in el.attrib.items():
+            el.set(k, xml_text(v))
+        if el.text is not None:
+            el.text = xml_text(el.text)
     ET.indent(root)
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"

@@ -22,6 +22,16 @@ writer maps that onto its tool's equation:
                scale ∘ (raw − offset), element-wise, in m/s² (rad/s): offset = b, scale_i = 1/M_ii.
                ArduPilot's model has no cross-axis terms: the off-diagonal of M is dropped, and
                the file says how large the dropped terms are.
+- ``kalibr``   Kalibr's IMU intrinsics (its imu-*.yaml output, ScaledMisalignedImu): a_meas =
+               M_a·a + b, ω_meas = M_g·C_gyro_i·ω (+ A·a) + b: M_a = M, M_g = M (SI), C_gyro_i = I
+               (imubench's M holds the rotation), A = G / 9.80665 ((rad/s)/(m/s²)) with a
+               g-sensitivity (model scale-misalignment-gsensitivity), else model
+               scale-misalignment. Kalibr's own M is lower triangular; ours is full (said in the file).
+- ``px4``      PX4's CAL_ACC0_* and CAL_GYRO0_* in QGroundControl's parameter file layout: corrected
+               = (raw − OFF)·SCALE per axis (m/s², rad/s): OFF = b, SCALE = 1/M_ii; PX4 has no
+               cross-axis terms, no gyro scale and no g-sensitivity: the file says what it drops.
+- ``imu-calib`` ROS imu_calib's YAML (dpkoch/imu_calib): corrected = SM·raw − bias, accelerometer
+               only: SM = M⁻¹ (row-major, 9), bias = M⁻¹·b (m/s²).
 """
 from __future__ import annotations
 
@@ -32,8 +42,10 @@ from pathlib import Path
 import numpy as np
 
 from imubench.results.atomic import write_json_atomic, write_text_atomic
+from imubench.text import one_line
 
-WRITERS = ("params", "imutk", "imucal", "ardupilot")
+WRITERS = ("params", "imutk", "imucal", "ardupilot", "kalibr", "px4", "imu-calib")
+SI_WRITERS = ("params", "ardupilot", "kalibr", "px4", "imu-calib")     # need a declared nominal scale
 
 
 def raw_model(m, b, factor: float) -> tuple[np.ndarray, np.ndarray]:
@@ -91,7 +103,7 @@ def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> s
     worst = float(np.max(np.abs(dropped)))
     # the largest |a| error the dropped cross-axis terms make at 1 g, over the six faces
     err_mg = max(float(np.linalg.norm(np.linalg.inv(np.diag(np.diag(m))) @ (m @ e) - e)) for e in np.eye(3)) * 1e3
-    lines = [f"# {comment}" if comment else "# imubench calibration",
+    lines = [f"# {one_line(comment)}" if comment else "# imubench calibration",      # a comment stays one line
              "# ArduPilot: corrected = INS_ACCSCAL * (raw - INS_ACCOFFS), per axis, m/s² (AP_InertialSensor)",
              f"# ArduPilot has no cross-axis terms: dropped off-diagonal of M up to {worst:.2e} "
              f"(≈ {err_mg:.2f} mg at 1 g); frame: the axes of the recording (ArduPilot applies these after "
@@ -107,8 +119,60 @@ def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> s
     return "\n".join(lines) + "\n"
 
 
+def _yaml_matrix(m, indent: str) -> str:
+    return "\n".join(f"{indent}- [{', '.join(f'{v:.12g}' for v in row)}]" for row in np.asarray(m, float))
+
+
+def kalibr_intrinsics_text(acc_m, gyro_m, gsens_rad_s_per_g=None, comment: str = "") -> str:
+    """Kalibr's imu-*.yaml intrinsics block (imu0: model, accelerometers: M, gyroscopes: M, A, C_gyro_i)."""
+    model = "scale-misalignment" if gsens_rad_s_per_g is None else "scale-misalignment-gsensitivity"
+    lines = [f"# {comment}" if comment else "# imubench calibration",
+             "# Kalibr ScaledMisalignedImu: a_meas = M_a*a + b_a; w_meas = M_g*C_gyro_i*w + A*a + b_g (SI).",
+             "# imubench's M is a full 3x3 (u = M*x + b): it holds the triad's rotation, so C_gyro_i = I; Kalibr's",
+             "# own M is lower triangular with the rotation elsewhere. A: gyro g-sensitivity, (rad/s)/(m/s^2).",
+             "imu0:", f"  model: {model}", "  accelerometers:", "    M:", _yaml_matrix(acc_m, "      "),
+             "  gyroscopes:", "    M:", _yaml_matrix(gyro_m, "      "), "    C_gyro_i:", _yaml_matrix(np.eye(3), "      ")]
+    if gsens_rad_s_per_g is not None:
+        lines += ["    A:", _yaml_matrix(np.asarray(gsens_rad_s_per_g, float) / 9.80665, "      ")]
+    return "\n".join(lines) + "\n"
+
+
+def px4_text(acc_m, acc_b_mps2, gyro_m=None, gyro_b_rad_s=None, gsens=None, comment: str = "") -> str:
+    """PX4's CAL_ACC0_* / CAL_GYRO0_* as a QGroundControl parameter file (tab separated)."""
+    m = np.asarray(acc_m, float)
+    dropped = float(np.max(np.abs(m - np.diag(np.diag(m)))))
+    rows = [f"# {comment}" if comment else "# imubench calibration",
+            "# PX4 (src/modules/sensors): corrected = (raw - CAL_*_OFF) * CAL_*_SCALE per axis; offsets in m/s^2 "
+            "and rad/s.",
+            f"# PX4 cannot hold: the accelerometer's cross-axis terms (off-diagonal of M, up to {dropped:.2e}, dropped)"]
+    if gyro_m is not None:
+        g = np.asarray(gyro_m, float)
+        rows.append(f"# and the gyro's scale and cross-axis terms (M_g diagonal {', '.join(f'{v:.6f}' for v in np.diag(g))}"
+                    f", off-diagonal up to {float(np.max(np.abs(g - np.diag(np.diag(g))))):.2e}: PX4 has no gyro scale)")
+    if gsens is not None:
+        rows.append("# and the gyro g-sensitivity G (PX4 has none): its bias is the one at zero specific force")
+    rows += ["# Onboard parameters for Vehicle 1", "#", "# Vehicle-Id Component-Id Name Value Type"]
+    vals = [(f"CAL_ACC0_{ax}OFF", float(acc_b_mps2[i])) for i, ax in enumerate("XYZ")]
+    vals += [(f"CAL_ACC0_{ax}SCALE", 1.0 / float(m[i, i])) for i, ax in enumerate("XYZ")]
+    if gyro_b_rad_s is not None:
+        vals += [(f"CAL_GYRO0_{ax}OFF", float(gyro_b_rad_s[i])) for i, ax in enumerate("XYZ")]
+    rows += [f"1\t1\t{name}\t{v:.9g}\t9" for name, v in vals]
+    return "\n".join(rows) + "\n"
+
+
+def imu_calib_text(acc_m, acc_b_mps2, comment: str = "") -> str:
+    """ROS imu_calib's calibration YAML: corrected = SM·raw − bias (accelerometer)."""
+    sm = np.linalg.inv(np.asarray(acc_m, float))
+    bias = sm @ np.asarray(acc_b_mps2, float)
+    return ((f"# {comment}\n" if comment else "# imubench calibration\n")
+            + "# ROS imu_calib (dpkoch): corrected = SM*raw - bias, accelerometer, m/s^2; SM row-major.\n"
+            + f"SM: [{', '.join(f'{v:.12g}' for v in sm.ravel())}]\n"
+            + f"bias: [{', '.join(f'{v:.12g}' for v in bias)}]\n")
+
+
 def write(kind: str, prefix: Path, *, accel, gyro=None, accel_factor: float, gyro_factor: float | None,
-          accel_unit: str, gyro_unit: str, scaled: bool, params=None, comment: str = "") -> list[Path]:
+          accel_unit: str, gyro_unit: str, scaled: bool, params=None, comment: str = "",
+          gsens=None) -> list[Path]:
     """Write one layout; prefix is the path without extension. accel, gyro: TriadFit in SI (or
     None); accel_factor / gyro_factor: SI per unit of the recording; scaled: whether the
     recording's unit had a declared nominal scale (ours and ArduPilot's need one); params:
@@ -122,6 +186,14 @@ def write(kind: str, prefix: Path, *, accel, gyro=None, accel_factor: float, gyr
     if kind == "ardupilot":
         return [write_text_atomic(prefix.with_suffix(".ardupilot.param"),
                                   ardupilot_text(accel.m, accel.b, None if gyro is None else gyro.b, comment))]
+    if kind == "kalibr":
+        return [write_text_atomic(prefix.with_suffix(".kalibr-imu.yaml"), kalibr_intrinsics_text(
+            accel.m, np.eye(3) if gyro is None else gyro.m, gsens, comment))]
+    if kind == "px4":
+        return [write_text_atomic(prefix.with_suffix(".px4.params"), px4_text(
+            accel.m, accel.b, None if gyro is None else gyro.m, None if gyro is None else gyro.b, gsens, comment))]
+    if kind == "imu-calib":
+        return [write_text_atomic(prefix.with_suffix(".imu_calib.yaml"), imu_calib_text(accel.m, accel.b, comment))]
     am, ab = raw_model(accel.m, accel.b, accel_factor)
     if kind == "imutk":
         out = [write_text_atomic(Path(f"{prefix}_acc.calib"), imutk_text(am, ab))]
@@ -137,6 +209,8 @@ def write(kind: str, prefix: Path, *, accel, gyro=None, accel_factor: float, gyr
         gm, gb = np.eye(3), np.zeros(3)
     units = {"mps2": "m/s^2", "g": "g", "mg": "mg", "counts": "a.u.", "rad_s": "rad/s", "dps": "deg/s"}
     d = imucal_dict(am, ab, gm, gb, units.get(accel_unit, accel_unit), units.get(gyro_unit, gyro_unit), comment)
+    if gsens is not None and gyro_factor:   # imucal's K_ga: raw gyro units per (m/s²) of calibrated acceleration
+        d["K_ga"] = (np.asarray(gsens, float) / 9.80665 / gyro_factor).tolist()
     path = prefix.with_suffix(".imucal.json")
     write_text_atomic(path, json.dumps(d, indent=4) + "\n")
     return [path]

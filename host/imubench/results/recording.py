@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
+from imubench.results.atomic import save_figure
 
 _FACE_COLOURS = {"+X": "#1f77b4", "-X": "#aec7e8", "+Y": "#2ca02c", "-Y": "#98df8a", "+Z": "#d62728",
                  "-Z": "#ff9896", "other": "#bbbbbb"}
@@ -61,7 +62,7 @@ def plot_segmentation(rec, result: dict, path, *, accel_factor: float, gyro_fact
     ax1.set_title(f"{Path(rec.source.split(' + ')[0]).name}: still intervals (shaded by face), turns (yellow)"
                   + (", breaks (red dashed)" if rec.breaks else "")
                   + (", annotated sections (dark bars)" if parts else ""), fontsize=10)
-    fig.savefig(path)
+    save_figure(fig, path)
     return path
 
 

@@ -21,7 +21,6 @@ A section without input is shown as "not measured in this session", never silent
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 import tempfile
 from pathlib import Path
@@ -29,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
+
 from imubench.results.atomic import write_text_atomic
 from imubench.results.numbers import pm as _pm_sigma
 from imubench.results.report_html import (
@@ -42,6 +42,8 @@ from imubench.results.report_html import (
     _num,
     _png,
     png_data_uri,
+    read_json_within,
+    Refused,
     _table,
     _version,
 )
@@ -197,6 +199,10 @@ def _before_after_html(result: dict) -> str:
     verdict = "no tolerance given" if tol is None else \
         f"tolerance {tol:g} mg RMS: {'PASS' if ra <= tol else 'FAIL'}"
     out += f"<p>RMS of |a| − g over {len(names)} poses: before {rb:.3f} mg, after {ra:.4f} mg; {esc(verdict)}</p>"
+    if result.get("tolerance_source"):          # a recording of another IMU: where its tolerance comes from
+        out += f"<p>tolerance: {esc(result['tolerance_source'])}</p>"
+    if result.get("verdict"):                   # calibrate --from: what was calibrated, what not and why
+        out += f"<p><b>{esc(result['verdict'])}</b></p>"
     vnames, vafter, _vs = _verification(result)
     if len(vnames):
         vtol = _tol(result, "verify_mg")
@@ -325,7 +331,7 @@ def parameter_rows(result: dict) -> list[tuple[str, str]]:
     in mg (accelerometer) or °/s (gyro)."""
     from imubench.results.numbers import pm
     rows = []
-    for kind, unit, bkey, bscale in (("accel", "mg", "b_mps2", 1e3 / G0), ("gyro", "°/s", "b_rad_s", 180 / math.pi)):
+    for kind, unit, bkey, bscale in (("accel", "mg", "b_mps2", 1e3 / 9.80665), ("gyro", "°/s", "b_rad_s", 180 / math.pi)):
         fit = (result or {}).get(kind)
         if not isinstance(fit, dict):
             continue
@@ -340,17 +346,21 @@ def parameter_rows(result: dict) -> list[tuple[str, str]]:
     return rows
 
 
-def _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid) -> list[tuple]:
+def _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid,
+           closure_within=None, allan_within=None) -> list[tuple]:
     """(name, anchor, status, words) of every part of the report: status pass / fail /
     incomplete / info / foreign (another device: refused) / missing."""
     parts = [("calibration", "calibration", *_calibration_part(state, result))]
+    if result.get("gyro_refused") and parts[0][2] == "pass":     # calibrate --from: the gyro part was refused
+        parts[0] = ("calibration", "calibration", "incomplete",
+                    f"{parts[0][3]}; gyro not calibrated: {result['gyro_refused']}")
 
-    def load(path):
+    def load(path, within=None):
         try:
-            return json.loads(Path(path).read_text())
-        except (OSError, ValueError, TypeError):
+            return read_json_within(path, within)
+        except (OSError, ValueError, TypeError, Refused):
             return None
-    c = load(closure_dir / "closure.json") if closure_dir is not None else None
+    c = load(closure_dir / "closure.json", closure_within) if closure_dir is not None else None
     if c is None:
         parts.append(("closure check", "closure", "missing", "give --closure DIR (imubench closure --out DIR, or calibrate --closure)"))
     elif _foreign(c, uid, "")[1] == "foreign":
@@ -360,7 +370,7 @@ def _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, ui
     else:
         ok, words = closure_verdict(c)
         parts.append(("closure check", "closure", "pass" if ok else "fail", words))
-    a = load(allan_dir / "allan.json") if allan_dir is not None else None
+    a = load(allan_dir / "allan.json", allan_within) if allan_dir is not None else None
     if a is None:
         parts.append(("noise", "noise", "missing", "give --allan DIR (imubench allan --out DIR)"))
     elif _foreign(a, uid, "")[1] == "foreign":
@@ -444,6 +454,10 @@ def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, 
     state = load_state(session_dir)
     result = state.get("result") or {}
     out_path = Path(out_path) if out_path is not None else session_dir / "report.html"
+    # JSON is embedded only from the directory it was asked from: the session directory for
+    # the parts found there by default, the directory given for the others (read_json_within)
+    allan_within = Path(allan_dir) if allan_dir is not None else session_dir
+    closure_within = Path(closure_dir) if closure_dir is not None else session_dir
     allan_dir = Path(allan_dir) if allan_dir is not None else session_dir
     device = result.get("device") if isinstance(result.get("device"), dict) else {}
     uid = str(device.get("mcu_uid", "")).upper() or None
@@ -452,10 +466,11 @@ def build_report(session_dir, out_path=None, allan_dir=None, attitude_png=None, 
     attitude_png = Path(attitude_png) if attitude_png else None
     thermal_json = Path(thermal_json) if thermal_json else None
 
-    sections = [_calibration_section(session_dir, state), _closure_section(closure_dir, uid),
-                _noise_section(allan_dir, uid), _attitude_section(attitude_png, uid),
+    sections = [_calibration_section(session_dir, state), _closure_section(closure_dir, uid, closure_within),
+                _noise_section(allan_dir, uid, allan_within), _attitude_section(attitude_png, uid),
                 _thermal_section(thermal_json, uid)]
-    parts = _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid)
+    parts = _parts(state, result, closure_dir, allan_dir, attitude_png, thermal_json, uid, closure_within,
+                   allan_within)
     overall, verdict = _verdict_box(parts, device, uid or "")
     toc = ('<nav class="toc"><b>Contents</b><ol>' + "".join(
         f'<li><a href="#{esc(a)}">{esc(n)}</a>{"" if s != "missing" else " (not measured)"}</li>'

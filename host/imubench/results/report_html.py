@@ -1,6 +1,6 @@
 """The pieces every section of the HTML report is built from: escaping, numbers, tables,
-embedded plots (read safely: a PNG within its directory, of bounded size) and the loading of
-the parts a report joins (refusing a part from another device)."""
+embedded plots (read safely: a regular PNG within its directory, of bounded size) and the
+loading of the parts a report joins (refusing a part from another device)."""
 from __future__ import annotations
 
 import base64
@@ -12,8 +12,12 @@ import stat
 from collections.abc import Sequence
 from pathlib import Path
 
+from imubench import units as U
+
+from imubench.files import MAX_JSON_BYTES
 from imubench.wire.ids import byte_ids_text, pid_text, sn_text
 
+G0 = U.G0_MPS2
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 MAX_PLOT_BYTES = 16 * 1024 * 1024     # an embedded plot: ours are ~100 kB
 
@@ -44,6 +48,24 @@ def read_png(path, within=None, max_bytes: int = MAX_PLOT_BYTES) -> bytes | None
     real path (symlinks resolved) is outside the directory `within`: a report is sent on its
     own, so it carries no file from elsewhere on the disk, and never blocks (a FIFO) or reads
     without end (a device)."""
+    data = read_within(path, within, max_bytes)
+    if data is not None and not data.startswith(PNG_MAGIC):
+        raise Refused(f"{path} is not a PNG")
+    return data
+
+
+def read_json_within(path, within=None, max_bytes: int = MAX_JSON_BYTES):
+    """The JSON at path, read as read_within reads (a symlink out of `within`, by default the
+    directory the file is named in, is refused: the report embeds no file from elsewhere);
+    None when there is no such file. Raises Refused, or ValueError when it does not parse."""
+    path = Path(path).absolute()
+    data = read_within(path, path.parent if within is None else within, max_bytes)
+    return None if data is None else json.loads(data)
+
+
+def read_within(path, within=None, max_bytes: int = MAX_PLOT_BYTES) -> bytes | None:
+    """The bytes of the regular file at path (at most max_bytes; never a FIFO or a device),
+    None when there is none; with `within`, refused unless its real path is inside it."""
     path = Path(path)
     if within is not None:
         base = Path(within).resolve()
@@ -66,8 +88,6 @@ def read_png(path, within=None, max_bytes: int = MAX_PLOT_BYTES) -> bytes | None
         data = fh.read(max_bytes + 1)
     if len(data) > max_bytes:
         raise Refused(f"{path} is more than the limit of {max_bytes} bytes")
-    if not data.startswith(PNG_MAGIC):
-        raise Refused(f"{path} is not a PNG")
     return data
 
 
@@ -115,18 +135,22 @@ def _missing(what: str, how: str) -> str:
     return f'<p class="missing">{esc(what)}: not measured in this session ({esc(how)}).</p>'
 
 
-def _load_json(path: Path | None, what: str, how: str, out: list[str]):
+def _load_json(path: Path | None, what: str, how: str, out: list[str], within=None):
     """The JSON at path, or None after appending to out why there is none: "not measured"
-    (with how to get it) when the file is absent, "unreadable" when it does not parse."""
-    if path is None or not Path(path).is_file():
-        out.append(_missing(what, how))
-        return None
+    (with how to get it) when the file is absent, "refused" when it is a link out of `within`
+    (default: its own directory) or not a regular file, "unreadable" when it does not parse."""
     try:
-        return json.loads(Path(path).read_text())
+        data = None if path is None else read_json_within(path, within)
+    except Refused as e:
+        out.append(f'<p class="foreign"><b>refused</b>: {esc(what)} data not embedded ({esc(e)}).</p>')
+        return None
     except (OSError, ValueError) as e:
         out.append(f'<p class="missing">{esc(what)} data {esc(path)}: unreadable ({esc(e)}); '
                    "not measured in this session.</p>")
         return None
+    if data is None:
+        out.append(_missing(what, how))
+    return data
 
 
 def _version() -> str:
@@ -154,10 +178,11 @@ def _foreign(data, session_uid: str | None, what: str) -> tuple[str | None, str]
     return None, "same"
 
 
-def _load_part(path: Path | None, what: str, how: str, out: list[str], session_uid: str | None, label: str):
+def _load_part(path: Path | None, what: str, how: str, out: list[str], session_uid: str | None, label: str,
+               within=None):
     """_load_json, then the device check: None (after appending why to out) when the file is
     missing, unreadable or from another device; a note is appended when it names no device."""
-    data = _load_json(path, what, how, out)
+    data = _load_json(path, what, how, out, within)
     if data is None:
         return None
     refusal, state = _foreign(data, session_uid, label)

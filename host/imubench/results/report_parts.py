@@ -2,12 +2,12 @@
 temperature (the thermal fit) and the closure check, each from its own result file."""
 from __future__ import annotations
 
-import json
 import math
 import tempfile
 from pathlib import Path
 
 from imubench import units as U
+
 from imubench.results.numbers import pm as _pm_sigma
 from imubench.results.report_html import (
     esc,
@@ -19,6 +19,7 @@ from imubench.results.report_html import (
     _num,
     _png,
     png_data_uri,
+    read_json_within,
     _table,
     _unnamed_note,
 )
@@ -28,11 +29,11 @@ RAD2DEG = 180.0 / math.pi
 AXES = ("x", "y", "z")
 
 
-def _noise_section(allan_dir: Path | None, session_uid: str | None = None) -> str:
+def _noise_section(allan_dir: Path | None, session_uid: str | None = None, within=None) -> str:
     out = ['<h2 id="noise">Noise (Allan deviation)</h2>']
     res = _load_part(allan_dir / "allan.json" if allan_dir is not None else None, "noise",
                      "no allan.json; record one with imubench allan and give --allan DIR", out, session_uid,
-                     "noise recording")
+                     "noise recording", within)
     if res is None:
         return "\n".join(out)
     from imubench.analysis.allan import duration_text, usual_units
@@ -88,7 +89,7 @@ def _attitude_numbers(png: Path | None) -> dict | None:
     if png is None:
         return None
     try:
-        data = json.loads(Path(png).with_suffix(".json").read_text())
+        data = read_json_within(Path(png).with_suffix(".json"))
     except (OSError, ValueError):
         return None
     return data if isinstance(data, dict) and data.get("kind") == "imubench attitude" else None
@@ -156,7 +157,6 @@ def _thermal_drift_and_write(data: dict) -> list[str]:
     """The thermal section's drift table (before and after writing the coefficients) and the
     write-back's outcome."""
     out = []
-
     before, after = data.get("drift_before"), data.get("drift_after")
     if isinstance(before, dict):
         after = after if isinstance(after, dict) else {}
@@ -291,11 +291,11 @@ def closure_verdict(data: dict) -> tuple[bool, str] | None:
     return verdict_of(z, floor)
 
 
-def _closure_section(directory: Path | None, session_uid: str | None = None) -> str:
+def _closure_section(directory: Path | None, session_uid: str | None = None, within=None) -> str:
     out = ['<h2 id="closure">Closure check</h2>']
     path = directory / "closure.json" if directory is not None else None
     data = _load_part(path, "closure check", "run imubench calibrate --closure, or imubench closure --out DIR "
-                      "and give --closure DIR", out, session_uid, "closure check")
+                      "and give --closure DIR", out, session_uid, "closure check", within)
     if data is None:
         return "\n".join(out)
     if not isinstance(data, dict) or "after" not in data:

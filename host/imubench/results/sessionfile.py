@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from imubench.errors import ImubenchError
+from imubench.files import MAX_JSON_BYTES, FileRefused, read_text
 
 SESSION_SCHEMA = 1
 NAME = "session.json"
@@ -20,12 +21,12 @@ def load_state(directory) -> dict:
     """The content of DIR/session.json, checked to be a session of this schema."""
     path = Path(directory) / NAME
     try:
-        text = path.read_text()
+        text = read_text(path, MAX_JSON_BYTES, "the session file", errors="replace")
     except FileNotFoundError:
         raise SessionFileError(f"{directory} holds no {NAME}: not a calibration session directory "
                                "(the --dir of imubench calibrate)") from None
-    except IsADirectoryError:
-        raise SessionFileError(f"{path} is a directory, not a session file") from None
+    except FileRefused as e:
+        raise SessionFileError(str(e)) from None
     try:
         state = json.loads(text)
     except ValueError as e:

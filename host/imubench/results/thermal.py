@@ -9,7 +9,7 @@ import numpy as np
 
 from imubench import units as U
 from imubench.analysis.thermal import AXES, TempPoint, ThermalFit
-from imubench.results.atomic import write_json_atomic
+from imubench.results.atomic import save_figure, write_json_atomic
 from imubench.results.numbers import pm
 from imubench.results.record import now_utc
 
@@ -183,5 +183,5 @@ def plot_thermal(data: dict, path) -> Path | None:
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(str(path))
+    save_figure(fig, path)
     return Path(path)

@@ -78,6 +78,10 @@ class Station:
         for k, allowed in (("method", METHODS), ("gyro", GYRO_METHODS), ("capture", CAPTURES)):
             if o[k] not in allowed:
                 raise StationError(f"{k} must be one of {', '.join(allowed)}, not {o[k]!r}")
+        from imubench.procedures.poses import plan_problem
+        problem = plan_problem(o["method"], o["gyro"])
+        if problem:                                   # refused before anything is captured
+            raise StationError(f"{problem[0].replace('--', '')}: {problem[1].replace('--', '')}")
         if page:
             self.check_port(o["port"])
         return o

@@ -25,6 +25,16 @@ from imubench.wire.protocol_gen import BATCH_HEADER_DTYPE, MsgType
 
 _HDR = struct.Struct("<BBHI")
 _RAW = P.MESSAGES[MsgType.RAW_BATCH]
+
+
+def time_step_us(now: int, prev: int) -> int:
+    """The step from u32 device time prev to now, (now - prev) mod 2^32 in [-2^31, 2^31): a step
+    of exactly 2^31 us is -2^31, a step back (protocol/SPEC.md, Header fields; C: ib_time_step_us)."""
+    return ((now - prev + (1 << 31)) & 0xFFFFFFFF) - (1 << 31)
+
+
+
+_INFO = int(MsgType.INFO)
 _CAL = P.MESSAGES[MsgType.CAL_BATCH]
 _BH = BATCH_HEADER_DTYPE.itemsize
 _COUNT_OFF = _RAW.count_offset
@@ -197,6 +207,7 @@ class StreamDecoder:
         self.max_pending_samples = max_pending_samples
         self._buf = bytearray()
         self._discarding = False     # inside an over-long run with no delimiter
+        self.foreign_version: int | None = None   # the first other protocol version an intact frame had
         self._last_seq: int | None = None
         self._raw = _Pending()
         self._cal = _Pending()
@@ -204,6 +215,9 @@ class StreamDecoder:
         self._start_rid: int | None = None   # request id of the last start_stream ack acted on
         self._ts_last: int | None = None
         self._ts_offset = 0
+        #: (request_id, field, value, rule kind, rule argument) of the last info refused for a value this side
+        #: does not know (a newer firmware's), or None
+        self.refused_info: tuple | None = None
         self._crc = P.crc32c
         self._decode = cobs.decode
 
@@ -263,6 +277,8 @@ class StreamDecoder:
             version, mtype, seq, ts = _HDR.unpack_from(raw)
             if version != P.PROTOCOL_VERSION:
                 st.bad_version += 1
+                if self.foreign_version is None:
+                    self.foreign_version = version
                 continue
             if mtype == 0x90 or mtype == 0x91:
                 d = _RAW if mtype == 0x90 else _CAL
@@ -285,12 +301,17 @@ class StreamDecoder:
                 self._batch(mtype == 0x91, raw, hdr[0], hdr[1], count, t, replay)
                 continue
             payload = raw[8:-4]
+            values = None
             err = P.payload_error(mtype, payload)
             if err is None:
                 values = P.MESSAGES[mtype].cls.STRUCT.unpack_from(payload, 0)
                 err = P.value_error(mtype, payload, values)
             if err is not None:
                 setattr(st, err.value, getattr(st, err.value) + 1)
+                if mtype == _INFO and values is not None:
+                    # CRC good, layout right, a value this side does not know: a newer firmware's
+                    # info, named for the one waiting for it (device.link: "newer firmware")
+                    self.refused_info = (values[0], *P.value_problem(mtype, payload, values))
                 continue
             st.frames_ok += 1
             replay, t = self._sequence(seq, ts)
@@ -318,10 +339,12 @@ class StreamDecoder:
                 st.seq_gaps += 1
                 st.frames_missing += ahead - 1
         self._last_seq = seq
-        if ts - self._ts_last < -(1 << 31):      # 32-bit microseconds wrap every 71.6 min
-            self._ts_offset += 1 << 32
+        # 32-bit microseconds wrap every 71.6 min: the step is taken modulo 2^32 in [-2^31, 2^31),
+        # as the C side's ib_time_step_us (exactly 2^31 is a step back, whichever way it wrapped)
+        t = self._ts_last + self._ts_offset + time_step_us(ts, self._ts_last)
+        self._ts_offset = t - ts
         self._ts_last = ts
-        return False, ts + self._ts_offset
+        return False, t
 
     def _marker(self, mtype: int, msg, t: int, replay: bool) -> None:
         """Frames that say where a stream starts: a start_stream ack (its first sample index is

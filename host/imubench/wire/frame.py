@@ -100,6 +100,22 @@ def value_error(msg_type: int, payload: bytes | memoryview, values: tuple | None
     return None
 
 
+def value_problem(msg_type: int, payload: bytes | memoryview, values: tuple | None = None):
+    """(field path, value, rule kind, rule argument) of the first field of the fixed part that
+    breaks its rule, or None: what value_error found, named (a newer firmware's info: "unknown
+    value N for FIELD")."""
+    rules = gen.VALUE_RULES.get(msg_type)
+    if not rules:
+        return None
+    if values is None:
+        values = MESSAGES[msg_type].cls.STRUCT.unpack_from(payload, 0)
+    for slot, n, path, kind, arg in rules:
+        for i, v in enumerate(values[slot:slot + n]):
+            if _rule_fails(kind, arg, v):
+                return (f"{path}[{i}]" if n > 1 else path), v, kind, arg
+    return None
+
+
 def record_value_error(d, data: bytes | memoryview, rules=None) -> FrameError | None:
     """Vectorised rules of concatenated records: the reason of the first failing field of the
     first failing record, or None."""

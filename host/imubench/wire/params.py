@@ -3,7 +3,9 @@ numpy, the correction the device applies, and the validation the device performs
 
 Model (docs/conventions.md), per triad, u = nominally scaled measurement, x = truth:
     u = M·x + b                      x = M⁻¹·(u − b)
-with temperature terms: x = M⁻¹·((u − b − bias_tc·ΔT) / (1 + scale_tc·ΔT)), ΔT = T − t_ref.
+with temperature terms: x = M⁻¹·((u − b − bias_tc·ΔT) / (1 + scale_tc·ΔT)), ΔT = T − t_ref;
+the gyro's g-sensitivity G (layout 2) is taken off first: u ← u − G·a, a the calibrated specific
+force in m/s² (the device's calibrated accelerometer output of the same sample).
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ def is_factory(p: Params) -> bool:
     ident = identity()
     return all(np.allclose(getattr(p, f), getattr(ident, f)) for f in
                ("accel_m", "accel_b_mps2", "gyro_m", "gyro_b_rad_s", "accel_bias_tc_mps2_per_c",
-                "accel_scale_tc_per_c", "gyro_bias_tc_rad_s_per_c", "gyro_scale_tc_per_c"))
+                "accel_scale_tc_per_c", "gyro_bias_tc_rad_s_per_c", "gyro_scale_tc_per_c", "gyro_g_rad_s_per_mps2"))
 
 
 def to_json(p: Params) -> dict:
@@ -57,6 +59,7 @@ class Triad:
     bias_tc: np.ndarray    # (3,)
     scale_tc: np.ndarray   # (3,)
     t_ref_c: float
+    g: np.ndarray | None = None   # (3, 3) gyro g-sensitivity, rad/s per m/s² (None for the accelerometer)
 
 
 def accel(p: Params) -> Triad:
@@ -68,13 +71,20 @@ def accel(p: Params) -> Triad:
 def gyro(p: Params) -> Triad:
     return Triad(np.array(p.gyro_m, dtype=np.float64).reshape(3, 3), np.array(p.gyro_b_rad_s, dtype=np.float64),
                  np.array(p.gyro_bias_tc_rad_s_per_c, dtype=np.float64),
-                 np.array(p.gyro_scale_tc_per_c, dtype=np.float64), float(p.gyro_t_ref_c))
+                 np.array(p.gyro_scale_tc_per_c, dtype=np.float64), float(p.gyro_t_ref_c),
+                 np.array(p.gyro_g_rad_s_per_mps2, dtype=np.float64).reshape(3, 3))
 
 
-def correct(t: Triad, u: np.ndarray, temp_c=None) -> np.ndarray:
+def correct(t: Triad, u: np.ndarray, temp_c=None, accel_mps2=None) -> np.ndarray:
     """Apply the correction to measurements u (n, 3) in SI. temp_c: None (= t_ref), (n,) one
-    temperature for all axes, or (n, 3) per axis (docs/conventions.md)."""
+    temperature for all axes, or (n, 3) per axis (docs/conventions.md). accel_mps2: the
+    calibrated specific force (n, 3) of the same samples, for a gyro triad with a g-sensitivity
+    (taken off first, as the device does); required when t.g is non-zero."""
     u = np.asarray(u, dtype=np.float64)
+    if t.g is not None and np.any(t.g != 0.0):
+        if accel_mps2 is None:
+            raise ValueError("correct: this gyro triad has a g-sensitivity: give accel_mps2 (calibrated, m/s²)")
+        u = u - np.asarray(accel_mps2, dtype=np.float64) @ t.g.T
     if temp_c is None:
         v = u - t.b
     else:
@@ -156,7 +166,8 @@ def validate(p: Params) -> None:
     give the same verdict and the same code for every block, also at the limits."""
     with np.errstate(all="ignore"):           # a double beyond float32 becomes ±inf, as on the wire
         f32 = [_F32(v) for v in p.values()[:38]]
-    if not all(np.isfinite(v) for v in f32):
+        gg = [_F32(v) for v in p.gyro_g_rad_s_per_mps2]
+    if not all(np.isfinite(v) for v in f32 + gg):
         raise InvalidParams(Error.PARAM_NOT_FINITE, "a parameter is NaN or infinite")
     am, ab, gm, gb = f32[0:9], f32[9:12], f32[12:21], f32[21:24]
     abtc, astc, gbtc, gstc = f32[24:27], f32[27:30], f32[30:33], f32[33:36]
@@ -165,3 +176,7 @@ def validate(p: Params) -> None:
                      LIMITS_F32["accel_bias_tc_max_mps2_per_c"])
         _check_triad("gyro", gm, gb, gbtc, gstc, f32[37], LIMITS_F32["gyro_bias_max_rad_s"],
                      LIMITS_F32["gyro_bias_tc_max_rad_s_per_c"])
+    for k, v in enumerate(gg):                # the g-sensitivity last, as core.c
+        if abs(v) > _F32(LIMITS_F32["gyro_g_max_rad_s_per_mps2"]):
+            raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"gyro g-sensitivity[{k}] = {float(v)!r} above "
+                                f"{LIMITS['gyro_g_max_rad_s_per_mps2']} rad/s per m/s² in magnitude")

@@ -14,7 +14,9 @@ program_unit)):
     12       2     payload_len N
     14       1     flags (bit 0 CLEARED: a factory reset, N == 0)
     15       1     crc_salt: smallest of 0, 1, 2 giving a CRC that is neither 0 nor 0xFFFFFFFF
-    16       N     payload (the params block, protocol_gen.Params packed, 160 bytes)
+    16       N     payload (the params block, protocol_gen.Params packed: 196 bytes in layout 2,
+                   160 in layout 1, which is layout 2 without gyro_g; the firmware reads a
+                   layout-1 record with G = 0, params_record(..., layout=1) writes one)
     16+N     P     zero padding up to crc_off = round_up(16 + N, a)
     crc_off  4     CRC-32C over bytes [0, crc_off)
     +4       a-4   zero padding (program_unit > 4 only)
@@ -115,13 +117,25 @@ def build_record(payload: bytes, *, generation: int = 1, payload_version: int = 
     return body + struct.pack("<I", crc) + bytes(a - 4)
 
 
-def params_payload(p: Params) -> bytes:
-    """The 160-byte parameter block (ib_params_pack)."""
-    return Params.STRUCT.pack(*p.values())
+PARAMS_SIZE_V1 = Params.SIZE - 36          # layout 1: today's block without gyro_g (9 float32 at its end)
 
 
-def params_record(p: Params, *, generation: int = 1, program_unit: int = 4) -> bytes:
-    return build_record(params_payload(p), generation=generation, payload_version=PARAM_BLOCK_VERSION,
+def params_payload(p: Params, layout: int = PARAM_BLOCK_VERSION) -> bytes:
+    """The parameter block (ib_params_pack): 196 bytes in layout 2; layout=1 gives the block the
+    previous firmware stored (its first 160 bytes; G must then be zero)."""
+    data = Params.STRUCT.pack(*p.values())
+    if layout == PARAM_BLOCK_VERSION:
+        return data
+    if layout == 1:
+        if any(p.gyro_g_rad_s_per_mps2):
+            raise ValueError("a layout-1 block has no gyro g-sensitivity: G must be zero")
+        return data[:PARAMS_SIZE_V1]
+    raise ValueError(f"parameter block layout {layout}: this host knows 1 and {PARAM_BLOCK_VERSION}")
+
+
+def params_record(p: Params, *, generation: int = 1, program_unit: int = 4, layout: int = PARAM_BLOCK_VERSION) -> bytes:
+    """A record holding p, in today's layout or (layout=1) as the previous firmware stored it."""
+    return build_record(params_payload(p, layout), generation=generation, payload_version=layout,
                         program_unit=program_unit)
 
 
@@ -151,9 +165,13 @@ class Record:
         return bool(self.flags & FLAG_CLEARED)
 
     def params(self) -> Params:
-        if len(self.payload) != Params.SIZE:
+        """The block, a layout-1 one migrated as the firmware does (G = 0)."""
+        payload = self.payload
+        if self.payload_version == 1 and len(payload) == PARAMS_SIZE_V1:
+            payload = payload + bytes(Params.SIZE - PARAMS_SIZE_V1)
+        if len(payload) != Params.SIZE:
             raise ValueError(f"payload is {len(self.payload)} bytes, a params block {Params.SIZE}")
-        return Params.from_values(Params.STRUCT.unpack(self.payload))
+        return Params.from_values(Params.STRUCT.unpack(payload))
 
 
 class InvalidRecord(ValueError):

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 MAX_PAYLOAD = 256
 SAVE_UNCHANGED_FLAG = 0x80000000  # save_params ack value: the block was already stored
 HEADER_SIZE = 8
@@ -18,14 +18,14 @@ CRC_SIZE = 4
 CRC_NAME = "crc-32c"
 MAX_FRAME = 268
 MAX_ENCODED = 270
-PARAM_BLOCK_VERSION = 1
+PARAM_BLOCK_VERSION = 2
 STREAM_RATES_HZ = (4000, 2000, 1000, 800, 500, 400, 250, 200, 160, 125, 100, 80, 50, 40, 25, 20)  # start_stream rates (SPEC.md, Streaming)
 
 # Parameter limits (protocol/imubench.toml [limits]); the device enforces the same.
-LIMITS = {'m_diag_min': 0.5, 'm_diag_max': 1.5, 'm_offdiag_max': 0.2, 'm_det_min': 1e-06, 'm_cond_max': 6.0, 'accel_bias_max_mps2': 9.80665, 'gyro_bias_max_rad_s': 0.5236, 'accel_bias_tc_max_mps2_per_c': 0.01, 'gyro_bias_tc_max_rad_s_per_c': 0.001, 'scale_tc_max_per_c': 0.001, 't_ref_min_c': -40.0, 't_ref_max_c': 125.0}
+LIMITS = {'m_diag_min': 0.5, 'm_diag_max': 1.5, 'm_offdiag_max': 0.2, 'm_det_min': 1e-06, 'm_cond_max': 6.0, 'accel_bias_max_mps2': 9.80665, 'gyro_bias_max_rad_s': 0.5236, 'accel_bias_tc_max_mps2_per_c': 0.01, 'gyro_bias_tc_max_rad_s_per_c': 0.001, 'scale_tc_max_per_c': 0.001, 't_ref_min_c': -40.0, 't_ref_max_c': 125.0, 'gyro_g_max_rad_s_per_mps2': 0.00178}
 # The same limits as the float32 values the device compares with, bit for bit (the C
 # constants are these hexadecimal literals): imubench.wire.params checks in float32 with them.
-LIMITS_F32 = {'m_diag_min': float.fromhex('0x1.0000000000000p-1'), 'm_diag_max': float.fromhex('0x1.8000000000000p+0'), 'm_offdiag_max': float.fromhex('0x1.99999a0000000p-3'), 'm_det_min': float.fromhex('0x1.0c6f7a0000000p-20'), 'm_cond_max': float.fromhex('0x1.8000000000000p+2'), 'accel_bias_max_mps2': float.fromhex('0x1.39d0140000000p+3'), 'gyro_bias_max_rad_s': float.fromhex('0x1.0c154c0000000p-1'), 'accel_bias_tc_max_mps2_per_c': float.fromhex('0x1.47ae140000000p-7'), 'gyro_bias_tc_max_rad_s_per_c': float.fromhex('0x1.0624de0000000p-10'), 'scale_tc_max_per_c': float.fromhex('0x1.0624de0000000p-10'), 't_ref_min_c': float.fromhex('-0x1.4000000000000p+5'), 't_ref_max_c': float.fromhex('0x1.f400000000000p+6')}
+LIMITS_F32 = {'m_diag_min': float.fromhex('0x1.0000000000000p-1'), 'm_diag_max': float.fromhex('0x1.8000000000000p+0'), 'm_offdiag_max': float.fromhex('0x1.99999a0000000p-3'), 'm_det_min': float.fromhex('0x1.0c6f7a0000000p-20'), 'm_cond_max': float.fromhex('0x1.8000000000000p+2'), 'accel_bias_max_mps2': float.fromhex('0x1.39d0140000000p+3'), 'gyro_bias_max_rad_s': float.fromhex('0x1.0c154c0000000p-1'), 'accel_bias_tc_max_mps2_per_c': float.fromhex('0x1.47ae140000000p-7'), 'gyro_bias_tc_max_rad_s_per_c': float.fromhex('0x1.0624de0000000p-10'), 'scale_tc_max_per_c': float.fromhex('0x1.0624de0000000p-10'), 't_ref_min_c': float.fromhex('-0x1.4000000000000p+5'), 't_ref_max_c': float.fromhex('0x1.f400000000000p+6'), 'gyro_g_max_rad_s_per_mps2': float.fromhex('0x1.d29dc80000000p-10')}
 
 class Error(enum.IntEnum):
     """Error codes carried in ack.error (0 = acknowledged; anything else is a nack)."""
@@ -120,6 +120,13 @@ class BatchFlags(enum.IntFlag):
     SAMPLES_DROPPED = 1 << 6
 
 
+class SensorMask(enum.IntFlag):
+    ACCEL = 1 << 0
+    GYRO_X = 1 << 1
+    GYRO_Y = 1 << 2
+    GYRO_Z = 1 << 3
+
+
 class MsgType(enum.IntEnum):
     PING = 0x01
     GET_INFO = 0x02
@@ -147,7 +154,9 @@ COMMANDS = frozenset({MsgType.PING, MsgType.GET_INFO, MsgType.START_STREAM, MsgT
 @dataclass
 class Params:
     """Calibration parameters (docs/conventions.md): u = M·x + b per triad, the device applies
-x = M⁻¹·(u − b − bias_tc·(T − t_ref)) / (1 + scale_tc·(T − t_ref)) per axis. M row-major."""
+x = M⁻¹·(u − b − bias_tc·(T − t_ref)) / (1 + scale_tc·(T − t_ref)) per axis; for the gyro also
+− G·a inside the bracket, a the calibrated specific force in m/s². M and G row-major. Layout 2;
+layout 1 is the same without gyro_g (a stored layout-1 block is read with G = 0)."""
     accel_m: tuple = (0.0,) * 9  # [1]
     accel_b_mps2: tuple = (0.0,) * 3  # [m/s^2]
     gyro_m: tuple = (0.0,) * 9  # [1]
@@ -160,12 +169,13 @@ x = M⁻¹·(u − b − bias_tc·(T − t_ref)) / (1 + scale_tc·(T − t_ref))
     gyro_t_ref_c: float = 0.0  # [degC]
     cal_time_unix_s: int = 0  # [s]
     cal_id: int = 0
-    FORMAT = "<9f3f9f3f3f3f3f3fffII"
-    SIZE = 160
-    NVALUES = 40
+    gyro_g_rad_s_per_mps2: tuple = (0.0,) * 9  # [rad/s/(m/s^2)]
+    FORMAT = "<9f3f9f3f3f3f3f3fffII9f"
+    SIZE = 196
+    NVALUES = 49
 
     def values(self) -> tuple:
-        return (*self.accel_m, *self.accel_b_mps2, *self.gyro_m, *self.gyro_b_rad_s, *self.accel_bias_tc_mps2_per_c, *self.accel_scale_tc_per_c, *self.gyro_bias_tc_rad_s_per_c, *self.gyro_scale_tc_per_c, self.accel_t_ref_c, self.gyro_t_ref_c, self.cal_time_unix_s, self.cal_id)
+        return (*self.accel_m, *self.accel_b_mps2, *self.gyro_m, *self.gyro_b_rad_s, *self.accel_bias_tc_mps2_per_c, *self.accel_scale_tc_per_c, *self.gyro_bias_tc_rad_s_per_c, *self.gyro_scale_tc_per_c, self.accel_t_ref_c, self.gyro_t_ref_c, self.cal_time_unix_s, self.cal_id, *self.gyro_g_rad_s_per_mps2)
 
     @classmethod
     def from_values(cls, v, i: int = 0) -> "Params":
@@ -181,11 +191,12 @@ x = M⁻¹·(u − b − bias_tc·(T − t_ref)) / (1 + scale_tc·(T − t_ref))
         gyro_t_ref_c = v[i]; i += 1
         cal_time_unix_s = v[i]; i += 1
         cal_id = v[i]; i += 1
-        return cls(accel_m=accel_m, accel_b_mps2=accel_b_mps2, gyro_m=gyro_m, gyro_b_rad_s=gyro_b_rad_s, accel_bias_tc_mps2_per_c=accel_bias_tc_mps2_per_c, accel_scale_tc_per_c=accel_scale_tc_per_c, gyro_bias_tc_rad_s_per_c=gyro_bias_tc_rad_s_per_c, gyro_scale_tc_per_c=gyro_scale_tc_per_c, accel_t_ref_c=accel_t_ref_c, gyro_t_ref_c=gyro_t_ref_c, cal_time_unix_s=cal_time_unix_s, cal_id=cal_id)
+        gyro_g_rad_s_per_mps2 = tuple(v[i:i + 9]); i += 9
+        return cls(accel_m=accel_m, accel_b_mps2=accel_b_mps2, gyro_m=gyro_m, gyro_b_rad_s=gyro_b_rad_s, accel_bias_tc_mps2_per_c=accel_bias_tc_mps2_per_c, accel_scale_tc_per_c=accel_scale_tc_per_c, gyro_bias_tc_rad_s_per_c=gyro_bias_tc_rad_s_per_c, gyro_scale_tc_per_c=gyro_scale_tc_per_c, accel_t_ref_c=accel_t_ref_c, gyro_t_ref_c=gyro_t_ref_c, cal_time_unix_s=cal_time_unix_s, cal_id=cal_id, gyro_g_rad_s_per_mps2=gyro_g_rad_s_per_mps2)
 
 Params.STRUCT = struct.Struct(Params.FORMAT)
-PARAMS_DTYPE = np.dtype([('accel_m', '<f4', (9,)), ('accel_b_mps2', '<f4', (3,)), ('gyro_m', '<f4', (9,)), ('gyro_b_rad_s', '<f4', (3,)), ('accel_bias_tc_mps2_per_c', '<f4', (3,)), ('accel_scale_tc_per_c', '<f4', (3,)), ('gyro_bias_tc_rad_s_per_c', '<f4', (3,)), ('gyro_scale_tc_per_c', '<f4', (3,)), ('accel_t_ref_c', '<f4'), ('gyro_t_ref_c', '<f4'), ('cal_time_unix_s', '<u4'), ('cal_id', '<u4')])
-assert PARAMS_DTYPE.itemsize == 160
+PARAMS_DTYPE = np.dtype([('accel_m', '<f4', (9,)), ('accel_b_mps2', '<f4', (3,)), ('gyro_m', '<f4', (9,)), ('gyro_b_rad_s', '<f4', (3,)), ('accel_bias_tc_mps2_per_c', '<f4', (3,)), ('accel_scale_tc_per_c', '<f4', (3,)), ('gyro_bias_tc_rad_s_per_c', '<f4', (3,)), ('gyro_scale_tc_per_c', '<f4', (3,)), ('accel_t_ref_c', '<f4'), ('gyro_t_ref_c', '<f4'), ('cal_time_unix_s', '<u4'), ('cal_id', '<u4'), ('gyro_g_rad_s_per_mps2', '<f4', (9,))])
+assert PARAMS_DTYPE.itemsize == 196
 
 
 @dataclass
@@ -333,9 +344,9 @@ class SetParams:
     """Validate and apply parameters (RAM only; save_params writes flash). Refused with
 PARAM_NOT_FINITE / PARAM_ILL_CONDITIONED / PARAM_OUT_OF_RANGE, leaving the active parameters as they were."""
     params: Params = field(default_factory=lambda: Params())
-    FORMAT = "<9f3f9f3f3f3f3f3fffII"
-    SIZE = 160
-    NVALUES = 40
+    FORMAT = "<9f3f9f3f3f3f3f3fffII9f"
+    SIZE = 196
+    NVALUES = 49
 
     def values(self) -> tuple:
         return (*self.params.values(),)
@@ -548,9 +559,9 @@ class ParamsReadback:
     source: int = 0
     generation: int = 0
     params: Params = field(default_factory=lambda: Params())
-    FORMAT = "<HBBI9f3f9f3f3f3f3f3fffII"
-    SIZE = 168
-    NVALUES = 44
+    FORMAT = "<HBBI9f3f9f3f3f3f3f3fffII9f"
+    SIZE = 204
+    NVALUES = 53
 
     def values(self) -> tuple:
         return (self.request_id, self.which, self.source, self.generation, *self.params.values())
@@ -733,13 +744,17 @@ MESSAGES_BY_NAME = {d.name: d for d in MESSAGES.values()}
 # the bound; 'finite': None; 'flags': mask of the allowed bits.
 VALUE_REASONS = {'enum': 'bad_enum', 'min': 'out_of_range', 'max': 'out_of_range', 'finite': 'not_finite', 'flags': 'bad_flags'}
 VALUE_RULES = {
-    0x03: ((1, 1, 'mode', 'enum', frozenset({0, 1})), (3, 1, 'accel_range_g', 'enum', frozenset({0, 2, 4, 8})),),
-    0x06: ((0, 1, 'which', 'enum', frozenset({0, 1})),),
-    0x81: ((6, 1, 'clock_source', 'enum', frozenset({0, 1, 2, 3})), (21, 1, 'accel_range_g', 'enum', frozenset({2, 4, 8})), (32, 1, 'stream_state', 'enum', frozenset({0, 1, 2})), (33, 1, 'param_source', 'enum', frozenset({0, 1, 2})),),
+    0x03: ((1, 1, 'mode', 'enum', frozenset({0, 1})), (3, 1, 'accel_range_g', 'enum', frozenset({0, 2, 4, 8})), (4, 3, 'reserved', 'max', 0),),
+    0x06: ((0, 1, 'which', 'enum', frozenset({0, 1})), (1, 3, 'reserved', 'max', 0),),
+    0x0B: ((1, 3, 'reserved', 'max', 0),),
+    0x80: ((2, 1, 'error', 'enum', frozenset({0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13})),),
+    0x81: ((6, 1, 'clock_source', 'enum', frozenset({0, 1, 2, 3})), (20, 1, 'sensors_present', 'flags', 0x0F), (21, 1, 'accel_range_g', 'enum', frozenset({2, 4, 8})), (32, 1, 'stream_state', 'enum', frozenset({0, 1, 2})), (33, 1, 'param_source', 'enum', frozenset({0, 1, 2})),),
     0x82: ((1, 1, 'which', 'enum', frozenset({0, 1})), (2, 1, 'source', 'enum', frozenset({0, 1, 2})),),
-    0x84: ((0, 1, 'sensor', 'enum', frozenset({0, 1, 2, 3})), (1, 1, 'kind', 'enum', frozenset({1, 2, 3, 4, 5, 6, 7})), (2, 1, 'active', 'enum', frozenset({0, 1})),),
-    0x90: ((1, 1, 'header.period_us', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})),),
-    0x91: ((1, 1, 'header.period_us', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})),),
+    0x83: ((1, 1, 'reserved', 'max', 0),),
+    0x84: ((0, 1, 'sensor', 'enum', frozenset({0, 1, 2, 3})), (1, 1, 'kind', 'enum', frozenset({1, 2, 3, 4, 5, 6, 7})), (2, 1, 'active', 'enum', frozenset({0, 1})), (3, 1, 'reserved', 'max', 0),),
+    0x85: ((1, 1, 'passed', 'flags', 0x0F), (2, 1, 'tested', 'flags', 0x0F), (9, 1, 'reserved', 'max', 0),),
+    0x90: ((1, 1, 'header.period_us', 'min', 1), (2, 1, 'header.count', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})), (13, 1, 'header.reserved2', 'max', 0),),
+    0x91: ((1, 1, 'header.period_us', 'min', 1), (2, 1, 'header.count', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})), (13, 1, 'header.reserved2', 'max', 0),),
 }
 RECORD_RULES = {
     'cal_sample': (('accel_mps2', 'finite', None), ('rate_rad_s', 'finite', None), ('status', 'flags', 0x0F),),

@@ -126,6 +126,13 @@ void sim_adxrs450_random_truth(sim_adxrs450_truth_t *t, sim_rng_t *rng, int axis
     t->noise_n *= 1.0 + uniform_pm(rng, 0.2);
     t->bias_tempco_rad_s_per_c = uniform_pm(rng, 0.01) * DEG2RAD;
     t->scale_tempco_per_c = uniform_pm(rng, 1e-4);
+    sim_rng_t gr = *rng; /* a copy: rng itself does not advance */
+    sim_rng_seed(&gr, sim_rng_u64(&gr) ^ 0x6753454E53ull ^ (uint64_t)axis);
+    for (int i = 0; i < 3; i++) {
+        double v = 0.03 * sim_rng_gauss(&gr);
+        v = v > 0.1 ? 0.1 : v < -0.1 ? -0.1 : v;
+        t->gsens_rad_s_per_mps2[i] = v * DEG2RAD / 9.80665;
+    }
 }
 
 void sim_adxrs450_set_truth(sim_adxrs450_t *m, const sim_adxrs450_truth_t *t) { m->truth = *t; }
@@ -150,7 +157,11 @@ double sim_adxrs450_true_rate_rad_s(const sim_adxrs450_t *m)
     for (int i = 0; i < 3; i++) {
         w += m->truth.sens[i] * m->world.rate_rad_s[i];
     }
-    return (1.0 + m->truth.scale_tempco_per_c * dt_c) * w + sim_adxrs450_true_bias_rad_s(m);
+    double gf = 0.0;
+    for (int i = 0; i < 3; i++) {
+        gf += m->truth.gsens_rad_s_per_mps2[i] * m->world.specific_force_mps2[i];
+    }
+    return (1.0 + m->truth.scale_tempco_per_c * dt_c) * w + sim_adxrs450_true_bias_rad_s(m) + gf;
 }
 
 void sim_adxrs450_advance(sim_adxrs450_t *m, uint64_t t_us, const sim_world_t *world)

@@ -14,7 +14,7 @@
  *
  * ---- Physics (all in rad/s; T = world temperature in degC; reference T_REF = 25 degC) --
  *   chip rate r(t) = (1 + scale_tempco*(T - 25)) * (sens . omega_board)
- *                    + bias_rad_s + bias_tempco*(T - 25) + b_rw(t)
+ *                    + bias_rad_s + bias_tempco*(T - 25) + b_rw(t) + gsens . f_board
  *   b_rw: bias random walk, b_rw += K*sqrt(dt)*n at every advance() step of length dt
  *         (so ADEV = K*sqrt(tau/3) whatever the step size; docs/conventions.md).
  *   Sampling (integrate and dump): a sample latched at time t is the mean of r over the
@@ -122,6 +122,8 @@ typedef struct sim_adxrs450_truth {
     double bias_rw_k;         /* bias random walk K, rad/s*sqrt(Hz) */
     double bias_tempco_rad_s_per_c; /* bias change per degC away from 25 degC */
     double scale_tempco_per_c;      /* relative scale change per degC away from 25 degC */
+    double gsens_rad_s_per_mps2[3]; /* g-sensitivity: the chip reads gsens . f more (f the board's
+                                       specific force, m/s^2); data sheet 0.03 deg/s/g typical */
 } sim_adxrs450_truth_t;
 
 typedef struct sim_adxrs450 {
@@ -171,7 +173,10 @@ sim_adxrs450_truth_t sim_adxrs450_default_truth(int axis);
  *   bias      Gaussian, sigma 0.5 deg/s, clipped to +-3 deg/s
  *   scale     1 + uniform +-3 %            cross-axis terms uniform +-1 % each
  *   N         default * uniform 0.8..1.2   K default
- *   bias tempco  uniform +-0.01 deg/s/degC scale tempco uniform +-1e-4 /degC */
+ *   bias tempco  uniform +-0.01 deg/s/degC scale tempco uniform +-1e-4 /degC
+ *   g-sensitivity  Gaussian, sigma 0.03 deg/s/g per component, clipped to +-0.1 (drawn from
+ *                  an rng of its own seeded from rng's state, so the other draws and the other
+ *                  parts' truths are those of a model without it) */
 void sim_adxrs450_random_truth(sim_adxrs450_truth_t *t, sim_rng_t *rng, int axis);
 
 /* Power the chip on at t = 0 with the default truth for `axis`, an rng seeded by `seed`

@@ -5,7 +5,8 @@ VirtualBench(target="f103") starts it the way it starts the host build:
 
     --tcp PORT --control PORT --flash FILE --speed X --seed N --truth default|random
     --uid HEX24 --baud B (the image sets its own baud rate: only 2000000 is accepted)
-    --elf FILE (default build/arm/<target>/imubench.elf; repeatable: every ELF given is an image
+    --elf FILE (default: the image imubench.device.artifacts finds, the package's or build/arm's;
+               repeatable: every ELF given is an image
                the board can run, see below)  --no-hse (the crystal does not start)
     --pty      the serial port on a pseudo-terminal (its path in the start-up line's "pty")
     --boot0    BOOT0 high: the board starts in the STM32 ROM bootloader on USART1 (AN3155,
@@ -31,16 +32,13 @@ import sys
 import tempfile
 from pathlib import Path
 
-from .simlib import SimLibError, lib_path, load
+from imubench.device import artifacts
+
+from .simlib import SimLibError, load
 from .targets import TARGETS
 
 
-def _repo_root() -> Path:
-    return Path(__file__).resolve().parents[4]
-
-
-def _parse_args(argv: list[str] | None) -> tuple[argparse.Namespace, bytes | None]:
-    """The options, checked (argparse's error and exit 2 on a bad one), and the UID given."""
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m imubench.device.arm",
                                  description="the exact STM32 image against the virtual device's sensor models")
     ap.add_argument("--target", choices=sorted(TARGETS), required=True)
@@ -69,68 +67,27 @@ def _parse_args(argv: list[str] | None) -> tuple[argparse.Namespace, bytes | Non
             uid = b""
         if len(uid) != 12:
             ap.error("--uid must be 24 hex digits")
-    return a, uid
-
-
-def _startup_line(a, lib, target, elf: Path, flash: str, code_file: str, uid: bytes) -> dict:
-    """The start-up line imubench-sim prints (VirtualBench reads it): endpoints, pid, files."""
-    port = lib.simlib_tcp_port()
-    ctl = lib.simlib_control_port()
-    pty_name = lib.simlib_pty_name().decode() or None
-    line = {"pty": pty_name, "port_url": f"socket://127.0.0.1:{port}" if port >= 0 else pty_name,
-            "tcp_port": port if port >= 0 else None,
-            "control": f"127.0.0.1:{ctl}", "control_port": ctl, "pid": os.getpid(),
-            "flash": os.path.realpath(flash), "seed": a.seed, "speed": a.speed, "baud": a.baud,
-            "truth": a.truth, "uid": uid.hex(), "build": f"arm-{a.target}",
-            "target": a.target, "elf": str(elf), "cpi": target.cpi, "boot0": a.boot0,
-            "code_flash": os.path.realpath(code_file) if os.path.exists(code_file) else None}
-    if a.boot0:
-        line["bootloader"] = {"framing": "8E1 (AN3155; a pty cannot show parity)",
-                              "product_id": "0x%03X" % (0x410 if a.target == "f103" else 0x413)}
-    return line
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
-def _stop_on_signal_or_orphan():
-    """should_stop(): true after SIGTERM, SIGINT or SIGHUP, or once the parent process died."""
-    stop = {"sig": 0}
-
-    def on_signal(sig, frame):
-        stop["sig"] = sig
-    for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-        signal.signal(s, on_signal)
-    parent = os.getppid()
-
-    def should_stop() -> bool:
-        return bool(stop["sig"]) or (parent != 1 and os.getppid() != parent)
-    return should_stop
-
-
-def _remove_temporary_flash(tmpdir: str, files: list[str]) -> None:
-    try:
-        for f in files:
-            if os.path.exists(f):
-                os.unlink(f)
-        os.rmdir(tmpdir)
-    except OSError:
-        pass
-
-
-def main(argv: list[str] | None = None) -> int:
-    a, uid = _parse_args(argv)
-    root = _repo_root()
     target = TARGETS[a.target]
-    default_elf = root / "build" / "arm" / target.image / "imubench.elf"
+    # nothing is built here: VirtualBench (arm_command) built it before starting this process
+    try:
+        lib_file = artifacts.models_library(build=False)
+    except artifacts.ArtifactError as e:
+        print(f"imubench-arm: {e}", file=sys.stderr)
+        return 2
+    try:
+        default_elf = artifacts.arm_image(target.image, build=False)
+    except artifacts.ArtifactError as e:
+        if not a.elf:
+            print(f"imubench-arm: {e}", file=sys.stderr)
+            return 2
+        default_elf = None          # --elf names the images the board can run
     elfs = [Path(e) for e in a.elf] if a.elf else [default_elf]
     elf = elfs[0]
     if not elf.is_file():
         print(f"imubench-arm: {elf} is missing: build the images with `make firmware`", file=sys.stderr)
         return 2
     try:
-        lib = load(lib_path(root))
+        lib = load(lib_file)
     except SimLibError as e:
         print(f"imubench-arm: {e}", file=sys.stderr)
         return 2
@@ -151,9 +108,12 @@ def main(argv: list[str] | None = None) -> int:
     from .machine import Machine
     from .serve import Server
 
+    def log(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
     code_file = code_path(flash)
     candidates = [str(e) for e in elfs if e.is_file()]
-    if default_elf.is_file() and str(default_elf) not in candidates:
+    if default_elf is not None and default_elf.is_file() and str(default_elf) not in candidates:
         candidates.append(str(default_elf))
     if a.boot0 and not os.path.exists(code_file):
         # the board comes with the first image in its code pages (factory-programmed)
@@ -191,9 +151,31 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     uidb = (ctypes.c_uint8 * 12)()
     lib.simlib_uid(uidb)
-    print(json.dumps(_startup_line(a, lib, target, elf, flash, code_file, bytes(uidb))), flush=True)
+    port = lib.simlib_tcp_port()
+    ctl = lib.simlib_control_port()
+    pty_name = lib.simlib_pty_name().decode() or None
+    line = {"pty": pty_name, "port_url": f"socket://127.0.0.1:{port}" if port >= 0 else pty_name,
+            "tcp_port": port if port >= 0 else None,
+            "control": f"127.0.0.1:{ctl}", "control_port": ctl, "pid": os.getpid(),
+            "flash": os.path.realpath(flash), "seed": a.seed, "speed": a.speed, "baud": a.baud,
+            "truth": a.truth, "uid": bytes(uidb).hex(), "build": f"arm-{a.target}",
+            "target": a.target, "elf": str(elf), "cpi": target.cpi, "boot0": a.boot0,
+            "code_flash": os.path.realpath(code_file) if os.path.exists(code_file) else None}
+    if a.boot0:
+        line["bootloader"] = {"framing": "8E1 (AN3155; a pty cannot show parity)",
+                              "product_id": "0x%03X" % (0x410 if a.target == "f103" else 0x413)}
+    print(json.dumps(line), flush=True)
 
-    should_stop = _stop_on_signal_or_orphan()
+    stop = {"sig": 0}
+
+    def on_signal(sig, frame):
+        stop["sig"] = sig
+    for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        signal.signal(s, on_signal)
+    parent = os.getppid()
+
+    def should_stop() -> bool:
+        return bool(stop["sig"]) or (parent != 1 and os.getppid() != parent)
     rom = None
     t_dev = 0.0
     try:
@@ -201,13 +183,13 @@ def main(argv: list[str] | None = None) -> int:
             if machine is None:
                 if rom is None:
                     rom = RomBootloader(target, FlashFile(code_file, target.param_base - target.flash_base),
-                                        FlashFile(flash, target.param_size), bytes(uidb), lib, _log)
+                                        FlashFile(flash, target.param_size), bytes(uidb), lib, log)
                 else:
                     rom.code = FlashFile(code_file, target.param_base - target.flash_base)
                     rom.params = FlashFile(flash, target.param_size)
                     rom.reset()
-                _log(f"[imubench-arm {a.target}] ROM bootloader (BOOT0 high): waiting for 0x7F")
-                bl = BootloaderServer(rom, lib, a.speed, t_dev, _log)
+                log(f"[imubench-arm {a.target}] ROM bootloader (BOOT0 high): waiting for 0x7F")
+                bl = BootloaderServer(rom, lib, a.speed, t_dev, log)
                 act = bl.serve(should_stop)
                 t_dev = bl.now()
                 if act[0] == "stop":
@@ -216,11 +198,11 @@ def main(argv: list[str] | None = None) -> int:
                     continue                   # BOOT0 still high: the bootloader again
                 image = boot_elf()
                 if image is None:
-                    _log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: the code pages hold no image the "
+                    log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: the code pages hold no image the "
                         "emulator knows (blank, half written or not one of --elf): the core does not run; "
                         "reset (power cut) into the bootloader and flash it again")
                     continue
-                _log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: starting {image}")
+                log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: starting {image}")
                 machine = new_machine(image, t_dev)
             server = Server(machine, lib, a.speed)
             server.serve(should_stop)
@@ -235,7 +217,13 @@ def main(argv: list[str] | None = None) -> int:
             machine.flash.close()
         lib.simlib_close()
         if tmpdir is not None:
-            _remove_temporary_flash(tmpdir, [flash, code_path(flash)])
+            try:
+                for f in (flash, code_path(flash)):
+                    if os.path.exists(f):
+                        os.unlink(f)
+                os.rmdir(tmpdir)
+            except OSError:
+                pass
     return 0
 
 

@@ -1,9 +1,11 @@
-"""ctypes binding of build/host/libimumodels.so (firmware/boards/sim/sim_lib.c): the virtual
+"""ctypes binding of libimumodels.so (firmware/boards/sim/sim_lib.c): the virtual
 device's sensor models, physics, control channel and serial endpoint, shared with the ARM
 emulator so both targets run against ONE set of models.
 
 The library keeps its state in C globals (one world per process): the emulator runs in its
 own process (`python -m imubench.device.arm`), one device per process, like imubench-sim.
+imubench.device.artifacts.models_library() finds the file (the installed package's, or the
+checkout's build/host/).
 """
 from __future__ import annotations
 
@@ -23,9 +25,6 @@ from ctypes import (
 from pathlib import Path
 
 from imubench.errors import ImubenchError
-
-LIB_REL = Path("build") / "host" / "libimumodels.so"
-
 
 class SimLibError(ImubenchError, RuntimeError):
     """The models library is missing or could not be loaded."""
@@ -78,10 +77,6 @@ _SIGNATURES = {
     "sim_control_next_deadline": (c_uint64, []),
     "simlib_next_event": (c_uint64, []),
 }
-
-
-def lib_path(root: Path) -> Path:
-    return root / LIB_REL
 
 
 def load(path: Path) -> ctypes.CDLL:

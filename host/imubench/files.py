@@ -1,0 +1,225 @@
+"""Files that are only what they claim (the bottom layer: imports only imubench.errors).
+
+Every file the host writes goes through this module's writers and every file it reads whole
+through its readers, so that
+
+- an output never follows a symlink it did not create: a finished file is written to a fresh
+  temporary file created in its directory (O_EXCL | O_NOFOLLOW, a random name, so a link left
+  at ``NAME.tmp`` is never written through) and renamed over the final name; a symlink at the
+  final name is refused, not replaced or followed. Files written as they grow (a capture, a
+  CSV log) are opened with O_NOFOLLOW and must be regular files;
+- an input is a regular file (a FIFO, a device such as /dev/zero or a directory is refused at
+  once instead of hanging or reading without end), and what is read whole is bounded: the
+  size is checked before reading and the limit named when it is hit.
+
+Errors are FileRefused (an ImubenchError): one line naming the file and what to do.
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import io
+import os
+import stat
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+from imubench.errors import ImubenchError
+
+MiB = 1 << 20
+#: what a JSON or TOML input (a session, a profile, a result file) may weigh: far above any we write
+MAX_JSON_BYTES = 64 * MiB
+#: the longest line a text input (CSV, imu_tk) may have
+MAX_LINE_CHARS = 1 * MiB
+#: a raw capture (capture-N.bin, a decode input) is read whole: about 5 hours of samples at 1 kHz
+MAX_CAPTURE_BYTES = 1024 * MiB
+#: a firmware image or a parameter page
+MAX_IMAGE_BYTES = 16 * MiB
+
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+_NOCTTY = getattr(os, "O_NOCTTY", 0)
+_NONBLOCK = getattr(os, "O_NONBLOCK", 0)
+
+
+class FileRefused(ImubenchError):
+    """A file that is not what it must be (a symlink where an output goes, a FIFO or a device
+    where a regular input file is expected, an input above its size limit)."""
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISLNK, "a symbolic link")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+# ------------------------------------------------------------------ outputs
+def check_output(path: str | os.PathLike) -> Path:
+    """path, after refusing a symlink or anything but a regular file at it (a missing file is
+    fine)."""
+    path = Path(path)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return path
+    if stat.S_ISLNK(st.st_mode):
+        raise FileRefused(f"{path} is a symbolic link; imubench does not write through links it did not "
+                          "create: remove it or choose another output name")
+    if not stat.S_ISREG(st.st_mode):
+        raise FileRefused(f"{path} is {_kind(st.st_mode)}, not a regular file; choose another output name")
+    return path
+
+
+def _read_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()      # read once: os.umask is process-wide, reading it races with threads
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike, binary: bool = False, encoding: str = "utf-8",
+                  newline: str | None = None) -> Iterator[io.IOBase]:
+    """A file object whose content replaces path when the block ends without an exception
+    (else nothing changes and the temporary file is removed). The temporary file is created
+    beside path with a random name (O_EXCL | O_NOFOLLOW: mkstemp), flushed to the disk, given
+    the usual permissions (0666 less the umask) and renamed over path (os.replace, atomic on
+    POSIX and Windows). A symlink or a non-regular file at path is refused (FileRefused)."""
+    path = check_output(path)
+    directory = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    try:
+        if hasattr(os, "fchmod"):
+            os.fchmod(fd, 0o666 & ~_UMASK)
+        with (os.fdopen(fd, "wb") if binary else
+              os.fdopen(fd, "w", encoding=encoding, newline=newline)) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        check_output(path)          # a link planted while we wrote is refused too
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write data to path atomically (atomic_output)."""
+    with atomic_output(path, binary=True) as fh:
+        fh.write(data)
+    return Path(path)
+
+
+def write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8") -> Path:
+    """Write text to path atomically (atomic_output)."""
+    with atomic_output(path, encoding=encoding) as fh:
+        fh.write(text)
+    return Path(path)
+
+
+def open_growing(path: str | os.PathLike, append: bool = True, binary: bool = True, buffering: int = -1,
+                 newline: str | None = None):
+    """A file that is written as it grows (a capture, a live CSV log): opened with O_NOFOLLOW
+    (a symlink at path is refused, never written through) and refused unless it is a regular
+    file (a FIFO is not waited on)."""
+    path = check_output(path)
+    flags = os.O_WRONLY | os.O_CREAT | _NOFOLLOW | _NOCTTY | _NONBLOCK | (os.O_APPEND if append else os.O_TRUNC)
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as e:
+        if e.errno in (errno.ELOOP, errno.ENXIO):
+            check_output(path)       # names the symlink or the FIFO
+        raise
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise FileRefused(f"{path} is {_kind(st.st_mode)}, not a regular file; choose another output name")
+        if _NONBLOCK:
+            os.set_blocking(fd, True)
+        if binary:
+            return os.fdopen(fd, "ab" if append else "wb", buffering=buffering)
+        return os.fdopen(fd, "a" if append else "w", buffering=buffering, encoding="utf-8", newline=newline)
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+# ------------------------------------------------------------------ inputs
+def open_input(path: str | os.PathLike, what: str = "", binary: bool = True, encoding: str = "utf-8",
+               errors: str = "strict", newline: str | None = None):
+    """path opened for reading, refused (FileRefused) unless it is a regular file: a FIFO is
+    opened without blocking and refused, a device or a directory too. `what` names the file in
+    the message ("the session file")."""
+    path = Path(path)
+    label = f"{what} {path}" if what else str(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | _NONBLOCK | _NOCTTY)
+    except IsADirectoryError:
+        raise FileRefused(f"{label} is a directory; give a regular file") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise FileRefused(f"{label} is {_kind(st.st_mode)}; give a regular file")
+        if _NONBLOCK:
+            os.set_blocking(fd, True)
+        if binary:
+            return os.fdopen(fd, "rb")
+        return os.fdopen(fd, "r", encoding=encoding, errors=errors, newline=newline)
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def check_input(path: str | os.PathLike, what: str = "") -> Path:
+    """path, after checking that it is a regular file (open_input, closed again)."""
+    with open_input(path, what):
+        pass
+    return Path(path)
+
+
+def read_bytes(path: str | os.PathLike, limit: int, what: str = "") -> bytes:
+    """The content of the regular file at path, refused when larger than limit bytes (checked
+    before reading, and again while reading: a file that grows is not read without end)."""
+    path = Path(path)
+    label = f"{what} {path}" if what else str(path)
+    with open_input(path, what) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size > limit:
+            raise FileRefused(f"{label} is {size / MiB:.1f} MiB, more than the limit of {limit / MiB:.0f} MiB "
+                              f"for this kind of file; is it the right file?")
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise FileRefused(f"{label} grew past the limit of {limit / MiB:.0f} MiB while being read")
+    return data
+
+
+def read_text(path: str | os.PathLike, limit: int = MAX_JSON_BYTES, what: str = "", encoding: str = "utf-8",
+              errors: str = "strict") -> str:
+    """read_bytes, decoded (a decoding error is a FileRefused naming the file)."""
+    data = read_bytes(path, limit, what)
+    try:
+        return data.decode(encoding, errors)
+    except UnicodeDecodeError as e:
+        label = f"{what} {path}" if what else str(path)
+        raise FileRefused(f"{label} is not {encoding} text (byte {e.start}); is it the right file?") from None
+
+
+def bounded_lines(fh, max_chars: int = MAX_LINE_CHARS, name: str = "") -> Iterator[str]:
+    """The lines of a text file object, each read with a bound: a line longer than max_chars
+    (a binary file, /dev/zero renamed .csv) is a FileRefused, not gigabytes of memory."""
+    lineno = 0
+    while True:
+        line = fh.readline(max_chars + 1)
+        if not line:
+            return
+        lineno += 1
+        if len(line) > max_chars and not line.endswith("\n"):
+            raise FileRefused(f"{name or 'the file'}: line {lineno} is longer than the limit of "
+                              f"{max_chars} characters; is it a text file of this format?")
+        yield line
