@@ -26,6 +26,7 @@ import numpy as np
 
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
+from imubench.calib.geometry import rotation_to  # noqa: F401 - where callers found it
 from imubench.device.link import Device
 from imubench.files import MAX_CAPTURE_BYTES, open_growing, read_bytes
 from imubench.procedures.capture import PoseCapture
