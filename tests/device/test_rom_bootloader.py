@@ -4,9 +4,10 @@
 
 The reflash test calibrates a board running one image ("previous") and reflashes it with the
 current build. By default the previous image is the current build with another build id
-(same parameter layout). To test a parameter-layout change, point it at an image built from
-the commit before the change: IMUBENCH_PREV_ELF_F103 / IMUBENCH_PREV_ELF_F4 = path of that
-commit's build/arm/<board>/imubench.elf (see docs/firmware.md, "The ROM bootloader")."""
+(same parameter layout). The layout-change test lays the previous layout's block in the
+parameter pages and reflashes; IMUBENCH_PREV_ELF_F103 / IMUBENCH_PREV_ELF_F4 = the path of an
+older commit's build/arm/<board>/imubench.elf runs that image before the reflash (see
+docs/firmware.md, "A parameter-layout change")."""
 from __future__ import annotations
 
 import os
@@ -25,6 +26,8 @@ from imubench.device.flash import image_bytes, image_tag
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
 from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for
+from imubench.wire import params as PR
+from imubench.wire import paramstore as PS
 from imubench.wire.protocol_gen import ParamSource, ParamsWhich
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -272,6 +275,46 @@ def test_stm32flash_writes_starts_and_a_reflash_keeps_the_calibration(name, tmp_
             dev.stop_stream()
     g = np.linalg.norm(block.accel_mps2.mean(axis=0)) / U.G0_MPS2
     assert abs(g - 1.0) < 2e-3, g                                 # the device's own calibrated output
+
+
+@pytest.mark.parametrize("name", ["f103", "f4"])
+def test_a_reflash_keeps_a_block_the_previous_layout_stored(name, tmp_path, capsys):
+    """The parameter layout moved (1 -> 2, issue 26) and the board's parameter pages hold the
+    block the previous firmware stored (layout 1, byte for byte as its ib_ps_save wrote it:
+    paramstore.params_record(layout=1), checked against the C store in tests/test_qemu.py).
+    stm32flash writes the current image over the previous one; the parameter pages are not
+    touched, and the new image boots using that block (migrated: G = 0), not factory defaults.
+    Set IMUBENCH_PREV_ELF_F103 / _F4 to images built from a commit before the layout change to
+    run the previous image itself (docs/firmware.md); by default it is the current build
+    relabelled, since only the flash contents matter to what the new image reads."""
+    _stm32flash()
+    cur_elf = ROOT / "build" / "arm" / name / "imubench.elf"
+    elfs = [str(_previous_image(name, tmp_path)), str(cur_elf)]
+    p = PR.identity()
+    p.accel_m = (1.004, 0.001, 0.0, -0.002, 0.997, 0.0, 0.003, 0.0, 1.01)
+    p.accel_b_mps2 = (0.05, -0.08, 0.12)
+    p.gyro_b_rad_s = (0.004, -0.002, 0.001)
+    p.cal_id = 4321
+    lay = PS.LAYOUTS[name]
+    rec = PS.params_record(p, generation=17, program_unit=lay.program_unit, layout=1)
+    flash = tmp_path / "flash.bin"
+    img = bytearray(b"\xff" * ARM[name].param_size)         # both parameter pages / sectors
+    img[:len(rec)] = rec
+    flash.write_bytes(bytes(img))
+    with VirtualBench(speed=0, seed=43, target=name, flash=flash, pty=True, tcp=False, boot0=True, elf=elfs) as vb:
+        rc, out = _flash(name, vb.pty, _hex(cur_elf, tmp_path), capsys)
+        assert rc == 0, out + vb.log
+        assert f"Go 0x08000000: starting {cur_elf}" in vb.log
+        assert not _erased(vb.log) & PARAM_UNITS[name]
+        assert "parameters: FLASH" in out
+    assert flash.read_bytes() == bytes(img)                       # the slots as the old firmware left them
+    with VirtualBench(speed=0, seed=43, target=name, flash=flash, elf=elfs) as vb:
+        with Device.open(vb.port_url, timeout=10.0) as dev:
+            info = dev.info()
+            assert info.fw_build == image_tag(image_bytes(cur_elf))["build"]
+            assert info.param_source == ParamSource.FLASH and info.param_generation == 17
+            got = dev.get_params(ParamsWhich.STORED).params
+            assert _pack(got) == _pack(p) and not any(got.gyro_g_rad_s_per_mps2)
 
 
 # ------------------------------------------------------------- what goes wrong at a bench
