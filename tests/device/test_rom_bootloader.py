@@ -281,7 +281,7 @@ def test_stm32flash_writes_starts_and_a_reflash_keeps_the_calibration(name, tmp_
 def test_a_reflash_keeps_a_block_the_previous_layout_stored(name, tmp_path, capsys):
     """The parameter layout moved (1 -> 2, issue 26) and the board's parameter pages hold the
     block the previous firmware stored (layout 1, byte for byte as its ib_ps_save wrote it:
-    paramstore.params_record(layout=1), checked against the C store in tests/test_qemu.py).
+    paramstore.params_record(layout=1), checked against the C store in tests/device/test_qemu.py).
     stm32flash writes the current image over the previous one; the parameter pages are not
     touched, and the new image boots using that block (migrated: G = 0), not factory defaults.
     Set IMUBENCH_PREV_ELF_F103 / _F4 to images built from a commit before the layout change to

@@ -2,7 +2,7 @@
 g-sensitivity) is still read and used after the layout moved to 2 (issue 26): by the C core on
 the host build and by the exact F103 and F4 images under the ARM emulator, each booted on a flash
 file holding a layout-1 record as `imubench.wire.paramstore.params_record(p, layout=1)` writes it
-(byte for byte what the previous firmware's ib_ps_save wrote: tests/test_qemu.py checks the
+(byte for byte what the previous firmware's ib_ps_save wrote: tests/device/test_qemu.py checks the
 builder against the C store). Then a save writes layout 2, and G survives a reboot."""
 from __future__ import annotations
 
@@ -129,7 +129,7 @@ def _gsens_session(tmp_path, target: str):
     return result, truth, active, rates
 
 
-@pytest.mark.parametrize("target", ["host"])     # the images: tests/test_arm_images.py's whole session
+@pytest.mark.parametrize("target", ["host"])     # the images: tests/device/test_arm_images.py's whole session
 def test_session_recovers_g_sensitivity_and_the_device_applies_it(tmp_path, target):
     result, truth, active, rates = _gsens_session(tmp_path, target)
     g = result["gsens"]

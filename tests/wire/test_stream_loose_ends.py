@@ -1,7 +1,7 @@
 """Issue 25, the stream's last loose ends: a time step of exactly 2^31 us, decode --json of a
 hostile stream, a socket:// URL without a port, a newer firmware's info, and the temporary
 folder of a virtual device whose host was killed. (The values no definition allows are the
-shared vectors' cases, checked against both codecs in tests/test_protocol_vectors.py.) Each
+shared vectors' cases, checked against both codecs in tests/wire/test_protocol_vectors.py.) Each
 test here failed on main 0ea9400."""
 from __future__ import annotations
 
