@@ -10,8 +10,8 @@ BUILD  := build
 HOST   := $(BUILD)/host
 
 # Debian packages the host build and tests need (installed when missing, as root);
-# chromium renders the HTML report in tests/test_html_report.py (headless, nothing downloaded);
-# postgresql is the server tests/test_production_db.py starts in a temporary directory (the shared
+# chromium renders the HTML report in tests/results/test_report.py (headless, nothing downloaded);
+# postgresql is the server tests/results/test_production_db.py starts in a temporary directory (the shared
 # history database of a production line).
 SYSTEM_PKGS := gcc make libc6-dev cppcheck chromium postgresql stm32flash
 
@@ -84,8 +84,12 @@ lint: system-deps
 	cppcheck --enable=warning,style,performance,portability --error-exitcode=1 --inline-suppr --quiet \
 	    -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim -Ifirmware/boards/sim/models $(CPPCHECK_DIRS)
 
+# Both cores (pytest-xdist): a module's tests stay on one worker (--dist loadscope), so module-
+# and session-scoped fixtures (a virtual bench, a database server) are set up once per worker;
+# the 30 slowest tests are listed at the end, to see where the time goes.
+PYTEST_WORKERS ?= 2
 test: system-deps venv c-tests sim firmware
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadscope --durations=30
 
 demo: system-deps venv sim
 	$(PY) -m imubench demo

@@ -6,7 +6,7 @@
 Prints, for N MB of input: the growth of a StreamDecoder fed raw 4 kHz batches whose samples
 are never taken (bounded by MAX_PENDING_SAMPLES), of one feed() of N MB of zero bytes (bounded
 by the feed piece), and the peak of decode_bytes() of an N MB recording (grows with the
-recording: it returns every sample). tests/test_decoder_stream_rules.py checks the first two
+recording: it returns every sample). tests/wire/test_decoder_stream_rules.py checks the first two
 at 20 MB.
 """
 from __future__ import annotations

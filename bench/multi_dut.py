@@ -37,7 +37,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "host"))
 
 from imubench.device.sim import VirtualBench, build_sim  # noqa: E402
-from imubench.procedures.fixture import FixtureRun, PlatePresenter, Station  # noqa: E402
+from imubench.procedures.fixture import FixtureRun, Station  # noqa: E402
+from imubench.procedures.virtual import PlatePresenter  # noqa: E402
 from imubench.procedures.session import SessionConfig  # noqa: E402
 
 

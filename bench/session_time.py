@@ -1,5 +1,5 @@
 """How long a person stands at the bench: today's fixed 26-attitude plan against the adaptive
-session, side by side, on the virtual bench with a simulated person (procedures/person.py:
+session, side by side, on the virtual bench with a simulated person (procedures/virtual.py:
 random order, 3–8 s hand moves, each attitude within ±5–10° of the plan, tremor while still).
 
     PYTHONPATH=host python bench/session_time.py [--seed N] [--speed X]
@@ -23,7 +23,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "host"))
 
 from imubench.device.sim import VirtualBench  # noqa: E402
-from imubench.procedures.person import SimPerson  # noqa: E402
+from imubench.procedures.virtual import SimPerson  # noqa: E402
 from imubench.procedures.poses import PARAM_NAMES, PARAM_UNITS, Targets, target_of  # noqa: E402
 from imubench.procedures.session import Session, SessionConfig, plan_for  # noqa: E402
 

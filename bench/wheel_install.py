@@ -9,7 +9,7 @@ The environment is made in a temporary directory outside the checkout; pip insta
 and its dependencies from the package index as a user's pip does (byte-compiling included, its
 cache as warm as this machine's); `imubench calibrate --sim` then runs from another working
 directory with HOME in the temporary directory and PATH holding the environment's bin/ alone.
-Prints one line per figure. tests/test_wheel.py checks the behaviour; this prints the numbers.
+Prints one line per figure. tests/repo/test_wheel.py checks the behaviour; this prints the numbers.
 """
 from __future__ import annotations
 

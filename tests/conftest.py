@@ -2,6 +2,7 @@
 `make test` builds them, so a test never runs a stale binary."""
 from __future__ import annotations
 
+import fcntl
 import subprocess
 from pathlib import Path
 
@@ -14,7 +15,12 @@ HOST_BUILD = ROOT / "build" / "host"
 
 
 def make(*targets: str) -> None:
-    r = subprocess.run(["make", "-s", "-C", str(ROOT), *targets], capture_output=True, text=True)
+    """Build targets through the Makefile; one make at a time (pytest-xdist runs tests in
+    several processes, and two makes building one file would race)."""
+    (ROOT / "build").mkdir(exist_ok=True)
+    with open(ROOT / "build" / ".tests-make.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        r = subprocess.run(["make", "-s", "-C", str(ROOT), *targets], capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"make {' '.join(targets)} failed:\n{r.stdout}\n{r.stderr}")
 

@@ -72,7 +72,7 @@ def test_a_link_at_the_final_name_is_refused_in_one_line(tmp_path):
 
 
 def test_a_plot_is_not_drawn_through_a_link(tmp_path):
-    from test_report import make_result
+    from test_calibration import make_result
 
     from imubench.results.calibration import plot_pose_residuals
     victim = _victim(tmp_path)

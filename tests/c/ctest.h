@@ -6,7 +6,7 @@
  *
  * Every CHECK counts; a failing check prints file:line and the expression. main()
  * returns non-zero when anything failed, and the last line is "N passed, N failed".
- * tests/test_c_units.py builds and runs every tests/c/test_*.c.
+ * tests/firmware/test_c_units.py builds and runs every tests/c/test_*.c.
  */
 #ifndef CTEST_H
 #define CTEST_H

@@ -1,6 +1,6 @@
 /*
  * param_check_harness.c - the device's parameter checks (ib_core_check_params) as a filter,
- * for tests/test_param_limits_agree.py: each input line is one packed parameter block in
+ * for tests/firmware/test_param_limits_agree.py: each input line is one packed parameter block in
  * hexadecimal (IB_PARAMS_SIZE bytes, wire layout); each output line is the error code the
  * device gives it (0 = accepted). Built for the host from the same core.c as the firmware.
  */

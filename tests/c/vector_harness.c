@@ -1,5 +1,5 @@
 /*
- * vector_harness.c - drives the C codec from tests/test_protocol_vectors.py.
+ * vector_harness.c - drives the C codec from tests/wire/test_protocol_vectors.py.
  *
  * Reads commands on stdin, one per line, answers on stdout:
  *   decode HEX

@@ -68,7 +68,9 @@ def register(sub) -> None:
 
 def run(a) -> int:
     from imubench.results import history as H
-    from imubench.results.history import History, default_path, default_target, strict_json
+    from imubench.cli import history_text as T
+    from imubench.cli.history_text import strict_json
+    from imubench.results.history import History, default_path, default_target
 
     production = a.yield_by or a.failed or a.sessions or a.export or a.upgrade
     if a.device and production:
@@ -105,17 +107,17 @@ def run(a) -> int:
         if a.yield_by:
             rows = h.yield_table(a.yield_by, since=a.since, station=a.station)
             print(json.dumps(strict_json({"database": shown, "by": a.yield_by, "yield": rows}), indent=1)
-                  if a.json else printable(H.format_yield(rows, a.yield_by, shown)))
+                  if a.json else printable(T.format_yield(rows, a.yield_by, shown)))
             return 0
         if a.failed:
             runs = h.failures(since=a.since, station=a.station)
             print(json.dumps(strict_json({"database": shown, "failed": [_brief(r) for r in runs]}), indent=1)
-                  if a.json else printable(H.format_failures(runs, shown)))
+                  if a.json else printable(T.format_failures(runs, shown)))
             return 0
         if a.sessions:
             rows = h.sessions(since=a.since, station=a.station)
             print(json.dumps({"database": shown, "sessions": rows}, indent=1) if a.json
-                  else printable(H.format_sessions(rows, shown)))
+                  else printable(T.format_sessions(rows, shown)))
             return 0
         if a.export:
             from imubench.results.export import junit_xml, session_json
@@ -133,13 +135,13 @@ def run(a) -> int:
             if a.json:
                 print(json.dumps(strict_json({"database": shown, "devices": devs}), indent=1))
             else:
-                print(printable(H.format_devices(devs, shown)))
+                print(printable(T.format_devices(devs, shown)))
             return 0
         rep = H.device_report(h, a.device)
     if a.json:
         print(json.dumps(strict_json({"database": shown, **rep}), indent=1, allow_nan=False))
     else:
-        print(printable(H.format_device_report(rep)))
+        print(printable(T.format_device_report(rep)))
     return 0
 
 

@@ -21,7 +21,7 @@ from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
 from imubench.files import MAX_CAPTURE_BYTES, atomic_output, read_bytes
 from imubench.text import one_line
 from imubench.wire.decoder import decode_bytes
-from imubench.wire.ids import board_name, byte_ids_text, pid_text, sn_text, uid_text
+from imubench.wire.ids import SENSOR_NAMES, board_name, byte_ids_text, pid_text, sn_text, uid_text
 from imubench.wire.protocol_gen import (
     Board,
     ClockSource,
@@ -159,8 +159,7 @@ def run_decode(a) -> int:
 def _print_info(info) -> None:
     uid = uid_text(info.mcu_uid)
     sensors = []
-    names = ["ADXL355", "gyro X", "gyro Y", "gyro Z"]
-    for i, n in enumerate(names):
+    for i, n in enumerate(SENSOR_NAMES):
         sensors.append(f"{n} {'ok' if info.sensors_present >> i & 1 else 'MISSING'}")
     print(f"device: board {board_name(info.board)}, firmware {'.'.join(map(str, info.fw_version))} "
           f"({one_line(info.fw_build)}), protocol {info.protocol_version}, MCU UID {uid}")

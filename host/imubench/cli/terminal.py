@@ -1,18 +1,23 @@
 """The terminal face of a calibration session: what a person at the bench reads and answers
-(a Presenter, imubench.procedures.session)."""
+(a Presenter, imubench.procedures.presenter)."""
 from __future__ import annotations
 
 import sys
 
 import numpy as np
 
+from imubench.procedures.presenter import Presenter
 
-class HumanPresenter:
+
+class HumanPresenter(Presenter):
     """Instructions on the terminal, progress bars with tqdm."""
 
     def __init__(self):
         self._bar = None
         self._label = None
+        self._listed = False            # the missing attitudes were listed with their words once
+        self._suggested = None          # the attitude the multi-position fit wants next
+        self._last_attitude = None      # (attitude, hint shown) last named by live()
 
     def say(self, text: str) -> None:
         self._close_bar()
@@ -31,14 +36,14 @@ class HumanPresenter:
 
         from imubench.procedures.poses import pose_words
         head = f"[{len(done)}/{total} captured] present any missing attitude, in any order, and hold it still"
-        if not getattr(self, "_listed", False):
+        if not self._listed:
             self._listed = True
             width = max(len(n) for n, _ in todo) + 2
             self.say(head + ":\n" + "\n".join(f"    {n:{width}s}{pose_words(d)}" for n, d in todo))
         else:
             self.say(textwrap.fill(f"{head}; missing: " + ", ".join(n for n, _ in todo), width=110,
                                    subsequent_indent="    "))
-        sug = getattr(self, "_suggested", None)
+        sug = self._suggested
         if sug and sug in {n for n, _ in todo}:
             from imubench.calib.accel import POSE_PLAN
             d = next(p.vector for p in POSE_PLAN if p.name == sug)
@@ -49,7 +54,7 @@ class HumanPresenter:
         """Name the attitude the board is in as soon as it changes (and the hint, if any)."""
         att = st.get("attitude")
         key = (att, bool(st.get("hint")))
-        if key == getattr(self, "_last_attitude", None) or st.get("state") != "still":
+        if key == self._last_attitude or st.get("state") != "still":
             return
         self._last_attitude = key
         if att is None:

@@ -48,23 +48,17 @@ from imubench.calib import CalibrationError
 from imubench.device.link import Device, LinkError, LinkTimeout
 from imubench.errors import ImubenchError
 from imubench.files import open_input, write_text
-from imubench.procedures.session import (
-    Session,
-    SessionAborted,
-    SessionConfig,
-    SimPresenter,
-    _jsonable,
-    plan_for,
-    rotation_to,
-)
-from imubench.procedures.schedule import PHASES, Need, next_move, still_needed
+from imubench.procedures.errors import SessionAborted
+from imubench.procedures.plate import POSE_TIMEOUT_S, PLATE_TIMEOUT_S, BoardFailed, Plate  # noqa: F401 - where callers found them
+from imubench.procedures.presenter import Presenter
+from imubench.procedures.schedule import Need
+from imubench.procedures.session import Session, SessionConfig, plan_for
+from imubench.procedures.writeback import VerifyFailed
 from imubench.results.atomic import write_json_atomic
+from imubench.results.record import CalibrationRecord, device_ident, jsonable, now_utc, verdict
 from imubench.wire import params as PR
-from imubench.wire.ids import board_name, uid_text
-from imubench.wire.protocol_gen import ParamsWhich, SampleStatus
-
-RECORD_SCHEMA = 2
-
+from imubench.wire.ids import SENSOR_BAD_BITS, SENSOR_NAMES
+from imubench.wire.protocol_gen import ParamsWhich
 
 @dataclass
 class Station:
@@ -100,219 +94,13 @@ class BoardStatus:
         return dataclasses.asdict(self)
 
 
-class BoardFailed(Exception):
-    """One board cannot go on; the fixture marks it failed and the others carry on."""
-
-    def __init__(self, stage: str, reason: str):
-        super().__init__(reason)
-        self.stage, self.reason = stage, reason
-
-
-# ---------------------------------------------------------------- the plate
-#: how long a board waits at the plate for what it needs, in device time (the board's own
-#: samples), by default: the other boards' attitudes, write-backs and verifications included
-PLATE_TIMEOUT_S = 300.0
-#: how long a presented attitude may take to be held still, in device time, when the
-#: session's config says "wait" (a station session has no wait without an end)
-POSE_TIMEOUT_S = 120.0
-
-_PHASE_WORDS = {"pose": "attitudes", "turn": "turntable turns", "verify": "verification"}
-
-
-class Plate:
-    """The fixture all boards share. Each board's session asks for what it needs next (a
-    schedule.Need: any of its missing attitudes, a turn, a verification attitude) and waits;
-    when every board still running has asked, the plate makes the move schedule.next_move
-    picks (the attitudes the boards still need first, the most shared first; then turns;
-    verification last) and the boards it serves go on; the others keep waiting. A board that
-    stops leaves, and the plate no longer waits for it.
-
-    Every wait has a deadline in device time (`deadline_s`, measured on the waiting board's
-    own samples through `clock`): past it the board leaves the plate and its session fails
-    with the stage and the reason (BoardFailed); the others go on. The waits are kept in
-    `waits` (slot, kind, waited_s, deadline_s, outcome). No polling loop burns a core: a
-    waiting board sleeps on a condition, waking 4 times a second to look at its clock."""
-
-    CHECK_S = 0.25
-
-    def __init__(self, mover, slots: list[int], say=lambda s: None, deadline_s: float = PLATE_TIMEOUT_S,
-                 on_wait: Callable[[int, str | None], None] | None = None,
-                 on_move: Callable[[dict], None] | None = None):
-        self.mover = mover
-        self.live = set(slots)
-        self.needs: dict[int, Need] = {}
-        self.args: dict[int, dict] = {}           # slot -> {key: the mover's arguments}
-        self.phase: dict[int, str] = {}           # slot -> the kind of its last need
-        self.served: dict[int, object] = {}       # slot -> the key presented for it, not yet taken
-        self.moves = 0
-        self.pose_moves = 0
-        self.moving = False
-        self.position: dict = {}                  # the plate's last move: kind, key, serves, waiting
-        self.waits: list[dict] = []
-        self.deadline_s = float(deadline_s)
-        self.say = say
-        self.on_wait = on_wait
-        self.on_move = on_move
-        self._wait_text: dict[int, str | None] = {}
-        self._cv = threading.Condition()
-
-    # ------------------------------------------------------------ asking
-    def request(self, slot: int, need: Need, args: dict, clock: Callable[[], float] | None = None,
-                stage: str = "poses", check: Callable[[], None] | None = None):
-        """Wait until the plate presents something `need` accepts; returns its key (None when
-        this board is no longer on the plate). args: {key: the mover's arguments for it}.
-        Raises BoardFailed(stage, why) when the wait passes its deadline (device time), and
-        whatever check() raises (a Stop on the page) after leaving the plate."""
-        with self._cv:
-            if slot not in self.live:
-                return None
-            self.needs[slot], self.args[slot], self.phase[slot] = need, args, need.kind
-            t0 = clock() if clock is not None else None
-            waited = 0.0
-            self._refresh_waits()
-            try:
-                while True:
-                    if t0 is not None:
-                        waited = clock() - t0
-                    if slot in self.served:
-                        key = self.served.pop(slot)
-                        self._log(slot, need, waited, "served")
-                        return key
-                    if slot not in self.live:
-                        self._log(slot, need, waited, "left")
-                        return None
-                    if not self.moving and set(self.needs) >= self.live:
-                        self._move()
-                        continue
-                    if check is not None:
-                        try:
-                            check()
-                        except BaseException:
-                            self._log(slot, need, waited, "stopped")
-                            self._drop(slot)
-                            raise
-                    if t0 is not None and waited > self.deadline_s:
-                        why = self._why_late(slot, need, waited)
-                        self._log(slot, need, waited, "deadline")
-                        self._drop(slot)
-                        raise BoardFailed(stage, why)
-                    self._cv.wait(self.CHECK_S)
-            finally:
-                self.needs.pop(slot, None)
-                self.args.pop(slot, None)
-                self._set_wait(slot, None)
-
-    def leave(self, slot: int) -> None:
-        with self._cv:
-            self._drop(slot)
-
-    def _drop(self, slot: int) -> None:
-        self.live.discard(slot)
-        self.needs.pop(slot, None)
-        self.args.pop(slot, None)
-        self.served.pop(slot, None)
-        self._set_wait(slot, None)
-        self._refresh_waits()
-        self._cv.notify_all()
-
-    def _log(self, slot: int, need: Need, waited: float, outcome: str) -> None:
-        self.waits.append({"slot": slot, "kind": need.kind, "waited_s": float(waited),
-                           "deadline_s": self.deadline_s, "outcome": outcome})
-
-    # ------------------------------------------------------------ moving
-    def _move(self) -> None:
-        """Make the next move (called with the lock held; released while the plate moves)."""
-        move = next_move({s: n for s, n in self.needs.items() if s in self.live})
-        args = self.args[move.serves[0]][move.key]
-        if move.kind == "pose":
-            total = self.pose_moves + len(still_needed(self.needs))
-            args = (*args[:2], self.pose_moves, total)
-            self.pose_moves += 1
-        self.moving = True
-        self.position = {"kind": move.kind, "key": _key_text(move.key), "serves": list(move.serves),
-                         "waiting": list(move.waiting), "move": self.moves + 1}
-        if isinstance(move.key, str) and len(args) > 1 and args[1] is not None:     # an attitude: which way is up
-            from imubench.procedures.poses import pose_words
-            up = np.asarray(args[1], float)
-            self.position.update(up=[float(x) for x in up], words=pose_words(up))
-        self._refresh_waits()
-        self._cv.release()
-        try:
-            if move.waiting:
-                self.say(f"  plate: {_key_text(move.key)} for slot{'s' if len(move.serves) > 1 else ''} "
-                         f"{_slots(move.serves)}; slot{'s' if len(move.waiting) > 1 else ''} "
-                         f"{_slots(move.waiting)} wait{'' if len(move.waiting) > 1 else 's'}")
-            if self.on_move is not None:
-                self.on_move(dict(self.position))
-            if move.kind == "turn":
-                self.mover.present_turn(*args)
-            else:
-                self.mover.present_pose(*args)
-        except Exception as e:  # noqa: BLE001 - the boards find out (no attitude comes, their deadline)
-            self.say(f"warning: the plate could not make the move {_key_text(move.key)}: {e}")
-        finally:
-            self._cv.acquire()
-            self.moving = False
-        for s in move.serves:
-            if s in self.live and s in self.needs:
-                self.served[s] = move.key
-                del self.needs[s]
-        self.moves += 1
-        self._cv.notify_all()
-
-    # ------------------------------------------------------------ who waits for whom
-    def _refresh_waits(self) -> None:
-        """A board whose need comes in a later phase than another running board's (done with
-        its attitudes while others still need theirs) says so, with its deadline."""
-        for s, need in self.needs.items():
-            if s in self.served:
-                continue
-            rank = PHASES.index(need.kind)
-            before = sorted(t for t in self.live if t != s and PHASES.index(self.phase.get(t, "pose")) < rank)
-            text = None
-            if before:
-                text = (f"waits for slot{'s' if len(before) > 1 else ''} {_slots(before)} to come to "
-                        f"{_PHASE_WORDS[need.kind]} (the plate serves what they need first); "
-                        f"deadline {self.deadline_s:g} s device time")
-            self._set_wait(s, text)
-
-    def _set_wait(self, slot: int, text: str | None) -> None:
-        if self._wait_text.get(slot) != text:
-            self._wait_text[slot] = text
-            if self.on_wait is not None:
-                try:
-                    self.on_wait(slot, text)
-                except Exception:  # noqa: BLE001 - a broken listener must not stop the plate
-                    pass
-
-    def _why_late(self, slot: int, need: Need, waited: float) -> str:
-        what = ("one of its missing attitudes (" + ", ".join(map(_key_text, need.keys[:4]))
-                + (", ..." if len(need.keys) > 4 else "") + ")") if need.kind == "pose" else _key_text(need.keys[0])
-        busy = sorted(t for t in self.live if t != slot and t not in self.needs)
-        held = f"; slot{'s' if len(busy) > 1 else ''} {_slots(busy)} did not come back to the plate" if busy else ""
-        return (f"waited {waited:.0f} s (device time) for the plate to present {what}, past its deadline of "
-                f"{self.deadline_s:g} s{held}; the other boards went on")
-
-
-def _key_text(key) -> str:
-    if isinstance(key, tuple) and len(key) == 2 and isinstance(key[0], tuple):
-        return f"turn {key[1]:+.0f} °/s about {list(key[0])}"
-    return str(key)
-
-
-def _slots(slots) -> str:
-    return ", ".join(str(s) for s in slots)
-
-
-class BoardPresenter:
+class BoardPresenter(Presenter):
     """One board's Presenter: instructions go to its status, moves to the shared plate. With
     `page` (a station page's presenter for this board's column, imubench.station.presenter)
     the session's live view, pose cards, fit and steps go there too; the plate stays the one
     that moves: a board asks it for any of the attitudes it still misses (present_todo), and
     the plate presents what most boards need (procedures.schedule). `clock()` is the board's
     device time in seconds (its samples so far): the plate's deadlines are counted on it."""
-
-    PAGE_HOOKS = ("present_plan", "present_rest", "pose_event", "live", "targets", "step")
 
     def __init__(self, run: "FixtureRun", slot: int, discard=lambda: None, page=None,
                  clock: Callable[[], float] | None = None):
@@ -321,13 +109,28 @@ class BoardPresenter:
         self.page = page
         self.clock = clock
         self.suggested = None
+        self.shown = page if page is not None else Presenter()     # where the session's views go
 
-    def __getattr__(self, name):
-        # the session's optional hooks (session._hook): only the page's
-        page = self.__dict__.get("page")
-        if page is not None and name in self.PAGE_HOOKS:
-            return getattr(page, name)
-        raise AttributeError(name)
+    # what the session shows goes to the page (nothing without one); suggest is this board's vote
+    def present_plan(self, plan, method):
+        self.shown.present_plan(plan, method)
+
+    def present_rest(self, duration_s):
+        self.shown.present_rest(duration_s)
+
+    def pose_event(self, name, state, detail):
+        self.shown.pose_event(name, state, detail)
+
+    def live(self, state):
+        self.shown.live(state)
+
+    def targets(self, sigmas, targets, reached):
+        self.shown.targets(sigmas, targets, reached)
+
+    def step(self, kind, text, state):
+        if kind in ("write", "verify") and state == "running":
+            self.run._update(self.slot, stage=kind, message=text)
+        self.shown.step(kind, text, state)
 
     def say(self, text: str) -> None:
         self.run._update(self.slot, message=text)
@@ -395,47 +198,6 @@ class BoardPresenter:
         if self.page is not None:
             self.page.progress(label, fraction)
 
-    def keep_pose(self, name, summary):
-        return True
-
-
-class PlatePresenter(SimPresenter):
-    """The virtual fixture: one plate carrying several virtual devices. Every attitude and
-    every turn is made on all of them at once (each simulator's own rotation, so each board's
-    gyros see the motion); a bench whose simulator is gone is left out."""
-
-    def __init__(self, benches: list, rate_dps: float = 90.0, tilt_deg: float = 0.0, seed: int = 0,
-                 quiet: bool = False):
-        super().__init__(benches[0], rate_dps=rate_dps, tilt_deg=tilt_deg, seed=seed, quiet=quiet)
-        self.benches = list(benches)
-
-    def _alive(self) -> list:
-        return [b for b in self.benches if b.running]
-
-    def _rotate_to(self, target: np.ndarray) -> None:
-        alive = self._alive()
-        if not alive:
-            return
-        self.vb = alive[0]
-        turn = rotation_to(self.vb.status()["gravity_board"], target)
-        if turn is None:
-            return
-        ax, angle = turn
-        self._each(lambda b: b.rotate(ax, rate_dps=self.rate_dps, duration_s=angle / self.rate_dps, wait=False))
-        self._each(lambda b: b.wait_idle(timeout=b._wait_timeout(angle / self.rate_dps)))
-
-    def present_turn(self, axis, rate_dps, duration_s):
-        self.say(f"virtual turntable: {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()} for {duration_s:g} s")
-        self._each(lambda b: b.rotate(list(axis), rate_dps=rate_dps, duration_s=duration_s, wait=False))
-
-    def _each(self, fn) -> None:
-        from imubench.device.sim import SimError
-        for b in self._alive():
-            try:
-                fn(b)
-            except SimError:        # that board's simulator died: the plate carries the others
-                pass
-
 
 # ---------------------------------------------------------------- one board's session
 class BoardSession(Session):
@@ -443,9 +205,13 @@ class BoardSession(Session):
     link_timeout_s is a lost link, and a sample flagged bad (a sensor fault, parity or SPI
     error) during capture stops the board, naming the sensor."""
 
-    link_timeout_s: float = 10.0
-    board_run: "FixtureRun | None" = None
-    slot: int = 0
+    def __init__(self, device: Device, directory, config: SessionConfig, presenter: Presenter, *,
+                 board_run: "FixtureRun | None" = None, slot: int = 0, link_timeout_s: float = 10.0):
+        super().__init__(device, directory, config, presenter)
+        self.board_run = board_run
+        self.slot = slot
+        self.link_timeout_s = link_timeout_s
+        self.link_lost: str | None = None   # why the link was lost, once it was
 
     def _stage(self, stage: str) -> None:
         if self.board_run is not None:
@@ -461,8 +227,6 @@ class BoardSession(Session):
     def capture_rest(self) -> dict:
         self._stage("rest")
         return super().capture_rest()
-
-    link_lost: str | None = None
 
     def _stop_stream(self) -> None:
         """As the session's, but after a lost link only the capture file is closed: asking a
@@ -494,9 +258,7 @@ class BoardSession(Session):
             raise BoardFailed("link", f"link lost: {e}") from None
         bad = int(np.bitwise_or.reduce(b.status)) if len(b) else 0
         if bad:
-            names = [n for bit, n in ((SampleStatus.ACCEL_BAD, "accelerometer"), (SampleStatus.GYRO_X_BAD, "gyro X"),
-                                      (SampleStatus.GYRO_Y_BAD, "gyro Y"), (SampleStatus.GYRO_Z_BAD, "gyro Z"))
-                     if bad & bit]
+            names = [n for bit, n in zip(SENSOR_BAD_BITS, SENSOR_NAMES) if bad & bit]
             self._leave_plate()
             raise BoardFailed("sensor", f"{', '.join(names)} flagged bad during capture "
                                         f"({int(np.count_nonzero(b.status))} of {len(b)} samples): a faulted sensor; "
@@ -592,7 +354,7 @@ class FixtureRun:
     def _save_station(self, finished: bool = False) -> None:
         write_json_atomic(self.dir / "station.json", {
             "schema": 1, "session_id": self.session_id, "station": dataclasses.asdict(self.station),
-            "config": _jsonable(dataclasses.asdict(self.cfg)), "ports": self.ports, "finished": finished,
+            "config": jsonable(dataclasses.asdict(self.cfg)), "ports": self.ports, "finished": finished,
             "boards": self.snapshot()})
 
     # ------------------------------------------------------------ run
@@ -624,7 +386,7 @@ class FixtureRun:
 
     def _board(self, slot: int) -> None:
         st = self.boards[slot]
-        started = _now()
+        started = now_utc()
         dev = None
         result: dict | None = None
         info_dev: dict = {"mcu_uid": None}
@@ -637,15 +399,15 @@ class FixtureRun:
                 info = dev.info()
             except (OSError, LinkError, TimeoutError) as e:
                 raise BoardFailed("connect", f"no answer from the device on {st.port}: {e}") from None
-            info_dev = _device_ident(info)
+            info_dev = device_ident(info)
             self._update(slot, uid=info_dev["mcu_uid"], message=f"{info_dev['board']} {info_dev['mcu_uid']}")
             params_before = dev.get_params(ParamsWhich.ACTIVE).params
             stats, rate = dev.link.decoder.stats, float(self.cfg.rate_hz)
             sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
                                 BoardPresenter(self, slot, discard=dev.discard_buffered,
                                                page=self.pages(slot, st.port) if self.pages else None,
-                                               clock=lambda: stats.samples / rate))
-            sess.board_run, sess.slot, sess.link_timeout_s = self, slot, self.link_timeout_s
+                                               clock=lambda: stats.samples / rate),
+                                board_run=self, slot=slot, link_timeout_s=self.link_timeout_s)
             try:
                 result = sess.run(plan_for(self.cfg.method))
             except CalibrationError as e:
@@ -657,7 +419,7 @@ class FixtureRun:
             self._update(slot, stage="fit", message=f"fit: |a| − g RMS {result['accel_rms_after_mg']:.3f} mg")
             result["write_requested"] = bool(self.cfg.write)
             if result["passed"] and self.cfg.write:
-                self._write_and_verify(slot, sess, result, params_before)
+                self._write_and_verify(slot, sess, result)
             elif not result["passed"]:
                 self.plate.leave(slot)
             result["params_after"] = PR.to_json(dev.get_params(ParamsWhich.ACTIVE).params)
@@ -680,33 +442,20 @@ class FixtureRun:
         self.results[slot] = rec
         self._record(slot, rec)
 
-    def _write_and_verify(self, slot: int, sess: BoardSession, result: dict, previous) -> None:
-        self._update(slot, stage="write", message="writing, reading back, saving, rebooting")
+    def _write_and_verify(self, slot: int, sess: BoardSession, result: dict) -> None:
+        """The session's write-back (procedures.writeback.write_and_verify: the previous
+        parameters put back when it fails); a failure is the board's, at its stage."""
         try:
-            wb = sess.write_back(sess.accel_fit, sess.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
+            out = sess.write_and_verify()
+        except VerifyFailed as e:
+            self.plate.leave(slot)
+            result["written"] = False
+            raise BoardFailed("verify", f"verification failed: {e}") from None
         except (PR.InvalidParams, SessionAborted, LinkError, TimeoutError) as e:
             self.plate.leave(slot)
             raise BoardFailed("write", f"write-back failed: {e}") from None
-        result["written"] = True
-        result["write_steps"] = wb["steps"]
-        self._update(slot, stage="verify", message="verifying the device's calibrated output")
-        try:
-            result["verification"] = sess.verify(plan_for("six")[:self.cfg.verify_poses])
-        except (BoardFailed, SessionAborted, LinkError, TimeoutError) as e:
-            reason = e.reason if isinstance(e, BoardFailed) else str(e)
-            self.plate.leave(slot)
-            try:
-                sess.restore(previous)
-                reason += "; the previous parameters were restored"
-            except Exception as e2:  # noqa: BLE001
-                reason += f"; restoring the previous parameters failed too ({e2})"
-            result["written"] = False
-            raise BoardFailed("verify", f"verification failed: {reason}") from None
-        worst = max(abs(v["after_g"] - 1.0) * 1e3 for v in result["verification"])
-        result["verified"] = worst <= self.cfg.tolerances.verify_mg
-        if not result["verified"]:
-            sess.restore(previous)
-            result["written"] = False
+        result.update(written=out.written, verified=out.verified, verification=out.verification,
+                      write_steps=out.steps)
 
     def _fail(self, slot: int, stage: str, reason: str) -> None:
         self.plate.leave(slot)
@@ -716,7 +465,7 @@ class FixtureRun:
 
     def _record_for(self, slot: int, started: str, result: dict | None, ident: dict, params_before, link_stats) -> dict:
         st = self.boards[slot]
-        base = {"schema": RECORD_SCHEMA, "session_id": self.session_id,
+        base = {"session_id": self.session_id,
                 "station": {"id": self.station.station_id, "operator": self.station.operator,
                             "fixture": self.station.fixture, "slot": slot, "port": st.port,
                             "host_version": self.station.host_version},
@@ -726,17 +475,12 @@ class FixtureRun:
             base["link"] = {"samples_missing": int(link_stats.samples_missing),
                             "frames_rejected": int(link_stats.frames_rejected),
                             "samples_overflow": int(getattr(link_stats, "samples_overflow", 0))}
+        from imubench.results.export import measurements_of
         if result is not None and st.state != "failed":
-            rec = {**result, **base, "schema": RECORD_SCHEMA}
-            from imubench.results.export import measurements_of
+            rec = {**result, **base}
             rec["measurements"] = measurements_of(rec)
-            ok = rec["passed"] and (rec["verified"] or not self.cfg.write) and all(m["passed"] for m in rec["measurements"])
+            ok, why = verdict(rec, self.cfg.write)
             if not ok:
-                why = [f"{m['name']} = {m['value']:.4g} {m['unit']} outside its limit" for m in rec["measurements"]
-                       if not m["passed"] and m["value"] is not None]
-                if not rec["passed"]:
-                    why.insert(0, f"fit out of tolerance: |a| − g RMS {rec['accel_rms_after_mg']:.3f} mg > "
-                                  f"{self.cfg.tolerances.accel_rms_mg:g} mg")
                 rec["passed"] = False
                 self._update(slot, state="failed", stage=st.stage, reason="; ".join(why) or "did not pass",
                              message="FAILED: " + ("; ".join(why) or "did not pass"))
@@ -744,16 +488,13 @@ class FixtureRun:
                 self._update(slot, state="passed", stage="done", progress=1.0, message="PASSED")
             return rec
         # failed before or during the run: what is known, the stage and the reason
-        rec = {**base, "device": ident, "started": started, "finished": _now(), "passed": False,
-               "written": bool(result and result.get("written")), "verified": False,
-               "failure": {"stage": st.stage, "reason": st.reason or "failed"}, "params_after": None,
-               "method": self.cfg.method, "gyro_method": self.cfg.gyro, "note": self.cfg.note,
-               "capture_dir": str((self.dir / f"slot-{slot}").resolve())}
-        if result is not None:      # fitted, then failed (write-back, verification): keep the fit
-            rec.update({k: result[k] for k in ("accel", "gyro", "poses", "tolerances", "accel_rms_after_mg",
-                                               "temperature_c", "verification") if k in result})
-            rec["params_after"] = result.get("params_after")
-        from imubench.results.export import measurements_of
+        fitted = {k: result[k] for k in ("accel", "gyro", "poses", "tolerances", "accel_rms_after_mg",
+                                         "temperature_c", "verification") if result is not None and k in result}
+        rec = CalibrationRecord(
+            device=ident, started=started, method=self.cfg.method, gyro_method=self.cfg.gyro, note=self.cfg.note,
+            written=bool(result and result.get("written")), capture_dir=str((self.dir / f"slot-{slot}").resolve()),
+            failure={"stage": st.stage, "reason": st.reason or "failed"},
+            **fitted, sections={**base, "params_after": (result or {}).get("params_after")}).to_json()
         rec["measurements"] = measurements_of(rec)
         return rec
 
@@ -771,7 +512,7 @@ class FixtureRun:
                      f"{self.dir / f'slot-{slot}' / 'record.json'}")
         finally:
             try:
-                write_json_atomic(self.dir / f"slot-{slot}" / "record.json", _jsonable(rec))
+                write_json_atomic(self.dir / f"slot-{slot}" / "record.json", jsonable(rec))
             except OSError:
                 pass
 
@@ -782,12 +523,6 @@ def run_fixture(ports: list[str], directory, cfg: SessionConfig, mover, **kw) ->
 
 
 # ------------------------------------------------------------------- helpers
-def _device_ident(info) -> dict:
-    return {"mcu_uid": uid_text(info.mcu_uid), "board": board_name(info.board),
-            "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
-            "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)}
-
-
 def capture_ref(d: Path) -> dict:
     """SHA-256 of the raw capture (the capture files in stream order, as one byte sequence),
     the files, and where they are: a file:// URI naming this station's host."""
@@ -806,6 +541,3 @@ def capture_ref(d: Path) -> dict:
             "uri": f"file://{host}{(files[0] if len(files) == 1 else d).resolve()}" if files else None,
             "files": listed}
 
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="microseconds")

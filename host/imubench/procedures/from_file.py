@@ -16,7 +16,6 @@ Nothing here reads the file's bytes (imubench.recordings does) or fits (imubench
 """
 from __future__ import annotations
 
-import datetime as _dt
 import hashlib
 import math
 from dataclasses import asdict, dataclass, field
@@ -26,9 +25,10 @@ import numpy as np
 
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
-from imubench.procedures.session import Tolerances, _jsonable, fit_dict
+from imubench.procedures.session import Tolerances
 from imubench.recordings import Recording, RecordingError, timing_lines
 from imubench.results.atomic import write_json_atomic
+from imubench.results.record import CalibrationRecord, fit_dict, jsonable, now_utc
 from imubench.results.sessionfile import SESSION_SCHEMA
 
 GYRO_FILE_METHODS = ("auto", "bias", "turns", "rotation")
@@ -69,10 +69,6 @@ def device_id(name: str) -> str:
     """A stable 24-hex-digit identifier for an IMU known by name (the history's device key):
     the first 12 bytes of SHA-256 of the name."""
     return hashlib.sha256(name.encode()).hexdigest()[:24].upper()
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
 def _face(d: np.ndarray) -> str:
@@ -207,12 +203,9 @@ class FileAnalysis:
         self.say(f"  note: {text}")
 
     def run(self) -> dict:
-        from imubench.calib import accel as CA
-        from imubench.calib import gyro as CG
         from imubench.calib.static import detect_static, require_static
-        from imubench.calib.turns import detect_turns
         rec, cfg = self.rec, self.cfg
-        self.started = _now()
+        self.started = now_utc()
         fs = rec.fs_hz
         # ---- accelerometer scale: declared, or provisional (raw counts without a scale)
         fa = rec.accel_factor()
@@ -270,27 +263,7 @@ class FileAnalysis:
         self.say(f"still intervals: {len(keep)} found by the data (window {cfg.window_s:g} s, k = {ivs.k:g} × the "
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
                                             for f, i in zip(self.faces, keep)))
-        # ---- accelerometer fit
-        self.method = cfg.method
-        if cfg.method == "auto":
-            try:
-                CA.check_observability(means, "multi_position")
-                self.method = "multi"
-                self.say("method: multi-position |a| = g (the attitudes constrain its 9 parameters)")
-            except CalibrationError as e:
-                self.method = "six"
-                self.say(f"method: six-position (the multi-position fit cannot be used: {e})")
-        if self.method == "six":
-            accel = CA.six_position(means, sigmas, skip_non_faces=True)
-        else:
-            CA.check_observability(means, "multi_position")
-            init = None
-            try:
-                init = CA.six_position(means, sigmas, skip_non_faces=True)
-            except CalibrationError:
-                pass
-            accel = CA.multi_position(means, sigmas, init=init)
-        self.accel = accel
+        accel = self._fit_accel(means, sigmas)
         # ---- gyro: a refusal keeps the accelerometer's result (verdict: "accelerometer calibrated; gyro not")
         if cfg.gyro and self.gyro_refused is None:
             try:
@@ -396,6 +369,33 @@ class FileAnalysis:
                              estimated=np.array([False] * 9 + [True] * 3),
                              extra=dict(bias.extra, source="weighted mean of the rests"))
 
+    def _fit_accel(self, means: np.ndarray, sigmas: np.ndarray) -> TriadFit:
+        """The accelerometer fit: six-position, multi-position, or (auto) multi when the
+        attitudes constrain its 9 parameters."""
+        from imubench.calib import accel as CA
+        cfg = self.cfg
+        self.method = cfg.method
+        if cfg.method == "auto":
+            try:
+                CA.check_observability(means, "multi_position")
+                self.method = "multi"
+                self.say("method: multi-position |a| = g (the attitudes constrain its 9 parameters)")
+            except CalibrationError as e:
+                self.method = "six"
+                self.say(f"method: six-position (the multi-position fit cannot be used: {e})")
+        if self.method == "six":
+            accel = CA.six_position(means, sigmas, skip_non_faces=True)
+        else:
+            CA.check_observability(means, "multi_position")
+            init = None
+            try:
+                init = CA.six_position(means, sigmas, skip_non_faces=True)
+            except CalibrationError:
+                pass
+            accel = CA.multi_position(means, sigmas, init=init)
+        self.accel = accel
+        return accel
+
     def _part_turns(self, gyr, acc, keep, up, accel) -> list:
         """Turns from the file's named parts (*_rot), for files cut tightly around each turn."""
         from imubench.calib.turns import turn_in_window
@@ -500,23 +500,16 @@ class FileAnalysis:
         tol, tol_text = self._tolerance(sig_g)
         verdict = verdict_text(rms_after_mg <= tol.accel_rms_mg, rms_after_mg, tol.accel_rms_mg, cfg.gyro,
                                self.gyro, self.gyro_refused)
-        result = {
-            "schema": 1,
-            "device": {"mcu_uid": device_id(name), "board": f"IMU '{name}' (from a file)", "fw_version": "",
-                       "fw_build": "", "accel_ids": [], "gyro_pid": [], "gyro_sn": []},
-            "started": self.started, "session_started": self.started, "finished": _now(),
-            "method": self.method, "gyro_method": cfg.gyro,
-            "accel": fit_dict(accel, "mps2") | {"residual_rms_mps2": accel.residual_rms},
-            "gyro": fit_dict(self.gyro, "rad_s"),
-            "poses": poses, "temperature_c": {},
-            "tolerances": asdict(tol), "passed": bool(rms_after_mg <= tol.accel_rms_mg),
-            "accel_rms_after_mg": rms_after_mg,
-            "written": False, "verified": False, "verification": [], "note": cfg.note,
-            "source": source, "segmentation": seg, "turns": turns, "gyro_parts": _jsonable(self.gyro_parts),
-            "notes": list(self.notes), "annotation": annotation, "device_name": name,
-            "tolerance_source": tol_text, "gyro_refused": self.gyro_refused, "verdict": verdict,
-            "accel_noise_ug_rthz": self.accel_noise_ug, "gsens": self.gsens,
-        }
+        result = CalibrationRecord.from_fit(
+            device={"mcu_uid": device_id(name), "board": f"IMU '{name}' (from a file)", "fw_version": "",
+                    "fw_build": "", "accel_ids": [], "gyro_pid": [], "gyro_sn": []},
+            started=self.started, session_started=self.started, method=self.method, gyro_method=cfg.gyro,
+            accel=accel, gyro=self.gyro, poses=poses, tolerances=asdict(tol),
+            accel_rms_after_mg=rms_after_mg, note=cfg.note,
+            sections={"source": source, "segmentation": seg, "turns": turns, "gyro_parts": self.gyro_parts,
+                      "notes": list(self.notes), "annotation": annotation, "device_name": name,
+                      "tolerance_source": tol_text, "gyro_refused": self.gyro_refused, "verdict": verdict,
+                      "accel_noise_ug_rthz": self.accel_noise_ug, "gsens": self.gsens}).to_json()
         if not rec.accel_scaled:
             result["accel_counts_per_g"] = (accel.m / self.fa * U.G0_MPS2).tolist()
         if not rec.gyro_scaled and self.gyro is not None:
@@ -604,7 +597,7 @@ def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -
                                                                          * fa.fg).tolist(), "stream": 0}
                        for p, iv in zip(result["poses"], fa.intervals)],
              "result": result, "complete": True}
-    write_json_atomic(d / "session.json", _jsonable(state))
+    write_json_atomic(d / "session.json", jsonable(state))
     plot_pose_residuals(result, d / "residuals.png")
     plot_segmentation(rec, result, d / "segmentation.png", accel_factor=fa.fa, gyro_factor=fa.fg)
     result["report"] = str(build_report(d))
@@ -626,7 +619,7 @@ def _write_one(kind: str, prefix: Path, fa: FileAnalysis, result: dict, paramfil
     gsens = np.radians(np.array(gs["g_dps_per_g"])) if gs.get("applied") else None     # rad/s per g
     if kind == "params":
         from imubench.calib.gsens import GSensFit
-        from imubench.procedures.session import params_from_fits
+        from imubench.procedures.writeback import params_from_fits
         from imubench.wire import params as PR
         g_fit = None if gsens is None else GSensFit(b=np.zeros(3), g=gsens, cov=np.zeros((12, 12)), chi2=0.0, dof=0,
                                                     residuals=np.zeros((0, 3)))

@@ -21,10 +21,11 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from imubench import units as U
+from imubench.calib.poseplan import PLAN_TOL_DEG
 
 #: a measured attitude within this angle of a planned one is that attitude (the plan's
 #: neighbours are 35-45° apart: a hand within ±10° is always nearest the one it meant)
-DETECT_TOL_DEG = 20.0
+DETECT_TOL_DEG = PLAN_TOL_DEG
 
 _AXES = "XYZ"
 _FACE_WORDS = {

@@ -115,7 +115,6 @@ class SettleTimeout(ImubenchError):
         self.rate_c_per_min = [float(v) for v in rate_c_per_min]
 
 
-SENSOR_NAMES = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
 TEMP_RESOLUTION_C = 0.2        # one LSB of the ADXRS450 temperature (the ADXL355's: 1/9.05 °C)
 
 
@@ -326,7 +325,7 @@ def write_params(dev, new: Params, say: Callable[[str], None] = lambda s: None) 
     parameters after the reboot (imubench.procedures.session.write_verified, as `imubench calibrate`
     does); on any failure the previous parameters are put back (and saved again if they had
     been saved) and the error raised. Returns {"generation", "steps", "verified": True}."""
-    from imubench.procedures.session import write_verified
+    from imubench.procedures.writeback import write_verified
     r = write_verified(dev, new, say=say)
     return {"generation": int(r["generation"]), "steps": list(r["steps"]), "verified": True}
 

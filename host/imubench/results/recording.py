@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from imubench import units as U
 from imubench.results.atomic import save_figure
 
 _FACE_COLOURS = {"+X": "#1f77b4", "-X": "#aec7e8", "+Y": "#2ca02c", "-Y": "#98df8a", "+Z": "#d62728",
@@ -25,7 +26,7 @@ def plot_segmentation(rec, result: dict, path, *, accel_factor: float, gyro_fact
     path = Path(path)
     fs = rec.fs_hz
     t = np.arange(len(rec)) / fs
-    acc_g = np.linalg.norm(rec.accel * accel_factor, axis=1) / 9.80665
+    acc_g = np.linalg.norm(rec.accel * accel_factor, axis=1) / U.G0_MPS2
     gyr = np.degrees(rec.gyro * gyro_factor)
     step = max(1, len(t) // 20000)
     fig = Figure(figsize=(13, 6.5), dpi=100, layout="constrained")

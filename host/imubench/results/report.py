@@ -20,30 +20,46 @@ A section without input is shown as "not measured in this session", never silent
 """
 from __future__ import annotations
 
-import base64
 import datetime as _dt
-import html
-import json
 import math
-import os
-import stat
 import tempfile
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from imubench.files import MAX_JSON_BYTES
+from imubench import units as U
+
 from imubench.results.atomic import write_text_atomic
 from imubench.results.numbers import pm as _pm_sigma
+from imubench.results.report_html import (
+    _badge,
+    esc,
+    _f,
+    _foreign,
+    _id_text,
+    _img,
+    _missing,
+    _num,
+    _png,
+    png_data_uri,
+    read_json_within,
+    Refused,
+    _table,
+    _version,
+)
+from imubench.results.report_parts import (
+    _attitude_numbers,
+    _attitude_section,
+    _closure_section,
+    closure_verdict,
+    _noise_section,
+    _thermal_section,
+)
 from imubench.results.sessionfile import load_state
-from imubench.wire.ids import byte_ids_text, pid_text, sn_text
 
-G0 = 9.80665
+G0 = U.G0_MPS2
 RAD2DEG = 180.0 / math.pi
 AXES = ("x", "y", "z")
-PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-MAX_PLOT_BYTES = 16 * 1024 * 1024     # an embedded plot: ours are ~100 kB
 
 CSS = """
 body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;margin:2em auto;max-width:1100px;
@@ -73,195 +89,6 @@ nav.toc{font-size:.95em}nav.toc ol{margin:.2em 0 .2em 1.2em;padding:0}
 
 
 # ------------------------------------------------------------------ helpers
-def esc(x) -> str:
-    return html.escape("" if x is None else str(x), quote=True)
-
-
-def _f(x) -> float:
-    try:
-        return float(x)
-    except (TypeError, ValueError):
-        return math.nan
-
-
-def _num(x, fmt="{:.6g}") -> str:
-    v = _f(x)
-    return "–" if not math.isfinite(v) else fmt.format(v)
-
-
-class Refused(ValueError):
-    """A file the report will not embed; the message says why."""
-
-
-def read_png(path, within=None, max_bytes: int = MAX_PLOT_BYTES) -> bytes | None:
-    """The bytes of the PNG at path; None when there is no such file. Raises Refused for
-    anything else than a regular PNG file of at most max_bytes, or (with `within`) one whose
-    real path (symlinks resolved) is outside the directory `within`: a report is sent on its
-    own, so it carries no file from elsewhere on the disk, and never blocks (a FIFO) or reads
-    without end (a device)."""
-    data = read_within(path, within, max_bytes)
-    if data is not None and not data.startswith(PNG_MAGIC):
-        raise Refused(f"{path} is not a PNG")
-    return data
-
-
-def read_json_within(path, within=None, max_bytes: int = MAX_JSON_BYTES):
-    """The JSON at path, read as read_within reads (a symlink out of `within`, by default the
-    directory the file is named in, is refused: the report embeds no file from elsewhere);
-    None when there is no such file. Raises Refused, or ValueError when it does not parse."""
-    path = Path(path).absolute()
-    data = read_within(path, path.parent if within is None else within, max_bytes)
-    return None if data is None else json.loads(data)
-
-
-def read_within(path, within=None, max_bytes: int = MAX_PLOT_BYTES) -> bytes | None:
-    """The bytes of the regular file at path (at most max_bytes; never a FIFO or a device),
-    None when there is none; with `within`, refused unless its real path is inside it."""
-    path = Path(path)
-    if within is not None:
-        base = Path(within).resolve()
-        real = (base / path).resolve() if not path.is_absolute() else path.resolve()
-        if not real.is_relative_to(base):
-            raise Refused(f"{path} is outside {base}")
-        path = real
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
-    except FileNotFoundError:
-        return None
-    except OSError as e:
-        raise Refused(f"{path}: {e.strerror or e}") from None
-    with os.fdopen(fd, "rb") as fh:
-        st = os.fstat(fh.fileno())
-        if not stat.S_ISREG(st.st_mode):
-            raise Refused(f"{path} is not a regular file")
-        if st.st_size > max_bytes:
-            raise Refused(f"{path} is {st.st_size} bytes, more than the limit of {max_bytes}")
-        data = fh.read(max_bytes + 1)
-    if len(data) > max_bytes:
-        raise Refused(f"{path} is more than the limit of {max_bytes} bytes")
-    return data
-
-
-def png_data_uri(path, within=None) -> str | None:
-    """The PNG at path as a data URI, or None if it is missing or refused (read_png)."""
-    try:
-        data = read_png(path, within)
-    except Refused:
-        return None
-    return None if data is None else "data:image/png;base64," + base64.b64encode(data).decode("ascii")
-
-
-def _png(path, within=None) -> tuple[str | None, str | None]:
-    """(data URI, None), (None, None) when there is no file, or (None, why it was refused)."""
-    try:
-        data = read_png(path, within)
-    except Refused as e:
-        return None, str(e)
-    return (None if data is None else "data:image/png;base64," + base64.b64encode(data).decode("ascii")), None
-
-
-def _img(uri: str | None, alt: str, refused: str | None = None) -> str:
-    if refused is not None:
-        return f'<p class="missing">{esc(alt)}: plot refused, not embedded ({esc(refused)})</p>'
-    if uri is None:
-        return f'<p class="missing">{esc(alt)}: plot not available</p>'
-    return f'<p><img src="{uri}" alt="{esc(alt)}"></p>'
-
-
-def _badge(label: str, value) -> str:
-    cls = "na" if value is None else ("ok" if value else "bad")
-    word = "n/a" if value is None else ("yes" if value else "NO")
-    return f'<span class="badge {cls}">{esc(label)}: {word}</span>'
-
-
-def _table(header: Sequence[str], rows: Sequence[Sequence], left: int = 1) -> str:
-    """rows of already-escaped HTML cells; the first `left` columns are left-aligned."""
-    h = "".join(f'<th class="{"l" if i < left else ""}">{c}</th>' for i, c in enumerate(header))
-    body = "".join("<tr>" + "".join(f'<td class="{"l" if i < left else ""}">{c}</td>' for i, c in enumerate(r))
-                   + "</tr>" for r in rows)
-    return f"<table><thead><tr>{h}</tr></thead><tbody>{body}</tbody></table>"
-
-
-def _missing(what: str, how: str) -> str:
-    return f'<p class="missing">{esc(what)}: not measured in this session ({esc(how)}).</p>'
-
-
-def _load_json(path: Path | None, what: str, how: str, out: list[str], within=None):
-    """The JSON at path, or None after appending to out why there is none: "not measured"
-    (with how to get it) when the file is absent, "refused" when it is a link out of `within`
-    (default: its own directory) or not a regular file, "unreadable" when it does not parse."""
-    try:
-        data = None if path is None else read_json_within(path, within)
-    except Refused as e:
-        out.append(f'<p class="foreign"><b>refused</b>: {esc(what)} data not embedded ({esc(e)}).</p>')
-        return None
-    except (OSError, ValueError) as e:
-        out.append(f'<p class="missing">{esc(what)} data {esc(path)}: unreadable ({esc(e)}); '
-                   "not measured in this session.</p>")
-        return None
-    if data is None:
-        out.append(_missing(what, how))
-    return data
-
-
-def _version() -> str:
-    try:
-        from importlib.metadata import version
-        return version("imubench")
-    except Exception:  # noqa: BLE001 - not installed as a distribution
-        return "unknown"
-
-
-def _foreign(data, session_uid: str | None, what: str) -> tuple[str | None, str]:
-    """(refusal HTML or None, state) for a result file checked against the session's device:
-    "same", "foreign" (another MCU UID: refused, its numbers are not shown), "unnamed" (the
-    file names no device: shown with a warning) or "unknown" (the session names none)."""
-    dev = data.get("device") if isinstance(data, dict) else None
-    uid = str(dev.get("mcu_uid", "")).upper() if isinstance(dev, dict) else ""
-    if not session_uid:
-        return None, "unknown"
-    if not uid:
-        return None, "unnamed"
-    if uid != session_uid:
-        return (f'<p class="foreign"><b>refused: from another device.</b> This {esc(what)} was measured on '
-                f'<span class="mono">{esc(uid)}</span>, not on this session\'s device '
-                f'<span class="mono">{esc(session_uid)}</span>; its numbers are not part of this report.</p>'), "foreign"
-    return None, "same"
-
-
-def _load_part(path: Path | None, what: str, how: str, out: list[str], session_uid: str | None, label: str,
-               within=None):
-    """_load_json, then the device check: None (after appending why to out) when the file is
-    missing, unreadable or from another device; a note is appended when it names no device."""
-    data = _load_json(path, what, how, out, within)
-    if data is None:
-        return None
-    refusal, state = _foreign(data, session_uid, label)
-    if refusal:
-        out.append(refusal)
-        return None
-    if state == "unnamed":
-        out.append(_unnamed_note(label))
-    return data
-
-
-def _unnamed_note(what: str) -> str:
-    return (f'<p class="note">this {esc(what)} does not name its device (recorded by an older imubench): '
-            "it cannot be checked against the session's device.</p>")
-
-
-# ------------------------------------------------------------------ calibration
-def _id_text(key: str, v) -> str:
-    """Identifiers in the one format `imubench info` prints (imubench.wire.ids)."""
-    fmt = {"accel_ids": byte_ids_text, "gyro_pid": lambda xs: " ".join(pid_text(x) for x in xs),
-           "gyro_sn": lambda xs: " ".join(sn_text(x) for x in xs)}.get(key)
-    if fmt is not None and isinstance(v, list) and all(isinstance(x, int) for x in v):
-        return fmt(v)
-    if key == "mcu_uid" and isinstance(v, str):
-        return v.upper()
-    return ", ".join(map(str, v)) if isinstance(v, list) else str(v)
-
-
 def _device_section(state: dict, result: dict | None) -> str:
     dev = (result or {}).get("device") or {}
     rows = []
@@ -460,306 +287,6 @@ def _calibration_section(session_dir: Path, state: dict) -> str:
 
 
 # ------------------------------------------------------------------ noise
-def _noise_section(allan_dir: Path | None, session_uid: str | None = None, within=None) -> str:
-    out = ['<h2 id="noise">Noise (Allan deviation)</h2>']
-    res = _load_part(allan_dir / "allan.json" if allan_dir is not None else None, "noise",
-                     "no allan.json; record one with imubench allan and give --allan DIR", out, session_uid,
-                     "noise recording", within)
-    if res is None:
-        return "\n".join(out)
-    from imubench.analysis.allan import duration_text, usual_units
-    dur = _f(res.get("duration_s"))
-    out.append(f"<p>{esc(_num(res.get('samples'), '{:.0f}'))} samples at {esc(_num(res.get('rate_hz'), '{:g}'))} Hz "
-               f"= {esc(duration_text(dur) if math.isfinite(dur) else '?')} at rest</p>")
-    dec = res.get("decoder") or {}
-    if dec.get("samples_missing"):
-        out.append(f'<p class="note">{esc(dec["samples_missing"])} samples were lost in the recording; the '
-                   "analysis joins the pieces.</p>")
-    reasons = set()
-    for kind, title, si in (("accel", "Accelerometer", "m/s²"), ("gyro", "Gyroscope", "rad/s")):
-        r = res.get(kind) or {}
-        usual = res.get(kind + "_usual") or {}
-        rows = []
-        for a in AXES:
-            if a not in r or not isinstance(r[a], dict):
-                continue
-            ra = r[a]
-            u = usual.get(a) or usual_units(ra, kind)
-            n_rel = _f((ra.get("white") or {}).get("N_rel_1sigma"))
-            k_rel = _f((ra.get("rate_rw") or {}).get("K_rel_1sigma"))
-            nk = ("N_ug_per_rtHz", "B_ug", "K_ug_rtHz") if kind == "accel" else \
-                ("N_deg_per_rth", "B_deg_h", "K_deg_h_per_rth")
-            n_u, b_u, k_u = (u.get(k) for k in nk)
-            cells = [esc(a), esc(_pm_sigma(n_u, _f(n_u) * n_rel) if math.isfinite(n_rel) else _num(n_u, "{:.2g}"))]
-            cells.append(esc(_num(b_u, "{:.2g}")) if b_u is not None else "withheld")
-            cells.append(esc(_num(ra.get("B_tau"), "{:.3g}")) if b_u is not None else "–")
-            cells.append(esc(_pm_sigma(k_u, _f(k_u) * k_rel) if math.isfinite(k_rel) else _num(k_u, "{:.2g}"))
-                         if k_u is not None else "withheld")
-            rows.append(cells)
-            for key in ("B_reason", "K_reason"):
-                if ra.get(key):
-                    reasons.add(f"{kind} {key[0]}: {ra[key]}")
-        head = (["axis", "VRW N [µg/√Hz]", "bias instability B [µg]", "B at τ [s]", "RRW K [µg·√Hz]"]
-                if kind == "accel" else
-                ["axis", "ARW N [°/√h]", "bias instability B [°/h]", "B at τ [s]", "RRW K [°/h/√h]"])
-        out.append(f"<h3>{title}</h3>")
-        out.append(_table([esc(h) for h in head], rows) if rows else _missing(title, "no axes in allan.json"))
-        uri, refused = _png(f"allan_{kind}.png", within=allan_dir)
-        out.append(_img(uri, f"{title} Allan deviation ({si})", refused))
-    for rsn in sorted(reasons):
-        out.append(f'<p class="note">withheld, {esc(rsn)}</p>')
-    out.append("<p>N: white noise, ADEV(τ) = N/√τ read at τ = 1 s; B: bias instability = min ADEV / 0.664; "
-               "K: rate random walk, ADEV(τ) = K·√(τ/3) read at τ = 3 s (docs/noise.md). A read-off the record "
-               "cannot support is withheld with the reason.</p>")
-    return "\n".join(out)
-
-
-# ------------------------------------------------------------------ attitude, thermal
-def _attitude_numbers(png: Path | None) -> dict | None:
-    """The numbers `imubench attitude --plot FILE.png` writes beside its plot (FILE.json)."""
-    if png is None:
-        return None
-    try:
-        data = read_json_within(Path(png).with_suffix(".json"))
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) and data.get("kind") == "imubench attitude" else None
-
-
-def _attitude_section(png: Path | None, session_uid: str | None = None) -> str:
-    out = ['<h2 id="attitude">Attitude</h2>']
-    if png is None:
-        out.append(_missing("attitude", "no plot given; run imubench attitude --plot FILE.png (or with --sim "
-                            "--steps) and give --attitude FILE.png"))
-        return "\n".join(out)
-    data = _attitude_numbers(png)
-    refusal, state = _foreign(data, session_uid, "attitude result")
-    if refusal:
-        return "\n".join(out + [refusal])
-    if data is None:
-        out.append(f'<p class="note">no numbers beside {esc(png.name)} ({esc(png.with_suffix(".json").name)} '
-                   "from imubench attitude --plot): the plot alone, from an unnamed device.</p>")
-    else:
-        if state == "unnamed":
-            out.append(_unnamed_note("attitude result"))
-        if (data.get("device") or {}).get("factory_parameters"):
-            out.append('<p class="foreign">measured with the device\'s FACTORY parameters: its "calibrated" '
-                       "output was uncalibrated.</p>")
-        if data.get("mode") == "steps":
-            rms = data.get("rms_static_error_deg") or {}
-            rows = [[esc(n), esc(_num(v, "{:.2g}"))] for n, v in rms.items()]
-            out.append("<p>the step test on the virtual turntable (−20° to +20° about X and Y, 10° steps): static "
-                       "error after settling, RMS over the steps</p>")
-            out.append(_table(["filter", "RMS static error [°]"], rows, left=1))
-        elif data.get("mode") == "live":
-            rows = []
-            for n in data.get("filters") or []:
-                r, pt = (data.get("roll_deg") or {}).get(n) or {}, (data.get("pitch_deg") or {}).get(n) or {}
-                rows.append([esc(n), esc(_num(r.get("mean"), "{:+.3f}")), esc(_num(r.get("std"), "{:.2g}")),
-                             esc(_num(pt.get("mean"), "{:+.3f}")), esc(_num(pt.get("std"), "{:.2g}"))])
-            out.append(f"<p>{esc(_num(data.get('duration_s'), '{:.3g}'))} s of the device's calibrated output at "
-                       f"{esc(_num(data.get('rate_hz'), '{:g}'))} Hz; roll and pitch through each filter</p>")
-            out.append(_table(["filter", "roll mean [°]", "roll std [°]", "pitch mean [°]", "pitch std [°]"], rows))
-    uri, refused = _png(png)        # the file the user named: anywhere, but a regular PNG of limited size
-    if uri is None:
-        out.append(f'<p class="missing">attitude plot {esc(png)} is missing or refused'
-                   f'{" (" + esc(refused) + ")" if refused else ""}.</p>')
-    else:
-        out.append(f"<p>from {esc(png.name)}</p>" + _img(uri, "roll/pitch from the attitude filters"))
-    return "\n".join(out)
-
-
-# (key, unit suffix of its SI value in thermal.json, label, display unit, SI -> display factor).
-# imubench thermal writes f"{key}_{suffix}" and f"{key}_sigma_{suffix}"; the bare key and
-# f"{key}_sigma" (ThermalFit's field names) are read too.
-THERMAL_FIELDS = (("accel_bias_tc", "mps2_per_c", "accel bias", "µg/°C", 1e6 / G0),
-                  ("accel_scale_tc", "per_c", "accel scale", "ppm/°C", 1e6),
-                  ("gyro_bias_tc", "rad_s_per_c", "gyro bias", "m°/s/°C", RAD2DEG * 1e3),
-                  ("gyro_scale_tc", "per_c", "gyro scale", "ppm/°C", 1e6))
-
-
-def _thermal_section(path: Path | None, session_uid: str | None = None) -> str:
-    out = ['<h2 id="temperature">Temperature</h2>']
-    data = _load_part(path, "temperature", "no thermal data given; run imubench thermal --out DIR and pass "
-                      "--thermal DIR/thermal.json", out, session_uid, "temperature sweep")
-    if data is None:
-        return "\n".join(out)
-    out.append(f"<p>from {esc(Path(path).name)}</p>")
-
-    def seq(x, n=3) -> list:
-        x = x if isinstance(x, (list, tuple)) else []
-        return [x[k] if k < len(x) else None for k in range(n)]
-
-    def pm(v, s, fmt, scale):                  # value ± sigma in display units, to sigma's precision
-        return esc(_pm_sigma(v, s, scale=scale, fixed_text="not measured"))
-
-    fit_keys = {}
-    if isinstance(data, dict):
-        for key, suffix, *_ in THERMAL_FIELDS:
-            for vk, sk in ((f"{key}_{suffix}", f"{key}_sigma_{suffix}"), (key, key + "_sigma")):
-                if vk in data:
-                    fit_keys[key] = (vk, sk)
-                    break
-    if not (isinstance(data, dict) and (fit_keys or "points" in data)):
-        out.append(f'<p class="missing">{esc(Path(path).name)} is not a thermal.json of imubench thermal '
-                   "(no coefficients, no temperature points): not shown.</p>")
-        return "\n".join(out)
-
-    status = data.get("status")
-    if status not in (None, "done"):
-        msg = f"incomplete run: status {status}, stage {data.get('stage')}"
-        if data.get("error"):
-            msg += f"; error: {data['error']}"
-        out.append(f'<p class="note">{esc(msg)}; what was measured is shown.</p>')
-    if data.get("t_ref_c") is not None:
-        out.append(f"<p>reference temperature {esc(_num(data['t_ref_c'], '{:g}'))} °C</p>")
-    rows = []
-    for key, _suffix, label, unit, scale in THERMAL_FIELDS:
-        if key not in fit_keys:
-            continue
-        vk, sk = fit_keys[key]
-        v, s = seq(data.get(vk)), seq(data.get(sk))
-        if all(x is None for x in v):
-            continue
-        rows.append([esc(f"{label} [{unit}]")] + [pm(v[k], s[k], ".3f", scale) for k in range(3)])
-    if rows:
-        out.append(_table(["coefficient ± 1σ", "x", "y", "z"], rows))
-    elif "points" in data:
-        out.append('<p class="missing">coefficients: not fitted (the sweep did not finish).</p>')
-    for n in data.get("notes") or []:
-        out.append(f'<p class="note">{esc(n)}</p>')
-
-    points = [p for p in data.get("points") or [] if isinstance(p, dict)]
-    if points:
-        out.append("<h3>Temperature points</h3>")
-        rows = []
-        for p in points:
-            st = p.get("settle") if isinstance(p.get("settle"), dict) else {}
-            rates = [abs(_f(r)) for r in st.get("rate_c_per_min") or []]
-            t0, t1 = _f(p.get("t_first_us")) * 1e-6, _f(p.get("t_last_us")) * 1e-6
-            gs = p.get("gyro_rest_sigma_rad_s")
-            rows.append([esc(_num(p.get("set_c"), "{:g}")), esc(_num(p.get("accel_temp_c"), "{:.2f}")),
-                         esc(" / ".join(_num(t, "{:.2f}") for t in seq(p.get("gyro_temp_c")))),
-                         esc(_num(st.get("waited_s"), "{:.0f}")),
-                         esc(_num(max(rates) if rates else None, "{:.3f}")),
-                         esc(f"{_num(t0, '{:.1f}')} – {_num(t1, '{:.1f}')}")]
-                        + [pm(g, s, ".4f", RAD2DEG) for g, s in zip(seq(p.get("gyro_rest_rad_s")), seq(gs))])
-        out.append(_table(["set [°C]", "ADXL355 [°C]", "gyro X / Y / Z [°C]", "settled after [s]",
-                           "max |dT/dt| [°C/min]", "measured, device time [s]", "gyro at rest x [°/s]",
-                           "y [°/s]", "z [°/s]"], rows, left=0))
-        out.append("<p>Temperatures are the sensors' own readings (the fit uses them, not the set point); "
-                   "settled: every sensor's |dT/dt| over the settling window below the limit.</p>")
-        rows = []
-        for p in points:
-            acc, sig = p.get("accel_mps2") or {}, p.get("accel_sigma_mps2") or {}
-            for pose in acc if isinstance(acc, dict) else []:
-                rows.append([esc(_num(p.get("set_c"), "{:g}")), esc(pose)]
-                            + [pm(v, s, ".3f", 1e3 / G0) for v, s in zip(seq(acc.get(pose)), seq(sig.get(pose)))])
-        if rows:
-            out.append("<h3>Accelerometer means per pose (nominal scaling)</h3>")
-            out.append(_table(["set [°C]", "pose", "x [mg]", "y [mg]", "z [mg]"], rows, left=2))
-        rows = [[esc(_num(p.get("set_c"), "{:g}"))]
-                + [pm(v, s, ".4f", RAD2DEG) for v, s in zip(seq(p.get("gyro_turn_rad_s")), seq(p.get("gyro_turn_sigma_rad_s")))]
-                for p in points if p.get("gyro_turn_rad_s")]
-        if rows:
-            out.append("<h3>Gyro turntable, (ω₊ − ω₋)/2</h3>")
-            out.append(_table(["set [°C]", "x [°/s]", "y [°/s]", "z [°/s]"], rows))
-
-    before, after = data.get("drift_before"), data.get("drift_after")
-    if isinstance(before, dict):
-        after = after if isinstance(after, dict) else {}
-        out.append("<h3>Drift of the device's calibrated output over the sweep (max − min)</h3>")
-        rows = []
-        for i, (label, key, unit, scale, fmt) in enumerate(
-                [(f"accel {a}", "accel_drift_mps2", "mg", 1e3 / G0, "{:.4f}") for a in AXES]
-                + [("|accel|", "accel_drift_mps2", "mg", 1e3 / G0, "{:.4f}")]
-                + [(f"gyro {a}", "gyro_drift_rad_s", "°/s", RAD2DEG, "{:.5f}") for a in AXES]):
-            k = i if i < 4 else i - 4
-            b, a = _f(seq(before.get(key), 4)[k]) * scale, _f(seq(after.get(key), 4)[k]) * scale
-            ratio = b / a if math.isfinite(a) and a > 0 and math.isfinite(b) else math.nan
-            rows.append([esc(f"{label} [{unit}]"), esc(_num(b, fmt)), esc(_num(a, fmt)), esc(_num(ratio, "{:.0f}x"))])
-        out.append(_table(["quantity", "before writing", "after writing", "before / after"], rows))
-        out.append(f"<p>level, +Z up, at {esc(', '.join(_num(c, '{:g}') for c in before.get('set_c') or []))} °C "
-                   "(set points); before: the parameters the device had, after: with the temperature coefficients "
-                   "written.</p>")
-    wb = data.get("write")
-    if isinstance(wb, dict):
-        if wb.get("verified"):
-            out.append(f"<p>written to the device: generation {esc(wb.get('generation'))}, read back bit-exactly, "
-                       f"saved, rebooted and read back again ({esc(', '.join(map(str, wb.get('steps') or [])))}).</p>")
-        else:
-            restored = {True: "the previous parameters are active again", False: "the previous parameters are NOT "
-                        "active", None: "whether the previous parameters are active is unknown"}.get(wb.get("previous_restored"))
-            out.append(f'<p class="note">write-back failed: {esc(wb.get("error"))}; {esc(restored)}.</p>')
-
-    from imubench.results.thermal import plot_thermal
-    with tempfile.TemporaryDirectory() as td:
-        png = plot_thermal(data, Path(td) / "thermal.png") if isinstance(data, dict) else None
-        if png is not None:
-            out.append("<h3>Bias against temperature</h3>"
-                       + _img(png_data_uri(png), "gyro and accelerometer against temperature, with the fits"))
-    return "\n".join(out)
-
-
-# ------------------------------------------------------------------ closure
-def closure_verdict(data: dict) -> tuple[bool, str] | None:
-    """(passed, words) of a closure.json, as the console says it (results.closure.verdict_of)."""
-    from imubench.results.closure import verdict_of
-    z, floor = _f((data.get("after_rest_bias") or {}).get("distance_m")), _f((data.get("noise_floor") or {}).get(
-        "sigma_distance_m"))
-    if not (math.isfinite(z) and math.isfinite(floor) and floor > 0):
-        return None
-    return verdict_of(z, floor)
-
-
-def _closure_section(directory: Path | None, session_uid: str | None = None, within=None) -> str:
-    out = ['<h2 id="closure">Closure check</h2>']
-    path = directory / "closure.json" if directory is not None else None
-    data = _load_part(path, "closure check", "run imubench calibrate --closure, or imubench closure --out DIR "
-                      "and give --closure DIR", out, session_uid, "closure check", within)
-    if data is None:
-        return "\n".join(out)
-    if not isinstance(data, dict) or "after" not in data:
-        out.append(f'<p class="missing">{esc(path)} holds no result (the recording did not finish: '
-                   f'imubench closure --analyse {esc(directory)} recomputes it from capture.bin).</p>')
-        return "\n".join(out)
-    w = data.get("window") or {}
-    out.append(f"<p>path {esc(data.get('path', '?'))}: {esc(_num(w.get('duration_s'), '{:.2f}'))} s of motion, "
-               f"{esc(w.get('samples', '?'))} raw samples at {esc(_num(w.get('fs_hz'), '{:.0f}'))} Hz, integrated "
-               "(strapdown, attitude from the gyros) from rest to rest; the closure is how far from the start the "
-               "integration ends (docs/closure.md).</p>")
-    rows = []
-    for key in ("before", "after", "after_rest_bias"):
-        r = data.get(key) or {}
-        c = r.get("closure_m") or [None] * 3
-        rows.append([esc(r.get("label", key))] + [esc(_num(v, "{:.4f}")) for v in (
-            r.get("distance_m"), r.get("horizontal_m"), r.get("vertical_m"), r.get("end_speed_mps"), *c)])
-    nf = data.get("noise_floor") or {}
-    rows.append([esc("white-noise floor (1 sigma)"), esc(_num(nf.get("sigma_distance_m"), "{:.4f}")),
-                 "", esc(_num(nf.get("sigma_z_m"), "{:.4f}")), "", "", "", ""])
-    out.append(_table(["integration", "distance m", "horizontal m", "vertical m", "end speed m/s",
-                       "x m", "y m", "z m"], rows))
-    gb = data.get("gyro_bias_at_rest_rad_s")
-    if gb:
-        out.append(f"<p>the calibrated gyros read {esc(', '.join(_num(v * RAD2DEG, '{:+.4f}') for v in gb))} °/s "
-                   "at the start rest (their bias change since the calibration).</p>")
-    if data.get("improvement"):
-        out.append(f"<p>calibration shrinks the closure error <b>{esc(_num(data['improvement'], '{:.0f}'))}x</b>.</p>")
-    v = closure_verdict(data)
-    if v is not None:
-        out.append(f'<p class="{"note" if v[0] else "foreign"}">{esc(v[1])}</p>')
-    if data.get("truth_closure_m") is not None:
-        out.append(f"<p>the virtual bench's own path closes to {esc(_num(max(abs(v) for v in data['truth_closure_m']), '{:.1e}'))} m.</p>")
-    plot = data.get("plot", "closure.png")
-    uri, refused = _png(str(plot), within=directory) if isinstance(plot, str) and plot else \
-        (None, f"the plot field {plot!r} is not a file name")
-    if uri is not None or refused is not None:
-        out.append(_img(uri, "top views before and after calibration and the distance from the start over time",
-                        refused and f"closure.json names {plot!r}: {refused}"))
-    return "\n".join(out)
-
-
-# ------------------------------------------------------------------ the verdict
 def _calibration_part(state: dict, result: dict) -> tuple[str, str]:
     """(status, words) of the calibration: pass / fail / incomplete, the reason in words."""
     if not result:
@@ -773,7 +300,9 @@ def _calibration_part(state: dict, result: dict) -> tuple[str, str]:
         why = f"the fit did not pass: {fit}"
         chi = _f(((result.get("accel") or {}).get("extra") or {}).get("chi2_red"))
         if result.get("method") == "six" and math.isfinite(chi) and chi > 100:
-            why += (f"; the six faces are not square (χ²/dof {chi:.2g}): use --method multi, which needs no "
+            off = _f(result.get("faces_off_square_deg"))
+            how = f"{off:.1f}° off square" if math.isfinite(off) else "not square"
+            why += (f"; the six faces are {how} (χ²/dof {chi:.2g}): use --method multi, which needs no "
                     "square fixture")
         return "fail", why + "; nothing was written to the device"
     ver = [_f(v.get("after_g")) for v in result.get("verification") or [] if isinstance(v, dict)]
@@ -793,13 +322,7 @@ def calibration_verdict(result: dict, state: dict | None = None) -> tuple[str, s
     """(status, words) of a calibration session's result, as the report says it (pass /
     fail / incomplete and why); a six-position fit on faces that are not square says by how
     many degrees (the worst face's angle from its plan) and to use --method multi."""
-    status, words = _calibration_part(state or {}, result or {})
-    off = _f((result or {}).get("faces_off_square_deg"))
-    chi = _f((((result or {}).get("accel") or {}).get("extra") or {}).get("chi2_red"))
-    if status == "fail" and math.isfinite(off) and "not square" in words:
-        words = words.replace(f"the six faces are not square (χ²/dof {chi:.2g})",
-                              f"the six faces are {off:.1f}° off square (χ²/dof {chi:.2g})")
-    return status, words
+    return _calibration_part(state or {}, result or {})
 
 
 def parameter_rows(result: dict) -> list[tuple[str, str]]:

@@ -2,7 +2,6 @@
 and step) and the printed coefficient and drift tables."""
 from __future__ import annotations
 
-import datetime as _dt
 import math
 from pathlib import Path
 
@@ -12,16 +11,13 @@ from imubench import units as U
 from imubench.analysis.thermal import AXES, TempPoint, ThermalFit
 from imubench.results.atomic import save_figure, write_json_atomic
 from imubench.results.numbers import pm
+from imubench.results.record import now_utc
 
 THERMAL_SCHEMA = 1
 
 
 FIT_KEYS = (("accel_bias_tc", "mps2_per_c"), ("accel_scale_tc", "per_c"),
             ("gyro_bias_tc", "rad_s_per_c"), ("gyro_scale_tc", "per_c"))
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
 def _js(x):
@@ -81,7 +77,7 @@ class ThermalRecord:
         if self.path.exists():
             raise FileExistsError(f"{self.path} exists: choose another --out directory")
         self.data = {"schema": THERMAL_SCHEMA, "kind": "imubench thermal", "status": "running",
-                     "stage": "start", "error": None, "started": _now(), "updated": None,
+                     "stage": "start", "error": None, "started": now_utc(), "updated": None,
                      "config": _js(config), "device": None, "t_ref_c": None, "points": []}
         self.save()
 
@@ -94,7 +90,7 @@ class ThermalRecord:
         self.save()
 
     def save(self) -> None:
-        self.data["updated"] = _now()
+        self.data["updated"] = now_utc()
         write_json_atomic(self.path, self.data)
 
 

@@ -1,4 +1,4 @@
-"""WebPresenter: the Presenter (imubench.procedures.session) of a session driven from the
+"""WebPresenter: the Presenter (imubench.procedures.presenter) of a session driven from the
 station page. Everything the session says or measures goes into the device's DeviceBoard;
 the page shows it. A stop asked for on the page raises SessionStopped at the next live
 update, so the session stops where a Ctrl-C would stop it (everything captured is kept)."""
@@ -11,7 +11,7 @@ import numpy as np
 
 from imubench.errors import ImubenchError
 from imubench.procedures.poses import pose_words
-from imubench.procedures.session import TURN_POSE_SUFFIX
+from imubench.procedures.presenter import TURN_POSE_SUFFIX, Presenter
 from imubench.station.state import StationState
 
 LOG_LINES = 200
@@ -22,13 +22,14 @@ class SessionStopped(ImubenchError, RuntimeError):
     """The owner of the device stopped the session on the page."""
 
 
-class WebPresenter:
+class WebPresenter(Presenter):
     def __init__(self, state: StationState, key: str):
         self.state = state
         self.key = key
         self.stop_event = threading.Event()
         self.stop_reason = "stopped on the station page: everything captured is kept; resume it there"
         self._last_live = 0.0
+        self.turns_total = 0            # turntable turns the session will ask for (set by the runner)
 
     def _upd(self, fn) -> None:
         self.state.update(self.key, fn)
@@ -110,7 +111,7 @@ class WebPresenter:
                 t["state"] = "done"
             b.turns.append({"axis": [float(x) for x in axis], "rate_dps": float(rate_dps),
                             "duration_s": float(duration_s), "state": "running",
-                            "total": getattr(self, "turns_total", 0) or None})
+                            "total": self.turns_total or None})
             b.phase = "turns"
         self._upd(f)
 

@@ -27,7 +27,7 @@ class Station:
     workdir     where session directories are made (session-<device>-<time>)
     db          history database (None: the user's default, as `imubench calibrate`)
     sim_speed, sim_seed, person   the virtual bench ("sim" device): its speed, seed, and the
-                SimPerson's keyword arguments (procedures.person) who presents the attitudes
+                SimPerson's keyword arguments (procedures.virtual) who presents the attitudes
     ports       the PortPolicy of the ports a page may open (default: serial devices, socket://
                 and rfc2217:// on this machine)
     """
@@ -192,7 +192,7 @@ class Station:
         if key != SIM_KEY:
             return key, ui
         from imubench.device.sim import VirtualBench
-        from imubench.procedures.person import SimPerson
+        from imubench.procedures.virtual import SimPerson
         if self._bench is None or not self._bench.running:
             self._bench = VirtualBench(speed=self.sim_speed, seed=self.sim_seed, truth="random")
         person = SimPerson(self._bench, forward=ui, **{"seed": self.sim_seed, **self.person_kw})

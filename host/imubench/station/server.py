@@ -92,17 +92,46 @@ class _Stream(StreamingResponse):
             self._release()
 
 
+# ------------------------------------------------------------------ handlers that need no station
+async def page(request: Request):
+    from importlib.resources import files
+    return Response((files("imubench.station") / "static" / "station.html").read_text(encoding="utf-8"),
+                    media_type="text/html; charset=utf-8", headers={"Cache-Control": "no-store"})
+
+
+async def pose_svg(request: Request):
+    up = _vector(request.query_params.get("up"))
+    return Response(_pose_svg(up), media_type="image/svg+xml", headers={"Cache-Control": "max-age=3600"})
+
+
+async def turn_svg(request: Request):
+    from imubench.results.boardpic import turn_svg as draw
+    axis = _vector(request.query_params.get("axis"))
+    try:
+        rate = request.query_params.get("rate")
+        angle = request.query_params.get("angle")
+        rate = None if rate is None else float(rate)
+        angle = None if angle is None else float(angle)
+    except ValueError:
+        raise StationError("rate (°/s) and angle (°) must be numbers") from None
+    if any(x is not None and not (math.isfinite(x) and abs(x) <= 1e4) for x in (rate, angle)):
+        raise StationError("rate (°/s) and angle (°) must be numbers within ±10000")
+    if rate is None and angle is None:
+        rate = 0.0
+    return Response(draw(axis, rate_dps=rate, angle_deg=angle), media_type="image/svg+xml")
+
+
+async def bad_request(request: Request, exc: StationError):
+    return JSONResponse({"error": str(exc)}, status_code=getattr(exc, "status", 400),
+                        headers={"Cache-Control": "no-store"})
+
+
 def create_app(station: Station, access: PageAccess | None = None):
     """The station's ASGI app, guarded (security.guard): access says which Host and Origin
     are the page's (its port is set once the server is bound)."""
     state = station.state
     access = access or PageAccess()
     changes = _Changes(state)
-
-    async def page(request: Request):
-        from importlib.resources import files
-        return Response((files("imubench.station") / "static" / "station.html").read_text(encoding="utf-8"),
-                        media_type="text/html; charset=utf-8", headers={"Cache-Control": "no-store"})
 
     def identity(request: Request) -> str | None:
         return state.client(request.cookies.get(access.cookie_name))
@@ -193,35 +222,11 @@ def create_app(station: Station, access: PageAccess | None = None):
         station.resume(key_of(d), need_identity(request))
         return JSONResponse({"ok": True})
 
-    async def pose_svg(request: Request):
-        up = _vector(request.query_params.get("up"))
-        return Response(_pose_svg(up), media_type="image/svg+xml", headers={"Cache-Control": "max-age=3600"})
-
-    async def turn_svg(request: Request):
-        from imubench.results.boardpic import turn_svg as draw
-        axis = _vector(request.query_params.get("axis"))
-        try:
-            rate = request.query_params.get("rate")
-            angle = request.query_params.get("angle")
-            rate = None if rate is None else float(rate)
-            angle = None if angle is None else float(angle)
-        except ValueError:
-            raise StationError("rate (°/s) and angle (°) must be numbers") from None
-        if any(x is not None and not (math.isfinite(x) and abs(x) <= 1e4) for x in (rate, angle)):
-            raise StationError("rate (°/s) and angle (°) must be numbers within ±10000")
-        if rate is None and angle is None:
-            rate = 0.0
-        return Response(draw(axis, rate_dps=rate, angle_deg=angle), media_type="image/svg+xml")
-
     async def report(request: Request):
         p = station.report_path(request.path_params["key"])
         if p is None or not p.is_file():
             return JSONResponse({"error": "no report for this device yet"}, status_code=404)
         return FileResponse(p, media_type="text/html")
-
-    async def bad_request(request: Request, exc: StationError):
-        return JSONResponse({"error": str(exc)}, status_code=getattr(exc, "status", 400),
-                            headers={"Cache-Control": "no-store"})
 
     from importlib.resources import files
     static_dir = str(files("imubench.station") / "static")

@@ -13,7 +13,12 @@ from __future__ import annotations
 
 import re
 
-from imubench.wire.protocol_gen import Board
+from imubench.wire.protocol_gen import Board, SampleStatus
+
+#: the four sensors in the protocol's order (Info.sensors_present bit i, fault events' sensor i)
+SENSOR_NAMES = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
+#: each sensor's bad-sample bit in SampleStatus, in that order
+SENSOR_BAD_BITS = (SampleStatus.ACCEL_BAD, SampleStatus.GYRO_X_BAD, SampleStatus.GYRO_Y_BAD, SampleStatus.GYRO_Z_BAD)
 
 
 def board_name(code: int) -> str:

@@ -21,7 +21,7 @@ program_unit)):
     crc_off  4     CRC-32C over bytes [0, crc_off)
     +4       a-4   zero padding (program_unit > 4 only)
 
-tests/test_qemu.py checks these bytes against the C store (ib_ps_save / ib_ps_load).
+tests/device/test_qemu.py checks these bytes against the C store (ib_ps_save / ib_ps_load).
 
     python -m imubench.wire.paramstore --layout qemu-f1 -o page.bin            # identity params
     python -m imubench.wire.paramstore --layout f4 --params cal.json -o page.bin

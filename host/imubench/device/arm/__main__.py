@@ -38,7 +38,8 @@ from .simlib import SimLibError, load
 from .targets import TARGETS
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parse_args(argv: list[str] | None) -> tuple[argparse.Namespace, bytes | None]:
+    """The options, checked (argparse's error and exit 2 on a bad one), and the UID given."""
     ap = argparse.ArgumentParser(prog="python -m imubench.device.arm",
                                  description="the exact STM32 image against the virtual device's sensor models")
     ap.add_argument("--target", choices=sorted(TARGETS), required=True)
@@ -67,30 +68,91 @@ def main(argv: list[str] | None = None) -> int:
             uid = b""
         if len(uid) != 12:
             ap.error("--uid must be 24 hex digits")
-    target = TARGETS[a.target]
-    # nothing is built here: VirtualBench (arm_command) built it before starting this process
+    return a, uid
+
+
+def _startup_line(a, lib, target, elf, flash: str, code_file: str, uid: bytes) -> dict:
+    """The start-up line imubench-sim prints (VirtualBench reads it): endpoints, pid, files."""
+    port = lib.simlib_tcp_port()
+    ctl = lib.simlib_control_port()
+    pty_name = lib.simlib_pty_name().decode() or None
+    line = {"pty": pty_name, "port_url": f"socket://127.0.0.1:{port}" if port >= 0 else pty_name,
+            "tcp_port": port if port >= 0 else None,
+            "control": f"127.0.0.1:{ctl}", "control_port": ctl, "pid": os.getpid(),
+            "flash": os.path.realpath(flash), "seed": a.seed, "speed": a.speed, "baud": a.baud,
+            "truth": a.truth, "uid": uid.hex(), "build": f"arm-{a.target}",
+            "target": a.target, "elf": str(elf), "cpi": target.cpi, "boot0": a.boot0,
+            "code_flash": os.path.realpath(code_file) if os.path.exists(code_file) else None}
+    if a.boot0:
+        line["bootloader"] = {"framing": "8E1 (AN3155; a pty cannot show parity)",
+                              "product_id": "0x%03X" % (0x410 if a.target == "f103" else 0x413)}
+    return line
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _stop_on_signal_or_orphan():
+    """should_stop(): true after SIGTERM, SIGINT or SIGHUP, or once the parent process died."""
+    stop = {"sig": 0}
+
+    def on_signal(sig, frame):
+        stop["sig"] = sig
+    for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        signal.signal(s, on_signal)
+    parent = os.getppid()
+
+    def should_stop() -> bool:
+        return bool(stop["sig"]) or (parent != 1 and os.getppid() != parent)
+    return should_stop
+
+
+def _remove_temporary_flash(tmpdir: str, files: list[str]) -> None:
+    try:
+        for f in files:
+            if os.path.exists(f):
+                os.unlink(f)
+        os.rmdir(tmpdir)
+    except OSError:
+        pass
+
+
+class _StartError(Exception):
+    """What keeps the emulator from starting (printed, exit 2)."""
+
+
+def _artifacts(a, target) -> tuple:
+    """(the models library loaded, the default ELF or None, the ELFs the board can run). Nothing
+    is built here: VirtualBench (arm_command) built it before starting this process."""
     try:
         lib_file = artifacts.models_library(build=False)
     except artifacts.ArtifactError as e:
-        print(f"imubench-arm: {e}", file=sys.stderr)
-        return 2
+        raise _StartError(e) from None
     try:
         default_elf = artifacts.arm_image(target.image, build=False)
     except artifacts.ArtifactError as e:
         if not a.elf:
-            print(f"imubench-arm: {e}", file=sys.stderr)
-            return 2
+            raise _StartError(e) from None
         default_elf = None          # --elf names the images the board can run
     elfs = [Path(e) for e in a.elf] if a.elf else [default_elf]
-    elf = elfs[0]
-    if not elf.is_file():
-        print(f"imubench-arm: {elf} is missing: build the images with `make firmware`", file=sys.stderr)
-        return 2
+    if not elfs[0].is_file():
+        raise _StartError(f"{elfs[0]} is missing: build the images with `make firmware`")
     try:
-        lib = load(lib_file)
+        return load(lib_file), default_elf, elfs
     except SimLibError as e:
+        raise _StartError(e) from None
+
+
+def main(argv: list[str] | None = None) -> int:
+    a, uid = _parse_args(argv)
+    target = TARGETS[a.target]
+    try:
+        lib, default_elf, elfs = _artifacts(a, target)
+    except _StartError as e:
         print(f"imubench-arm: {e}", file=sys.stderr)
         return 2
+    elf = elfs[0]
     tmpdir = None
     flash = a.flash
     if flash is None:
@@ -104,10 +166,9 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
     from .bootloader import BootloaderServer, FlashFile, RomBootloader, code_path
-    from .machine import Machine, Server, flash_segments, match_elf
-
-    def log(msg: str) -> None:
-        print(msg, file=sys.stderr, flush=True)
+    from .image import flash_segments, match_elf
+    from .machine import Machine
+    from .serve import Server
 
     code_file = code_path(flash)
     candidates = [str(e) for e in elfs if e.is_file()]
@@ -149,31 +210,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     uidb = (ctypes.c_uint8 * 12)()
     lib.simlib_uid(uidb)
-    port = lib.simlib_tcp_port()
-    ctl = lib.simlib_control_port()
-    pty_name = lib.simlib_pty_name().decode() or None
-    line = {"pty": pty_name, "port_url": f"socket://127.0.0.1:{port}" if port >= 0 else pty_name,
-            "tcp_port": port if port >= 0 else None,
-            "control": f"127.0.0.1:{ctl}", "control_port": ctl, "pid": os.getpid(),
-            "flash": os.path.realpath(flash), "seed": a.seed, "speed": a.speed, "baud": a.baud,
-            "truth": a.truth, "uid": bytes(uidb).hex(), "build": f"arm-{a.target}",
-            "target": a.target, "elf": str(elf), "cpi": target.cpi, "boot0": a.boot0,
-            "code_flash": os.path.realpath(code_file) if os.path.exists(code_file) else None}
-    if a.boot0:
-        line["bootloader"] = {"framing": "8E1 (AN3155; a pty cannot show parity)",
-                              "product_id": "0x%03X" % (0x410 if a.target == "f103" else 0x413)}
-    print(json.dumps(line), flush=True)
+    print(json.dumps(_startup_line(a, lib, target, elf, flash, code_file, bytes(uidb))), flush=True)
 
-    stop = {"sig": 0}
 
-    def on_signal(sig, frame):
-        stop["sig"] = sig
-    for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-        signal.signal(s, on_signal)
-    parent = os.getppid()
-
-    def should_stop() -> bool:
-        return bool(stop["sig"]) or (parent != 1 and os.getppid() != parent)
+    should_stop = _stop_on_signal_or_orphan()
     rom = None
     t_dev = 0.0
     try:
@@ -181,13 +221,13 @@ def main(argv: list[str] | None = None) -> int:
             if machine is None:
                 if rom is None:
                     rom = RomBootloader(target, FlashFile(code_file, target.param_base - target.flash_base),
-                                        FlashFile(flash, target.param_size), bytes(uidb), lib, log)
+                                        FlashFile(flash, target.param_size), bytes(uidb), lib, _log)
                 else:
                     rom.code = FlashFile(code_file, target.param_base - target.flash_base)
                     rom.params = FlashFile(flash, target.param_size)
                     rom.reset()
-                log(f"[imubench-arm {a.target}] ROM bootloader (BOOT0 high): waiting for 0x7F")
-                bl = BootloaderServer(rom, lib, a.speed, t_dev, log)
+                _log(f"[imubench-arm {a.target}] ROM bootloader (BOOT0 high): waiting for 0x7F")
+                bl = BootloaderServer(rom, lib, a.speed, t_dev, _log)
                 act = bl.serve(should_stop)
                 t_dev = bl.now()
                 if act[0] == "stop":
@@ -196,11 +236,11 @@ def main(argv: list[str] | None = None) -> int:
                     continue                   # BOOT0 still high: the bootloader again
                 image = boot_elf()
                 if image is None:
-                    log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: the code pages hold no image the "
+                    _log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: the code pages hold no image the "
                         "emulator knows (blank, half written or not one of --elf): the core does not run; "
                         "reset (power cut) into the bootloader and flash it again")
                     continue
-                log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: starting {image}")
+                _log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: starting {image}")
                 machine = new_machine(image, t_dev)
             server = Server(machine, lib, a.speed)
             server.serve(should_stop)
@@ -215,13 +255,7 @@ def main(argv: list[str] | None = None) -> int:
             machine.flash.close()
         lib.simlib_close()
         if tmpdir is not None:
-            try:
-                for f in (flash, code_path(flash)):
-                    if os.path.exists(f):
-                        os.unlink(f)
-                os.rmdir(tmpdir)
-            except OSError:
-                pass
+            _remove_temporary_flash(tmpdir, [flash, code_path(flash)])
     return 0
 
 

@@ -25,7 +25,7 @@ Limits of the model: the serial framing of AN3155 is 8 data bits, EVEN parity, 1
 advances by the typical program/erase times (targets.py). Go into RAM runs nothing but
 stm32flash's reset stub (a write of SYSRESETREQ to AIRCR), recognised and performed as a
 system reset; other RAM code is refused (NACK). Go into flash starts the image whose ELF the
-emulator knows (see machine.match_elf).
+emulator knows (see image.match_elf).
 """
 from __future__ import annotations
 

@@ -28,16 +28,13 @@ CPU load figures of bench/arm_cycles.py count only idle time as free.
 from __future__ import annotations
 
 import random
-import re
-import select
 import sys
 import time
-from ctypes import byref, c_int, c_uint8, c_uint64
+from ctypes import c_uint8, c_uint64
 
 from unicorn import UcError
 from unicorn.arm_const import UC_ARM_REG_PC, UC_ARM_REG_R1
 
-from . import simlib
 from .clock import Clock
 from .core import Cpu, ElfImage
 from .dma import DmaF1, DmaF4
@@ -49,69 +46,13 @@ from .spi import Spi
 from .systick import SysTick
 from .targets import Target
 from .uid import UniqueId
+from .image import code_regions
 from .usart import Usart
 
 REGION_NAMES = ("other", "core", "drivers", "board", "lib")
 INF = float("inf")
 MAX_LAG_WALL_S = 0.2
 RESET_POWER_CUT = 2
-
-
-def code_regions(map_path: str, target: Target) -> bytearray:
-    """Per half-word of the code region: 1 core, 2 drivers, 3 board, 4 C library, 0 other,
-    from the linker map's input sections (.text*)."""
-    n = (target.param_base - target.flash_base) // 2
-    regions = bytearray(n)
-    sec = None
-    pat = re.compile(r"^\s*(\.\S+)?\s+0x([0-9a-f]+)\s+0x([0-9a-f]+)\s+(\S+)")
-    with open(map_path, encoding="utf-8", errors="replace") as f:
-        for line in f:
-            if line.startswith(" .") and len(line.split()) == 1:
-                sec = line.split()[0]
-                continue
-            mo = pat.match(line)
-            if not mo:
-                sec = None if line.startswith(" .") is False and not line.startswith("   ") else sec
-                continue
-            name = mo.group(1) or sec
-            sec = None
-            if not name or not name.startswith(".text"):
-                continue
-            addr, size, obj = int(mo.group(2), 16), int(mo.group(3), 16), mo.group(4)
-            if size == 0 or not target.flash_base <= addr < target.param_base:
-                continue
-            if "/firmware/core/" in obj:
-                kind = 1
-            elif "/firmware/drivers/" in obj:
-                kind = 2
-            elif "/firmware/boards/" in obj:
-                kind = 3
-            else:
-                kind = 4
-            lo = (addr - target.flash_base) // 2
-            hi = min(n, (addr + size - target.flash_base + 1) // 2)
-            regions[lo:hi] = bytes([kind]) * (hi - lo)
-    return regions
-
-
-def flash_segments(elf_path: str, target: Target) -> list[tuple[int, bytes]]:
-    """The loadable bytes an image puts into the code pages."""
-    img = ElfImage(elf_path)
-    return [(a, d) for a, d in img.segments if target.flash_base <= a < target.param_base]
-
-
-def match_elf(code: bytes, candidates: list[str], target: Target) -> str | None:
-    """The ELF (of those the emulator was given) whose code is what the code pages hold: the
-    emulator runs an image through its symbols (fast-forward hooks), so a flash written by a
-    tool (stm32flash) is run as the ELF it matches. None: blank, half written or unknown."""
-    for path in candidates:
-        try:
-            segs = flash_segments(path, target)
-        except (OSError, ValueError):
-            continue
-        if segs and all(code[a - target.flash_base:a - target.flash_base + len(d)] == d for a, d in segs):
-            return path
-    return None
 
 
 class Machine:
@@ -651,133 +592,3 @@ class Machine:
         sk = self.clock.skipped
         self.lib.simlib_set_arm_detail(regions, self.idle_instructions, sk["busy"], sk["stall"], self.spi.bus_time,
                                        self.spi.bytes, self.spi.transactions, self.clock.cpi)
-
-
-class Server:
-    """The process around a Machine: the serial endpoint and control channel of
-    libimumodels.so, pacing device time against the wall clock (speed), as imubench-sim."""
-
-    def __init__(self, machine: Machine, lib, speed: float):
-        self.m = machine
-        self.lib = lib
-        self.speed = speed
-        lib.simlib_set_time(round(machine.now() * 1e6))
-        self.anchor_wall = time.monotonic()
-        self.anchor_dev = machine.now()
-        self.slips = 0
-        self.quit = False
-        self._bp_since: float | None = None
-
-    def _pace_target(self, wall: float) -> float:
-        return self.anchor_dev + (wall - self.anchor_wall) * (self.speed if self.speed > 0 else 1.0)
-
-    def serve(self, should_stop=lambda: False) -> None:
-        lib, m = self.lib, self.m
-        pfd = (simlib.PollFd * 16)()
-        last_wall = time.monotonic()
-        while not self.quit and not should_stop() and not m.exit_to_rom:
-            wall = time.monotonic()
-            sp = lib.simlib_speed()
-            if sp != self.speed:  # control channel set_speed
-                self.anchor_dev = m.now() if self.speed == 0 else self._pace_target(wall)
-                self.anchor_wall = wall
-                self.speed = sp
-            now = m.now()
-            m.set_model_time(now)
-            ext = lib.simlib_next_event()
-            # a deadline already reached is not one to stop at: the models catch up with it at
-            # the next set_model_time (e.g. once an open SPI transaction is committed)
-            m.ext_deadline = ext * 1e-6 if ext != 0xFFFFFFFFFFFFFFFF and ext * 1e-6 > now else INF
-            m._recompute_next()
-            if self.speed > 0:
-                target = self._pace_target(wall)
-                if target - now > MAX_LAG_WALL_S * self.speed:
-                    self.anchor_dev, self.anchor_wall = now, wall
-                    target = now
-                    self.slips += 1
-            else:
-                # as fast as it goes; when the host does not read, wait up to 50 ms for it
-                # (as imubench-sim does), then run on
-                target = now + 0.05
-                if lib.simlib_link_blocked() and lib.simlib_link_staged() > 32768:
-                    if self._bp_since is None:
-                        self._bp_since = wall
-                    if wall - self._bp_since < 0.05:
-                        target = now
-                else:
-                    self._bp_since = None
-            idle_cap = INF
-            if self.speed == 0:
-                idle = now + (wall - last_wall)
-                idle_cap = m.ext_deadline if m.ext_deadline != INF and m.ext_deadline > idle else idle
-            last_wall = wall
-            if target > now:
-                m.run_until(target, 0.02, idle_cap)
-            now = m.now()
-            m.usart.drain(now)
-            m.set_model_time(now)
-            if lib.simlib_link_staged():
-                lib.simlib_link_flush()
-            m.publish()
-            lib.sim_control_check_waits()
-            if lib.simlib_quit():
-                break
-            # how long to wait for I/O
-            if self.speed > 0:
-                ahead = now - self._pace_target(time.monotonic())
-                timeout = min(max(ahead / self.speed, 0.0), 0.02) if ahead > 0 else 0.0
-                nxt = min(m.next_ev, m.ext_deadline)
-                if ahead <= 0 and nxt > now:
-                    timeout = min((nxt - now) / self.speed, 0.02) if nxt != INF else 0.02
-            else:
-                asleep = m.cpu.wfi and not m.streaming() and m.ext_deadline == INF
-                timeout = 0.002 if asleep else 0.0
-            self._io(pfd, timeout)
-            k = lib.simlib_take_reset()
-            if k == RESET_POWER_CUT:
-                m.request_reset("power_cut", "power cut (control channel)")
-                m.take_reset()
-                if m.exit_to_rom:
-                    break
-            m.usart.schedule_rx(m.now())
-
-    def _io(self, pfd, timeout: float) -> None:
-        lib = self.lib
-        lfd, cfd = c_int(), c_int()
-        lib.simlib_link_fds(byref(lfd), byref(cfd))
-        poller = select.poll()
-        if lfd.value >= 0:
-            poller.register(lfd.value, select.POLLIN)
-        if cfd.value >= 0:
-            ev = select.POLLIN | (select.POLLOUT if lib.simlib_link_blocked() and lib.simlib_link_staged() else 0)
-            poller.register(cfd.value, ev)
-        n_ctl = lib.sim_control_pollfds(pfd, 16)
-        slot = {}
-        for i in range(n_ctl):
-            slot[pfd[i].fd] = i
-            pfd[i].revents = 0
-            poller.register(pfd[i].fd, pfd[i].events)
-        try:
-            ready = poller.poll(max(timeout, 0.0) * 1000.0)
-        except InterruptedError:
-            return
-        ctl_ready = False
-        for fd, ev in ready:
-            if fd == lfd.value:
-                if lib.simlib_link_accept() == 0:
-                    self.m.log("link: TCP client connected")
-            elif fd == cfd.value:
-                if ev & (select.POLLIN | select.POLLHUP | select.POLLERR):
-                    lib.simlib_link_receive()
-                if ev & select.POLLOUT:
-                    lib.simlib_link_flush()
-            elif fd in slot:
-                pfd[slot[fd]].revents = ev
-                ctl_ready = True
-        if ctl_ready:
-            spi = self.m.spi
-            if spi.cs is not None and spi.tx:
-                # a fault injected now changes the sensor's answer between the bytes the image
-                # has received and the transaction committed at chip select rise
-                spi.control_during_transaction = True
-            lib.sim_control_handle(pfd, n_ctl)

@@ -102,7 +102,7 @@ class RccF1:
         self._sws_last = self._sws()
         self.m.clock_changed()
 
-    # the bits the F103 family defines (ST's SVD; tests/test_svd_registers.py), the rest reserved
+    # the bits the F103 family defines (ST's SVD; tests/firmware/test_svd_registers.py), the rest reserved
     WRITABLE = {0x0C: 0x0038FFFD, 0x10: 0x3AFEC9FF, 0x14: 0x557, 0x18: 0x0038FFFD, 0x1C: 0x3AFEC9FF}
 
 
@@ -205,7 +205,7 @@ class RccF4:
 
     RESET_KEEP = {0x54: 0x30}   # AHB2LPENR 5:4 (CRYP/HASH of the F415/417): reserved here, reset value 1
     PLLCFGR_KEEP = 1 << 29    # reserved, reset value 1, "must be kept at reset value"
-    # the bits the F405/407 define (ST's SVD; tests/test_svd_registers.py), the rest reserved
+    # the bits the F405/407 define (ST's SVD; tests/firmware/test_svd_registers.py), the rest reserved
     WRITABLE = {0x10: 0x226011FF, 0x14: 0xC1, 0x18: 0x1, 0x20: 0x36FEC9FF, 0x24: 0x75933, 0x30: 0x7E7411FF,
                 0x34: 0xC1, 0x38: 0x1, 0x40: 0x36FEC9FF, 0x44: 0x75F33, 0x50: 0x7E6791FF, 0x54: 0xC1, 0x58: 0x1,
                 0x60: 0x36FEC9FF, 0x64: 0x75F33}

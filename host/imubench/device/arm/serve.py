@@ -1,0 +1,140 @@
+"""Serving an emulated board (machine.Machine): its serial endpoint and control channel on
+sockets or a pty, paced to the requested speed against the wall clock."""
+from __future__ import annotations
+
+import select
+import time
+from ctypes import byref, c_int
+
+from . import simlib
+from .machine import INF, MAX_LAG_WALL_S, RESET_POWER_CUT, Machine
+
+
+class Server:
+    """The process around a Machine: the serial endpoint and control channel of
+    libimumodels.so, pacing device time against the wall clock (speed), as imubench-sim."""
+
+    def __init__(self, machine: Machine, lib, speed: float):
+        self.m = machine
+        self.lib = lib
+        self.speed = speed
+        lib.simlib_set_time(round(machine.now() * 1e6))
+        self.anchor_wall = time.monotonic()
+        self.anchor_dev = machine.now()
+        self.slips = 0
+        self.quit = False
+        self._bp_since: float | None = None
+
+    def _pace_target(self, wall: float) -> float:
+        return self.anchor_dev + (wall - self.anchor_wall) * (self.speed if self.speed > 0 else 1.0)
+
+    def serve(self, should_stop=lambda: False) -> None:
+        lib, m = self.lib, self.m
+        pfd = (simlib.PollFd * 16)()
+        last_wall = time.monotonic()
+        while not self.quit and not should_stop() and not m.exit_to_rom:
+            wall = time.monotonic()
+            sp = lib.simlib_speed()
+            if sp != self.speed:  # control channel set_speed
+                self.anchor_dev = m.now() if self.speed == 0 else self._pace_target(wall)
+                self.anchor_wall = wall
+                self.speed = sp
+            now = m.now()
+            m.set_model_time(now)
+            ext = lib.simlib_next_event()
+            # a deadline already reached is not one to stop at: the models catch up with it at
+            # the next set_model_time (e.g. once an open SPI transaction is committed)
+            m.ext_deadline = ext * 1e-6 if ext != 0xFFFFFFFFFFFFFFFF and ext * 1e-6 > now else INF
+            m._recompute_next()
+            if self.speed > 0:
+                target = self._pace_target(wall)
+                if target - now > MAX_LAG_WALL_S * self.speed:
+                    self.anchor_dev, self.anchor_wall = now, wall
+                    target = now
+                    self.slips += 1
+            else:
+                # as fast as it goes; when the host does not read, wait up to 50 ms for it
+                # (as imubench-sim does), then run on
+                target = now + 0.05
+                if lib.simlib_link_blocked() and lib.simlib_link_staged() > 32768:
+                    if self._bp_since is None:
+                        self._bp_since = wall
+                    if wall - self._bp_since < 0.05:
+                        target = now
+                else:
+                    self._bp_since = None
+            idle_cap = INF
+            if self.speed == 0:
+                idle = now + (wall - last_wall)
+                idle_cap = m.ext_deadline if m.ext_deadline != INF and m.ext_deadline > idle else idle
+            last_wall = wall
+            if target > now:
+                m.run_until(target, 0.02, idle_cap)
+            now = m.now()
+            m.usart.drain(now)
+            m.set_model_time(now)
+            if lib.simlib_link_staged():
+                lib.simlib_link_flush()
+            m.publish()
+            lib.sim_control_check_waits()
+            if lib.simlib_quit():
+                break
+            # how long to wait for I/O
+            if self.speed > 0:
+                ahead = now - self._pace_target(time.monotonic())
+                timeout = min(max(ahead / self.speed, 0.0), 0.02) if ahead > 0 else 0.0
+                nxt = min(m.next_ev, m.ext_deadline)
+                if ahead <= 0 and nxt > now:
+                    timeout = min((nxt - now) / self.speed, 0.02) if nxt != INF else 0.02
+            else:
+                asleep = m.cpu.wfi and not m.streaming() and m.ext_deadline == INF
+                timeout = 0.002 if asleep else 0.0
+            self._io(pfd, timeout)
+            k = lib.simlib_take_reset()
+            if k == RESET_POWER_CUT:
+                m.request_reset("power_cut", "power cut (control channel)")
+                m.take_reset()
+                if m.exit_to_rom:
+                    break
+            m.usart.schedule_rx(m.now())
+
+    def _io(self, pfd, timeout: float) -> None:
+        lib = self.lib
+        lfd, cfd = c_int(), c_int()
+        lib.simlib_link_fds(byref(lfd), byref(cfd))
+        poller = select.poll()
+        if lfd.value >= 0:
+            poller.register(lfd.value, select.POLLIN)
+        if cfd.value >= 0:
+            ev = select.POLLIN | (select.POLLOUT if lib.simlib_link_blocked() and lib.simlib_link_staged() else 0)
+            poller.register(cfd.value, ev)
+        n_ctl = lib.sim_control_pollfds(pfd, 16)
+        slot = {}
+        for i in range(n_ctl):
+            slot[pfd[i].fd] = i
+            pfd[i].revents = 0
+            poller.register(pfd[i].fd, pfd[i].events)
+        try:
+            ready = poller.poll(max(timeout, 0.0) * 1000.0)
+        except InterruptedError:
+            return
+        ctl_ready = False
+        for fd, ev in ready:
+            if fd == lfd.value:
+                if lib.simlib_link_accept() == 0:
+                    self.m.log("link: TCP client connected")
+            elif fd == cfd.value:
+                if ev & (select.POLLIN | select.POLLHUP | select.POLLERR):
+                    lib.simlib_link_receive()
+                if ev & select.POLLOUT:
+                    lib.simlib_link_flush()
+            elif fd in slot:
+                pfd[slot[fd]].revents = ev
+                ctl_ready = True
+        if ctl_ready:
+            spi = self.m.spi
+            if spi.cs is not None and spi.tx:
+                # a fault injected now changes the sensor's answer between the bytes the image
+                # has received and the transaction committed at chip select rise
+                spi.control_during_transaction = True
+            lib.sim_control_handle(pfd, n_ctl)

@@ -1,0 +1,477 @@
+"""Calibrating from a recording (imubench calibrate --from; imubench.recordings,
+imubench.procedures.from_file, imubench.results.paramfiles): every format with a small file made
+here, units declared and refused, gaps, duplicates and irregular time, the writers' layouts,
+the command line end to end and the guided session's known-angle turn step."""
+from __future__ import annotations
+
+import json
+import re
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from imu_synth import G0, ferraris_session, write_csv
+from imubench.procedures.from_file import FileAnalysis, FileConfig
+from imubench.recordings import RecordingError, from_arrays, read
+from imubench.results import paramfiles
+
+FS = 100.0
+
+
+@pytest.fixture(scope="module")
+def session():
+    ua, ug, truth, events = ferraris_session(fs=FS, seed=2)
+    return ua, ug, truth, events
+
+
+def _check_truth(fa: FileAnalysis, truth, gyro=True):
+    za = (fa.accel.m - truth["accel_m"]) / fa.accel.sigma_m
+    assert np.abs(za).max() < 5, za
+    assert np.all(np.abs(fa.accel.b - truth["accel_b"]) < 5 * fa.accel.sigma_b + 1e-4)
+    if gyro:
+        zg = (fa.gyro.m - truth["gyro_m"]) / fa.gyro.sigma_m
+        assert np.abs(zg).max() < 3, zg
+
+
+def _analyse(rec, **cfg):
+    fa = FileAnalysis(rec, FileConfig(**{"gyro": "turns", **cfg}), say=lambda s: None)
+    return fa, fa.run()
+
+
+# ------------------------------------------------------------------ formats
+def test_csv_by_common_names_with_time_in_ms(session, tmp_path):
+    ua, ug, truth, _ = session
+    p = write_csv(tmp_path / "log.csv", ua / G0, np.degrees(ug), FS)
+    rec = read(p, accel_unit="g", gyro_unit="dps")
+    assert rec.fmt == "csv" and abs(rec.fs_hz - FS) < 1e-6
+    assert any("columns found by name" in n for n in rec.notes)
+    assert any("time unit ms from the column name" in n for n in rec.notes)
+    fa, res = _analyse(rec)
+    _check_truth(fa, truth)
+    assert [t["label"] for t in res["turns"]] == ["turn about +X", "turn about +Y", "turn about +Z"]
+    assert sorted(set(fa.faces)) == ["+X", "+Y", "+Z", "-X", "-Y", "-Z"]
+    # a better declared hand (a stop to turn against) gives smaller sigmas, in proportion
+    fa2, _ = _analyse(rec, angle_sigma_deg=0.25)
+    sig = [np.diag(np.array(f.gyro_parts["fits"]["turns"]["sigma_m"])) for f in (fa, fa2)]
+    assert np.allclose(sig[1] / sig[0], 0.25, rtol=0.05)
+
+
+def test_csv_columns_mapped_by_option_and_by_profile(session, tmp_path):
+    ua, ug, truth, _ = session
+    hdr = ("Time", "Acc1", "Acc2", "Acc3", "Rot1", "Rot2", "Rot3")
+    p = write_csv(tmp_path / "vendor.csv", ua, ug, FS, header=hdr, t=np.arange(len(ua)) / FS)
+    with pytest.raises(RecordingError, match="no accel columns found.*--columns"):
+        read(p, accel_unit="mps2", gyro_unit="rad_s")
+    cols = {"ax": "Acc1", "ay": "Acc2", "az": "Acc3", "gx": "Rot1", "gy": "Rot2", "gz": "Rot3"}
+    with pytest.raises(RecordingError, match="does not say its unit"):
+        read(p, columns=cols, time_column="Time", accel_unit="mps2", gyro_unit="rad_s")
+    rec = read(p, columns=cols, time_column="Time", time_unit="s", accel_unit="mps2", gyro_unit="rad_s")
+    _check_truth(_analyse(rec)[0], truth)
+    from imubench.recordings.readers import load_profile
+    prof = tmp_path / "vendor.toml"
+    prof.write_text('[columns]\nax = "Acc1"\nay = "Acc2"\naz = "Acc3"\ngx = "Rot1"\ngy = "Rot2"\ngz = "Rot3"\n'
+                    't = "Time"\n[units]\naccel = "mps2"\ngyro = "rad_s"\ntime = "s"\n')
+    rec2 = read(p, **load_profile(prof))
+    assert np.array_equal(rec2.accel, rec.accel)
+    prof.write_text('colums = 1\n')
+    with pytest.raises(RecordingError, match="unknown key.*colums"):
+        load_profile(prof)
+
+
+def test_imutk_two_files(session, tmp_path):
+    ua, ug, truth, _ = session
+    t = np.arange(len(ua)) / FS
+    counts_per_g, counts_per_dps = 16384.0, 131.0
+    np.savetxt(tmp_path / "acc.mat", np.column_stack([t, np.round(ua / G0 * counts_per_g)]), fmt="%.9g")
+    np.savetxt(tmp_path / "gyro.mat", np.column_stack([t, np.round(np.degrees(ug) * counts_per_dps)]), fmt="%.9g")
+    with pytest.raises(RecordingError, match="--gyro-file"):
+        read(tmp_path / "acc.mat", "imutk", accel_unit="counts", gyro_unit="counts")
+    rec = read(tmp_path / "acc.mat", "imutk", gyro_file=tmp_path / "gyro.mat", accel_unit="counts",
+               gyro_unit="counts", accel_counts_per_g=counts_per_g, gyro_counts_per_dps=counts_per_dps)
+    fa, _ = _analyse(rec)
+    _check_truth(fa, truth)
+
+
+def test_counts_without_a_scale_report_counts_per_unit(session, tmp_path):
+    ua, ug, truth, _ = session
+    cpg, cpd = 4096.0, 32.8
+    rec = from_arrays(ua / G0 * cpg, np.degrees(ug) * cpd, rate_hz=FS, accel_unit_name="counts",
+                      gyro_unit_name="counts")
+    fa, res = _analyse(rec)
+    m_counts = np.asarray(res["accel_counts_per_g"])
+    assert np.allclose(m_counts, truth["accel_m"] * cpg, rtol=0, atol=5 * fa.accel.sigma_m.max() * cpg)
+    g_counts = np.asarray(res["gyro_counts_per_dps"])
+    assert np.allclose(g_counts, truth["gyro_m"] * cpd, atol=3 * fa.gyro.sigma_m.max() * cpd)
+
+
+def test_imucal_layout(session, tmp_path):
+    ua, ug, truth, _ = session
+    p = tmp_path / "imucal.csv"
+    np.savetxt(p, np.column_stack([np.arange(len(ua)), np.degrees(ug), ua]), delimiter=",",
+               header="n_samples,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z", comments="", fmt="%.9g")
+    with pytest.raises(RecordingError, match="--rate"):
+        read(p, accel_unit="mps2", gyro_unit="dps")
+    rec = read(p, rate_hz=FS, accel_unit="mps2", gyro_unit="dps")
+    assert rec.fmt == "imucal"
+    _check_truth(_analyse(rec)[0], truth)
+
+
+def test_our_npz(session, tmp_path):
+    ua, ug, truth, _ = session
+    p = tmp_path / "decoded.npz"
+    np.savez_compressed(p, t_us=(np.arange(len(ua)) * 1e6 / FS).astype(np.int64), sample_index=np.arange(len(ua)),
+                        status=np.zeros(len(ua), np.uint8), accel_mps2=ua, rate_rad_s=ug)
+    rec = read(p)
+    assert rec.fmt == "npz" and rec.accel_unit == "mps2" and rec.gyro_unit == "rad_s"
+    _check_truth(_analyse(rec)[0], truth)
+    np.savez(tmp_path / "other.npz", a=np.zeros(3))
+    with pytest.raises(RecordingError, match="accel_mps2"):
+        read(tmp_path / "other.npz")
+
+
+def _write_bag(path: Path, ua, ug, ros1: bool, topic="/imu/data", extra_topic=None):
+    from rosbags.typesys import Stores, get_typestore
+    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    T = ts.types
+    imu_t = "sensor_msgs/msg/Imu"
+
+    def msg(i):
+        ns = int(round(i * 1e9 / FS)) + 1_700_000_000 * 10**9
+        hk = {"stamp": T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9), "frame_id": "imu"}
+        if ros1:
+            hk["seq"] = i
+        v3 = T["geometry_msgs/msg/Vector3"]
+        return T[imu_t](header=T["std_msgs/msg/Header"](**hk), orientation=T["geometry_msgs/msg/Quaternion"](
+            x=0.0, y=0.0, z=0.0, w=1.0), orientation_covariance=np.zeros(9),
+            angular_velocity=v3(x=float(ug[i, 0]), y=float(ug[i, 1]), z=float(ug[i, 2])),
+            angular_velocity_covariance=np.zeros(9),
+            linear_acceleration=v3(x=float(ua[i, 0]), y=float(ua[i, 1]), z=float(ua[i, 2])),
+            linear_acceleration_covariance=np.zeros(9)), ns
+    if ros1:
+        from rosbags.rosbag1 import Writer
+        ser = ts.serialize_ros1
+        w = Writer(path)
+    else:
+        from rosbags.rosbag2 import Writer
+        ser = ts.serialize_cdr
+        w = Writer(path, version=8)
+    with w:
+        conn = w.add_connection(topic, imu_t, typestore=ts)
+        conn2 = w.add_connection(extra_topic, imu_t, typestore=ts) if extra_topic else None
+        for i in range(len(ua)):
+            m, ns = msg(i)
+            w.write(conn, ns, ser(m, imu_t))
+            if conn2 is not None and i < 10:
+                w.write(conn2, ns, ser(m, imu_t))
+    return path
+
+
+@pytest.mark.parametrize("ros1", [True, False], ids=["ros1", "ros2"])
+def test_rosbag(session, tmp_path, ros1):
+    ua, ug, truth, _ = session
+    p = _write_bag(tmp_path / ("imu.bag" if ros1 else "imu_bag2"), ua, ug, ros1)
+    rec = read(p)
+    assert rec.fmt == "rosbag" and abs(rec.fs_hz - FS) < 1e-3
+    _check_truth(_analyse(rec)[0], truth)
+    p2 = _write_bag(tmp_path / ("two.bag" if ros1 else "two_bag2"), ua[:50], ug[:50], ros1, extra_topic="/imu2")
+    with pytest.raises(RecordingError, match="several sensor_msgs/Imu topics.*--topic"):
+        read(p2)
+    assert len(read(p2, topic="/imu2")) == 10
+
+
+def test_rosbag_without_the_extra_says_how_to_install(tmp_path, monkeypatch):
+    (tmp_path / "x.bag").write_bytes(b"#ROSBAG V2.0\n")
+    monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)      # import fails as if not installed
+    with pytest.raises(RecordingError, match=r"pip install 'imubench\[rosbag\]'"):
+        read(tmp_path / "x.bag")
+
+
+def test_turns_and_rotation_method_combined_when_both_are_present():
+    ua, ug, truth, _ = ferraris_session(fs=FS, seed=5, both_ways=True)
+    rec = from_arrays(ua, ug, rate_hz=FS)
+    fa, res = _analyse(rec)
+    parts = res["gyro_parts"]
+    assert set(parts["fits"]) == {"turns", "rotation"} and not parts["refused"]
+    assert fa.gyro.method == "turns+rotation" and fa.gyro.extra["consistent"]
+    turns_sigma = np.asarray(parts["fits"]["turns"]["sigma_m"])
+    assert np.all(fa.gyro.sigma_m <= turns_sigma + 1e-12)       # the combination is at least as good
+    assert np.abs((fa.gyro.m - truth["gyro_m"]) / fa.gyro.sigma_m).max() < 4
+    # asked for the rotation method, the turns join in the same way
+    fa2, _ = _analyse(rec, gyro="rotation")
+    assert fa2.gyro.method == "turns+rotation" and np.allclose(fa2.gyro.m, fa.gyro.m)
+
+
+def test_multi_position_from_a_file_with_edges_and_corners():
+    ua, ug, truth, _ = ferraris_session(fs=FS, seed=7, edges=True)
+    fa, res = _analyse(from_arrays(ua, ug, rate_hz=FS), method="multi")
+    assert fa.accel.method == "multi_position"
+    # multi-position's frame: M = L·Q, lower triangular; compare what |a| = g can see
+    from imubench.calib.accel import lower_triangular_form
+    l_true, _ = lower_triangular_form(truth["accel_m"])
+    est = fa.accel.m
+    assert np.abs(est - l_true).max() < 5 * np.nanmax(fa.accel.sigma_m) + 1e-4
+    assert res["accel_rms_after_mg"] < 0.5
+
+
+# ------------------------------------------------------------------ units
+def test_implausible_units_are_refused_with_the_numbers(session):
+    ua, ug, _, _ = session
+    rec = from_arrays(ua, np.degrees(ug), rate_hz=FS, accel_unit_name="g", gyro_unit_name="dps")
+    with pytest.raises(RecordingError, match=r"implausible.*9\.8.*g, far from 1 g.*declare --accel-unit mps2"):
+        _analyse(rec)
+    # a gyro unit that only looks wrong: used, with a warning and its numbers; the accelerometer result stands
+    rec = from_arrays(ua, np.degrees(ug), rate_hz=FS, accel_unit_name="mps2", gyro_unit_name="rad_s")
+    fa, res = _analyse(rec)
+    assert any("declared gyro unit (rad/s) is doubtful" in n and "°/s" in n and "the declared unit is used" in n
+               for n in res["notes"])
+    assert res["passed"] and res["gyro_refused"] and res["verdict"].startswith("accelerometer calibrated")
+    assert "gyro not:" in res["verdict"]
+    # rates at rest no MEMS gyro's bias reaches leave no doubt: the gyro is refused, the accelerometer kept
+    rec = from_arrays(ua, np.degrees(ug) + 3.0, rate_hz=FS, accel_unit_name="mps2", gyro_unit_name="rad_s")
+    fa, res = _analyse(rec)
+    assert "the unit is wrong" in res["gyro_refused"] and "--gyro-unit dps" in res["gyro_refused"]
+    assert res["gyro"] is None and res["passed"] and res["accel"]["m"]
+
+
+# ------------------------------------------------------------------ timing
+def test_gap_inside_a_turn_makes_it_unusable_with_the_reason(session):
+    ua, ug, truth, events = session
+    t = np.arange(len(ua)) / FS
+    turn_x = [e for e in events if e[0] == "rot"][-3]            # the turn about X
+    mid = (turn_x[1] + turn_x[2]) // 2
+    keep = np.ones(len(ua), bool)
+    keep[mid:mid + 20] = False
+    rec = from_arrays(ua[keep], ug[keep], t_s=t[keep])
+    assert rec.timing["gaps"][0]["missing"] == 20
+    fa = FileAnalysis(rec, FileConfig(gyro="turns"), say=lambda s: None)
+    res = fa.run()            # the gyro's turns are refused; the accelerometer's result is kept
+    assert re.search(r"turn about \+X.*not continuous inside the turn", res["gyro_refused"])
+    assert res["gyro"]["method"] == "bias" and res["passed"]
+    assert res["verdict"].startswith("accelerometer calibrated") and "gyro not: known-angle turns" in res["verdict"]
+    # the same gap inside a rest changes nothing that matters
+    rest = [e for e in events if e[0] == "rest"][1]
+    keep = np.ones(len(ua), bool)
+    keep[rest[1] + 150:rest[1] + 170] = False
+    fa, res = _analyse(from_arrays(ua[keep], ug[keep], t_s=t[keep]))
+    _check_truth(fa, truth)
+
+
+def test_duplicates_dropped_backwards_refused_jitter_resampled(session):
+    ua, ug, truth, _ = session
+    t = np.arange(len(ua)) / FS
+    idx = np.sort(np.concatenate([np.arange(len(ua)), [100, 2000, 2000]]))
+    rec = from_arrays(ua[idx], ug[idx], t_s=t[idx])
+    assert rec.timing["duplicates"] == 3 and rec.timing["duplicates_identical"] == 3 and len(rec) == len(ua)
+    tb = t.copy()
+    tb[500] = tb[498]
+    with pytest.raises(RecordingError, match="backwards at sample 500"):
+        from_arrays(ua, ug, t_s=tb)
+    tj = t + np.random.default_rng(1).uniform(-0.3, 0.3, len(t)) / FS
+    rec = from_arrays(ua, ug, t_s=tj)
+    assert rec.timing["resampled"] and rec.timing["jitter_rel"] > 0.1
+    _check_truth(_analyse(rec)[0], truth, gyro=False)
+
+
+# ------------------------------------------------------------------ writers
+def test_writers_express_the_same_calibration(session, tmp_path):
+    ua, ug, truth, _ = session
+    fa, _ = _analyse(from_arrays(ua / G0 * 4096, np.degrees(ug), rate_hz=FS, accel_unit_name="counts",
+                                 gyro_unit_name="dps", accel_counts_per_g=4096))
+    u_raw = np.array([[100.0, -4000.0, 250.0]])                 # counts
+    x_ours = fa.accel.correct(u_raw * fa.fa)                  # m/s²
+    (acc_file,) = [p for p in paramfiles.write("imutk", tmp_path / "c", accel=fa.accel, gyro=None, accel_factor=fa.fa,
+                                           gyro_factor=None, accel_unit="counts", gyro_unit="dps", scaled=True)]
+    tm, km, bv = paramfiles.read_imutk_text(acc_file.read_text())
+    assert np.allclose(np.diag(tm), 1.0)
+    assert np.allclose((tm @ km @ (u_raw[0] - bv)), x_ours[0])
+    (js,) = paramfiles.write("imucal", tmp_path / "c", accel=fa.accel, gyro=fa.gyro, accel_factor=fa.fa,
+                         gyro_factor=fa.fg, accel_unit="counts", gyro_unit="dps", scaled=True)
+    d = json.loads(js.read_text())
+    assert d["cal_type"] == "Ferraris" and d["_format_version"] == "2.0.0" and d["from_acc_unit"] == "a.u."
+    ka, ra = np.array(d["K_a"]), np.array(d["R_a"])
+    assert np.allclose(np.linalg.norm(ra, axis=1), 1.0)
+    assert np.allclose(np.linalg.inv(ra) @ np.linalg.inv(ka) @ (u_raw[0] - d["b_a"]), x_ours[0])
+    w_dps = np.array([10.0, -20.0, 30.0])
+    x_g = np.degrees(fa.gyro.correct(np.radians(w_dps)[None, :])[0])
+    kg, rg = np.array(d["K_g"]), np.array(d["R_g"])
+    assert np.allclose(np.linalg.inv(rg) @ np.linalg.inv(kg) @ (w_dps - d["b_g"]), x_g)
+    (ap,) = paramfiles.write("ardupilot", tmp_path / "c", accel=fa.accel, gyro=fa.gyro, accel_factor=fa.fa,
+                         gyro_factor=fa.fg, accel_unit="counts", gyro_unit="dps", scaled=True)
+    vals = dict(ln.split(",") for ln in ap.read_text().splitlines() if not ln.startswith("#"))
+    assert np.allclose([float(vals[f"INS_ACCOFFS_{a}"]) for a in "XYZ"], fa.accel.b)
+    assert np.allclose([float(vals[f"INS_ACCSCAL_{a}"]) for a in "XYZ"], 1 / np.diag(fa.accel.m))
+    assert "no cross-axis terms" in ap.read_text()
+    from imubench.procedures.writeback import params_from_fits
+    from imubench.wire import params as PR
+    (pp,) = paramfiles.write("params", tmp_path / "c", accel=fa.accel, gyro=fa.gyro, accel_factor=fa.fa,
+                         gyro_factor=fa.fg, accel_unit="counts", gyro_unit="dps", scaled=True,
+                         params=params_from_fits(fa.accel, fa.gyro, PR.identity(), 0))
+    p = PR.from_json(json.loads(pp.read_text()))
+    PR.validate(p)
+    assert np.allclose(PR.correct(PR.accel(p), u_raw * fa.fa), x_ours, atol=1e-5)
+
+
+# ------------------------------------------------------------------ the command line
+def _cli(args, cwd: Path, timeout=180):
+    return subprocess.run([sys.executable, "-m", "imubench", "calibrate", *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=timeout, stdin=subprocess.DEVNULL)
+
+
+def test_cli_end_to_end(session, tmp_path):
+    ua, ug, truth, _ = session
+    p = write_csv(tmp_path / "board7.csv", ua / G0, np.degrees(ug), FS)
+    db = tmp_path / "h.sqlite"
+    r = _cli(["--from", str(p), "--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "turns", "--dir", "out",
+              "--db", str(db), "--device", "board 7", "--export", "imutk", "--export", "imucal", "--export",
+              "ardupilot", "--export", "params", "--tolerance-mg", "2"], tmp_path)
+    out = r.stdout
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "Traceback" not in out + r.stderr and r.stderr == ""
+    lines = out.splitlines()
+    assert lines[0].startswith(f"recording: {p} (csv), 7500 samples at 100 Hz (75.0 s); accelerometer g, gyro °/s")
+    assert "still intervals: 12 found by the data" in out
+    # no --method: six faces (6 distinct attitudes) cannot feed the 9-parameter |a| = g fit, so six is chosen
+    assert "method: six-position (the multi-position fit cannot be used: too few poses: 12 given, 6 distinct" in out
+    assert json.loads((tmp_path / "out" / "session.json").read_text())["config"]["method"] == "six"
+    assert "turn about +X" in out and "turn about +Y" in out and "turn about +Z" in out
+    assert "gyro (turns+rotation):" in out and "known-angle turns and the rotation method combined (consistent" in out
+    assert "recorded in the history as run 1" in out
+    assert lines[-1] == "calibration PASSED (fitted from a file; nothing is written to a device)"
+    d = tmp_path / "out"
+    for f in ("session.json", "residuals.png", "segmentation.png", "report.html", "calibration-board_7_acc.calib",
+              "calibration-board_7_gyro.calib", "calibration-board_7.imucal.json",
+              "calibration-board_7.ardupilot.param", "calibration-board_7.params.json"):
+        assert (d / f).is_file(), f
+    html = (d / "report.html").read_text()
+    assert "<h3>Recording</h3>" in html and "known-angle turns" in html and "data:image/png;base64" in html
+    with sqlite3.connect(db) as con:
+        (n, method), = con.execute("SELECT count(*), gyro_method FROM runs").fetchall()
+    assert n == 1 and method == "turns"
+    # the report command reads the directory like any session's
+    r2 = subprocess.run([sys.executable, "-m", "imubench", "report", str(d), "--out", str(tmp_path / "r.html")],
+                        capture_output=True, text=True, timeout=120)
+    assert r2.returncode == 0 and (tmp_path / "r.html").is_file(), r2.stderr
+
+
+@pytest.mark.parametrize("args,code,needle", [
+    (["--accel-unit", "g"], 1, "does not say its units: give --gyro-unit"),
+    (["--accel-unit", "mps2", "--gyro-unit", "dps"], 1, "implausible"),
+    (["--accel-unit", "furlongs", "--gyro-unit", "dps"], 1, "unknown accelerometer unit 'furlongs'"),
+    (["--accel-unit", "g", "--gyro-unit", "dps", "--port", "socket://127.0.0.1:1"], 2, "--from and --port exclude"),
+    (["--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "turntable"], 2, "--gyro turntable needs a turntable"),
+    (["--accel-unit", "g", "--gyro-unit", "dps", "--method", "multi"], 1, "cannot be observed"),
+])
+def test_cli_mistakes_give_one_line(session, tmp_path, args, code, needle):
+    ua, ug, _, _ = session
+    p = write_csv(tmp_path / "log.csv", ua / G0, np.degrees(ug), FS)
+    r = _cli(["--from", str(p), "--dir", "o", "--db", str(tmp_path / "h.sqlite"), *args], tmp_path)
+    err = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == code and len(err) == 1 and "Traceback" not in r.stdout + r.stderr, r.stdout + r.stderr
+    assert err[0].startswith("imubench calibrate: error: ") and needle in err[0], err[0]
+
+
+def test_cli_names_the_formats_and_writers_of_the_library_without_importing_it():
+    """Every command's parser is built at start-up: the --from options must not load the readers."""
+    import imubench.cli.calibrate as C
+    from imubench.recordings import FORMATS
+    assert C.FORMATS == FORMATS and C.WRITERS == paramfiles.WRITERS
+    r = subprocess.run([sys.executable, "-c", "import sys, importlib; importlib.import_module("
+                        "'imubench.cli.main').build_parser(); print('imubench.recordings' in sys.modules "
+                        "or 'imubench.results.paramfiles' in sys.modules or 'scipy' in sys.modules)"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == "False", r.stdout + r.stderr
+
+
+def test_cli_file_options_without_from_are_refused(tmp_path):
+    r = _cli(["--accel-unit", "g", "--sim"], tmp_path)
+    assert r.returncode == 2 and "--accel-unit goes with --from FILE" in r.stderr
+
+
+# ------------------------------------------------------------------ the guided session
+def test_guided_session_known_angle_turns_on_the_virtual_bench(tmp_path):
+    from imubench.device.link import Device
+    from imubench.device.sim import VirtualBench
+    from imubench.procedures.session import SessionConfig, SimPresenter, run_session
+    said = []
+    with VirtualBench(speed=40.0, seed=3, truth="random") as vb:
+        ui = SimPresenter(vb, seed=3, quiet=True)
+        ui.say = said.append
+        with Device.open(vb.port_url, timeout=5.0) as dev:
+            # no pose timeout, as `imubench calibrate` runs a person's session (it crashed the turn step)
+            result, _ = run_session(dev, tmp_path / "s", SessionConfig(gyro="turns", write=False, pose_timeout_s=None),
+                                    ui)
+        truth = vb.get_truth()
+    assert sum("turns the board 360°" in s for s in said) == 3
+    g = result["gyro"]
+    assert g["method"] == "turns"
+    m_true = np.array([gg["sens"] for gg in truth["gyro"]])
+    err = np.abs(np.asarray(g["m"]) - m_true) / np.asarray(g["sigma_m"])
+    assert err.max() < 3, err
+    # the session's own capture, calibrated from the file: the same poses, the same turns
+    rec = read(tmp_path / "s" / "capture-1.bin")
+    assert rec.fmt == "capture" and rec.accel_unit == "mps2" and abs(rec.fs_hz - 500) < 1
+    fa, res = _analyse(rec)
+    assert [t["label"] for t in res["turns"] if t["usable"]] == ["turn about +X", "turn about +Y", "turn about +Z"]
+    assert np.abs(fa.gyro.m - np.asarray(g["m"])).max() < 1e-3
+    # the file's accelerometer fit uses longer rests (and those around the turns) than the session's 2 s
+    # holds: it is at least as close to the truth as the session's, at the session's sigma
+    a_true = np.asarray(truth["accel"]["m"])
+    sig_session = np.asarray(result["accel"]["sigma_m"])
+    assert np.abs(fa.accel.m - a_true).max() < 4 * sig_session.max()
+
+
+# ------------------------------------------------------------------ issue 26: other people's recordings
+def test_headerless_table_read_by_position(session, tmp_path):
+    """A log of six numbers a line and no header (mikoff/imu-calib's .log): read by position,
+    found as csv from its content whatever its extension, and said so."""
+    ua, ug, truth, _ = session
+    p = tmp_path / "imu0.log"
+    np.savetxt(p, np.column_stack([ua, ug]), fmt="%.6f", delimiter=" ")
+    rec = read(p, rate_hz=FS, accel_unit="mps2", gyro_unit="rad_s")
+    assert rec.fmt == "csv" and np.allclose(rec.accel, ua, atol=1e-6) and np.allclose(rec.gyro, ug, atol=1e-6)
+    assert any("no header row: 6 columns read as ax ay az gx gy gz" in n for n in rec.notes)
+    # the columns in another order, by 1-based position
+    q = tmp_path / "swapped.txt"
+    np.savetxt(q, np.column_stack([ug, ua]), fmt="%.6f")
+    rec2 = read(q, rate_hz=FS, accel_unit="mps2", gyro_unit="rad_s",
+                columns={"gx": "1", "gy": "2", "gz": "3", "ax": "4", "ay": "5", "az": "6"})
+    assert np.allclose(rec2.accel, ua, atol=1e-6)
+    with pytest.raises(RecordingError, match="no header row: map the columns by position"):
+        read(q, rate_hz=FS, accel_unit="mps2", gyro_unit="rad_s", columns={"ax": "AccX"})
+
+
+def test_explicit_gyro_method_refused_keeps_the_accelerometer_and_exits_1(session, tmp_path):
+    """--gyro rotation on a recording whose motions cannot give it: the accelerometer's result is
+    printed, kept in session.json and the history, exported; the verdict says why; exit 1."""
+    ua, ug, _, events = session
+    rests = [e for e in events if e[0] == "rest"]
+    cut = rests[5][2]                         # the six faces: five motions, fewer than the method needs
+    p = write_csv(tmp_path / "short.csv", ua[:cut] / G0, np.degrees(ug[:cut]), FS)
+    db = tmp_path / "h.sqlite"
+    r = _cli(["--from", str(p), "--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "rotation", "--method", "six",
+              "--dir", "out", "--db", str(db), "--export", "imucal"], tmp_path)
+    if "not enough still poses" in r.stderr:
+        pytest.fail("the synthetic session's first rests are not six faces: " + r.stderr)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "Traceback" not in r.stdout + r.stderr
+    assert "verdict: accelerometer calibrated" in r.stdout and "gyro not: rotation_method:" in r.stdout
+    assert "calibration PARTIAL" in r.stdout
+    assert "--gyro rotation was refused" in r.stderr and "the accelerometer result is kept" in r.stderr
+    state = json.loads((tmp_path / "out" / "session.json").read_text())
+    assert state["result"]["accel"]["m"] and state["result"]["gyro_refused"].startswith("rotation_method:")
+    assert list((tmp_path / "out").glob("*.imucal.json"))
+    with sqlite3.connect(db) as con:
+        assert con.execute("SELECT count(*) FROM runs").fetchone()[0] == 1
+
+
+def test_live_six_with_rotation_is_refused_before_capture(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--sim", "--method", "six", "--gyro",
+                        "rotation", "--dir", "s", "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=60, stdin=subprocess.DEVNULL)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "6 attitudes give 5 motion(s)" in r.stderr and "nothing was captured" in r.stderr
+    assert not (tmp_path / "s").exists()
