@@ -561,6 +561,8 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
         correct_apply(&c->corr_accel, u, c->cal_bdt[0], c->cal_den[0], cs.accel_mps2);
         const float *gs = c->params.gyro_g_rad_s_per_mps2; /* g-sensitivity: w − G·a first */
         for (int k = 0; k < 3; k++) {
+            /* cs.accel_mps2 is written whole by correct_apply above; cppcheck does not follow it */
+            // cppcheck-suppress uninitvar
             w[k] -= gs[k * 3] * cs.accel_mps2[0] + gs[k * 3 + 1] * cs.accel_mps2[1] + gs[k * 3 + 2] * cs.accel_mps2[2];
         }
         correct_apply(&c->corr_gyro, w, c->cal_bdt[1], c->cal_den[1], cs.rate_rad_s);

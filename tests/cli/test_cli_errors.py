@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from procio import finish
 from imubench.wire import frame as P
 from imubench.wire.decoder import decode_bytes
 from imubench.wire.protocol_gen import BatchHeader, RawBatch
@@ -203,7 +204,7 @@ def _interrupt(argv, tmp: Path, marker: str, timeout: float = 120.0):
                 p.send_signal(signal.SIGINT)
                 break
             assert time.monotonic() - t0 < timeout, "".join(out)
-        rest, err = p.communicate(timeout=60)
+        rest, err = finish(p, timeout=60)
     finally:
         if p.poll() is None:
             p.kill()

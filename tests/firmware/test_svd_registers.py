@@ -266,11 +266,11 @@ PROBE = r'''
 import json, sys
 sys.path.insert(0, sys.argv[3])
 from pathlib import Path
-from imubench.device.arm.simlib import load, lib_path
+from imubench.device.arm.simlib import load
 from imubench.device.arm.targets import TARGETS
 from imubench.device.arm.machine import Machine
 root = Path(sys.argv[2]); t = TARGETS[sys.argv[1]]
-lib = load(lib_path(root))
+lib = load(root / "build" / "host" / "libimumodels.so")
 assert lib.simlib_open(1, 0, None, 0, 0, 0.0) == 0
 import tempfile, os
 d = tempfile.mkdtemp()
@@ -391,12 +391,12 @@ PROBE_SEQ = r'''
 import json, sys
 sys.path.insert(0, sys.argv[3])
 from pathlib import Path
-from imubench.device.arm.simlib import load, lib_path
+from imubench.device.arm.simlib import load
 from imubench.device.arm.targets import TARGETS
 from imubench.device.arm.machine import Machine
 import tempfile, os
 root = Path(sys.argv[2]); t = TARGETS[sys.argv[1]]
-lib = load(lib_path(root))
+lib = load(root / "build" / "host" / "libimumodels.so")
 assert lib.simlib_open(1, 0, None, 0, 0, 0.0) == 0
 m = Machine(t, str(root / "build/arm" / t.image / "imubench.elf"), None, lib,
             os.path.join(tempfile.mkdtemp(), "f.bin"), log=lambda s: None)

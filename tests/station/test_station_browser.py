@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from procio import finish
 from imubench.station.runner import SIM_KEY, Station
 from imubench.station.server import Server
 
@@ -206,7 +207,7 @@ def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
         assert [b["status"] for b in st["boards"]] == ["done", "failed", "done"]
     finally:
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
+        out, err = finish(proc, timeout=60)
     out = "".join(lines) + out
     assert "Traceback" not in out + err, out + err
     assert proc.returncode == 1, out + err                 # one board failed: the command says so

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import pytest
 
+from procio import finish
 from imubench.station.runner import Station
 from imubench.station.server import Server
 
@@ -189,9 +190,9 @@ def test_eight_boards_on_the_page_end_to_end(tmp_path, browser):
         col.screenshot(path=str(SHOTS / "station-board-column.png"))
     finally:
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=90)
+        out, err = finish(proc, timeout=90)
     out = "".join(lines) + out
     assert "Traceback" not in out + err, out + err
     assert proc.returncode == 1 and "1 of 8 boards failed: slot 3 at health" in err, out + err
-    assert "deadlines (device time): a board waits at most 300 s for the plate" in out
-    assert "7 of 8 boards passed" in out
+    assert "deadlines (device time): a board waits at most 300 s for the plate" in out, out
+    assert "7 of 8 boards passed" in out, out

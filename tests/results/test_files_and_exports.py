@@ -94,7 +94,7 @@ def test_decode_exports_are_not_written_through_links(tmp_path):
 
 def _capture(tmp_path: Path) -> Path:
     """A short raw capture: the shared protocol vectors' raw sample batch."""
-    vec = json.loads((Path(__file__).resolve().parent.parent / "protocol" / "vectors" / "vectors.json").read_text())
+    vec = json.loads((Path(__file__).resolve().parents[2] / "protocol" / "vectors" / "vectors.json").read_text())
     frames = [bytes.fromhex(v["frame_hex"]) for v in vec["vectors"] if v["name"] == "raw_batch_16"]
     assert frames, "the shared vectors hold a raw sample batch"
     p = tmp_path / "capture-1.bin"
