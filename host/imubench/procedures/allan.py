@@ -68,7 +68,7 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
     """The Allan analysis of a recording of any IMU read by imubench.recordings (the formats
     `calibrate --from` reads, with the same unit and timing checks), written like
     analyse_capture's, plus each consumer's noise file of `exports` (results.noise_export)."""
-    from imubench.procedures.from_file import check_accel_unit, check_gyro_unit
+    from imubench.procedures.recording_checks import check_accel_unit, check_gyro_unit
     from imubench.recordings import RecordingError
     from imubench.results.noise_export import write_noise
     fa, fg = rec.accel_factor(), rec.gyro_factor()

@@ -25,6 +25,8 @@ import numpy as np
 
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
+from imubench.procedures.recording_checks import (check_accel_unit, check_gyro_unit, check_turn_scale,
+                                                  compare_annotation, face_of)
 from imubench.procedures.session import Tolerances
 from imubench.recordings import Recording, RecordingError, timing_lines
 from imubench.results.atomic import write_json_atomic
@@ -32,9 +34,6 @@ from imubench.results.record import CalibrationRecord, fit_dict, jsonable, now_u
 from imubench.results.sessionfile import SESSION_SCHEMA
 
 GYRO_FILE_METHODS = ("auto", "bias", "turns", "rotation")
-ACCEL_PLAUSIBLE_G = (0.8, 1.25)          # still |a| in the declared unit, in g
-GYRO_REST_MAX_DPS = 20.0                 # a MEMS gyro's bias (zero-rate output) stays below this (MPU-6050: ±20 °/s)
-GYRO_REST_REFUSE_DPS = 60.0              # 3× that at rest leaves no doubt: the declared unit is wrong
 # what a class of accelerometer reaches after a linear calibration (RMS of |a| − g over the rests),
 # by its noise density measured at rest: (upper density µg/√Hz, tolerance mg, class, example)
 ACCEL_CLASSES = ((60.0, 1.0, "low-noise MEMS", "ADXL355, 25 µg/√Hz"),
@@ -43,7 +42,6 @@ ACCEL_CLASSES = ((60.0, 1.0, "low-noise MEMS", "ADXL355, 25 µg/√Hz"),
 RECORD_ADVICE = ("record turns about each board axis while it is off the vertical, both ways and from several "
                  "attitudes (rotation method: 12-24 motions between rests), or one full turn about X, Y and Z each "
                  "pointing up with a rest before and after (--gyro turns)")
-_AXES = "XYZ"
 
 
 @dataclass
@@ -69,116 +67,6 @@ def device_id(name: str) -> str:
     """A stable 24-hex-digit identifier for an IMU known by name (the history's device key):
     the first 12 bytes of SHA-256 of the name."""
     return hashlib.sha256(name.encode()).hexdigest()[:24].upper()
-
-
-def _face(d: np.ndarray) -> str:
-    k = int(np.argmax(np.abs(d)))
-    ang = math.degrees(math.acos(min(1.0, abs(d[k]) / np.linalg.norm(d))))
-    return (("+" if d[k] > 0 else "-") + _AXES[k]) if ang <= 30.0 else "other"
-
-
-# ------------------------------------------------------------------ units
-def _unit(rec: Recording, k: int) -> str:
-    """The declared unit of the accelerometer (k = 0) or gyro (k = 1), as said to a person."""
-    return rec.unit_text().split(", ")[k].split(" ", 1)[1]
-
-
-def check_accel_unit(rec: Recording, still_norm: np.ndarray) -> None:
-    """Refuse a declared accelerometer unit the still intervals contradict (|a| far from 1 g)."""
-    f = rec.accel_factor()
-    if f is None:
-        return
-    g_read = still_norm * f / U.G0_MPS2
-    med = float(np.median(g_read))
-    lo, hi = ACCEL_PLAUSIBLE_G
-    if lo <= med <= hi:
-        return
-    raw = float(np.median(still_norm))
-    factors = {"mps2": 1.0, "g": U.G0_MPS2, "mg": U.G0_MPS2 / 1000}
-    fits = [name for name, fac in factors.items() if lo <= raw * fac / U.G0_MPS2 <= hi]
-    hint = (f"read as {fits[0]} they would be {raw * factors[fits[0]] / U.G0_MPS2:.4f} g: "
-            f"declare --accel-unit {fits[0]}" if fits else
-            f"if these are raw counts, declare --accel-unit counts (and --accel-scale {raw:.0f} counts per g, "
-            "or the datasheet's)")
-    raise RecordingError(
-        f"the declared accelerometer unit ({_unit(rec, 0)}) is implausible: the "
-        f"{len(still_norm)} still intervals read |a| = {raw:.6g} in the file (median; range "
-        f"{still_norm.min():.6g} … {still_norm.max():.6g}), i.e. {med:.4g} g, far from 1 g; {hint}")
-
-
-def check_gyro_unit(rec: Recording, rest_rate: np.ndarray, factor: float) -> str | None:
-    """A declared gyro unit under which a board at rest would turn: RecordingError when no MEMS
-    gyro's bias comes near (≥ GYRO_REST_REFUSE_DPS), a warning (returned) when it is only
-    unusual (≥ GYRO_REST_MAX_DPS); None when plausible."""
-    dps = float(np.max(np.abs(rest_rate))) * factor * 180.0 / math.pi
-    if dps <= GYRO_REST_MAX_DPS:
-        return None
-    raw = float(np.max(np.abs(rest_rate)))
-    hint = ("the data look like °/s: declare --gyro-unit dps" if rec.gyro_unit == "rad_s" and raw < GYRO_REST_MAX_DPS
-            else "if these are raw counts, declare --gyro-unit counts (with --gyro-scale COUNTS_PER_DPS if known)")
-    text = (f"the declared gyro unit ({_unit(rec, 1)}) is doubtful: at rest (the longest still interval) the gyro "
-            f"reads up to {raw:.4g} in the file, i.e. {dps:.4g} °/s")
-    if dps >= GYRO_REST_REFUSE_DPS:
-        raise RecordingError(f"{text}, beyond {GYRO_REST_REFUSE_DPS:g} °/s, 3× the largest bias MEMS data sheets "
-                             f"allow (±{GYRO_REST_MAX_DPS:g} °/s): the unit is wrong; {hint}")
-    return (f"{text}, more than a MEMS gyro's bias usually is ({GYRO_REST_MAX_DPS:g} °/s) but possible: the declared "
-            f"unit is used; {hint} if that is wrong")
-
-
-def check_turn_scale(measured_rad: list[float], turn_rad: float, rec: Recording) -> str | None:
-    """A warning (never a refusal: the angle of a motion is not known, and returning to an
-    attitude by a small motion is normal) when the motions about the vertical between rests of
-    the same attitude integrate to a constant multiple of whole turns, as °/s read as rad/s
-    (57.3×) or the reverse would; None otherwise."""
-    if len(measured_rad) < 2:
-        return None
-    r = np.abs(np.asarray(measured_rad)) / turn_rad
-    med = float(np.median(r))
-    for factor, fix in ((180.0 / math.pi, "°/s read as rad/s: declare --gyro-unit dps"),
-                        (math.pi / 180.0, "rad/s read as °/s: declare --gyro-unit rad_s")):
-        near = np.abs(r / factor - np.round(r / factor)) < 0.1
-        if np.all(near & (np.round(r / factor) >= 1)):
-            return (f"the motions about the vertical between rests of the same attitude integrate to "
-                    f"{', '.join(f'{math.degrees(abs(m)):.0f}°' for m in measured_rad)} (median {med:.3g} turns of "
-                    f"{math.degrees(turn_rad):g}°): all {len(r)} are whole turns only if the gyro unit is off by "
-                    f"{factor:.4g}× ({fix}); the declared unit is used, as the turns' angles are not known")
-    return None
-
-
-# ------------------------------------------------------------------ segmentation vs annotation
-_ANNOT_FACE = {"x_p": "+X", "x_a": "-X", "y_p": "+Y", "y_a": "-Y", "z_p": "+Z", "z_a": "-Z"}
-
-
-def compare_annotation(parts, intervals, faces, turns, fs_hz: float) -> list[dict]:
-    """For each annotated section (imucal's names x_p ... z_a, x_rot ... z_rot), the detected
-    still interval (same face, largest overlap) or turn that matches it and the differences of
-    their ends in seconds; sections with nothing detected are listed with found False."""
-    out = []
-    for name, s, e in parts:
-        row = {"section": name, "start": s, "stop": e, "found": False}
-        if name in _ANNOT_FACE:
-            cands = [(min(e, iv.stop) - max(s, iv.start), i) for i, iv in enumerate(intervals)
-                     if faces[i] == _ANNOT_FACE[name]]
-            cands = [c for c in cands if c[0] > 0]
-            if cands:
-                _, i = max(cands)
-                iv = intervals[i]
-                row.update(found=True, kind="rest", detected=[iv.start, iv.stop],
-                           start_diff_s=(iv.start - s) / fs_hz, stop_diff_s=(iv.stop - e) / fs_hz,
-                           face=faces[i], annotated_inside_detected=iv.start <= s and e <= iv.stop)
-        elif name.endswith("_rot"):
-            axis = name[0].upper()
-            cands = [(min(e, t.stop) - max(s, t.start), i) for i, t in enumerate(turns)
-                     if t.label.endswith(axis)]
-            cands = [c for c in cands if c[0] > 0]
-            if cands:
-                _, i = max(cands)
-                t = turns[i]
-                row.update(found=True, kind="turn", detected=[t.start, t.stop],
-                           start_diff_s=(t.start - s) / fs_hz, stop_diff_s=(t.stop - e) / fs_hz,
-                           annotated_inside_detected=t.start <= s and e <= t.stop)
-        out.append(row)
-    return out
 
 
 # ------------------------------------------------------------------ the analysis
@@ -259,7 +147,7 @@ class FileAnalysis:
         self.intervals = keep
         means = np.array([i.mean for i in keep])
         sigmas = np.array([i.sigma_mean for i in keep])
-        self.faces = [_face(m) for m in means]
+        self.faces = [face_of(m) for m in means]
         self.say(f"still intervals: {len(keep)} found by the data (window {cfg.window_s:g} s, k = {ivs.k:g} × the "
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
                                             for f, i in zip(self.faces, keep)))
@@ -411,7 +299,7 @@ class FileAnalysis:
             b = rest.mean(axis=0)
             bs = rest.std(axis=0, ddof=1) / math.sqrt(len(rest))
             out.append(turn_in_window(gyr, fs, s0, s1, d, b, bs, turn_deg=self.cfg.turn_deg,
-                                      label=f"turn about {_face(d)} (part {name})"))
+                                      label=f"turn about {face_of(d)} (part {name})"))
         return out
 
     def _gyro_fit(self, gyr, fs, keep, up, bias, brk, clip) -> TriadFit:
