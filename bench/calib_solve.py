@@ -7,10 +7,13 @@ covariance (calib.accel.multi_position). Synthetic poses from a random truth wit
 ADXL355's noise at 500 Hz. Reports the median of repeated solves and how the time grows with
 the number of poses and of samples per pose. Prints a final JSON line.
 
-    python bench/calib_solve.py
+    python bench/calib_solve.py [--no-publish]
+
+Prints the markdown table README states and publishes it (bench/publish.py).
 """
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -22,6 +25,7 @@ import numpy as np  # noqa: E402
 from imubench.calib import accel as CA  # noqa: E402
 from imubench.calib.static import interval_stats  # noqa: E402
 from imubench.units import G0_MPS2  # noqa: E402
+from publish import add_arguments, publish  # noqa: E402
 
 FS = 500.0
 NOISE = 22.5e-6 * G0_MPS2 * np.sqrt(FS)
@@ -62,13 +66,28 @@ def timed(n_poses: int, n_samples: int, repeat: int = 15) -> float:
     return float(np.median(ts))
 
 
+def table(base: float, by_poses: dict[int, float], by_samples: dict[int, float]) -> str:
+    def ms(ts) -> str:
+        return " / ".join(f"{t * 1e3:.0f}" for t in ts) + " ms"
+    return ("| case | time |\n|---|---|\n"
+            f"| 26 poses × 2000 samples (target < 50 ms) | {ms([base])} |\n"
+            f"| {' / '.join(map(str, by_poses))} poses × 2000 samples | {ms(by_poses.values())} |\n"
+            f"| 26 poses × {' / '.join(map(str, by_samples))} samples | {ms(by_samples.values())} |\n")
+
+
 def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_arguments(ap)
+    a = ap.parse_args()
     base = timed(26, 2000)
     by_poses = {n: timed(n, 2000) for n in (14, 18, 26, 52)}
     by_samples = {n: timed(26, n) for n in (500, 2000, 8000, 32000)}
     print(f"26 poses x 2000 samples: {base * 1e3:.1f} ms (target < 50 ms: {'MET' if base < 0.05 else 'MISSED'})")
     print("poses (2000 samples each; 14 = faces+corners, 18 = faces+edges): " + ", ".join(f"{n}: {t * 1e3:.1f} ms" for n, t in by_poses.items()))
     print("samples per pose (26 poses): " + ", ".join(f"{n}: {t * 1e3:.1f} ms" for n, t in by_samples.items()))
+    md = table(base, by_poses, by_samples)
+    print("\n" + md, end="")
+    publish("calib_solve", md, {"median of": "15 solves"}, enabled=not a.no_publish)
     print(json.dumps({"solve_ms_26x2000": round(base * 1e3, 2), "target_ms": 50, "met": base < 0.05,
                       "ms_by_poses": {k: round(v * 1e3, 2) for k, v in by_poses.items()},
                       "ms_by_samples": {k: round(v * 1e3, 2) for k, v in by_samples.items()}}))
