@@ -84,7 +84,8 @@ def measure(target: str, rate: int, calibrated: bool, seconds: float) -> dict:
 
 
 def x86_figures() -> dict | None:
-    r = subprocess.run([sys.executable, str(ROOT / "bench" / "core_instructions.py"), "--ticks", "4000"],
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "core_instructions.py"), "--ticks", "4000",
+                        "--no-publish"],
                        capture_output=True, text=True)
     if r.returncode != 0:
         print(f"(bench/core_instructions.py failed: {r.stderr.strip().splitlines()[-1:]})", file=sys.stderr)

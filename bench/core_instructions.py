@@ -14,7 +14,9 @@ framing, without the sensors and the link. Callgrind counts instructions, not ti
 figure is repeatable; it is x86-64 instructions, a proxy to hold the core's cost steady on a
 Cortex-M, not a Cortex-M cycle count. Prints a final JSON line.
 
-    python bench/core_instructions.py [--ticks N]
+    python bench/core_instructions.py [--ticks N] [--no-publish]
+
+Prints the markdown table README states and publishes it (bench/publish.py).
 """
 from __future__ import annotations
 
@@ -26,6 +28,8 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+from publish import add_arguments, publish  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -68,6 +72,7 @@ def measure(binary: Path, rate: int, mode: int, ticks: int, tmp: Path) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ticks", type=int, default=20000)
+    add_arguments(ap)
     a = ap.parse_args()
     if not shutil.which("valgrind") or not shutil.which("callgrind_annotate"):
         print("valgrind is missing: apt-get install valgrind", file=sys.stderr)
@@ -80,6 +85,11 @@ def main() -> int:
     for r in results:
         print(f"{r['mode']:>10} {r['rate_hz']:>5} Hz: {r['core_instructions_per_sample']:8.1f} core instructions/sample "
               f"(models {r['ir_sensor_models'] / r['samples']:.0f}, link {r['ir_link'] / r['samples']:.0f} excluded)")
+    md = "| stream | core instructions per sample |\n|---|---|\n" + "".join(
+        f"| {r['mode']}, {r['rate_hz']} Hz | {r['core_instructions_per_sample']:.0f} |\n" for r in results)
+    print("\n" + md, end="")
+    publish("core_instructions", md, {"ticks": a.ticks, "callgrind": "x86-64 instructions"},
+            enabled=not a.no_publish)
     summary = {f"{r['mode']}_{r['rate_hz']}hz_instr_per_sample": r["core_instructions_per_sample"] for r in results}
     summary["details"] = results
     print(json.dumps(summary))
