@@ -25,6 +25,7 @@ import numpy as np  # noqa: E402
 from imubench.calib import accel as CA  # noqa: E402
 from imubench.calib.static import interval_stats  # noqa: E402
 from imubench.units import G0_MPS2  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 from publish import add_arguments, publish  # noqa: E402
 
 FS = 500.0

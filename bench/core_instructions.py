@@ -29,6 +29,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 from publish import add_arguments, publish  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """imubench on real data no one here recorded: imucal's public example Ferraris session.
 
-    python bench/real_data.py            (figures for README.md and docs/calibration.md)
+    python bench/real_data.py [--no-publish]   (figures for README.md and docs/calibration.md)
 
 Data: tests/data/imucal/ (MIT, mad-lab-fau/imucal example_data; README there). Two files:
 the session in m/s² and °/s at 102.4 Hz (six faces, then three 360° hand turns), and a file in
@@ -10,12 +10,15 @@ it (imucal's tests). There is no ground truth: what is printed is what the data 
 the automatic segmentation against one person's annotation, the fits with their sigmas, |a| − g
 per rest before and after (and on rests the fit did not use), each turn's integrated angle
 before and after, the multi-position refusal, imubench's counts fit beside imucal's, and the
-SI file beside the counts file. The last line is JSON.
+SI file beside the counts file. Prints and publishes (bench/publish.py) the two markdown
+tables README.md and docs/calibration.md state. The last line is JSON.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -29,6 +32,8 @@ from imubench.procedures.from_file import FileAnalysis, FileConfig  # noqa: E402
 from imubench.recordings import read  # noqa: E402
 from imubench.recordings.readers import read_annotation  # noqa: E402
 from imubench.units import G0_MPS2  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from publish import add_arguments, publish  # noqa: E402
 
 DATA = ROOT / "tests" / "data" / "imucal"
 SI_FILE = DATA / "example_ferraris_session.csv.gz"
@@ -267,11 +272,82 @@ def print_gyro_residuals(rows) -> None:
             print(f"{name}: G not fitted: {r['G_refused']}")
 
 
+def _deg(v: float) -> str:
+    return f"{v:.2f}°".replace("-", "−")
+
+
+def _range(vals, fmt: str) -> str:
+    lo, hi = min(vals), max(vals)
+    return fmt.format(lo) if fmt.format(lo) == fmt.format(hi) else fmt.format(lo) + "–" + fmt.format(hi)
+
+
+def imucal_table(si: dict, c: dict, x: dict) -> str:
+    """The figures README states for imucal's example session, as a markdown table."""
+    r, h, fa = si["result"], si["held_out"], si["analysis"]
+    turns = [t for t in r["turns"] if t["usable"]]
+    found = [a for a in r["annotation"] if a["found"]]
+    ends = [abs(v) for a in found for v in (a["start_diff_s"], a["stop_diff_s"])]
+    before = np.sqrt(np.mean([(p["before_g"] - 1) ** 2 for p in r["poses"]])) * 1e3
+    am, asig = np.diag(fa.accel.m), np.diag(fa.accel.sigma_m)
+    gm, gsig = np.diag(fa.gyro.m), np.diag(fa.gyro.sigma_m)
+    m = re.search(r"(\d+) distinct attitudes.*?needs at least (\d+)", si["multi_refusal"])
+    multi = (f"refused: {m.group(1)} distinct attitudes, {m.group(2)} needed" if m
+             else si["multi_refusal"].replace("|", "\\|"))
+    zb = np.abs(np.concatenate([x["accel"]["z_bias"], x["gyro"]["z_bias"]]))
+    rows = [
+        ("segmentation without the annotation",
+         f"{len(r['segmentation'])} rests ({len(set(s_['face'] for s_ in r['segmentation']))} faces) and "
+         f"{len(turns)} turns; {len(found)} of {len(r['annotation'])} annotated sections found, ends "
+         f"{_range(ends, '{:.1f}')} s apart"),
+        (f"six-position, \\|a\\| − g RMS over the {len(r['poses'])} rests",
+         f"{before:.1f} mg before, {r['accel_rms_after_mg']:.1f} mg after; {h['rms_after_mg']:.1f} mg on "
+         f"{len(h['rests'])} rests held out of the fit"),
+        ("accelerometer M diagonal ± σ",
+         ", ".join(f"{v:.5f}" if s_ < 0.001 else f"{v:.4f}" for v, s_ in zip(am, asig))
+         + f" ± {_range(asig, '{:.4f}')}"),
+        (f"turns, integrated before → after ({fa.gyro.method.replace('+', ' + ')} fit)",
+         " / ".join(_deg(t["before_deg"]) for t in turns) + " → "
+         + " / ".join(_deg(t["after_deg"]) for t in turns if "after_deg" in t)
+         + f" (σ {_range([t['sigma_deg'] for t in turns if 'sigma_deg' in t], '{:.2f}')}°)"),
+        (f"gyro scale ± σ ({fa.gyro.method.replace('+', ' + ')})", ", ".join(f"{v:.4f}" for v in gm) + f" ± {_range(gsig, '{:.4f}')}"),
+        ("multi-position on six faces", multi),
+        ("counts file vs imucal's own fit",
+         f"accelerometer 9 entries within {np.abs(c['z_acc']).max():.2f} σ; gyro scales within "
+         f"{np.abs(np.diag(c['z_gyr'])).max():.1f} σ, cross terms within {np.abs(c['z_gyr']).max():.1f} σ"),
+        ("SI file vs counts file",
+         f"not the same recording: biases differ by {zb.min():.0f}–{zb.max():.0f} σ in scale-free units"),
+    ]
+    return "| what | figure |\n|---|---|\n" + "".join(f"| {a} | {b} |\n" for a, b in rows)
+
+
+def gyro_table(rows) -> str:
+    """The rotation method's residual on every real recording, as a markdown table."""
+    out = "| recording | motions | " + " | ".join(VARIANTS) + " |\n|---|---|" + "---|" * len(VARIANTS) + "\n"
+    for name, r in rows:
+        if "variants" not in r:
+            out += f"| {name} | {r.get('motions', '–')} | {r['refused']} |" + " |" * (len(VARIANTS) - 1) + "\n"
+            continue
+        cells = []
+        for v in VARIANTS:
+            c = r["variants"].get(v)
+            if c is None:
+                cells.append("G not fitted")
+                continue
+            a = f"{c['in_sample_rms_deg']:.3f}°" if "in_sample_rms_deg" in c else "not resolved"
+            b = f"{c['held_out_rms_deg']:.3f}°" if "held_out_rms_deg" in c else "not resolved"
+            cells.append(f"{a} / {b}")
+        out += f"| {name} | {r['motions']} | " + " | ".join(cells) + " |\n"
+    return out
+
+
 def _m(m, fmt="{:+9.5f}") -> str:
     return "\n".join("    " + " ".join(fmt.format(v) for v in row) for row in np.asarray(m))
 
 
 def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_arguments(ap)
+    a = ap.parse_args()
     from imubench.results.calibration import params_table
     from imubench.results.recording import annotation_table, segmentation_table, turns_table
     si = si_figures()
@@ -321,6 +397,10 @@ def main() -> int:
               + "; difference / σ " + ", ".join(f"{v:+.0f}" for v in k["z_bias"]))
     rows = all_recordings()
     print_gyro_residuals(rows)
+    md, gmd = imucal_table(si, c, x), gyro_table(rows)
+    print("\n" + md + "\n" + gmd, end="")
+    publish("real_data", md, {"data": "tests/data/imucal"}, enabled=not a.no_publish)
+    publish("real_data-gyro", gmd, {"data": "../shared/data when there, else tests/data"}, enabled=not a.no_publish)
     summary = {
         "si_rests": len(r["segmentation"]), "si_faces": sorted(set(s["face"] for s in r["segmentation"])),
         "si_turns": [t["label"] for t in r["turns"] if t["usable"]],
