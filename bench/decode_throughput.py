@@ -4,6 +4,9 @@
     /work/main/.venv/bin/python bench/decode_throughput.py            # 2,000,000 samples
     /work/main/.venv/bin/python bench/decode_throughput.py --quick    # smoke run (200k samples)
 
+A run prints the markdown table README states and publishes it (bench/publish.py);
+--quick and --no-publish runs do not publish.
+
 What is measured:
 
 * imubench: a device stream of raw_batch frames (16 samples of 14 bytes each by default,
@@ -30,6 +33,7 @@ import json
 import platform
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from imubench.wire import frame as P
@@ -40,6 +44,9 @@ from imubench.wire.protocol_gen import (
     MsgType,
     RawBatch,
 )
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from publish import add_arguments, publish  # noqa: E402
 
 RATE_HZ = 4000
 PERIOD_US = 1_000_000 // RATE_HZ
@@ -228,7 +235,8 @@ def main(argv=None) -> int:
     ap.add_argument("--mavlink-samples", type=int, default=200_000,
                     help="RAW_IMU messages pymavlink is timed on (0 = as many as --samples)")
     ap.add_argument("--repeat", type=int, default=3, help="runs of each decoder; the best is reported")
-    ap.add_argument("--quick", action="store_true", help="smoke run: 200k samples, 50k MAVLink messages")
+    ap.add_argument("--quick", action="store_true", help="smoke run: 200k samples, 50k MAVLink messages (not published)")
+    add_arguments(ap)
     args = ap.parse_args(argv)
     if args.quick:
         args.samples = min(args.samples, 200_000)
@@ -287,6 +295,15 @@ def main(argv=None) -> int:
     print(f"target ratio >= {TARGET_RATIO:g}: {'MET' if ok_ratio else 'MISSED'} ({ratio:.1f})")
 
     from importlib.metadata import version
+    md = ("| figure | value |\n|---|---|\n"
+          f"| samples_per_s | {sps / 1e6:.2f} M (target ≥ {TARGET_SAMPLES_PER_S / 1e6:g} M) |\n"
+          f"| frames_per_s | {fps / 1e3:.0f} k |\n"
+          f"| pymavlink_msgs_per_s | {mps / 1e3:.0f} k |\n"
+          f"| ratio_vs_pymavlink | {ratio:.0f} (target ≥ {TARGET_RATIO:g}) |\n")
+    print("\n" + md, end="")
+    publish("decode_throughput", md,
+            {"numpy": np.__version__, "pymavlink": version("pymavlink"), "samples": f"{n:,}",
+             "best of": args.repeat}, enabled=not (args.no_publish or args.quick))
     result = {
         "samples_per_s": round(sps),
         "frames_per_s": round(fps),

@@ -98,7 +98,7 @@ def publish(name: str, table: str, meta: dict | None = None, *, enabled: bool = 
         raise PublishError(f"bench name {name!r}: use lower-case letters, digits, _ and -")
     content = render(table, meta, command)
     if not enabled:
-        print(f"(--no-publish: {RESULTS}/{name}.md and the docs' bench:{name} blocks left as they are)")
+        print(f"(not published: {RESULTS}/{name}.md and the docs' bench:{name} blocks left as they are)")
         return None
     changed: dict[Path, str] = {}
     total = 0

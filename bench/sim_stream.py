@@ -8,7 +8,10 @@ and that as a multiple of real time (samples/s divided by the stream rate). Targ
 least 20x real time at 1 kHz. Every sample is checked for continuity (no gap, no rejected
 frame). Prints a final JSON line.
 
-    python bench/sim_stream.py [--seconds 120] [--rates 1000 4000]
+    python bench/sim_stream.py [--seconds 120] [--rates 1000 4000] [--no-publish]
+
+Prints the markdown table README states and publishes it (bench/publish.py) when every
+stream was lossless.
 """
 from __future__ import annotations
 
@@ -24,6 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "host"))
 import numpy as np  # noqa: E402
 from imubench.device.link import Device  # noqa: E402
 from imubench.device.sim import VirtualBench, build_sim  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from publish import add_arguments, publish  # noqa: E402
 
 
 def run(rate: int, device_s: float) -> dict:
@@ -51,6 +57,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=120.0, help="device seconds streamed per rate")
     ap.add_argument("--rates", type=int, nargs="+", default=[1000, 4000])
+    add_arguments(ap)
     a = ap.parse_args()
     build_sim()
     results = [run(r, a.seconds) for r in a.rates]
@@ -60,6 +67,14 @@ def main() -> int:
     one_k = next((r for r in results if r["rate_hz"] == 1000), None)
     if one_k:
         print(f"target >= 20x real time at 1 kHz: {'MET' if one_k['x_real_time'] >= 20 else 'MISSED'}")
+    md = "| rate | samples/s (wall) | multiple of real time (target ≥ 20 at 1 kHz) |\n|---|---|---|\n" + "".join(
+        f"| {r['rate_hz']} Hz, batch {r['batch']} | {r['samples_per_s'] / 1e3:.0f} k | {r['x_real_time']:.0f}× |\n"
+        for r in results)
+    print("\n" + md, end="")
+    lossless = all(r["lossless"] for r in results)
+    if not lossless:
+        print("a stream lost samples: not published")
+    publish("sim_stream", md, {"device s per rate": f"{a.seconds:g}"}, enabled=lossless and not a.no_publish)
     summary = {"x_real_time_1khz": one_k["x_real_time"] if one_k else None,
                "samples_per_s_1khz": one_k["samples_per_s"] if one_k else None,
                "cpus": os.cpu_count(), "runs": results}
