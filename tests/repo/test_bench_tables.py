@@ -34,8 +34,9 @@ def test_every_marker_opens_and_closes_a_whole_block():
         whole = [n for n, cs in P.blocks(text).items() for _ in cs]
         assert sorted(opens) == sorted(closes) == sorted(whole), (
             f"{doc.relative_to(ROOT)}: bench markers unbalanced (open {opens}, close {closes})")
-        assert not re.search(r"bench:\S+ -->", re.sub(r"^<!-- /?bench:\S+ -->$", "", text, flags=re.M)), (
-            f"{doc.relative_to(ROOT)}: a bench marker not on a line of its own")
+        stray = [ln for ln in text.splitlines() if re.match(r"\s*<!--\s*/?\s*bench", ln)
+                 and not re.fullmatch(r"<!-- /?bench:\S+ -->", ln)]
+        assert not stray, f"{doc.relative_to(ROOT)}: bench markers not in the form <!-- bench:NAME -->: {stray}"
 
 
 def test_every_block_is_its_results_file_byte_for_byte():
