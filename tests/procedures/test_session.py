@@ -100,6 +100,9 @@ def test_turntable_gyro_calibration(tmp_path):
         truth = vb.get_truth()
     g = result["gyro"]
     assert g["method"] == "turntable"
+    # every virtual ADXRS450 has a g-sensitivity: fitted from the poses, it is taken off each
+    # turn's reading at the turn's own specific force, and b is the bias at zero specific force
+    assert result["gsens"]["applied"] and g["extra"]["gsens_taken_off"], (result["gsens"], g["extra"])
     assert np.all(np.abs(_z_scores(result, truth)) < 4.0)
 
 

@@ -461,6 +461,7 @@ def turntable(segments, bias: TriadFit | np.ndarray | None = None, *, max_sigma:
             "chi2_p": pval,
             "cov_scaled": scaled,
             "bias_source": ("rest" if b_cov is not None else "given") if fix_b else "segments",
+            "gsens_taken_off": gsens is not None,     # each segment's G·f taken off its reading
         },
     )
     if np.max(np.abs(m - np.eye(3))) > 0.2:

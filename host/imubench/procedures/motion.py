@@ -28,7 +28,8 @@ class MotionCapture:
     # ------------------------------------------------------------- turntable
     def capture_turntable(self) -> list:
         """Turns at known rates about each board axis, both ways; returns the segments
-        (measured rates, axis, table rate) for calib.gyro.turntable."""
+        (measured rates, axis, table rate, None, mean raw acceleration m/s²): the session turns
+        the last into the calibrated specific force for calib.gyro.turntable's g-sensitivity."""
         fs = self.cfg.rate_hz
         segments = []
         for axis_name, axis in (("X", (1.0, 0, 0)), ("Y", (0, 1.0, 0)), ("Z", (0, 0, 1.0))):
@@ -37,42 +38,52 @@ class MotionCapture:
                     r_dps = sign * rate
                     self.ui.present_turn(np.array(axis), r_dps, self.cfg.turntable_s)
                     need = int(0.6 * self.cfg.turntable_s * fs)     # the steady middle of the turn
-                    seg = self._steady_turn(np.array(axis), np.radians(r_dps), need,
-                                            int((self.cfg.turntable_s + 30) * fs))
+                    got = self._steady_turn_samples(np.array(axis), np.radians(r_dps), need,
+                                                    int((self.cfg.turntable_s + 30) * fs))
+                    seg_acc, seg = got if got is not None else (None, None)
                     if seg is None:
                         raise SessionAborted(f"no steady turn at {r_dps:+g} °/s about {axis_name} was seen")
                     if len(seg) < need // 2:
                         raise SessionAborted(f"the turn at {r_dps:+g} °/s about {axis_name} was too short or unsteady")
-                    segments.append((seg, np.array(axis), np.radians(r_dps)))
+                    segments.append((seg, np.array(axis), np.radians(r_dps), None, seg_acc.mean(axis=0)))
                     # let the table stop before the next turn
                     self._wait_still(2.0)
         return segments
 
     def _steady_turn(self, axis: np.ndarray, rate_rad_s: float, need: int, limit: int) -> np.ndarray | None:
-        """The gyro samples (rad/s) of one steady turn: the first run of consecutive samples
-        within 10 % of the table's rate about axis, up to `need` of them (or shorter when the
-        turn ended first); None when none began within `limit` samples. Judged sample by
-        sample: a block read after a busy moment may hold the whole turn and its ends."""
-        gyr = np.zeros((0, 3))
+        """The gyro samples (rad/s) of one steady turn (see _steady_turn_samples)."""
+        got = self._steady_turn_samples(axis, rate_rad_s, need, limit)
+        return None if got is None else got[1]
+
+    def _steady_turn_samples(self, axis: np.ndarray, rate_rad_s: float, need: int,
+                             limit: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The accelerometer (m/s², raw) and gyro (rad/s) samples of one steady turn: the first
+        run of consecutive samples within 10 % of the table's rate about axis, up to `need` of
+        them (or shorter when the turn ended first); None when none began within `limit`
+        samples. Judged sample by sample: a block read after a busy moment may hold the whole
+        turn and its ends. The accelerometer's share gives the specific force during the turn,
+        for the gyro's g-sensitivity."""
+        acc, gyr = np.zeros((0, 3)), np.zeros((0, 3))
         waited = 0
         while True:
             b = self.next_block()
             waited += len(b)
-            gyr = np.concatenate([gyr, b.si()[1]])
+            a_si, g_si = b.si()
+            acc, gyr = np.concatenate([acc, a_si]), np.concatenate([gyr, g_si])
             on = np.abs(gyr @ axis - rate_rad_s) < 0.1 * abs(rate_rad_s)
             while on.any():
                 start = int(np.argmax(on))
                 off = np.flatnonzero(~on[start:])
                 stop = start + int(off[0]) if len(off) else len(on)
                 if stop - start >= need:
-                    return gyr[start:start + need]
+                    return acc[start:start + need], gyr[start:start + need]
                 if not len(off):
                     break                                           # still turning: read on
                 if stop - start >= need // 2:
-                    return gyr[start:stop]                          # the turn ended early
-                gyr, on = gyr[stop:], on[stop:]                     # a blip at the band's edge
+                    return acc[start:stop], gyr[start:stop]         # the turn ended early
+                acc, gyr, on = acc[stop:], gyr[stop:], on[stop:]    # a blip at the band's edge
             if not on.any():
-                gyr = gyr[-1:]                                      # nothing of a turn yet
+                acc, gyr = acc[-1:], gyr[-1:]                       # nothing of a turn yet
             if waited > limit:
                 return None
 

@@ -342,7 +342,7 @@ class Session:
         if self.cfg.gyro == "bias":
             gyro = CG.gyro_bias(rest_gyr, self.cfg.rate_hz)
         elif self.cfg.gyro == "turntable":
-            gyro = CG.turntable(segments, bias=CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
+            gyro = self._turntable_fit(accel, segments, CG.gyro_bias(rest_gyr, self.cfg.rate_hz), self.gsens)
         elif self.cfg.gyro == "rotation":
             gyro = self._rotation_fit(accel, CG.gyro_bias(rest_gyr, self.cfg.rate_hz), self.gsens)
         elif self.cfg.gyro == "turns":
@@ -437,9 +437,19 @@ class Session:
             raise CalibrationError("the rotation method needs all poses in one continuous stream; "
                                    "this session was resumed — use --gyro bias or turntable, or start a new session")
         if gsens is not None:
-            bias = TriadFit(method="bias", m=np.eye(3), b=gsens.b.copy(), cov=CG._cov12(b_cov=gsens.cov[9:, 9:]),
-                            estimated=np.array([False] * 9 + [True] * 3), extra=dict(bias.extra))
+            bias = _zero_force_bias(gsens, bias)
         return CG.rotation_method(np.concatenate(gyro_all), self.cfg.rate_hz, intervals, np.array(dirs), bias)
+
+    def _turntable_fit(self, accel: TriadFit, segments: list, bias: TriadFit, gsens=None) -> TriadFit:
+        """Gyro M from the turntable segments with b fixed to the rest's bias; with a
+        g-sensitivity each segment's reading is taken less G·f (f its calibrated specific force)
+        and b is the bias at zero specific force."""
+        from imubench.calib import gyro as CG
+        if gsens is None:
+            return CG.turntable([s[:3] for s in segments], bias=bias)
+        segs = [(r, ax, w, None, accel.correct(np.asarray(a_mps2)[None])[0] / U.G0_MPS2)
+                for r, ax, w, _, a_mps2 in segments]
+        return CG.turntable(segs, bias=_zero_force_bias(gsens, bias), gsens=gsens)
 
     def _result(self, accel: TriadFit, gyro: TriadFit | None) -> dict:
         means = np.array([p.mean_mps2 for p in self.poses])
@@ -511,6 +521,14 @@ class Session:
         new, old = self._new_params(self.accel_fit, self.gyro_fit, cal_id=int(time.time()) & 0xFFFFFFFF)
         return write_and_verify(self.dev, new, old, lambda: self.verify(plan_for("six")[:self.cfg.verify_poses]),
                                 self.cfg.tolerances.verify_mg, self.ui)
+
+
+def _zero_force_bias(gsens, bias: TriadFit) -> TriadFit:
+    """The g-sensitivity fit's bias at zero specific force, with its covariance, as the fixed
+    bias of a gyro fit whose readings are taken less G·f (rotation method, turntable)."""
+    from imubench.calib import gyro as CG
+    return TriadFit(method="bias", m=np.eye(3), b=gsens.b.copy(), cov=CG._cov12(b_cov=gsens.cov[9:, 9:]),
+                    estimated=np.array([False] * 9 + [True] * 3), extra=dict(bias.extra))
 
 
 def _with_bias(fit: TriadFit, gsens) -> TriadFit:
