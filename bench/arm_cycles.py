@@ -24,7 +24,10 @@ and compares the core's instructions/sample with the x86-64 count of bench/core_
 (callgrind on the host build) in the same run. Targets (issue 13): F103 raw 4 kHz <= 30 % CPU,
 F4 calibrated 4 kHz <= 10 %, the emulated 1 kHz session >= 0.5x real time.
 
-    python bench/arm_cycles.py [--seconds S] [--no-x86]
+    python bench/arm_cycles.py [--seconds S] [--no-x86] [--no-publish]
+
+Prints the markdown table README.md and docs/firmware.md state and publishes it
+(bench/publish.py).
 Prints a table and a final JSON line.
 """
 from __future__ import annotations
@@ -41,6 +44,9 @@ sys.path.insert(0, str(ROOT / "host"))
 
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from publish import add_arguments, publish  # noqa: E402
 
 CONFIGS = [(4000, False), (1000, False), (1000, True), (4000, True)]
 CLOCK_HZ = {"f103": 72e6, "f4": 168e6}
@@ -93,10 +99,33 @@ def x86_figures() -> dict | None:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+def _pct(x: float) -> str:
+    return f"{x * 100:.0f} %" if x >= 0.1 else f"{x * 100:.1f} %"
+
+
+def table(rows: list[dict], x86: dict | None) -> str:
+    """The markdown table README.md and docs/firmware.md state."""
+    out = ("| image | stream | core | drivers | board | lib | total instr/sample | CPU load (target) | "
+           "SPI bus time/sample (bytes) | x86 core instr/sample | emulator speed |\n" + "|---" * 11 + "|\n")
+    for r in rows:
+        ips = r["instr_per_sample"]
+        key = (r["target"], r["rate_hz"], r["mode"] == "calibrated")
+        load = _pct(r["cpu_load"])
+        if key in TARGET_LOAD:
+            load += f" (≤ {TARGET_LOAD[key] * 100:.0f} %, {'met' if r['cpu_load'] <= TARGET_LOAD[key] else 'MISSED'})"
+        x = (x86 or {}).get(f"{r['mode']}_{r['rate_hz']}hz_instr_per_sample")
+        out += (f"| {r['target']} | {r['mode']} {r['rate_hz']} Hz | {ips['core']:.0f} | {ips['drivers']:.0f} | "
+                f"{ips['board']:.0f} | {ips['lib']:.0f} | {r['instr_per_sample_total']:.0f} | {load} | "
+                f"{r['spi_bus_us_per_sample']:.0f} µs ({r['spi_bytes_per_sample']:.0f}) | "
+                f"{'—' if x is None else f'{x:.1f}'} | {r['emulator_device_s_per_wall_s']:.2f}x |\n")
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=1.0, help="device seconds measured per stream")
     ap.add_argument("--no-x86", action="store_true", help="skip the callgrind comparison")
+    add_arguments(ap)
     a = ap.parse_args()
     subprocess.run(["make", "-s", "-C", str(ROOT), "sim", "arm-f103", "arm-f4"], check=True)
     rows = [measure(t, rate, cal, a.seconds) for t in ("f103", "f4") for rate, cal in CONFIGS]
@@ -116,6 +145,10 @@ def main() -> int:
               f"{r['spi_bytes_per_sample']:5.0f} | {x:>8} | {r['emulator_device_s_per_wall_s']:.2f}x")
     print(f"CPI {rows[0]['cpi']} (an estimate from ARM DDI 0337/0439 instruction timings; every load figure "
           "scales with it); F103 at 72 MHz, F4 at 168 MHz as the images configure them")
+    md = table(rows, x86)
+    print("\n" + md, end="")
+    publish("arm_cycles", md, {"device s per stream": f"{a.seconds:g}", "CPI": rows[0]["cpi"]},
+            enabled=not a.no_publish)
     print(json.dumps({"rows": rows, "x86": x86}))
     return 0
 

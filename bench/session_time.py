@@ -2,7 +2,9 @@
 session, side by side, on the virtual bench with a simulated person (procedures/virtual.py:
 random order, 3–8 s hand moves, each attitude within ±5–10° of the plan, tremor while still).
 
-    PYTHONPATH=host python bench/session_time.py [--seed N] [--speed X]
+    PYTHONPATH=host python bench/session_time.py [--seed N] [--speed X] [--no-publish]
+
+Prints the markdown table README states and publishes it (bench/publish.py).
 
 Bench time = device time from the first prompt (hold still at the start) to the last
 attitude captured, the person's moves included (the fit that follows takes well under a
@@ -15,6 +17,7 @@ time, and under 3 minutes.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import tempfile
 import time
@@ -26,6 +29,16 @@ from imubench.device.sim import VirtualBench  # noqa: E402
 from imubench.procedures.virtual import SimPerson  # noqa: E402
 from imubench.procedures.poses import PARAM_NAMES, PARAM_UNITS, Targets, target_of  # noqa: E402
 from imubench.procedures.session import Session, SessionConfig, plan_for  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from publish import add_arguments, publish  # noqa: E402
+
+KINDS = {"b": "bias", "s": "scale", "a": "non-orthogonality"}
+
+
+def _sig2(v: float) -> str:
+    """Two significant figures, trailing zeros kept (0.010, 0.0098, 12)."""
+    return f"{v:.{max(0, 1 - math.floor(math.log10(abs(v))))}f}" if v else "0"
 
 
 def one(vb, adaptive: bool, seed: int, workdir: Path) -> dict:
@@ -44,11 +57,32 @@ def _mean_hold_s(result: dict) -> float:
     return sum(p["n"] for p in poses) / SessionConfig().rate_hz / len(poses)
 
 
+def table(fixed: dict, adapt: dict, t: Targets, rate_hz: float) -> str:
+    """The markdown table README states: both sessions side by side."""
+    fb, ab = fixed["result"]["bench_time_s"], adapt["result"]["bench_time_s"]
+    hold = fixed["result"]["poses"][0]["n"] / rate_hz
+    rows = [("bench time", f"{fb:.1f} s", f"{ab:.1f} s ({ab / fb:.2f} of the fixed plan; target ≤ 0.5 and < 180 s)"),
+            ("of which the person's moves", f"{fixed['moves_s']:.1f} s", f"{adapt['moves_s']:.1f} s"),
+            ("attitudes used", f"{len(fixed['result']['poses'])}", f"{len(adapt['result']['poses'])}"),
+            ("mean hold per attitude", f"{_mean_hold_s(fixed['result']):.2f} s", f"{_mean_hold_s(adapt['result']):.2f} s"),
+            ("RMS of \\|a\\| − g after calibration", f"{fixed['result']['accel_rms_after_mg']:.3f} mg",
+             f"{adapt['result']['accel_rms_after_mg']:.3f} mg")]
+    for k, kind in KINDS.items():
+        names = [n for n in PARAM_NAMES if n[0] == k]
+        unit = PARAM_UNITS[k]
+        label = f"1σ {kind} {' / '.join(names)} (target ≤ {target_of(names[0], t):g} {unit})"
+        rows.append((label, *(" / ".join(_sig2(r['result']['accel_sigmas'][n]) for n in names) + f" {unit}"
+                              for r in (fixed, adapt))))
+    return (f"| | fixed {len(fixed['result']['poses'])}-attitude plan ({hold:.0f} s holds) | adaptive |\n|---|---|---|\n"
+            + "".join(f"| {a} | {b} | {c} |\n" for a, b, c in rows))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seed", type=int, default=7, help="virtual device and person seed")
     ap.add_argument("--speed", type=float, default=8.0,
                     help="device time per wall time (the session must keep up: a person reacts in device time)")
+    add_arguments(ap)
     a = ap.parse_args()
     t = Targets()
     print(t.describe())
@@ -77,6 +111,10 @@ def main() -> int:
           f"{adapt['result']['bench_time_s']:.0f} s (target < 180 s): {'MET' if ok else 'NOT MET'}")
     print(f"(order the person chose, adaptive: {', '.join(adapt['order'])})")
     print(f"wall time {fixed['wall_s']:.0f} s + {adapt['wall_s']:.0f} s at sim speed {a.speed:g}")
+    md = table(fixed, adapt, t, SessionConfig().rate_hz)
+    print("\n" + md, end="")
+    publish("session_time", md, {"seed": a.seed, "method": "multi, gyro none", "rate": f"{SessionConfig().rate_hz:g} Hz"},
+            enabled=not a.no_publish)
     return 0 if ok else 1
 
 
