@@ -22,7 +22,9 @@ lower bound of what the station's host can serve.
 
     python bench/multi_dut.py [--boards 1 2 4 8 12 16] [--rate 1000] [--hold 2] [--configs defaults six-plan]
 
-Prints a table and a final JSON line.
+Prints a table and a final JSON line; each configuration's markdown table (README.md, "A
+production line") is printed and published (bench/publish.py; --no-publish to leave the docs
+alone) as soon as its sessions are done.
 """
 from __future__ import annotations
 
@@ -40,6 +42,9 @@ from imubench.device.sim import VirtualBench, build_sim  # noqa: E402
 from imubench.procedures.fixture import FixtureRun, Station  # noqa: E402
 from imubench.procedures.virtual import PlatePresenter  # noqa: E402
 from imubench.procedures.session import SessionConfig  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from publish import add_arguments, publish  # noqa: E402
 
 
 def _proc_cpu_s(pid: int) -> float:
@@ -91,6 +96,21 @@ def run(n: int, rate: int, hold_s: float, speed: float, config: str = "six-plan"
             "failures": [f"slot {b.slot}: {b.reason}" for b in res.boards if b.state != "passed"]}
 
 
+BLOCKS = {"defaults": "multi_dut-defaults", "six-plan": "multi_dut-six"}
+
+
+def table(rows: list[dict]) -> str:
+    """One configuration's rows as the markdown table README states."""
+    out = ("| boards | session | vs 1 board | passed | samples lost / rejected / dropped | host CPU | "
+           "virtual devices' CPU | plate moves |\n|---:|---:|---:|---:|---:|---:|---:|---:|\n")
+    for k, r in enumerate(rows):
+        vs = "—" if k == 0 else f"{100 * (r['vs_single'] - 1):+.1f} %".replace("-", "−")
+        out += (f"| {r['boards']} | {r['wall_s']:.1f} s | {vs} | {r['passed']}/{r['boards']} | "
+                f"{r['lost']} / {r['rejected']} / {r['overflow']} | {r['host_cpu_s']:.1f} s | {r['sims_cpu_s']:.1f} s | "
+                f"{r['plate_moves']} |\n")
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--boards", type=int, nargs="+", default=[1, 2, 4, 8, 12, 16])
@@ -98,6 +118,7 @@ def main() -> int:
     ap.add_argument("--hold", type=float, default=2.0, help="six-plan: seconds captured per attitude")
     ap.add_argument("--speed", type=float, default=1.0, help="virtual device time per wall time (1 = real time)")
     ap.add_argument("--configs", nargs="+", choices=list(CONFIGS), default=list(CONFIGS))
+    add_arguments(ap)
     a = ap.parse_args()
     build_sim()
     out, served_by = [], {}
@@ -124,6 +145,10 @@ def main() -> int:
             for f in r["failures"]:
                 print(f"         {f}")
         served_by[config] = served
+        md = table([r for r in out if r["config"] == config])
+        print("\n" + md, end="")
+        publish(BLOCKS[config], md, {"rate": f"{a.rate} Hz", "speed": f"{a.speed:g}", "boards served": served},
+                enabled=not a.no_publish)
         print(f"{config}: boards served by one station at {a.rate} Hz (all passed, zero lost samples, session within "
               f"10 % of one board's): {served} (target 8)")
     print(json.dumps({"rate_hz": a.rate, "served": served_by, "target": 8, "rows": out}))

@@ -9,7 +9,9 @@ The environment is made in a temporary directory outside the checkout; pip insta
 and its dependencies from the package index as a user's pip does (byte-compiling included, its
 cache as warm as this machine's); `imubench calibrate --sim` then runs from another working
 directory with HOME in the temporary directory and PATH holding the environment's bin/ alone.
-Prints one line per figure. tests/repo/test_wheel.py checks the behaviour; this prints the numbers.
+Prints one line per figure and the markdown table README states, and publishes it
+(bench/publish.py; --no-publish to leave the docs alone). tests/repo/test_wheel.py checks the
+behaviour; this prints the numbers.
 """
 from __future__ import annotations
 
@@ -22,12 +24,16 @@ import time
 import venv
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from publish import add_arguments, publish  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--wheel", type=Path, help="the wheel to install (default: build one from this tree)")
+    add_arguments(ap)
     a = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="imubench-wheel-bench-") as tmp:
         base = Path(tmp)
@@ -66,6 +72,12 @@ def main() -> int:
         print(f"imubench calibrate --sim to PASSED: {t2 - t1:.1f} s")
         print(f"from pip install to the first passed virtual session: {t2 - t0:.1f} s "
               f"(load average {load:.1f} on {os.cpu_count()} cores)")
+        md = ("| load average | `pip install` | session to PASSED | `pip install` to the first passed session |\n"
+              "|---|---|---|---|\n"
+              f"| {load:.1f} | {t1 - t0:.1f} s | {t2 - t1:.1f} s | {t2 - t0:.1f} s |\n")
+        print("\n" + md, end="")
+        publish("wheel_install", md, {"wheel": f"{wheel.name} {wheel.stat().st_size / 1e6:.2f} MB"},
+                enabled=not a.no_publish)
     return 0
 
 
