@@ -13,9 +13,9 @@ is replaced by that file's content, so the figures the docs state are the bench'
 nothing else (tests/repo/test_bench_tables.py fails when a block and its file differ).
 
 `add_arguments(parser)` gives a bench `--no-publish`, for runs that must not touch the docs
-(trials, loaded machines, other sizes); `publish(..., enabled=False)` then only prints where
-the table would have gone. A bench that finds a block missing or unbalanced stops with a
-one-line error before writing anything.
+(trials, loaded machines, other sizes); `publish(..., enabled=False)` then only says that the
+table was not published. A bench that finds a block missing or unbalanced stops with a
+one-line error before writing anything (`write()` raises PublishError instead).
 """
 from __future__ import annotations
 
@@ -92,8 +92,18 @@ def publish(name: str, table: str, meta: dict | None = None, *, enabled: bool = 
             command: str | None = None, root: Path = ROOT) -> Path | None:
     """Write bench/results/NAME.md and every `<!-- bench:NAME -->` block from TABLE.
 
-    Returns the results file, or None when not enabled. Raises PublishError, having written
-    nothing, when NAME is not a usable name or no document has a whole block of it."""
+    Returns the results file, or None when not enabled. When NAME is not a usable name or no
+    document has a whole block of it, writes nothing and exits with a one-line error (the
+    bench has printed its table already)."""
+    try:
+        return write(name, table, meta, enabled=enabled, command=command, root=root)
+    except PublishError as e:
+        raise SystemExit(f"bench/publish.py: error: not published: {e}") from None
+
+
+def write(name: str, table: str, meta: dict | None = None, *, enabled: bool = True,
+          command: str | None = None, root: Path = ROOT) -> Path | None:
+    """publish() without the exit: raises PublishError, having written nothing."""
     if not NAME_RE.match(name):
         raise PublishError(f"bench name {name!r}: use lower-case letters, digits, _ and -")
     content = render(table, meta, command)

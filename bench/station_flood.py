@@ -14,12 +14,14 @@ client claim a device, then
 Target: memory after the flood within 50 MB of before; /api/start under 0.5 s with 200
 streams open (it was delayed 30 s by 20 streams, and stopped by 200, before issue 25).
 
-    python bench/station_flood.py
+    python bench/station_flood.py [--no-publish]
 
-Prints a table and a final JSON line.
+Prints a table and a final JSON line; the markdown table docs/production.md states is printed
+and published (bench/publish.py; --no-publish to leave the docs alone).
 """
 from __future__ import annotations
 
+import argparse
 import http.cookiejar
 import json
 import os
@@ -32,6 +34,10 @@ import tempfile
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from publish import add_arguments, publish  # noqa: E402
 
 DEVICE = "socket://127.0.0.1:1"          # nothing listens: a started session fails at once
 
@@ -105,11 +111,33 @@ def start_once(op: Client, server_state) -> float:
 
 
 def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_arguments(ap)
+    a = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="station-flood-") as tmp:
-        return run(tmp)
+        return run(tmp, not a.no_publish)
 
 
-def run(tmp: str) -> int:
+def _ms(s: float) -> str:
+    return f"{s * 1e3:.1f}" if s < 0.01 else f"{s * 1e3:.0f}"
+
+
+def table(out: dict) -> str:
+    """The markdown table docs/production.md states."""
+    rows = out["start"]
+    ns = " / ".join(str(r["streams"]) for r in rows)
+    return ("| figure | value |\n|---|---|\n"
+            f"| server memory (VmRSS) before → after the flood | {out['rss_before_mb']:.0f} MB → "
+            f"{out['rss_after_flood_mb']:.0f} MB (target: within 50 MB) |\n"
+            f"| `/api/start` with {ns} event streams asked for, median of 5 | "
+            + " / ".join(_ms(r["median_s"]) for r in rows) + " ms (target < 500 ms) |\n"
+            f"| the same, worst of 5 | " + " / ".join(_ms(r["worst_s"]) for r in rows) + " ms |\n"
+            f"| event streams served of {ns} asked for | " + " / ".join(str(r["served"]) for r in rows) + " |\n"
+            f"| another browser took the operator's device | "
+            + ("never" if all(r["kept"] for r in rows) else "YES") + " |\n")
+
+
+def run(tmp: str, publishing: bool = False) -> int:
     proc = subprocess.Popen([sys.executable, "-m", "imubench", "station", "--http-port", "0", "--dir", tmp,
                              "--db", os.path.join(tmp, "h.sqlite")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -189,6 +217,9 @@ def run(tmp: str) -> int:
             proc.communicate(timeout=30)
         except subprocess.TimeoutExpired:
             proc.kill()
+    md = table(out)
+    print("\n" + md, end="")
+    publish("station_flood", md, {"answers by HTTP status": out["answers"]}, enabled=publishing)
     print(json.dumps(out))
     return 0
 
