@@ -381,3 +381,32 @@ def test_a_turn_is_found_sample_by_sample_whatever_the_block_size():
         assert short is not None and np.allclose(short, gyr[1000:2000]), size
         s.next_block = _Blocks(gyr, size)
         assert s._steady_turn(np.array([0, 1.0, 0]), rate, need=600, limit=2000) is None, size
+
+
+def test_a_refused_gyro_keeps_the_accelerometer_and_writes_nothing(tmp_path, monkeypatch):
+    """Issue 26: a gyro part refused at the fit (here the rotation method, made to refuse as an
+    unobservable fit does) never discards the accelerometer: the result keeps its fit, the
+    verdict says what was and was not calibrated, session.json holds it, and nothing is
+    written to the device (its gyro calibration would be lost)."""
+    from imubench.calib import NotObservable
+    from imubench.procedures.session import run_session
+    from imubench.results.record import verdict
+
+    def refuse(self, accel, bias, gsens=None):
+        raise NotObservable("rotation: M[x,x] σ 0.05 above the limit 0.01")
+
+    monkeypatch.setattr(Session, "_rotation_fit", refuse)
+    with _bench(27) as vb, Device.open(vb.port_url, timeout=5.0) as dev:
+        before = dev.get_params(ParamsWhich.ACTIVE).params
+        cfg = SessionConfig(method="multi", gyro="rotation", write=True, hold_s=1.0)
+        result, sess = run_session(dev, tmp_path / "s", cfg, SimPresenter(vb, quiet=True))
+        after = dev.get_params(ParamsWhich.ACTIVE).params
+    assert result["passed"] and result["accel"] is not None and result["accel_rms_after_mg"] < 0.05
+    assert "M[x,x] σ 0.05" in result["gyro_refused"] and result["gyro"]["method"] == "bias"
+    assert not result.get("written")
+    assert after.cal_id == before.cal_id and tuple(after.accel_m) == tuple(before.accel_m)
+    ok, why = verdict(result, cfg.write)
+    assert not ok and why == ["accelerometer calibrated; gyro not: rotation: M[x,x] σ 0.05 above the limit 0.01"]
+    saved = json.loads((tmp_path / "s" / "session.json").read_text())
+    kept = saved.get("result", saved)
+    assert kept["gyro_refused"] == result["gyro_refused"] and kept["accel"]["m"] == result["accel"]["m"]

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from imubench.calib import CalibrationError, NotObservable
+from imubench.calib import CalibrationError, NotObservable, TriadFit
 
 DPS = 180.0 / math.pi
 MAX_SIGMA_DPS_PER_G = 0.2       # refuse an entry known no better than this (°/s per g)
@@ -143,3 +143,24 @@ def fit_gsens(rest_means, rest_sigmas, f_g, *, max_sigma_dps_per_g: float = MAX_
                             + f" above the limit {max_sigma_dps_per_g:g} °/s/g: the rests' attitudes or their "
                             "length leave it undetermined (longer rests, more attitudes)")
     return fit
+
+
+def zero_force_bias(gsens, bias: TriadFit) -> TriadFit:
+    """The g-sensitivity fit's bias at zero specific force, with its covariance, as the fixed
+    bias of a gyro fit whose readings are taken less G·f (rotation method, turntable)."""
+    from imubench.calib.gyro import _cov12
+    return TriadFit(method="bias", m=np.eye(3), b=gsens.b.copy(), cov=_cov12(b_cov=gsens.cov[9:, 9:]),
+                    estimated=np.array([False] * 9 + [True] * 3), extra=dict(bias.extra))
+
+
+def with_zero_force_bias(fit: TriadFit, gsens) -> TriadFit:
+    """fit with b (and its covariance) replaced by the g-sensitivity fit's bias at zero
+    specific force (M and its covariance kept)."""
+    cov = np.array(fit.cov, dtype=float)
+    cov[9:, :] = np.nan
+    cov[:, 9:] = np.nan
+    cov[9:, 9:] = gsens.cov[9:, 9:]
+    extra = dict(fit.extra, bias_source="g-sensitivity fit (b at zero specific force)")
+    return TriadFit(method=fit.method, m=fit.m, b=gsens.b.copy(), cov=cov, residual_rms=fit.residual_rms,
+                    residuals=fit.residuals, dof=fit.dof, estimated=np.array(list(fit.estimated[:9]) + [True] * 3),
+                    extra=extra)

@@ -320,6 +320,10 @@ def run(a) -> int:
     _record_history(result, a.db or (getattr(a, "station_file", None) or {}).get("db"), sess.state_path)
     ok, _ = verdict(result, cfg.write)
     print("\ncalibration " + ("PASSED" if ok else "FAILED"))
+    if not ok and result.get("gyro_refused"):
+        raise CommandError(f"accelerometer calibrated; gyro not: {result['gyro_refused']}; nothing was written "
+                           "to the device", f"the accelerometer's result is in {directory / 'session.json'} and the "
+                           "history; record what the reason asks for, or run with --gyro bias to write it")
     if not ok:
         raise CommandError("the calibration did not pass" + ("" if result["passed"] else " its tolerance")
                            + ("" if result["passed"] or not cfg.write else "; nothing was written to the device")

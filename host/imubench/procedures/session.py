@@ -26,6 +26,7 @@ import numpy as np
 
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
+from imubench.calib.gsens import with_zero_force_bias, zero_force_bias
 from imubench.calib.geometry import rotation_to  # noqa: F401 - where callers found it
 from imubench.device.link import Device
 from imubench.files import MAX_CAPTURE_BYTES, open_growing, read_bytes
@@ -339,22 +340,33 @@ class Session:
         gyro = None
         rest_gyr = np.asarray(self.rest["gyro"]) if self.rest.get("gyro") is not None else None
         self.gsens = self._gsens(accel, rest_gyr) if self.cfg.gyro else None
-        if self.cfg.gyro == "bias":
+        gyro_refused = None
+        try:
+            if self.cfg.gyro == "bias":
+                gyro = CG.gyro_bias(rest_gyr, self.cfg.rate_hz)
+            elif self.cfg.gyro == "turntable":
+                gyro = self._turntable_fit(accel, segments, CG.gyro_bias(rest_gyr, self.cfg.rate_hz), self.gsens)
+            elif self.cfg.gyro == "rotation":
+                gyro = self._rotation_fit(accel, CG.gyro_bias(rest_gyr, self.cfg.rate_hz), self.gsens)
+            elif self.cfg.gyro == "turns":
+                gyro = MotionCapture(self.cfg, self.rest, self.ui, self._next_block).known_turns_fit(
+                    accel, turn_runs, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
+        except CalibrationError as e:
+            # a refused gyro never discards the accelerometer: kept, reported and recorded with
+            # the gyro's bias at rest; nothing is written (run_session) since M would be lost
+            gyro_refused = str(e)
             gyro = CG.gyro_bias(rest_gyr, self.cfg.rate_hz)
-        elif self.cfg.gyro == "turntable":
-            gyro = self._turntable_fit(accel, segments, CG.gyro_bias(rest_gyr, self.cfg.rate_hz), self.gsens)
-        elif self.cfg.gyro == "rotation":
-            gyro = self._rotation_fit(accel, CG.gyro_bias(rest_gyr, self.cfg.rate_hz), self.gsens)
-        elif self.cfg.gyro == "turns":
-            gyro = MotionCapture(self.cfg, self.rest, self.ui, self._next_block).known_turns_fit(accel, turn_runs, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
+            self.ui.say(f"gyro not calibrated: {gyro_refused}")
         if gyro is not None and self.gsens is not None:   # b + G·f: the bias at zero specific force
-            gyro = _with_bias(gyro, self.gsens)
+            gyro = with_zero_force_bias(gyro, self.gsens)
         frame_note = None
         if self.cfg.method == "multi" and self.cfg.gyro == "turntable":
             accel, frame_note = self._align_frames(accel, gyro, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
         self.accel_fit, self.gyro_fit = accel, gyro
         result = self._result(accel, gyro)
         result["gsens"] = self.gsens_report
+        if gyro_refused:
+            result["gyro_refused"] = gyro_refused
         result["accel_frame"] = accel.extra.get("frame", "board")
         result["bench_time_s"] = self.bench_time_s
         result["adaptive"] = bool(self.cfg.adaptive)
@@ -437,7 +449,7 @@ class Session:
             raise CalibrationError("the rotation method needs all poses in one continuous stream; "
                                    "this session was resumed — use --gyro bias or turntable, or start a new session")
         if gsens is not None:
-            bias = _zero_force_bias(gsens, bias)
+            bias = zero_force_bias(gsens, bias)
         return CG.rotation_method(np.concatenate(gyro_all), self.cfg.rate_hz, intervals, np.array(dirs), bias)
 
     def _turntable_fit(self, accel: TriadFit, segments: list, bias: TriadFit, gsens=None) -> TriadFit:
@@ -449,7 +461,7 @@ class Session:
             return CG.turntable([s[:3] for s in segments], bias=bias)
         segs = [(r, ax, w, None, accel.correct(np.asarray(a_mps2)[None])[0] / U.G0_MPS2)
                 for r, ax, w, _, a_mps2 in segments]
-        return CG.turntable(segs, bias=_zero_force_bias(gsens, bias), gsens=gsens)
+        return CG.turntable(segs, bias=zero_force_bias(gsens, bias), gsens=gsens)
 
     def _result(self, accel: TriadFit, gyro: TriadFit | None) -> dict:
         means = np.array([p.mean_mps2 for p in self.poses])
@@ -523,27 +535,6 @@ class Session:
                                 self.cfg.tolerances.verify_mg, self.ui)
 
 
-def _zero_force_bias(gsens, bias: TriadFit) -> TriadFit:
-    """The g-sensitivity fit's bias at zero specific force, with its covariance, as the fixed
-    bias of a gyro fit whose readings are taken less G·f (rotation method, turntable)."""
-    from imubench.calib import gyro as CG
-    return TriadFit(method="bias", m=np.eye(3), b=gsens.b.copy(), cov=CG._cov12(b_cov=gsens.cov[9:, 9:]),
-                    estimated=np.array([False] * 9 + [True] * 3), extra=dict(bias.extra))
-
-
-def _with_bias(fit: TriadFit, gsens) -> TriadFit:
-    """fit with b (and its covariance) replaced by the g-sensitivity fit's bias at zero
-    specific force (M and its covariance kept)."""
-    cov = np.array(fit.cov, dtype=float)
-    cov[9:, :] = np.nan
-    cov[:, 9:] = np.nan
-    cov[9:, 9:] = gsens.cov[9:, 9:]
-    extra = dict(fit.extra, bias_source="g-sensitivity fit (b at zero specific force)")
-    return TriadFit(method=fit.method, m=fit.m, b=gsens.b.copy(), cov=cov, residual_rms=fit.residual_rms,
-                    residuals=fit.residuals, dof=fit.dof, estimated=np.array(list(fit.estimated[:9]) + [True] * 3),
-                    extra=extra)
-
-
 def plan_for(method: str) -> list[tuple[str, np.ndarray]]:
     """(name, gravity direction) of the attitudes to present: the six faces, or all 26."""
     from imubench.calib.accel import POSE_PLAN
@@ -583,9 +574,14 @@ def run_session(dev: Device, directory, cfg: SessionConfig, ui: Presenter, *, re
         ui.pose_event(p["name"], "done", {"before_g": p["before_g"], "after_g": p["after_g"],
                                                     "sigma_mg": p["sigma_g"] * 1e3})
     report(result)
-    if result["passed"] and cfg.write:
+    if result["passed"] and cfg.write and not result.get("gyro_refused"):
         out = sess.write_and_verify()
         result.update(written=out.written, verified=out.verified, verification=out.verification)
+    elif result.get("gyro_refused"):
+        why = ("the gyro part was refused: nothing was written to the device (its gyro calibration would be "
+               "lost); the accelerometer's result is kept in session.json and the history")
+        ui.say(why)
+        ui.step("write", why, "skipped")
     elif not result["passed"]:
         ui.say("the fit did not pass its tolerance: nothing was written to the device")
         ui.step("write", "the fit did not pass its tolerance: nothing was written to the device", "skipped")

@@ -131,6 +131,8 @@ def verdict(record: dict, write_requested: bool) -> tuple[bool, list[str]]:
         rms, tol = record.get("accel_rms_after_mg"), (record.get("tolerances") or {}).get("accel_rms_mg")
         why.append("fit out of tolerance" + (f": |a| − g RMS {rms:.3f} mg > {tol:g} mg"
                                              if rms is not None and tol is not None else ""))
+    elif record.get("gyro_refused"):
+        why.append(f"accelerometer calibrated; gyro not: {record['gyro_refused']}")
     elif write_requested and not record.get("verified"):
         why.append("written parameters not verified")
     why += [f"{m['name']} = {m['value']:.4g} {m['unit']} outside its limit" for m in record.get("measurements") or []
