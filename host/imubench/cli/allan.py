@@ -81,26 +81,12 @@ NOISE_WRITERS = ("kalibr", "openvins", "vins-fusion", "imu-utils")
 
 
 def _run_from_file(a) -> int:
-    from imubench.cli.calibrate import _columns
+    from imubench.cli.calibrate import read_recording_args
     from imubench.procedures.allan import analyse_recording
-    from imubench.recordings.readers import load_profile, read
     if a.port or a.analyse or a.duration is not None:
         raise UsageError("--from analyses a recording: it goes without --port, --analyse and --duration",
                          "drop those, or drop --from to record a device")
-    path = Path(a.from_file)
-    if not path.exists():
-        raise UsageError(f"--from {path}: no such file or directory", "check the path")
-    opts = load_profile(a.profile) if a.profile else {}
-    fmt = a.format or opts.pop("format", None)
-    opts.pop("format", None)
-    given = {"accel_unit": a.accel_unit, "gyro_unit": a.gyro_unit, "accel_counts_per_g": a.accel_scale,
-             "gyro_counts_per_dps": a.gyro_scale, "rate_hz": a.rate, "time_column": a.time_column,
-             "time_unit": a.time_unit, "topic": a.topic, "gyro_file": a.gyro_file, "device": a.device,
-             "columns": _columns(a.columns) if a.columns else None}
-    opts.update({k: v for k, v in given.items() if v is not None})
-    rec = read(path, fmt, **opts)
-    print(f"recording: {rec.source} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz ({rec.duration_s:.1f} s); "
-          f"{rec.unit_text()}")
+    rec = read_recording_args(a)
     for n in rec.notes:
         print(f"  {n}")
     analyse_recording(rec, a.out, exports=a.export, topic=a.imu_topic)

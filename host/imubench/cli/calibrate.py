@@ -464,21 +464,11 @@ def _columns(text: str) -> dict:
     return out
 
 
-def _run_from_file(a) -> int:
-    """imubench calibrate --from FILE: read, analyse, write the session directory, record."""
-    from imubench.procedures.from_file import FileConfig, calibrate_recording
-    from imubench.procedures.session import Tolerances
-    from imubench.recordings import RecordingError
-    from imubench.recordings.readers import load_profile, read, read_annotation
-    from imubench.results.recording import annotation_table, segmentation_table, turns_table
-
-    for flag, bad in (("--port", a.port), ("--sim", a.sim), ("--resume", a.resume), ("--redo", a.redo),
-                      ("--closure", a.closure)):
-        if bad:
-            raise UsageError(f"--from and {flag} exclude each other", "a recording is calibrated without a device")
-    if a.gyro == "turntable":
-        raise UsageError("--gyro turntable needs a turntable's known rates",
-                         "from a recording use --gyro turns (known-angle turns) or --gyro rotation")
+def read_recording_args(a):
+    """The recording --from names, read with the options of calibrate --from and allan --from
+    (format, profile, units, scales, rate, columns, time, topic), and its one-line summary
+    printed."""
+    from imubench.recordings.readers import load_profile, read
     path = Path(a.from_file)
     if not path.exists():
         raise UsageError(f"--from {path}: no such file or directory", "check the path")
@@ -493,8 +483,27 @@ def _run_from_file(a) -> int:
     if opts.get("topic") and (fmt or "") not in ("", "rosbag"):
         raise UsageError("--topic is for ROS bags", "drop it, or give --format rosbag")
     rec = read(path, fmt, **opts)
-    print(f"recording: {one_line(rec.source)} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz ({rec.duration_s:.1f} s); "
-          f"{rec.unit_text()}")
+    print(f"recording: {one_line(rec.source)} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz "
+          f"({rec.duration_s:.1f} s); {rec.unit_text()}")
+    return rec
+
+
+def _run_from_file(a) -> int:
+    """imubench calibrate --from FILE: read, analyse, write the session directory, record."""
+    from imubench.procedures.from_file import FileConfig, calibrate_recording
+    from imubench.procedures.session import Tolerances
+    from imubench.recordings import RecordingError
+    from imubench.recordings.readers import read_annotation
+    from imubench.results.recording import annotation_table, segmentation_table, turns_table
+
+    for flag, bad in (("--port", a.port), ("--sim", a.sim), ("--resume", a.resume), ("--redo", a.redo),
+                      ("--closure", a.closure)):
+        if bad:
+            raise UsageError(f"--from and {flag} exclude each other", "a recording is calibrated without a device")
+    if a.gyro == "turntable":
+        raise UsageError("--gyro turntable needs a turntable's known rates",
+                         "from a recording use --gyro turns (known-angle turns) or --gyro rotation")
+    rec = read_recording_args(a)
     tol = Tolerances() if a.tolerance_mg is None else Tolerances(accel_rms_mg=a.tolerance_mg)
     if a.gyro is None:
         a.gyro = "auto"
