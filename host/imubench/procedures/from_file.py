@@ -158,7 +158,7 @@ class FileAnalysis:
                 self.gyro = self._gyro(rec, cfg, fs, keep, acc, means, accel)
             except CalibrationError as e:
                 self.gyro_refused = str(e)
-                self.gyro = getattr(self, "_bias", None)
+                self.gyro = self._bias
         if self.gyro_refused:
             self.say(f"gyro not calibrated: {self.gyro_refused}")
         return self._result(means, sigmas)
