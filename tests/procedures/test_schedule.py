@@ -84,7 +84,7 @@ def _board(slot, plate, clock, rng_seed, kind, need_n, prefer_order, out, phases
             if kind == "hangs" and len(captured) == need_n // 3:
                 for _ in range(121):                     # never still: its own 120 s attitude deadline
                     clock.advance(1.0)
-                    threading.Event().wait(0.0005)
+                    threading.Event().wait(Plate.CHECK_S)     # a check of the waiting boards a second
                 raise BoardFailed("poses", "no still attitude from the plan within 120 s (fake)")
             if rng.random() < 0.1:
                 continue                                 # the capture was rejected: asked again

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import shlex
 import sqlite3
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -212,6 +213,22 @@ def _pg_url(url: str) -> str:
                         "postgresql://USER@HOST[:PORT]/DBNAME URL")
 
 
+def _sqlite_wal(dbapi_conn, timeout_s: float) -> None:
+    """Put a SQLite file in WAL mode. Changing the journal mode takes the file's exclusive lock,
+    and SQLite answers "database is locked" at once, without its busy timeout, while another
+    station's connection is changing it too (several stations opening a new file together):
+    tried again until timeout_s."""
+    t_end = time.monotonic() + timeout_s
+    while True:
+        try:
+            dbapi_conn.execute("PRAGMA journal_mode = WAL")
+            return
+        except sqlite3.OperationalError as e:
+            if "locked" not in str(e) or time.monotonic() > t_end:
+                raise
+            time.sleep(0.01)
+
+
 def make_engine(target, *, readonly: bool = False, timeout_s: float = 10.0) -> Engine:
     """An engine for a path (SQLite) or a postgresql:// URL."""
     if is_url(target):
@@ -247,7 +264,7 @@ def make_engine(target, *, readonly: bool = False, timeout_s: float = 10.0) -> E
         dbapi_conn.isolation_level = None           # transactions are ours (BEGIN below), not pysqlite's
         dbapi_conn.execute("PRAGMA foreign_keys = ON")
         if not readonly:
-            dbapi_conn.execute("PRAGMA journal_mode = WAL")     # readers never block a recording session
+            _sqlite_wal(dbapi_conn, timeout_s)                  # readers never block a recording session
             dbapi_conn.execute("PRAGMA synchronous = FULL")     # a recorded run survives a power cut too
 
     @event.listens_for(eng, "begin")
