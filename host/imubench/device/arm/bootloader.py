@@ -301,15 +301,23 @@ class RomBootloader:
             return None
         return int.from_bytes(b[:4], "big")
 
-    def _read_mem(self):
+    def _open_address(self):
+        """The start of Read and Write Memory: NACK under readout protection, else ACK, the
+        address with its checksum and ACK; the address, or None when refused."""
         if self.rdp:
             self.out.append(NACK)
-            return
+            return None
         self.out.append(ACK)
         addr = yield from self._address()
         if addr is None:
-            return
+            return None
         self.out.append(ACK)
+        return addr
+
+    def _read_mem(self):
+        addr = yield from self._open_address()
+        if addr is None:
+            return
         nb = yield 2
         if nb[1] != nb[0] ^ 0xFF:
             self.out.append(NACK)
@@ -323,14 +331,9 @@ class RomBootloader:
         self.out += data
 
     def _write_mem(self):
-        if self.rdp:
-            self.out.append(NACK)
-            return
-        self.out.append(ACK)
-        addr = yield from self._address()
+        addr = yield from self._open_address()
         if addr is None:
             return
-        self.out.append(ACK)
         nb = yield 1
         n = nb[0] + 1
         rest = yield n + 1
