@@ -7,8 +7,10 @@ station overview test missed a line printed right after the page's address that 
 reads the rest through the same wrappers instead."""
 from __future__ import annotations
 
+import re
 import subprocess
 import threading
+import time
 
 
 def finish(proc: subprocess.Popen, timeout: float) -> tuple[str, str]:
@@ -27,3 +29,17 @@ def finish(proc: subprocess.Popen, timeout: float) -> tuple[str, str]:
     for t in readers:
         t.join(timeout=30)
     return got.get("stdout", ""), got.get("stderr", "")
+
+
+def wait_for_line(proc: subprocess.Popen, pattern: str, lines: list[str], timeout_s: float = 60.0) -> re.Match:
+    """Read proc's stdout line by line into `lines` until one matches pattern (its match);
+    fails with what was printed when the output ends or timeout_s passes first."""
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        line = proc.stdout.readline()
+        assert line, "".join(lines) + proc.stderr.read()
+        lines.append(line)
+        m = re.search(pattern, line)
+        if m:
+            return m
+    raise AssertionError(f"no line matching {pattern!r} within {timeout_s:g} s:\n" + "".join(lines))

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from procio import finish
+from procio import finish, wait_for_line
 from imubench.station.runner import SIM_KEY, Station
 from imubench.station.server import Server
 
@@ -141,7 +141,6 @@ def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
     import signal
     import subprocess
     import sys
-    import time
     import urllib.request
     cmd = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "3", "--sim-speed", "4",
            "--ui", "web", "--http-port", "0", "--dir", str(tmp_path / "st"), "--db", str(tmp_path / "h.sqlite"),
@@ -149,15 +148,7 @@ def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     lines = []
     try:
-        url = None
-        t_end = time.monotonic() + 60
-        while url is None and time.monotonic() < t_end:
-            line = proc.stdout.readline()
-            assert line, "".join(lines) + proc.stderr.read()
-            lines.append(line)
-            m = re.search(r"station page: (http://127\.0\.0\.1:\d+/)", line)
-            url = m.group(1) if m else None
-        assert url, "".join(lines)
+        url = wait_for_line(proc, r"station page: (http://127\.0\.0\.1:\d+/)", lines).group(1)
         page = browser.new_page(viewport={"width": 1500, "height": 1300})
         page.set_default_timeout(120_000)
         page.goto(url)

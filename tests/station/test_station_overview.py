@@ -19,13 +19,12 @@ import re
 import signal
 import subprocess
 import sys
-import time
 import urllib.request
 from pathlib import Path
 
 import pytest
 
-from procio import finish
+from procio import finish, wait_for_line
 from imubench.station.runner import Station
 from imubench.station.server import Server
 
@@ -153,14 +152,7 @@ def test_eight_boards_on_the_page_end_to_end(tmp_path, browser):
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     lines = []
     try:
-        url = None
-        t_end = time.monotonic() + 60
-        while url is None and time.monotonic() < t_end:
-            line = proc.stdout.readline()
-            assert line, "".join(lines) + proc.stderr.read()
-            lines.append(line)
-            m = re.search(r"station page: (http://127\.0\.0\.1:\d+/)", line)
-            url = m.group(1) if m else None
+        url = wait_for_line(proc, r"station page: (http://127\.0\.0\.1:\d+/)", lines).group(1)
         page = browser.new_page(viewport=SCREEN)
         page.set_default_timeout(240_000)
         page.goto(url)
