@@ -528,7 +528,6 @@ class BootloaderServer:
     def serve(self, should_stop) -> tuple:
         """Until the bootloader leaves (("go", addr) / ("reset",)) or the process stops (("stop",))."""
         import ctypes
-        import select
 
         from . import simlib
         lib, rom = self.lib, self.rom
@@ -566,28 +565,16 @@ class BootloaderServer:
                     continue
                 return act
             # wait for bytes or a control request
-            lfd, cfd = ctypes.c_int(), ctypes.c_int()
-            lib.simlib_link_fds(ctypes.byref(lfd), ctypes.byref(cfd))
-            poller = select.poll()
-            if lfd.value >= 0:
-                poller.register(lfd.value, select.POLLIN)
-            if cfd.value >= 0:
-                poller.register(cfd.value, select.POLLIN)
-            n_ctl = lib.sim_control_pollfds(pfd, 16)
-            slot = {}
-            for i in range(n_ctl):
-                slot[pfd[i].fd] = i
-                pfd[i].revents = 0
-                poller.register(pfd[i].fd, pfd[i].events)
+            poller, lfd, cfd, slot, n_ctl = simlib.sim_poller(lib, pfd)
             try:
                 ready = poller.poll(20)
             except InterruptedError:
                 continue
             ctl = False
             for fd, ev in ready:
-                if fd == lfd.value:
+                if fd == lfd:
                     lib.simlib_link_accept()
-                elif fd == cfd.value:
+                elif fd == cfd:
                     lib.simlib_link_receive()
                 elif fd in slot:
                     pfd[slot[fd]].revents = ev

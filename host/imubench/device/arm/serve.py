@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import select
 import time
-from ctypes import byref, c_int
 
 from . import simlib
 from .machine import INF, MAX_LAG_WALL_S, RESET_POWER_CUT, Machine
@@ -100,30 +99,18 @@ class Server:
 
     def _io(self, pfd, timeout: float) -> None:
         lib = self.lib
-        lfd, cfd = c_int(), c_int()
-        lib.simlib_link_fds(byref(lfd), byref(cfd))
-        poller = select.poll()
-        if lfd.value >= 0:
-            poller.register(lfd.value, select.POLLIN)
-        if cfd.value >= 0:
-            ev = select.POLLIN | (select.POLLOUT if lib.simlib_link_blocked() and lib.simlib_link_staged() else 0)
-            poller.register(cfd.value, ev)
-        n_ctl = lib.sim_control_pollfds(pfd, 16)
-        slot = {}
-        for i in range(n_ctl):
-            slot[pfd[i].fd] = i
-            pfd[i].revents = 0
-            poller.register(pfd[i].fd, pfd[i].events)
+        out = select.POLLOUT if lib.simlib_link_blocked() and lib.simlib_link_staged() else 0
+        poller, lfd, cfd, slot, n_ctl = simlib.sim_poller(lib, pfd, select.POLLIN | out)
         try:
             ready = poller.poll(max(timeout, 0.0) * 1000.0)
         except InterruptedError:
             return
         ctl_ready = False
         for fd, ev in ready:
-            if fd == lfd.value:
+            if fd == lfd:
                 if lib.simlib_link_accept() == 0:
                     self.m.log("link: TCP client connected")
-            elif fd == cfd.value:
+            elif fd == cfd:
                 if ev & (select.POLLIN | select.POLLHUP | select.POLLERR):
                     lib.simlib_link_receive()
                 if ev & select.POLLOUT:

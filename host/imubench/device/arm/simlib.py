@@ -92,3 +92,25 @@ def load(path: Path) -> ctypes.CDLL:
         fn.restype = res
         fn.argtypes = args
     return lib
+
+
+def sim_poller(lib: ctypes.CDLL, pfd, cfd_events: int | None = None):
+    """One poll set over what the models library serves: the link's listening socket, its
+    connected client (cfd_events, default POLLIN) and the control channel's descriptors
+    (filled into pfd). Returns (poller, lfd, cfd, slot, n_ctl): slot maps a control fd to its
+    index in pfd, whose revents the caller sets before sim_control_handle(pfd, n_ctl)."""
+    import select
+    lfd, cfd = ctypes.c_int(), ctypes.c_int()
+    lib.simlib_link_fds(ctypes.byref(lfd), ctypes.byref(cfd))
+    poller = select.poll()
+    if lfd.value >= 0:
+        poller.register(lfd.value, select.POLLIN)
+    if cfd.value >= 0:
+        poller.register(cfd.value, select.POLLIN if cfd_events is None else cfd_events)
+    n_ctl = lib.sim_control_pollfds(pfd, 16)
+    slot = {}
+    for i in range(n_ctl):
+        slot[pfd[i].fd] = i
+        pfd[i].revents = 0
+        poller.register(pfd[i].fd, pfd[i].events)
+    return poller, lfd.value, cfd.value, slot, n_ctl
