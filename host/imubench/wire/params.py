@@ -248,9 +248,10 @@ def _check_poly(name: str, b, btc, t_ref, bias_max: float, c2, c3, t_min: int, t
                                 f"{float(c3[k])!r} above {float(c3_max):g} in magnitude")
         e = d * (abs(btc[k]) + d * (abs(c2[k]) + d * abs(c3[k])))
         if not e <= _F32(bias_max):
+            unit = "m/s²" if name == "accel" else "rad/s"
             raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} bias polynomial[{k}] may move the bias by up to "
-                                f"{float(e):.4g} over its span {t_min}..{t_max} °C, more than the bias limit "
-                                f"{float(bias_max):g}")
+                                f"{float(e):.4g} {unit} over its span {t_min}..{t_max} °C, more than the bias limit "
+                                f"{float(bias_max):g} {unit}")
 
 
 def validate(p: Params) -> None:
