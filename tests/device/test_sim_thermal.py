@@ -4,7 +4,12 @@ the stream's temperature registers and raw samples, against the truth the contro
 reports and imubench.device.sim_thermal.truth_bias evaluates."""
 from __future__ import annotations
 
+import json
 import math
+import signal
+import socket
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -13,6 +18,7 @@ from scipy.optimize import curve_fit
 from imubench import units as U
 from imubench.device.sim import SimError, VirtualBench, build_sim
 from imubench.device.sim_thermal import truth_bias
+from procio import finish, wait_for_line
 
 DEG = math.pi / 180.0
 RATE_HZ = 100
@@ -224,3 +230,32 @@ def test_f103_image_sees_the_same_lagging_dies():
         (a, _, tau_fit), _ = curve_fit(_lag, t, temps[:, i], p0=(40.0, -20.0, 4.0))
         assert tau_fit == pytest.approx(tau[i], rel=0.05), f"die {i}"
         assert a == pytest.approx(40.0 + heat[i], abs=0.15), f"die {i}"
+
+
+# ------------------------------------------------------------------ the command line
+
+def test_imubench_sim_thermal_lag_switches_the_model_on():
+    """`imubench sim --thermal-lag` says what it switched on, and its control channel agrees."""
+    proc = subprocess.Popen([sys.executable, "-m", "imubench", "sim", "--thermal-lag", "--speed", "0",
+                             "--truth", "random", "--seed", "4"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: list[str] = []
+    try:
+        m = wait_for_line(proc, r"thermal model on .*time constants ([\d., ]+) min, self-heating ([\d., ]+) °C",
+                          lines, timeout_s=60)
+        port = int(wait_for_line(proc, r"control channel \(JSON lines\): 127\.0\.0\.1:(\d+)", lines).group(1))
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as s, s.makefile("rwb") as f:
+            f.write(b'{"cmd": "status"}\n')
+            f.flush()
+            th = json.loads(f.readline())["thermal"]
+        assert th["enabled"] is True
+        tau_min = [float(x) for x in m.group(1).split(",")]
+        heat = [float(x) for x in m.group(2).split(",")]
+        assert tau_min == pytest.approx([t / 60 for t in th["tau_s"]], abs=0.05)
+        assert heat == pytest.approx(th["self_heat_c"], abs=0.05)
+        # a random part: time constants of minutes, different per die
+        assert all(3.0 <= t <= 10.0 for t in tau_min) and len(set(tau_min)) == 4
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = finish(proc, timeout=20)
+    assert proc.returncode == 0, "".join(lines) + out + err
