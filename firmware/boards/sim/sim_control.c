@@ -46,8 +46,10 @@
  *                      about 25 degC (bias_tc2 per degC^2, bias_tc3 per degC^3, in the
  *                      bias's unit); hysteresis is half the gap between the warming and the
  *                      cooling branch, hysteresis_width_c the play operator's dead band
- *   randomize_truth   {seed (default: the process seed)}
- *   get_truth
+ *   randomize_truth   {seed (default: the process seed)}  also draws the dies' tau_s and
+ *                     self_heat_c (set_thermal); whether the model is on stays as it is
+ *   get_truth         the truths, each sensor's die_temperature_c and hysteresis_branch,
+ *                     thermal {enabled, tau_s, self_heat_c} and the world
  *   inject            {fault: "gyro_fault_bits", sensor: "gyro_x"|"gyro_y"|"gyro_z",
  *                      bits: N, persistent: bool}
  *                     {fault: "gyro_parity", sensor, count, mask (default 1: P1 wrong)}
