@@ -128,6 +128,28 @@ def test_self_heating_builds_up_with_the_lag(bench):
     assert (done["time_us"] - t0) * 1e-6 <= 250.0 * math.log(6.0 / 0.05) + 5.0
 
 
+def test_dies_follow_a_ramp_as_the_ode_says(bench):
+    """The exact per-advance step (split at the ramp's end) against an independent numerical
+    solution of dT/dt = (A(t) + S - T) / tau through a still spell, a ramp and its end."""
+    from scipy.integrate import solve_ivp
+    tau, heat = np.array([100.0, 150.0, 200.0, 250.0]), np.array([0.0, 1.0, 2.0, 3.0])
+    bench.set_thermal(True, tau_s=tau.tolist(), self_heat_c=heat.tolist())
+    t0 = bench.set_temperature(25.0, soak=True)["time_us"] * 1e-6
+    bench.wait(20.0)
+    t1 = bench.set_temperature(35.0, ramp_c_per_s=0.1)["time_us"] * 1e-6     # ramp of 100 s
+    bench.wait(150.0)
+    st = bench.status()
+    t2 = st["time_us"] * 1e-6
+    assert t2 > t1 + 100.0                                                    # past the ramp's end
+
+    def ambient(t):
+        return 25.0 + min(max(t - t1, 0.0), 100.0) * 0.1
+
+    sol = solve_ivp(lambda t, y: (ambient(t) + heat - y) / tau, (t0, t2), np.full(4, 25.0),
+                    rtol=1e-10, atol=1e-10, max_step=1.0)
+    assert st["die_temperature_c"] == pytest.approx(sol.y[:, -1], abs=1e-6)
+
+
 def _lag(t, a, b, tau):
     return a + b * np.exp(-t / tau)
 

@@ -736,6 +736,7 @@ static int cmd_set_temperature(req_t *q)
     } else {
         sim_phys_set_temperature(&s->phys, s->t_us, c, ramp);
     }
+    put_u64(q->r, "time_us", s->t_us);
     put_num(q->r, "temperature_c", sim_phys_temperature(&s->phys, s->t_us));
     double die[SIM_DIES];
     for (int i = 0; i < SIM_DIES; i++) {
@@ -772,6 +773,7 @@ static int cmd_set_thermal(req_t *q)
                         have_h ? heat : NULL) != 0) {
         return fail("bad thermal figures");
     }
+    put_u64(q->r, "time_us", s->t_us);
     put_thermal(q->r);
     double die[SIM_DIES];
     for (int i = 0; i < SIM_DIES; i++) {
