@@ -839,6 +839,42 @@ static void test_temperature(void)
     CHECK_EQ_INT(s.temp_counts, 2473); /* 1885 + 9.05 * 65 = 2473.25 */
 }
 
+/* Curved bias and the play-operator hysteresis (adxl355_model.h): the branch follows the
+ * direction the die last moved by more than the dead band. */
+static void test_curve_and_hysteresis(void)
+{
+    bench_t b;
+    bench_init(&b, 24, 1);
+    b.model.truth.bias_tc2[0] = 1e-4;
+    b.model.truth.bias_tc3[0] = 2e-6;
+    b.model.truth.hysteresis[0] = 2e-3;
+    b.model.truth.hysteresis_width_c[0] = 2.0;
+    b.model.truth.hysteresis[1] = -1e-3;  /* width 0: the sign of the last change */
+    ib_adxl355_t dev;
+    CHECK_EQ_INT(ib_adxl355_init(&dev, &b.bus, IB_CS_ACCEL, NULL), IB_ADXL355_OK);
+    ib_adxl355_sample_t s;
+    /* temperature, branch of X, branch of Y after it */
+    static const double temps[] = {25.0, 35.0, 34.5, 30.0, 30.5, 40.0};
+    static const double hx[] = {0.0, 1.0, 0.5, -1.0, -0.5, 1.0};
+    static const double hy[] = {0.0, 1.0, -1.0, -1.0, 1.0, 1.0};
+    for (int k = 0; k < 6; k++) {
+        b.world.temperature_c = temps[k];
+        CHECK_EQ_INT(ib_adxl355_wait_sample(&dev, &s, 2000), IB_ADXL355_OK);
+        double d = temps[k] - 25.0;
+        double want_x = 1e-4 * d * d + 2e-6 * d * d * d + 2e-3 * hx[k];
+        double want_y = -1e-3 * hy[k];
+        CHECK_NEAR(b.model.hyst_h[0], hx[k], 1e-12);
+        CHECK_NEAR(b.model.hyst_h[1], hy[k], 1e-12);
+        CHECK_NEAR(adxl355_truth_thermal_bias(&b.model.truth, 0, temps[k], hx[k]), want_x, 1e-15);
+        double bias[3];
+        adxl355_model_true_bias(&b.model, bias);
+        CHECK_NEAR(bias[0], want_x, 1e-12);
+        CHECK_NEAR(bias[1], want_y, 1e-12);
+        CHECK_EQ_INT(s.accel_counts[0], lround(want_x / G0 * 256000.0));
+        CHECK_EQ_INT(s.accel_counts[1], lround(want_y / G0 * 256000.0));
+    }
+}
+
 static void test_truths(void)
 {
     adxl355_truth_t t;
@@ -863,6 +899,14 @@ static void test_truths(void)
             ok &= t.rw_k[i] > 0.0 && t.rw_k[i] <= 2e-6 * G0;
             ok &= fabs(t.bias_tc[i]) <= 0.1e-3 * G0;
             ok &= fabs(t.scale_tc[i]) <= 1e-4;
+            ok &= fabs(t.bias_tc2[i]) <= 2e-7 * G0 && fabs(t.bias_tc3[i]) <= 2e-9 * G0;
+            ok &= fabs(t.hysteresis[i]) <= 20e-6 * G0;
+            ok &= t.hysteresis_width_c[i] >= 1.0 && t.hysteresis_width_c[i] <= 4.0;
+            /* the data-sheet bound the ranges come from: slope <= 0.15 mg/degC on -40..85 */
+            for (double d = -65.0; d <= 60.0; d += 5.0) {
+                ok &= fabs(t.bias_tc[i] + 2.0 * t.bias_tc2[i] * d + 3.0 * t.bias_tc3[i] * d * d) <=
+                      0.15e-3 * G0;
+            }
         }
     }
     CHECK(ok);
@@ -913,6 +957,7 @@ int main(void)
     RUN(test_noise);
     RUN(test_random_walk);
     RUN(test_temperature);
+    RUN(test_curve_and_hysteresis);
     RUN(test_truths);
     return ctest_summary();
 }

@@ -839,6 +839,34 @@ static void test_tempco(void)
     }
 }
 
+/* Curved bias and the play-operator hysteresis (adxrs450_model.h). */
+static void test_curve_and_hysteresis(void)
+{
+    setup(15);
+    make_ideal();
+    sim_adxrs450_truth_t t = *sim_adxrs450_get_truth(&B.gyro[0]);
+    t.bias_tc2 = 2e-3 * DEG2RAD;
+    t.bias_tc3 = -1e-5 * DEG2RAD;
+    t.hysteresis = 0.05 * DEG2RAD;
+    t.hysteresis_width_c = 2.0;
+    sim_adxrs450_set_truth(&B.gyro[0], &t);
+    ib_adxrs450_t g;
+    CHECK_EQ_INT(init_chip(&g, 0), IB_ADXRS450_OK);
+    ib_adxrs450_sample_t s;
+    static const double temps[] = {25.0, 45.0, 44.0, 5.0, 5.5, 25.0};
+    static const double h[] = {0.0, 1.0, 0.0, -1.0, -0.5, 1.0};
+    for (int k = 0; k < 6; k++) {
+        B.world.temperature_c = temps[k];
+        CHECK_EQ_INT(settled_read(&g, &s), IB_ADXRS450_OK);
+        double d = temps[k] - 25.0;
+        double want = 2e-3 * d * d - 1e-5 * d * d * d + 0.05 * h[k]; /* deg/s */
+        CHECK_NEAR(B.gyro[0].hyst_h, h[k], 1e-12);
+        CHECK_NEAR(sim_adxrs450_true_bias_rad_s(&B.gyro[0]) / DEG2RAD, want, 1e-9);
+        CHECK_NEAR(sim_adxrs450_truth_thermal_bias(&t, temps[k], h[k]) / DEG2RAD, want, 1e-9);
+        CHECK_EQ_INT(s.rate_counts, (int)lround(want * 80.0));
+    }
+}
+
 static void test_random_truth(void)
 {
     sim_rng_t rng;
@@ -862,6 +890,13 @@ static void test_random_truth(void)
         CHECK(t.noise_n > 0.0);
         CHECK(fabs(t.bias_tempco_rad_s_per_c / DEG2RAD) <= 0.01);
         CHECK(fabs(t.scale_tempco_per_c) <= 1e-4);
+        CHECK(fabs(t.bias_tc2 / DEG2RAD) <= 1e-4 && fabs(t.bias_tc3 / DEG2RAD) <= 1e-6);
+        CHECK(fabs(t.hysteresis / DEG2RAD) <= 0.01);
+        CHECK(t.hysteresis_width_c >= 1.0 && t.hysteresis_width_c <= 4.0);
+        /* the bound the ranges come from: the null moves by at most 2 deg/s on -40..105 degC */
+        for (double d = -65.0; d <= 80.0; d += 5.0) {
+            CHECK(fabs(sim_adxrs450_truth_thermal_bias(&t, 25.0 + d, 0.0) / DEG2RAD) <= 2.0);
+        }
     }
     CHECK_NEAR(sqrt(sum2 / 2000.0), 0.5, 0.05);
     CHECK(max_bias > 1.0);
@@ -957,6 +992,7 @@ int main(void)
     RUN(test_white_noise);
     RUN(test_bias_random_walk);
     RUN(test_tempco);
+    RUN(test_curve_and_hysteresis);
     RUN(test_random_truth);
     RUN(test_bad_args);
     return ctest_summary();

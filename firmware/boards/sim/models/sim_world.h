@@ -15,7 +15,8 @@
 typedef struct sim_world {
     double specific_force_mps2[3]; /* in the board frame, m/s^2 */
     double rate_rad_s[3];          /* angular rate of the board, board frame, rad/s */
-    double temperature_c;          /* die temperature of every sensor, degC */
+    double temperature_c;          /* die temperature of the sensor this world is handed to,
+                                      degC (sim_thermal_t: each die its own) */
 } sim_world_t;
 
 #endif
