@@ -114,6 +114,35 @@ def neighbour_sigma(y) -> np.ndarray:
     return 1.4826 * mad / np.sqrt(1.5)
 
 
+def merge_cells(temp_c, y, sigma, cell_c: float):
+    """Time bins merged into temperature cells of cell_c °C (a board that stays at one temperature
+    for long gives many bins there: one cell, not many independent points). Per cell: the mean
+    temperature, the mean value and its σ = max(σ of the bins' mean as if independent, batch
+    means: the cell's bins in time order cut into up to 4 batches, the spread of the batch means
+    / √batches), which keeps a slow wander (bias instability) within the cell in its σ.
+    Returns (temp (c,), y (c,), sigma (c,), bins per cell (c,))."""
+    t = np.asarray(temp_c, float)
+    y = np.asarray(y, float)
+    s = np.asarray(sigma, float)
+    if cell_c is None or cell_c <= 0 or len(t) == 0:
+        return t, y, s, np.ones(len(t), int)
+    cell = np.floor(t / cell_c).astype(np.int64)
+    out = []
+    for c in np.unique(cell):
+        i = np.flatnonzero(cell == c)              # in time order (the bins come in time order)
+        m = len(i)
+        white = np.sqrt(np.sum(s[i] ** 2)) / m
+        sg = white
+        if m >= 4:
+            nb = min(4, m // 2)
+            per = m // nb
+            bm = np.array([y[i[j * per:(j + 1) * per]].mean() for j in range(nb)])
+            sg = max(white, float(bm.std(ddof=1) / np.sqrt(nb)))
+        out.append((t[i].mean(), y[i].mean(), sg, m))
+    a = np.array(out)
+    return a[:, 0], a[:, 1], a[:, 2], a[:, 3].astype(int)
+
+
 # ------------------------------------------------------------------ the fit
 @dataclass
 class PolyFit:
@@ -131,6 +160,8 @@ class PolyFit:
     chi2_red: float = float("nan")
     n_distinct: int = 0
     max_supported_order: int = 0
+    n_cells: int = 0                 # temperature cells fitted (merge_cells; = n_bins without merging)
+    alt_coef: np.ndarray | None = None   # the fit at the highest supported order (when higher than order)
     notes: list = field(default_factory=list)
 
     @property
@@ -141,11 +172,21 @@ class PolyFit:
         """The fitted bias at temp_c (clamped to the span, as the device does)."""
         return poly_eval(self.coef, temp_c, self.t_ref_c, *(self.span_c if clamp else (-np.inf, np.inf)))
 
-    def curve_sigma(self, temp_c) -> np.ndarray:
-        """1-σ of the fitted curve at temp_c (clamped to the span)."""
+    def curve_sigma(self, temp_c, relative: bool = False) -> np.ndarray:
+        """1-σ of the fitted curve at temp_c (clamped to the span): the coefficients' covariance
+        and, when a higher order was supported but not chosen, the difference to that fit (the
+        order choice's own uncertainty: a curvature within the noise of the held-out test is
+        not claimed to be absent). relative: of bias(T) − bias(t_ref) (c0 left out)."""
         x = np.clip(np.asarray(temp_c, dtype=np.float64), *self.span_c) - self.t_ref_c
         V = np.vander(np.atleast_1d(x), 4, increasing=True)
-        return np.sqrt(np.clip(np.einsum("ij,jk,ik->i", V, self.cov, V), 0, None)).reshape(np.shape(x))
+        if relative:
+            V[:, 0] = 0.0
+        var = np.einsum("ij,jk,ik->i", V, self.cov, V)
+        if self.alt_coef is not None:
+            d = np.nan_to_num(self.alt_coef - self.coef)
+            d[0] = 0.0 if relative else d[0]
+            var = var + (V @ d) ** 2
+        return np.sqrt(np.clip(var, 0, None)).reshape(np.shape(x))
 
     def sigma_over_span(self, n: int = 41) -> float:
         """The largest 1-σ of the fitted curve over the span."""
@@ -246,12 +287,16 @@ def _choose(cv: dict) -> int:
 
 
 def fit_bias_poly(temp_c, y, sigma, t_ref_c: float, max_order: int = 3, *,
-                  resolution_c: float = DEFAULT_RESOLUTION_C, order: int | None = None) -> PolyFit:
+                  resolution_c: float = DEFAULT_RESOLUTION_C, order: int | None = None,
+                  cell_c: float | None = None) -> PolyFit:
     """A bias polynomial of y against temp_c (k bins, 1-σ sigma) about t_ref_c: the order (0..
     max_order) chosen by held-out error among those the data support (module doc), or `order`
-    if given (still capped by the support). Raises ValueError without two bins."""
-    return _fit_groups(np.asarray(temp_c, float), np.asarray(y, float), np.asarray(sigma, float),
-                       np.zeros(len(np.atleast_1d(temp_c)), int), None, t_ref_c, max_order, resolution_c, order)[0]
+    if given (still capped by the support); with cell_c the bins are merged into temperature
+    cells first (merge_cells). Raises ValueError without two bins."""
+    t, yy, ss, m = merge_cells(temp_c, y, sigma, cell_c)
+    f = _fit_groups(t, yy, ss, np.zeros(len(t), int), None, t_ref_c, max_order, resolution_c, order)[0]
+    f.n_cells, f.n_bins = f.n_bins, int(m.sum())
+    return f
 
 
 def _fit_groups(x_c, y, sigma, group, mvals, t_ref_c, max_order, resolution_c, order):
@@ -293,6 +338,14 @@ def _fit_groups(x_c, y, sigma, group, mvals, t_ref_c, max_order, resolution_c, o
     else:
         coef[1: chosen + 1] = prm[idx]
         cov[1: chosen + 1, 1: chosen + 1] = C[np.ix_(idx, idx)]
+    alt = None
+    if sup > chosen:
+        p2, *_ = _wls(design(sup)(), y, w)
+        alt = np.zeros(4)
+        if ng == 1:
+            alt[: sup + 1] = p2[: sup + 1]
+        else:
+            alt[1: sup + 1] = p2[ng: ng + sup]
     notes = []
     if sup < max_order:
         notes.append(f"order limited to {sup} by the data: span {span[1] - span[0]:.1f} °C, {nd} distinct temperatures "
@@ -303,7 +356,7 @@ def _fit_groups(x_c, y, sigma, group, mvals, t_ref_c, max_order, resolution_c, o
         notes.append(f"t_ref {t_ref_c:g} °C lies outside the span {span[0]:.1f}..{span[1]:.1f} °C: c0 is extrapolated")
     fit = PolyFit(order=chosen, coef=coef, cov=cov, heldout_rms=cv[chosen][0],
                   heldout_by_order={p: v[0] for p, v in cv.items()}, span_c=span, n_bins=k, t_ref_c=float(t_ref_c),
-                  chi2_red=chi2_red, n_distinct=nd, max_supported_order=sup, notes=notes)
+                  chi2_red=chi2_red, n_distinct=nd, max_supported_order=sup, notes=notes, alt_coef=alt)
     scale = (float(prm[-1]), float(np.sqrt(C[-1, -1]))) if with_scale else None
     return fit, prm, C, scale, groups
 
@@ -332,7 +385,7 @@ class AxisFit:
 
 
 def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: float | None, max_order: int = 3,
-                    resolution_c: float = DEFAULT_RESOLUTION_C) -> list[AxisFit]:
+                    resolution_c: float = DEFAULT_RESOLUTION_C, cell_c: float | None = 0.5) -> list[AxisFit]:
     """Fit each axis of a triad over one or more still warm-ups. g_mps2: the specific force's
     magnitude for an accelerometer (its axis k reads b_k + bias_k(ΔT) + (1 + s_k·ΔT)·m_k, m_k =
     g·(face direction)_k nominally: the scale term multiplies what the axis sees), None for a
@@ -352,13 +405,16 @@ def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: flo
     out = []
     for k in range(3):
         xs, ys, ss, gr, mv = [], [], [], [], []
+        nbins = 0
         for i, s in enumerate(segs):
             t = np.asarray(s.temp_c, float)
             if t.ndim == 2:
                 t = t[:, k]
+            t, yy, sg, cnt = merge_cells(t, np.asarray(s.y, float)[:, k], np.asarray(s.sigma, float)[:, k], cell_c)
+            nbins += int(cnt.sum())
             xs.append(t)
-            ys.append(np.asarray(s.y, float)[:, k])
-            ss.append(np.asarray(s.sigma, float)[:, k])
+            ys.append(yy)
+            ss.append(sg)
             gr.append(np.full(len(t), i))
             d = np.asarray(s.gravity_dir, float)
             mv.append(0.0 if g_mps2 is None else g_mps2 * d[k] / max(np.linalg.norm(d), 1e-12))
@@ -366,6 +422,7 @@ def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: flo
                             np.array(mv))
         fit, prm, C, scale, groups = _fit_groups(x, y, sg, grp, None if g_mps2 is None else m, t_ref_c, max_order,
                                                  resolution_c, None)
+        fit.n_cells, fit.n_bins = fit.n_bins, nbins
         ng = len(groups)
         inter = {int(g): (float(prm[j]), float(np.sqrt(C[j, j]))) for j, g in enumerate(groups)}
         und = []
@@ -398,6 +455,8 @@ def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: flo
             fit.cov[0, 0] = float(np.mean(np.diag(C)[:ng])) / ng
             und.append(f"gyro {'xyz'[k]}: the bias at t_ref is the mean over the faces (each adds Earth rate "
                        "and g-sensitivity)")
+        if fit.alt_coef is not None and ng > 1:
+            fit.alt_coef[0] = fit.coef[0]
         out.append(AxisFit(bias=fit, scale_tc_per_c=None if scale is None else scale[0],
                            scale_tc_sigma_per_c=None if scale is None else scale[1], intercepts=inter,
                            undetermined=und))
