@@ -114,6 +114,16 @@ def neighbour_sigma(y) -> np.ndarray:
     return 1.4826 * mad / np.sqrt(1.5)
 
 
+def steady_sigma(sigma) -> np.ndarray:
+    """Each bin's σ floored at the median of all: a still sensor's noise does not change from bin
+    to bin, but a σ estimated from N_BATCHES batches scatters by about ±25 %, and a fit weighted
+    by those scattered σ trusts the lucky bins more than it should (its covariance then claims
+    too much)."""
+    s = np.asarray(sigma, float)
+    pos = s[s > 0]
+    return np.maximum(s, np.median(pos)) if len(pos) else s
+
+
 def merge_cells(temp_c, y, sigma, cell_c: float):
     """Time bins merged into temperature cells of cell_c °C (a board that stays at one temperature
     for long gives many bins there: one cell, not many independent points). Per cell: the mean
@@ -123,7 +133,7 @@ def merge_cells(temp_c, y, sigma, cell_c: float):
     Returns (temp (c,), y (c,), sigma (c,), bins per cell (c,))."""
     t = np.asarray(temp_c, float)
     y = np.asarray(y, float)
-    s = np.asarray(sigma, float)
+    s = steady_sigma(sigma)
     if cell_c is None or cell_c <= 0 or len(t) == 0:
         return t, y, s, np.ones(len(t), int)
     cell = np.floor(t / cell_c).astype(np.int64)

@@ -34,12 +34,20 @@ from imubench.device.link import DeviceError
 from imubench.errors import ImubenchError
 from imubench.files import open_growing
 from imubench.results import thermal_export as TX
-from imubench.results.thermal_warmup import WarmupRecord, bins_json, fit_json, format_fit, format_progress
+from imubench.results.thermal_warmup import (
+    WarmupRecord,
+    bins_json,
+    fit_json,
+    format_fit,
+    format_progress,
+    plot_warmup,
+)
 from imubench.wire import params as PR
 from imubench.wire.ids import SENSOR_BAD_BITS, device_identity
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
 CAPTURE_NAME = "capture.bin"
+PLOT_NAME = "warmup.png"
 SENSORS = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
 BAD_MASK = int(sum(int(b) for b in SENSOR_BAD_BITS))
 ACCEL_RES_C = 1.0 / 9.05       # the ADXL355's temperature step
@@ -260,7 +268,8 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
     """The whole warm-up on an open device, recorded in out_dir (thermal.json, capture.bin).
     Returns the final thermal.json content; its status is "done", "interrupted" (Ctrl-C, stop)
     or "failed" (a lost link: `error` says why), each with the fit of what came when there was
-    enough to fit. Raises WarmupError before streaming when the span cannot be covered."""
+    enough to fit. Raises WarmupError before streaming when the span cannot be covered, and the
+    link's error when the device does not answer at all (nothing is recorded then)."""
     say = hooks.say
     out_dir = Path(out_dir)
     if cfg.span_c is not None and hooks.reachable_c is not None:
@@ -268,6 +277,7 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         if cfg.span_c[0] < lo - cfg.span_tol_c or cfg.span_c[1] > hi + cfg.span_tol_c:
             raise WarmupError(f"span {cfg.span_c[0]:g}..{cfg.span_c[1]:g} °C: this bench brings the sensors from "
                               f"{lo:g} to about {hi:.1f} °C only")
+    info = dev.info()            # a port with no device on it fails here, before anything is recorded
     rec = WarmupRecord(out_dir, cfg.to_json())
     say(f"recording in {rec.path} (raw stream: {out_dir / CAPTURE_NAME})")
     st = _State(cfg)
@@ -277,7 +287,6 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
     old = None
     t_ref = None
     try:
-        info = dev.info()
         old = dev.get_params(ParamsWhich.ACTIVE).params
         t_ref = {"accel": float(old.accel_t_ref_c if cfg.t_ref_c is None else cfg.t_ref_c),
                  "gyro": float(old.gyro_t_ref_c if cfg.t_ref_c is None else cfg.t_ref_c)}
@@ -293,6 +302,14 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         dev.link.capture = capture
         rec.update(capture=CAPTURE_NAME, stage="warm-up")
         dev.start_stream(rate_hz=cfg.rate_hz, calibrated=False)
+        if cfg.span_c is not None and hooks.cool is None:
+            first = dev.read(n_samples=max(10, cfg.rate_hz // 2))
+            now_c = np.r_[U.accel_temp_counts_to_c(first.accel_temp_counts).mean(),
+                          U.gyro_temp_counts_to_c(first.gyro_temp_counts).mean(axis=0)]
+            if np.max(now_c) > cfg.span_c[0] + 2.0:
+                raise WarmupError(f"the sensors are at {_fmt(now_c)} °C already, above the span's lower end "
+                                  f"{cfg.span_c[0]:g} °C: cool the board first (a fridge), or start the span at "
+                                  f"{math.ceil(np.max(now_c)):g} °C")
         if hooks.warm is not None:
             hooks.warm()
         reason = _stream(dev, st, rec, say, on_progress, stop, t_ref)
@@ -331,6 +348,10 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
     fj = fit_json(fits, t_ref)
     rec.update(fit=fj)
     say(format_fit(fj))
+    png = plot_warmup(rec.data, out_dir / PLOT_NAME)
+    if png is not None:
+        rec.update(plot=PLOT_NAME)
+        say(f"plot: {png}")
     if cfg.exports:
         files = TX.write_exports(out_dir, export_fits([(direction, b)], t_ref, fits, cfg.max_order), t_ref,
                                  cfg.exports, comment=f"imubench warm-up {rec.data['started']}")
@@ -352,6 +373,10 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
     rec.update(status=status, error=error, stage="done")
     say(f"saved {rec.path}")
     return rec.data
+
+
+def _fmt(v) -> str:
+    return "/".join(f"{x:.1f}" for x in v)
 
 
 def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -> str:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
-from imubench.analysis.thermal_poly import AxisFit, Binned
+from imubench.analysis.thermal_poly import AxisFit, Binned, PolyFit
 from imubench.results.atomic import save_figure, write_json_atomic
 from imubench.results.numbers import pm
 from imubench.results.record import now_utc
@@ -18,7 +18,7 @@ from imubench.results.thermal import _js
 WARMUP_SCHEMA = 1
 KIND = "imubench thermal warmup"
 SENSORS = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
-TRIADS = {"accel": ("m/s^2", "ADXL355 temperature (all three axes)"),
+TRIADS = {"accel": ("m/s^2", "the ADXL355 temperature (all three axes)"),
           "gyro": ("rad/s", "each ADXRS450's own temperature (gyro X, Y, Z)")}
 
 
@@ -29,9 +29,25 @@ def axis_json(a: AxisFit) -> dict:
                 "heldout_by_order": {str(k): v for k, v in f.heldout_by_order.items()},
                 "span_c": list(f.span_c), "n_bins": f.n_bins, "n_distinct_temps": f.n_distinct,
                 "max_supported_order": f.max_supported_order, "chi2_red": f.chi2_red,
-                "sigma_over_span": f.sigma_over_span(), "scale_tc_per_c": a.scale_tc_per_c,
+                "sigma_over_span": f.sigma_over_span(), "n_cells": f.n_cells,
+                "alt_coef": None if f.alt_coef is None else [None if not math.isfinite(v) else v for v in f.alt_coef],
+                "scale_tc_per_c": a.scale_tc_per_c,
                 "scale_tc_sigma_per_c": a.scale_tc_sigma_per_c, "notes": list(f.notes),
                 "undetermined": list(a.undetermined)})
+
+
+def polyfit_from_json(a: dict, t_ref_c: float) -> PolyFit:
+    """An axis of thermal.json's fit back as a PolyFit (to evaluate the curve and its σ); an
+    undetermined c0 (null) comes back as 0."""
+    def arr(v):
+        return None if v is None else np.array([np.nan if x is None else x for x in v], float)
+    coef = np.nan_to_num(arr(a["coef"]))
+    alt = arr(a.get("alt_coef"))
+    if alt is not None:
+        alt[0] = coef[0] if not np.isfinite(alt[0]) else alt[0]
+    return PolyFit(order=int(a["order"]), coef=coef, cov=np.array(a["cov"], float), heldout_rms=a["heldout_rms"],
+                   heldout_by_order={int(k): v for k, v in (a.get("heldout_by_order") or {}).items()},
+                   span_c=tuple(a["span_c"]), n_bins=int(a["n_bins"]), t_ref_c=float(t_ref_c), alt_coef=alt)
 
 
 def fit_json(fits: dict, t_ref: dict) -> dict:
@@ -103,7 +119,7 @@ def format_fit(fj: dict) -> str:
     L = []
     for triad, d in fj.items():
         k, u = _SHOW[triad]
-        L.append(f"{triad} (t_ref {d['t_ref_c']:g} °C; against the {d['temperature']}):")
+        L.append(f"{triad} (t_ref {d['t_ref_c']:g} °C; against {d['temperature']}):")
         for ax, a in zip("xyz", d["axes"]):
             terms = [pm(c, s, f"{u}/°C{'' if i == 1 else '²' if i == 2 else '³'}", k)
                      for i, (c, s) in enumerate(zip(a["coef"], a["coef_sigma"])) if 1 <= i <= a["order"]]
