@@ -449,8 +449,13 @@ def params_from_warmup(old: Params, fits: dict, t_ref: dict) -> tuple[Params, li
         _set(p, f"{pre}_t_ref_c", float(t_ref[triad]))
         spans = np.array([a.bias.span_c for a in axes])
         lo, hi = math.ceil(float(spans[:, 0].max()) - 1e-9), math.floor(float(spans[:, 1].min()) + 1e-9)
-        if hi < lo:
-            lo = hi = int(round(float(np.mean(spans))))
+        if hi <= lo:
+            raise WarmupError(f"{triad}: the warm-up spans {spans[:, 0].max():.1f}..{spans[:, 1].min():.1f} °C, not "
+                              "a whole degree the device can hold: warm up over a wider span")
+        if not lo <= t_ref[triad] <= hi:
+            raise WarmupError(f"{triad}: the warm-up covered {lo}..{hi} °C (whole degrees inside its span), not the "
+                              f"reference temperature {t_ref[triad]:g} °C of the device's calibration: start colder or "
+                              "warm further (or give --t-ref inside the span)")
         _set(p, f"{pre}_t_min_c", int(lo))
         _set(p, f"{pre}_t_max_c", int(hi))
         if triad == "accel":
