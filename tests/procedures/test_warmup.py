@@ -161,7 +161,7 @@ def _cli(*args, **kw):
 def test_warmup_cli_on_the_virtual_part_recovers_the_truth(tmp_path):
     out = tmp_path / "w"
     p = _cli("--warmup", "--sim", "--sim-seed", str(SEED), "--sim-speed", "20", "--tau", "30",
-             "--export", "px4,ardupilot", "--out", str(out))
+             "--export", "px4,ardupilot", "--write", "--out", str(out))
     stdout, stderr = finish(p, 240)
     assert p.returncode == 0, stdout + stderr
     assert "temperatures stopped rising" in stdout and "note: bias and scale temperature terms of axis z" in stdout
@@ -170,6 +170,16 @@ def test_warmup_cli_on_the_virtual_part_recovers_the_truth(tmp_path):
     _, raw, _, _ = decode_bytes((out / "capture.bin").read_bytes())
     assert raw is not None and len(raw) >= sum(d["bins"]["n"])        # every binned sample is on disk
     assert set(d["exports"]) == {"px4", "ardupilot"} and all(os.path.exists(f[0]) for f in d["exports"].values())
+    # written (layout 3), read back after a reboot, and the device's calibrated output matches the host's model
+    w = d["write"]
+    assert w["verified"] and w["check"]["ok"] and "rebooted" in w["steps"]
+    for triad in ("accel", "gyro"):
+        spans = np.array([a["span_c"] for a in d["fit"][triad]["axes"]])
+        assert w["params"][f"{triad}_t_min_c"] == int(np.ceil(spans[:, 0].max()))      # rounded inwards
+        assert w["params"][f"{triad}_t_max_c"] == int(np.floor(spans[:, 1].min()))
+    c2 = [a["coef"][2] if a["order"] >= 2 else 0.0 for a in d["fit"]["gyro"]["axes"]]
+    assert np.allclose(w["params"]["gyro_bias_tc2_rad_s_per_c2"], c2, rtol=1e-6, atol=1e-12)
+    assert w["params"]["accel_scale_tc_per_c"][2] == 0.0                 # the one face: its slope is in c1
     with VirtualBench(speed=20, seed=SEED, truth="random") as vb:    # the same part: its truth from the seed
         truth = vb.get_truth()
     worst = 0.0

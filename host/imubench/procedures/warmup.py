@@ -495,8 +495,17 @@ def expected_calibrated(p: Params, raw_accel, raw_gyro, temps) -> tuple[np.ndarr
     return a, g
 
 
+def _read_now(dev, rate_hz: int, calibrated: bool, n: int, timeout_s: float):
+    dev.start_stream(rate_hz=rate_hz, calibrated=calibrated)
+    try:
+        dev.read(n_samples=max(20, n // 20), timeout=timeout_s)      # what was in flight before
+        return dev.read(n_samples=n, timeout=timeout_s)
+    finally:
+        dev.stop_stream()
+
+
 def write_warmup(dev, old: Params, fits: dict, t_ref: dict, b: Binned, cfg: WarmupConfig, say,
-                 n_check: int = 2000) -> dict:
+                 n_check: int = 1000) -> dict:
     """Write the warm-up's terms (write_verified), then check that the device applies them: the
     raw mean of n_check samples now and the calibrated mean right after must agree with the
     host's model within 5σ of the means plus what the temperature moved in between. On a
@@ -505,20 +514,15 @@ def write_warmup(dev, old: Params, fits: dict, t_ref: dict, b: Binned, cfg: Warm
     new, notes = params_from_warmup(old, fits, t_ref)
     for n in notes:
         say(f"note: {n}")
-    dev.start_stream(rate_hz=cfg.rate_hz, calibrated=False)
-    try:
-        dev.read(n_samples=max(20, n_check // 20))
-        raw = dev.read(n_samples=n_check)
-    finally:
-        dev.stop_stream()
+    wait_s = 10.0 + 2.0 * n_check / cfg.rate_hz      # an emulated board may run at half real time
+    raw = _read_now(dev, cfg.rate_hz, False, n_check, wait_s)
     wb = write_verified(dev, new, previous=old, say=say)
     say(f"written: {', '.join(wb['steps'])}")
-    dev.start_stream(rate_hz=cfg.rate_hz, calibrated=True)
     try:
-        dev.read(n_samples=max(20, n_check // 20))
-        cal = dev.read(n_samples=n_check)
-    finally:
-        dev.stop_stream()
+        cal = _read_now(dev, cfg.rate_hz, True, n_check, wait_s)
+    except (OSError, DeviceError) as e:
+        restore(dev, old)
+        raise WarmupError(f"could not check the written terms ({e}): the previous parameters were restored") from e
     ra, rg = raw.si()
     t_raw = np.r_[U.accel_temp_counts_to_c(raw.accel_temp_counts).mean(), U.gyro_temp_counts_to_c(raw.gyro_temp_counts).mean(axis=0)]
     t_cal = np.r_[U.accel_temp_counts_to_c(cal.accel_temp_counts).mean(), U.gyro_temp_counts_to_c(cal.gyro_temp_counts).mean(axis=0)]
