@@ -213,3 +213,30 @@ def test_ctrl_c_keeps_the_fit_of_what_came(tmp_path):
     d = json.loads((out / "thermal.json").read_text())
     assert d["status"] == "interrupted" and d["fit"] is not None and d["bins"] is not None
     assert "interrupted" in d["stop_reason"] and len(d["fit"]["gyro"]["axes"]) == 3
+
+
+def test_two_faces_of_a_cube_separate_the_accel_scale_term(tmp_path):
+    """Two warm-ups of the same virtual part, +Z up and −Z up, fitted together with
+    `thermal --fit-warmups`: the accelerometer Z scale temperature term comes out (within 4 sigma of
+    the truth) and is no longer reported as undetermined; the bias term of Z is the truth's."""
+    cfg = W.WarmupConfig(rate_hz=100, bin_s=2.0, stop_window_s=20.0, stop_rate_c_per_min=0.5, fit_every_s=1e9)
+    dirs = []
+    with VirtualBench(speed=30, seed=6, truth="random") as vb, vb.device() as dev:
+        vb.set_truth(accel={"scale_tc": [0.0, 0.0, 1.5e-4]})
+        for face in ("+z", "-z"):
+            hooks = W.sim_warmup_hooks(vb, 5.0, 40.0, tau_s=20.0, self_heat_c=1.0)
+            d = W.run_warmup(dev, tmp_path / face, W.WarmupConfig(**{**cfg.to_json(), "face": face}), hooks)
+            assert d["status"] == "done" and d["fit"]["accel"]["axes"][2]["scale_tc_per_c"] is None
+            dirs.append(str(tmp_path / face))
+        truth = vb.get_truth()
+    out = tmp_path / "both"
+    p = _cli("--fit-warmups", *dirs, "--export", "px4", "--out", str(out))
+    stdout, stderr = finish(p, 120)
+    assert p.returncode == 0, stdout + stderr
+    d = json.loads((out / "thermal.json").read_text())
+    z = d["fit"]["accel"]["axes"][2]
+    assert d["faces"] == ["+z", "-z"] and not any("not separated" in u for u in z["undetermined"])
+    assert abs(z["scale_tc_per_c"] - 1.5e-4) < 4 * z["scale_tc_sigma_per_c"], (z["scale_tc_per_c"], z["scale_tc_sigma_per_c"])
+    c1 = ST.thermal_terms(truth)["c1"][2]
+    assert abs(z["coef"][1] - c1) < 4 * z["coef_sigma"][1] + 2e-6, (z["coef"][1], c1)
+    assert "scale temperature term" in (out / "warmup.px4-thermal.params").read_text()
