@@ -23,7 +23,7 @@ from imubench.results import thermal_export as TX
 from imubench.results.thermal_warmup import polyfit_from_json
 from imubench.wire.decoder import decode_bytes
 
-from tests.procio import finish, wait_for_line
+from procio import finish, wait_for_line
 
 T_REF = 25.0
 LINE = np.array([2e-3, 3e-4, 0.0, 0.0])
@@ -156,6 +156,35 @@ SEED = 3
 def _cli(*args, **kw):
     return subprocess.Popen([sys.executable, "-m", "imubench", "thermal", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, **kw)
+
+
+def _listening_socket_with_no_device():
+    import socket
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    s.listen(1)
+    return s
+
+
+@pytest.mark.parametrize("args,words", [
+    (["--warmup", "--sim", "--tau", "30", "--span", "5,80"], "this bench brings the sensors from 5 to about"),
+    (["--warmup", "--sim", "--face", "+q"], "one of +x, -x, +y, -y, +z, -z"),
+    (["--warmup", "--sim", "--temps", "5,25"], "--temps is an option of the step method"),
+    (["--span", "5,45"], "--span goes with --warmup"),
+    (["--warmup", "--port", "socket://127.0.0.1:{port}"], "no answer to get_info"),
+    (["--fit-warmups", "."], "no readable thermal.json of a warm-up"),
+])
+def test_warmup_mistakes_give_one_line(tmp_path, args, words):
+    srv = _listening_socket_with_no_device()
+    try:
+        argv = [a.format(port=srv.getsockname()[1]) for a in args] + ["--out", str(tmp_path / "w")]
+        r = subprocess.run([sys.executable, "-m", "imubench", "thermal", *argv], capture_output=True, text=True,
+                           timeout=120, cwd=tmp_path, stdin=subprocess.DEVNULL)
+    finally:
+        srv.close()
+    assert r.returncode != 0 and words in r.stderr, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (tmp_path / "w" / "thermal.json").exists()        # nothing half-recorded
 
 
 def test_warmup_cli_on_the_virtual_part_recovers_the_truth(tmp_path):

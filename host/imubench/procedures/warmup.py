@@ -560,8 +560,8 @@ def load_warmup(directory) -> tuple[np.ndarray, Binned, dict]:
     of a run that crashed), or those thermal.json kept when the capture is gone."""
     import json
 
-    from imubench.files import MAX_CAPTURE_BYTES, MAX_JSON_BYTES, read_bytes, read_text
-    from imubench.wire.decoder import decode_bytes
+    from imubench.files import MAX_JSON_BYTES, read_text
+    from imubench.wire.decoder import StreamDecoder
     d = Path(directory)
     try:
         data = json.loads(read_text(d / WarmupRecord.NAME, MAX_JSON_BYTES, "thermal.json"))
@@ -576,11 +576,17 @@ def load_warmup(directory) -> tuple[np.ndarray, Binned, dict]:
     bin_s = float(cfg.get("bin_s") or 10.0)
     cap = d / (data.get("capture") or CAPTURE_NAME)
     b = None
-    if cap.exists():
-        _, raw, _, _ = decode_bytes(read_bytes(cap, MAX_CAPTURE_BYTES, "the capture"))
-        if raw is not None and len(raw):
-            st = _State(WarmupConfig(bin_s=bin_s, stop_window_s=max(300.0, 3 * bin_s)))
-            st.feed(raw)
+    if cap.is_file():
+        # piece by piece: a 4-hour capture is ~90 MB of frames; only the bins are kept
+        st = _State(WarmupConfig(bin_s=bin_s, stop_window_s=max(300.0, 3 * bin_s)))
+        dec = StreamDecoder()
+        with open(cap, "rb") as fh:
+            while chunk := fh.read(1 << 20):
+                dec.feed(chunk)
+                blk = dec.take_samples(False)
+                if blk is not None and len(blk):
+                    st.feed(blk)
+        if st.bins:
             b = st.binned()
     if b is None:
         bj = data.get("bins")
