@@ -269,3 +269,28 @@ def test_two_faces_of_a_cube_separate_the_accel_scale_term(tmp_path):
     c1 = ST.thermal_terms(truth)["c1"][2]
     assert abs(z["coef"][1] - c1) < 4 * z["coef_sigma"][1] + 2e-6, (z["coef"][1], c1)
     assert "scale temperature term" in (out / "warmup.px4-thermal.params").read_text()
+
+
+def test_lost_link_and_stop_event_keep_the_fit(tmp_path):
+    """The virtual device dies mid-run (its process stopped once a fit exists): status "failed",
+    the link's error, and the fit of what came; a stop event ends a run as "interrupted" with its fit."""
+    cfg = W.WarmupConfig(rate_hz=100, bin_s=2.0, stop_window_s=20.0, stop_rate_c_per_min=0.5, fit_every_s=10.0,
+                         stall_s=3.0)
+    import threading
+    with VirtualBench(speed=20, seed=8, truth="random") as vb, vb.device() as dev:
+        stop = threading.Event()
+        d = W.run_warmup(dev, tmp_path / "stop", cfg, W.sim_warmup_hooks(vb, 5.0, 45.0, tau_s=60.0),
+                         on_progress=lambda p: p["fit"] is not None and p["elapsed_s"] > 30 and stop.set(), stop=stop)
+        assert d["status"] == "interrupted" and d["fit"] is not None and d["stop_reason"].startswith("stopped")
+        got = []
+
+        def kill(p):
+            got.append(p)
+            if p["fit"] is not None and vb.running:
+                vb.stop()
+        d = W.run_warmup(dev, tmp_path / "lost", cfg, W.sim_warmup_hooks(vb, 5.0, 45.0, tau_s=60.0), on_progress=kill)
+    assert d["status"] == "failed" and d["stop_reason"] == "link lost" and d["error"], d["error"]
+    assert d["fit"] is not None and len(d["fit"]["accel"]["axes"]) == 3
+    on_disk = json.loads((tmp_path / "lost" / "thermal.json").read_text())
+    assert on_disk["status"] == "failed" and on_disk["fit"] == d["fit"]
+    assert set(got[-1]) >= {"elapsed_s", "temp_c", "rate_c_per_min", "span_c", "fit"}

@@ -79,6 +79,7 @@ class WarmupConfig:
     fit_every_s: float = 60.0
     max_order: int = 3
     span_tol_c: float = 0.5
+    stall_s: float = 10.0          # no sample for this long (wall time): the link is lost
 
     def __post_init__(self):
         if self.face not in POSES:
@@ -88,7 +89,7 @@ class WarmupConfig:
             if not hi > lo:
                 raise ValueError(f"span {lo:g},{hi:g}: the upper end must be above the lower")
             self.span_c = (lo, hi)
-        for name in ("stop_rate_c_per_min", "stop_window_s", "max_s", "bin_s", "fit_every_s"):
+        for name in ("stop_rate_c_per_min", "stop_window_s", "max_s", "bin_s", "fit_every_s", "stall_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0 (got {getattr(self, name)})")
         if self.stop_window_s < 3 * self.bin_s:
@@ -382,8 +383,10 @@ def _fmt(v) -> str:
 def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -> str:
     cfg = st.cfg
     last_said = -math.inf
-    for blk in dev.stream(poll_s=0.1):
-        new = st.feed(blk)
+    while True:
+        # a stream that goes silent for cfg.stall_s raises LinkTimeout (the run ends "failed", fit
+        # kept); the stop event is seen within a read (0.2 s)
+        new = st.feed(dev.read(duration_s=0.2, timeout=cfg.stall_s))
         if stop is not None and stop.is_set():
             return "stopped (asked to)"
         if not new:
@@ -411,7 +414,6 @@ def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -
                     f"{cfg.stop_window_s:g} s{note}")
         if st.elapsed_s >= cfg.max_s:
             return f"time is up ({cfg.max_s:g} s)" + ("" if cfg.span_c is None else " (span asked for NOT covered)")
-    return "the stream ended"
 
 
 # ------------------------------------------------------------------ the device's parameters
