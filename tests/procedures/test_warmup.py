@@ -193,7 +193,7 @@ def test_warmup_cli_on_the_virtual_part_recovers_the_truth(tmp_path):
              "--export", "px4,ardupilot", "--write", "--out", str(out))
     stdout, stderr = finish(p, 240)
     assert p.returncode == 0, stdout + stderr
-    assert "temperatures stopped rising" in stdout and "note: bias and scale temperature terms of axis z" in stdout
+    assert "temperatures stopped rising" in stdout and "note: bias and scale temperature terms of accelerometer z" in stdout
     d = json.loads((out / "thermal.json").read_text())
     assert d["kind"] == "imubench thermal warmup" and d["status"] == "done" and d["config"]["face"] == "+z"
     _, raw, _, _ = decode_bytes((out / "capture.bin").read_bytes())
@@ -234,7 +234,7 @@ def test_ctrl_c_keeps_the_fit_of_what_came(tmp_path):
     out = tmp_path / "w"
     p = _cli("--warmup", "--sim", "--sim-seed", "4", "--sim-speed", "20", "--tau", "60", "--out", str(out))
     lines: list[str] = []
-    wait_for_line(p, r"order a \d\d\d", lines, timeout_s=120)        # a fit exists
+    wait_for_line(p, r"orders accel \d/\d/\d", lines, timeout_s=120)        # a fit exists
     p.send_signal(signal.SIGINT)
     stdout, stderr = finish(p, 60)
     assert p.returncode == 130, "".join(lines) + stdout + stderr

@@ -440,10 +440,10 @@ def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: flo
             ms = np.round(m[groups] / g_mps2, 3)
             if scale is None:
                 if np.any(np.abs(ms) > 0.5):
-                    und.append(f"bias and scale temperature terms of axis {'xyz'[k]} not separated (one attitude of "
+                    und.append(f"bias and scale temperature terms of accelerometer {'xyz'[k]} not separated (one attitude of "
                                "this axis): c1 = bias_tc + scale_tc·m, right in this attitude only")
                 else:
-                    und.append(f"scale temperature term of axis {'xyz'[k]} not determined (the axis never saw gravity)")
+                    und.append(f"scale temperature term of accelerometer {'xyz'[k]} not determined (the axis never saw gravity)")
             # c0 from two opposite faces, or from a face where the axis sees no gravity
             opp = [(a, b) for a in range(ng) for b in range(ng) if a < b and abs(ms[a] + ms[b]) < 0.05 and abs(ms[a]) > 0.5]
             zero = [a for a in range(ng) if abs(ms[a]) < 0.05]
@@ -458,7 +458,7 @@ def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: flo
                     pass
             else:
                 fit.coef[0] = np.nan
-                und.append(f"bias of axis {'xyz'[k]} at t_ref not determined (it always saw gravity along one "
+                und.append(f"bias of accelerometer {'xyz'[k]} at t_ref not determined (it always saw gravity along one "
                            "direction: bias and g·scale together)")
         elif ng > 1:
             fit.coef[0] = float(np.mean(prm[:ng]))   # a gyro: faces differ by Earth rate and g-sensitivity

@@ -313,6 +313,9 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
                                   f"{math.ceil(np.max(now_c)):g} °C")
         if hooks.warm is not None:
             hooks.warm()
+        say(f"streaming raw at {cfg.rate_hz} Hz while the board warms ({cfg.face.upper()} up, still); every "
+            f"{cfg.fit_every_s:g} s: time, temperatures ADXL355/gyro X/Y/Z, their rates, the span covered, the "
+            "fitted orders. Ctrl-C ends it with the fit of what came")
         reason = _stream(dev, st, rec, say, on_progress, stop, t_ref)
         if reason.startswith("stopped"):
             status = "interrupted"

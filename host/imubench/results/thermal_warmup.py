@@ -98,15 +98,20 @@ def _temps(v) -> str:
     return "/".join(f"{x:.1f}" for x in v)
 
 
+def _rate(r) -> str:
+    return "   —  " if not math.isfinite(r) else f"{r:+.2f}"
+
+
 def format_progress(p: dict) -> str:
-    """One line: device time, the four temperatures, their rates and spans, the fitted orders."""
+    """One line: device time, the four temperatures (ADXL355, gyro X/Y/Z), their rates, the span
+    each covered, and the orders fitted so far (accel x/y/z, gyro x/y/z)."""
     span = " ".join(f"{lo:.1f}..{hi:.1f}" for lo, hi in p["span_c"])
-    s = (f"{p['elapsed_s']:7.0f} s  T {_temps(p['temp_c'])} °C  rate "
-         f"{'/'.join(f'{r:+.2f}' for r in p['rate_c_per_min'])} °C/min  span {span} °C")
+    s = (f"{p['elapsed_s']:6.0f} s  T {_temps(p['temp_c'])} °C  dT/dt {'/'.join(_rate(r) for r in p['rate_c_per_min'])}"
+         f" °C/min  covered {span} °C")
     fit = p.get("fit")
     if fit:
-        s += "  order a " + "".join(str(o) for o in fit["accel"]["order"]) + " g " + "".join(
-            str(o) for o in fit["gyro"]["order"])
+        s += ("  orders accel " + "/".join(str(o) for o in fit["accel"]["order"])
+              + " gyro " + "/".join(str(o) for o in fit["gyro"]["order"]))
     return s
 
 
@@ -175,3 +180,45 @@ def plot_warmup(data: dict, path) -> Path | None:
     fig.tight_layout()
     save_figure(fig, path)
     return Path(path)
+
+
+def warmup_html(data: dict, esc, img, tmpdir: Path) -> str:
+    """The report's temperature section for a warm-up's thermal.json: status, stop reason, the
+    fitted terms per axis (order, c1..c3 ± σ, held-out RMS, span, curve σ), what could not be
+    determined, the write-back, and the plot (img(png_path, alt) embeds it)."""
+    out = ["<p>method: warm-up (the board warmed while it lay still; polynomial per axis against its "
+           "sensor's own temperature, order by held-out error)</p>"]
+    if data.get("status") != "done":
+        out.append(f'<p class="note">incomplete run: status {esc(data.get("status"))}; '
+                   f'{esc(data.get("stop_reason") or "")} {esc(data.get("error") or "")}; the fit of what came is shown.</p>')
+    else:
+        out.append(f"<p>stopped: {esc(data.get('stop_reason'))}</p>")
+    fj = data.get("fit")
+    if not fj:
+        out.append('<p class="missing">no fit (too few bins).</p>')
+        return "\n".join(out)
+    rows = []
+    for triad, d in fj.items():
+        k, u = _SHOW[triad]
+        for ax, a in zip("xyz", d["axes"]):
+            terms = [pm(c, s, "", k) for i, (c, s) in enumerate(zip(a["coef"], a["coef_sigma"])) if 1 <= i <= 3]
+            terms = [t if i < a["order"] else "—" for i, t in enumerate(terms)]
+            rows.append(f"<tr><td style='white-space:nowrap'>{esc(triad)} {ax}</td><td>{a['order']}</td>"
+                        + "".join(f"<td>{esc(t)}</td>" for t in terms)
+                        + f"<td>{a['heldout_rms'] * k:.3g}</td><td style='white-space:nowrap'>{a['span_c'][0]:.1f}–{a['span_c'][1]:.1f}</td>"
+                        f"<td>{a['sigma_over_span'] * k:.2g}</td></tr>")
+    out.append("<table><tr><th>axis</th><th>order</th><th>c1 [µg or m°/s per °C]</th><th>c2 [per °C²]</th>"
+               "<th>c3 [per °C³]</th><th>held-out RMS [µg or m°/s]</th><th>span [°C]</th>"
+               "<th>curve σ over span [µg or m°/s]</th></tr>" + "".join(rows) + "</table>")
+    for d in fj.values():
+        for a in d["axes"]:
+            for n in a["notes"] + a["undetermined"]:
+                out.append(f'<p class="note">{esc(n)}</p>')
+    w = data.get("write")
+    if w:
+        out.append(f"<p>written: {esc(', '.join(w.get('steps') or []))}; device check "
+                   f"{'passed' if w.get('verified') else 'FAILED: ' + esc(w.get('error') or '')}</p>")
+    png = plot_warmup(data, Path(tmpdir) / "warmup.png")
+    if png is not None:
+        out.append("<h3>Bias against temperature</h3>" + img(png, "warm-up bins and the fitted polynomials"))
+    return "\n".join(out)
