@@ -480,24 +480,13 @@ def params_from_warmup(old: Params, fits: dict, t_ref: dict) -> tuple[Params, li
 
 
 def expected_calibrated(p: Params, raw_accel, raw_gyro, temps) -> tuple[np.ndarray, np.ndarray]:
-    """The device's model (docs/conventions.md) on the host: calibrated accel and gyro from
-    nominal-scaled raw means (3,), at the temperatures (4,) (ADXL355, gyro X, Y, Z)."""
-    def triad(pre, unit, u, t):
-        ref = float(getattr(p, f"{pre}_t_ref_c"))
-        lo, hi = float(getattr(p, f"{pre}_t_min_c")), float(getattr(p, f"{pre}_t_max_c"))
-        dT = np.clip(np.asarray(t, float), lo, hi) - ref
-        c1 = np.asarray(getattr(p, f"{pre}_bias_tc_{unit}_per_c"), float)
-        c2 = np.asarray(getattr(p, f"{pre}_bias_tc2_{unit}_per_c2"), float)
-        c3 = np.asarray(getattr(p, f"{pre}_bias_tc3_{unit}_per_c3"), float)
-        bias = ((c3 * dT + c2) * dT + c1) * dT
-        return u - np.asarray(getattr(p, f"{pre}_b_{unit}"), float) - bias, dT
-    va, dTa = triad("accel", "mps2", np.asarray(raw_accel, float), np.full(3, temps[0]))
-    va = va / (1.0 + np.asarray(p.accel_scale_tc_per_c, float) * dTa)
-    a = np.linalg.solve(np.asarray(p.accel_m, float).reshape(3, 3), va)
-    vg, dTg = triad("gyro", "rad_s", np.asarray(raw_gyro, float), np.asarray(temps[1:4], float))
-    vg = (vg - np.asarray(p.gyro_g_rad_s_per_mps2, float).reshape(3, 3) @ a) / (1.0 + np.asarray(p.gyro_scale_tc_per_c, float) * dTg)
-    g = np.linalg.solve(np.asarray(p.gyro_m, float).reshape(3, 3), vg)
-    return a, g
+    """The device's model (docs/conventions.md; imubench.wire.params.correct, with the clamp) on
+    the host: calibrated accel and gyro from nominal-scaled raw means (3,), at the temperatures
+    (4,) (ADXL355, gyro X, Y, Z)."""
+    a = PR.correct(PR.accel(p), np.asarray(raw_accel, float)[None, :], np.array([temps[0]]))
+    g = PR.correct(PR.gyro(p), np.asarray(raw_gyro, float)[None, :], np.asarray(temps[1:4], float)[None, :],
+                   accel_mps2=a)
+    return a[0], g[0]
 
 
 def _read_now(dev, rate_hz: int, calibrated: bool, n: int, timeout_s: float):
