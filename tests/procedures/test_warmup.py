@@ -294,3 +294,16 @@ def test_lost_link_and_stop_event_keep_the_fit(tmp_path):
     on_disk = json.loads((tmp_path / "lost" / "thermal.json").read_text())
     assert on_disk["status"] == "failed" and on_disk["fit"] == d["fit"]
     assert set(got[-1]) >= {"elapsed_s", "temp_c", "rate_c_per_min", "span_c", "fit"}
+
+
+def test_stops_when_the_span_is_covered_by_every_sensor(tmp_path):
+    """--span 5,30 on a part soaked at 5 °C and warming towards 45 °C: the run ends as soon as every
+    sensor's samples have reached 30 °C (judged by the samples, not by bin means that lag a fast
+    rise), long before the temperatures would stop rising; the written span is inside the data."""
+    cfg = W.WarmupConfig(span_c=(5.0, 30.0), rate_hz=100, bin_s=2.0, stop_window_s=20.0, fit_every_s=10.0)
+    with VirtualBench(speed=20, seed=9, truth="random") as vb, vb.device() as dev:
+        d = W.run_warmup(dev, tmp_path / "s", cfg, W.sim_warmup_hooks(vb, 5.0, 45.0, tau_s=40.0))
+    assert d["status"] == "done" and "covered by every sensor" in d["stop_reason"], d["stop_reason"]
+    lo = [s[0] for s in d["progress"]["span_c"]]
+    hi = [s[1] for s in d["progress"]["span_c"]]
+    assert max(lo) <= 5.5 and min(hi) >= 29.5 and max(hi) < 36.0, d["progress"]["span_c"]

@@ -155,6 +155,8 @@ class _State:
     last_fit_s: float = -math.inf
     fits: dict | None = None
     t_last: float = 0.0
+    seen_lo: np.ndarray = field(default_factory=lambda: np.full(4, np.inf))    # per sensor, of the samples
+    seen_hi: np.ndarray = field(default_factory=lambda: np.full(4, -np.inf))
 
     def feed(self, b) -> int:
         """Add a raw block; bin what completes a bin. Returns the number of new bins."""
@@ -170,6 +172,8 @@ class _State:
         if self.t0 is None:
             self.t0 = float(t[0])
         self.t_last = float(t[-1])
+        self.seen_lo = np.minimum(self.seen_lo, temps.min(axis=0))
+        self.seen_hi = np.maximum(self.seen_hi, temps.max(axis=0))
         self.pending.append((t, temps, np.column_stack([a[ok], g[ok]])))
         edge = self.t0 + math.floor((self.t_last - self.t0) / self.cfg.bin_s) * self.cfg.bin_s
         t_all = np.concatenate([p[0] for p in self.pending])
@@ -246,7 +250,8 @@ def export_fits(segments, t_ref: dict, fits: dict, max_order: int = 3) -> dict:
 
 def _progress(st: _State, b: Binned) -> dict:
     rates, _ = _rates(b, st.cfg.stop_window_s)
-    span = [[float(b.temp_c[:, i].min()), float(b.temp_c[:, i].max())] for i in range(4)] if len(b) else [[math.nan] * 2] * 4
+    # the span covered: of the samples (a bin's mean lags the ends by half a bin of a fast rise)
+    span = [[float(st.seen_lo[i]), float(st.seen_hi[i])] for i in range(4)] if st.t0 is not None else [[math.nan] * 2] * 4
     p = {"elapsed_s": st.elapsed_s, "temp_c": [float(v) for v in (b.temp_c[-1] if len(b) else [math.nan] * 4)],
          "rate_c_per_min": [float(v) for v in rates], "span_c": span, "n_bins": len(b), "samples": st.n_samples,
          "fit": None}
@@ -256,11 +261,12 @@ def _progress(st: _State, b: Binned) -> dict:
     return p
 
 
-def _covered(b: Binned, span, tol: float) -> bool:
-    if span is None or not len(b):
+def _covered(st: _State, span, tol: float) -> bool:
+    """Every sensor's samples have reached both ends of span (within tol)."""
+    if span is None or st.t0 is None:
         return False
     lo, hi = span
-    return bool(np.all(b.temp_c.min(axis=0) <= lo + tol) and np.all(b.temp_c.max(axis=0) >= hi - tol))
+    return bool(np.all(st.seen_lo <= lo + tol) and np.all(st.seen_hi >= hi - tol))
 
 
 # ------------------------------------------------------------------ the run
@@ -409,7 +415,7 @@ def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -
             say(format_progress(prog))
             rec.update(progress=prog)
         rates, full = _rates(b, cfg.stop_window_s)
-        if _covered(b, cfg.span_c, cfg.span_tol_c):
+        if _covered(st, cfg.span_c, cfg.span_tol_c) and len(b) >= 2 * MIN_BINS_TO_FIT:   # enough bins to fit
             return f"span {cfg.span_c[0]:g}..{cfg.span_c[1]:g} °C covered by every sensor"
         if full and np.all(np.abs(rates) < cfg.stop_rate_c_per_min):
             note = "" if cfg.span_c is None else " (span asked for NOT covered)"
