@@ -307,3 +307,16 @@ def test_stops_when_the_span_is_covered_by_every_sensor(tmp_path):
     lo = [s[0] for s in d["progress"]["span_c"]]
     hi = [s[1] for s in d["progress"]["span_c"]]
     assert max(lo) <= 5.5 and min(hi) >= 29.5 and max(hi) < 36.0, d["progress"]["span_c"]
+
+
+def test_a_board_not_cooled_is_refused_for_a_span_from_cold(tmp_path):
+    """The real-bench path (a prompt, no virtual fridge): the board is at room temperature but the
+    span starts at 5 °C: one line says where the sensors are and what to do; thermal.json says so."""
+    with VirtualBench(speed=20, seed=2) as vb:
+        r = subprocess.run([sys.executable, "-m", "imubench", "thermal", "--warmup", "--span", "5,45", "--port",
+                            vb.port_url, "--out", str(tmp_path / "w")], capture_output=True, text=True, input="\n",
+                           timeout=120)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    assert "already, above the span's lower end 5 °C: cool the board first" in r.stderr
+    d = json.loads((tmp_path / "w" / "thermal.json").read_text())
+    assert d["status"] == "failed" and "cool the board first" in d["error"] and d["fit"] is None

@@ -67,8 +67,8 @@ def register(sub) -> None:
                    help="stop when every sensor has covered LO..HI °C (default: when the temperatures stop rising)")
     w.add_argument("--face", type=_face, default="+z", metavar="±X|±Y|±Z",
                    help="the board face that points up during the warm-up")
-    w.add_argument("--export", type=_exports, default=(), metavar="px4,ardupilot",
-                   help="also write autopilot parameter files: " + ", ".join(TX.KINDS))
+    w.add_argument("--export", type=_exports, default=None, metavar="px4,ardupilot",
+                   help="also write autopilot parameter files (" + ", ".join(TX.KINDS) + ") beside thermal.json")
     w.add_argument("--stop-rate", type=positive_float, default=None, metavar="C_PER_MIN",
                    help="the temperatures have stopped rising when every |dT/dt| is below this (default 0.05; --sim 0.3)")
     w.add_argument("--stop-window", type=positive_float, default=None, metavar="S",
@@ -214,7 +214,7 @@ def run_warmup_cmd(a) -> int:
         return _fit_warmups(a, out, say)
     sim = a.sim
     try:
-        cfg = W.WarmupConfig(span_c=a.span, face=a.face, write=a.write, exports=a.export,
+        cfg = W.WarmupConfig(span_c=a.span, face=a.face, write=a.write, exports=a.export or (),
                              stop_rate_c_per_min=a.stop_rate or (0.3 if sim else 0.05),
                              stop_window_s=a.stop_window or (30.0 if sim else 300.0),
                              max_s=a.max_time or (1200.0 if sim else 4 * 3600.0), bin_s=a.bin or (2.0 if sim else 10.0),

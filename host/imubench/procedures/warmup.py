@@ -329,9 +329,12 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         status, reason = "interrupted", "interrupted (Ctrl-C)"
     except (OSError, DeviceError, ImubenchError) as e:
         if isinstance(e, WarmupError) and st.t0 is None:
-            rec.update(status="failed", error=str(e))
+            rec.update(status="failed", error=str(e), stage="done")
             raise
         status, reason, error = "failed", "link lost", f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+    except BaseException as e:             # anything else (EOF at the prompt, a bug): say so on disk, raise
+        rec.update(status="failed", error=f"{type(e).__name__}: {e}", stage="done")
+        raise
     finally:
         if status == "done" or (status == "interrupted" and not dev.link.error):
             try:
