@@ -258,11 +258,16 @@ def test_two_faces_of_a_cube_separate_the_accel_scale_term(tmp_path):
             assert d["status"] == "done" and d["fit"]["accel"]["axes"][2]["scale_tc_per_c"] is None
             dirs.append(str(tmp_path / face))
         truth = vb.get_truth()
-    out = tmp_path / "both"
-    p = _cli("--fit-warmups", *dirs, "--export", "px4", "--out", str(out))
-    stdout, stderr = finish(p, 120)
-    assert p.returncode == 0, stdout + stderr
+        out = tmp_path / "both"
+        p = _cli("--fit-warmups", *dirs, "--export", "px4", "--port", vb.port_url, "--write", "--out", str(out))
+        stdout, stderr = finish(p, 120)
+        assert p.returncode == 0, stdout + stderr
+        with vb.device() as dev:
+            from imubench.wire.protocol_gen import ParamsWhich
+            active = dev.get_params(ParamsWhich.ACTIVE).params
     d = json.loads((out / "thermal.json").read_text())
+    assert d["write"]["verified"] and "rebooted" in d["write"]["steps"]
+    assert active.accel_scale_tc_per_c[2] == pytest.approx(d["fit"]["accel"]["axes"][2]["scale_tc_per_c"], rel=1e-6)
     z = d["fit"]["accel"]["axes"][2]
     assert d["faces"] == ["+z", "-z"] and not any("not separated" in u for u in z["undetermined"])
     assert abs(z["scale_tc_per_c"] - 1.5e-4) < 4 * z["scale_tc_sigma_per_c"], (z["scale_tc_per_c"], z["scale_tc_sigma_per_c"])
