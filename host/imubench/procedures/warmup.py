@@ -220,8 +220,8 @@ def fit_bins(segments: Sequence[tuple[np.ndarray, Binned]], t_ref: dict, max_ord
     segs = [(np.asarray(d, float), _honest(b)) for d, b in segments if len(b) >= 2]
     if not segs:
         raise WarmupError("no bins to fit")
-    acc = [FaceSegment(d, b.temp_c[:, 0], b.mean[:, :3], b.sigma[:, :3]) for d, b in segs]
-    gyr = [FaceSegment(d, b.temp_c[:, 1:4], b.mean[:, 3:6], b.sigma[:, 3:6]) for d, b in segs]
+    acc = [FaceSegment(d, b.temp_c[:, 0], b.mean[:, :3], b.sigma[:, :3], b.t_s) for d, b in segs]
+    gyr = [FaceSegment(d, b.temp_c[:, 1:4], b.mean[:, 3:6], b.sigma[:, 3:6], b.t_s) for d, b in segs]
     try:
         return {"accel": fit_triad_faces(acc, t_ref["accel"], U.G0_MPS2, max_order, resolution_c=ACCEL_RES_C),
                 "gyro": fit_triad_faces(gyr, t_ref["gyro"], None, max_order, resolution_c=GYRO_RES_C)}
@@ -239,7 +239,7 @@ def export_fits(segments, t_ref: dict, fits: dict, max_order: int = 3) -> dict:
     for kind, col, words in (("px4", None, "the mean of the three ADXRS450 temperatures"),
                              ("ardupilot", 0, "the ADXL355 temperature (for accelerometer and gyro)")):
         g = [FaceSegment(d, b.temp_c[:, 1:4].mean(axis=1) if col is None else b.temp_c[:, col], b.mean[:, 3:6],
-                         b.sigma[:, 3:6]) for d, b in segs]
+                         b.sigma[:, 3:6], b.t_s) for d, b in segs]
         try:
             gf = fit_triad_faces(g, t_ref["gyro"], None, max_order, resolution_c=GYRO_RES_C)
         except ValueError as e:

@@ -30,10 +30,20 @@ def axis_json(a: AxisFit) -> dict:
                 "span_c": list(f.span_c), "n_bins": f.n_bins, "n_distinct_temps": f.n_distinct,
                 "max_supported_order": f.max_supported_order, "chi2_red": f.chi2_red,
                 "sigma_over_span": f.sigma_over_span(), "n_cells": f.n_cells,
+                "rw_var_per_s": f.rw_var_per_s, "rw_timelines": [_thin(T, t) for T, t in f.rw_timelines],
                 "alt_coef": None if f.alt_coef is None else [None if not math.isfinite(v) else v for v in f.alt_coef],
                 "scale_tc_per_c": a.scale_tc_per_c,
                 "scale_tc_sigma_per_c": a.scale_tc_sigma_per_c, "notes": list(f.notes),
                 "undetermined": list(a.undetermined)})
+
+
+def _thin(T, t, n: int = 120) -> list:
+    """A timeline (temperatures, times) cut to at most n points (for the JSON; interpolated between)."""
+    T, t = np.asarray(T, float), np.asarray(t, float)
+    if len(T) > n:
+        i = np.unique(np.r_[np.linspace(0, len(T) - 1, n).round().astype(int)])
+        T, t = T[i], t[i]
+    return [T.tolist(), t.tolist()]
 
 
 def polyfit_from_json(a: dict, t_ref_c: float) -> PolyFit:
@@ -47,7 +57,9 @@ def polyfit_from_json(a: dict, t_ref_c: float) -> PolyFit:
         alt[0] = coef[0] if not np.isfinite(alt[0]) else alt[0]
     return PolyFit(order=int(a["order"]), coef=coef, cov=np.array(a["cov"], float), heldout_rms=a["heldout_rms"],
                    heldout_by_order={int(k): v for k, v in (a.get("heldout_by_order") or {}).items()},
-                   span_c=tuple(a["span_c"]), n_bins=int(a["n_bins"]), t_ref_c=float(t_ref_c), alt_coef=alt)
+                   span_c=tuple(a["span_c"]), n_bins=int(a["n_bins"]), t_ref_c=float(t_ref_c), alt_coef=alt,
+                   rw_var_per_s=float(a.get("rw_var_per_s") or 0.0),
+                   rw_timelines=[(np.asarray(T, float), np.asarray(t, float)) for T, t in a.get("rw_timelines") or []])
 
 
 def fit_json(fits: dict, t_ref: dict) -> dict:
@@ -131,11 +143,16 @@ def format_fit(fj: dict) -> str:
             scale = ""
             if a.get("scale_tc_per_c") is not None:
                 scale = "  scale " + pm(a["scale_tc_per_c"], a["scale_tc_sigma_per_c"], "ppm/°C", 1e6)
+            rw = a.get("rw_var_per_s") or 0.0
+            rw = f", bias random walk {math.sqrt(rw) * k:.2g} {u}/√s" if rw > 0 else ""
             L.append(f"  {ax}: order {a['order']}  {', '.join(terms) or 'no temperature dependence'}{scale}  "
                      f"held-out {a['heldout_rms'] * k:.3g} {u}, curve σ ≤ {a['sigma_over_span'] * k:.2g} {u} over "
-                     f"{a['span_c'][0]:.1f}..{a['span_c'][1]:.1f} °C ({a['n_bins']} bins)")
+                     f"{a['span_c'][0]:.1f}..{a['span_c'][1]:.1f} °C ({a['n_bins']} bins{rw})")
         for a in d["axes"]:
             L += [f"  note: {n}" for n in a["notes"] + a["undetermined"]]
+        if any((a.get("rw_var_per_s") or 0) > 0 for a in d["axes"]):
+            L.append("  note: a bias random walk (bins at one temperature, apart in time) is in the curve's σ: "
+                     "one warm-up cannot tell it from a thermal slope")
     return "\n".join(L)
 
 
