@@ -259,7 +259,7 @@ def _fit_warmups(a, out: Path, say) -> int:
     from imubench.procedures import warmup as W
     from imubench.results.atomic import write_json_atomic
     from imubench.results.record import now_utc
-    from imubench.results.thermal_warmup import fit_json, format_fit, plot_warmup  # noqa: F401
+    from imubench.results.thermal_warmup import fit_json, format_fit
     if a.sim:
         raise UsageError("--fit-warmups fits recorded warm-ups", "drop --sim (give --port URL --write to write the fit)")
     if a.write and not a.port:
