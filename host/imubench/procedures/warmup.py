@@ -365,11 +365,16 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         rec.update(plot=PLOT_NAME)
         say(f"plot: {png}")
     if cfg.exports:
-        files = TX.write_exports(out_dir, export_fits([(direction, b)], t_ref, fits, cfg.max_order), t_ref,
-                                 cfg.exports, comment=f"imubench warm-up {rec.data['started']}")
-        rec.update(exports={k: [str(p) for p in v] for k, v in files.items()})
-        for k, v in files.items():
-            say(f"{k}: {', '.join(str(p) for p in v)}")
+        try:
+            files = TX.write_exports(out_dir, export_fits([(direction, b)], t_ref, fits, cfg.max_order), t_ref,
+                                     cfg.exports, comment=f"imubench warm-up {rec.data['started']}")
+        except (WarmupError, OSError) as e:           # the fit is kept; the exports say why they are missing
+            rec.update(exports={"error": str(e)})
+            say(f"exports not written: {e}")
+        else:
+            rec.update(exports={k: [str(p) for p in v] for k, v in files.items()})
+            for k, v in files.items():
+                say(f"{k}: {', '.join(str(p) for p in v)}")
     if cfg.write:
         if status != "done":
             say("not written: the run did not finish (the fit of what came is in thermal.json)")
