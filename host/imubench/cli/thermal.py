@@ -240,7 +240,10 @@ def run_warmup_cmd(a) -> int:
         with Device.open(url, baudrate=a.baud) as dev:
             t0 = time.monotonic()
             try:
-                d = W.run_warmup(dev, out, cfg, hooks)
+                extra = {"sim": sim, "target": a.target if sim else None, "sim_seed": a.sim_seed if sim else None,
+                         "sim_tau_s": a.tau if sim else None, "sim_cold_c": a.cold if sim else None,
+                         "sim_warm_c": a.warm if sim else None}
+                d = W.run_warmup(dev, out, cfg, hooks, config_extra=extra)
             except W.WarmupError as e:
                 raise CommandError(str(e), "give a --span the board can cover, or none (until it stops warming)") from None
             except EOFError:

@@ -270,12 +270,13 @@ def _covered(st: _State, span, tol: float) -> bool:
 
 # ------------------------------------------------------------------ the run
 def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress: Callable[[dict], None] | None = None,
-               stop: threading.Event | None = None) -> dict:
+               stop: threading.Event | None = None, *, config_extra: dict | None = None) -> dict:
     """The whole warm-up on an open device, recorded in out_dir (thermal.json, capture.bin).
     Returns the final thermal.json content; its status is "done", "interrupted" (Ctrl-C, stop)
     or "failed" (a lost link: `error` says why), each with the fit of what came when there was
     enough to fit. Raises WarmupError before streaming when the span cannot be covered, and the
-    link's error when the device does not answer at all (nothing is recorded then)."""
+    link's error when the device does not answer at all (nothing is recorded then). config_extra:
+    more to keep in thermal.json's config (the CLI: the virtual bench's settings)."""
     say = hooks.say
     out_dir = Path(out_dir)
     if cfg.span_c is not None and hooks.reachable_c is not None:
@@ -284,7 +285,7 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
             raise WarmupError(f"span {cfg.span_c[0]:g}..{cfg.span_c[1]:g} °C: this bench brings the sensors from "
                               f"{lo:g} to about {hi:.1f} °C only")
     info = dev.info()            # a port with no device on it fails here, before anything is recorded
-    rec = WarmupRecord(out_dir, cfg.to_json())
+    rec = WarmupRecord(out_dir, {**cfg.to_json(), **(config_extra or {})})
     say(f"recording in {rec.path} (raw stream: {out_dir / CAPTURE_NAME})")
     st = _State(cfg)
     status, error, reason = "done", None, None
