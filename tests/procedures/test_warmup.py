@@ -352,3 +352,18 @@ def test_bias_random_walk_is_seen_and_enters_the_curve_sigma():
     assert 0.5 < np.mean(ks) / K ** 2 < 2.0, np.mean(ks) / K ** 2
     within, within0 = np.mean(np.array(zs) < 3), np.mean(np.array(z0) < 3)
     assert within >= 0.75 and within >= within0 + 0.3, (within, within0, np.round(zs, 1))
+
+
+def test_warmup_on_the_f103_image_writes_terms_the_image_applies(tmp_path):
+    """The exact STM32F103 image under the emulator (short: τ 10 s, 1 s bins; about 23 s wall): the
+    warm-up runs, writes layout-3 terms, and the image's own calibrated output matches the host's
+    model after the reboot (the device check of the write)."""
+    out = tmp_path / "w"
+    p = _cli("--warmup", "--sim", "--target", "f103", "--tau", "10", "--stop-window", "10", "--stop-rate", "1.0",
+             "--bin", "1", "--write", "--out", str(out))
+    stdout, stderr = finish(p, 300)
+    assert p.returncode == 0, stdout + stderr
+    d = json.loads((out / "thermal.json").read_text())
+    assert d["status"] == "done" and d["config"]["target"] == "f103" and d["device"]["board"] != "SIM"
+    assert d["write"]["verified"] and d["write"]["check"]["ok"]
+    assert any(a["order"] >= 1 for a in d["fit"]["gyro"]["axes"])      # a temperature dependence was written
