@@ -246,12 +246,15 @@ def test_ctrl_c_keeps_the_fit_of_what_came(tmp_path):
 
 def test_two_faces_of_a_cube_separate_the_accel_scale_term(tmp_path):
     """Two warm-ups of the same virtual part, +Z up and −Z up, fitted together with
-    `thermal --fit-warmups`: the accelerometer Z scale temperature term comes out (within 4 sigma of
-    the truth) and is no longer reported as undetermined; the bias term of Z is the truth's."""
+    `thermal --fit-warmups`: the accelerometer Z scale temperature term comes out (near the truth)
+    and is no longer reported as undetermined; the bias curve of Z is the truth's within its σ;
+    written with --port --write, the device holds the scale term."""
     cfg = W.WarmupConfig(rate_hz=100, bin_s=2.0, stop_window_s=20.0, stop_rate_c_per_min=0.5, fit_every_s=1e9)
     dirs = []
     with VirtualBench(speed=30, seed=6, truth="random") as vb, vb.device() as dev:
-        vb.set_truth(accel={"scale_tc": [0.0, 0.0, 1.5e-4]})
+        # no bias random walk here: the coefficients' σ do not hold it (the curve's σ does), and this
+        # test is about what the faces separate
+        vb.set_truth(accel={"scale_tc": [0.0, 0.0, 1.5e-4], "rw_k": [0.0] * 3})
         for face in ("+z", "-z"):
             hooks = W.sim_warmup_hooks(vb, 5.0, 40.0, tau_s=20.0, self_heat_c=1.0)
             d = W.run_warmup(dev, tmp_path / face, W.WarmupConfig(**{**cfg.to_json(), "face": face}), hooks)
@@ -270,9 +273,18 @@ def test_two_faces_of_a_cube_separate_the_accel_scale_term(tmp_path):
     assert active.accel_scale_tc_per_c[2] == pytest.approx(d["fit"]["accel"]["axes"][2]["scale_tc_per_c"], rel=1e-6)
     z = d["fit"]["accel"]["axes"][2]
     assert d["faces"] == ["+z", "-z"] and not any("not separated" in u for u in z["undetermined"])
-    assert abs(z["scale_tc_per_c"] - 1.5e-4) < 4 * z["scale_tc_sigma_per_c"], (z["scale_tc_per_c"], z["scale_tc_sigma_per_c"])
-    c1 = ST.thermal_terms(truth)["c1"][2]
-    assert abs(z["coef"][1] - c1) < 4 * z["coef_sigma"][1] + 2e-6, (z["coef"][1], c1)
+    # the scale term: within 5σ and 30 % (seeds 6-9 of this run gave |z| up to 3.4: its σ is from the
+    # joint fit alone, the two runs' lags and hysteresis differ a little)
+    s_fit, s_sig = z["scale_tc_per_c"], z["scale_tc_sigma_per_c"]
+    assert abs(s_fit - 1.5e-4) < min(5 * s_sig, 0.3 * 1.5e-4), (s_fit, s_sig)
+    # the bias curve of Z (no longer holding g·scale) against the truth's, within its σ over the span
+    f = polyfit_from_json(z, d["t_ref_c"]["accel"])
+    lo, hi = z["span_c"]
+    tt = np.linspace(lo + 0.15 * (hi - lo), hi, 8)
+    tb = ST.truth_bias(truth, np.repeat(tt[:, None], 4, axis=1))[0][:, 2]
+    t0 = ST.truth_bias(truth, np.full((1, 4), d["t_ref_c"]["accel"]))[0][0, 2]
+    err = (f(tt) - f.coef[0]) - (tb - t0)
+    assert np.all(np.abs(err) < 4 * f.curve_sigma(tt, relative=True)), np.round(err / f.curve_sigma(tt, relative=True), 1)
     assert "scale temperature term" in (out / "warmup.px4-thermal.params").read_text()
 
 
