@@ -530,8 +530,6 @@ def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: flo
             elif zero:
                 fit.coef[0] = prm[zero[0]]
                 fit.cov[0, 0] = C[zero[0], zero[0]]
-                if ng == 1:
-                    pass
             else:
                 fit.coef[0] = np.nan
                 und.append(f"bias of accelerometer {'xyz'[k]} at t_ref not determined (it always saw gravity along one "
