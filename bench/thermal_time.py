@@ -127,65 +127,16 @@ def _orders(result: dict) -> str:
 
 
 # ------------------------------------------------------------------ residual drift
-def drift(vb, span, self_heat_c, max_s: float = 6 * 3600.0) -> dict:
-    """The calibrated stream over the span, warming then cooling (module docstring)."""
-    lo, hi = span
-    branches = {}
+def drift(vb, span, self_heat_c) -> dict:
+    """The calibrated stream over the span, warming then cooling (procedures.thermal_drift)."""
+    from imubench.procedures.thermal_drift import DriftSweep, residual_drift
+    sw = DriftSweep(ramp_c_per_min=DRIFT_RAMP_C_PER_MIN, rate_hz=DRIFT_RATE_HZ, bin_c=BIN_C,
+                    min_chunks=MIN_CHUNKS_PER_BIN)
     with vb.device() as dev:
-        vb.set_temperature(lo, soak=True)
-        dev.start_stream(rate_hz=DRIFT_RATE_HZ, calibrated=True)
-        try:
-            for name, target, done in (
-                    ("warming", hi + 2.0, lambda t: np.all(t >= hi + 0.5)),
-                    ("cooling", lo - max(self_heat_c) - 2.0, lambda t: np.all(t <= lo - 0.5))):
-                vb.set_temperature(target, ramp_c_per_s=DRIFT_RAMP_C_PER_MIN / 60.0)
-                dev.discard_buffered()
-                rows, t_start = [], None
-                while True:
-                    b = dev.read(n_samples=DRIFT_RATE_HZ)            # 1 s chunks
-                    t = U.accel_temp_counts_to_c(b.accel_temp_counts).mean()
-                    g = U.gyro_temp_counts_to_c(b.gyro_temp_counts).mean(axis=0)
-                    temps = np.r_[t, g]
-                    rows.append(np.r_[temps, b.accel_mps2.astype(np.float64).mean(axis=0),
-                                      b.rate_rad_s.astype(np.float64).mean(axis=0)])
-                    t_now = b.t_us[-1] * 1e-6
-                    t_start = t_now if t_start is None else t_start
-                    if done(temps) or t_now - t_start > max_s:
-                        break
-                branches[name] = np.array(rows)
-        finally:
-            dev.stop_stream()
-    edges = np.arange(lo, hi + 1e-9, BIN_C)
-    out = {}
-    for name, r in branches.items():
-        accel = np.full((len(edges) - 1, 3), np.nan)
-        gyro = np.full((len(edges) - 1, 3), np.nan)
-        for k in range(3):
-            accel[:, k] = _bin_means(r[:, 0], r[:, 4 + k], edges)
-            gyro[:, k] = _bin_means(r[:, 1 + k], r[:, 7 + k], edges)
-        out[name] = {"accel_mps2": accel, "gyro_rad_s": gyro}
-    both_a = np.vstack([out[n]["accel_mps2"] for n in out])
-    both_g = np.vstack([out[n]["gyro_rad_s"] for n in out])
-    w = out["warming"]
-    return {"edges_c": edges,
-            "accel_mg": U.mps2_to_mg(_ptp(both_a)), "gyro_dps": U.rad_s_to_dps(_ptp(both_g)),
-            "accel_mg_warming": U.mps2_to_mg(_ptp(w["accel_mps2"])), "gyro_dps_warming": U.rad_s_to_dps(_ptp(w["gyro_rad_s"])),
-            "bins_filled": [int(np.sum(np.isfinite(out[n]["gyro_rad_s"][:, 0]))) for n in out],
-            "bins": len(edges) - 1}
-
-
-def _bin_means(temp, y, edges) -> np.ndarray:
-    idx = np.digitize(temp, edges) - 1
-    m = np.full(len(edges) - 1, np.nan)
-    for i in range(len(edges) - 1):
-        sel = idx == i
-        if sel.sum() >= MIN_CHUNKS_PER_BIN:
-            m[i] = y[sel].mean()
-    return m
-
-
-def _ptp(x: np.ndarray) -> np.ndarray:
-    return np.nanmax(x, axis=0) - np.nanmin(x, axis=0)
+        d = residual_drift(vb, dev, span, self_heat_c, sw)
+    d["bins_filled"] = list(d["filled"].values())
+    d["nbins"] = len(d["edges_c"]) - 1
+    return d
 
 
 def truth_drift(truth: dict, span) -> dict:
@@ -264,7 +215,7 @@ def main() -> int:
                     print(f"{key}: FAILED: {type(e).__name__}: {e}", flush=True)
                     r = {"time_s": math.nan, "order": f"failed: {str(e)[:60]}", "error": str(e),
                          "drift": {k: np.full(3, np.nan) for k in ("gyro_dps", "accel_mg", "gyro_dps_warming",
-                                                                     "accel_mg_warming")} | {"bins_filled": [0, 0], "bins": 0}}
+                                                                     "accel_mg_warming")} | {"bins_filled": [0, 0], "nbins": 0}}
                 else:
                     print(f"{key}: calibrated in {r['time_s']:.0f} s of device time; measuring the drift …", flush=True)
                     r["drift"] = drift(vb, span, thermal["self_heat_c"])
@@ -272,7 +223,7 @@ def main() -> int:
             runs[key] = r
             d = r["drift"]
             print(f"  gyro drift {_axes(d['gyro_dps'])} °/s, accel drift {_axes(d['accel_mg'])} mg "
-                  f"(bins filled {d['bins_filled']} of {d['bins']}; wall {r['wall_s']:.0f} s)", flush=True)
+                  f"(bins filled {d['bins_filled']} of {d['nbins']}; wall {r['wall_s']:.0f} s)", flush=True)
     truth_d = truth_drift(truth, span)
     md = table(runs, truth_d, thermal, span)
     print("\n" + md, end="")
