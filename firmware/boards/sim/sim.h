@@ -124,6 +124,27 @@ typedef struct sim_physics {
 
 enum { SIM_MOTION_NONE = 0, SIM_MOTION_ROTATE = 1, SIM_MOTION_RATE = 2, SIM_MOTION_PATH = 3 };
 
+/* ---- thermal model of the sensor dies (sim_physics.c) ----
+ * One die per sensor, indexed like the chip selects: 0 = ADXL355, 1..3 = ADXRS450 X, Y, Z.
+ * Enabled, each die follows the ambient (the chamber, sim_physics_t) with a first-order lag
+ * plus the steady self-heating of the powered board:
+ *     dT_i/dt = (T_ambient(t) + self_heat_c[i] - T_i) / tau_s[i]
+ * stepped exactly (the ambient is piecewise linear in time) whenever a model is advanced.
+ * Disabled (the default), every die is at the ambient and there is no self-heating. */
+#define SIM_DIES 4
+typedef struct sim_thermal {
+    int enabled;
+    double tau_s[SIM_DIES];       /* thermal time constant of each die, s */
+    double self_heat_c[SIM_DIES]; /* steady rise of each die over the ambient when powered, degC */
+    double die_c[SIM_DIES];       /* die temperature at die_t_us (enabled only) */
+    uint64_t die_t_us[SIM_DIES];
+} sim_thermal_t;
+
+/* Nominal thermal figures of the default (ideal) part; random truth draws its own
+ * (sim_thermal_random, sources in sim_physics.c). */
+#define SIM_THERMAL_NOMINAL_TAU_S {240.0, 300.0, 360.0, 420.0}
+#define SIM_THERMAL_NOMINAL_SELF_HEAT_C {1.5, 3.0, 3.5, 2.5}
+
 /* ---- faults on the SPI bus ---- */
 typedef struct sim_spi_faults {
     uint32_t error_count[IB_CS_COUNT];   /* the next N transfers fail */
@@ -165,6 +186,7 @@ typedef struct sim {
     sim_adxrs450_t gyro[3];
     double omega_int_at[IB_CS_COUNT][3]; /* integral of omega at each model's last advance */
     sim_physics_t phys;
+    sim_thermal_t thermal;   /* die temperatures (kept across power cuts and sim_phys_init) */
     sim_spi_faults_t spi_faults;
     sim_rng_t spi_fault_rng;
     uint64_t spi_transfers;
@@ -270,6 +292,29 @@ void sim_phys_set_temperature(sim_physics_t *p, uint64_t t_us, double c, double 
 void sim_phys_rpy(const double r[3][3], double *roll, double *pitch, double *yaw);
 /* Next device time something changes by itself (move end, ramp end), UINT64_MAX if none. */
 uint64_t sim_phys_next_event(const sim_physics_t *p, uint64_t t_us);
+
+/* Thermal model (sim_thermal_t above). */
+void sim_thermal_init(sim_thermal_t *th);                 /* disabled, nominal figures */
+void sim_thermal_random(sim_thermal_t *th, sim_rng_t *rng); /* draw tau_s and self_heat_c */
+/* Temperature of die i at t_us: advances the die's state to t_us when later (exact step);
+ * an earlier t_us gives the state's own (latest) value. Disabled: the ambient at t_us. */
+double sim_thermal_die(sim_thermal_t *th, const sim_physics_t *p, int i, uint64_t t_us);
+/* The same without changing the state (status, truth). */
+double sim_thermal_die_peek(const sim_thermal_t *th, const sim_physics_t *p, int i, uint64_t t_us);
+void sim_thermal_sync(sim_thermal_t *th, const sim_physics_t *p, uint64_t t_us);
+/* Switch on/off and/or change the figures at t_us (NULL = keep). Switching on starts every
+ * die at the ambient (self-heating then builds up with the lag, as after a power-up). -1 on
+ * a bad figure (tau_s not in 1 .. 1e6 s, self_heat_c not in -50 .. 100 degC). */
+int sim_thermal_set(sim_thermal_t *th, const sim_physics_t *p, uint64_t t_us, int enabled,
+                    const double tau_s[SIM_DIES], const double self_heat_c[SIM_DIES]);
+/* Chamber at c at once with every die at c (a soak: hours in a fridge); self-heating builds
+ * up again from there. */
+void sim_thermal_soak(sim_thermal_t *th, sim_physics_t *p, uint64_t t_us, double c);
+/* Device time when every die will be within tol_c of its steady value (ambient + self-heat)
+ * if the chamber holds still; t_us when already there; the ramp's end while the chamber
+ * ramps (ask again then). */
+uint64_t sim_thermal_settle_time(const sim_thermal_t *th, const sim_physics_t *p, uint64_t t_us,
+                                 double tol_c);
 
 /* ---- sim_control.c ---- */
 int sim_control_open(int port);

@@ -65,13 +65,12 @@ void sim_model_world(int cs, sim_world_t *w)
     } else {
         sim_phys_omega(p, t, w->rate_rad_s);
     }
-    w->temperature_c = sim_phys_temperature(p, t);
+    w->temperature_c = sim_thermal_die(&g_sim.thermal, p, cs, t); /* this sensor's die */
 }
 
 void sim_model_advance(int cs)
 {
     sim_world_t w;
-    sim_model_world(cs, &w);
     if (cs == IB_CS_ACCEL) {
         /* each output sample sees the world at its own sample time (a path's specific
          * force changes between reads), then the model is brought up to now */
@@ -82,11 +81,13 @@ void sim_model_advance(int cs)
             sim_world_t ws;
             sim_phys_specific_force(p, ts, ws.specific_force_mps2);
             sim_phys_omega(p, ts, ws.rate_rad_s);
-            ws.temperature_c = sim_phys_temperature(p, ts);
+            ws.temperature_c = sim_thermal_die(&g_sim.thermal, p, IB_CS_ACCEL, ts);
             adxl355_model_advance(m, ts, &ws);
         }
+        sim_model_world(cs, &w); /* after the samples: the die is stepped forward in time */
         adxl355_model_advance(m, g_sim.t_us, &w);
     } else {
+        sim_model_world(cs, &w);
         sim_adxrs450_advance(&g_sim.gyro[cs - 1], g_sim.t_us, &w);
     }
 }
@@ -119,6 +120,10 @@ void sim_randomize_truth(uint64_t seed)
         sim_adxrs450_random_truth(&gt, &r, i);
         sim_adxrs450_set_truth(&g_sim.gyro[i], &gt);
     }
+    /* the dies' thermal figures, from an rng of their own (the truths above stay those of
+     * the same seed before the thermal model existed) */
+    sim_rng_seed(&r, derive(seed, 101));
+    sim_thermal_random(&g_sim.thermal, &r);
 }
 
 void sim_seed_models(uint64_t seed, int random_truth)
@@ -128,6 +133,7 @@ void sim_seed_models(uint64_t seed, int random_truth)
         sim_adxrs450_init(&g_sim.gyro[i], derive(seed, 2 + (uint64_t)i), i);
     }
     memset(g_sim.omega_int_at, 0, sizeof g_sim.omega_int_at);
+    sim_thermal_init(&g_sim.thermal);
     if (random_truth) {
         sim_randomize_truth(seed);
     }
@@ -162,6 +168,9 @@ void sim_power_cycle_models(void)
     m->rw_started = keep.rw_started;
     m->samples = keep.samples;
     m->temp_c = keep.temp_c;
+    memcpy(m->hyst_y, keep.hyst_y, sizeof m->hyst_y); /* the die's thermal history */
+    memcpy(m->hyst_h, keep.hyst_h, sizeof m->hyst_h);
+    m->hyst_started = keep.hyst_started;
     m->t_us = keep.t_us;
     for (int i = 0; i < 3; i++) {
         sim_adxrs450_power_cycle(&g_sim.gyro[i]);

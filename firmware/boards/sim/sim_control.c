@@ -22,15 +22,30 @@
  *                     back to back, each rest to rest on a minimum-jerk profile (a cart or
  *                     gantry driving a path); replaces a move in progress. status and
  *                     every world reply carry position_m, velocity_mps, acceleration_mps2
- *   set_temperature   {c, ramp_c_per_s (optional; absent/0 = at once)}
+ *   set_temperature   {c, ramp_c_per_s (optional; absent/0 = at once), soak: bool}
+ *                     the chamber (ambient). soak: the chamber AND every die at c at once
+ *                     (as after hours in a fridge); self-heating builds up again from there
+ *   set_thermal       {enabled: bool (default true), tau_s: [4] | number,
+ *                      self_heat_c: [4] | number}  the dies' thermal model (sim_physics.c):
+ *                     die i (0 ADXL355, 1..3 gyro X, Y, Z) lags the ambient with tau_s[i]
+ *                     plus self_heat_c[i]; omitted figures keep theirs (nominal, or drawn
+ *                     with the random truth). Off (the default) every die is at the ambient.
+ *                     Switching on starts every die at the ambient (as a power-up)
  *   set_speed         {speed}  (0 = as fast as possible)
  *   wait              {device_s}  reply after that much device time
- *   wait_idle         {temperature: bool (also wait for a ramp to end; default false)}
+ *   wait_idle         {temperature: bool (also wait for a ramp to end; default false),
+ *                      die_tolerance_c: number (also wait until every die is within this of
+ *                      its steady temperature, ambient + self-heating; implies temperature)}
  *   set_truth         {accel: {m: 3x3 | 9, bias_mps2, noise_n, rw_k, bias_tc, scale_tc,
- *                      st_force_g}, gyro: [{sens: [3], bias_rad_s, noise_n, bias_rw_k,
- *                      bias_tempco_rad_s_per_c, scale_tempco_per_c, gsens_rad_s_per_mps2} | null, x3] or
+ *                      bias_tc2, bias_tc3, hysteresis, hysteresis_width_c, st_force_g},
+ *                      gyro: [{sens: [3], bias_rad_s, noise_n, bias_rw_k,
+ *                      bias_tempco_rad_s_per_c, scale_tempco_per_c, gsens_rad_s_per_mps2,
+ *                      bias_tc2, bias_tc3, hysteresis, hysteresis_width_c} | null, x3] or
  *                      {x: {...}, y: ..., z: ...}}  partial updates; accel vectors may be
- *                      given as one number for all three axes
+ *                      given as one number for all three axes. The temperature terms are
+ *                      about 25 degC (bias_tc2 per degC^2, bias_tc3 per degC^3, in the
+ *                      bias's unit); hysteresis is half the gap between the warming and the
+ *                      cooling branch, hysteresis_width_c the play operator's dead band
  *   randomize_truth   {seed (default: the process seed)}
  *   get_truth
  *   inject            {fault: "gyro_fault_bits", sensor: "gyro_x"|"gyro_y"|"gyro_z",
@@ -69,7 +84,7 @@
 #define CTL_LINE_MAX 65536
 #define DEG (M_PI / 180.0)
 
-enum { WAIT_NONE = 0, WAIT_TIME, WAIT_IDLE, WAIT_IDLE_TEMP };
+enum { WAIT_NONE = 0, WAIT_TIME, WAIT_IDLE, WAIT_IDLE_TEMP, WAIT_IDLE_DIES };
 
 typedef struct {
     int fd;
@@ -79,6 +94,7 @@ typedef struct {
     size_t out_off;
     int wait;
     uint64_t wait_until;
+    double wait_tol_c;  /* WAIT_IDLE_DIES: tolerance of every die */
     char wait_id[80]; /* JSON of the id to echo in the deferred reply ("" = none) */
 } conn_t;
 
@@ -379,12 +395,29 @@ static void put_world(sj_buf_t *r)
     put_vec(r, "rate_rad_s", w, 3);
     put_vec(r, "rate_dps", wd, 3);
     put_num(r, "temperature_c", sim_phys_temperature(p, t));
+    double die[SIM_DIES];
+    for (int i = 0; i < SIM_DIES; i++) {
+        die[i] = sim_thermal_die_peek(&g_sim.thermal, p, i, t);
+    }
+    put_vec(r, "die_temperature_c", die, SIM_DIES);
     put_num(r, "roll_deg", roll / DEG);
     put_num(r, "pitch_deg", pitch / DEG);
     put_num(r, "yaw_deg", yaw / DEG);
     put_vec(r, "position_m", pos, 3);
     put_vec(r, "velocity_mps", vel, 3);
     put_vec(r, "acceleration_mps2", acc, 3);
+}
+
+/* "thermal": {enabled, tau_s [4], self_heat_c [4]} (die order: ADXL355, gyro X, Y, Z) */
+static void put_thermal(sj_buf_t *r)
+{
+    const sim_thermal_t *th = &g_sim.thermal;
+    sj_key(r, "thermal");
+    sj_raw(r, "{");
+    put_bool(r, "enabled", th->enabled);
+    put_vec(r, "tau_s", th->tau_s, SIM_DIES);
+    put_vec(r, "self_heat_c", th->self_heat_c, SIM_DIES);
+    sj_raw(r, "}");
 }
 
 static int cmd_status(req_t *q)
@@ -425,6 +458,7 @@ static int cmd_status(req_t *q)
         sj_raw(r, "}");
     }
     put_bool(r, "temperature_ramping", sim_phys_temperature(p, s->t_us) != p->temp_target_c);
+    put_thermal(r);
     put_u64(r, "boots", s->boots);
     put_u64(r, "power_cuts", s->power_cuts);
     put_u64(r, "reboots", s->reboots);
@@ -678,8 +712,9 @@ static int cmd_set_temperature(req_t *q)
 {
     sim_t *s = &g_sim;
     double c, ramp = 0.0;
-    if (check_keys(q, q->root, "cmd,id,c,ramp_c_per_s") != 0 || req_num(q, q->root, "c", &c) != 0 ||
-        opt_num(q, q->root, "ramp_c_per_s", &ramp) < 0) {
+    int soak;
+    if (check_keys(q, q->root, "cmd,id,c,ramp_c_per_s,soak") != 0 || req_num(q, q->root, "c", &c) != 0 ||
+        opt_num(q, q->root, "ramp_c_per_s", &ramp) < 0 || opt_bool(q, q->root, "soak", 0, &soak) != 0) {
         return -1;
     }
     if (c < -100.0 || c > 200.0) {
@@ -688,8 +723,59 @@ static int cmd_set_temperature(req_t *q)
     if (ramp < 0.0) {
         return fail("ramp_c_per_s must be >= 0");
     }
-    sim_phys_set_temperature(&s->phys, s->t_us, c, ramp);
+    if (soak && ramp > 0.0) {
+        return fail("a soak puts the board at c at once: give soak or ramp_c_per_s, not both");
+    }
+    /* every die has seen the old ambient up to now (the models, as before, take the world
+     * at their next advance) */
+    sim_thermal_sync(&s->thermal, &s->phys, s->t_us);
+    if (soak) {
+        sim_thermal_soak(&s->thermal, &s->phys, s->t_us, c);
+    } else {
+        sim_phys_set_temperature(&s->phys, s->t_us, c, ramp);
+    }
     put_num(q->r, "temperature_c", sim_phys_temperature(&s->phys, s->t_us));
+    double die[SIM_DIES];
+    for (int i = 0; i < SIM_DIES; i++) {
+        die[i] = sim_thermal_die_peek(&s->thermal, &s->phys, i, s->t_us);
+    }
+    put_vec(q->r, "die_temperature_c", die, SIM_DIES);
+    return 0;
+}
+
+static int cmd_set_thermal(req_t *q)
+{
+    sim_t *s = &g_sim;
+    int enabled;
+    double tau[SIM_DIES], heat[SIM_DIES];
+    if (check_keys(q, q->root, "cmd,id,enabled,tau_s,self_heat_c") != 0 ||
+        opt_bool(q, q->root, "enabled", 1, &enabled) != 0) {
+        return -1;
+    }
+    int tn = sj_get(q->d, q->root, "tau_s"), hn = sj_get(q->d, q->root, "self_heat_c");
+    int have_t = !is_null(q->d, tn), have_h = !is_null(q->d, hn);
+    if ((have_t && node_vec(q->d, tn, "tau_s", tau, SIM_DIES, 1) != 0) ||
+        (have_h && node_vec(q->d, hn, "self_heat_c", heat, SIM_DIES, 1) != 0)) {
+        return -1;
+    }
+    for (int i = 0; i < SIM_DIES; i++) {
+        if (have_t && !(tau[i] >= 1.0 && tau[i] <= 1e6)) {
+            return fail("tau_s must be in 1 .. 1e6 s");
+        }
+        if (have_h && !(heat[i] >= -50.0 && heat[i] <= 100.0)) {
+            return fail("self_heat_c must be in -50 .. 100 degC");
+        }
+    }
+    if (sim_thermal_set(&s->thermal, &s->phys, s->t_us, enabled, have_t ? tau : NULL,
+                        have_h ? heat : NULL) != 0) {
+        return fail("bad thermal figures");
+    }
+    put_thermal(q->r);
+    double die[SIM_DIES];
+    for (int i = 0; i < SIM_DIES; i++) {
+        die[i] = sim_thermal_die_peek(&s->thermal, &s->phys, i, s->t_us);
+    }
+    put_vec(q->r, "die_temperature_c", die, SIM_DIES);
     return 0;
 }
 
@@ -725,10 +811,18 @@ static int cmd_wait(req_t *q)
 static int cmd_wait_idle(req_t *q)
 {
     int temp;
-    if (check_keys(q, q->root, "cmd,id,temperature") != 0 || opt_bool(q, q->root, "temperature", 0, &temp) != 0) {
+    double tol = 0.0;
+    int nt;
+    if (check_keys(q, q->root, "cmd,id,temperature,die_tolerance_c") != 0 ||
+        opt_bool(q, q->root, "temperature", 0, &temp) != 0 ||
+        (nt = opt_num(q, q->root, "die_tolerance_c", &tol)) < 0) {
         return -1;
     }
-    q->c->wait = temp ? WAIT_IDLE_TEMP : WAIT_IDLE;
+    if (nt && !(tol > 0.0 && tol <= 100.0)) {
+        return fail("die_tolerance_c must be in (0, 100] degC");
+    }
+    q->c->wait = nt ? WAIT_IDLE_DIES : temp ? WAIT_IDLE_TEMP : WAIT_IDLE;
+    q->c->wait_tol_c = tol;
     return 1;
 }
 
@@ -738,16 +832,19 @@ static int parse_accel_truth(req_t *q, int n, adxl355_truth_t *t, double st[3])
     if (d->nodes[n].type != SJ_OBJ) {
         return fail("accel must be an object");
     }
-    if (check_keys(q, n, "m,bias_mps2,noise_n,rw_k,bias_tc,scale_tc,st_force_g") != 0) {
+    if (check_keys(q, n, "m,bias_mps2,noise_n,rw_k,bias_tc,scale_tc,bias_tc2,bias_tc3,hysteresis,"
+                         "hysteresis_width_c,st_force_g") != 0) {
         return -1;
     }
     int k;
     if ((k = sj_get(d, n, "m")) >= 0 && node_mat3(d, k, "accel.m", t->m) != 0) {
         return -1;
     }
-    static const char *names[] = {"bias_mps2", "noise_n", "rw_k", "bias_tc", "scale_tc", "st_force_g"};
-    double *dst[] = {t->bias_mps2, t->noise_n, t->rw_k, t->bias_tc, t->scale_tc, st};
-    for (int i = 0; i < 6; i++) {
+    static const char *names[] = {"bias_mps2", "noise_n", "rw_k", "bias_tc", "scale_tc", "bias_tc2",
+                                  "bias_tc3", "hysteresis", "hysteresis_width_c", "st_force_g"};
+    double *dst[] = {t->bias_mps2, t->noise_n, t->rw_k, t->bias_tc, t->scale_tc, t->bias_tc2,
+                     t->bias_tc3, t->hysteresis, t->hysteresis_width_c, st};
+    for (int i = 0; i < 10; i++) {
         if ((k = sj_get(d, n, names[i])) >= 0 && node_vec(d, k, names[i], dst[i], 3, 1) != 0) {
             return -1;
         }
@@ -755,6 +852,9 @@ static int parse_accel_truth(req_t *q, int n, adxl355_truth_t *t, double st[3])
     for (int i = 0; i < 3; i++) {
         if (t->noise_n[i] < 0.0 || t->rw_k[i] < 0.0) {
             return fail("accel noise_n and rw_k must be >= 0");
+        }
+        if (!(t->hysteresis_width_c[i] >= 0.0 && t->hysteresis_width_c[i] <= 50.0)) {
+            return fail("accel hysteresis_width_c must be in 0 .. 50 degC");
         }
     }
     return 0;
@@ -770,7 +870,7 @@ static int parse_gyro_truth(req_t *q, int n, sim_adxrs450_truth_t *t, const char
         return fail("%s must be an object or null", who);
     }
     if (check_keys(q, n, "sens,bias_rad_s,noise_n,bias_rw_k,bias_tempco_rad_s_per_c,scale_tempco_per_c,"
-                         "gsens_rad_s_per_mps2") != 0) {
+                         "gsens_rad_s_per_mps2,bias_tc2,bias_tc3,hysteresis,hysteresis_width_c") != 0) {
         return -1;
     }
     int k;
@@ -782,16 +882,21 @@ static int parse_gyro_truth(req_t *q, int n, sim_adxrs450_truth_t *t, const char
         return -1;
     }
     static const char *names[] = {"bias_rad_s", "noise_n", "bias_rw_k", "bias_tempco_rad_s_per_c",
-                                  "scale_tempco_per_c"};
+                                  "scale_tempco_per_c", "bias_tc2", "bias_tc3", "hysteresis",
+                                  "hysteresis_width_c"};
     double *dst[] = {&t->bias_rad_s, &t->noise_n, &t->bias_rw_k, &t->bias_tempco_rad_s_per_c,
-                     &t->scale_tempco_per_c};
-    for (int i = 0; i < 5; i++) {
+                     &t->scale_tempco_per_c, &t->bias_tc2, &t->bias_tc3, &t->hysteresis,
+                     &t->hysteresis_width_c};
+    for (int i = 0; i < 9; i++) {
         if ((k = sj_get(d, n, names[i])) >= 0 && node_num(d, k, names[i], dst[i]) != 0) {
             return -1;
         }
     }
     if (t->noise_n < 0.0 || t->bias_rw_k < 0.0) {
         return fail("gyro noise_n and bias_rw_k must be >= 0");
+    }
+    if (!(t->hysteresis_width_c >= 0.0 && t->hysteresis_width_c <= 50.0)) {
+        return fail("gyro hysteresis_width_c must be in 0 .. 50 degC");
     }
     return 0;
 }
@@ -877,7 +982,10 @@ static int cmd_get_truth(req_t *q)
     sim_world_t w;
     sim_phys_specific_force(&s->phys, s->t_us, w.specific_force_mps2);
     sim_phys_omega(&s->phys, s->t_us, w.rate_rad_s);
-    w.temperature_c = sim_phys_temperature(&s->phys, s->t_us);
+    double die[SIM_DIES];
+    for (int i = 0; i < SIM_DIES; i++) {
+        die[i] = sim_thermal_die(&s->thermal, &s->phys, i, s->t_us);
+    }
 
     put_u64(r, "time_us", s->t_us);
     adxl355_truth_t at;
@@ -885,7 +993,8 @@ static int cmd_get_truth(req_t *q)
     double tb[3]; /* adxl355_model_true_bias() at the current temperature (the model only
                      takes the temperature when it advances, and time may not have moved) */
     for (int i = 0; i < 3; i++) {
-        tb[i] = at.bias_mps2[i] + at.bias_tc[i] * (w.temperature_c - 25.0) + s->accel.rw_bias[i];
+        tb[i] = at.bias_mps2[i] + adxl355_truth_thermal_bias(&at, i, die[IB_CS_ACCEL], s->accel.hyst_h[i]) +
+                s->accel.rw_bias[i];
     }
     sj_key(r, "accel");
     sj_raw(r, "{");
@@ -903,6 +1012,12 @@ static int cmd_get_truth(req_t *q)
     put_vec(r, "rw_k", at.rw_k, 3);
     put_vec(r, "bias_tc", at.bias_tc, 3);
     put_vec(r, "scale_tc", at.scale_tc, 3);
+    put_vec(r, "bias_tc2", at.bias_tc2, 3);
+    put_vec(r, "bias_tc3", at.bias_tc3, 3);
+    put_vec(r, "hysteresis", at.hysteresis, 3);
+    put_vec(r, "hysteresis_width_c", at.hysteresis_width_c, 3);
+    put_vec(r, "hysteresis_branch", s->accel.hyst_h, 3);
+    put_num(r, "die_temperature_c", die[IB_CS_ACCEL]);
     put_vec(r, "st_force_g", s->accel.st_force_g, 3);
     put_vec(r, "true_bias_mps2", tb, 3);
     put_vec(r, "rw_bias_mps2", s->accel.rw_bias, 3);
@@ -912,6 +1027,7 @@ static int cmd_get_truth(req_t *q)
     sj_raw(r, "[");
     for (int i = 0; i < 3; i++) {
         sim_adxrs450_t *m = &s->gyro[i];
+        w.temperature_c = die[1 + i];
         sim_adxrs450_advance(m, m->t_us, &w); /* same time: only the world changes */
         const sim_adxrs450_truth_t *t = sim_adxrs450_get_truth(m);
         if (i) {
@@ -926,6 +1042,12 @@ static int cmd_get_truth(req_t *q)
         put_num(r, "bias_tempco_rad_s_per_c", t->bias_tempco_rad_s_per_c);
         put_num(r, "scale_tempco_per_c", t->scale_tempco_per_c);
         put_vec(r, "gsens_rad_s_per_mps2", t->gsens_rad_s_per_mps2, 3);
+        put_num(r, "bias_tc2", t->bias_tc2);
+        put_num(r, "bias_tc3", t->bias_tc3);
+        put_num(r, "hysteresis", t->hysteresis);
+        put_num(r, "hysteresis_width_c", t->hysteresis_width_c);
+        put_num(r, "hysteresis_branch", m->hyst_h);
+        put_num(r, "die_temperature_c", die[1 + i]);
         put_num(r, "true_bias_rad_s", sim_adxrs450_true_bias_rad_s(m));
         put_num(r, "rw_bias_rad_s", m->bias_rw_rad_s);
         put_u64(r, "serial", m->serial);
@@ -934,6 +1056,7 @@ static int cmd_get_truth(req_t *q)
         sj_raw(r, "}");
     }
     sj_raw(r, "]");
+    put_thermal(r);
     sj_key(r, "world");
     sj_raw(r, "{");
     put_world(r);
@@ -1115,6 +1238,7 @@ static const struct {
     {"set_rate", cmd_set_rate},
     {"path", cmd_path},
     {"set_temperature", cmd_set_temperature},
+    {"set_thermal", cmd_set_thermal},
     {"set_speed", cmd_set_speed},
     {"wait", cmd_wait},
     {"wait_idle", cmd_wait_idle},
@@ -1272,6 +1396,11 @@ void sim_control_check_waits(void)
         case WAIT_IDLE:
             done = !sim_phys_moving(&s->phys, s->t_us);
             break;
+        case WAIT_IDLE_DIES:
+            done = !sim_phys_moving(&s->phys, s->t_us) &&
+                   sim_phys_temperature(&s->phys, s->t_us) == s->phys.temp_target_c &&
+                   sim_thermal_settle_time(&s->thermal, &s->phys, s->t_us, c->wait_tol_c) <= s->t_us;
+            break;
         default:
             done = !sim_phys_moving(&s->phys, s->t_us) &&
                    sim_phys_temperature(&s->phys, s->t_us) == s->phys.temp_target_c;
@@ -1289,6 +1418,13 @@ uint64_t sim_control_next_deadline(void)
     for (int i = 0; i < CTL_MAX_CONN; i++) {
         if (g_conn[i].fd >= 0 && g_conn[i].wait == WAIT_TIME && g_conn[i].wait_until < t) {
             t = g_conn[i].wait_until;
+        }
+        if (g_conn[i].fd >= 0 && g_conn[i].wait == WAIT_IDLE_DIES) {
+            /* when the dies will have settled (a ramp's end is a world event of its own) */
+            uint64_t d = sim_thermal_settle_time(&g_sim.thermal, &g_sim.phys, g_sim.t_us, g_conn[i].wait_tol_c);
+            if (d > g_sim.t_us && d < t) {
+                t = d;
+            }
         }
     }
     return t;

@@ -193,6 +193,8 @@ typedef struct {
     sim_spi_faults_t faults;
     sim_rng_t fault_rng;
     double omega_int_at[3];
+    double die_c;          /* the addressed sensor's die (sim_thermal_t) */
+    uint64_t die_t_us;
     uint64_t transfers;
 } spi_snap_t;
 
@@ -209,6 +211,8 @@ static void snap_save(int cs)
     g_snap.faults = s->spi_faults;
     g_snap.fault_rng = s->spi_fault_rng;
     memcpy(g_snap.omega_int_at, s->omega_int_at[cs], sizeof g_snap.omega_int_at);
+    g_snap.die_c = s->thermal.die_c[cs];
+    g_snap.die_t_us = s->thermal.die_t_us[cs];
     g_snap.transfers = s->spi_transfers;
 }
 
@@ -223,6 +227,8 @@ static void snap_restore(int cs)
     s->spi_faults = g_snap.faults;
     s->spi_fault_rng = g_snap.fault_rng;
     memcpy(s->omega_int_at[cs], g_snap.omega_int_at, sizeof g_snap.omega_int_at);
+    s->thermal.die_c[cs] = g_snap.die_c;
+    s->thermal.die_t_us[cs] = g_snap.die_t_us;
     s->spi_transfers = g_snap.transfers;
 }
 

@@ -39,6 +39,10 @@ def register(sub) -> None:
                    help="expose the link on TCP 127.0.0.1:PORT (0 = a free port; the default without --pty)")
     p.add_argument("--control", type=int, default=0, metavar="PORT", help="control channel port (0 = a free port)")
     p.add_argument("--baud", type=baud, default=2000000, help="link speed the device reports")
+    p.add_argument("--thermal-lag", action="store_true",
+                   help="switch the dies' thermal model on: each sensor's die lags the chamber with its own "
+                        "time constant (minutes) and warms by its own self-heating after power-up "
+                        "(control channel set_thermal; docs/simulator.md). Off: every die is at the chamber")
     p.add_argument("--boot0", action="store_true",
                    help="(--target f103|f4) BOOT0 high: start in the STM32 ROM bootloader (AN3155) for "
                         "stm32flash / imubench flash --probe serial on the --pty; without it the board boots "
@@ -107,7 +111,8 @@ def run_sim(a) -> int:
     elif a.boot0:
         raise UsageError("--boot0 is a setting of the STM32 boards", "give --target f103 or --target f4")
     with VirtualBench(speed=a.speed, seed=a.seed, truth=a.truth, flash=a.flash, pty=a.pty,
-                      baud=a.baud, tcp=tcp, control_port=a.control, target=a.target, boot0=a.boot0) as bench:
+                      baud=a.baud, tcp=tcp, control_port=a.control, target=a.target, boot0=a.boot0,
+                      thermal=a.thermal_lag) as bench:
         what = ("firmware core + sensor models" if a.target == "host" else
                 f"the exact {a.target} image under the ARM emulator + sensor models")
         print(f"virtual device ({what}, speed {a.speed:g}) on {bench.port_url}", flush=True)
@@ -117,6 +122,11 @@ def run_sim(a) -> int:
                   f"flash it: imubench flash --board {a.target} --probe serial --port {bench.port_url}", flush=True)
             print("  (AN3155 frames are 8E1; a pty carries no parity, so imubench flash gives stm32flash -m 8n1 "
                   "there)", flush=True)
+        if a.thermal_lag:
+            th = bench.status()["thermal"]
+            print("thermal model on (dies: ADXL355, gyro X, Y, Z): time constants "
+                  + ", ".join(f"{t / 60:.1f}" for t in th["tau_s"]) + " min, self-heating "
+                  + ", ".join(f"{c:.1f}" for c in th["self_heat_c"]) + " °C", flush=True)
         if bench.pty and bench.pty != bench.port_url:
             print(f"  also on the pseudo-terminal {bench.pty}", flush=True)
         host, port = bench.control_address

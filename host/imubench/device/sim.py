@@ -176,6 +176,10 @@ class VirtualBench:
               for stm32flash on the pty; with it low the board boots what its flash holds
     elf       (f103, f4) the images the board can run (the first one is in a new board's flash)
     tcp       expose the link on TCP 127.0.0.1 (True = a free port, or a port number)
+    thermal   switch the dies' thermal model on at start (and after every restart): each
+              sensor's die lags the chamber with its own time constant and warms by its own
+              self-heating (set_thermal; docs/simulator.md). Off (the default) every die is
+              at the chamber's temperature
     """
 
     def __init__(self, speed: float = 20, seed: int = 1, truth: str = "default",
@@ -183,7 +187,8 @@ class VirtualBench:
                  baud: int = 2000000, *, tcp: bool | int = True, control_port: int = 0,
                  uid: str | None = None, binary: str | os.PathLike | None = None,
                  startup_timeout: float = 15.0, start: bool = True, target: str = "host",
-                 boot0: bool = False, elf: Sequence[str | os.PathLike] | None = None):
+                 boot0: bool = False, elf: Sequence[str | os.PathLike] | None = None,
+                 thermal: bool = False):
         if target not in TARGETS:
             raise ValueError(f"target must be one of {', '.join(TARGETS)}")
         self.target = target
@@ -198,6 +203,7 @@ class VirtualBench:
         self.speed = speed
         self.seed = int(seed)
         self.truth = truth
+        self.thermal = bool(thermal)
         self.pty_enabled = bool(pty)
         self.baud = int(baud)
         self.uid = uid
@@ -264,6 +270,8 @@ class VirtualBench:
             line = self._read_startup_line()
             self.info = json.loads(line)
             self._connect_control()
+            if self.thermal:
+                self.set_thermal(True)
         except BaseException:
             self._kill()
             raise
@@ -507,8 +515,17 @@ class VirtualBench:
             self.wait_idle(timeout=self._wait_timeout(float(r["duration_s"])))
         return r
 
-    def set_temperature(self, c: float, ramp_c_per_s: float | None = None, wait: bool = False) -> dict:
+    def set_temperature(self, c: float, ramp_c_per_s: float | None = None, wait: bool = False,
+                        soak: bool = False) -> dict:
+        """Set the chamber (ambient) to c degC, at once or ramping at ramp_c_per_s; with wait,
+        return when the ramp is over. soak=True: the chamber and every die at c at once, as
+        after hours in a fridge (self-heating then builds up again with the dies' lag); it
+        cannot ramp. The reply carries temperature_c and die_temperature_c [4]."""
         kw: dict[str, Any] = {"c": float(c)}
+        if soak:
+            if ramp_c_per_s:
+                raise ValueError("a soak puts the board at c at once: give soak or ramp_c_per_s, not both")
+            kw["soak"] = True
         if ramp_c_per_s:
             kw["ramp_c_per_s"] = float(ramp_c_per_s)
         r = self.control("set_temperature", **kw)
@@ -516,6 +533,24 @@ class VirtualBench:
             span = abs(float(c) - float(self.status()["temperature_c"]))
             self.wait_idle(temperature=True, timeout=self._wait_timeout(span / float(ramp_c_per_s)))
         return r
+
+    def set_thermal(self, enabled: bool = True, tau_s: Sequence[float] | float | None = None,
+                    self_heat_c: Sequence[float] | float | None = None) -> dict:
+        """Switch the dies' thermal model on or off and/or change its figures (per die: ADXL355,
+        gyro X, Y, Z; one number for all four). tau_s: first-order time constant of each die
+        to the chamber, s; self_heat_c: each die's steady rise over the chamber when powered,
+        degC. Omitted figures keep theirs (the nominal ones, or those drawn with the random
+        truth). Switching on starts every die at the chamber's temperature (as a power-up).
+        Returns {"thermal": {enabled, tau_s, self_heat_c}, "die_temperature_c": [4], ...}."""
+        kw: dict[str, Any] = {"enabled": bool(enabled)}
+        for k, v in (("tau_s", tau_s), ("self_heat_c", self_heat_c)):
+            if v is not None:
+                kw[k] = float(v) if isinstance(v, (int, float)) else [float(x) for x in v]
+        return self.control("set_thermal", **kw)
+
+    def die_temperatures(self) -> list[float]:
+        """The four dies' temperatures now, degC (ADXL355, gyro X, Y, Z)."""
+        return [float(x) for x in self.status()["die_temperature_c"]]
 
     def set_speed(self, speed: float) -> dict:
         r = self.control("set_speed", speed=float(speed))
@@ -560,9 +595,15 @@ class VirtualBench:
         """Return after device_s seconds of device time."""
         return self.control("wait", device_s=float(device_s), timeout=self._wait_timeout(device_s))
 
-    def wait_idle(self, temperature: bool = False, timeout: float | None = 600.0) -> dict:
-        """Return when no move (and with temperature=True, no temperature ramp) is running."""
-        return self.control("wait_idle", temperature=bool(temperature), timeout=timeout)
+    def wait_idle(self, temperature: bool = False, timeout: float | None = 600.0,
+                  die_tolerance_c: float | None = None) -> dict:
+        """Return when no move (and with temperature=True, no temperature ramp) is running;
+        with die_tolerance_c also when every die is within that of its steady temperature
+        (chamber + self-heating; at once with the thermal model off)."""
+        kw: dict[str, Any] = {"temperature": bool(temperature) or die_tolerance_c is not None}
+        if die_tolerance_c is not None:
+            kw["die_tolerance_c"] = float(die_tolerance_c)
+        return self.control("wait_idle", timeout=timeout, **kw)
 
     def device(self, **kw):
         """An imubench.device.link.Device connected to this bench's link."""

@@ -82,6 +82,45 @@ void adxl355_model_random_truth(adxl355_truth_t *truth, sim_rng_t *rng)
         truth->bias_tc[i] = uniform_pm(rng, 0.1e-3 * g0);
         truth->scale_tc[i] = uniform_pm(rng, 1e-4);
     }
+    sim_rng_t tr = *rng; /* a copy: rng itself does not advance (older draws stay the same) */
+    sim_rng_seed(&tr, sim_rng_u64(&tr) ^ 0x5448524D414Cull); /* "THRMAL" */
+    for (int i = 0; i < 3; i++) {
+        truth->bias_tc2[i] = uniform_pm(&tr, 2e-7 * g0);
+        truth->bias_tc3[i] = uniform_pm(&tr, 2e-9 * g0);
+        truth->hysteresis[i] = uniform_pm(&tr, 20e-6 * g0);
+        truth->hysteresis_width_c[i] = 1.0 + 3.0 * sim_rng_uniform(&tr);
+    }
+}
+
+double adxl355_truth_thermal_bias(const adxl355_truth_t *t, int i, double temp_c, double h)
+{
+    const double d = temp_c - 25.0;
+    return t->bias_tc[i] * d + d * d * (t->bias_tc2[i] + t->bias_tc3[i] * d) + t->hysteresis[i] * h;
+}
+
+/* Play operator (backlash) of dead band w on the die temperature; see the header. */
+static void hysteresis_update(adxl355_model_t *m, double temp_c)
+{
+    for (int i = 0; i < 3; i++) {
+        double r = 0.5 * m->truth.hysteresis_width_c[i];
+        if (!m->hyst_started) {
+            m->hyst_y[i] = temp_c;
+            m->hyst_h[i] = 0.0;
+            continue;
+        }
+        if (r > 0.0) {
+            double y = m->hyst_y[i];
+            y = y < temp_c - r ? temp_c - r : (y > temp_c + r ? temp_c + r : y);
+            m->hyst_y[i] = y;
+            m->hyst_h[i] = (temp_c - y) / r;
+        } else {
+            if (temp_c != m->hyst_y[i]) {
+                m->hyst_h[i] = temp_c > m->hyst_y[i] ? 1.0 : -1.0;
+            }
+            m->hyst_y[i] = temp_c;
+        }
+    }
+    m->hyst_started = 1;
 }
 
 void adxl355_model_set_truth(adxl355_model_t *m, const adxl355_truth_t *truth)
@@ -96,9 +135,10 @@ void adxl355_model_get_truth(const adxl355_model_t *m, adxl355_truth_t *truth)
 
 void adxl355_model_true_bias(const adxl355_model_t *m, double bias_mps2[3])
 {
-    const double dt = m->temp_c - 25.0;
     for (int i = 0; i < 3; i++) {
-        bias_mps2[i] = m->truth.bias_mps2[i] + m->truth.bias_tc[i] * dt + m->rw_bias[i];
+        bias_mps2[i] = m->truth.bias_mps2[i] +
+                       adxl355_truth_thermal_bias(&m->truth, i, m->temp_c, m->hyst_h[i]) +
+                       m->rw_bias[i];
     }
 }
 
@@ -394,6 +434,8 @@ static void produce_sample(adxl355_model_t *m, const sim_world_t *w, uint64_t t_
         }
         double u = (1.0 + tr->scale_tc[i] * dtemp) * mf + tr->bias_mps2[i] +
                    tr->bias_tc[i] * dtemp + m->rw_bias[i];
+        /* curved part and hysteresis (0 for a part without them: u unchanged) */
+        u += dtemp * dtemp * (tr->bias_tc2[i] + tr->bias_tc3[i] * dtemp) + tr->hysteresis[i] * m->hyst_h[i];
         if (tr->noise_n[i] != 0.0) {
             u += tr->noise_n[i] * sqrt(fs) * sim_rng_gauss(&m->rng);
         }
@@ -471,6 +513,7 @@ void adxl355_model_advance(adxl355_model_t *m, uint64_t t_us, const sim_world_t 
         return;
     }
     m->temp_c = w->temperature_c;
+    hysteresis_update(m, m->temp_c); /* the die's history counts in standby too */
     if (m->measuring) {
         const uint64_t period = (uint64_t)250u << m->odr_active;
         while (m->next_sample_us <= t_us) {

@@ -7,11 +7,18 @@
  * Register behaviour follows /work/shared/reference/sensors.md section 1.
  *
  * Signal model (SI, board frame = sensor frame; docs/conventions.md), per output sample:
- *     dT = T - 25 degC
- *     u  = (1 + scale_tc*dT) * (M f) + b + bias_tc*dT + b_rw + n + f_st
+ *     dT = T - 25 degC          (T = the die temperature the world carries)
+ *     u  = (1 + scale_tc*dT) * (M f) + b + bias_tc*dT + bias_tc2*dT^2 + bias_tc3*dT^3
+ *          + hysteresis*h + b_rw + n + f_st
  *   f     specific force from sim_world_t
  *   M, b  scale/misalignment and bias (u = M x + b of the calibration model)
  *   scale_tc multiplies a whole row of M (per axis)
+ *   h     thermal hysteresis branch in [-1, 1], per axis: a play operator (backlash) of dead
+ *         band hysteresis_width_c on T: y = clamp(y, T - w/2, T + w/2), h = (T - y)/(w/2).
+ *         h = +1 while the die has warmed for more than w since it last cooled (the warming
+ *         branch), -1 on the cooling branch, in between inside the dead band; it starts at 0
+ *         (a part that has sat at one temperature). w = 0: h = the sign of the last change.
+ *         So the warming and cooling branches are 2*hysteresis apart.
  *   b_rw  bias random walk: at each sample b_rw += K * sqrt(dt) * N(0,1), dt = time
  *         since the previous random-walk update (standby gaps therefore count)
  *   n     white noise, sigma = N * sqrt(ODR) per sample (conventions.md)
@@ -87,6 +94,10 @@ typedef struct adxl355_truth {
     double rw_k[3];        /* bias random walk K, m/s^2*sqrt(Hz) (= m/s^2/sqrt(s)) */
     double bias_tc[3];     /* bias temperature coefficient, m/s^2 per degC from 25 degC */
     double scale_tc[3];    /* scale temperature coefficient, 1/degC, multiplies row i of M */
+    double bias_tc2[3];    /* curved part: m/s^2 per degC^2 about 25 degC */
+    double bias_tc3[3];    /* m/s^2 per degC^3 about 25 degC */
+    double hysteresis[3];  /* half the gap between the warming and cooling branches, m/s^2 */
+    double hysteresis_width_c[3]; /* play-operator dead band, degC (>= 0) */
 } adxl355_truth_t;
 
 /* Fault injection; all zero is a healthy part. Change them at any time. */
@@ -124,6 +135,9 @@ typedef struct adxl355_model {
     int hpf_primed;
     unsigned act_run;         /* consecutive samples above the activity threshold */
     double temp_c;            /* temperature of the last advance, degC */
+    double hyst_y[3];         /* play-operator state per axis, degC */
+    double hyst_h[3];         /* hysteresis branch per axis, -1 .. 1 */
+    uint8_t hyst_started;     /* hyst_y valid */
     sim_rng_t rng;
 } adxl355_model_t;
 
@@ -140,7 +154,15 @@ void adxl355_model_default_truth(adxl355_truth_t *truth);
  *   K               0.5 .. 2 ug*sqrt(Hz)
  *   bias tempco     +-0.1 mg/degC   (datasheet max 0.15 mg/degC)
  *   scale tempco    +-1e-4 /degC    (+-0.01 %/degC)
- * Values in SI. Draws from rng. */
+ *   bias_tc2        +-2e-4 mg/degC^2, bias_tc3 +-2e-6 mg/degC^3: with the linear term the
+ *                   slope stays within the data sheet's 0.15 mg/degC maximum of the 0 g
+ *                   offset tempco over -40 .. +85 degC (sensors.md; the split between the
+ *                   linear and the curved part is an engineering estimate)
+ *   hysteresis      0 .. 20 ug, either sign; dead band 1 .. 4 degC (engineering estimate:
+ *                   the data sheet gives none; heating and cooling branches that differ are
+ *                   reported by Niu et al. 2013 and Kim & Jung 2025, see docs/simulator.md)
+ * Values in SI. Draws from rng; the curved and hysteresis terms from an rng of their own
+ * seeded from rng's state, so rng advances as it did without them (same other draws). */
 void adxl355_model_random_truth(adxl355_truth_t *truth, sim_rng_t *rng);
 
 /* Power-on state: registers at reset values (standby), default truth, IDs AD 1D ED 01,
@@ -152,8 +174,13 @@ void adxl355_model_set_truth(adxl355_model_t *m, const adxl355_truth_t *truth);
 void adxl355_model_get_truth(const adxl355_model_t *m, adxl355_truth_t *truth);
 
 /* Current true bias of each axis in m/s^2 at the last advanced temperature:
- * b + bias_tc*(T-25) + b_rw (no white noise, no self-test, no OFFSET registers). */
+ * b + bias_tc*dT + bias_tc2*dT^2 + bias_tc3*dT^3 + hysteresis*h + b_rw (no white noise, no
+ * self-test, no OFFSET registers). */
 void adxl355_model_true_bias(const adxl355_model_t *m, double bias_mps2[3]);
+
+/* The temperature-dependent part of the bias of axis i at die temperature temp_c on
+ * hysteresis branch h (-1 .. 1): bias_tc*dT + bias_tc2*dT^2 + bias_tc3*dT^3 + hysteresis*h. */
+double adxl355_truth_thermal_bias(const adxl355_truth_t *t, int i, double temp_c, double h);
 
 /* Advance device time to t_us (ignored if not later than the current time), producing
  * every sample that falls due in (t_now, t_us] from `world`. */

@@ -133,6 +133,39 @@ void sim_adxrs450_random_truth(sim_adxrs450_truth_t *t, sim_rng_t *rng, int axis
         v = v > 0.1 ? 0.1 : v < -0.1 ? -0.1 : v;
         t->gsens_rad_s_per_mps2[i] = v * DEG2RAD / 9.80665;
     }
+    sim_rng_t hr = *rng; /* another copy for the thermal terms */
+    sim_rng_seed(&hr, sim_rng_u64(&hr) ^ 0x5448524D414Cull ^ ((uint64_t)axis << 56));
+    t->bias_tc2 = uniform_pm(&hr, 1e-4) * DEG2RAD;
+    t->bias_tc3 = uniform_pm(&hr, 1e-6) * DEG2RAD;
+    t->hysteresis = uniform_pm(&hr, 0.01) * DEG2RAD;
+    t->hysteresis_width_c = 1.0 + 3.0 * sim_rng_uniform(&hr);
+}
+
+double sim_adxrs450_truth_thermal_bias(const sim_adxrs450_truth_t *t, double temp_c, double h)
+{
+    const double d = temp_c - SIM_ADXRS450_T_REF_C;
+    return t->bias_tempco_rad_s_per_c * d + d * d * (t->bias_tc2 + t->bias_tc3 * d) + t->hysteresis * h;
+}
+
+/* Play operator of dead band hysteresis_width_c on the die temperature (adxl355_model.h). */
+static void hysteresis_update(sim_adxrs450_t *m, double temp_c)
+{
+    double r = 0.5 * m->truth.hysteresis_width_c;
+    if (!m->hyst_started) {
+        m->hyst_y = temp_c;
+        m->hyst_h = 0.0;
+        m->hyst_started = 1;
+    } else if (r > 0.0) {
+        double y = m->hyst_y;
+        y = y < temp_c - r ? temp_c - r : (y > temp_c + r ? temp_c + r : y);
+        m->hyst_y = y;
+        m->hyst_h = (temp_c - y) / r;
+    } else {
+        if (temp_c != m->hyst_y) {
+            m->hyst_h = temp_c > m->hyst_y ? 1.0 : -1.0;
+        }
+        m->hyst_y = temp_c;
+    }
 }
 
 void sim_adxrs450_set_truth(sim_adxrs450_t *m, const sim_adxrs450_truth_t *t) { m->truth = *t; }
@@ -146,8 +179,11 @@ const sim_adxrs450_truth_t *sim_adxrs450_get_truth(const sim_adxrs450_t *m)
 
 double sim_adxrs450_true_bias_rad_s(const sim_adxrs450_t *m)
 {
+    const sim_adxrs450_truth_t *t = &m->truth;
     double dt_c = m->world.temperature_c - SIM_ADXRS450_T_REF_C;
-    return m->truth.bias_rad_s + m->truth.bias_tempco_rad_s_per_c * dt_c + m->bias_rw_rad_s;
+    double b = t->bias_rad_s + t->bias_tempco_rad_s_per_c * dt_c + m->bias_rw_rad_s;
+    /* curved part and hysteresis (0 for a part without them: b unchanged) */
+    return b + (dt_c * dt_c * (t->bias_tc2 + t->bias_tc3 * dt_c) + t->hysteresis * m->hyst_h);
 }
 
 double sim_adxrs450_true_rate_rad_s(const sim_adxrs450_t *m)
@@ -168,6 +204,7 @@ void sim_adxrs450_advance(sim_adxrs450_t *m, uint64_t t_us, const sim_world_t *w
 {
     if (world != NULL) {
         m->world = *world;
+        hysteresis_update(m, world->temperature_c);
     }
     if (t_us <= m->t_us) {
         return;

@@ -12,9 +12,14 @@
  *   loop: sim_adxrs450_advance(&g, t_us, &world);      world holds over (t_prev, t_us]
  *         sim_adxrs450_spi(&g, tx, rx, 4);             one chip-select frame at g's time
  *
- * ---- Physics (all in rad/s; T = world temperature in degC; reference T_REF = 25 degC) --
- *   chip rate r(t) = (1 + scale_tempco*(T - 25)) * (sens . omega_board)
- *                    + bias_rad_s + bias_tempco*(T - 25) + b_rw(t) + gsens . f_board
+ * ---- Physics (all in rad/s; T = world temperature in degC = this chip's die temperature;
+ *      reference T_REF = 25 degC, dT = T - 25) --
+ *   chip rate r(t) = (1 + scale_tempco*dT) * (sens . omega_board)
+ *                    + bias_rad_s + bias_tempco*dT + b_rw(t) + gsens . f_board
+ *                    + bias_tc2*dT^2 + bias_tc3*dT^3 + hysteresis*h
+ *   h: thermal hysteresis branch in [-1, 1], a play operator of dead band hysteresis_width_c
+ *      on T (as the ADXL355 model: +1 on the warming branch, -1 on the cooling branch, 0 at
+ *      the start), updated whenever the world changes; the branches are 2*hysteresis apart.
  *   b_rw: bias random walk, b_rw += K*sqrt(dt)*n at every advance() step of length dt
  *         (so ADEV = K*sqrt(tau/3) whatever the step size; docs/conventions.md).
  *   Sampling (integrate and dump): a sample latched at time t is the mean of r over the
@@ -124,6 +129,10 @@ typedef struct sim_adxrs450_truth {
     double scale_tempco_per_c;      /* relative scale change per degC away from 25 degC */
     double gsens_rad_s_per_mps2[3]; /* g-sensitivity: the chip reads gsens . f more (f the board's
                                        specific force, m/s^2); data sheet 0.03 deg/s/g typical */
+    double bias_tc2;          /* curved part of the bias: rad/s per degC^2 about 25 degC */
+    double bias_tc3;          /* rad/s per degC^3 about 25 degC */
+    double hysteresis;        /* half the gap between warming and cooling branches, rad/s */
+    double hysteresis_width_c;/* play-operator dead band, degC (>= 0) */
 } sim_adxrs450_truth_t;
 
 typedef struct sim_adxrs450 {
@@ -133,6 +142,9 @@ typedef struct sim_adxrs450 {
     sim_rng_t rng;
     uint64_t t_us;                /* time of the last advance() */
     sim_world_t world;            /* world of the last advance() */
+    double hyst_y;                /* play-operator state, degC */
+    double hyst_h;                /* hysteresis branch, -1 .. 1 */
+    uint8_t hyst_started;
     double bias_rw_rad_s;         /* accumulated random-walk part of the bias */
     double rate_integral_rad;     /* integral of the noise-free chip rate since last latch */
     uint64_t last_latch_us;
@@ -176,7 +188,14 @@ sim_adxrs450_truth_t sim_adxrs450_default_truth(int axis);
  *   bias tempco  uniform +-0.01 deg/s/degC scale tempco uniform +-1e-4 /degC
  *   g-sensitivity  Gaussian, sigma 0.03 deg/s/g per component, clipped to +-0.1 (drawn from
  *                  an rng of its own seeded from rng's state, so the other draws and the other
- *                  parts' truths are those of a model without it) */
+ *                  parts' truths are those of a model without it)
+ *   bias_tc2     uniform +-1e-4 deg/s/degC^2, bias_tc3 uniform +-1e-6 deg/s/degC^3: with the
+ *                linear term the null moves by at most 2 deg/s over -40 .. +105 degC, inside
+ *                the [U] +-3 deg/s null accuracy (sensors.md); the split is an engineering
+ *                estimate
+ *   hysteresis   uniform +-0.01 deg/s, dead band 1 .. 4 degC (engineering estimate; see the
+ *                ADXL355 model and docs/simulator.md)
+ *                (these four from a further rng of their own, as the g-sensitivity) */
 void sim_adxrs450_random_truth(sim_adxrs450_truth_t *t, sim_rng_t *rng, int axis);
 
 /* Power the chip on at t = 0 with the default truth for `axis`, an rng seeded by `seed`
@@ -199,8 +218,13 @@ void sim_adxrs450_advance(sim_adxrs450_t *m, uint64_t t_us, const sim_world_t *w
  * R/W error reply with SPI set, and the function returns -1. */
 int sim_adxrs450_spi(sim_adxrs450_t *m, const uint8_t *tx, uint8_t *rx, size_t len);
 
-/* Current true bias (constant + tempco at the current temperature + random walk), rad/s. */
+/* Current true bias (constant + temperature terms at the current temperature and hysteresis
+ * branch + random walk), rad/s. */
 double sim_adxrs450_true_bias_rad_s(const sim_adxrs450_t *m);
+
+/* Temperature-dependent part of the bias at temp_c on hysteresis branch h (-1 .. 1), rad/s:
+ * bias_tempco*dT + bias_tc2*dT^2 + bias_tc3*dT^3 + hysteresis*h. */
+double sim_adxrs450_truth_thermal_bias(const sim_adxrs450_truth_t *t, double temp_c, double h);
 
 /* Current noise-free chip output (the r(t) above), rad/s. */
 double sim_adxrs450_true_rate_rad_s(const sim_adxrs450_t *m);
