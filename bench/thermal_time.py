@@ -92,7 +92,7 @@ def step_method(vb, out: Path, span, wait: bool) -> dict:
         old = dev.get_params(ParamsWhich.ACTIVE).params
         t_ref = float(old.accel_t_ref_c)
         points = sweep(dev, temps, hooks, n=2000, poses=("+z",), turntable=False, settle=settle,
-                       check_tol_c=2.0 if wait else None)
+                       check_tol_c=2.0 if wait else None)   # not waiting: the dies lag, by design
         fit = fit_sweep(points, t_ref)
         write_params(dev, apply_tempcos(old, fit, t_ref))
         t1 = device_s(vb)
