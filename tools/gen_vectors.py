@@ -92,6 +92,9 @@ def params_example():
         gyro_scale_tc_per_c=(0.0, f32(1e-4), 0.0),
         accel_t_ref_c=f32(25.0), gyro_t_ref_c=f32(31.5),
         cal_time_unix_s=1795000000, cal_id=0xDEADBEEF,
+        accel_bias_tc2_mps2_per_c2=(f32(2e-6), 0.0, f32(-1e-6)), accel_bias_tc3_mps2_per_c3=(0.0, f32(3e-8), 0.0),
+        gyro_bias_tc2_rad_s_per_c2=(0.0, f32(-4e-7), 0.0), gyro_bias_tc3_rad_s_per_c3=(f32(1e-9), 0.0, 0.0),
+        accel_t_min_c=-5, accel_t_max_c=60, gyro_t_min_c=0, gyro_t_max_c=55,
     ), gen
 
 

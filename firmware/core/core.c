@@ -17,6 +17,9 @@
 /* TX room always kept free for replies when a sample batch is queued. */
 #define REPLY_RESERVE (2u * (IB_MAX_ENCODED + 1u))
 #define STATS_PERIOD_MS 1000u
+/* The calibrated span of factory defaults and of a migrated layout-1 or -2 block, degC. */
+#define SPAN_DEFAULT_MIN_C ((int8_t)-40)
+#define SPAN_DEFAULT_MAX_C ((int8_t)85)
 
 /* ------------------------------------------------------------------ helpers */
 
@@ -91,11 +94,65 @@ static int invert3(const float m[9], float inv[3][3])
     return 0;
 }
 
-static uint8_t check_triad(const float m[9], const float b[3], const float btc[3], const float stc[3],
-                           float t_ref, float bias_max, float btc_max, ib_triad_corr_t *out)
+/* One triad's fields of a parameter block, and its limits: a view, so the checks and the
+ * correction read the block where it is (nothing copied into RAM). */
+typedef struct {
+    const float *m, *b, *c1, *s, *c2, *c3; /* M (9), bias, bias_tc (c1), scale_tc, c2, c3 (3 each) */
+    float t_ref;
+    int8_t t_min, t_max;
+    float bias_max, c1_max, c2_max, c3_max, span_max;
+} triad_view_t;
+
+static void triad_view(const ib_params_t *p, int gyro, triad_view_t *v)
+{
+    if (gyro) {
+        *v = (triad_view_t){p->gyro_m, p->gyro_b_rad_s, p->gyro_bias_tc_rad_s_per_c, p->gyro_scale_tc_per_c,
+                            p->gyro_bias_tc2_rad_s_per_c2, p->gyro_bias_tc3_rad_s_per_c3, p->gyro_t_ref_c,
+                            p->gyro_t_min_c, p->gyro_t_max_c, IB_LIMIT_GYRO_BIAS_MAX_RAD_S,
+                            IB_LIMIT_GYRO_BIAS_TC_MAX_RAD_S_PER_C, IB_LIMIT_GYRO_BIAS_TC2_MAX_RAD_S_PER_C2,
+                            IB_LIMIT_GYRO_BIAS_TC3_MAX_RAD_S_PER_C3, IB_LIMIT_GYRO_T_SPAN_MAX_C};
+    } else {
+        *v = (triad_view_t){p->accel_m, p->accel_b_mps2, p->accel_bias_tc_mps2_per_c, p->accel_scale_tc_per_c,
+                            p->accel_bias_tc2_mps2_per_c2, p->accel_bias_tc3_mps2_per_c3, p->accel_t_ref_c,
+                            p->accel_t_min_c, p->accel_t_max_c, IB_LIMIT_ACCEL_BIAS_MAX_MPS2,
+                            IB_LIMIT_ACCEL_BIAS_TC_MAX_MPS2_PER_C, IB_LIMIT_ACCEL_BIAS_TC2_MAX_MPS2_PER_C2,
+                            IB_LIMIT_ACCEL_BIAS_TC3_MAX_MPS2_PER_C3, IB_LIMIT_ACCEL_T_SPAN_MAX_C};
+    }
+}
+
+/* Layout 3's checks of one triad, after t_ref (SPEC.md, Parameters on the device): the span in
+ * the part's rated range and not empty, t_ref inside it; per axis c2, c3, and a bound of the
+ * bias polynomial's excursion over the span, D (|c1| + D (|c2| + D |c3|)) with D the larger
+ * distance from t_ref to an end, within the bias limit. All in float32, in this order (the
+ * host's wire/params.py _check_poly repeats it). */
+static uint8_t check_poly(const triad_view_t *v)
+{
+    float lo = (float)v->t_min, hi = (float)v->t_max;
+    if (lo < IB_LIMIT_T_SPAN_MIN_C || hi > v->span_max || !(lo < hi) || v->t_ref < lo || v->t_ref > hi) {
+        return IB_ERROR_PARAM_OUT_OF_RANGE;
+    }
+    float d = v->t_ref - lo, d_hi = hi - v->t_ref;
+    if (d_hi > d) {
+        d = d_hi;
+    }
+    for (int k = 0; k < 3; k++) {
+        float a2 = fabsf(v->c2[k]), a3 = fabsf(v->c3[k]);
+        if (a2 > v->c2_max || a3 > v->c3_max) {
+            return IB_ERROR_PARAM_OUT_OF_RANGE;
+        }
+        float e = d * (fabsf(v->c1[k]) + d * (a2 + d * a3));
+        if (!(e <= v->bias_max)) {
+            return IB_ERROR_PARAM_OUT_OF_RANGE;
+        }
+    }
+    return IB_ERROR_OK;
+}
+
+static uint8_t check_triad(const triad_view_t *v, ib_triad_corr_t *out)
 {
     ib_triad_corr_t t;
     memset(&t, 0, sizeof t);
+    const float *m = v->m;
     if (invert3(m, t.m_inv) != 0) {
         return IB_ERROR_PARAM_ILL_CONDITIONED;
     }
@@ -110,30 +167,35 @@ static uint8_t check_triad(const float m[9], const float b[3], const float btc[3
     }
     for (int r = 0; r < 3; r++) {
         for (int k = 0; k < 3; k++) {
-            float v = m[r * 3 + k];
-            if (r == k ? (v < IB_LIMIT_M_DIAG_MIN || v > IB_LIMIT_M_DIAG_MAX) : fabsf(v) > IB_LIMIT_M_OFFDIAG_MAX) {
+            float x = m[r * 3 + k];
+            if (r == k ? (x < IB_LIMIT_M_DIAG_MIN || x > IB_LIMIT_M_DIAG_MAX) : fabsf(x) > IB_LIMIT_M_OFFDIAG_MAX) {
                 return IB_ERROR_PARAM_OUT_OF_RANGE;
             }
         }
     }
     for (int k = 0; k < 3; k++) {
-        if (fabsf(b[k]) > bias_max || fabsf(btc[k]) > btc_max || fabsf(stc[k]) > IB_LIMIT_SCALE_TC_MAX_PER_C) {
+        if (fabsf(v->b[k]) > v->bias_max || fabsf(v->c1[k]) > v->c1_max || fabsf(v->s[k]) > IB_LIMIT_SCALE_TC_MAX_PER_C) {
             return IB_ERROR_PARAM_OUT_OF_RANGE;
         }
     }
-    if (t_ref < IB_LIMIT_T_REF_MIN_C || t_ref > IB_LIMIT_T_REF_MAX_C) {
+    if (v->t_ref < IB_LIMIT_T_REF_MIN_C || v->t_ref > IB_LIMIT_T_REF_MAX_C) {
         return IB_ERROR_PARAM_OUT_OF_RANGE;
     }
-    if (out) {
-        for (int k = 0; k < 3; k++) {
-            t.b[k] = b[k];
-            t.bias_tc[k] = btc[k];
-            t.scale_tc[k] = stc[k];
-        }
-        t.t_ref_c = t_ref;
+    uint8_t e = check_poly(v);
+    if (e == IB_ERROR_OK && out) {
         *out = t;
     }
-    return IB_ERROR_OK;
+    return e;
+}
+
+static int all_finite(const float *x, unsigned n)
+{
+    for (unsigned k = 0; k < n; k++) {
+        if (!finite_f(x[k])) {
+            return 0;
+        }
+    }
+    return 1;
 }
 
 uint8_t ib_core_check_params(const ib_params_t *p, ib_triad_corr_t *accel, ib_triad_corr_t *gyro)
@@ -141,31 +203,24 @@ uint8_t ib_core_check_params(const ib_params_t *p, ib_triad_corr_t *accel, ib_tr
     /* every float finite: walk the struct's float members */
     const float *groups[] = {p->accel_m, p->accel_b_mps2, p->gyro_m, p->gyro_b_rad_s,
                              p->accel_bias_tc_mps2_per_c, p->accel_scale_tc_per_c,
-                             p->gyro_bias_tc_rad_s_per_c, p->gyro_scale_tc_per_c};
-    const unsigned sizes[] = {9, 3, 9, 3, 3, 3, 3, 3};
-    for (unsigned g = 0; g < 8; g++) {
-        for (unsigned k = 0; k < sizes[g]; k++) {
-            if (!finite_f(groups[g][k])) {
-                return IB_ERROR_PARAM_NOT_FINITE;
-            }
-        }
-    }
-    if (!finite_f(p->accel_t_ref_c) || !finite_f(p->gyro_t_ref_c)) {
-        return IB_ERROR_PARAM_NOT_FINITE;
-    }
-    for (unsigned k = 0; k < 9; k++) {
-        if (!finite_f(p->gyro_g_rad_s_per_mps2[k])) {
+                             p->gyro_bias_tc_rad_s_per_c, p->gyro_scale_tc_per_c,
+                             &p->accel_t_ref_c, &p->gyro_t_ref_c, p->gyro_g_rad_s_per_mps2,
+                             p->accel_bias_tc2_mps2_per_c2, p->accel_bias_tc3_mps2_per_c3,
+                             p->gyro_bias_tc2_rad_s_per_c2, p->gyro_bias_tc3_rad_s_per_c3};
+    static const uint8_t sizes[] = {9, 3, 9, 3, 3, 3, 3, 3, 1, 1, 9, 3, 3, 3, 3};
+    for (unsigned g = 0; g < sizeof sizes; g++) {
+        if (!all_finite(groups[g], sizes[g])) {
             return IB_ERROR_PARAM_NOT_FINITE;
         }
     }
-    uint8_t e = check_triad(p->accel_m, p->accel_b_mps2, p->accel_bias_tc_mps2_per_c, p->accel_scale_tc_per_c,
-                            p->accel_t_ref_c, IB_LIMIT_ACCEL_BIAS_MAX_MPS2, IB_LIMIT_ACCEL_BIAS_TC_MAX_MPS2_PER_C,
-                            accel);
+    triad_view_t v;
+    triad_view(p, 0, &v);
+    uint8_t e = check_triad(&v, accel);
     if (e != IB_ERROR_OK) {
         return e;
     }
-    e = check_triad(p->gyro_m, p->gyro_b_rad_s, p->gyro_bias_tc_rad_s_per_c, p->gyro_scale_tc_per_c,
-                    p->gyro_t_ref_c, IB_LIMIT_GYRO_BIAS_MAX_RAD_S, IB_LIMIT_GYRO_BIAS_TC_MAX_RAD_S_PER_C, gyro);
+    triad_view(p, 1, &v);
+    e = check_triad(&v, gyro);
     if (e != IB_ERROR_OK) {
         return e;
     }
@@ -178,34 +233,39 @@ uint8_t ib_core_check_params(const ib_params_t *p, ib_triad_corr_t *accel, ib_tr
 }
 
 /* ib_core_correct in two parts: what depends on the temperatures only (the stream reads them
- * once a batch, so this runs once a batch) and what depends on the sample. The same float
- * operations in the same order as the one-step formula, so the result is bit for bit the same. */
-static void correct_terms(const ib_triad_corr_t *t, const float temp_c[3], float bdt[3], float den[3])
+ * once a batch, so this runs once a batch): the bias at the clamped temperature, b + c1 dt +
+ * c2 dt^2 + c3 dt^3 (Horner), and the scale term 1 + s dt; and what depends on the sample. */
+static void correct_terms(const ib_params_t *p, int gyro, const float temp_c[3], float bias[3], float den[3])
 {
+    triad_view_t v;
+    triad_view(p, gyro, &v);
+    float lo = (float)v.t_min, hi = (float)v.t_max;
     for (int k = 0; k < 3; k++) {
-        float dt = temp_c[k] - t->t_ref_c;
-        bdt[k] = t->bias_tc[k] * dt;
-        den[k] = 1.0f + t->scale_tc[k] * dt;
+        float t = temp_c[k] < lo ? lo : temp_c[k] > hi ? hi : temp_c[k]; /* clamp to the span */
+        float dt = t - v.t_ref;
+        bias[k] = v.b[k] + dt * (v.c1[k] + dt * (v.c2[k] + dt * v.c3[k]));
+        den[k] = 1.0f + v.s[k] * dt;
     }
 }
 
-static void correct_apply(const ib_triad_corr_t *t, const float u[3], const float bdt[3], const float den[3],
+static void correct_apply(const ib_triad_corr_t *t, const float u[3], const float bias[3], const float den[3],
                           float out[3])
 {
     float v[3];
     for (int k = 0; k < 3; k++) {
-        v[k] = (u[k] - t->b[k] - bdt[k]) / den[k];
+        v[k] = (u[k] - bias[k]) / den[k];
     }
     for (int r = 0; r < 3; r++) {
         out[r] = t->m_inv[r][0] * v[0] + t->m_inv[r][1] * v[1] + t->m_inv[r][2] * v[2];
     }
 }
 
-void ib_core_correct(const ib_triad_corr_t *t, const float u[3], const float temp_c[3], float out[3])
+void ib_core_correct(const ib_params_t *p, int gyro, const ib_triad_corr_t *t, const float u[3],
+                     const float temp_c[3], float out[3])
 {
-    float bdt[3], den[3];
-    correct_terms(t, temp_c, bdt, den);
-    correct_apply(t, u, bdt, den, out);
+    float bias[3], den[3];
+    correct_terms(p, gyro, temp_c, bias, den);
+    correct_apply(t, u, bias, den, out);
 }
 
 static void identity_params(ib_params_t *p)
@@ -217,6 +277,8 @@ static void identity_params(ib_params_t *p)
     }
     p->accel_t_ref_c = 25.0f;
     p->gyro_t_ref_c = 25.0f;
+    p->accel_t_min_c = p->gyro_t_min_c = SPAN_DEFAULT_MIN_C;
+    p->accel_t_max_c = p->gyro_t_max_c = SPAN_DEFAULT_MAX_C;
 }
 
 static void set_factory(ib_core_t *c)
@@ -227,12 +289,29 @@ static void set_factory(ib_core_t *c)
     c->param_source = IB_PARAM_SOURCE_FACTORY;
 }
 
-/* Layout 1 of the parameter block: layout 2 without its last field, gyro_g (9 float32). */
-#define IB_PARAMS_SIZE_V1 (IB_PARAMS_SIZE - 36u)
-_Static_assert(IB_PARAM_BLOCK_VERSION == 2u, "read_stored migrates layout 1 to layout 2: update it");
+/* Layouts 2 and 1 of the parameter block: layout 3 without the bias polynomial's c2, c3
+ * (4 x 3 float32) and the spans (4 int8); layout 1 also without gyro_g (9 float32). */
+#define IB_PARAMS_SIZE_V2 (IB_PARAMS_SIZE - 52u)
+#define IB_PARAMS_SIZE_V1 (IB_PARAMS_SIZE_V2 - 36u)
+_Static_assert(IB_PARAM_BLOCK_VERSION == 3u, "read_stored migrates layouts 1 and 2 to layout 3: update it");
 
-/* The stored parameter block, read into p: today's layout, or layout 1 (today's without gyro_g,
- * its prefix) migrated with G = 0. Returns 1 when a block was read. */
+/* The span a migrated block gets (wire/params.py migrated_span): -40..85 degC, its upper end
+ * raised to hold t_ref when t_ref lies above 85 degC, so that a block valid before stays valid. */
+static int8_t migrated_t_max(float t_ref)
+{
+    if (!(t_ref > (float)SPAN_DEFAULT_MAX_C)) {
+        return SPAN_DEFAULT_MAX_C;
+    }
+    if (!(t_ref <= 127.0f)) {
+        return 127;
+    }
+    int8_t t = (int8_t)t_ref; /* truncated: 85..127, then rounded up (no libm ceilf on the F103) */
+    return (float)t < t_ref ? (int8_t)(t + 1) : t;
+}
+
+/* The stored parameter block, read into p: today's layout, or layout 2 or 1 (its prefixes)
+ * migrated with c2 = c3 = 0, the default span and (layout 1) G = 0. Returns 1 when a block was
+ * read. */
 static int read_stored(const ib_flash_if_t *fl, ib_params_t *p, ib_ps_info_t *info)
 {
     uint8_t blob[IB_PARAMS_SIZE];
@@ -241,9 +320,15 @@ static int read_stored(const ib_flash_if_t *fl, ib_params_t *p, ib_ps_info_t *in
         ib_params_unpack(blob, p);
         return 1;
     }
-    if (st == IB_PS_ERR_PAYLOAD_VERSION && info->payload_version == 1u && info->payload_len == IB_PARAMS_SIZE_V1) {
-        memset(blob + IB_PARAMS_SIZE_V1, 0, IB_PARAMS_SIZE - IB_PARAMS_SIZE_V1); /* G = 0: +0.0f is all zero bits */
+    if (st == IB_PS_ERR_PAYLOAD_VERSION &&
+        ((info->payload_version == 1u && info->payload_len == IB_PARAMS_SIZE_V1) ||
+         (info->payload_version == 2u && info->payload_len == IB_PARAMS_SIZE_V2))) {
+        /* what the old layout lacks is zero (G, c2, c3: +0.0f is all zero bits), then the span */
+        memset(blob + info->payload_len, 0, IB_PARAMS_SIZE - info->payload_len);
         ib_params_unpack(blob, p);
+        p->accel_t_min_c = p->gyro_t_min_c = SPAN_DEFAULT_MIN_C;
+        p->accel_t_max_c = migrated_t_max(p->accel_t_ref_c);
+        p->gyro_t_max_c = migrated_t_max(p->gyro_t_ref_c);
         return 1;
     }
     return 0;
@@ -488,8 +573,8 @@ static void cal_prepare(ib_core_t *c)
         tg[k] = 45.0f + (float)c->gyro_temp_raw10[k] / 5.0f;
     }
     c->cal_mps2_per_count = G0_MPS2 / lsb;
-    correct_terms(&c->corr_accel, ta, c->cal_bdt[0], c->cal_den[0]);
-    correct_terms(&c->corr_gyro, tg, c->cal_bdt[1], c->cal_den[1]);
+    correct_terms(&c->params, 0, ta, c->cal_bias[0], c->cal_den[0]);
+    correct_terms(&c->params, 1, tg, c->cal_bias[1], c->cal_den[1]);
     c->cal_ready = 1;
 }
 
@@ -558,14 +643,14 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
             u[k] = (float)acc[k] * c->cal_mps2_per_count;
             w[k] = (float)rate[k] * RAD_PER_GYRO_COUNT;
         }
-        correct_apply(&c->corr_accel, u, c->cal_bdt[0], c->cal_den[0], cs.accel_mps2);
+        correct_apply(&c->corr_accel, u, c->cal_bias[0], c->cal_den[0], cs.accel_mps2);
         const float *gs = c->params.gyro_g_rad_s_per_mps2; /* g-sensitivity: w − G·a first */
         for (int k = 0; k < 3; k++) {
             /* cs.accel_mps2 is written whole by correct_apply above; cppcheck does not follow it */
             // cppcheck-suppress uninitvar
             w[k] -= gs[k * 3] * cs.accel_mps2[0] + gs[k * 3 + 1] * cs.accel_mps2[1] + gs[k * 3 + 2] * cs.accel_mps2[2];
         }
-        correct_apply(&c->corr_gyro, w, c->cal_bdt[1], c->cal_den[1], cs.rate_rad_s);
+        correct_apply(&c->corr_gyro, w, c->cal_bias[1], c->cal_den[1], cs.rate_rad_s);
         cs.status = status;
         rec = c->batch_buf + IB_HEADER_SIZE + IB_BATCH_HEADER_SIZE + (size_t)c->batch_n * IB_CAL_SAMPLE_SIZE;
         ib_cal_sample_pack(&cs, rec);

@@ -16,12 +16,11 @@
 #include "frame.h"
 #include "protocol_gen.h"
 
+/* What the correction needs beyond the active parameter block: M^-1, computed once when a
+ * block is accepted. The bias, its temperature polynomial, the scale term, t_ref and the span
+ * are read from the block itself (ib_core_t.params), not copied (RAM: issue 23). */
 typedef struct {
-    float m_inv[3][3];   /* M^-1, computed once when parameters are accepted */
-    float b[3];
-    float bias_tc[3];
-    float scale_tc[3];
-    float t_ref_c;
+    float m_inv[3][3];
 } ib_triad_corr_t;
 
 /* One transfer of the sample chain (core.c, job_next). */
@@ -64,10 +63,11 @@ typedef struct ib_core {
     uint8_t batch_gyro_st_bad[3]; /* 0x80 | ST of a gyro reply with ST != 01 in this batch */
     ib_batch_header_t batch_hdr;
     uint32_t batch_t0_us;
-    /* the calibrated stream's per-batch terms (core.c, cal_prepare): the correction's
-     * temperature terms (bias_tc x dt, 1 + scale_tc x dt) of [0] the accelerometer, [1] the
-     * gyros, and m/s^2 per count at the range; cal_ready 0 after a parameter change */
-    float cal_bdt[2][3], cal_den[2][3];
+    /* the calibrated stream's per-batch terms (core.c, cal_prepare): the bias at the batch's
+     * temperatures (b + c1 dt + c2 dt^2 + c3 dt^3) and the scale term (1 + scale_tc dt), dt the
+     * clamped temperature minus t_ref, of [0] the accelerometer, [1] the gyros, and m/s^2 per
+     * count at the range; cal_ready 0 after a parameter change */
+    float cal_bias[2][3], cal_den[2][3];
     float cal_mps2_per_count;
     uint8_t cal_ready;
     uint8_t batch_buf[IB_MAX_FRAME];  /* raw frame being built: header, payload, CRC */
@@ -136,8 +136,11 @@ void ib_core_poll(ib_core_t *c);
  * On success fills the two corrections (may be NULL). */
 uint8_t ib_core_check_params(const ib_params_t *p, ib_triad_corr_t *accel, ib_triad_corr_t *gyro);
 
-/* Apply a correction to a nominally scaled measurement u (SI); temp_c is the temperature of
- * each axis' sensor (the accelerometer's for all three accelerometer axes; each gyro's own). */
-void ib_core_correct(const ib_triad_corr_t *t, const float u[3], const float temp_c[3], float out[3]);
+/* Apply block p's correction of one triad (gyro 0: the accelerometer, 1: the gyros; t its
+ * M^-1 from ib_core_check_params) to a nominally scaled measurement u (SI, the gyro's with
+ * G·a already taken off); temp_c is the temperature of each axis' sensor (the accelerometer's
+ * for all three accelerometer axes; each gyro's own). docs/conventions.md, Temperature model. */
+void ib_core_correct(const ib_params_t *p, int gyro, const ib_triad_corr_t *t, const float u[3],
+                     const float temp_c[3], float out[3]);
 
 #endif

@@ -25,6 +25,18 @@ size_t ib_params_pack(const ib_params_t *v, uint8_t *out)
     ib_put_u32(out + n, v->cal_id);
     n += 4;
     for (size_t i = 0; i < 9u; i++, n += 4) ib_put_f32(out + n, v->gyro_g_rad_s_per_mps2[i]);
+    for (size_t i = 0; i < 3u; i++, n += 4) ib_put_f32(out + n, v->accel_bias_tc2_mps2_per_c2[i]);
+    for (size_t i = 0; i < 3u; i++, n += 4) ib_put_f32(out + n, v->accel_bias_tc3_mps2_per_c3[i]);
+    for (size_t i = 0; i < 3u; i++, n += 4) ib_put_f32(out + n, v->gyro_bias_tc2_rad_s_per_c2[i]);
+    for (size_t i = 0; i < 3u; i++, n += 4) ib_put_f32(out + n, v->gyro_bias_tc3_rad_s_per_c3[i]);
+    ib_put_i8(out + n, v->accel_t_min_c);
+    n += 1;
+    ib_put_i8(out + n, v->accel_t_max_c);
+    n += 1;
+    ib_put_i8(out + n, v->gyro_t_min_c);
+    n += 1;
+    ib_put_i8(out + n, v->gyro_t_max_c);
+    n += 1;
     return n;
 }
 
@@ -48,6 +60,18 @@ void ib_params_unpack(const uint8_t *in, ib_params_t *v)
     v->cal_id = ib_get_u32(in + n);
     n += 4;
     for (size_t i = 0; i < 9u; i++, n += 4) v->gyro_g_rad_s_per_mps2[i] = ib_get_f32(in + n);
+    for (size_t i = 0; i < 3u; i++, n += 4) v->accel_bias_tc2_mps2_per_c2[i] = ib_get_f32(in + n);
+    for (size_t i = 0; i < 3u; i++, n += 4) v->accel_bias_tc3_mps2_per_c3[i] = ib_get_f32(in + n);
+    for (size_t i = 0; i < 3u; i++, n += 4) v->gyro_bias_tc2_rad_s_per_c2[i] = ib_get_f32(in + n);
+    for (size_t i = 0; i < 3u; i++, n += 4) v->gyro_bias_tc3_rad_s_per_c3[i] = ib_get_f32(in + n);
+    v->accel_t_min_c = ib_get_i8(in + n);
+    n += 1;
+    v->accel_t_max_c = ib_get_i8(in + n);
+    n += 1;
+    v->gyro_t_min_c = ib_get_i8(in + n);
+    n += 1;
+    v->gyro_t_max_c = ib_get_i8(in + n);
+    n += 1;
     (void)n;
 }
 

@@ -5,16 +5,16 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#define IB_PROTOCOL_VERSION 3u
+#define IB_PROTOCOL_VERSION 4u
 #define IB_SAVE_UNCHANGED_FLAG 0x80000000u  /* save_params ack value: already stored */
 #define IB_MAX_PAYLOAD 256u
 #define IB_HEADER_SIZE 8u
 #define IB_CRC_SIZE 4u
 #define IB_MAX_FRAME 268u /* header + payload + CRC, before COBS */
 #define IB_MAX_ENCODED (268u + (268u / 254u) + 1u) /* COBS, without the 0x00 */
-#define IB_PARAM_BLOCK_VERSION 2u
+#define IB_PARAM_BLOCK_VERSION 3u
 /* longest command payload (commands have fixed layouts): what the retry cache keeps */
-#define IB_MAX_COMMAND_PAYLOAD 196u
+#define IB_MAX_COMMAND_PAYLOAD 248u
 /* start_stream rates (SPEC.md, Streaming) */
 #define IB_STREAM_RATES_HZ {4000u, 2000u, 1000u, 800u, 500u, 400u, 250u, 200u, 160u, 125u, 100u, 80u, 50u, 40u, 25u, 20u}
 #define IB_STREAM_RATES_COUNT 16u
@@ -33,6 +33,13 @@
 #define IB_LIMIT_T_REF_MIN_C (-0x1.4000000000000p+5f) /* -40.0 as float32 */
 #define IB_LIMIT_T_REF_MAX_C 0x1.f400000000000p+6f /* 125.0 as float32 */
 #define IB_LIMIT_GYRO_G_MAX_RAD_S_PER_MPS2 0x1.d29dc80000000p-10f /* 0.00178 as float32 */
+#define IB_LIMIT_ACCEL_BIAS_TC2_MAX_MPS2_PER_C2 0x1.0624de0000000p-10f /* 0.001 as float32 */
+#define IB_LIMIT_ACCEL_BIAS_TC3_MAX_MPS2_PER_C3 0x1.a36e2e0000000p-14f /* 0.0001 as float32 */
+#define IB_LIMIT_GYRO_BIAS_TC2_MAX_RAD_S_PER_C2 0x1.a36e2e0000000p-14f /* 0.0001 as float32 */
+#define IB_LIMIT_GYRO_BIAS_TC3_MAX_RAD_S_PER_C3 0x1.4f8b580000000p-17f /* 1e-05 as float32 */
+#define IB_LIMIT_T_SPAN_MIN_C (-0x1.4000000000000p+5f) /* -40.0 as float32 */
+#define IB_LIMIT_ACCEL_T_SPAN_MAX_C 0x1.f400000000000p+6f /* 125.0 as float32 */
+#define IB_LIMIT_GYRO_T_SPAN_MAX_C 0x1.a400000000000p+6f /* 105.0 as float32 */
 
 /* Error codes carried in ack.error (0 = acknowledged; anything else is a nack). */
 enum ib_error {
@@ -154,7 +161,7 @@ enum ib_params_which {
 #define IB_MSG_RAW_BATCH 0x90u /* d2h */
 #define IB_MSG_CAL_BATCH 0x91u /* d2h */
 
-/* Calibration parameters (docs/conventions.md): u = M·x + b per triad, the device applies x = M⁻¹·(u − b − bias_tc·(T − t_ref)) / (1 + scale_tc·(T − t_ref)) per axis; for the gyro also − G·a inside the bracket, a the calibrated specific force in m/s². M and G row-major. Layout 2; layout 1 is the same without gyro_g (a stored layout-1 block is read with G = 0). */
+/* Calibration parameters (docs/conventions.md): u = M·x + b per triad, the device applies x = M⁻¹·(u − b − (c1·ΔT + c2·ΔT² + c3·ΔT³)) / (1 + scale_tc·ΔT) per axis, ΔT = clamp(T, t_min, t_max) − t_ref and c1 = bias_tc; for the gyro also − G·a inside the bracket, a the calibrated specific force in m/s². M and G row-major. Layout 3; layout 2 is its prefix without the fields from accel_bias_tc2 on, layout 1 also without gyro_g (a stored layout-1 or -2 block is read with G = 0 (layout 1), c2 = c3 = 0 and the span −40..85 °C, widened to hold t_ref). */
 typedef struct {
     float accel_m[9]; /* [1] accelerometer scale/misalignment matrix, row-major */
     float accel_b_mps2[3]; /* [m/s^2] accelerometer bias */
@@ -169,9 +176,17 @@ typedef struct {
     uint32_t cal_time_unix_s; /* [s] when the host computed these (0 = never) */
     uint32_t cal_id; /* host's calibration run id (0 = none) */
     float gyro_g_rad_s_per_mps2[9]; /* [rad/s/(m/s^2)] gyro g-sensitivity G, row-major: the gyro reads b + G·a more at specific force a (layout 2) */
+    float accel_bias_tc2_mps2_per_c2[3]; /* [m/s^2/degC^2] accelerometer bias, second-order temperature coefficient c2 (layout 3) */
+    float accel_bias_tc3_mps2_per_c3[3]; /* [m/s^2/degC^3] accelerometer bias, third-order temperature coefficient c3 */
+    float gyro_bias_tc2_rad_s_per_c2[3]; /* [rad/s/degC^2] gyro bias, second-order temperature coefficient c2 */
+    float gyro_bias_tc3_rad_s_per_c3[3]; /* [rad/s/degC^3] gyro bias, third-order temperature coefficient c3 */
+    int8_t accel_t_min_c; /* [degC] lower end of the accelerometer's calibrated span: below it the device uses this temperature (clamp) */
+    int8_t accel_t_max_c; /* [degC] upper end of the accelerometer's calibrated span (clamp above) */
+    int8_t gyro_t_min_c; /* [degC] lower end of the gyros' calibrated span (clamp below) */
+    int8_t gyro_t_max_c; /* [degC] upper end of the gyros' calibrated span (clamp above) */
 } ib_params_t;
 
-#define IB_PARAMS_SIZE 196u
+#define IB_PARAMS_SIZE 248u
 size_t ib_params_pack(const ib_params_t *v, uint8_t *out);
 void ib_params_unpack(const uint8_t *in, ib_params_t *v);
 
@@ -262,7 +277,7 @@ typedef struct {
     ib_params_t params;
 } ib_msg_set_params_t;
 
-#define IB_MSG_SET_PARAMS_SIZE 196u /* fixed part of the payload */
+#define IB_MSG_SET_PARAMS_SIZE 248u /* fixed part of the payload */
 size_t ib_msg_set_params_pack(const ib_msg_set_params_t *v, uint8_t *out);
 void ib_msg_set_params_unpack(const uint8_t *in, ib_msg_set_params_t *v);
 
@@ -371,7 +386,7 @@ typedef struct {
     ib_params_t params;
 } ib_msg_params_readback_t;
 
-#define IB_MSG_PARAMS_READBACK_SIZE 204u /* fixed part of the payload */
+#define IB_MSG_PARAMS_READBACK_SIZE 256u /* fixed part of the payload */
 size_t ib_msg_params_readback_pack(const ib_msg_params_readback_t *v, uint8_t *out);
 void ib_msg_params_readback_unpack(const uint8_t *in, ib_msg_params_readback_t *v);
 

@@ -60,6 +60,14 @@ static const ib_desc_field_t ib_msg_set_params_desc[] = {
     {"params.cal_time_unix_s", 'u', offsetof(ib_msg_set_params_t, params.cal_time_unix_s), 1, 4},
     {"params.cal_id", 'u', offsetof(ib_msg_set_params_t, params.cal_id), 1, 4},
     {"params.gyro_g_rad_s_per_mps2", 'f', offsetof(ib_msg_set_params_t, params.gyro_g_rad_s_per_mps2), 9, 4},
+    {"params.accel_bias_tc2_mps2_per_c2", 'f', offsetof(ib_msg_set_params_t, params.accel_bias_tc2_mps2_per_c2), 3, 4},
+    {"params.accel_bias_tc3_mps2_per_c3", 'f', offsetof(ib_msg_set_params_t, params.accel_bias_tc3_mps2_per_c3), 3, 4},
+    {"params.gyro_bias_tc2_rad_s_per_c2", 'f', offsetof(ib_msg_set_params_t, params.gyro_bias_tc2_rad_s_per_c2), 3, 4},
+    {"params.gyro_bias_tc3_rad_s_per_c3", 'f', offsetof(ib_msg_set_params_t, params.gyro_bias_tc3_rad_s_per_c3), 3, 4},
+    {"params.accel_t_min_c", 'i', offsetof(ib_msg_set_params_t, params.accel_t_min_c), 1, 1},
+    {"params.accel_t_max_c", 'i', offsetof(ib_msg_set_params_t, params.accel_t_max_c), 1, 1},
+    {"params.gyro_t_min_c", 'i', offsetof(ib_msg_set_params_t, params.gyro_t_min_c), 1, 1},
+    {"params.gyro_t_max_c", 'i', offsetof(ib_msg_set_params_t, params.gyro_t_max_c), 1, 1},
     {NULL, 0, 0, 0, 0}
 };
 
@@ -141,6 +149,14 @@ static const ib_desc_field_t ib_msg_params_readback_desc[] = {
     {"params.cal_time_unix_s", 'u', offsetof(ib_msg_params_readback_t, params.cal_time_unix_s), 1, 4},
     {"params.cal_id", 'u', offsetof(ib_msg_params_readback_t, params.cal_id), 1, 4},
     {"params.gyro_g_rad_s_per_mps2", 'f', offsetof(ib_msg_params_readback_t, params.gyro_g_rad_s_per_mps2), 9, 4},
+    {"params.accel_bias_tc2_mps2_per_c2", 'f', offsetof(ib_msg_params_readback_t, params.accel_bias_tc2_mps2_per_c2), 3, 4},
+    {"params.accel_bias_tc3_mps2_per_c3", 'f', offsetof(ib_msg_params_readback_t, params.accel_bias_tc3_mps2_per_c3), 3, 4},
+    {"params.gyro_bias_tc2_rad_s_per_c2", 'f', offsetof(ib_msg_params_readback_t, params.gyro_bias_tc2_rad_s_per_c2), 3, 4},
+    {"params.gyro_bias_tc3_rad_s_per_c3", 'f', offsetof(ib_msg_params_readback_t, params.gyro_bias_tc3_rad_s_per_c3), 3, 4},
+    {"params.accel_t_min_c", 'i', offsetof(ib_msg_params_readback_t, params.accel_t_min_c), 1, 1},
+    {"params.accel_t_max_c", 'i', offsetof(ib_msg_params_readback_t, params.accel_t_max_c), 1, 1},
+    {"params.gyro_t_min_c", 'i', offsetof(ib_msg_params_readback_t, params.gyro_t_min_c), 1, 1},
+    {"params.gyro_t_max_c", 'i', offsetof(ib_msg_params_readback_t, params.gyro_t_max_c), 1, 1},
     {NULL, 0, 0, 0, 0}
 };
 

@@ -110,6 +110,8 @@ static void example(ib_params_t *p, float bias)
     p->accel_b_mps2[2] = 0.125f;
     p->accel_t_ref_c = 25.0f;
     p->gyro_t_ref_c = 25.0f;
+    p->accel_t_min_c = p->gyro_t_min_c = -40; /* the default span (layout 3) */
+    p->accel_t_max_c = p->gyro_t_max_c = 85;
     p->cal_id = 77;
 }
 

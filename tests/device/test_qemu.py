@@ -62,6 +62,8 @@ def sample_params(seed: int = 1) -> Params:
         gyro_scale_tc_per_c=(0.0, 0.0, -0.0001220703125),
         accel_t_ref_c=23.5, gyro_t_ref_c=31.25,
         cal_time_unix_s=1_700_000_000 + seed, cal_id=0xC0FFEE00 + seed,
+        accel_bias_tc2_mps2_per_c2=(2.0 ** -20, 0.0, -(2.0 ** -21)), gyro_bias_tc3_rad_s_per_c3=(0.0, 2.0 ** -30, 0.0),
+        accel_t_min_c=-10, accel_t_max_c=60, gyro_t_min_c=5, gyro_t_max_c=70,
     )
 
 

@@ -279,11 +279,12 @@ def test_stm32flash_writes_starts_and_a_reflash_keeps_the_calibration(name, tmp_
 
 @pytest.mark.parametrize("name", ["f103", "f4"])
 def test_a_reflash_keeps_a_block_the_previous_layout_stored(name, tmp_path, capsys):
-    """The parameter layout moved (1 -> 2, issue 26) and the board's parameter pages hold the
-    block the previous firmware stored (layout 1, byte for byte as its ib_ps_save wrote it:
-    paramstore.params_record(layout=1), checked against the C store in tests/device/test_qemu.py).
+    """The parameter layout moved (2 -> 3, issue 23) and the board's parameter pages hold the
+    block the previous firmware stored (layout 2, byte for byte as its ib_ps_save wrote it:
+    paramstore.params_record(layout=2), checked against the C store in tests/device/test_qemu.py).
     stm32flash writes the current image over the previous one; the parameter pages are not
-    touched, and the new image boots using that block (migrated: G = 0), not factory defaults.
+    touched, and the new image boots using that block (migrated: c2 = c3 = 0, span −40..85 °C,
+    its G kept), not factory defaults.
     Set IMUBENCH_PREV_ELF_F103 / _F4 to images built from a commit before the layout change to
     run the previous image itself (docs/firmware.md); by default it is the current build
     relabelled, since only the flash contents matter to what the new image reads."""
@@ -295,8 +296,9 @@ def test_a_reflash_keeps_a_block_the_previous_layout_stored(name, tmp_path, caps
     p.accel_b_mps2 = (0.05, -0.08, 0.12)
     p.gyro_b_rad_s = (0.004, -0.002, 0.001)
     p.cal_id = 4321
+    p.gyro_g_rad_s_per_mps2 = (float(np.float32(5e-5)),) + (0.0,) * 8
     lay = PS.LAYOUTS[name]
-    rec = PS.params_record(p, generation=17, program_unit=lay.program_unit, layout=1)
+    rec = PS.params_record(p, generation=17, program_unit=lay.program_unit, layout=2)
     flash = tmp_path / "flash.bin"
     img = bytearray(b"\xff" * ARM[name].param_size)         # both parameter pages / sectors
     img[:len(rec)] = rec
@@ -314,7 +316,8 @@ def test_a_reflash_keeps_a_block_the_previous_layout_stored(name, tmp_path, caps
             assert info.fw_build == image_tag(image_bytes(cur_elf))["build"]
             assert info.param_source == ParamSource.FLASH and info.param_generation == 17
             got = dev.get_params(ParamsWhich.STORED).params
-            assert _pack(got) == _pack(p) and not any(got.gyro_g_rad_s_per_mps2)
+            assert _pack(got) == _pack(p) and (got.gyro_t_min_c, got.gyro_t_max_c) == (-40, 85)
+            assert not any(got.accel_bias_tc2_mps2_per_c2 + got.gyro_bias_tc3_rad_s_per_c3)
 
 
 # ------------------------------------------------------------- what goes wrong at a bench

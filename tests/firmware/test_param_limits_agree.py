@@ -15,11 +15,16 @@ from imubench.wire import params as PR
 from imubench.wire.protocol_gen import LIMITS, LIMITS_F32, Error, Params
 
 F32 = np.float32
-# slots of the 38 floats in Params.values(): the matrices, the vectors, the two t_ref
+# slots in Params.values(): the matrices, the vectors, the two t_ref, G, the polynomial, the spans
 ACCEL_M, ACCEL_B, GYRO_M, GYRO_B = range(0, 9), range(9, 12), range(12, 21), range(21, 24)
 A_BTC, A_STC, G_BTC, G_STC = range(24, 27), range(27, 30), range(30, 33), range(33, 36)
 T_REF = (36, 37)
 GYRO_G = range(40, 49)          # layout 2: after cal_time_unix_s and cal_id
+A_C2, A_C3, G_C2, G_C3 = range(49, 52), range(52, 55), range(55, 58), range(58, 61)   # layout 3
+A_TMIN, A_TMAX, G_TMIN, G_TMAX = 61, 62, 63, 64                                        # int8, °C
+FLOATS = list(range(38)) + list(range(40, 61))
+POLY = ((A_C2, "accel_bias_tc2_max_mps2_per_c2"), (A_C3, "accel_bias_tc3_max_mps2_per_c3"),
+        (G_C2, "gyro_bias_tc2_max_rad_s_per_c2"), (G_C3, "gyro_bias_tc3_max_rad_s_per_c3"))
 
 
 @pytest.fixture(scope="module")
@@ -80,8 +85,32 @@ def _blocks() -> list[list]:
             v = LIMITS_F32[lim]
             for x in (v, _up(v), _down(v), LIMITS[lim]):
                 one(**{f"s{slot}": x})
+    # layout 3: c2, c3 at their limits (span narrowed so that the excursion bound stays inside),
+    # the spans around the parts' ranges, empty, reversed, t_ref at and beyond their ends
+    for slots, lim in POLY:
+        for slot in slots:
+            for x in _edges(lim):
+                one(**{f"s{slot}": x, "s61": 20, "s62": 30, "s63": 20, "s64": 30})
+    for lo_slot, hi_slot, top in ((A_TMIN, A_TMAX, 125), (G_TMIN, G_TMAX, 105)):
+        for lo in (-128, -41, -40, -39, 0, 24, 25, 26, 84, 85, 127):
+            for hi in (-40, 24, 25, 26, 85, top - 1, top, top + 1, 127):
+                one(**{f"s{lo_slot}": lo, f"s{hi_slot}": hi})
+        for t_ref in (-40.0, _down(-40.0), _up(-40.0), 10.0, _down(10.0), _up(10.0), 20.0, _up(20.0)):
+            one(**{f"s{lo_slot}": 10, f"s{hi_slot}": 20, f"s{36 if lo_slot == A_TMIN else 37}": t_ref})
+    # the excursion bound D·(|c1| + D·(|c2| + D·|c3|)) at the bias limit, each order alone, at,
+    # just inside and just outside: t_ref at the span's lower end -40, so D = the span's width
+    for (c1s, bmax), (c2s, _), (c3s, _) in (((A_BTC, "accel_bias_max_mps2"), POLY[0], POLY[1]),
+                                            ((G_BTC, "gyro_bias_max_rad_s"), POLY[2], POLY[3])):
+        lo_slot, hi_slot, ref_slot = (A_TMIN, A_TMAX, 36) if c1s is A_BTC else (G_TMIN, G_TMAX, 37)
+        b = F32(LIMITS_F32[bmax])
+        for order, slots in ((1, c1s), (2, c2s), (3, c3s)):
+            for d in (60, 100, 140):
+                c = b / F32(d) ** order
+                for x in (c, np.nextafter(c, F32(np.inf)), np.nextafter(c, F32(0)), -c):
+                    one(**{f"s{slots[order - 1]}": float(x), f"s{lo_slot}": -40, f"s{hi_slot}": -40 + d,
+                           f"s{ref_slot}": -40.0})
     # NaN, ±Inf, huge, tiny, subnormal, -0 in every float field
-    for slot in range(38):
+    for slot in FLOATS:
         for x in (float("nan"), float("inf"), -float("inf"), 3.4e38, -3.4e38, 1e30, 1e-30, 1e-45, -0.0, 1e39):
             one(**{f"s{slot}": x})
     # matrices: singular, nearly singular around m_det_min, ill-conditioned around m_cond_max, huge
@@ -124,8 +153,15 @@ def _blocks() -> list[list]:
             v[slot] = float(rng.uniform(-1.02, 1.02) * lim) if rng.random() < 0.1 else 0.0
             if rng.random() < 0.002:
                 v[slot] = float(rng.choice([float("nan"), float("inf"), lim, -lim]))
+        for slots, lim in POLY:
+            for slot in slots:
+                v[slot] = float(rng.uniform(-1.02, 1.02) * LIMITS[lim]) if rng.random() < 0.1 else 0.0
+        for lo_slot, hi_slot in ((A_TMIN, A_TMAX), (G_TMIN, G_TMAX)):
+            if rng.random() < 0.5:
+                lo = int(rng.integers(-45, 60))
+                v[lo_slot], v[hi_slot] = lo, int(np.clip(lo + rng.integers(-5, 80), -128, 127))
         if rng.random() < 0.1:                        # some exactly at a limit
-            slot = int(rng.integers(0, 38))
+            slot = int(rng.choice(FLOATS))
             v[slot] = float(rng.choice([1, -1])) * float(rng.choice(list(LIMITS_F32.values())))
         out.append(v)
     return out
@@ -144,8 +180,9 @@ def _wire(values: list) -> bytes:
     float32 range: ±inf, which is what a device would be sent)."""
     with np.errstate(all="ignore"):
         floats = np.array(values[:38], dtype=np.float64).astype(np.float32)
-        g = np.array(values[40:49], dtype=np.float64).astype(np.float32)
-    return floats.astype("<f4").tobytes() + struct.pack("<II", *values[38:40]) + g.astype("<f4").tobytes()
+        tail = np.array(values[40:61], dtype=np.float64).astype(np.float32)   # G, c2, c3
+    return (floats.astype("<f4").tobytes() + struct.pack("<II", *values[38:40]) + tail.astype("<f4").tobytes()
+            + struct.pack("<4b", *values[61:65]))
 
 
 def test_host_and_device_give_the_same_code_for_every_block(harness):
@@ -172,9 +209,30 @@ def test_host_and_device_give_the_same_code_for_every_block(harness):
     ("gyro_scale_tc_per_c", (0.001, -0.001, 0.0)),
     ("gyro_b_rad_s", (0.0, -0.5236, 0.0)),
     ("accel_bias_tc_mps2_per_c", (0.0, 0.0, 0.01)),
+    ("accel_t_max_c", 125),
+    ("gyro_t_min_c", -40),
 ])
 def test_a_block_at_a_documented_limit_is_accepted_by_the_host(field, value):
     """A value equal to its limit is inside it (SPEC.md), on the host as on the device."""
     p = PR.identity()
     setattr(p, field, value)
+    PR.validate(p)
+
+
+@pytest.mark.parametrize("field,value,refused_wide", [
+    ("accel_bias_tc2_mps2_per_c2", (0.001, 0.0, 0.0), False), ("accel_bias_tc3_mps2_per_c3", (0.0, -1e-4, 0.0), True),
+    ("gyro_bias_tc2_rad_s_per_c2", (0.0, 0.0, 1e-4), False), ("gyro_bias_tc3_rad_s_per_c3", (0.0, 1e-5, 0.0), True),
+])
+def test_polynomial_coefficients_at_their_limits(field, value, refused_wide):
+    """c2, c3 at their limits pass over 15..35 °C; over the default span −40..85 °C (ΔT up to
+    65 °C) a c3 at its limit would move the bias beyond the bias limit and is refused."""
+    p = PR.identity()
+    setattr(p, field, value)
+    if refused_wide:
+        with pytest.raises(PR.InvalidParams, match="bias polynomial.*may move the bias"):
+            PR.validate(p)
+    else:
+        PR.validate(p)
+    p.accel_t_min_c = p.gyro_t_min_c = 15
+    p.accel_t_max_c = p.gyro_t_max_c = 35
     PR.validate(p)

@@ -1,12 +1,15 @@
-"""A parameter block stored by the previous firmware (layout 1: today's block without the gyro
-g-sensitivity) is still read and used after the layout moved to 2 (issue 26): by the C core on
-the host build and by the exact F103 and F4 images under the ARM emulator, each booted on a flash
-file holding a layout-1 record as `imubench.wire.paramstore.params_record(p, layout=1)` writes it
-(byte for byte what the previous firmware's ib_ps_save wrote: tests/device/test_qemu.py checks the
-builder against the C store). Then a save writes layout 2, and G survives a reboot."""
+"""A parameter block stored by a previous firmware (layout 1: without the gyro g-sensitivity;
+layout 2: without the bias polynomial's c2, c3 and the calibrated spans) is still read and used
+after the layout moved to 3 (issues 26 and 23): by the C core on the host build and by the exact
+F103 and F4 images under the ARM emulator, each booted on a flash file holding such a record as
+`imubench.wire.paramstore.params_record(p, layout=1 or 2)` writes it (byte for byte what the
+previous firmware's ib_ps_save wrote: tests/device/test_qemu.py checks the builder against the C
+store). The migration gives G = 0 (layout 1), c2 = c3 = 0 and the span −40..85 °C, raised to
+hold a t_ref above 85 °C. Then a save writes layout 3, and the new fields survive a reboot."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -22,20 +25,26 @@ FLASH = {"sim": (PS.Layout((0, 0x800), 0x800, 4), 0x1000), "f103": (PS.LAYOUTS["
          "f4": (PS.LAYOUTS["f4"], 256 * 1024)}
 
 
-def _layout1_params() -> object:
+def _old_params(layout: int) -> object:
+    """A block a layout-1 or -2 firmware could have stored (as today's Params, migrated)."""
     p = PR.identity()
     p.accel_m = (1.004, 0.001, 0.0, -0.002, 0.997, 0.0, 0.003, 0.0, 1.01)
     p.accel_b_mps2 = (0.05, -0.08, 0.12)
     p.gyro_m = (1.002, 0.0, 0.001, 0.0, 0.998, 0.0, -0.001, 0.0, 1.003)
     p.gyro_b_rad_s = (0.004, -0.002, 0.001)
     p.cal_id = 1234
+    if layout == 2:                   # a g-sensitivity, and a gyro t_ref above 85 °C: span -40..91
+        p.gyro_g_rad_s_per_mps2 = tuple(float(np.float32(v)) for v in np.radians([0.03, 0, 0, 0, -0.02, 0, 0, 0, 0.01]) / 9.80665)
+        p.accel_bias_tc_mps2_per_c = (1e-4, -2e-4, 0.0)
+        p.gyro_t_ref_c = 90.5
+        p.gyro_t_min_c, p.gyro_t_max_c = -40, 91
     return p
 
 
-def layout1_flash_file(path, target: str, generation: int = 17):
-    """A flash file whose slot 0 holds the previous firmware's layout-1 record, slot 1 erased."""
+def layout1_flash_file(path, target: str, generation: int = 17, layout: int = 1):
+    """A flash file whose slot 0 holds a previous firmware's layout-1 (or -2) record, slot 1 erased."""
     lay, size = FLASH[target]
-    rec = PS.params_record(_layout1_params(), generation=generation, program_unit=lay.program_unit, layout=1)
+    rec = PS.params_record(_old_params(layout), generation=generation, program_unit=lay.program_unit, layout=layout)
     img = bytearray(b"\xff" * size)
     img[:len(rec)] = rec
     path.write_bytes(bytes(img))
@@ -46,24 +55,35 @@ def _pack(p) -> bytes:
     return p.STRUCT.pack(*p.values())
 
 
-def test_layout1_record_is_todays_prefix_and_reads_with_zero_g():
-    p = _layout1_params()
-    rec = PS.params_record(p, generation=3, layout=1)
-    r = PS.parse_record(PS.slot_image(rec, 1024))
-    assert r.payload_version == 1 and len(r.payload) == PS.PARAMS_SIZE_V1 == 160
-    assert r.payload == PS.params_payload(p)[:160]
-    assert _pack(r.params()) == _pack(p) and not any(r.params().gyro_g_rad_s_per_mps2)
-    assert PARAM_BLOCK_VERSION == 2 and PS.parse_record(PS.slot_image(PS.params_record(p), 1024)).payload_version == 2
+def test_previous_layouts_are_todays_prefixes_and_migrate():
+    assert PARAM_BLOCK_VERSION == 3
+    for layout, size in ((1, 160), (2, 196)):
+        p = _old_params(layout)
+        r = PS.parse_record(PS.slot_image(PS.params_record(p, generation=3, layout=layout), 1024))
+        assert r.payload_version == layout and len(r.payload) == size
+        assert r.payload == PS.params_payload(p)[:size]
+        assert _pack(r.params()) == _pack(p)
+        m = r.params()
+        assert not any(m.accel_bias_tc2_mps2_per_c2 + m.accel_bias_tc3_mps2_per_c3 + m.gyro_bias_tc2_rad_s_per_c2
+                       + m.gyro_bias_tc3_rad_s_per_c3)
+        assert (m.accel_t_min_c, m.accel_t_max_c) == (-40, 85)
+        PR.validate(m)
+    assert (m.gyro_t_min_c, m.gyro_t_max_c) == (-40, 91)           # raised to hold t_ref 90.5
+    assert PR.migrated_span(85.0) == (-40, 85) and PR.migrated_span(85.01) == (-40, 86)
+    assert PS.parse_record(PS.slot_image(PS.params_record(p), 1024)).payload_version == 3
     q = PR.identity()
     q.gyro_g_rad_s_per_mps2 = (1e-4,) + (0.0,) * 8
     with pytest.raises(ValueError, match="layout-1 block has no gyro g-sensitivity"):
         PS.params_payload(q, layout=1)
+    for change in ({"gyro_bias_tc2_rad_s_per_c2": (1e-7, 0.0, 0.0)}, {"accel_t_min_c": 0}):
+        with pytest.raises(ValueError, match="layout-2 block has no bias c2, c3 or span"):
+            PS.params_payload(replace(PR.identity(), **change), layout=2)
 
 
-@pytest.mark.parametrize("target", ["sim", "f103", "f4"])
-def test_a_layout1_block_is_used_and_the_next_save_writes_layout2(tmp_path, target):
-    flash = layout1_flash_file(tmp_path / "flash.bin", target)
-    p = _layout1_params()
+@pytest.mark.parametrize("target,layout", [("sim", 1), ("sim", 2), ("f103", 1), ("f103", 2), ("f4", 1), ("f4", 2)])
+def test_a_previous_layout_block_is_used_and_the_next_save_writes_layout3(tmp_path, target, layout):
+    flash = layout1_flash_file(tmp_path / "flash.bin", target, layout=layout)
+    p = _old_params(layout)
     with VirtualBench(speed=0, seed=3, flash=flash, target="host" if target == "sim" else target) as vb:
         with Device.open(vb.port_url, timeout=5.0) as d:
             info = d.info()
@@ -71,10 +91,10 @@ def test_a_layout1_block_is_used_and_the_next_save_writes_layout2(tmp_path, targ
             act = d.get_params(ParamsWhich.ACTIVE)
             assert act.source == ParamSource.FLASH and _pack(act.params) == _pack(p)
             assert _pack(d.get_params(ParamsWhich.STORED).params) == _pack(p)
-            # a g-sensitivity set and saved: layout 2 in flash, kept over a reboot
-            q = _layout1_params()
-            q.gyro_g_rad_s_per_mps2 = tuple(float(np.float32(v)) for v in
-                                             np.radians([0.03, -0.01, 0.0, 0.0, 0.02, 0.0, 0.01, 0.0, -0.03]) / 9.80665)
+            # a cubic bias over a narrow span set and saved: layout 3 in flash, kept over a reboot
+            q = replace(p, accel_bias_tc2_mps2_per_c2=(2e-5, 0.0, -1e-5), gyro_bias_tc3_rad_s_per_c3=(0.0, 0.0, 3e-9),
+                        accel_t_min_c=5, accel_t_max_c=45, gyro_t_min_c=-10, gyro_t_max_c=95)
+            q = PR.from_json(PR.to_json(q))
             d.set_params(q)
             d.save_params()
         lay, _ = FLASH[target]
@@ -87,12 +107,16 @@ def test_a_layout1_block_is_used_and_the_next_save_writes_layout2(tmp_path, targ
             except PS.InvalidRecord:
                 pass
         newest = max(recs, key=lambda r: r.generation)
-        assert newest.generation == 18 and newest.payload_version == 2 and len(newest.payload) == 196
+        assert newest.generation == 18 and newest.payload_version == 3 and len(newest.payload) == 248
         vb.restart()
         with Device.open(vb.port_url, timeout=5.0) as d:
             act = d.get_params(ParamsWhich.ACTIVE)
-            assert act.source == ParamSource.FLASH and _pack(act.params) == _pack(q)
-            assert math.isclose(act.params.gyro_g_rad_s_per_mps2[0], q.gyro_g_rad_s_per_mps2[0])
+            assert act.source == ParamSource.FLASH
+            got = act.params
+            assert (got.accel_t_min_c, got.accel_t_max_c, got.gyro_t_min_c, got.gyro_t_max_c) == (5, 45, -10, 95)
+            assert math.isclose(got.accel_bias_tc2_mps2_per_c2[0], 2e-5, rel_tol=1e-6)
+            assert math.isclose(got.gyro_bias_tc3_rad_s_per_c3[2], 3e-9, rel_tol=1e-6)
+            assert _pack(got) == _pack(q)
 
 
 # ------------------------------------------------------------------ g-sensitivity through a whole session

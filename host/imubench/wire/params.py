@@ -1,10 +1,14 @@
 """Calibration parameters: conversion between the wire block (protocol_gen.Params) and
 numpy, the correction the device applies, and the validation the device performs.
 
-Model (docs/conventions.md), per triad, u = nominally scaled measurement, x = truth:
+Model (docs/conventions.md, "Temperature model"), per triad, u = nominally scaled measurement,
+x = truth:
     u = M·x + b                      x = M⁻¹·(u − b)
-with temperature terms: x = M⁻¹·((u − b − bias_tc·ΔT) / (1 + scale_tc·ΔT)), ΔT = T − t_ref;
-the gyro's g-sensitivity G (layout 2) is taken off first: u ← u − G·a, a the calibrated specific
+with temperature terms, per axis k with its sensor's temperature T_k:
+    ΔT = clamp(T_k, t_min, t_max) − t_ref
+    x = M⁻¹·((u − b − (c1·ΔT + c2·ΔT² + c3·ΔT³)) / (1 + scale_tc·ΔT))
+c1 = bias_tc; outside the calibrated span [t_min, t_max] the span's end is used (layout 3). The
+gyro's g-sensitivity G (layout 2) is taken off first: u ← u − G·a, a the calibrated specific
 force in m/s² (the device's calibrated accelerometer output of the same sample).
 """
 from __future__ import annotations
@@ -16,10 +20,27 @@ import numpy as np
 from imubench.wire.protocol_gen import LIMITS, LIMITS_F32, Error, Params
 
 
+# The span a block without one (factory defaults, a migrated layout-1 or -2 block) gets, °C.
+DEFAULT_SPAN_C = (-40, 85)
+
+
 def identity() -> Params:
-    """Factory defaults: identity matrices, zero biases and temperature terms."""
+    """Factory defaults: identity matrices, zero biases and temperature terms, span −40..85 °C."""
     eye = tuple(float(v) for v in np.eye(3).ravel())
-    return Params(accel_m=eye, gyro_m=eye, accel_t_ref_c=25.0, gyro_t_ref_c=25.0)
+    lo, hi = DEFAULT_SPAN_C
+    return Params(accel_m=eye, gyro_m=eye, accel_t_ref_c=25.0, gyro_t_ref_c=25.0,
+                  accel_t_min_c=lo, accel_t_max_c=hi, gyro_t_min_c=lo, gyro_t_max_c=hi)
+
+
+def migrated_span(t_ref_c: float) -> tuple[int, int]:
+    """The span a layout-1 or -2 block is given on migration (core.c migrated_t_max): −40..85 °C,
+    its upper end raised to hold t_ref when t_ref lies above 85 °C (so that a block valid
+    before stays valid; t_ref's own limit keeps it at or above −40)."""
+    lo, hi = DEFAULT_SPAN_C
+    t = np.float32(t_ref_c)
+    if t > hi:
+        hi = int(np.ceil(t)) if t <= 127 else 127
+    return lo, hi
 
 
 def is_factory(p: Params) -> bool:
@@ -28,7 +49,9 @@ def is_factory(p: Params) -> bool:
     ident = identity()
     return all(np.allclose(getattr(p, f), getattr(ident, f)) for f in
                ("accel_m", "accel_b_mps2", "gyro_m", "gyro_b_rad_s", "accel_bias_tc_mps2_per_c",
-                "accel_scale_tc_per_c", "gyro_bias_tc_rad_s_per_c", "gyro_scale_tc_per_c", "gyro_g_rad_s_per_mps2"))
+                "accel_scale_tc_per_c", "gyro_bias_tc_rad_s_per_c", "gyro_scale_tc_per_c", "gyro_g_rad_s_per_mps2",
+                "accel_bias_tc2_mps2_per_c2", "accel_bias_tc3_mps2_per_c3", "gyro_bias_tc2_rad_s_per_c2",
+                "gyro_bias_tc3_rad_s_per_c3"))
 
 
 def to_json(p: Params) -> dict:
@@ -56,30 +79,53 @@ def from_json(d: dict, partial: bool = False) -> Params:
 class Triad:
     m: np.ndarray          # (3, 3)
     b: np.ndarray          # (3,)
-    bias_tc: np.ndarray    # (3,)
-    scale_tc: np.ndarray   # (3,)
+    bias_tc: np.ndarray    # (3,) c1, per °C
+    scale_tc: np.ndarray   # (3,) per °C
     t_ref_c: float
     g: np.ndarray | None = None   # (3, 3) gyro g-sensitivity, rad/s per m/s² (None for the accelerometer)
+    bias_tc2: np.ndarray | None = None   # (3,) c2, per °C² (None = 0)
+    bias_tc3: np.ndarray | None = None   # (3,) c3, per °C³ (None = 0)
+    t_min_c: float = -np.inf     # calibrated span: ΔT is clamped into it
+    t_max_c: float = np.inf
+
+    def delta_t(self, temp_c) -> np.ndarray:
+        """ΔT = clamp(T, t_min, t_max) − t_ref, °C."""
+        return np.clip(np.asarray(temp_c, dtype=np.float64), self.t_min_c, self.t_max_c) - self.t_ref_c
+
+    def bias_poly(self, dt) -> np.ndarray:
+        """c1·ΔT + c2·ΔT² + c3·ΔT³ (Horner), ΔT broadcast against the 3 axes ((n, 1) or (n, 3)),
+        in the bias's unit."""
+        dt = np.asarray(dt, dtype=np.float64)
+        c2 = np.zeros(3) if self.bias_tc2 is None else self.bias_tc2
+        c3 = np.zeros(3) if self.bias_tc3 is None else self.bias_tc3
+        return dt * (self.bias_tc + dt * (c2 + dt * c3))
+
+
+def _triad(p: Params, kind: str, g: np.ndarray | None) -> Triad:
+    f64 = lambda name: np.array(getattr(p, name), dtype=np.float64)   # noqa: E731
+    if kind == "accel":
+        return Triad(f64("accel_m").reshape(3, 3), f64("accel_b_mps2"), f64("accel_bias_tc_mps2_per_c"),
+                     f64("accel_scale_tc_per_c"), float(p.accel_t_ref_c), g, f64("accel_bias_tc2_mps2_per_c2"),
+                     f64("accel_bias_tc3_mps2_per_c3"), float(p.accel_t_min_c), float(p.accel_t_max_c))
+    return Triad(f64("gyro_m").reshape(3, 3), f64("gyro_b_rad_s"), f64("gyro_bias_tc_rad_s_per_c"),
+                 f64("gyro_scale_tc_per_c"), float(p.gyro_t_ref_c), g, f64("gyro_bias_tc2_rad_s_per_c2"),
+                 f64("gyro_bias_tc3_rad_s_per_c3"), float(p.gyro_t_min_c), float(p.gyro_t_max_c))
 
 
 def accel(p: Params) -> Triad:
-    return Triad(np.array(p.accel_m, dtype=np.float64).reshape(3, 3), np.array(p.accel_b_mps2, dtype=np.float64),
-                 np.array(p.accel_bias_tc_mps2_per_c, dtype=np.float64),
-                 np.array(p.accel_scale_tc_per_c, dtype=np.float64), float(p.accel_t_ref_c))
+    return _triad(p, "accel", None)
 
 
 def gyro(p: Params) -> Triad:
-    return Triad(np.array(p.gyro_m, dtype=np.float64).reshape(3, 3), np.array(p.gyro_b_rad_s, dtype=np.float64),
-                 np.array(p.gyro_bias_tc_rad_s_per_c, dtype=np.float64),
-                 np.array(p.gyro_scale_tc_per_c, dtype=np.float64), float(p.gyro_t_ref_c),
-                 np.array(p.gyro_g_rad_s_per_mps2, dtype=np.float64).reshape(3, 3))
+    return _triad(p, "gyro", np.array(p.gyro_g_rad_s_per_mps2, dtype=np.float64).reshape(3, 3))
 
 
 def correct(t: Triad, u: np.ndarray, temp_c=None, accel_mps2=None) -> np.ndarray:
     """Apply the correction to measurements u (n, 3) in SI. temp_c: None (= t_ref), (n,) one
-    temperature for all axes, or (n, 3) per axis (docs/conventions.md). accel_mps2: the
-    calibrated specific force (n, 3) of the same samples, for a gyro triad with a g-sensitivity
-    (taken off first, as the device does); required when t.g is non-zero."""
+    temperature for all axes, or (n, 3) per axis, clamped into the triad's span
+    (docs/conventions.md). accel_mps2: the calibrated specific force (n, 3) of the same samples,
+    for a gyro triad with a g-sensitivity (taken off first, as the device does); required when
+    t.g is non-zero."""
     u = np.asarray(u, dtype=np.float64)
     if t.g is not None and np.any(t.g != 0.0):
         if accel_mps2 is None:
@@ -88,10 +134,10 @@ def correct(t: Triad, u: np.ndarray, temp_c=None, accel_mps2=None) -> np.ndarray
     if temp_c is None:
         v = u - t.b
     else:
-        dt = np.asarray(temp_c, dtype=np.float64) - t.t_ref_c
+        dt = t.delta_t(temp_c)
         if dt.ndim == u.ndim - 1:
             dt = dt[..., None]
-        v = (u - t.b - t.bias_tc * dt) / (1.0 + t.scale_tc * dt)
+        v = (u - t.b - t.bias_poly(dt)) / (1.0 + t.scale_tc * dt)
     return v @ np.linalg.inv(t.m).T
 
 
@@ -121,7 +167,8 @@ def _invert3_f32(m) -> tuple | None:
             C * r, -(a * h - b * g) * r, (a * e - b * d) * r)
 
 
-def _check_triad(name: str, m, b, btc, stc, t_ref, bias_max: float, bias_tc_max: float) -> None:
+def _check_triad(name: str, m, b, btc, stc, t_ref, bias_max: float, bias_tc_max: float,
+                 poly: tuple | None = None) -> None:
     """The device's checks of one triad (core.c check_triad), in its order and in float32 with
     the float32 limits of the definition (LIMITS_F32): conditioning, then each limit."""
     L = LIMITS_F32
@@ -157,6 +204,39 @@ def _check_triad(name: str, m, b, btc, stc, t_ref, bias_max: float, bias_tc_max:
     if t_ref < _F32(L["t_ref_min_c"]) or t_ref > _F32(L["t_ref_max_c"]):
         raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} reference temperature {float(t_ref)!r} °C outside "
                             f"[{LIMITS['t_ref_min_c']}, {LIMITS['t_ref_max_c']}]")
+    if poly is not None:
+        _check_poly(name, b, btc, t_ref, bias_max, *poly)
+
+
+def _check_poly(name: str, b, btc, t_ref, bias_max: float, c2, c3, t_min: int, t_max: int,
+                c2_max: float, c3_max: float, span_max: float) -> None:
+    """Layout 3's checks of one triad (core.c check_poly), after t_ref, in float32: the span in
+    the part's rated range, t_min < t_max, t_ref inside it; per axis c2, c3 and the bound
+    D·(|c1| + D·(|c2| + D·|c3|)) of the polynomial's excursion over the span (D the larger
+    distance from t_ref to an end) within the bias limit."""
+    lo, hi = _F32(t_min), _F32(t_max)
+    if lo < _F32(LIMITS_F32["t_span_min_c"]) or hi > _F32(span_max):
+        raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} calibrated span {t_min}..{t_max} °C outside the "
+                            f"part's rated {LIMITS['t_span_min_c']:g}..{float(span_max):g} °C")
+    if not lo < hi:
+        raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} calibrated span {t_min}..{t_max} °C is empty "
+                            "(t_min must be below t_max)")
+    if t_ref < lo or t_ref > hi:
+        raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} reference temperature {float(t_ref)!r} °C outside "
+                            f"its calibrated span {t_min}..{t_max} °C")
+    d = max(t_ref - lo, hi - t_ref)
+    for k in range(3):
+        if abs(c2[k]) > _F32(c2_max):
+            raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} second-order bias coefficient[{k}] = "
+                                f"{float(c2[k])!r} above {float(c2_max):g} in magnitude")
+        if abs(c3[k]) > _F32(c3_max):
+            raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} third-order bias coefficient[{k}] = "
+                                f"{float(c3[k])!r} above {float(c3_max):g} in magnitude")
+        e = d * (abs(btc[k]) + d * (abs(c2[k]) + d * abs(c3[k])))
+        if not e <= _F32(bias_max):
+            raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"{name} bias polynomial[{k}] may move the bias by up to "
+                                f"{float(e):.4g} over its span {t_min}..{t_max} °C, more than the bias limit "
+                                f"{float(bias_max):g}")
 
 
 def validate(p: Params) -> None:
@@ -167,15 +247,21 @@ def validate(p: Params) -> None:
     with np.errstate(all="ignore"):           # a double beyond float32 becomes ±inf, as on the wire
         f32 = [_F32(v) for v in p.values()[:38]]
         gg = [_F32(v) for v in p.gyro_g_rad_s_per_mps2]
-    if not all(np.isfinite(v) for v in f32 + gg):
+        a2, a3, g2, g3 = ([_F32(v) for v in getattr(p, f)] for f in (
+            "accel_bias_tc2_mps2_per_c2", "accel_bias_tc3_mps2_per_c3", "gyro_bias_tc2_rad_s_per_c2",
+            "gyro_bias_tc3_rad_s_per_c3"))
+    if not all(np.isfinite(v) for v in f32 + gg + a2 + a3 + g2 + g3):
         raise InvalidParams(Error.PARAM_NOT_FINITE, "a parameter is NaN or infinite")
     am, ab, gm, gb = f32[0:9], f32[9:12], f32[12:21], f32[21:24]
     abtc, astc, gbtc, gstc = f32[24:27], f32[27:30], f32[30:33], f32[33:36]
+    L = LIMITS_F32
     with np.errstate(all="ignore"):           # overflow to inf / NaN is part of the device's arithmetic
-        _check_triad("accel", am, ab, abtc, astc, f32[36], LIMITS_F32["accel_bias_max_mps2"],
-                     LIMITS_F32["accel_bias_tc_max_mps2_per_c"])
-        _check_triad("gyro", gm, gb, gbtc, gstc, f32[37], LIMITS_F32["gyro_bias_max_rad_s"],
-                     LIMITS_F32["gyro_bias_tc_max_rad_s_per_c"])
+        _check_triad("accel", am, ab, abtc, astc, f32[36], L["accel_bias_max_mps2"], L["accel_bias_tc_max_mps2_per_c"],
+                     (a2, a3, int(p.accel_t_min_c), int(p.accel_t_max_c), L["accel_bias_tc2_max_mps2_per_c2"],
+                      L["accel_bias_tc3_max_mps2_per_c3"], L["accel_t_span_max_c"]))
+        _check_triad("gyro", gm, gb, gbtc, gstc, f32[37], L["gyro_bias_max_rad_s"], L["gyro_bias_tc_max_rad_s_per_c"],
+                     (g2, g3, int(p.gyro_t_min_c), int(p.gyro_t_max_c), L["gyro_bias_tc2_max_rad_s_per_c2"],
+                      L["gyro_bias_tc3_max_rad_s_per_c3"], L["gyro_t_span_max_c"]))
     for k, v in enumerate(gg):                # the g-sensitivity last, as core.c
         if abs(v) > _F32(LIMITS_F32["gyro_g_max_rad_s_per_mps2"]):
             raise InvalidParams(Error.PARAM_OUT_OF_RANGE, f"gyro g-sensitivity[{k}] = {float(v)!r} above "

@@ -14,9 +14,11 @@ program_unit)):
     12       2     payload_len N
     14       1     flags (bit 0 CLEARED: a factory reset, N == 0)
     15       1     crc_salt: smallest of 0, 1, 2 giving a CRC that is neither 0 nor 0xFFFFFFFF
-    16       N     payload (the params block, protocol_gen.Params packed: 196 bytes in layout 2,
-                   160 in layout 1, which is layout 2 without gyro_g; the firmware reads a
-                   layout-1 record with G = 0, params_record(..., layout=1) writes one)
+    16       N     payload (the params block, protocol_gen.Params packed: 248 bytes in layout 3;
+                   196 in layout 2, which is layout 3 without the bias polynomial's c2, c3 and
+                   the spans; 160 in layout 1, layout 2 without gyro_g. The firmware reads a
+                   layout-1 or -2 record with G = 0 (layout 1), c2 = c3 = 0 and the span
+                   −40..85 °C (params.migrated_span); params_record(..., layout=1 or 2) writes one)
     16+N     P     zero padding up to crc_off = round_up(16 + N, a)
     crc_off  4     CRC-32C over bytes [0, crc_off)
     +4       a-4   zero padding (program_unit > 4 only)
@@ -29,10 +31,11 @@ tests/device/test_qemu.py checks these bytes against the C store (ib_ps_save / i
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import crcmod.predefined
 
+from imubench.wire import params as PR
 from imubench.wire.protocol_gen import PARAM_BLOCK_VERSION, Params
 
 MAGIC = 0x53504249
@@ -117,26 +120,54 @@ def build_record(payload: bytes, *, generation: int = 1, payload_version: int = 
     return body + struct.pack("<I", crc) + bytes(a - 4)
 
 
-PARAMS_SIZE_V1 = Params.SIZE - 36          # layout 1: today's block without gyro_g (9 float32 at its end)
+PARAMS_SIZE_V2 = 196                       # layout 2: layout 3 without c2, c3 (4 × 3 float32) and the spans (4 int8)
+PARAMS_SIZE_V1 = PARAMS_SIZE_V2 - 36       # layout 1: layout 2 without gyro_g (9 float32 at its end)
+assert Params.SIZE == PARAMS_SIZE_V2 + 52 and PARAM_BLOCK_VERSION == 3, "migration below knows layouts 1..3"
+
+
+def _default_tail_ok(p: Params) -> bool:
+    """True when p's layout-3 fields are those a migration gives a layout-2 block."""
+    zero = not any(any(getattr(p, f)) for f in ("accel_bias_tc2_mps2_per_c2", "accel_bias_tc3_mps2_per_c3",
+                                                  "gyro_bias_tc2_rad_s_per_c2", "gyro_bias_tc3_rad_s_per_c3"))
+    return (zero and (p.accel_t_min_c, p.accel_t_max_c) == PR.migrated_span(p.accel_t_ref_c)
+            and (p.gyro_t_min_c, p.gyro_t_max_c) == PR.migrated_span(p.gyro_t_ref_c))
 
 
 def params_payload(p: Params, layout: int = PARAM_BLOCK_VERSION) -> bytes:
-    """The parameter block (ib_params_pack): 196 bytes in layout 2; layout=1 gives the block the
-    previous firmware stored (its first 160 bytes; G must then be zero)."""
+    """The parameter block (ib_params_pack): 248 bytes in layout 3; layout=2 or 1 gives the block
+    a previous firmware stored (its first 196 or 160 bytes; what they lack must then be what
+    the migration restores: c2 = c3 = 0, the default span, and for layout 1 G = 0)."""
     data = Params.STRUCT.pack(*p.values())
     if layout == PARAM_BLOCK_VERSION:
         return data
-    if layout == 1:
-        if any(p.gyro_g_rad_s_per_mps2):
+    if layout in (1, 2):
+        if not _default_tail_ok(p):
+            raise ValueError(f"a layout-{layout} block has no bias c2, c3 or span: they must be 0 and "
+                             f"{PR.DEFAULT_SPAN_C[0]}..{PR.DEFAULT_SPAN_C[1]} °C")
+        if layout == 1 and any(p.gyro_g_rad_s_per_mps2):
             raise ValueError("a layout-1 block has no gyro g-sensitivity: G must be zero")
-        return data[:PARAMS_SIZE_V1]
-    raise ValueError(f"parameter block layout {layout}: this host knows 1 and {PARAM_BLOCK_VERSION}")
+        return data[:PARAMS_SIZE_V1 if layout == 1 else PARAMS_SIZE_V2]
+    raise ValueError(f"parameter block layout {layout}: this host knows 1 to {PARAM_BLOCK_VERSION}")
 
 
 def params_record(p: Params, *, generation: int = 1, program_unit: int = 4, layout: int = PARAM_BLOCK_VERSION) -> bytes:
-    """A record holding p, in today's layout or (layout=1) as the previous firmware stored it."""
+    """A record holding p, in today's layout or (layout=1, 2) as a previous firmware stored it."""
     return build_record(params_payload(p, layout), generation=generation, payload_version=layout,
                         program_unit=program_unit)
+
+
+def migrate(payload: bytes, layout: int) -> Params:
+    """A stored block of layout 1, 2 or 3 as today's Params, migrated as the firmware does
+    (core.c read_stored): G = 0 for layout 1, c2 = c3 = 0 and the span of params.migrated_span."""
+    size = {1: PARAMS_SIZE_V1, 2: PARAMS_SIZE_V2, PARAM_BLOCK_VERSION: Params.SIZE}.get(layout)
+    if size is None or len(payload) != size:
+        raise ValueError(f"payload is {len(payload)} bytes of layout {layout}, a params block "
+                         f"{Params.SIZE} (layout {PARAM_BLOCK_VERSION}), {PARAMS_SIZE_V2} (2) or {PARAMS_SIZE_V1} (1)")
+    p = Params.from_values(Params.STRUCT.unpack(payload + bytes(Params.SIZE - size)))
+    if layout < PARAM_BLOCK_VERSION:
+        a, g = PR.migrated_span(p.accel_t_ref_c), PR.migrated_span(p.gyro_t_ref_c)
+        p = replace(p, accel_t_min_c=a[0], accel_t_max_c=a[1], gyro_t_min_c=g[0], gyro_t_max_c=g[1])
+    return p
 
 
 def cleared_record(*, generation: int = 1, program_unit: int = 4) -> bytes:
@@ -165,13 +196,8 @@ class Record:
         return bool(self.flags & FLAG_CLEARED)
 
     def params(self) -> Params:
-        """The block, a layout-1 one migrated as the firmware does (G = 0)."""
-        payload = self.payload
-        if self.payload_version == 1 and len(payload) == PARAMS_SIZE_V1:
-            payload = payload + bytes(Params.SIZE - PARAMS_SIZE_V1)
-        if len(payload) != Params.SIZE:
-            raise ValueError(f"payload is {len(self.payload)} bytes, a params block {Params.SIZE}")
-        return Params.from_values(Params.STRUCT.unpack(payload))
+        """The block, a layout-1 or -2 one migrated as the firmware does (migrate)."""
+        return migrate(self.payload, self.payload_version if self.payload_version in (1, 2) else PARAM_BLOCK_VERSION)
 
 
 class InvalidRecord(ValueError):

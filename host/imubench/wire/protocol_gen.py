@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 MAX_PAYLOAD = 256
 SAVE_UNCHANGED_FLAG = 0x80000000  # save_params ack value: the block was already stored
 HEADER_SIZE = 8
@@ -18,14 +18,14 @@ CRC_SIZE = 4
 CRC_NAME = "crc-32c"
 MAX_FRAME = 268
 MAX_ENCODED = 270
-PARAM_BLOCK_VERSION = 2
+PARAM_BLOCK_VERSION = 3
 STREAM_RATES_HZ = (4000, 2000, 1000, 800, 500, 400, 250, 200, 160, 125, 100, 80, 50, 40, 25, 20)  # start_stream rates (SPEC.md, Streaming)
 
 # Parameter limits (protocol/imubench.toml [limits]); the device enforces the same.
-LIMITS = {'m_diag_min': 0.5, 'm_diag_max': 1.5, 'm_offdiag_max': 0.2, 'm_det_min': 1e-06, 'm_cond_max': 6.0, 'accel_bias_max_mps2': 9.80665, 'gyro_bias_max_rad_s': 0.5236, 'accel_bias_tc_max_mps2_per_c': 0.01, 'gyro_bias_tc_max_rad_s_per_c': 0.001, 'scale_tc_max_per_c': 0.001, 't_ref_min_c': -40.0, 't_ref_max_c': 125.0, 'gyro_g_max_rad_s_per_mps2': 0.00178}
+LIMITS = {'m_diag_min': 0.5, 'm_diag_max': 1.5, 'm_offdiag_max': 0.2, 'm_det_min': 1e-06, 'm_cond_max': 6.0, 'accel_bias_max_mps2': 9.80665, 'gyro_bias_max_rad_s': 0.5236, 'accel_bias_tc_max_mps2_per_c': 0.01, 'gyro_bias_tc_max_rad_s_per_c': 0.001, 'scale_tc_max_per_c': 0.001, 't_ref_min_c': -40.0, 't_ref_max_c': 125.0, 'gyro_g_max_rad_s_per_mps2': 0.00178, 'accel_bias_tc2_max_mps2_per_c2': 0.001, 'accel_bias_tc3_max_mps2_per_c3': 0.0001, 'gyro_bias_tc2_max_rad_s_per_c2': 0.0001, 'gyro_bias_tc3_max_rad_s_per_c3': 1e-05, 't_span_min_c': -40.0, 'accel_t_span_max_c': 125.0, 'gyro_t_span_max_c': 105.0}
 # The same limits as the float32 values the device compares with, bit for bit (the C
 # constants are these hexadecimal literals): imubench.wire.params checks in float32 with them.
-LIMITS_F32 = {'m_diag_min': float.fromhex('0x1.0000000000000p-1'), 'm_diag_max': float.fromhex('0x1.8000000000000p+0'), 'm_offdiag_max': float.fromhex('0x1.99999a0000000p-3'), 'm_det_min': float.fromhex('0x1.0c6f7a0000000p-20'), 'm_cond_max': float.fromhex('0x1.8000000000000p+2'), 'accel_bias_max_mps2': float.fromhex('0x1.39d0140000000p+3'), 'gyro_bias_max_rad_s': float.fromhex('0x1.0c154c0000000p-1'), 'accel_bias_tc_max_mps2_per_c': float.fromhex('0x1.47ae140000000p-7'), 'gyro_bias_tc_max_rad_s_per_c': float.fromhex('0x1.0624de0000000p-10'), 'scale_tc_max_per_c': float.fromhex('0x1.0624de0000000p-10'), 't_ref_min_c': float.fromhex('-0x1.4000000000000p+5'), 't_ref_max_c': float.fromhex('0x1.f400000000000p+6'), 'gyro_g_max_rad_s_per_mps2': float.fromhex('0x1.d29dc80000000p-10')}
+LIMITS_F32 = {'m_diag_min': float.fromhex('0x1.0000000000000p-1'), 'm_diag_max': float.fromhex('0x1.8000000000000p+0'), 'm_offdiag_max': float.fromhex('0x1.99999a0000000p-3'), 'm_det_min': float.fromhex('0x1.0c6f7a0000000p-20'), 'm_cond_max': float.fromhex('0x1.8000000000000p+2'), 'accel_bias_max_mps2': float.fromhex('0x1.39d0140000000p+3'), 'gyro_bias_max_rad_s': float.fromhex('0x1.0c154c0000000p-1'), 'accel_bias_tc_max_mps2_per_c': float.fromhex('0x1.47ae140000000p-7'), 'gyro_bias_tc_max_rad_s_per_c': float.fromhex('0x1.0624de0000000p-10'), 'scale_tc_max_per_c': float.fromhex('0x1.0624de0000000p-10'), 't_ref_min_c': float.fromhex('-0x1.4000000000000p+5'), 't_ref_max_c': float.fromhex('0x1.f400000000000p+6'), 'gyro_g_max_rad_s_per_mps2': float.fromhex('0x1.d29dc80000000p-10'), 'accel_bias_tc2_max_mps2_per_c2': float.fromhex('0x1.0624de0000000p-10'), 'accel_bias_tc3_max_mps2_per_c3': float.fromhex('0x1.a36e2e0000000p-14'), 'gyro_bias_tc2_max_rad_s_per_c2': float.fromhex('0x1.a36e2e0000000p-14'), 'gyro_bias_tc3_max_rad_s_per_c3': float.fromhex('0x1.4f8b580000000p-17'), 't_span_min_c': float.fromhex('-0x1.4000000000000p+5'), 'accel_t_span_max_c': float.fromhex('0x1.f400000000000p+6'), 'gyro_t_span_max_c': float.fromhex('0x1.a400000000000p+6')}
 
 class Error(enum.IntEnum):
     """Error codes carried in ack.error (0 = acknowledged; anything else is a nack)."""
@@ -154,9 +154,11 @@ COMMANDS = frozenset({MsgType.PING, MsgType.GET_INFO, MsgType.START_STREAM, MsgT
 @dataclass
 class Params:
     """Calibration parameters (docs/conventions.md): u = M·x + b per triad, the device applies
-x = M⁻¹·(u − b − bias_tc·(T − t_ref)) / (1 + scale_tc·(T − t_ref)) per axis; for the gyro also
-− G·a inside the bracket, a the calibrated specific force in m/s². M and G row-major. Layout 2;
-layout 1 is the same without gyro_g (a stored layout-1 block is read with G = 0)."""
+x = M⁻¹·(u − b − (c1·ΔT + c2·ΔT² + c3·ΔT³)) / (1 + scale_tc·ΔT) per axis, ΔT = clamp(T, t_min,
+t_max) − t_ref and c1 = bias_tc; for the gyro also − G·a inside the bracket, a the calibrated
+specific force in m/s². M and G row-major. Layout 3; layout 2 is its prefix without the fields
+from accel_bias_tc2 on, layout 1 also without gyro_g (a stored layout-1 or -2 block is read with
+G = 0 (layout 1), c2 = c3 = 0 and the span −40..85 °C, widened to hold t_ref)."""
     accel_m: tuple = (0.0,) * 9  # [1]
     accel_b_mps2: tuple = (0.0,) * 3  # [m/s^2]
     gyro_m: tuple = (0.0,) * 9  # [1]
@@ -170,12 +172,20 @@ layout 1 is the same without gyro_g (a stored layout-1 block is read with G = 0)
     cal_time_unix_s: int = 0  # [s]
     cal_id: int = 0
     gyro_g_rad_s_per_mps2: tuple = (0.0,) * 9  # [rad/s/(m/s^2)]
-    FORMAT = "<9f3f9f3f3f3f3f3fffII9f"
-    SIZE = 196
-    NVALUES = 49
+    accel_bias_tc2_mps2_per_c2: tuple = (0.0,) * 3  # [m/s^2/degC^2]
+    accel_bias_tc3_mps2_per_c3: tuple = (0.0,) * 3  # [m/s^2/degC^3]
+    gyro_bias_tc2_rad_s_per_c2: tuple = (0.0,) * 3  # [rad/s/degC^2]
+    gyro_bias_tc3_rad_s_per_c3: tuple = (0.0,) * 3  # [rad/s/degC^3]
+    accel_t_min_c: int = 0  # [degC]
+    accel_t_max_c: int = 0  # [degC]
+    gyro_t_min_c: int = 0  # [degC]
+    gyro_t_max_c: int = 0  # [degC]
+    FORMAT = "<9f3f9f3f3f3f3f3fffII9f3f3f3f3fbbbb"
+    SIZE = 248
+    NVALUES = 65
 
     def values(self) -> tuple:
-        return (*self.accel_m, *self.accel_b_mps2, *self.gyro_m, *self.gyro_b_rad_s, *self.accel_bias_tc_mps2_per_c, *self.accel_scale_tc_per_c, *self.gyro_bias_tc_rad_s_per_c, *self.gyro_scale_tc_per_c, self.accel_t_ref_c, self.gyro_t_ref_c, self.cal_time_unix_s, self.cal_id, *self.gyro_g_rad_s_per_mps2)
+        return (*self.accel_m, *self.accel_b_mps2, *self.gyro_m, *self.gyro_b_rad_s, *self.accel_bias_tc_mps2_per_c, *self.accel_scale_tc_per_c, *self.gyro_bias_tc_rad_s_per_c, *self.gyro_scale_tc_per_c, self.accel_t_ref_c, self.gyro_t_ref_c, self.cal_time_unix_s, self.cal_id, *self.gyro_g_rad_s_per_mps2, *self.accel_bias_tc2_mps2_per_c2, *self.accel_bias_tc3_mps2_per_c3, *self.gyro_bias_tc2_rad_s_per_c2, *self.gyro_bias_tc3_rad_s_per_c3, self.accel_t_min_c, self.accel_t_max_c, self.gyro_t_min_c, self.gyro_t_max_c)
 
     @classmethod
     def from_values(cls, v, i: int = 0) -> "Params":
@@ -192,11 +202,19 @@ layout 1 is the same without gyro_g (a stored layout-1 block is read with G = 0)
         cal_time_unix_s = v[i]; i += 1
         cal_id = v[i]; i += 1
         gyro_g_rad_s_per_mps2 = tuple(v[i:i + 9]); i += 9
-        return cls(accel_m=accel_m, accel_b_mps2=accel_b_mps2, gyro_m=gyro_m, gyro_b_rad_s=gyro_b_rad_s, accel_bias_tc_mps2_per_c=accel_bias_tc_mps2_per_c, accel_scale_tc_per_c=accel_scale_tc_per_c, gyro_bias_tc_rad_s_per_c=gyro_bias_tc_rad_s_per_c, gyro_scale_tc_per_c=gyro_scale_tc_per_c, accel_t_ref_c=accel_t_ref_c, gyro_t_ref_c=gyro_t_ref_c, cal_time_unix_s=cal_time_unix_s, cal_id=cal_id, gyro_g_rad_s_per_mps2=gyro_g_rad_s_per_mps2)
+        accel_bias_tc2_mps2_per_c2 = tuple(v[i:i + 3]); i += 3
+        accel_bias_tc3_mps2_per_c3 = tuple(v[i:i + 3]); i += 3
+        gyro_bias_tc2_rad_s_per_c2 = tuple(v[i:i + 3]); i += 3
+        gyro_bias_tc3_rad_s_per_c3 = tuple(v[i:i + 3]); i += 3
+        accel_t_min_c = v[i]; i += 1
+        accel_t_max_c = v[i]; i += 1
+        gyro_t_min_c = v[i]; i += 1
+        gyro_t_max_c = v[i]; i += 1
+        return cls(accel_m=accel_m, accel_b_mps2=accel_b_mps2, gyro_m=gyro_m, gyro_b_rad_s=gyro_b_rad_s, accel_bias_tc_mps2_per_c=accel_bias_tc_mps2_per_c, accel_scale_tc_per_c=accel_scale_tc_per_c, gyro_bias_tc_rad_s_per_c=gyro_bias_tc_rad_s_per_c, gyro_scale_tc_per_c=gyro_scale_tc_per_c, accel_t_ref_c=accel_t_ref_c, gyro_t_ref_c=gyro_t_ref_c, cal_time_unix_s=cal_time_unix_s, cal_id=cal_id, gyro_g_rad_s_per_mps2=gyro_g_rad_s_per_mps2, accel_bias_tc2_mps2_per_c2=accel_bias_tc2_mps2_per_c2, accel_bias_tc3_mps2_per_c3=accel_bias_tc3_mps2_per_c3, gyro_bias_tc2_rad_s_per_c2=gyro_bias_tc2_rad_s_per_c2, gyro_bias_tc3_rad_s_per_c3=gyro_bias_tc3_rad_s_per_c3, accel_t_min_c=accel_t_min_c, accel_t_max_c=accel_t_max_c, gyro_t_min_c=gyro_t_min_c, gyro_t_max_c=gyro_t_max_c)
 
 Params.STRUCT = struct.Struct(Params.FORMAT)
-PARAMS_DTYPE = np.dtype([('accel_m', '<f4', (9,)), ('accel_b_mps2', '<f4', (3,)), ('gyro_m', '<f4', (9,)), ('gyro_b_rad_s', '<f4', (3,)), ('accel_bias_tc_mps2_per_c', '<f4', (3,)), ('accel_scale_tc_per_c', '<f4', (3,)), ('gyro_bias_tc_rad_s_per_c', '<f4', (3,)), ('gyro_scale_tc_per_c', '<f4', (3,)), ('accel_t_ref_c', '<f4'), ('gyro_t_ref_c', '<f4'), ('cal_time_unix_s', '<u4'), ('cal_id', '<u4'), ('gyro_g_rad_s_per_mps2', '<f4', (9,))])
-assert PARAMS_DTYPE.itemsize == 196
+PARAMS_DTYPE = np.dtype([('accel_m', '<f4', (9,)), ('accel_b_mps2', '<f4', (3,)), ('gyro_m', '<f4', (9,)), ('gyro_b_rad_s', '<f4', (3,)), ('accel_bias_tc_mps2_per_c', '<f4', (3,)), ('accel_scale_tc_per_c', '<f4', (3,)), ('gyro_bias_tc_rad_s_per_c', '<f4', (3,)), ('gyro_scale_tc_per_c', '<f4', (3,)), ('accel_t_ref_c', '<f4'), ('gyro_t_ref_c', '<f4'), ('cal_time_unix_s', '<u4'), ('cal_id', '<u4'), ('gyro_g_rad_s_per_mps2', '<f4', (9,)), ('accel_bias_tc2_mps2_per_c2', '<f4', (3,)), ('accel_bias_tc3_mps2_per_c3', '<f4', (3,)), ('gyro_bias_tc2_rad_s_per_c2', '<f4', (3,)), ('gyro_bias_tc3_rad_s_per_c3', '<f4', (3,)), ('accel_t_min_c', 'i1'), ('accel_t_max_c', 'i1'), ('gyro_t_min_c', 'i1'), ('gyro_t_max_c', 'i1')])
+assert PARAMS_DTYPE.itemsize == 248
 
 
 @dataclass
@@ -344,9 +362,9 @@ class SetParams:
     """Validate and apply parameters (RAM only; save_params writes flash). Refused with
 PARAM_NOT_FINITE / PARAM_ILL_CONDITIONED / PARAM_OUT_OF_RANGE, leaving the active parameters as they were."""
     params: Params = field(default_factory=lambda: Params())
-    FORMAT = "<9f3f9f3f3f3f3f3fffII9f"
-    SIZE = 196
-    NVALUES = 49
+    FORMAT = "<9f3f9f3f3f3f3f3fffII9f3f3f3f3fbbbb"
+    SIZE = 248
+    NVALUES = 65
 
     def values(self) -> tuple:
         return (*self.params.values(),)
@@ -559,9 +577,9 @@ class ParamsReadback:
     source: int = 0
     generation: int = 0
     params: Params = field(default_factory=lambda: Params())
-    FORMAT = "<HBBI9f3f9f3f3f3f3f3fffII9f"
-    SIZE = 204
-    NVALUES = 53
+    FORMAT = "<HBBI9f3f9f3f3f3f3f3fffII9f3f3f3f3fbbbb"
+    SIZE = 256
+    NVALUES = 69
 
     def values(self) -> tuple:
         return (self.request_id, self.which, self.source, self.generation, *self.params.values())
