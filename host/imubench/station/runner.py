@@ -39,13 +39,16 @@ class Station:
     sim_thermal the virtual part's thermal model for a warm-up on the "sim" device: keyword
                 arguments of VirtualBench.set_thermal (tau_s, self_heat_c; None: the part's own,
                 drawn with its random truth)
+    warmup      WarmupConfig fields for every warm-up besides the page's options (bin_s,
+                stop_window_s, ...; default: WarmupConfig's)
     ports       the PortPolicy of the ports a page may open (default: serial devices, socket://
                 and rfc2217:// on this machine)
     """
 
     def __init__(self, state: StationState | None = None, workdir: str | Path = ".", db=None,
                  sim_speed: float = 20.0, sim_seed: int = 1, person: dict | None = None, history: bool = True,
-                 allow_sim: bool = True, ports: PortPolicy | None = None, sim_thermal: dict | None = None):
+                 allow_sim: bool = True, ports: PortPolicy | None = None, sim_thermal: dict | None = None,
+                 warmup: dict | None = None):
         self.ports = ports or PortPolicy()
         self.state = state or StationState()
         self.state.sim_available = allow_sim
@@ -56,6 +59,7 @@ class Station:
         self.sim_seed = sim_seed
         self.person_kw = dict(person or {})
         self.sim_thermal = dict(sim_thermal or {})
+        self.warmup_settings = dict(warmup or {})      # WarmupConfig fields besides the page's (tests: short runs)
         self._warm_stop: dict[str, threading.Event] = {}   # a running warm-up's stop, per device
         self._threads: dict[str, threading.Thread] = {}
         self._ui: dict[str, WebPresenter] = {}
@@ -287,18 +291,23 @@ class Station:
                 from imubench.device.sim import VirtualBench
                 if self._bench is None or not self._bench.running:
                     self._bench = VirtualBench(speed=self.sim_speed, seed=self.sim_seed, truth="random")
-                thermal = self._bench.set_thermal(enabled=True, **self.sim_thermal)
-                ui.say(f"virtual bench: thermal lag on (time constants {_fmt_list(thermal.get('tau_s'), '{:.0f}')} s, "
-                       f"self-heating {_fmt_list(thermal.get('self_heat_c'), '{:.1f}')} °C); it soaks the board at "
-                       f"{lo:g} °C, then the room goes to {hi:g} °C")
-                hooks = W.sim_warmup_hooks(self._bench, cold_c=lo, warm_c=hi)
+                hooks = W.sim_warmup_hooks(self._bench, cold_c=lo, warm_c=hi, say=ui.say,
+                                           tau_s=self.sim_thermal.get("tau_s"),
+                                           self_heat_c=self.sim_thermal.get("self_heat_c"))
+                th = self._bench.status().get("thermal") or {}
+                ui.say(f"virtual bench: thermal lag on (time constants {_fmt_list(th.get('tau_s'), '{:.0f}')} s, "
+                       f"self-heating {_fmt_list(th.get('self_heat_c'), '{:.1f}')} °C); it soaks the board at "
+                       f"{lo:g} °C (a night in a fridge), then the room goes to {hi:g} °C")
                 url = self._bench.port_url
             else:
-                hooks = W.WarmupHooks()
+                hooks = W.WarmupHooks(say=ui.say)
                 url = key
                 ui.say(f"the board lies still, {o['face']} up, while it warms from cold (e.g. out of a fridge) "
                        f"towards {hi:g} °C: keep it away from drafts and do not touch it")
-            cfg = W.WarmupConfig(span_c=(lo, hi), rate_hz=o["rate_hz"], face=o["face"], write=o["write"])
+            cfg = W.WarmupConfig(**{"span_c": (lo, hi), "rate_hz": o["rate_hz"], "face": o["face"], "write": o["write"],
+                                    **self.warmup_settings})
+            self.state.update(key, lambda b: b.warmup["config"].update(                 # the page's rate colours
+                stop_rate_c_per_min=cfg.stop_rate_c_per_min, stop_window_s=cfg.stop_window_s))
             with Device.open(url, timeout=5.0) as dev:
                 from imubench.wire.ids import board_name, uid_text
                 info = dev.info()
@@ -306,11 +315,13 @@ class Station:
                                                                        "uid": uid_text(info.mcu_uid), "url": url}))
                 result = W.run_warmup(dev, d, cfg, hooks, on_progress=on_progress, stop=stop)
             summary = _warmup_summary(result, d, stopped=stop.is_set())
+            failed = result.get("status") == "failed"
 
             def f(b):
                 b.warmup["progress"] = dict(latest) or b.warmup.get("progress") or {}
                 b.warmup["result"] = summary
-                b.status, b.phase = "done", "end"
+                b.status, b.phase = ("failed" if failed else "done"), "end"
+                b.error = summary["verdict"] if failed else None
                 b.log.append(summary["verdict"])
             self.state.update(key, f)
         except Exception as e:  # noqa: BLE001 - the page shows why; thermal.json keeps what came
@@ -502,20 +513,38 @@ def _fmt_list(v, f: str) -> str:
 
 
 def _warmup_summary(result: dict, d: Path, stopped: bool) -> dict:
-    """What a finished warm-up's column shows: the verdict, the fit per triad (order,
-    held-out error, span), what could not be determined, the write-back, where the files are."""
+    """What a finished warm-up's column shows: the verdict, the fit per triad and axis (order,
+    held-out error, 1σ of the curve over its span, the span), what could not be determined,
+    the write-back, where the files are."""
     r = _plain(result or {})
-    written = r.get("write") or {}
-    verified = bool(written.get("verified")) if isinstance(written, dict) else False
-    why = r.get("stop_reason") or r.get("stopped_because")
-    verdict = ("stopped on the page: the fit of what came" if stopped else "warm-up finished") + \
-        (f" ({why})" if why and not stopped else "") + \
-        ("; written to the device and verified" if verified else
-         "; not written" if not written else "; the write-back failed: the previous parameters are kept")
-    return {"verdict": verdict, "stopped": stopped, "written": verified, "fit": r.get("fit"),
-            "notes": r.get("notes") or [], "span_c": r.get("span_c"), "status": r.get("status"),
-            "duration_s": r.get("duration_s") or r.get("elapsed_s"), "dir": str(d),
-            "thermal_json": str(Path(d) / "thermal.json")}
+    status, why, wr = r.get("status"), r.get("stop_reason"), r.get("write") or {}
+    verified = bool(wr.get("verified"))
+    if status == "failed":
+        verdict = f"warm-up failed ({r.get('error') or why or 'no reason given'})"
+    elif stopped:
+        verdict = "stopped on the page: the fit of what came is kept"
+    else:
+        verdict = f"warm-up finished: {why}" if why else "warm-up finished"
+    if r.get("fit") is None:
+        verdict += "; nothing fitted (too little data)"
+    elif verified:
+        verdict += "; written to the device and verified"
+    elif wr.get("error"):
+        verdict += f"; NOT written ({wr['error']}); the previous parameters are kept"
+    else:
+        verdict += "; not written"
+    fit, notes = {}, []
+    for triad, f in (r.get("fit") or {}).items():
+        axes = f.get("axes") or []
+        fit[triad] = [{"order": a.get("order"), "heldout_rms": a.get("heldout_rms"),
+                       "sigma_over_span": a.get("sigma_over_span"), "span_c": a.get("span_c")} for a in axes]
+        for k, a in enumerate(axes):
+            for n in (a.get("undetermined") or []) + (a.get("notes") or []):
+                notes.append(f"{triad} {'xyz'[k]}: {n}")
+    notes += [str(n) for n in wr.get("notes") or []]
+    return {"verdict": verdict, "stopped": stopped, "status": status, "written": verified, "fit": fit,
+            "notes": notes, "stop_reason": why, "dir": str(d), "thermal_json": str(Path(d) / "thermal.json"),
+            "exports": r.get("exports") or {}}
 
 
 def _safe(key: str) -> str:

@@ -280,7 +280,7 @@
     for (const [name, f] of Object.entries(fit || {})) {
       const per = Array.isArray(f) ? f : f && Array.isArray(f.order)
         ? f.order.map((o, i) => ({ order: o, heldout_rms: (f.heldout_rms || [])[i], sigma: (f.sigma || [])[i] })) : null;
-      if (per) per.forEach((x, i) => rows.push([`${name} ${"XYZ"[i] || i}`, x || {}]));
+      if (per) per.forEach((x, i) => rows.push([`${name} ${"XYZ"[i] !== undefined ? "XYZ"[i] : i}`, x || {}]));
       else rows.push([name, f || {}]);
     }
     return rows;
@@ -306,7 +306,7 @@
     const mm = el_s == null ? "–" : `${Math.floor(el_s / 60)} min ${fmt(el_s % 60, 0).padStart(2, "0")} s`;
     $(".warm-summary", el).innerHTML = (R ? `<b>${esc(R.verdict)}</b>. ` : running ? "The board lies still, " +
       `${esc(C.face)} up, while it warms: ` : "") + `span asked ${fmt(lo, 0)}–${fmt(hi, 0)} °C; ${mm} of device time` +
-      (P.stop_reason ? `; ${esc(P.stop_reason)}` : running ? "; it stops when every sensor has covered the span or the temperatures stop rising" : "");
+      (running ? "; it stops when every sensor has covered the span or the temperatures stop rising" : "");
     const T = P.temp_c || [], Rt = P.rate_c_per_min || [], S = P.span_c || [];
     const bars = [];
     let rows = "<tr><th>sensor</th><th>now</th><th>rate</th><th>covered</th><th>of the span asked</th></tr>";
@@ -335,10 +335,15 @@
     });
     const fit = (R && R.fit) || P.fit;
     const fr = fitRows(fit);
-    $(".warm-fit", el).innerHTML = fr.length ? "<tr><th>bias against temperature</th><th>order</th><th>held-out error</th></tr>" +
-      fr.map(([n, f]) => `<tr><td>${esc(n)}</td><td>${f.order == null ? "–" : esc(f.order)}</td><td>${errText(n, f.heldout_rms)}</td></tr>`).join("")
+    const sig = fr.some(([, f]) => f.sigma_over_span != null);
+    $(".warm-fit", el).innerHTML = fr.length ? "<tr><th>bias against temperature</th><th>order</th><th>held-out error</th>" +
+      (sig ? "<th>1σ of the curve</th>" : "") + "</tr>" +
+      fr.map(([n, f]) => `<tr><td>${esc(n)}</td><td>${f.order == null ? "–" : esc(f.order)}</td><td>${errText(n, f.heldout_rms)}</td>` +
+        (sig ? `<td>${errText(n, f.sigma_over_span)}</td>` : "") + "</tr>").join("")
       : `<tr><td>${running ? "the fit appears once the temperatures have moved" : "nothing fitted"}</td></tr>`;
-    const notes = [...new Set([...(P.notes || P.undetermined || []), ...((R && R.notes) || [])])];
+    const notes = [...new Set([...(P.notes || []), ...((R && R.notes) || [])])];
+    if (!R && running) notes.push(`one face (${C.face} up): the accelerometer's scale temperature terms need more faces ` +
+      "(a cube); the axis along gravity gets its bias and scale terms together, right at this attitude");
     $(".warm-notes", el).innerHTML = notes.map((n) => `<li>${esc(n)}</li>`).join("");
     $(".warm-files", el).textContent = R ? `saved: ${R.thermal_json}` : W.dir ? `recording in ${W.dir}` : "";
   }
