@@ -54,7 +54,7 @@ from publish import add_arguments, publish  # noqa: E402
 STEP_TEMPS_C = (5.0, 25.0, 45.0)   # docs/thermal.md's command: imubench thermal --sim --temps 5,25,45
 CHAMBER_RAMP_C_PER_S = 0.5         # `imubench thermal --ramp` default
 DRIFT_RAMP_C_PER_MIN = 0.5
-DRIFT_RATE_HZ = 100
+DRIFT_RATE_HZ = 50
 BIN_C = 2.0
 MIN_CHUNKS_PER_BIN = 20
 SENSORS = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
@@ -109,21 +109,20 @@ def warmup_method(vb, out: Path, span) -> dict:
         t0 = device_s(vb)
         result = run_warmup(dev, out, cfg, hooks)
         t1 = device_s(vb)
+    if result.get("status") != "done" or not (result.get("write") or {}).get("verified"):
+        raise RuntimeError(f"warm-up {result.get('status')}: {result.get('error') or result.get('stop_reason')}")
+    print(f"  warm-up stopped: {result.get('stop_reason')}", flush=True)
     return {"time_s": t1 - t0, "result": result, "order": _orders(result)}
 
 
 def _orders(result: dict) -> str:
-    """The orders the warm-up chose, per triad and axis, as a short text."""
+    """The orders the warm-up chose per axis (x/y/z), as a short text."""
     fit = (result or {}).get("fit") or {}
-    parts = []
-    for name in ("accel", "gyro"):
-        f = fit.get(name)
-        if isinstance(f, dict) and "order" in f:
-            o = f["order"]
-            parts.append(f"{name} {'/'.join(str(int(x)) for x in np.atleast_1d(o))}")
-        elif isinstance(f, list):
-            parts.append(f"{name} {'/'.join(str(int(x.get('order'))) for x in f)}")
-    return ", ".join(parts) or "?"
+    parts = [f"{tr} {'/'.join(str(a.get('order')) for a in (fit.get(tr) or {}).get('axes') or [])}"
+             for tr in ("accel", "gyro") if fit.get(tr)]
+    if not parts:
+        return f"nothing fitted ({(result or {}).get('error') or (result or {}).get('stop_reason')})"
+    return "polynomial, order " + ", ".join(parts)
 
 
 # ------------------------------------------------------------------ residual drift

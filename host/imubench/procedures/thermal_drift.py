@@ -52,22 +52,25 @@ def residual_drift(vb, dev, span_c, self_heat_c=(0.0,), sweep: DriftSweep | None
             vb.set_temperature(target, ramp_c_per_s=sw.ramp_c_per_min / 60.0)
             dev.discard_buffered()
             rows, t_start = [], None
+            n = sw.rate_hz                                            # 1 s chunks, read 10 at a time
             while True:
-                b = dev.read(n_samples=sw.rate_hz)                     # 1 s chunks
-                temps = np.r_[U.accel_temp_counts_to_c(b.accel_temp_counts).mean(),
-                              U.gyro_temp_counts_to_c(b.gyro_temp_counts).mean(axis=0)]
-                rows.append(np.r_[temps, b.accel_mps2.astype(np.float64).mean(axis=0),
-                                  b.rate_rad_s.astype(np.float64).mean(axis=0)])
+                b = dev.read(n_samples=10 * n)
+                m = len(b.t_us) // n * n
+                temps = np.column_stack([U.accel_temp_counts_to_c(b.accel_temp_counts[:m]),
+                                         U.gyro_temp_counts_to_c(b.gyro_temp_counts[:m])])
+                block = np.column_stack([temps, b.accel_mps2[:m].astype(np.float64), b.rate_rad_s[:m].astype(np.float64)])
+                chunks = block.reshape(-1, n, block.shape[1]).mean(axis=1)
+                rows.append(chunks)
                 t_now = b.t_us[-1] * 1e-6
                 t_start = t_now if t_start is None else t_start
                 t_first = t_start if t_first is None else t_first
                 t_last = t_now
-                if done(temps):
+                if done(chunks[-1, :4]):
                     break
                 if t_now - t_start > sw.max_s:
                     raise RuntimeError(f"drift sweep, {name}: the dies did not reach the span's end in "
-                                       f"{sw.max_s:g} s (at {np.round(temps, 1).tolist()} °C)")
-            branches[name] = np.array(rows)
+                                       f"{sw.max_s:g} s (at {np.round(chunks[-1, :4], 1).tolist()} °C)")
+            branches[name] = np.vstack(rows)
     finally:
         dev.stop_stream()
     return drift_from_chunks(branches, (lo, hi), sw) | {"device_s": float(t_last - t_first)}
