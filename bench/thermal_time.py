@@ -2,7 +2,8 @@
 calibrated stream's residual drift over the span after it, on the virtual device with thermal
 lag and curved truth (issue 23).
 
-    PYTHONPATH=host python bench/thermal_time.py [--seed N] [--speed X] [--span 5,45] [--no-publish]
+    PYTHONPATH=host python bench/thermal_time.py [--seed N] [--speed X] [--span 5,45]
+                                                 [--random-walk on|off|both] [--no-publish]
 
 Each method runs on its own fresh virtual device, the same part (random truth from --seed,
 its thermal time constants and self-heating drawn with it: VirtualBench.set_thermal with no
@@ -26,9 +27,15 @@ the span; per axis, max − min of the bin means over both branches (the hystere
 warming and cooling shows there) and over the warming branch alone. Gyro in °/s,
 accelerometer in mg (x, y, z of the output; Z carries 1 g, so its scale tempco shows too).
 
+Each method runs twice (--random-walk both, the default): on the part as drawn, and with its
+bias random walk off. Over the hours a sweep takes the walk moves the bias as much as the
+temperature error left behind (it is not a temperature effect: no method removes it), so the
+second run shows the temperature error alone.
+
 Ends with one JSON line: step_time_s, warmup_time_s, step_nowait_time_s and
-{step,step_nowait,warmup}_drift_{gyro_dps,accel_mg} (per-axis lists x, y, z, both branches),
-the same with _warming, and the part's thermal constants.
+{step,step_nowait,warmup}_drift_{gyro_dps,accel_mg} (per-axis lists x, y, z, both branches;
+the part as drawn), the same with _warming (warming branch only) and with _no_rw (random walk
+off), aim_met / aim_met_no_rw, and the part's thermal constants.
 Aim (issue 23): warm-up drift no worse than the step method's, in at most a third of its time.
 """
 from __future__ import annotations
@@ -61,9 +68,11 @@ SENSORS = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
 
 
 # ------------------------------------------------------------------ the methods
-def fresh_bench(speed: float, seed: int) -> VirtualBench:
+def fresh_bench(speed: float, seed: int, random_walk: bool = True) -> VirtualBench:
     vb = VirtualBench(speed=speed, seed=seed, truth="random")
     vb.set_thermal(enabled=True)            # the part's own constants, drawn with its truth
+    if not random_walk:                     # the temperature error alone: no bias random walk
+        vb.set_truth(accel={"rw_k": [0.0] * 3}, gyro=[{"bias_rw_k": 0.0}] * 3)
     return vb
 
 
@@ -164,23 +173,51 @@ def _axes(v) -> str:
     return " / ".join(_sig(float(x)) for x in v)
 
 
-def table(runs: dict, truth_d: dict, thermal: dict, span) -> str:
-    cols = [("step, waiting for the lag", "step"), ("step, not waiting", "step_nowait"), ("warm-up", "warmup")]
-    rows = [("device time", [_minutes(runs[k]["time_s"]) for _, k in cols]),
-            ("temperature model fitted", [runs[k]["order"] for _, k in cols]),
-            ("gyro drift x / y / z, warming and cooling (°/s)", [_axes(runs[k]["drift"]["gyro_dps"]) for _, k in cols]),
-            ("gyro drift, warming only (°/s)", [_axes(runs[k]["drift"]["gyro_dps_warming"]) for _, k in cols]),
-            ("accel drift x / y / z, warming and cooling (mg)", [_axes(runs[k]["drift"]["accel_mg"]) for _, k in cols]),
-            ("accel drift, warming only (mg)", [_axes(runs[k]["drift"]["accel_mg_warming"]) for _, k in cols])]
+METHODS = (("step, waiting for the lag", "step"), ("step, not waiting", "step_nowait"), ("warm-up", "warmup"))
+VARIANTS = (("", "the part as drawn (bias random walk on)"), ("_no_rw", "random walk off: the temperature error alone"))
+
+
+def table(runs: dict, truth_d: dict, thermal: dict, span, suffixes) -> str:
+    """The markdown table: device time and model of the first variant run, then each variant's drift."""
+    cols = list(METHODS)
+    first = suffixes[0]
+    rows = []
+    for suffix, words in VARIANTS:
+        if suffix in suffixes:
+            rows.append((f"device time; {words}", [_minutes(runs[k + suffix]["time_s"]) for _, k in cols]))
+    rows.append(("temperature model fitted", [runs[k + first]["order"] for _, k in cols]))
+    if "warmup" + first in runs and runs["warmup" + first].get("result"):
+        rows.append(("warm-up stopped because", ["", "", str(runs["warmup" + first]["result"].get("stop_reason"))]))
+    for suffix, words in VARIANTS:
+        if suffix not in suffixes:
+            continue
+        for q, unit, name in (("gyro_dps", "°/s", "gyro"), ("accel_mg", "mg", "accel")):
+            rows.append((f"{name} drift x / y / z ({unit}), warming and cooling; {words}",
+                         [_axes(runs[k + suffix]["drift"][q]) for _, k in cols]))
+            rows.append((f"{name} drift, warming only ({unit}); {words}",
+                         [_axes(runs[k + suffix]["drift"][q + "_warming"]) for _, k in cols]))
     head = "| | " + " | ".join(c for c, _ in cols) + " |\n|---|" + "---|" * len(cols) + "\n"
     body = "".join(f"| {label} | " + " | ".join(v) + " |\n" for label, v in rows)
     tau = "/".join(f"{t:.0f}" for t in thermal["tau_s"])
     sh = "/".join(f"{t:.1f}" for t in thermal["self_heat_c"])
+    pad = " |" * len(cols)
     foot = (f"| uncorrected bias change over {span[0]:g}–{span[1]:g} °C (truth) | gyro {_axes(truth_d['gyro_dps'])} °/s, "
-            f"accel {_axes(truth_d['accel_mg'])} mg | | |\n"
-            f"| the part's thermal time constants (ADXL355, gyro X/Y/Z), self-heating | {tau} s, {sh} °C | | |\n")
-    errors = "".join(f"| {c}: failed | {runs[k]['error'][:200]} | | |\n" for c, k in cols if runs[k].get("error"))
+            f"accel {_axes(truth_d['accel_mg'])} mg{pad}\n"
+            f"| the part's thermal time constants (ADXL355, gyro X/Y/Z), self-heating | {tau} s, {sh} °C{pad}\n")
+    errors = "".join(f"| {k}: failed | {r['error'][:200]}{pad}\n" for k, r in runs.items() if r.get("error"))
     return head + body + foot + errors
+
+
+def _verdict(runs: dict, suffix: str) -> tuple[bool, str]:
+    st, wu = runs["step" + suffix], runs["warmup" + suffix]
+    ratio = wu["time_s"] / st["time_s"]
+    mg, sg = np.nanmax(wu["drift"]["gyro_dps"]), np.nanmax(st["drift"]["gyro_dps"])
+    ma, sa = np.nanmax(wu["drift"]["accel_mg"]), np.nanmax(st["drift"]["accel_mg"])
+    better = mg <= sg and ma <= sa
+    ok = bool(better and ratio <= 1 / 3)
+    return ok, (f"warm-up / step time = {ratio:.2f} (aim ≤ 0.33); worst axis, warm-up against step: gyro "
+                f"{_sig(mg)} against {_sig(sg)} °/s, accel {_sig(ma)} against {_sig(sa)} mg: "
+                f"{'MET' if ok else 'NOT MET'}")
 
 
 def main() -> int:
@@ -188,6 +225,8 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=7, help="the virtual part (random truth and thermal constants)")
     ap.add_argument("--speed", type=float, default=300.0, help="device time per wall time")
     ap.add_argument("--span", default="5,45", help="LO,HI in °C (default 5,45)")
+    ap.add_argument("--random-walk", choices=("on", "off", "both"), default="both",
+                    help="the part's bias random walk: as drawn (on), off (the temperature error alone), or both runs")
     add_arguments(ap)
     a = ap.parse_args()
     try:
@@ -196,59 +235,65 @@ def main() -> int:
             raise ValueError
     except ValueError:
         ap.error(f"--span {a.span!r}: give LO,HI in °C, at least 10 °C apart (e.g. 5,45)")
+    variants = {"on": [("", True)], "off": [("_no_rw", False)], "both": [("", True), ("_no_rw", False)]}[a.random_walk]
     wall0 = time.monotonic()
     runs: dict[str, dict] = {}
     thermal = truth = None
     with tempfile.TemporaryDirectory() as tmp:
-        for key in ("step", "step_nowait", "warmup"):
-            w0 = time.monotonic()
-            with fresh_bench(a.speed, a.seed) as vb:
-                st = vb.status()["thermal"]
-                thermal = thermal or {"tau_s": list(st["tau_s"]), "self_heat_c": list(st["self_heat_c"])}
-                truth = truth or vb.get_truth()
-                out = Path(tmp) / key
-                try:
-                    r = (warmup_method(vb, out, span) if key == "warmup"
-                         else step_method(vb, out, span, wait=key == "step"))
-                except Exception as e:  # noqa: BLE001 - a method that fails is a result too
-                    print(f"{key}: FAILED: {type(e).__name__}: {e}", flush=True)
-                    r = {"time_s": math.nan, "order": f"failed: {str(e)[:60]}", "error": str(e),
-                         "drift": {k: np.full(3, np.nan) for k in ("gyro_dps", "accel_mg", "gyro_dps_warming",
-                                                                     "accel_mg_warming")} | {"bins_filled": [0, 0], "nbins": 0}}
-                else:
-                    print(f"{key}: calibrated in {r['time_s']:.0f} s of device time; measuring the drift …", flush=True)
-                    r["drift"] = drift(vb, span, thermal["self_heat_c"])
-            r["wall_s"] = time.monotonic() - w0
-            runs[key] = r
-            d = r["drift"]
-            print(f"  gyro drift {_axes(d['gyro_dps'])} °/s, accel drift {_axes(d['accel_mg'])} mg "
-                  f"(bins filled {d['bins_filled']} of {d['nbins']}; wall {r['wall_s']:.0f} s)", flush=True)
+        for suffix, rw in variants:
+            for _, method in METHODS:
+                key = method + suffix
+                w0 = time.monotonic()
+                with fresh_bench(a.speed, a.seed, random_walk=rw) as vb:
+                    st = vb.status()["thermal"]
+                    thermal = thermal or {"tau_s": list(st["tau_s"]), "self_heat_c": list(st["self_heat_c"])}
+                    truth = truth or vb.get_truth()
+                    out = Path(tmp) / key
+                    try:
+                        r = (warmup_method(vb, out, span) if method == "warmup"
+                             else step_method(vb, out, span, wait=method == "step"))
+                    except Exception as e:  # noqa: BLE001 - a method that fails is a result too
+                        print(f"{key}: FAILED: {type(e).__name__}: {e}", flush=True)
+                        r = {"time_s": math.nan, "order": f"failed: {str(e)[:60]}", "error": str(e),
+                             "drift": {k: np.full(3, np.nan) for k in ("gyro_dps", "accel_mg", "gyro_dps_warming",
+                                                                         "accel_mg_warming")} | {"bins_filled": [0, 0], "nbins": 0}}
+                    else:
+                        print(f"{key}: calibrated in {r['time_s']:.0f} s of device time; measuring the drift …", flush=True)
+                        r["drift"] = drift(vb, span, thermal["self_heat_c"])
+                r["wall_s"] = time.monotonic() - w0
+                runs[key] = r
+                d = r["drift"]
+                print(f"  gyro drift {_axes(d['gyro_dps'])} °/s, accel drift {_axes(d['accel_mg'])} mg "
+                      f"(bins filled {d['bins_filled']} of {d['nbins']}; wall {r['wall_s']:.0f} s)", flush=True)
     truth_d = truth_drift(truth, span)
-    md = table(runs, truth_d, thermal, span)
+    first = variants[0][0]
+    md = table(runs, truth_d, thermal, span, [s for s, _ in variants])
     print("\n" + md, end="")
-    st, wu = runs["step"], runs["warmup"]
-    ratio = wu["time_s"] / st["time_s"]
-    better = (max(wu["drift"]["gyro_dps"]) <= max(st["drift"]["gyro_dps"])
-              and max(wu["drift"]["accel_mg"]) <= max(st["drift"]["accel_mg"]))
-    ok = better and ratio <= 1 / 3
-    print(f"\nwarm-up / step time = {ratio:.2f} (aim ≤ 0.33); warm-up drift (max over axes) "
-          f"{'no worse than' if better else 'WORSE than'} the step method's: {'MET' if ok else 'NOT MET'}")
+    verdicts = {s: _verdict(runs, s) for s, _ in variants}
+    for s, words in VARIANTS:
+        if s in verdicts:
+            print(f"{words}: {verdicts[s][1]}")
     wall = time.monotonic() - wall0
     print(f"wall time {wall:.0f} s at sim speed {a.speed:g}")
     publish("thermal_time", md, {"seed": a.seed, "span": f"{span[0]:g}–{span[1]:g} °C", "sim speed": f"{a.speed:g}",
                                  "wall time": f"{wall:.0f} s"}, enabled=not a.no_publish)
     line = {"drift": "per-axis lists x, y, z: max − min of 2 °C bin means of the calibrated stream over the span, "
-                     "warming and cooling together (_warming: warming only)", "seed": a.seed,
-            "tau_s": thermal["tau_s"], "self_heat_c": thermal["self_heat_c"]}
-    for k in ("step", "step_nowait", "warmup"):
-        line[f"{k}_time_s"] = None if not math.isfinite(runs[k]["time_s"]) else round(runs[k]["time_s"], 1)
-        for q, unit in (("gyro", "dps"), ("accel", "mg")):
-            for suffix in ("", "_warming"):
-                line[f"{k}_drift_{q}_{unit}{suffix}"] = [None if not math.isfinite(v) else float(f"{v:.3g}")
-                                                         for v in runs[k]["drift"][f"{q}_{unit}{suffix}"]]
-    line["warmup_over_step_time"] = round(ratio, 3)
-    line["aim_met"] = bool(ok)
-    print(json.dumps(line))
+                     "warming and cooling together (_warming: warming only); _no_rw: the part's bias random walk off",
+            "seed": a.seed, "tau_s": [round(t, 1) for t in thermal["tau_s"]],
+            "self_heat_c": [round(t, 2) for t in thermal["self_heat_c"]]}
+    for _, k in METHODS:
+        t = runs[k + first]["time_s"]
+        line[f"{k}_time_s"] = None if not math.isfinite(t) else round(t, 1)
+    for suffix, _rw in variants:
+        for _, k in METHODS:
+            for q, unit in (("gyro", "dps"), ("accel", "mg")):
+                for w in ("", "_warming"):
+                    line[f"{k}_drift_{q}_{unit}{w}{suffix}"] = [None if not math.isfinite(v) else float(f"{v:.3g}")
+                                                                for v in runs[k + suffix]["drift"][f"{q}_{unit}{w}"]]
+        line[f"aim_met{suffix}"] = verdicts[suffix][0]
+    st = runs["step" + first]["time_s"]
+    line["warmup_over_step_time"] = round(runs["warmup" + first]["time_s"] / st, 3) if math.isfinite(st) else None
+    print(json.dumps(line, ensure_ascii=False))
     return 0
 
 
