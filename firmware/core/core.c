@@ -233,39 +233,41 @@ uint8_t ib_core_check_params(const ib_params_t *p, ib_triad_corr_t *accel, ib_tr
 }
 
 /* ib_core_correct in two parts: what depends on the temperatures only (the stream reads them
- * once a batch, so this runs once a batch): the bias at the clamped temperature, b + c1 dt +
- * c2 dt^2 + c3 dt^3 (Horner), and the scale term 1 + s dt; and what depends on the sample. */
-static void correct_terms(const ib_params_t *p, int gyro, const float temp_c[3], float bias[3], float den[3])
+ * once a batch, so this runs once a batch) and what depends on the sample. Once a batch: the
+ * bias at the clamped temperature, b + c1 dt + c2 dt^2 + c3 dt^3 (Horner), in input units
+ * (u = input x unit), and W = M^-1 diag(unit / (1 + s dt)); per sample then only
+ * out = W (u - bias): no divide, and for the accelerometer no counts-to-SI multiply either. */
+static void correct_terms(const ib_params_t *p, int gyro, const ib_triad_corr_t *t, const float temp_c[3],
+                          float unit, float per_unit, float bias[3], float w[3][3])
 {
     triad_view_t v;
     triad_view(p, gyro, &v);
     float lo = (float)v.t_min, hi = (float)v.t_max;
     for (int k = 0; k < 3; k++) {
-        float t = temp_c[k] < lo ? lo : temp_c[k] > hi ? hi : temp_c[k]; /* clamp to the span */
-        float dt = t - v.t_ref;
-        bias[k] = v.b[k] + dt * (v.c1[k] + dt * (v.c2[k] + dt * v.c3[k]));
-        den[k] = 1.0f + v.s[k] * dt;
+        float tc = temp_c[k] < lo ? lo : temp_c[k] > hi ? hi : temp_c[k]; /* clamp to the span */
+        float dt = tc - v.t_ref;
+        bias[k] = (v.b[k] + dt * (v.c1[k] + dt * (v.c2[k] + dt * v.c3[k]))) * per_unit;
+        float g = unit / (1.0f + v.s[k] * dt); /* 1 + s dt >= 0.835: |s| <= 1e-3, |dt| <= 165 */
+        for (int r = 0; r < 3; r++) {
+            w[r][k] = t->m_inv[r][k] * g;
+        }
     }
 }
 
-static void correct_apply(const ib_triad_corr_t *t, const float u[3], const float bias[3], const float den[3],
-                          float out[3])
+static void correct_apply(const float w[3][3], const float u[3], const float bias[3], float out[3])
 {
-    float v[3];
-    for (int k = 0; k < 3; k++) {
-        v[k] = (u[k] - bias[k]) / den[k];
-    }
+    float v0 = u[0] - bias[0], v1 = u[1] - bias[1], v2 = u[2] - bias[2];
     for (int r = 0; r < 3; r++) {
-        out[r] = t->m_inv[r][0] * v[0] + t->m_inv[r][1] * v[1] + t->m_inv[r][2] * v[2];
+        out[r] = w[r][0] * v0 + w[r][1] * v1 + w[r][2] * v2;
     }
 }
 
 void ib_core_correct(const ib_params_t *p, int gyro, const ib_triad_corr_t *t, const float u[3],
                      const float temp_c[3], float out[3])
 {
-    float bias[3], den[3];
-    correct_terms(p, gyro, temp_c, bias, den);
-    correct_apply(t, u, bias, den, out);
+    float bias[3], w[3][3];
+    correct_terms(p, gyro, t, temp_c, 1.0f, 1.0f, bias, w);
+    correct_apply(w, u, bias, out);
 }
 
 static void identity_params(ib_params_t *p)
@@ -299,14 +301,11 @@ _Static_assert(IB_PARAM_BLOCK_VERSION == 3u, "read_stored migrates layouts 1 and
  * raised to hold t_ref when t_ref lies above 85 degC, so that a block valid before stays valid. */
 static int8_t migrated_t_max(float t_ref)
 {
-    if (!(t_ref > (float)SPAN_DEFAULT_MAX_C)) {
-        return SPAN_DEFAULT_MAX_C;
+    int8_t hi = SPAN_DEFAULT_MAX_C; /* rounded up by counting: no float-to-int helper on the F103 */
+    while (hi < 127 && (float)hi < t_ref) {
+        hi++;
     }
-    if (!(t_ref <= 127.0f)) {
-        return 127;
-    }
-    int8_t t = (int8_t)t_ref; /* truncated: 85..127, then rounded up (no libm ceilf on the F103) */
-    return (float)t < t_ref ? (int8_t)(t + 1) : t;
+    return hi;
 }
 
 /* The stored parameter block, read into p: today's layout, or layout 2 or 1 (its prefixes)
@@ -572,9 +571,9 @@ static void cal_prepare(ib_core_t *c)
         ta[k] = t_acc;
         tg[k] = 45.0f + (float)c->gyro_temp_raw10[k] / 5.0f;
     }
-    c->cal_mps2_per_count = G0_MPS2 / lsb;
-    correct_terms(&c->params, 0, ta, c->cal_bias[0], c->cal_den[0]);
-    correct_terms(&c->params, 1, tg, c->cal_bias[1], c->cal_den[1]);
+    /* the accelerometer's terms in counts: the sample's counts go in as they are */
+    correct_terms(&c->params, 0, &c->corr_accel, ta, G0_MPS2 / lsb, lsb / G0_MPS2, c->cal_bias[0], c->cal_w[0]);
+    correct_terms(&c->params, 1, &c->corr_gyro, tg, 1.0f, 1.0f, c->cal_bias[1], c->cal_w[1]);
     c->cal_ready = 1;
 }
 
@@ -640,17 +639,17 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
             cal_prepare(c); /* the temperatures are new at a batch's first sample */
         }
         for (int k = 0; k < 3; k++) {
-            u[k] = (float)acc[k] * c->cal_mps2_per_count;
+            u[k] = (float)acc[k]; /* counts: cal_prepare put the scale into cal_w[0] */
             w[k] = (float)rate[k] * RAD_PER_GYRO_COUNT;
         }
-        correct_apply(&c->corr_accel, u, c->cal_bias[0], c->cal_den[0], cs.accel_mps2);
+        correct_apply(c->cal_w[0], u, c->cal_bias[0], cs.accel_mps2);
         const float *gs = c->params.gyro_g_rad_s_per_mps2; /* g-sensitivity: w − G·a first */
         for (int k = 0; k < 3; k++) {
             /* cs.accel_mps2 is written whole by correct_apply above; cppcheck does not follow it */
             // cppcheck-suppress uninitvar
             w[k] -= gs[k * 3] * cs.accel_mps2[0] + gs[k * 3 + 1] * cs.accel_mps2[1] + gs[k * 3 + 2] * cs.accel_mps2[2];
         }
-        correct_apply(&c->corr_gyro, w, c->cal_bias[1], c->cal_den[1], cs.rate_rad_s);
+        correct_apply(c->cal_w[1], w, c->cal_bias[1], cs.rate_rad_s);
         cs.status = status;
         rec = c->batch_buf + IB_HEADER_SIZE + IB_BATCH_HEADER_SIZE + (size_t)c->batch_n * IB_CAL_SAMPLE_SIZE;
         ib_cal_sample_pack(&cs, rec);

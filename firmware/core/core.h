@@ -63,12 +63,11 @@ typedef struct ib_core {
     uint8_t batch_gyro_st_bad[3]; /* 0x80 | ST of a gyro reply with ST != 01 in this batch */
     ib_batch_header_t batch_hdr;
     uint32_t batch_t0_us;
-    /* the calibrated stream's per-batch terms (core.c, cal_prepare): the bias at the batch's
-     * temperatures (b + c1 dt + c2 dt^2 + c3 dt^3) and the scale term (1 + scale_tc dt), dt the
-     * clamped temperature minus t_ref, of [0] the accelerometer, [1] the gyros, and m/s^2 per
-     * count at the range; cal_ready 0 after a parameter change */
-    float cal_bias[2][3], cal_den[2][3];
-    float cal_mps2_per_count;
+    /* the calibrated stream's per-batch terms (core.c, cal_prepare): per triad ([0] the
+     * accelerometer, in counts, [1] the gyros, in rad/s) the bias at the batch's temperatures
+     * (b + c1 dt + c2 dt^2 + c3 dt^3, dt the clamped temperature minus t_ref) and
+     * W = M^-1 diag(unit / (1 + scale_tc dt)); cal_ready 0 after a parameter or range change */
+    float cal_bias[2][3], cal_w[2][3][3];
     uint8_t cal_ready;
     uint8_t batch_buf[IB_MAX_FRAME];  /* raw frame being built: header, payload, CRC */
     uint8_t fault_state[4];       /* fault kind last reported per sensor, 0 = none */
@@ -76,7 +75,8 @@ typedef struct ib_core {
     /* link */
     uint16_t tx_seq;
     ib_frame_rx_t rx;
-    uint8_t rx_buf[64];           /* received bytes not yet pushed into rx */
+    uint8_t rx_buf[32];           /* received bytes not yet pushed into rx (a staging copy of the
+                                   * board ring: commands only, so 32 do; RAM, issue 23) */
     uint8_t rx_len, rx_pos;
     uint8_t msg_raw[IB_MAX_FRAME];    /* scratch for building one message */
     uint8_t tx_frame[IB_MAX_ENCODED + 1];

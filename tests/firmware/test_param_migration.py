@@ -175,3 +175,18 @@ def test_session_recovers_g_sensitivity_and_the_device_applies_it(tmp_path, targ
         assert np.all(np.abs(d) < tol), (d, tol)
         if df[2] == -2.0 and target == "host":   # the host's 26 poses resolve G well enough to show it
             assert np.any(np.abs(g_true @ df) > tol), (g_true @ df, tol)
+
+
+def test_a_json_block_of_an_earlier_layout_reads_as_the_device_migrates_it():
+    """A parameter file or closure.json written before layout 3 (no c2, c3, spans; layout 1 also
+    no G) loads as the device loads such a stored block; a block missing anything else is refused."""
+    full = PR.to_json(_old_params(2))
+    tail = ("accel_bias_tc2_mps2_per_c2", "accel_bias_tc3_mps2_per_c3", "gyro_bias_tc2_rad_s_per_c2",
+            "gyro_bias_tc3_rad_s_per_c3", "accel_t_min_c", "accel_t_max_c", "gyro_t_min_c", "gyro_t_max_c")
+    v2 = {k: v for k, v in full.items() if k not in tail}
+    assert _pack(PR.from_json(v2)) == _pack(_old_params(2))            # gyro span raised to 91 for t_ref 90.5
+    v1 = {k: v for k, v in PR.to_json(_old_params(1)).items() if k not in tail + ("gyro_g_rad_s_per_mps2",)}
+    assert _pack(PR.from_json(v1)) == _pack(_old_params(1))
+    for drop in (("accel_t_min_c",), tail[:4], ("gyro_g_rad_s_per_mps2",)):
+        with pytest.raises(PR.InvalidParams, match="missing parameter fields"):
+            PR.from_json({k: v for k, v in full.items() if k not in drop})

@@ -59,6 +59,14 @@ def test_apply_tempcos_validates():
     p = ATH.apply_tempcos(PR.identity(), f)
     assert p.accel_t_ref_c == p.gyro_t_ref_c == 30.0
     assert np.allclose(p.gyro_bias_tc_rad_s_per_c, GYR_BTC)
+    # a block a warm-up wrote (curvature, a narrow span): the step method's line replaces it whole
+    old = PR.identity()
+    old.accel_bias_tc2_mps2_per_c2, old.gyro_bias_tc3_rad_s_per_c3 = (1e-5, 0.0, 0.0), (0.0, 2e-9, 0.0)
+    old.accel_t_min_c, old.accel_t_max_c, old.gyro_t_min_c, old.gyro_t_max_c = 5, 45, 6, 44
+    PR.validate(old)
+    p = ATH.apply_tempcos(old, f)
+    assert not any(p.accel_bias_tc2_mps2_per_c2 + p.gyro_bias_tc3_rad_s_per_c3)
+    assert (p.accel_t_min_c, p.accel_t_max_c, p.gyro_t_min_c, p.gyro_t_max_c) == (-40, 85, -40, 85)
     f.accel_scale_tc = np.array([0.0, 0.0, 5e-3])   # above the device's limit
     with pytest.raises(PR.InvalidParams):
         ATH.apply_tempcos(PR.identity(), f, 25.0)

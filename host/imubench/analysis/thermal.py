@@ -136,9 +136,21 @@ def fit_sweep(points: Sequence[TempPoint], t_ref_c: float = 25.0) -> ThermalFit:
 
 def apply_tempcos(params: Params, fits: ThermalFit, t_ref_c: float | None = None) -> Params:
     """A copy of params with the temperature coefficients and reference temperatures of fits
-    (t_ref_c overrides fits.t_ref_c), checked with params.validate (raises InvalidParams)."""
+    (t_ref_c overrides fits.t_ref_c), checked with params.validate (raises InvalidParams).
+
+    The step method fits straight lines: the bias polynomial's c2 and c3 are cleared (a previous
+    warm-up's curvature must not stay on top of a new line) and both triads get the default span
+    −40..85 °C (params.migrated_span), not the measured one. A straight line extrapolates
+    gently, and the data sheets give linear temperature coefficients over the parts' whole
+    range; clamping it at the set points' ends would hold the bias constant beyond them while
+    the part keeps drifting. Clamping to the measured span is for curved fits, whose
+    extrapolation diverges (docs/conventions.md, Temperature model)."""
     t_ref = float(fits.t_ref_c if t_ref_c is None else t_ref_c)
     p = Params.from_values(params.values())
+    p.accel_bias_tc2_mps2_per_c2 = p.accel_bias_tc3_mps2_per_c3 = (0.0, 0.0, 0.0)
+    p.gyro_bias_tc2_rad_s_per_c2 = p.gyro_bias_tc3_rad_s_per_c3 = (0.0, 0.0, 0.0)
+    p.accel_t_min_c, p.accel_t_max_c = PR.migrated_span(t_ref)
+    p.gyro_t_min_c, p.gyro_t_max_c = PR.migrated_span(t_ref)
     p.accel_bias_tc_mps2_per_c = tuple(float(v) for v in fits.accel_bias_tc)
     p.accel_scale_tc_per_c = tuple(float(v) for v in fits.accel_scale_tc)
     p.gyro_bias_tc_rad_s_per_c = tuple(float(v) for v in fits.gyro_bias_tc)

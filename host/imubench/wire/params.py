@@ -61,7 +61,9 @@ def to_json(p: Params) -> dict:
 
 def from_json(d: dict, partial: bool = False) -> Params:
     """The inverse of to_json. Unknown keys are an error (InvalidParams naming them); with
-    partial=True, fields not given keep their factory value (identity())."""
+    partial=True, fields not given keep their factory value (identity()). A block written
+    before layout 3 (without c2, c3 and the spans; or also without gyro_g, layout 1) is read
+    as the device reads such a stored block: c2 = c3 = 0, G = 0, span migrated_span(t_ref)."""
     if not isinstance(d, dict):
         raise InvalidParams(Error.BAD_ARGUMENT, f"parameters must be a JSON object of Params fields, not {type(d).__name__}")
     base = asdict(identity()) if partial else {}
@@ -69,10 +71,22 @@ def from_json(d: dict, partial: bool = False) -> Params:
     if unknown:
         raise InvalidParams(Error.BAD_ARGUMENT, f"unknown parameter fields: {', '.join(sorted(unknown))}")
     missing = set(Params.__dataclass_fields__) - set(d) - set(base)
-    if missing:
+    if missing and missing not in (set(_LAYOUT3_FIELDS), set(_LAYOUT3_FIELDS) | {"gyro_g_rad_s_per_mps2"}):
         raise InvalidParams(Error.BAD_ARGUMENT, f"missing parameter fields: {', '.join(sorted(missing))}")
     kw = {**base, **{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}}
+    if missing:          # a block written before layout 3 (or 2): migrated as the device migrates it
+        kw.update({f: (0.0,) * (9 if f.startswith("gyro_g") else 3) for f in missing if not f.endswith(("min_c", "max_c"))})
+        try:
+            (kw["accel_t_min_c"], kw["accel_t_max_c"]), (kw["gyro_t_min_c"], kw["gyro_t_max_c"]) = (
+                migrated_span(float(kw["accel_t_ref_c"])), migrated_span(float(kw["gyro_t_ref_c"])))
+        except (TypeError, ValueError):
+            raise InvalidParams(Error.BAD_ARGUMENT, "accel_t_ref_c and gyro_t_ref_c must be numbers") from None
     return Params(**kw)
+
+
+# the fields layout 3 added (a JSON block of an earlier layout lacks them: from_json migrates it)
+_LAYOUT3_FIELDS = ("accel_bias_tc2_mps2_per_c2", "accel_bias_tc3_mps2_per_c3", "gyro_bias_tc2_rad_s_per_c2",
+                   "gyro_bias_tc3_rad_s_per_c3", "accel_t_min_c", "accel_t_max_c", "gyro_t_min_c", "gyro_t_max_c")
 
 
 @dataclass
