@@ -61,6 +61,7 @@ class Station:
         self.sim_thermal = dict(sim_thermal or {})
         self.warmup_settings = dict(warmup or {})      # WarmupConfig fields besides the page's (tests: short runs)
         self._warm_stop: dict[str, threading.Event] = {}   # a running warm-up's stop, per device
+        self._closing = False
         self._threads: dict[str, threading.Thread] = {}
         self._ui: dict[str, WebPresenter] = {}
         self._bench = None
@@ -195,6 +196,7 @@ class Station:
             t.join(timeout)
 
     def close(self) -> None:
+        self._closing = True
         for ev in list(self._warm_stop.values()):
             ev.set()
         for key, ui in list(self._ui.items()):
@@ -314,7 +316,7 @@ class Station:
                 self.state.update(key, lambda b: setattr(b, "device", {"board": board_name(info.board),
                                                                        "uid": uid_text(info.mcu_uid), "url": url}))
                 result = W.run_warmup(dev, d, cfg, hooks, on_progress=on_progress, stop=stop)
-            summary = _warmup_summary(result, d, stopped=stop.is_set())
+            summary = _warmup_summary(result, d, stopped=stop.is_set(), closing=self._closing)
             failed = result.get("status") == "failed"
 
             def f(b):
@@ -512,7 +514,7 @@ def _fmt_list(v, f: str) -> str:
     return "?" if not v else "/".join(f.format(x) for x in v)
 
 
-def _warmup_summary(result: dict, d: Path, stopped: bool) -> dict:
+def _warmup_summary(result: dict, d: Path, stopped: bool, closing: bool = False) -> dict:
     """What a finished warm-up's column shows: the verdict, the fit per triad and axis (order,
     held-out error, 1σ of the curve over its span, the span), what could not be determined,
     the write-back, where the files are."""
@@ -522,7 +524,8 @@ def _warmup_summary(result: dict, d: Path, stopped: bool) -> dict:
     if status == "failed":
         verdict = f"warm-up failed ({r.get('error') or why or 'no reason given'})"
     elif stopped:
-        verdict = "stopped on the page: the fit of what came is kept"
+        verdict = ("stopped: the station was closed" if closing else "stopped on the page") + \
+            ": the fit of what came is kept"
     else:
         verdict = f"warm-up finished: {why}" if why else "warm-up finished"
     if r.get("fit") is None:
