@@ -409,3 +409,34 @@ def test_the_report_in_a_browser_at_laptop_width(session_dir, thermal_json, tmp_
     top = im[:500]
     green = (abs(top[..., 0] - 0x2e) < 20) & (abs(top[..., 1] - 0x9e) < 20) & (abs(top[..., 2] - 0x4f) < 20)
     assert green.sum() > 500, "the verdict box's border is not drawn at the top"
+
+
+def test_report_shows_a_warmup(session_dir, tmp_path):
+    """A warm-up's thermal.json (imubench thermal --warmup) gets its own temperature section: the
+    fitted polynomial per axis, what could not be determined, the write-back and the plot."""
+    from imubench import units as U
+    from imubench.analysis import thermal_poly as TP
+    from imubench.analysis.thermal_poly import Binned
+    from imubench.results.thermal_warmup import bins_json, fit_json
+
+    rng = np.random.default_rng(4)
+    t = np.linspace(5, 45, 120)
+    temps = np.column_stack([t, t + 0.5, t + 0.3, t + 0.8])
+    acc = np.column_stack([1e-4 * (t - 25), -2e-4 * (t - 25) + 3e-6 * (t - 25) ** 2, U.G0_MPS2 + 5e-5 * (t - 25)])
+    gyr = np.column_stack([2e-4 * (temps[:, 1] - 25), np.zeros_like(t), -1e-4 * (temps[:, 3] - 25)])
+    mean = np.column_stack([acc, gyr]) + rng.normal(0, 1e-5, (len(t), 6))
+    b = Binned(np.arange(len(t)) * 10.0, temps, mean, np.full((len(t), 6), 1e-5), np.full(len(t), 2000))
+    seg = [TP.FaceSegment(np.array([0.0, 0, 1]), temps[:, 0], mean[:, :3], b.sigma[:, :3])]
+    gseg = [TP.FaceSegment(np.array([0.0, 0, 1]), temps[:, 1:], mean[:, 3:], b.sigma[:, 3:])]
+    fits = {"accel": TP.fit_triad_faces(seg, 25.0, U.G0_MPS2), "gyro": TP.fit_triad_faces(gseg, 25.0, None)}
+    device = json.loads((session_dir / "session.json").read_text())["result"]["device"]
+    path = tmp_path / "thermal.json"
+    path.write_text(json.dumps({"schema": 1, "kind": "imubench thermal warmup", "status": "done", "device": device,
+                                "stop_reason": "temperatures stopped rising", "t_ref_c": {"accel": 25.0, "gyro": 25.0},
+                                "fit": fit_json(fits, {"accel": 25.0, "gyro": 25.0}), "bins": bins_json(b),
+                                "write": {"steps": ["set", "rebooted"], "verified": True}}))
+    doc = build_report(session_dir, tmp_path / "r.html", thermal_json=path).read_text(encoding="utf-8")
+    _check_self_contained(doc)
+    assert "method: warm-up" in doc and "stopped: temperatures stopped rising" in doc
+    assert "not separated" in doc and "device check passed" in doc
+    assert "Bias against temperature" in doc and "is not a thermal.json" not in doc

@@ -114,6 +114,16 @@ def neighbour_sigma(y) -> np.ndarray:
     return 1.4826 * mad / np.sqrt(1.5)
 
 
+def steady_sigma(sigma) -> np.ndarray:
+    """Each bin's σ floored at the median of all: a still sensor's noise does not change from bin
+    to bin, but a σ estimated from N_BATCHES batches scatters by about ±25 %, and a fit weighted
+    by those scattered σ trusts the lucky bins more than it should (its covariance then claims
+    too much)."""
+    s = np.asarray(sigma, float)
+    pos = s[s > 0]
+    return np.maximum(s, np.median(pos)) if len(pos) else s
+
+
 def merge_cells(temp_c, y, sigma, cell_c: float):
     """Time bins merged into temperature cells of cell_c °C (a board that stays at one temperature
     for long gives many bins there: one cell, not many independent points). Per cell: the mean
@@ -123,7 +133,7 @@ def merge_cells(temp_c, y, sigma, cell_c: float):
     Returns (temp (c,), y (c,), sigma (c,), bins per cell (c,))."""
     t = np.asarray(temp_c, float)
     y = np.asarray(y, float)
-    s = np.asarray(sigma, float)
+    s = steady_sigma(sigma)
     if cell_c is None or cell_c <= 0 or len(t) == 0:
         return t, y, s, np.ones(len(t), int)
     cell = np.floor(t / cell_c).astype(np.int64)
@@ -162,6 +172,8 @@ class PolyFit:
     max_supported_order: int = 0
     n_cells: int = 0                 # temperature cells fitted (merge_cells; = n_bins without merging)
     alt_coef: np.ndarray | None = None   # the fit at the highest supported order (when higher than order)
+    rw_var_per_s: float = 0.0            # bias random walk K² (unit²/s) estimated from the bins (0: none seen)
+    rw_timelines: list = field(default_factory=list)   # per warm-up: (temps (m,), times (m,)) the temperature rose along
     notes: list = field(default_factory=list)
 
     @property
@@ -186,7 +198,23 @@ class PolyFit:
             d = np.nan_to_num(self.alt_coef - self.coef)
             d[0] = 0.0 if relative else d[0]
             var = var + (V @ d) ** 2
+        var = var + self.rw_variance(x + self.t_ref_c)
         return np.sqrt(np.clip(var, 0, None)).reshape(np.shape(x))
+
+    def rw_variance(self, temp_c) -> np.ndarray:
+        """What the bias random walk adds to the curve's variance at temp_c: K²·|t(T) − t(t_ref)|
+        per warm-up, t(T) the time its temperature passed T (a walk and a thermal slope look alike
+        in one warm-up: the fit takes the walk for temperature dependence); averaged over the
+        warm-ups fitted together (independent walks)."""
+        T = np.atleast_1d(np.asarray(temp_c, float))
+        if not self.rw_var_per_s or not self.rw_timelines:
+            return np.zeros(T.shape)
+        n = len(self.rw_timelines)
+        out = np.zeros(T.shape)
+        for temps, times in self.rw_timelines:
+            tt, ti = np.asarray(temps, float), np.asarray(times, float)
+            out += self.rw_var_per_s * np.abs(np.interp(T, tt, ti) - np.interp(self.t_ref_c, tt, ti)) / n ** 2
+        return out
 
     def sigma_over_span(self, n: int = 41) -> float:
         """The largest 1-σ of the fitted curve over the span."""
@@ -361,6 +389,42 @@ def _fit_groups(x_c, y, sigma, group, mvals, t_ref_c, max_order, resolution_c, o
     return fit, prm, C, scale, groups
 
 
+def timeline(temp_c, t_s) -> tuple[np.ndarray, np.ndarray]:
+    """(temperatures, times) along which a warm-up's temperature rose: the running maximum of the
+    bins' temperature against their time, strictly increasing (for interpolation)."""
+    order = np.argsort(t_s)
+    t, T = np.asarray(t_s, float)[order], np.maximum.accumulate(np.asarray(temp_c, float)[order])
+    keep = np.r_[True, np.diff(T) > 0]
+    return T[keep], t[keep]
+
+
+def rw_variance_rate(temp_c, resid, t_s, cell_c: float = 0.5, max_pairs: int = 4000) -> float:
+    """The bias random walk K² (unit²/s) from the residuals of the bins about the fitted curve:
+    pairs of bins in the same temperature cell (the same thermal bias) but at different times
+    differ by white noise and the walk: E[(r_i − r_j)²] = 2σ² + K²·|t_i − t_j|; a straight line
+    through (|Δt|, (Δr)²) gives K² (0 when it does not rise, or with too few pairs)."""
+    T, r, t = (np.asarray(v, float) for v in (temp_c, resid, t_s))
+    cell = np.floor(T / cell_c).astype(np.int64)
+    dts, d2s = [], []
+    for c in np.unique(cell):
+        i = np.flatnonzero(cell == c)
+        if len(i) < 3:
+            continue
+        a, b = np.triu_indices(len(i), 1)
+        dts.append(np.abs(t[i[a]] - t[i[b]]))
+        d2s.append((r[i[a]] - r[i[b]]) ** 2)
+    if not dts:
+        return 0.0
+    dt, d2 = np.concatenate(dts), np.concatenate(d2s)
+    if len(dt) > max_pairs:
+        sel = np.random.default_rng(0).choice(len(dt), max_pairs, replace=False)
+        dt, d2 = dt[sel], d2[sel]
+    if len(dt) < 10 or np.ptp(dt) <= 0:
+        return 0.0
+    slope = np.polyfit(dt, d2, 1)[0]
+    return float(max(slope, 0.0))
+
+
 # ------------------------------------------------------------------ several warm-ups (faces)
 @dataclass
 class FaceSegment:
@@ -370,6 +434,7 @@ class FaceSegment:
     temp_c: np.ndarray
     y: np.ndarray
     sigma: np.ndarray
+    t_s: np.ndarray | None = None      # device time of each bin (s): the bias random walk is estimated with it
 
 
 @dataclass
@@ -382,6 +447,27 @@ class AxisFit:
     scale_tc_sigma_per_c: float | None = None
     intercepts: dict = field(default_factory=dict)
     undetermined: list = field(default_factory=list)
+
+
+def _random_walk(fit: PolyFit, segs, k: int, prm, groups, scale, mvals, cell_c) -> None:
+    """Estimate the bias random walk of axis k from the residuals of each warm-up's bins about
+    the fit (needs the bins' times), and keep each warm-up's timeline for the curve's σ."""
+    ks, lines = [], []
+    c = np.nan_to_num(fit.coef.copy())
+    c[0] = 0.0
+    for j, (g, s) in enumerate(zip(groups, segs)):
+        if s.t_s is None:
+            return
+        T = np.asarray(s.temp_c, float)
+        T = T[:, k] if T.ndim == 2 else T
+        ts = np.asarray(s.t_s, float)
+        model = prm[j] + poly_eval(c, T, fit.t_ref_c)
+        if scale is not None:
+            model = model + scale[0] * mvals[g] * (T - fit.t_ref_c)
+        ks.append(rw_variance_rate(T, np.asarray(s.y, float)[:, k] - model, ts, cell_c or 0.5))
+        lines.append(timeline(T, ts))
+    fit.rw_var_per_s = float(np.mean(ks)) if ks else 0.0
+    fit.rw_timelines = lines
 
 
 def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: float | None, max_order: int = 3,
@@ -430,10 +516,10 @@ def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: flo
             ms = np.round(m[groups] / g_mps2, 3)
             if scale is None:
                 if np.any(np.abs(ms) > 0.5):
-                    und.append(f"bias and scale temperature terms of axis {'xyz'[k]} not separated (one attitude of "
+                    und.append(f"bias and scale temperature terms of accelerometer {'xyz'[k]} not separated (one attitude of "
                                "this axis): c1 = bias_tc + scale_tc·m, right in this attitude only")
                 else:
-                    und.append(f"scale temperature term of axis {'xyz'[k]} not determined (the axis never saw gravity)")
+                    und.append(f"scale temperature term of accelerometer {'xyz'[k]} not determined (the axis never saw gravity)")
             # c0 from two opposite faces, or from a face where the axis sees no gravity
             opp = [(a, b) for a in range(ng) for b in range(ng) if a < b and abs(ms[a] + ms[b]) < 0.05 and abs(ms[a]) > 0.5]
             zero = [a for a in range(ng) if abs(ms[a]) < 0.05]
@@ -448,7 +534,7 @@ def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: flo
                     pass
             else:
                 fit.coef[0] = np.nan
-                und.append(f"bias of axis {'xyz'[k]} at t_ref not determined (it always saw gravity along one "
+                und.append(f"bias of accelerometer {'xyz'[k]} at t_ref not determined (it always saw gravity along one "
                            "direction: bias and g·scale together)")
         elif ng > 1:
             fit.coef[0] = float(np.mean(prm[:ng]))   # a gyro: faces differ by Earth rate and g-sensitivity
@@ -457,6 +543,7 @@ def fit_triad_faces(segments: Sequence[FaceSegment], t_ref_c: float, g_mps2: flo
                        "and g-sensitivity)")
         if fit.alt_coef is not None and ng > 1:
             fit.alt_coef[0] = fit.coef[0]
+        _random_walk(fit, segs, k, prm, groups, scale, None if g_mps2 is None else m, cell_c)
         out.append(AxisFit(bias=fit, scale_tc_per_c=None if scale is None else scale[0],
                            scale_tc_sigma_per_c=None if scale is None else scale[1], intercepts=inter,
                            undetermined=und))

@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,12 +33,20 @@ from imubench.device.link import DeviceError
 from imubench.errors import ImubenchError
 from imubench.files import open_growing
 from imubench.results import thermal_export as TX
-from imubench.results.thermal_warmup import WarmupRecord, bins_json, fit_json, format_fit, format_progress
+from imubench.results.thermal_warmup import (
+    WarmupRecord,
+    bins_json,
+    fit_json,
+    format_fit,
+    format_progress,
+    plot_warmup,
+)
 from imubench.wire import params as PR
 from imubench.wire.ids import SENSOR_BAD_BITS, device_identity
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
 CAPTURE_NAME = "capture.bin"
+PLOT_NAME = "warmup.png"
 SENSORS = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
 BAD_MASK = int(sum(int(b) for b in SENSOR_BAD_BITS))
 ACCEL_RES_C = 1.0 / 9.05       # the ADXL355's temperature step
@@ -71,6 +78,7 @@ class WarmupConfig:
     fit_every_s: float = 60.0
     max_order: int = 3
     span_tol_c: float = 0.5
+    stall_s: float = 10.0          # no sample for this long (wall time): the link is lost
 
     def __post_init__(self):
         if self.face not in POSES:
@@ -80,7 +88,7 @@ class WarmupConfig:
             if not hi > lo:
                 raise ValueError(f"span {lo:g},{hi:g}: the upper end must be above the lower")
             self.span_c = (lo, hi)
-        for name in ("stop_rate_c_per_min", "stop_window_s", "max_s", "bin_s", "fit_every_s"):
+        for name in ("stop_rate_c_per_min", "stop_window_s", "max_s", "bin_s", "fit_every_s", "stall_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0 (got {getattr(self, name)})")
         if self.stop_window_s < 3 * self.bin_s:
@@ -146,6 +154,8 @@ class _State:
     last_fit_s: float = -math.inf
     fits: dict | None = None
     t_last: float = 0.0
+    seen_lo: np.ndarray = field(default_factory=lambda: np.full(4, np.inf))    # per sensor, of the samples
+    seen_hi: np.ndarray = field(default_factory=lambda: np.full(4, -np.inf))
 
     def feed(self, b) -> int:
         """Add a raw block; bin what completes a bin. Returns the number of new bins."""
@@ -161,6 +171,8 @@ class _State:
         if self.t0 is None:
             self.t0 = float(t[0])
         self.t_last = float(t[-1])
+        self.seen_lo = np.minimum(self.seen_lo, temps.min(axis=0))
+        self.seen_hi = np.maximum(self.seen_hi, temps.max(axis=0))
         self.pending.append((t, temps, np.column_stack([a[ok], g[ok]])))
         edge = self.t0 + math.floor((self.t_last - self.t0) / self.cfg.bin_s) * self.cfg.bin_s
         t_all = np.concatenate([p[0] for p in self.pending])
@@ -207,8 +219,8 @@ def fit_bins(segments: Sequence[tuple[np.ndarray, Binned]], t_ref: dict, max_ord
     segs = [(np.asarray(d, float), _honest(b)) for d, b in segments if len(b) >= 2]
     if not segs:
         raise WarmupError("no bins to fit")
-    acc = [FaceSegment(d, b.temp_c[:, 0], b.mean[:, :3], b.sigma[:, :3]) for d, b in segs]
-    gyr = [FaceSegment(d, b.temp_c[:, 1:4], b.mean[:, 3:6], b.sigma[:, 3:6]) for d, b in segs]
+    acc = [FaceSegment(d, b.temp_c[:, 0], b.mean[:, :3], b.sigma[:, :3], b.t_s) for d, b in segs]
+    gyr = [FaceSegment(d, b.temp_c[:, 1:4], b.mean[:, 3:6], b.sigma[:, 3:6], b.t_s) for d, b in segs]
     try:
         return {"accel": fit_triad_faces(acc, t_ref["accel"], U.G0_MPS2, max_order, resolution_c=ACCEL_RES_C),
                 "gyro": fit_triad_faces(gyr, t_ref["gyro"], None, max_order, resolution_c=GYRO_RES_C)}
@@ -226,7 +238,7 @@ def export_fits(segments, t_ref: dict, fits: dict, max_order: int = 3) -> dict:
     for kind, col, words in (("px4", None, "the mean of the three ADXRS450 temperatures"),
                              ("ardupilot", 0, "the ADXL355 temperature (for accelerometer and gyro)")):
         g = [FaceSegment(d, b.temp_c[:, 1:4].mean(axis=1) if col is None else b.temp_c[:, col], b.mean[:, 3:6],
-                         b.sigma[:, 3:6]) for d, b in segs]
+                         b.sigma[:, 3:6], b.t_s) for d, b in segs]
         try:
             gf = fit_triad_faces(g, t_ref["gyro"], None, max_order, resolution_c=GYRO_RES_C)
         except ValueError as e:
@@ -237,7 +249,8 @@ def export_fits(segments, t_ref: dict, fits: dict, max_order: int = 3) -> dict:
 
 def _progress(st: _State, b: Binned) -> dict:
     rates, _ = _rates(b, st.cfg.stop_window_s)
-    span = [[float(b.temp_c[:, i].min()), float(b.temp_c[:, i].max())] for i in range(4)] if len(b) else [[math.nan] * 2] * 4
+    # the span covered: of the samples (a bin's mean lags the ends by half a bin of a fast rise)
+    span = [[float(st.seen_lo[i]), float(st.seen_hi[i])] for i in range(4)] if st.t0 is not None else [[math.nan] * 2] * 4
     p = {"elapsed_s": st.elapsed_s, "temp_c": [float(v) for v in (b.temp_c[-1] if len(b) else [math.nan] * 4)],
          "rate_c_per_min": [float(v) for v in rates], "span_c": span, "n_bins": len(b), "samples": st.n_samples,
          "fit": None}
@@ -247,20 +260,23 @@ def _progress(st: _State, b: Binned) -> dict:
     return p
 
 
-def _covered(b: Binned, span, tol: float) -> bool:
-    if span is None or not len(b):
+def _covered(st: _State, span, tol: float) -> bool:
+    """Every sensor's samples have reached both ends of span (within tol)."""
+    if span is None or st.t0 is None:
         return False
     lo, hi = span
-    return bool(np.all(b.temp_c.min(axis=0) <= lo + tol) and np.all(b.temp_c.max(axis=0) >= hi - tol))
+    return bool(np.all(st.seen_lo <= lo + tol) and np.all(st.seen_hi >= hi - tol))
 
 
 # ------------------------------------------------------------------ the run
 def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress: Callable[[dict], None] | None = None,
-               stop: threading.Event | None = None) -> dict:
+               stop: threading.Event | None = None, *, config_extra: dict | None = None) -> dict:
     """The whole warm-up on an open device, recorded in out_dir (thermal.json, capture.bin).
     Returns the final thermal.json content; its status is "done", "interrupted" (Ctrl-C, stop)
     or "failed" (a lost link: `error` says why), each with the fit of what came when there was
-    enough to fit. Raises WarmupError before streaming when the span cannot be covered."""
+    enough to fit. Raises WarmupError before streaming when the span cannot be covered, and the
+    link's error when the device does not answer at all (nothing is recorded then). config_extra:
+    more to keep in thermal.json's config (the CLI: the virtual bench's settings)."""
     say = hooks.say
     out_dir = Path(out_dir)
     if cfg.span_c is not None and hooks.reachable_c is not None:
@@ -268,7 +284,8 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         if cfg.span_c[0] < lo - cfg.span_tol_c or cfg.span_c[1] > hi + cfg.span_tol_c:
             raise WarmupError(f"span {cfg.span_c[0]:g}..{cfg.span_c[1]:g} °C: this bench brings the sensors from "
                               f"{lo:g} to about {hi:.1f} °C only")
-    rec = WarmupRecord(out_dir, cfg.to_json())
+    info = dev.info()            # a port with no device on it fails here, before anything is recorded
+    rec = WarmupRecord(out_dir, {**cfg.to_json(), **(config_extra or {})})
     say(f"recording in {rec.path} (raw stream: {out_dir / CAPTURE_NAME})")
     st = _State(cfg)
     status, error, reason = "done", None, None
@@ -277,7 +294,6 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
     old = None
     t_ref = None
     try:
-        info = dev.info()
         old = dev.get_params(ParamsWhich.ACTIVE).params
         t_ref = {"accel": float(old.accel_t_ref_c if cfg.t_ref_c is None else cfg.t_ref_c),
                  "gyro": float(old.gyro_t_ref_c if cfg.t_ref_c is None else cfg.t_ref_c)}
@@ -293,8 +309,19 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         dev.link.capture = capture
         rec.update(capture=CAPTURE_NAME, stage="warm-up")
         dev.start_stream(rate_hz=cfg.rate_hz, calibrated=False)
+        if cfg.span_c is not None and hooks.cool is None:
+            first = dev.read(n_samples=max(10, cfg.rate_hz // 2))
+            now_c = np.r_[U.accel_temp_counts_to_c(first.accel_temp_counts).mean(),
+                          U.gyro_temp_counts_to_c(first.gyro_temp_counts).mean(axis=0)]
+            if np.max(now_c) > cfg.span_c[0] + 2.0:
+                raise WarmupError(f"the sensors are at {_fmt(now_c)} °C already, above the span's lower end "
+                                  f"{cfg.span_c[0]:g} °C: cool the board first (a fridge), or start the span at "
+                                  f"{math.ceil(np.max(now_c)):g} °C")
         if hooks.warm is not None:
             hooks.warm()
+        say(f"streaming raw at {cfg.rate_hz} Hz while the board warms ({cfg.face.upper()} up, still); every "
+            f"{cfg.fit_every_s:g} s: time, temperatures ADXL355/gyro X/Y/Z, their rates, the span covered, the "
+            "fitted orders. Ctrl-C ends it with the fit of what came")
         reason = _stream(dev, st, rec, say, on_progress, stop, t_ref)
         if reason.startswith("stopped"):
             status = "interrupted"
@@ -302,9 +329,12 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         status, reason = "interrupted", "interrupted (Ctrl-C)"
     except (OSError, DeviceError, ImubenchError) as e:
         if isinstance(e, WarmupError) and st.t0 is None:
-            rec.update(status="failed", error=str(e))
+            rec.update(status="failed", error=str(e), stage="done")
             raise
         status, reason, error = "failed", "link lost", f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+    except BaseException as e:             # anything else (EOF at the prompt, a bug): say so on disk, raise
+        rec.update(status="failed", error=f"{type(e).__name__}: {e}", stage="done")
+        raise
     finally:
         if status == "done" or (status == "interrupted" and not dev.link.error):
             try:
@@ -331,12 +361,21 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
     fj = fit_json(fits, t_ref)
     rec.update(fit=fj)
     say(format_fit(fj))
+    png = plot_warmup(rec.data, out_dir / PLOT_NAME)
+    if png is not None:
+        rec.update(plot=PLOT_NAME)
+        say(f"plot: {png}")
     if cfg.exports:
-        files = TX.write_exports(out_dir, export_fits([(direction, b)], t_ref, fits, cfg.max_order), t_ref,
-                                 cfg.exports, comment=f"imubench warm-up {rec.data['started']}")
-        rec.update(exports={k: [str(p) for p in v] for k, v in files.items()})
-        for k, v in files.items():
-            say(f"{k}: {', '.join(str(p) for p in v)}")
+        try:
+            files = TX.write_exports(out_dir, export_fits([(direction, b)], t_ref, fits, cfg.max_order), t_ref,
+                                     cfg.exports, comment=f"imubench warm-up {rec.data['started']}")
+        except (WarmupError, OSError) as e:           # the fit is kept; the exports say why they are missing
+            rec.update(exports={"error": str(e)})
+            say(f"exports not written: {e}")
+        else:
+            rec.update(exports={k: [str(p) for p in v] for k, v in files.items()})
+            for k, v in files.items():
+                say(f"{k}: {', '.join(str(p) for p in v)}")
     if cfg.write:
         if status != "done":
             say("not written: the run did not finish (the fit of what came is in thermal.json)")
@@ -354,11 +393,17 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
     return rec.data
 
 
+def _fmt(v) -> str:
+    return "/".join(f"{x:.1f}" for x in v)
+
+
 def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -> str:
     cfg = st.cfg
     last_said = -math.inf
-    for blk in dev.stream(poll_s=0.1):
-        new = st.feed(blk)
+    while True:
+        # a stream that goes silent for cfg.stall_s raises LinkTimeout (the run ends "failed", fit
+        # kept); the stop event is seen within a read (0.2 s)
+        new = st.feed(dev.read(duration_s=0.2, timeout=cfg.stall_s))
         if stop is not None and stop.is_set():
             return "stopped (asked to)"
         if not new:
@@ -378,7 +423,7 @@ def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -
             say(format_progress(prog))
             rec.update(progress=prog)
         rates, full = _rates(b, cfg.stop_window_s)
-        if _covered(b, cfg.span_c, cfg.span_tol_c):
+        if _covered(st, cfg.span_c, cfg.span_tol_c) and len(b) >= 2 * MIN_BINS_TO_FIT:   # enough bins to fit
             return f"span {cfg.span_c[0]:g}..{cfg.span_c[1]:g} °C covered by every sensor"
         if full and np.all(np.abs(rates) < cfg.stop_rate_c_per_min):
             note = "" if cfg.span_c is None else " (span asked for NOT covered)"
@@ -386,7 +431,6 @@ def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -
                     f"{cfg.stop_window_s:g} s{note}")
         if st.elapsed_s >= cfg.max_s:
             return f"time is up ({cfg.max_s:g} s)" + ("" if cfg.span_c is None else " (span asked for NOT covered)")
-    return "the stream ended"
 
 
 # ------------------------------------------------------------------ the device's parameters
@@ -424,8 +468,13 @@ def params_from_warmup(old: Params, fits: dict, t_ref: dict) -> tuple[Params, li
         _set(p, f"{pre}_t_ref_c", float(t_ref[triad]))
         spans = np.array([a.bias.span_c for a in axes])
         lo, hi = math.ceil(float(spans[:, 0].max()) - 1e-9), math.floor(float(spans[:, 1].min()) + 1e-9)
-        if hi < lo:
-            lo = hi = int(round(float(np.mean(spans))))
+        if hi <= lo:
+            raise WarmupError(f"{triad}: the warm-up spans {spans[:, 0].max():.1f}..{spans[:, 1].min():.1f} °C, not "
+                              "a whole degree the device can hold: warm up over a wider span")
+        if not lo <= t_ref[triad] <= hi:
+            raise WarmupError(f"{triad}: the warm-up covered {lo}..{hi} °C (whole degrees inside its span), not the "
+                              f"reference temperature {t_ref[triad]:g} °C of the device's calibration: start colder or "
+                              "warm further (or give --t-ref inside the span)")
         _set(p, f"{pre}_t_min_c", int(lo))
         _set(p, f"{pre}_t_max_c", int(hi))
         if triad == "accel":
@@ -445,28 +494,26 @@ def params_from_warmup(old: Params, fits: dict, t_ref: dict) -> tuple[Params, li
 
 
 def expected_calibrated(p: Params, raw_accel, raw_gyro, temps) -> tuple[np.ndarray, np.ndarray]:
-    """The device's model (docs/conventions.md) on the host: calibrated accel and gyro from
-    nominal-scaled raw means (3,), at the temperatures (4,) (ADXL355, gyro X, Y, Z)."""
-    def triad(pre, unit, u, t):
-        ref = float(getattr(p, f"{pre}_t_ref_c"))
-        lo, hi = float(getattr(p, f"{pre}_t_min_c")), float(getattr(p, f"{pre}_t_max_c"))
-        dT = np.clip(np.asarray(t, float), lo, hi) - ref
-        c1 = np.asarray(getattr(p, f"{pre}_bias_tc_{unit}_per_c"), float)
-        c2 = np.asarray(getattr(p, f"{pre}_bias_tc2_{unit}_per_c2"), float)
-        c3 = np.asarray(getattr(p, f"{pre}_bias_tc3_{unit}_per_c3"), float)
-        bias = ((c3 * dT + c2) * dT + c1) * dT
-        return u - np.asarray(getattr(p, f"{pre}_b_{unit}"), float) - bias, dT
-    va, dTa = triad("accel", "mps2", np.asarray(raw_accel, float), np.full(3, temps[0]))
-    va = va / (1.0 + np.asarray(p.accel_scale_tc_per_c, float) * dTa)
-    a = np.linalg.solve(np.asarray(p.accel_m, float).reshape(3, 3), va)
-    vg, dTg = triad("gyro", "rad_s", np.asarray(raw_gyro, float), np.asarray(temps[1:4], float))
-    vg = (vg - np.asarray(p.gyro_g_rad_s_per_mps2, float).reshape(3, 3) @ a) / (1.0 + np.asarray(p.gyro_scale_tc_per_c, float) * dTg)
-    g = np.linalg.solve(np.asarray(p.gyro_m, float).reshape(3, 3), vg)
-    return a, g
+    """The device's model (docs/conventions.md; imubench.wire.params.correct, with the clamp) on
+    the host: calibrated accel and gyro from nominal-scaled raw means (3,), at the temperatures
+    (4,) (ADXL355, gyro X, Y, Z)."""
+    a = PR.correct(PR.accel(p), np.asarray(raw_accel, float)[None, :], np.array([temps[0]]))
+    g = PR.correct(PR.gyro(p), np.asarray(raw_gyro, float)[None, :], np.asarray(temps[1:4], float)[None, :],
+                   accel_mps2=a)
+    return a[0], g[0]
+
+
+def _read_now(dev, rate_hz: int, calibrated: bool, n: int, timeout_s: float):
+    dev.start_stream(rate_hz=rate_hz, calibrated=calibrated)
+    try:
+        dev.read(n_samples=max(20, n // 20), timeout=timeout_s)      # what was in flight before
+        return dev.read(n_samples=n, timeout=timeout_s)
+    finally:
+        dev.stop_stream()
 
 
 def write_warmup(dev, old: Params, fits: dict, t_ref: dict, b: Binned, cfg: WarmupConfig, say,
-                 n_check: int = 2000) -> dict:
+                 n_check: int = 1000) -> dict:
     """Write the warm-up's terms (write_verified), then check that the device applies them: the
     raw mean of n_check samples now and the calibrated mean right after must agree with the
     host's model within 5σ of the means plus what the temperature moved in between. On a
@@ -475,20 +522,15 @@ def write_warmup(dev, old: Params, fits: dict, t_ref: dict, b: Binned, cfg: Warm
     new, notes = params_from_warmup(old, fits, t_ref)
     for n in notes:
         say(f"note: {n}")
-    dev.start_stream(rate_hz=cfg.rate_hz, calibrated=False)
-    try:
-        dev.read(n_samples=max(20, n_check // 20))
-        raw = dev.read(n_samples=n_check)
-    finally:
-        dev.stop_stream()
+    wait_s = 10.0 + 2.0 * n_check / cfg.rate_hz      # an emulated board may run at half real time
+    raw = _read_now(dev, cfg.rate_hz, False, n_check, wait_s)
     wb = write_verified(dev, new, previous=old, say=say)
     say(f"written: {', '.join(wb['steps'])}")
-    dev.start_stream(rate_hz=cfg.rate_hz, calibrated=True)
     try:
-        dev.read(n_samples=max(20, n_check // 20))
-        cal = dev.read(n_samples=n_check)
-    finally:
-        dev.stop_stream()
+        cal = _read_now(dev, cfg.rate_hz, True, n_check, wait_s)
+    except (OSError, DeviceError) as e:
+        restore(dev, old)
+        raise WarmupError(f"could not check the written terms ({e}): the previous parameters were restored") from e
     ra, rg = raw.si()
     t_raw = np.r_[U.accel_temp_counts_to_c(raw.accel_temp_counts).mean(), U.gyro_temp_counts_to_c(raw.gyro_temp_counts).mean(axis=0)]
     t_cal = np.r_[U.accel_temp_counts_to_c(cal.accel_temp_counts).mean(), U.gyro_temp_counts_to_c(cal.gyro_temp_counts).mean(axis=0)]
@@ -526,8 +568,8 @@ def load_warmup(directory) -> tuple[np.ndarray, Binned, dict]:
     of a run that crashed), or those thermal.json kept when the capture is gone."""
     import json
 
-    from imubench.files import MAX_CAPTURE_BYTES, MAX_JSON_BYTES, read_bytes, read_text
-    from imubench.wire.decoder import decode_bytes
+    from imubench.files import MAX_JSON_BYTES, read_text
+    from imubench.wire.decoder import StreamDecoder
     d = Path(directory)
     try:
         data = json.loads(read_text(d / WarmupRecord.NAME, MAX_JSON_BYTES, "thermal.json"))
@@ -542,11 +584,17 @@ def load_warmup(directory) -> tuple[np.ndarray, Binned, dict]:
     bin_s = float(cfg.get("bin_s") or 10.0)
     cap = d / (data.get("capture") or CAPTURE_NAME)
     b = None
-    if cap.exists():
-        _, raw, _, _ = decode_bytes(read_bytes(cap, MAX_CAPTURE_BYTES, "the capture"))
-        if raw is not None and len(raw):
-            st = _State(WarmupConfig(bin_s=bin_s, stop_window_s=max(300.0, 3 * bin_s)))
-            st.feed(raw)
+    if cap.is_file():
+        # piece by piece: a 4-hour capture is ~90 MB of frames; only the bins are kept
+        st = _State(WarmupConfig(bin_s=bin_s, stop_window_s=max(300.0, 3 * bin_s)))
+        dec = StreamDecoder()
+        with open(cap, "rb") as fh:
+            while chunk := fh.read(1 << 20):
+                dec.feed(chunk)
+                blk = dec.take_samples(False)
+                if blk is not None and len(blk):
+                    st.feed(blk)
+        if st.bins:
             b = st.binned()
     if b is None:
         bj = data.get("bins")

@@ -193,6 +193,11 @@ def _thermal_section(path: Path | None, session_uid: str | None = None) -> str:
     if data is None:
         return "\n".join(out)
     out.append(f"<p>from {esc(Path(path).name)}</p>")
+    if isinstance(data, dict) and data.get("kind") == "imubench thermal warmup":
+        from imubench.results.thermal_warmup import warmup_html
+        with tempfile.TemporaryDirectory() as td:
+            out.append(warmup_html(data, esc, lambda png, alt: _img(png_data_uri(png), alt), Path(td)))
+        return "\n".join(out)
 
     def pm(v, s, fmt, scale):                  # value ± sigma in display units, to sigma's precision
         return esc(_pm_sigma(v, s, scale=scale, fixed_text="not measured"))

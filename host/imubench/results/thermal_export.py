@@ -55,6 +55,10 @@ def _span(axes) -> tuple[float, float]:
     return math.ceil(s[:, 0].max() * 10 - 1e-9) / 10, math.floor(s[:, 1].min() * 10 + 1e-9) / 10
 
 
+def _orders(axes) -> str:
+    return "/".join(str(a.bias.order) for a in axes)
+
+
 def _dropped(fits: dict) -> list[str]:
     out = []
     for k, a in enumerate(fits["accel"]):
@@ -73,6 +77,8 @@ def px4_text(fits: dict, t_ref: dict, gyro_temp: str, comment: str = "") -> str:
             "# TC_A0_ID / TC_G0_ID: replace 0 with the PX4 device id of the sensor (CAL_ACC0_ID / CAL_GYRO0_ID).",
             "# TC_A0: against the ADXL355 temperature. TC_G0: PX4 has one temperature per gyro sensor; ours are three",
             f"# ADXRS450s: these coefficients are fitted against {gyro_temp}, the temperature the driver must report.",
+            "# PX4 holds: a bias polynomial of order <= 3 per axis about TREF, clamped to TMIN..TMAX, one per sensor;",
+            f"# ours: orders accel {_orders(fits['accel'])}, gyro {_orders(fits['gyro'])} (x/y/z).",
             "# PX4 cannot hold: scale temperature terms, a temperature per gyro axis."]
     rows += [f"# {d}" for d in _dropped(fits)]
     rows += ["# Onboard parameters for Vehicle 1", "#", "# Vehicle-Id Component-Id Name Value Type"]
@@ -96,6 +102,8 @@ def ardupilot_text(fits: dict, t_ref: dict, imu_temp: str, comment: str = "") ->
              "# applied before INS_ACCOFFS/INS_ACCSCAL (INS_GYROFFS). Our polynomial re-expanded about 35 degC;",
              "# CALTEMP = our t_ref (the temperature our offsets belong to).",
              f"# ArduPilot has one temperature per IMU for accelerometer and gyro: these are fitted against {imu_temp}.",
+             "# ArduPilot holds: a bias polynomial of order <= 3 per axis about 35 degC without its constant term,",
+             f"# clamped to one TMIN..TMAX per IMU; ours: orders accel {_orders(fits['accel'])}, gyro {_orders(fits['gyro'])}.",
              "# ArduPilot cannot hold: scale temperature terms, a temperature per gyro axis, a constant term."]
     lines += [f"# {d}" for d in _dropped(fits)]
     lo = max(_span(fits["accel"])[0], _span(fits["gyro"])[0])
