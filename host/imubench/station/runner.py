@@ -1,15 +1,18 @@
 """Station: runs guided sessions (procedures.session.run_session) for the station page, one
 per device, each in its own thread; stops them on request and resumes them in their
-directory. The page's options become a SessionConfig here."""
+directory. The page's options become a SessionConfig here. A temperature warm-up
+(procedures.warmup.run_warmup) runs the same way, one per device, its progress on the
+device's column; Stop ends it keeping the fit of what came."""
 from __future__ import annotations
 
 import datetime as _dt
 import threading
+import time
 from pathlib import Path
 
 from imubench.errors import ImubenchError
 from imubench.station.presenter import SessionStopped, WebPresenter
-from imubench.station.security import PortPolicy, StationError, bool_field, int_field, text_field
+from imubench.station.security import PortPolicy, StationError, bool_field, int_field, number_field, text_field
 from imubench.station.state import Refused, StationState
 
 SIM_KEY = "sim"
@@ -18,6 +21,11 @@ GYRO_METHODS = ("bias", "turntable", "rotation", "turns", "none")
 CAPTURES = ("adaptive", "plan")
 OPTIONS = ("port", "method", "gyro", "capture", "write", "note", "rate_hz")
 NOTE_CHARS = 500
+WARMUP_OPTIONS = ("port", "span_lo_c", "span_hi_c", "face", "write", "rate_hz")
+FACES = ("+z", "-z", "+x", "-x", "+y", "-y")
+WARMUP_SPAN_C = (5.0, 45.0)          # the span a warm-up asks for unless the page says otherwise
+WARMUP_LIMITS_C = (-40.0, 85.0)      # the sensors' operating range (ADXL355, ADXRS450 data sheets)
+PROGRESS_MIN_INTERVAL_S = 0.2        # a warm-up's progress reaches the pages at most five times a second
 __all__ = ["Station", "StationError", "SIM_KEY"]
 
 
@@ -28,13 +36,19 @@ class Station:
     db          history database (None: the user's default, as `imubench calibrate`)
     sim_speed, sim_seed, person   the virtual bench ("sim" device): its speed, seed, and the
                 SimPerson's keyword arguments (procedures.virtual) who presents the attitudes
+    sim_thermal the virtual part's thermal model for a warm-up on the "sim" device: keyword
+                arguments of VirtualBench.set_thermal (tau_s, self_heat_c; None: the part's own,
+                drawn with its random truth)
+    warmup      WarmupConfig fields for every warm-up besides the page's options (bin_s,
+                stop_window_s, ...; default: WarmupConfig's)
     ports       the PortPolicy of the ports a page may open (default: serial devices, socket://
                 and rfc2217:// on this machine)
     """
 
     def __init__(self, state: StationState | None = None, workdir: str | Path = ".", db=None,
                  sim_speed: float = 20.0, sim_seed: int = 1, person: dict | None = None, history: bool = True,
-                 allow_sim: bool = True, ports: PortPolicy | None = None):
+                 allow_sim: bool = True, ports: PortPolicy | None = None, sim_thermal: dict | None = None,
+                 warmup: dict | None = None):
         self.ports = ports or PortPolicy()
         self.state = state or StationState()
         self.state.sim_available = allow_sim
@@ -44,6 +58,10 @@ class Station:
         self.sim_speed = sim_speed
         self.sim_seed = sim_seed
         self.person_kw = dict(person or {})
+        self.sim_thermal = dict(sim_thermal or {})
+        self.warmup_settings = dict(warmup or {})      # WarmupConfig fields besides the page's (tests: short runs)
+        self._warm_stop: dict[str, threading.Event] = {}   # a running warm-up's stop, per device
+        self._closing = False
         self._threads: dict[str, threading.Thread] = {}
         self._ui: dict[str, WebPresenter] = {}
         self._bench = None
@@ -124,6 +142,7 @@ class Station:
                 b.plan, b.steps, b.turns, b.log, b.live, b.targets, b.done_seq = [], [], [], [], {}, {}, 0
                 b.resumable = False
                 b.phase = "start"
+                b.warmup = {}
             self.state.update(key, f)
             self._launch(key, o, d, resume=resume)
         return key
@@ -153,6 +172,11 @@ class Station:
         ui = self._ui.get(key)
         if ui is None or not self.running(key):
             raise StationError(f"no session is running on {key[:80]}")
+        ev = self._warm_stop.get(key)
+        if ev is not None:                  # a warm-up: it ends and keeps the fit of what came
+            ui.say("stop asked on the page: the warm-up ends with the fit of what came")
+            ev.set()
+            return
         ui.stop()
 
     def _known(self, key: str) -> None:
@@ -172,6 +196,9 @@ class Station:
             t.join(timeout)
 
     def close(self) -> None:
+        self._closing = True
+        for ev in list(self._warm_stop.values()):
+            ev.set()
         for key, ui in list(self._ui.items()):
             ui.stop("stopped: the station was closed (Ctrl-C); everything captured is kept")
         for t in list(self._threads.values()):
@@ -184,9 +211,134 @@ class Station:
     def _launch(self, key: str, o: dict, directory: Path, resume: bool) -> None:
         ui = WebPresenter(self.state, key)
         self._ui[key] = ui
+        self._warm_stop.pop(key, None)
         t = threading.Thread(target=self._run, args=(key, o, directory, resume, ui), name=f"session {key}", daemon=True)
         self._threads[key] = t
         t.start()
+
+    # ------------------------------------------------------------------ a temperature warm-up
+    def warmup_options(self, raw: dict, page: bool = False) -> dict:
+        """A warm-up's options, checked (as options()): the port, the span asked for
+        (span_lo_c, span_hi_c, °C), the face up while it lies still, write, rate_hz."""
+        from imubench.wire.protocol_gen import STREAM_RATES_HZ
+        if page:
+            unknown = [k for k in raw if k not in WARMUP_OPTIONS]
+            if unknown:
+                raise StationError(f"unknown option {unknown[0][:32]!r} (the options are {', '.join(WARMUP_OPTIONS)})")
+        lo, hi = WARMUP_LIMITS_C
+        o = {"port": text_field(raw, "port", 256).strip(),
+             "span_lo_c": number_field(raw, "span_lo_c", WARMUP_SPAN_C[0], lo, hi),
+             "span_hi_c": number_field(raw, "span_hi_c", WARMUP_SPAN_C[1], lo, hi),
+             "face": text_field(raw, "face", 4) or "+z",
+             "write": bool_field(raw, "write", True),
+             "rate_hz": int_field(raw, "rate_hz", 200, STREAM_RATES_HZ)}
+        if not o["port"]:
+            raise StationError("give the device's port (e.g. /dev/ttyUSB0, socket://HOST:PORT) or choose the virtual bench")
+        if o["port"] == SIM_KEY and not self.state.sim_available:
+            raise StationError("the virtual bench is not offered: start the station with --sim")
+        if o["face"] not in FACES:
+            raise StationError(f"face must be one of {', '.join(FACES)} (the board axis that points up), not {o['face']!r}")
+        if o["span_hi_c"] - o["span_lo_c"] < 5.0:
+            raise StationError(f"the span {o['span_lo_c']:g}..{o['span_hi_c']:g} °C is too narrow: give at least 5 °C, "
+                               "low end first (a fridge to a room gives about 5..25 °C)")
+        if page:
+            self.check_port(o["port"])
+        return o
+
+    def start_warmup(self, raw: dict, token: str | None, directory: str | Path | None = None) -> str:
+        """Start a temperature warm-up on the page's device; returns the device key."""
+        o = self.warmup_options(raw, page=token is not None)
+        key = o["port"]
+        if token is not None and not self.claim(key, token):
+            raise StationError(f"{key} is driven from another page: this page only watches it", status=409)
+        with self._lock:
+            if self.running(key):
+                raise StationError(f"a session is already running on {key}")
+            stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+            d = Path(directory) if directory else self.workdir / f"imubench-warmup-{_safe(key)}-{stamp}"
+
+            def f(b):
+                b.status, b.error, b.phase, b.resumable = "running", None, "warmup", False
+                b.warmup = {"config": dict(o), "dir": str(d), "progress": {}, "result": None}
+                b.plan, b.steps, b.turns, b.log, b.live, b.targets, b.done_seq = [], [], [], [], {}, {}, 0
+                b.result, b.session_dir, b.config = None, None, {}
+            self.state.update(key, f)
+            ui = WebPresenter(self.state, key)
+            ev = threading.Event()
+            self._ui[key] = ui
+            self._warm_stop[key] = ev
+            t = threading.Thread(target=self._run_warmup, args=(key, o, d, ui, ev), name=f"warm-up {key}", daemon=True)
+            self._threads[key] = t
+            t.start()
+        return key
+
+    def _run_warmup(self, key: str, o: dict, d: Path, ui: WebPresenter, stop: threading.Event) -> None:
+        from imubench.device.link import Device
+        from imubench.procedures import warmup as W
+        latest: dict = {}
+        last = [0.0]
+
+        def on_progress(p: dict) -> None:
+            latest.clear()
+            latest.update(_plain(p))
+            now = time.monotonic()
+            if now - last[0] >= PROGRESS_MIN_INTERVAL_S:
+                last[0] = now
+                snap = dict(latest)
+                self.state.update(key, lambda b: b.warmup.__setitem__("progress", snap))
+
+        try:
+            lo, hi = o["span_lo_c"], o["span_hi_c"]
+            if key == SIM_KEY:
+                from imubench.device.sim import VirtualBench
+                if self._bench is None or not self._bench.running:
+                    self._bench = VirtualBench(speed=self.sim_speed, seed=self.sim_seed, truth="random")
+                hooks = W.sim_warmup_hooks(self._bench, cold_c=lo, warm_c=hi, say=ui.say,
+                                           tau_s=self.sim_thermal.get("tau_s"),
+                                           self_heat_c=self.sim_thermal.get("self_heat_c"))
+                th = self._bench.status().get("thermal") or {}
+                ui.say(f"virtual bench: thermal lag on (time constants {_fmt_list(th.get('tau_s'), '{:.0f}')} s, "
+                       f"self-heating {_fmt_list(th.get('self_heat_c'), '{:.1f}')} °C); it soaks the board at "
+                       f"{lo:g} °C (a night in a fridge), then the room goes to {hi:g} °C")
+                url = self._bench.port_url
+            else:
+                hooks = W.WarmupHooks(say=ui.say)
+                url = key
+                ui.say(f"the board lies still, {o['face']} up, while it warms from cold (e.g. out of a fridge) "
+                       f"towards {hi:g} °C: keep it away from drafts and do not touch it")
+            cfg = W.WarmupConfig(**{"span_c": (lo, hi), "rate_hz": o["rate_hz"], "face": o["face"], "write": o["write"],
+                                    **self.warmup_settings})
+            self.state.update(key, lambda b: b.warmup["config"].update(                 # the page's rate colours
+                stop_rate_c_per_min=cfg.stop_rate_c_per_min, stop_window_s=cfg.stop_window_s))
+            with Device.open(url, timeout=5.0) as dev:
+                from imubench.wire.ids import board_name, uid_text
+                info = dev.info()
+                self.state.update(key, lambda b: setattr(b, "device", {"board": board_name(info.board),
+                                                                       "uid": uid_text(info.mcu_uid), "url": url}))
+                result = W.run_warmup(dev, d, cfg, hooks, on_progress=on_progress, stop=stop)
+            summary = _warmup_summary(result, d, stopped=stop.is_set(), closing=self._closing)
+            failed = result.get("status") == "failed"
+
+            def f(b):
+                b.warmup["progress"] = dict(latest) or b.warmup.get("progress") or {}
+                b.warmup["result"] = summary
+                b.status, b.phase = ("failed" if failed else "done"), "end"
+                b.error = summary["verdict"] if failed else None
+                b.log.append(summary["verdict"])
+            self.state.update(key, f)
+        except Exception as e:  # noqa: BLE001 - the page shows why; thermal.json keeps what came
+            why = _one_line(e)
+
+            def g(b):
+                if latest:
+                    b.warmup["progress"] = dict(latest)
+                b.status, b.error, b.phase = "failed", why, "end"
+                b.log.append(f"failed: {why}; what came is in {d}")
+            self.state.update(key, g)
+        finally:
+            with self._lock:
+                if self._warm_stop.get(key) is stop:
+                    del self._warm_stop[key]
 
     def _device_url(self, key: str, ui: WebPresenter):
         if key != SIM_KEY:
@@ -341,6 +493,61 @@ def _summary(key: str, result: dict, d: Path, recorded: str | None) -> dict:
             "written": bool(result.get("written")), "verified": bool(result.get("verified")),
             "report": f"/report/{_safe(key)}/report.html" if report else None,
             "report_path": str(report) if report else None, "history": recorded, "session_dir": str(d)}
+
+
+def _plain(x):
+    """What on_progress or thermal.json hold, as JSON the page can take: numpy arrays and
+    scalars become lists and floats, tuples lists, keys strings."""
+    import numpy as np
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _plain(x.tolist())
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+def _fmt_list(v, f: str) -> str:
+    return "?" if not v else "/".join(f.format(x) for x in v)
+
+
+def _warmup_summary(result: dict, d: Path, stopped: bool, closing: bool = False) -> dict:
+    """What a finished warm-up's column shows: the verdict, the fit per triad and axis (order,
+    held-out error, 1σ of the curve over its span, the span), what could not be determined,
+    the write-back, where the files are."""
+    r = _plain(result or {})
+    status, why, wr = r.get("status"), r.get("stop_reason"), r.get("write") or {}
+    verified = bool(wr.get("verified"))
+    if status == "failed":
+        verdict = f"warm-up failed ({r.get('error') or why or 'no reason given'})"
+    elif stopped:
+        verdict = ("stopped: the station was closed" if closing else "stopped on the page") + \
+            ": the fit of what came is kept"
+    else:
+        verdict = f"warm-up finished: {why}" if why else "warm-up finished"
+    if r.get("fit") is None:
+        verdict += "; nothing fitted (too little data)"
+    elif verified:
+        verdict += "; written to the device and verified"
+    elif wr.get("error"):
+        verdict += f"; NOT written ({wr['error']}); the previous parameters are kept"
+    else:
+        verdict += "; not written"
+    fit, notes = {}, []
+    for triad, f in (r.get("fit") or {}).items():
+        axes = f.get("axes") or []
+        fit[triad] = [{"order": a.get("order"), "heldout_rms": a.get("heldout_rms"),
+                       "sigma_over_span": a.get("sigma_over_span"), "span_c": a.get("span_c")} for a in axes]
+        for k, a in enumerate(axes):
+            for n in (a.get("undetermined") or []) + (a.get("notes") or []):
+                notes.append(f"{triad} {'xyz'[k]}: {n}")
+    notes += [str(n) for n in wr.get("notes") or []]
+    return {"verdict": verdict, "stopped": stopped, "status": status, "written": verified, "fit": fit,
+            "notes": notes, "stop_reason": why, "dir": str(d), "thermal_json": str(Path(d) / "thermal.json"),
+            "exports": r.get("exports") or {}}
 
 
 def _safe(key: str) -> str:

@@ -295,6 +295,16 @@ def int_field(d: dict, name: str, default: int, allowed) -> int:
     return v
 
 
+def number_field(d: dict, name: str, default: float, lo: float, hi: float) -> float:
+    """A JSON number (not a boolean, not a string) within [lo, hi]."""
+    v = d.get(name)
+    if v is None:
+        return default
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
+        raise StationError(f"{name} must be a number from {lo:g} to {hi:g}, not {_kind(v)}")
+    return float(v)
+
+
 def _kind(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"

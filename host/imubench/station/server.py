@@ -15,7 +15,9 @@ token from a body or a URL.
     GET  /api/events           server-sent events: snapshots as they change (the cookie says whose)
     POST /api/claim            {key}: drive the device if it is free -> {key, yours}
     POST /api/start            {port, method, gyro, capture, write, note, rate_hz} (claims the device)
-    POST /api/stop, /api/resume  {key} (the owner only)
+    POST /api/warmup           {port, span_lo_c, span_hi_c, face, write, rate_hz}: a temperature
+                               warm-up on that device (claims it; procedures.warmup.run_warmup)
+    POST /api/stop, /api/resume  {key} (the owner only; a warm-up stops keeping the fit of what came)
     GET  /pose.svg?up=x,y,z    the board in that attitude (results.boardpic)
     GET  /turn.svg?axis=x,y,z&rate=R  (or &angle=A: a turn by hand)
     GET  /report/KEY/report.html  the session's HTML report
@@ -212,6 +214,12 @@ def create_app(station: Station, access: PageAccess | None = None):
         key = await asyncio.to_thread(station.start, d, tok)
         return JSONResponse({"key": key})
 
+    async def warmup(request: Request):
+        d = await body(request)
+        tok = need_identity(request)
+        key = await asyncio.to_thread(station.start_warmup, d, tok)
+        return JSONResponse({"key": key})
+
     async def stop(request: Request):
         d = await body(request)
         station.stop(key_of(d), need_identity(request))
@@ -233,6 +241,7 @@ def create_app(station: Station, access: PageAccess | None = None):
     routes = [Route("/", page), Route("/api/hello", hello, methods=["POST"]),
               Route("/api/state", snapshot), Route("/api/events", events),
               Route("/api/claim", claim, methods=["POST"]), Route("/api/start", start, methods=["POST"]),
+              Route("/api/warmup", warmup, methods=["POST"]),
               Route("/api/stop", stop, methods=["POST"]), Route("/api/resume", resume, methods=["POST"]),
               Route("/pose.svg", pose_svg), Route("/turn.svg", turn_svg),
               Route("/report/{key}/report.html", report), Mount("/static", StaticFiles(directory=static_dir))]

@@ -45,6 +45,8 @@ class DeviceBoard:
     suggested: str | None = None                      # the missing attitude that helps the fit most
     fixture: dict = field(default_factory=dict)       # a station session's board: slot, stage, state,
                                                       # message, progress, reason, waiting (fixture.BoardStatus)
+    warmup: dict = field(default_factory=dict)        # a temperature warm-up: config, progress (run_warmup's
+                                                      # on_progress), result, dir; {} if none ran
     owner: str | None = field(default=None, repr=False)
     owner_seen: float = 0.0
     by_page: bool = field(default=False, repr=False)  # added by a page's claim (bounded), not by a command

@@ -154,6 +154,12 @@
     el.dataset.key = key;
     $(".stop", el).onclick = () => post("/api/stop", { key: key }).catch((e) => alert(e.message));
     $(".resume", el).onclick = () => post("/api/resume", { key: key }).catch((e) => alert(e.message));
+    $(".warm-stop", el).onclick = () => post("/api/stop", { key: key }).catch((e) => alert(e.message));
+    $(".warm-start", el).onclick = () => {
+      $(".warm-error", el).textContent = "";
+      startWarmup(key, $(".warm-lo", el).value, $(".warm-hi", el).value, $(".warm-face", el).value,
+        $(".warm-write", el).checked).catch((e) => { $(".warm-error", el).textContent = e.message; });
+    };
     $("#boards").appendChild(el);
     cols[key] = el;
     return el;
@@ -171,7 +177,7 @@
     ow.textContent = b.yours ? "you drive this device" : b.owned ? "read-only: driven from another page" : "";
     ow.className = "owner pill" + (b.owned && !b.yours ? " readonly-banner" : "");
     el.classList.toggle("readonly", b.owned && !b.yours);
-    $(".stop", el).hidden = !(b.yours && b.status === "running");
+    $(".stop", el).hidden = !(b.yours && b.status === "running" && b.phase !== "warmup");   // a warm-up has its own
     $(".resume", el).hidden = !(b.yours && b.resumable && b.status !== "running");
     $(".error-line", el).textContent = b.error && !b.result ? b.error + (b.resumable ? " — the captured attitudes are kept: Resume continues" : "") : "";
 
@@ -183,6 +189,7 @@
       v.innerHTML = `<b>${b.result.status === "pass" ? "PASSED" : "FAILED"}</b>: ${esc(b.result.verdict)}`;
     } else v.hidden = true;
 
+    renderWarmup(el, b);
     renderLive(el, b);
     renderTargets(el, b);
     renderCards(el, b);
@@ -248,6 +255,99 @@
         `${fmt(t.rate_dps, 0)} °/s about board [${t.axis.map((x) => fmt(x, 0)).join(", ")}] for ${fmt(t.duration_s, 1)} s</div>`).join("");
   }
 
+  // ------------------------------------------------------------------ a temperature warm-up
+  // run_warmup's progress (procedures.warmup: elapsed_s, temp_c[4], rate_c_per_min[4],
+  // span_c[4][2], fit per triad {order, heldout_rms}), then its result
+  const SENSORS = ["ADXL355", "gyro X", "gyro Y", "gyro Z"];
+  async function startWarmup(port, lo, hi, face, write) {
+    const body = { port: port, span_lo_c: Number(lo), span_hi_c: Number(hi), face: face, write: !!write };
+    if (!isFinite(body.span_lo_c) || !isFinite(body.span_hi_c) || lo === "" || hi === "") throw new Error("give the span as two temperatures in °C");
+    if (!(await claim(port))) throw new Error(port + " is driven from another page");
+    return post("/api/warmup", body);
+  }
+
+  // a held-out error in the triad's unit: accelerometer m/s² -> mg, gyro rad/s -> m°/s
+  function errText(name, v) {
+    if (v == null || !isFinite(v)) return "–";
+    if (/acc/i.test(name)) return `${fmt(v / 9.80665e-3, 3)} mg`;
+    if (/gyr/i.test(name)) return `${fmt(v * 180 / Math.PI * 1000, 2)} m°/s`;
+    return Number(v).toPrecision(2);
+  }
+
+  function fitRows(fit) {
+    // per triad: {order, heldout_rms} (numbers or one per axis), or a list of those per axis
+    const rows = [];
+    for (const [name, f] of Object.entries(fit || {})) {
+      const per = Array.isArray(f) ? f : f && Array.isArray(f.order)
+        ? f.order.map((o, i) => ({ order: o, heldout_rms: (f.heldout_rms || [])[i], sigma: (f.sigma || [])[i] })) : null;
+      if (per) per.forEach((x, i) => rows.push([`${name} ${"XYZ"[i] !== undefined ? "XYZ"[i] : i}`, x || {}]));
+      else rows.push([name, f || {}]);
+    }
+    return rows;
+  }
+
+  function renderWarmup(el, b) {
+    const W = b.warmup || {};
+    const mine = b.yours || !b.owned;
+    const running = b.status === "running" && b.phase === "warmup";
+    el.classList.toggle("warming", !!W.config && !b.plan.length);
+    $(".warm-stop", el).hidden = !(b.yours && running);
+    $(".warm-form", el).hidden = !(mine && b.status !== "running");
+    const st = $(".warm-state", el);
+    st.textContent = W.config ? (running ? "running" : W.result ? (W.result.stopped ? "stopped, fit kept" : "done") : b.status) : "";
+    st.className = "warm-state pill " + (running ? "running" : W.result ? "done" : b.status === "failed" ? "failed" : "");
+    st.hidden = !W.config;
+    const live = $(".warm-live", el);
+    live.hidden = !W.config;
+    if (!W.config) return;
+    const C = W.config, P = W.progress || {}, R = W.result;
+    const lo = C.span_lo_c, hi = C.span_hi_c;
+    const el_s = P.elapsed_s;
+    const mm = el_s == null ? "–" : `${Math.floor(el_s / 60)} min ${fmt(el_s % 60, 0).padStart(2, "0")} s`;
+    $(".warm-summary", el).innerHTML = (R ? `<b>${esc(R.verdict)}</b>. ` : running ? "The board lies still, " +
+      `${esc(C.face)} up, while it warms: ` : "") + `span asked ${fmt(lo, 0)}–${fmt(hi, 0)} °C; ${mm} of device time` +
+      (running ? "; it stops when every sensor has covered the span or the temperatures stop rising" : "");
+    const T = P.temp_c || [], Rt = P.rate_c_per_min || [], S = P.span_c || [];
+    const bars = [];
+    let rows = "<tr><th>sensor</th><th>now</th><th>rate</th><th>covered</th><th>of the span asked</th></tr>";
+    for (let i = 0; i < 4; i++) {
+      const s = S[i] || [null, null];
+      const a = s[0] == null ? 0 : Math.max(0, Math.min(1, (s[0] - lo) / (hi - lo)));
+      const z = s[1] == null ? 0 : Math.max(0, Math.min(1, (s[1] - lo) / (hi - lo)));
+      const now = T[i] == null ? null : Math.max(0, Math.min(1, (T[i] - lo) / (hi - lo)));
+      const full = s[0] != null && s[0] <= lo + 0.5 && s[1] >= hi - 0.5;
+      const r = Rt[i];
+      rows += `<tr><td>${SENSORS[i]}</td><td>${fmt(T[i], 2)} °C</td>` +
+        `<td class="${r == null ? "" : Math.abs(r) < (C.stop_rate_c_per_min || 0.05) ? "flat" : "rising"}">${r == null ? "–" : (r >= 0 ? "+" : "") + fmt(r, 2)} °C/min</td>` +
+        `<td>${s[0] == null ? "–" : `${fmt(s[0], 1)}–${fmt(s[1], 1)} °C`}</td>` +
+        `<td class="span-cell"><div class="span-bar"><div class="span-covered${full ? " full" : ""}"></div>` +
+        `<div class="span-now"${now == null ? " hidden" : ""}></div></div></td></tr>`;
+      bars.push([a, z, now]);
+    }
+    const tbl = $(".warm-temps", el);
+    tbl.innerHTML = rows;
+    // positions through the CSSOM: the page's Content-Security-Policy refuses inline style attributes
+    tbl.querySelectorAll(".span-bar").forEach((bar, i) => {
+      const [a, z, now] = bars[i];
+      bar.firstElementChild.style.left = fmt(100 * a, 1) + "%";
+      bar.firstElementChild.style.width = fmt(100 * Math.max(0, z - a), 1) + "%";
+      if (now != null) bar.lastElementChild.style.left = `calc(${fmt(100 * now, 1)}% - 1px)`;
+    });
+    const fit = (R && R.fit) || P.fit;
+    const fr = fitRows(fit);
+    const sig = fr.some(([, f]) => f.sigma_over_span != null);
+    $(".warm-fit", el).innerHTML = fr.length ? "<tr><th>bias against temperature</th><th>order</th><th>held-out error</th>" +
+      (sig ? "<th>1σ of the curve</th>" : "") + "</tr>" +
+      fr.map(([n, f]) => `<tr><td>${esc(n)}</td><td>${f.order == null ? "–" : esc(f.order)}</td><td>${errText(n, f.heldout_rms)}</td>` +
+        (sig ? `<td>${errText(n, f.sigma_over_span)}</td>` : "") + "</tr>").join("")
+      : `<tr><td>${running ? "the fit appears once the temperatures have moved" : "nothing fitted"}</td></tr>`;
+    const notes = [...new Set([...(P.notes || []), ...((R && R.notes) || [])])];
+    if (!R && running) notes.push(`one face (${C.face} up): the accelerometer's scale temperature terms need more faces ` +
+      "(a cube); the axis along gravity gets its bias and scale terms together, right at this attitude");
+    $(".warm-notes", el).innerHTML = notes.map((n) => `<li>${esc(n)}</li>`).join("");
+    $(".warm-files", el).textContent = R ? `saved: ${R.thermal_json}` : W.dir ? `recording in ${W.dir}` : "";
+  }
+
   function renderCards(el, b) {
     const box = $(".cards", el);
     const done = b.plan.filter((c) => c.state === "done").length;
@@ -299,6 +399,16 @@
       if (!opts.port) throw new Error("give the device's port, or choose the virtual bench");
       if (!(await claim(opts.port))) throw new Error(opts.port + " is driven from another page");
       await post("/api/start", opts);
+    } catch (e) { $("#setup-error").textContent = e.message; }
+  };
+
+  $("#start-warmup").onclick = async () => {
+    $("#setup-error").textContent = "";
+    const port = $("#use-sim").checked ? "sim" : ($("#port").value || "").trim();
+    try {
+      if (!port) throw new Error("give the device's port, or choose the virtual bench");
+      await startWarmup(port, $("#warm-lo").value, $("#warm-hi").value, $("#warm-face").value,
+        $("#setup-form").elements.write.checked);
     } catch (e) { $("#setup-error").textContent = e.message; }
   };
 
