@@ -122,7 +122,7 @@ class WarmupHooks:
 
 def sim_warmup_hooks(vb, cold_c: float = 5.0, warm_c: float = 45.0, tau_s=None, self_heat_c=None,
                      say: Callable[[str], None] = lambda s: None) -> WarmupHooks:
-    """Hooks for a VirtualBench with the thermal model (t-sim): cool = the thermal model on (tau_s,
+    """Hooks for a VirtualBench with the thermal model: cool = the thermal model on (tau_s,
     self_heat_c: None keeps or draws them) and a soak at cold_c (ambient and every die at once,
     as after hours in a fridge); warm = the ambient to warm_c (the dies follow with their lag,
     plus self-heating)."""
