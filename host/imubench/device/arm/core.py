@@ -46,6 +46,8 @@ _MMIO_READ = ctypes.CFUNCTYPE(ctypes.c_uint64, ctypes.c_void_p, ctypes.c_uint64,
 _MMIO_WRITE = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_uint64, ctypes.c_uint, ctypes.c_uint64, ctypes.c_void_p)
 
 EXC_RETURN_THREAD_MSP = 0xFFFFFFF9
+XPSR_T = 1 << 24
+XPSR_KEPT_ON_ENTRY = 0xF80F0000   # N Z C V Q and GE[3:0]: exception entry leaves them as they were
 EXCP_EXCEPTION_EXIT = 8      # QEMU's EXCP_EXCEPTION_EXIT, reported through UC_HOOK_INTR
 FRAME_REGS = (A.UC_ARM_REG_R0, A.UC_ARM_REG_R1, A.UC_ARM_REG_R2, A.UC_ARM_REG_R3, A.UC_ARM_REG_R12,
               A.UC_ARM_REG_LR, A.UC_ARM_REG_PC, A.UC_ARM_REG_XPSR)
@@ -142,9 +144,10 @@ class Cpu:
         self.wfi = False
         self.fp_saved: list[list[int] | None] = []
         self._hooks = []
-        # exception entry reads the frame + SP + CONTROL, writes SP, IPSR, LR, PC
+        # exception entry reads the frame + SP + CONTROL, writes SP, xPSR, IPSR, LR, PC
         self._rd_entry = RegBatch(uc, list(FRAME_REGS) + [A.UC_ARM_REG_SP, A.UC_ARM_REG_CONTROL])
-        self._wr_entry = RegBatch(uc, [A.UC_ARM_REG_SP, A.UC_ARM_REG_IPSR, A.UC_ARM_REG_LR, A.UC_ARM_REG_PC])
+        self._wr_entry = RegBatch(uc, [A.UC_ARM_REG_SP, A.UC_ARM_REG_XPSR, A.UC_ARM_REG_IPSR, A.UC_ARM_REG_LR,
+                                       A.UC_ARM_REG_PC])
         self._rd_sp = RegBatch(uc, [A.UC_ARM_REG_SP])
         self._wr_exit = RegBatch(uc, list(FRAME_REGS[:7]) + [A.UC_ARM_REG_SP, A.UC_ARM_REG_XPSR, A.UC_ARM_REG_IPSR,
                                                              A.UC_ARM_REG_PC])
@@ -293,7 +296,13 @@ class Cpu:
         else:
             self.fp_saved.append(None)
         handler = struct.unpack("<I", bytes(uc.mem_read(vtor + 4 * exc, 4)))[0]
-        self._wr_entry.write([sp, exc, EXC_RETURN_THREAD_MSP, handler & ~1])
+        # The handler starts with EPSR.IT cleared (B1.5.6: ITSTATE = 0) and T set; the
+        # flags (N Z C V Q, GE) are kept. Unicorn keeps the interrupted code's IT state
+        # otherwise: stopped inside an IT block (a translation block ends at a 1 KB page),
+        # the handler's first instructions would run as that block's conditional ones.
+        # The stacked xPSR (Unicorn's XPSR read includes IT) gives it back on return.
+        entry_xpsr = (frame[7] & XPSR_KEPT_ON_ENTRY) | XPSR_T | exc
+        self._wr_entry.write([sp, entry_xpsr, exc, EXC_RETURN_THREAD_MSP, handler & ~1])
 
     def exit_exception(self) -> None:
         """Exception return through EXC_RETURN (B1.5.8 ExceptionReturn + PopStack)."""
