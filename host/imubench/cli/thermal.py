@@ -55,7 +55,7 @@ def register(sub) -> None:
     p.add_argument("--settle-timeout", type=positive_float, default=7200.0, metavar="S",
                    help="give up waiting for a temperature after this many seconds")
     add_sim(p, "run on a virtual device with temperature coefficients in its truth; its bench drives "
-               "temperature, orientation and turntable")
+               "temperature, orientation and turntable (--sim-speed: default 20; 100 with --warmup)", speed=None)
     p.add_argument("--ramp", type=non_negative_float, default=None, metavar="C_PER_S",
                    help="with --sim: the virtual chamber's ramp in °C/s (default 0.5; 0 = at once)")
     w = p.add_argument_group("warm-up method (no chamber: the board warms from cold while it lies still; "
@@ -74,7 +74,7 @@ def register(sub) -> None:
     w.add_argument("--stop-window", type=positive_float, default=None, metavar="S",
                    help="... over this many seconds of device time (default 300; --sim 30)")
     w.add_argument("--max-time", type=positive_float, default=None, metavar="S",
-                   help="give up after this many seconds of device time (default 14400; --sim 1200)")
+                   help="give up after this many seconds of device time (default 14400; --sim 3600)")
     w.add_argument("--bin", type=positive_float, default=None, metavar="S", help="bin length, s (default 10; --sim 2)")
     w.add_argument("--cold", type=float, default=5.0, metavar="C", help="with --sim: the virtual fridge, °C")
     w.add_argument("--warm", type=float, default=45.0, metavar="C", help="with --sim: the room it warms in, °C")
@@ -159,7 +159,7 @@ def run(a) -> int:
 
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, target=a.target)
+        bench = VirtualBench(speed=a.sim_speed or 20.0, seed=a.sim_seed, target=a.target)
     with bench if a.sim else nullcontext() as vb:
         if vb is not None:
             vb.set_truth(accel=SIM_ACCEL_TRUTH, gyro=SIM_GYRO_TRUTH)
@@ -215,7 +215,7 @@ def run_warmup_cmd(a) -> int:
         cfg = W.WarmupConfig(span_c=a.span, face=a.face, write=a.write, exports=a.export or (),
                              stop_rate_c_per_min=a.stop_rate or (0.3 if sim else 0.05),
                              stop_window_s=a.stop_window or (30.0 if sim else 300.0),
-                             max_s=a.max_time or (1200.0 if sim else 4 * 3600.0), bin_s=a.bin or (2.0 if sim else 10.0),
+                             max_s=a.max_time or (3600.0 if sim else 4 * 3600.0), bin_s=a.bin or (2.0 if sim else 10.0),
                              fit_every_s=20.0 if sim else 60.0, rate_hz=100 if sim else 200, t_ref_c=a.t_ref)
     except ValueError as e:
         raise UsageError(str(e), "see imubench thermal --help") from None
@@ -223,7 +223,8 @@ def run_warmup_cmd(a) -> int:
                               if (out / WarmupRecord.NAME).exists() else "nothing was recorded")
     if sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, target=a.target, truth="random")
+        # a warm-up lasts tens of minutes of device time: the virtual part runs it faster
+        bench = VirtualBench(speed=a.sim_speed or 100.0, seed=a.sim_seed, target=a.target, truth="random")
     with bench if sim else nullcontext() as vb:
         if vb is not None:
             tau = None if a.tau is None else [a.tau] * 4
