@@ -15,23 +15,7 @@ from procio import finish, wait_for_line
 from imubench.station.runner import SIM_KEY, Station
 from imubench.station.server import Server
 
-CHROMIUM = Path("/usr/bin/chromium")
 ARTIFACTS = Path(__file__).resolve().parents[2] / "build" / "test-artifacts"
-FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-         "--disable-sync", "--no-first-run"]
-
-
-@pytest.fixture()
-def browser():
-    if not CHROMIUM.is_file():
-        pytest.fail("chromium is missing: `make system-deps` installs Debian's chromium (SYSTEM_PKGS)")
-    from playwright.sync_api import sync_playwright
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
-        try:
-            yield b
-        finally:
-            b.close()
 
 
 def test_a_whole_session_on_the_station_page(tmp_path, browser):

@@ -28,11 +28,7 @@ from procio import finish, wait_for_line
 from imubench.station.runner import Station
 from imubench.station.server import Server
 
-CHROMIUM = Path("/usr/bin/chromium")
-# the screenshots (docs/ holds copies of them: a test run leaves the documentation untouched)
 SHOTS = Path(__file__).resolve().parents[2] / "build" / "test-artifacts"
-FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-         "--disable-sync", "--no-first-run"]
 SCREEN = {"width": 1366, "height": 768}
 
 FITS = """() => {
@@ -43,19 +39,6 @@ FITS = """() => {
           last: Math.max(...tiles.map((t) => t.getBoundingClientRect().bottom)), clipped: clipped.length,
           minFont: Math.min(...tiles.map((t) => parseFloat(getComputedStyle(t).fontSize)))};
 }"""
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not CHROMIUM.is_file():
-        pytest.fail("chromium is missing: `make system-deps` installs Debian's chromium (SYSTEM_PKGS)")
-    from playwright.sync_api import sync_playwright
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
-        try:
-            yield b
-        finally:
-            b.close()
 
 
 def _uid(k: int) -> str:

@@ -25,25 +25,9 @@ import pytest
 from imubench.station.runner import SIM_KEY, Station
 from imubench.station.server import Server
 
-CHROMIUM = Path("/usr/bin/chromium")
 ARTIFACTS = Path(__file__).resolve().parents[2] / "build" / "test-artifacts"
-FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-         "--disable-sync", "--no-first-run"]
 SHORT = {"tau_s": [20.0, 30.0, 25.0, 28.0], "self_heat_c": [1.0, 3.0, 2.0, 3.0]}
 QUICK = {"rate_hz": 100, "bin_s": 2.0, "stop_window_s": 30.0, "stop_rate_c_per_min": 0.3, "fit_every_s": 10.0}
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not CHROMIUM.is_file():
-        pytest.fail("chromium is missing: `make system-deps` installs Debian's chromium (SYSTEM_PKGS)")
-    from playwright.sync_api import sync_playwright
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
-        try:
-            yield b
-        finally:
-            b.close()
 
 
 TEMPS = """() => [...document.querySelectorAll('.board-col .warm-temps tr')].slice(1).map((r) =>
