@@ -30,3 +30,23 @@ def c_harness() -> Path:
     """The C vector harness (tests/c/vector_harness.c), built for the host."""
     make("build/host/tests/vector_harness")
     return HOST_BUILD / "tests" / "vector_harness"
+
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                  "--disable-component-update", "--disable-sync", "--no-first-run"]
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """Headless Chromium for the station page tests (Debian's chromium, installed by `make
+    system-deps`): a missing browser fails the test, it never skips it."""
+    if not CHROMIUM.is_file():
+        pytest.fail("chromium is missing: `make system-deps` installs Debian's chromium (SYSTEM_PKGS)")
+    from playwright.sync_api import sync_playwright
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_FLAGS)
+        try:
+            yield b
+        finally:
+            b.close()
