@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy import stats
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
 from imubench.procedures.session import (
@@ -192,8 +193,8 @@ def test_a_failed_write_back_keeps_the_previous_parameters(tmp_path):
 
 
 def test_session_accuracy_over_random_truths(tmp_path):
-    """Issue 5's statistics on the virtual device: over many random truths, every estimated
-    parameter within 3 sigma in ≥ 99 % of cases, and the z-scores' spread ≈ 1 (the reported
+    """Issue 5's statistics on the virtual device: over many random truths, no more estimates
+    beyond 3 sigma than a binomial count allows, and the z-scores' spread ≈ 1 (the reported
     sigma agrees with the actual scatter within 20 %)."""
     zs = []
     with VirtualBench(speed=20, seed=100, truth="random") as vb:
@@ -203,10 +204,14 @@ def test_session_accuracy_over_random_truths(tmp_path):
             _, result = _run(vb, tmp_path, write=False, name=f"acc{k}", hold=1.0)
             zs.append(_z_scores(result, vb.get_truth()))
     z = np.concatenate(zs)
-    inside = np.mean(np.abs(z) < 3.0)
+    outside = int(np.sum(np.abs(z) >= 3.0))
     spread = np.std(z)
-    print(f"{len(z)} parameter estimates: {inside:.1%} within 3 sigma, z spread {spread:.3f}")
-    assert inside >= 0.99
+    # with sigmas that are right, the count beyond 3 sigma is binomial(n, 0.27 %): allow what
+    # that exceeds only once in 1000 runs (4 of 240; "≥ 99 % inside" failed 3 % of runs of a
+    # perfect estimator and more under the suite's load)
+    allowed = int(stats.binom.ppf(0.999, len(z), 2 * stats.norm.sf(3.0)))
+    print(f"{len(z)} parameter estimates: {outside} beyond 3 sigma (allowed {allowed}), z spread {spread:.3f}")
+    assert outside <= allowed
     assert 0.8 <= spread <= 1.2
 
 
