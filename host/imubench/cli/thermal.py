@@ -259,6 +259,7 @@ def run_warmup_cmd(a) -> int:
 
 def _fit_warmups(a, out: Path, say) -> int:
     from imubench.procedures import warmup as W
+    from imubench.procedures import warmup_files as WF
     from imubench.results.atomic import write_json_atomic
     from imubench.results.record import now_utc
     from imubench.results.thermal_warmup import fit_json, format_fit
@@ -267,7 +268,7 @@ def _fit_warmups(a, out: Path, say) -> int:
     if a.write and not a.port:
         raise UsageError("--write needs the device: give --port URL", "the fit is written to the board it came from")
     try:
-        fits, t_ref, runs = W.fit_warmups(a.fit_warmups, t_ref_c=a.t_ref)
+        fits, t_ref, runs = WF.fit_warmups(a.fit_warmups, t_ref_c=a.t_ref)
     except W.WarmupError as e:
         raise CommandError(str(e), "give directories written by imubench thermal --warmup") from None
     fj = fit_json(fits, t_ref)
@@ -278,7 +279,7 @@ def _fit_warmups(a, out: Path, say) -> int:
             "sources": [str(x) for x in a.fit_warmups], "faces": [(r.get("config") or {}).get("face") for r in runs],
             "device": runs[0].get("device"), "t_ref_c": t_ref, "fit": fj, "exports": {}}
     if a.export:
-        segs = [W.load_warmup(x)[:2] for x in a.fit_warmups]
+        segs = [WF.load_warmup(x)[:2] for x in a.fit_warmups]
         files = TX.write_exports(out, W.export_fits(segs, t_ref, fits), t_ref, a.export,
                                  comment=f"imubench warm-ups {', '.join(data['faces'])}")
         data["exports"] = {k: [str(p) for p in v] for k, v in files.items()}

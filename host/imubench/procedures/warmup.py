@@ -156,6 +156,7 @@ class _State:
     t_last: float = 0.0
     seen_lo: np.ndarray = field(default_factory=lambda: np.full(4, np.inf))    # per sensor, of the samples
     seen_hi: np.ndarray = field(default_factory=lambda: np.full(4, -np.inf))
+    temp_now: np.ndarray | None = None      # the latest block's mean temperatures (a bin's mean lags)
 
     def feed(self, b) -> int:
         """Add a raw block; bin what completes a bin. Returns the number of new bins."""
@@ -173,6 +174,7 @@ class _State:
         self.t_last = float(t[-1])
         self.seen_lo = np.minimum(self.seen_lo, temps.min(axis=0))
         self.seen_hi = np.maximum(self.seen_hi, temps.max(axis=0))
+        self.temp_now = temps.mean(axis=0)
         self.pending.append((t, temps, np.column_stack([a[ok], g[ok]])))
         edge = self.t0 + math.floor((self.t_last - self.t0) / self.cfg.bin_s) * self.cfg.bin_s
         t_all = np.concatenate([p[0] for p in self.pending])
@@ -251,7 +253,8 @@ def _progress(st: _State, b: Binned) -> dict:
     rates, _ = _rates(b, st.cfg.stop_window_s)
     # the span covered: of the samples (a bin's mean lags the ends by half a bin of a fast rise)
     span = [[float(st.seen_lo[i]), float(st.seen_hi[i])] for i in range(4)] if st.t0 is not None else [[math.nan] * 2] * 4
-    p = {"elapsed_s": st.elapsed_s, "temp_c": [float(v) for v in (b.temp_c[-1] if len(b) else [math.nan] * 4)],
+    now = st.temp_now if st.temp_now is not None else (b.temp_c[-1] if len(b) else [math.nan] * 4)
+    p = {"elapsed_s": st.elapsed_s, "temp_c": [float(v) for v in now],
          "rate_c_per_min": [float(v) for v in rates], "span_c": span, "n_bins": len(b), "samples": st.n_samples,
          "fit": None}
     if st.fits is not None:
@@ -560,62 +563,3 @@ def write_warmup(dev, old: Params, fits: dict, t_ref: dict, b: Binned, cfg: Warm
         raise WarmupError(f"device check failed (accel diff {np.round(da * 1e6 / U.G0_MPS2, 1).tolist()} µg, gyro diff "
                           f"{np.round(dg * 180e3 / math.pi, 2).tolist()} m°/s): previous parameters restored")
     return out
-
-
-# ------------------------------------------------------------------ several warm-ups (a cube)
-def load_warmup(directory) -> tuple[np.ndarray, Binned, dict]:
-    """A warm-up directory's face and bins: the bins re-cut from capture.bin (every sample, also
-    of a run that crashed), or those thermal.json kept when the capture is gone."""
-    import json
-
-    from imubench.files import MAX_JSON_BYTES, read_text
-    from imubench.wire.decoder import StreamDecoder
-    d = Path(directory)
-    try:
-        data = json.loads(read_text(d / WarmupRecord.NAME, MAX_JSON_BYTES, "thermal.json"))
-    except (OSError, ValueError) as e:
-        raise WarmupError(f"{d}: no readable thermal.json of a warm-up ({e})") from None
-    if not isinstance(data, dict) or data.get("kind") != "imubench thermal warmup":
-        raise WarmupError(f"{d / WarmupRecord.NAME} is not a warm-up (kind {data.get('kind') if isinstance(data, dict) else '?'!r})")
-    cfg = data.get("config") or {}
-    face = cfg.get("face", "+z")
-    if face not in POSES:
-        raise WarmupError(f"{d}: face {face!r} unknown")
-    bin_s = float(cfg.get("bin_s") or 10.0)
-    cap = d / (data.get("capture") or CAPTURE_NAME)
-    b = None
-    if cap.is_file():
-        # piece by piece: a 4-hour capture is ~90 MB of frames; only the bins are kept
-        st = _State(WarmupConfig(bin_s=bin_s, stop_window_s=max(300.0, 3 * bin_s)))
-        dec = StreamDecoder()
-        with open(cap, "rb") as fh:
-            while chunk := fh.read(1 << 20):
-                dec.feed(chunk)
-                blk = dec.take_samples(False)
-                if blk is not None and len(blk):
-                    st.feed(blk)
-        if st.bins:
-            b = st.binned()
-    if b is None:
-        bj = data.get("bins")
-        if not bj:
-            raise WarmupError(f"{d}: neither {cap.name} nor bins in thermal.json")
-        b = Binned(np.asarray(bj["t_s"], float), np.asarray(bj["temp_c"], float),
-                   np.column_stack([bj["accel_mps2"], bj["gyro_rad_s"]]),
-                   np.column_stack([bj["accel_sigma_mps2"], bj["gyro_sigma_rad_s"]]), np.asarray(bj["n"], int))
-    return np.array(POSES[face], float), b, data
-
-
-def fit_warmups(dirs: Sequence, t_ref_c: float | None = None, max_order: int = 3) -> tuple[dict, dict, list]:
-    """Fit several warm-ups together (faces of a cube): (fits, t_ref, the thermal.json of each).
-    t_ref: given, or the first run's."""
-    loaded = [load_warmup(x) for x in dirs]
-    if t_ref_c is None:
-        tr = loaded[0][2].get("t_ref_c") or {"accel": 25.0, "gyro": 25.0}
-        t_ref = {"accel": float(tr["accel"]), "gyro": float(tr["gyro"])}
-    else:
-        t_ref = {"accel": float(t_ref_c), "gyro": float(t_ref_c)}
-    uids = {(x[2].get("device") or {}).get("mcu_uid") for x in loaded}
-    if len(uids) > 1:
-        raise WarmupError(f"the warm-ups come from different devices ({', '.join(sorted(str(u) for u in uids))})")
-    return fit_bins([(d, b) for d, b, _ in loaded], t_ref, max_order), t_ref, [x[2] for x in loaded]
