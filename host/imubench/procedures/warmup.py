@@ -369,16 +369,7 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         rec.update(plot=PLOT_NAME)
         say(f"plot: {png}")
     if cfg.exports:
-        try:
-            files = TX.write_exports(out_dir, export_fits([(direction, b)], t_ref, fits, cfg.max_order), t_ref,
-                                     cfg.exports, comment=f"imubench warm-up {rec.data['started']}")
-        except (WarmupError, OSError) as e:           # the fit is kept; the exports say why they are missing
-            rec.update(exports={"error": str(e)})
-            say(f"exports not written: {e}")
-        else:
-            rec.update(exports={k: [str(p) for p in v] for k, v in files.items()})
-            for k, v in files.items():
-                say(f"{k}: {', '.join(str(p) for p in v)}")
+        _exports(rec, out_dir, [(direction, b)], t_ref, fits, cfg, say)
     if cfg.write:
         if status != "done":
             say("not written: the run did not finish (the fit of what came is in thermal.json)")
@@ -394,6 +385,20 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
     rec.update(status=status, error=error, stage="done")
     say(f"saved {rec.path}")
     return rec.data
+
+
+def _exports(rec: WarmupRecord, out_dir: Path, segments, t_ref: dict, fits: dict, cfg: WarmupConfig, say) -> None:
+    """The PX4 / ArduPilot parameter files beside thermal.json; the fit is kept when they fail."""
+    try:
+        files = TX.write_exports(out_dir, export_fits(segments, t_ref, fits, cfg.max_order), t_ref,
+                                 cfg.exports, comment=f"imubench warm-up {rec.data['started']}")
+    except (WarmupError, OSError) as e:           # the exports say why they are missing
+        rec.update(exports={"error": str(e)})
+        say(f"exports not written: {e}")
+    else:
+        rec.update(exports={k: [str(p) for p in v] for k, v in files.items()})
+        for k, v in files.items():
+            say(f"{k}: {', '.join(str(p) for p in v)}")
 
 
 def _fmt(v) -> str:
