@@ -263,6 +263,24 @@ def test_ctrl_c_in_thermal_keeps_what_was_measured(tmp_path):
     assert _vbench_dirs(tmp_path) == []
 
 
+def test_ctrl_c_stops_imubench_sim_even_while_it_says_where_it_listens(tmp_path):
+    """`imubench sim` serves until Ctrl-C: a Ctrl-C right after its first line (before it has
+    printed the rest and waits) is a stop like any other, exit 0, its folder removed."""
+    p = subprocess.Popen([sys.executable, "-m", "imubench", "sim", "--speed", "0", "--thermal-lag"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env_without_port(tmp_path),
+                         cwd=tmp_path, stdin=subprocess.DEVNULL)
+    try:
+        first = p.stdout.readline()
+        p.send_signal(signal.SIGINT)
+        rest, err = finish(p, timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert first.startswith("virtual device ("), first + err
+    assert p.returncode == 0 and "interrupted" not in err and "Traceback" not in err, (first + rest, err)
+    assert _vbench_dirs(tmp_path) == []
+
+
 def test_ctrl_c_ends_a_live_view_normally(tmp_path):
     """monitor and attitude are live views: Ctrl-C is how they end (exit 0, a summary, and the
     recording closed with every byte in it)."""

@@ -6,6 +6,7 @@
 """
 from __future__ import annotations
 
+import contextlib
 import shlex
 import signal
 import threading
@@ -80,6 +81,16 @@ def register(sub) -> None:
     p.set_defaults(run=run_param_page)
 
 
+@contextlib.contextmanager
+def _ctrl_c_stops():
+    """Ctrl-C is how a serving command stops (exit 0), also while it is still printing where it
+    listens, before _until_stopped has its own handler."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        pass
+
+
 def _until_stopped(alive, what: str) -> int:
     """Sleep until Ctrl-C or SIGTERM (0), or until alive() turns false (an error)."""
     stop = {"now": False}
@@ -112,40 +123,46 @@ def run_sim(a) -> int:
         raise UsageError("--boot0 is a setting of the STM32 boards", "give --target f103 or --target f4")
     with VirtualBench(speed=a.speed, seed=a.seed, truth=a.truth, flash=a.flash, pty=a.pty,
                       baud=a.baud, tcp=tcp, control_port=a.control, target=a.target, boot0=a.boot0,
-                      thermal=a.thermal_lag) as bench:
-        what = ("firmware core + sensor models" if a.target == "host" else
-                f"the exact {a.target} image under the ARM emulator + sensor models")
-        print(f"virtual device ({what}, speed {a.speed:g}) on {bench.port_url}", flush=True)
-        if a.boot0:
-            pid = bench.info.get("bootloader", {}).get("product_id", "?")
-            print(f"BOOT0 high: the ROM bootloader (product ID {pid}) waits on {bench.port_url}; "
-                  f"flash it: imubench flash --board {a.target} --probe serial --port {bench.port_url}", flush=True)
-            print("  (AN3155 frames are 8E1; a pty carries no parity, so imubench flash gives stm32flash -m 8n1 "
-                  "there)", flush=True)
-        if a.thermal_lag:
-            th = bench.status()["thermal"]
-            print("thermal model on (dies: ADXL355, gyro X, Y, Z): time constants "
-                  + ", ".join(f"{t / 60:.1f}" for t in th["tau_s"]) + " min, self-heating "
-                  + ", ".join(f"{c:.1f}" for c in th["self_heat_c"]) + " °C", flush=True)
-        if bench.pty and bench.pty != bench.port_url:
-            print(f"  also on the pseudo-terminal {bench.pty}", flush=True)
-        host, port = bench.control_address
-        print(f"control channel (JSON lines): {host}:{port}", flush=True)
-        print(f"flash file: {bench.flash}", flush=True)
-        print(f"try: IMUBENCH_PORT={bench.port_url} imubench monitor"
-              + (" (once flashed: Go starts the image)" if a.boot0 else ""), flush=True)
-        try:
-            return _until_stopped(lambda: bench.running, "the virtual device")
-        except CommandError as e:
-            last = (bench.log.strip().splitlines() or ["no log"])[-1]
-            raise CommandError(f"the virtual device exited ({last})", f"see its log {bench.log_path}") from e
+                      thermal=a.thermal_lag) as bench, _ctrl_c_stops():
+        return _serve_sim(a, bench)
+    return 0
+
+
+def _serve_sim(a, bench) -> int:
+    """Say where the started virtual device listens, then serve until Ctrl-C."""
+    what = ("firmware core + sensor models" if a.target == "host" else
+            f"the exact {a.target} image under the ARM emulator + sensor models")
+    print(f"virtual device ({what}, speed {a.speed:g}) on {bench.port_url}", flush=True)
+    if a.boot0:
+        pid = bench.info.get("bootloader", {}).get("product_id", "?")
+        print(f"BOOT0 high: the ROM bootloader (product ID {pid}) waits on {bench.port_url}; "
+              f"flash it: imubench flash --board {a.target} --probe serial --port {bench.port_url}", flush=True)
+        print("  (AN3155 frames are 8E1; a pty carries no parity, so imubench flash gives stm32flash -m 8n1 "
+              "there)", flush=True)
+    if a.thermal_lag:
+        th = bench.status()["thermal"]
+        print("thermal model on (dies: ADXL355, gyro X, Y, Z): time constants "
+              + ", ".join(f"{t / 60:.1f}" for t in th["tau_s"]) + " min, self-heating "
+              + ", ".join(f"{c:.1f}" for c in th["self_heat_c"]) + " °C", flush=True)
+    if bench.pty and bench.pty != bench.port_url:
+        print(f"  also on the pseudo-terminal {bench.pty}", flush=True)
+    host, port = bench.control_address
+    print(f"control channel (JSON lines): {host}:{port}", flush=True)
+    print(f"flash file: {bench.flash}", flush=True)
+    print(f"try: IMUBENCH_PORT={bench.port_url} imubench monitor"
+          + (" (once flashed: Go starts the image)" if a.boot0 else ""), flush=True)
+    try:
+        return _until_stopped(lambda: bench.running, "the virtual device")
+    except CommandError as e:
+        last = (bench.log.strip().splitlines() or ["no log"])[-1]
+        raise CommandError(f"the virtual device exited ({last})", f"see its log {bench.log_path}") from e
 
 
 def run_qemu(a) -> int:
     from imubench.device.qemu import ROOT, QemuBoard
     from imubench.files import MAX_IMAGE_BYTES, read_bytes
     page = read_bytes(a.params, MAX_IMAGE_BYTES, "the parameter page") if a.params else None
-    with QemuBoard(a.board, page, build=not a.no_build) as q:
+    with QemuBoard(a.board, page, build=not a.no_build) as q, _ctrl_c_stops():
         print(f"QEMU {q.machine} running {q.elf.relative_to(ROOT) if ROOT and q.elf.is_relative_to(ROOT) else q.elf}",
               flush=True)
         print(f"device on {q.port_url}  (the guest starts when the first client connects)", flush=True)
@@ -155,14 +172,16 @@ def run_qemu(a) -> int:
         except CommandError as e:
             last = (q.log().strip().splitlines() or ["no output"])[-1]
             raise CommandError(f"QEMU exited ({last})", "rerun with --debug") from e
+    return 0
 
 
 def run_fake(a) -> int:
     from imubench.device.fake import FakeDevice
-    with FakeDevice(seed=a.seed, speed=a.speed) as f:
+    with FakeDevice(seed=a.seed, speed=a.speed) as f, _ctrl_c_stops():
         print(f"fake device (Python emulation, synthetic still board) on {f.port_url}", flush=True)
         print(f"try: IMUBENCH_PORT={f.port_url} imubench monitor", flush=True)
         return _until_stopped(lambda: True, "the fake device")
+    return 0
 
 
 def run_param_page(a) -> int:
