@@ -11,6 +11,7 @@ user, after Ctrl-C, how to continue.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 
 from imubench import __version__
@@ -72,6 +73,9 @@ def main(argv=None) -> int:
         args = build_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as e:          # --help, --version (0) or a usage error (2, one line printed)
         return e.code if isinstance(e.code, int) else 0
+    except KeyboardInterrupt:        # Ctrl-C while the commands were still being imported
+        _say("imubench: interrupted")
+        return EXIT_INTERRUPTED
     prefix = f"imubench {args.cmd}: error: "
     try:
         return int(args.run(args) or 0)
@@ -105,6 +109,7 @@ def entry() -> None:
     interrupted run flushes, runs the exit handlers itself and leaves with os._exit(130)."""
     code = main()
     if code == EXIT_INTERRUPTED:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)    # a second Ctrl-C while leaving: no traceback
         import atexit
         import os
         for stream in (sys.stdout, sys.stderr):
