@@ -154,6 +154,18 @@ def _lag(t, a, b, tau):
     return a + b * np.exp(-t / tau)
 
 
+def _assert_lags(b, tau_s, heat_c, tau_rel: float, end_abs_c: float) -> np.ndarray:
+    """After a soak at 20 degC and a step to 40 degC: each sensor's register is an exponential
+    with its die's tau towards 40 + its self-heating. Returns the temperatures (n, 4)."""
+    t = (b.t_us - b.t_us[0]) * 1e-6
+    temps = _temps(b)
+    for i in range(4):
+        (a, _, tau), _ = curve_fit(_lag, t, temps[:, i], p0=(40.0, -20.0, float(np.mean(tau_s))))   # one guess for all dies
+        assert tau == pytest.approx(tau_s[i], rel=tau_rel), f"die {i}"
+        assert a == pytest.approx(40.0 + heat_c[i], abs=end_abs_c), f"die {i}"
+    return temps
+
+
 def test_each_register_lags_with_its_own_tau_after_a_step(bench):
     """Soaked at 20 degC, then the chamber steps to 40 degC: each sensor's temperature register
     follows its own die, an exponential with that die's tau towards 40 + its self-heating."""
@@ -162,12 +174,7 @@ def test_each_register_lags_with_its_own_tau_after_a_step(bench):
     r = bench.set_temperature(40.0)
     assert r["die_temperature_c"] == pytest.approx([20.0] * 4, abs=0.01)
     b = _record(bench, int(5 * max(TAU) * RATE_HZ))
-    t = (b.t_us - b.t_us[0]) * 1e-6
-    temps = _temps(b)
-    for i in range(4):
-        (a, amp, tau), _ = curve_fit(_lag, t, temps[:, i], p0=(40.0, -20.0, 150.0))
-        assert tau == pytest.approx(TAU[i], rel=0.02), f"die {i}"
-        assert a == pytest.approx(40.0 + HEAT[i], abs=0.1), f"die {i}"
+    temps = _assert_lags(b, TAU, HEAT, tau_rel=0.02, end_abs_c=0.1)
     # the register is the die the control channel reports (within one LSB)
     dies = np.array(bench.status()["die_temperature_c"])
     assert np.all(np.abs(temps[-1] - dies) <= [0.12, 0.21, 0.21, 0.21])
@@ -246,12 +253,7 @@ def test_f103_image_sees_the_same_lagging_dies():
         vb.set_temperature(20.0, soak=True)
         vb.set_temperature(40.0)
         b = _record(vb, 30 * RATE_HZ)
-    t = (b.t_us - b.t_us[0]) * 1e-6
-    temps = _temps(b)
-    for i in range(4):
-        (a, _, tau_fit), _ = curve_fit(_lag, t, temps[:, i], p0=(40.0, -20.0, 4.0))
-        assert tau_fit == pytest.approx(tau[i], rel=0.05), f"die {i}"
-        assert a == pytest.approx(40.0 + heat[i], abs=0.15), f"die {i}"
+    _assert_lags(b, tau, heat, tau_rel=0.05, end_abs_c=0.15)
 
 
 # ------------------------------------------------------------------ the command line

@@ -127,7 +127,8 @@ def test_a_killed_hosts_virtual_device_folder_does_not_stay(tmp_path):
 def test_folders_of_dead_owners_are_swept_by_the_next_virtual_device(tmp_path):
     """Where the sim could not clean up (the ARM targets, a sim killed too), the next virtual
     device removes the folders whose owner is dead, and only those."""
-    from imubench.device.sim import OWNER_FILE, TMP_PREFIX, _start_time
+    from imubench.device.sim import TMP_PREFIX
+    from imubench.device.tmpdirs import OWNER_FILE, _start_time
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
                           text=True, check=True)
     gone = {"pid": int(dead.stdout), "started": "1"}

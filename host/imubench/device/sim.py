@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from imubench.device import artifacts
-from imubench.device.tmpdirs import OWNER_FILE, _start_time, owned_tmpdir, sweep_dead_tmpdirs  # noqa: F401
+from imubench.device.tmpdirs import owned_tmpdir
 from imubench.errors import ImubenchError
 
 __all__ = ["SimError", "TARGETS", "VirtualBench", "arm_command", "build_sim", "repo_root"]
@@ -88,6 +88,8 @@ def build_sim() -> Path:
 _LIVE: "weakref.WeakSet[VirtualBench]" = weakref.WeakSet()
 
 TMP_PREFIX = "imubench-vbench-"
+
+
 @atexit.register
 def _stop_all() -> None:
     for b in list(_LIVE):

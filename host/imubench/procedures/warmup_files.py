@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from imubench.analysis.thermal import POSES
 from imubench.analysis.thermal_poly import Binned
 from imubench.files import MAX_JSON_BYTES, read_text
-from imubench.analysis.thermal import POSES
 from imubench.procedures.warmup import CAPTURE_NAME, WarmupConfig, WarmupError, _State, fit_bins
 from imubench.results.thermal_warmup import WarmupRecord
 from imubench.wire.decoder import StreamDecoder
