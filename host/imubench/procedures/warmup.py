@@ -52,6 +52,7 @@ BAD_MASK = int(sum(int(b) for b in SENSOR_BAD_BITS))
 ACCEL_RES_C = 1.0 / 9.05       # the ADXL355's temperature step
 GYRO_RES_C = 0.2               # the ADXRS450's
 MIN_BINS_TO_FIT = 6
+NOW_WINDOW_S = 0.5             # "now": the temperatures' mean over the latest half second
 
 
 class WarmupError(ImubenchError):
@@ -156,7 +157,7 @@ class _State:
     t_last: float = 0.0
     seen_lo: np.ndarray = field(default_factory=lambda: np.full(4, np.inf))    # per sensor, of the samples
     seen_hi: np.ndarray = field(default_factory=lambda: np.full(4, -np.inf))
-    temp_now: np.ndarray | None = None      # the latest block's mean temperatures (a bin's mean lags)
+    temp_now: np.ndarray | None = None      # mean of the last NOW_WINDOW_S of samples (a bin's mean lags)
 
     def feed(self, b) -> int:
         """Add a raw block; bin what completes a bin. Returns the number of new bins."""
@@ -174,7 +175,7 @@ class _State:
         self.t_last = float(t[-1])
         self.seen_lo = np.minimum(self.seen_lo, temps.min(axis=0))
         self.seen_hi = np.maximum(self.seen_hi, temps.max(axis=0))
-        self.temp_now = temps.mean(axis=0)
+        self.temp_now = temps[t >= t[-1] - NOW_WINDOW_S].mean(axis=0)
         self.pending.append((t, temps, np.column_stack([a[ok], g[ok]])))
         edge = self.t0 + math.floor((self.t_last - self.t0) / self.cfg.bin_s) * self.cfg.bin_s
         t_all = np.concatenate([p[0] for p in self.pending])
