@@ -28,7 +28,7 @@ from imubench.errors import ImubenchError
 from imubench.units import G0_MPS2
 
 __all__ = ["Recording", "RecordingError", "ACCEL_UNITS", "GYRO_UNITS", "accel_unit", "gyro_unit",
-           "check_timing", "from_arrays", "read", "FORMATS", "unsigned_offset", "command_options"]
+           "check_timing", "from_arrays", "read", "FORMATS", "unsigned_offset", "command_options", "command_line"]
 
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
 
@@ -260,10 +260,13 @@ def timing_lines(rec: Recording) -> list[str]:
     if not tm:
         return [f"{len(rec)} samples at {rec.fs_hz:g} Hz (declared rate; no timestamps to check)"]
     mean = tm.get("mean_dt_s", tm["median_dt_s"])
-    out.append(f"{tm['n_read']} samples at {tm['fs_hz']:.4g} Hz measured (mean step {mean * 1e3:.4g} ms), "
-               f"step jitter {tm.get('jitter_s', tm['jitter_rel'] * mean) * 1e3:.2g} ms RMS "
-               f"({100 * tm['jitter_rel']:.2g} %; steps {tm.get('min_dt_s', mean) * 1e3:.3g}"
-               f"–{tm.get('max_dt_s', mean) * 1e3:.3g} ms outside gaps)")
+    rate = f"{tm['n_read']} samples at {tm['fs_hz']:.4g} Hz measured from the time stamps (mean step {mean * 1e3:.4g} ms)"
+    if tm["jitter_rel"] < 1e-4:
+        out.append(f"{rate}, regular steps (jitter {100 * tm['jitter_rel']:.1g} %)")
+    else:
+        out.append(f"{rate}, step jitter {tm.get('jitter_s', tm['jitter_rel'] * mean) * 1e3:.2g} ms RMS "
+                   f"({100 * tm['jitter_rel']:.2g} %; steps {tm.get('min_dt_s', mean) * 1e3:.3g}"
+                   f"–{tm.get('max_dt_s', mean) * 1e3:.3g} ms outside gaps)")
     if tm.get("long_steps_jitter"):
         out.append(f"{tm['long_steps_jitter']} steps longer than {GAP_FACTOR:g}× the mean are the clock's jitter, "
                    "not gaps: the next time stamps make them up (no sample missing)")
@@ -347,6 +350,13 @@ def command_options(rec: Recording) -> list[str]:
             v = f"{v:g}"
         out += [flag, str(v)]
     return out
+
+
+def command_line(rec: Recording, command: str = "calibrate") -> str:
+    """`imubench COMMAND --from FILE OPTIONS`: the command that reads rec's file again the same way."""
+    import shlex
+    return " ".join(["imubench", command, "--from"] + [shlex.quote(x) for x in
+                                                       [rec.source.split(" + ")[0], *command_options(rec)]])
 
 
 def from_arrays(accel, gyro, *, t_s=None, rate_hz: float | None = None, accel_unit_name: str = "mps2",

@@ -285,8 +285,9 @@ def _load(path: Path, delim: str | None, usecols: list[int], start: int) -> np.n
     except RecordingError:
         raise
     except ValueError as e:
-        raise RecordingError(f"{path}: not numbers where numbers are expected ({' '.join(str(e).split())[:160]}); "
-                             "check the delimiter and the header") from None
+        raise RecordingError(f"{path}: not numbers where numbers are expected ({' '.join(str(e).split())[:160]}, "
+                             f"counted from line {start + 1}); check the delimiter and the header, or start at the "
+                             "header row with --skip-rows N (the lines before it)") from None
     if out is None:
         return np.empty((0, len(usecols)))
     return out[:n]
@@ -353,7 +354,9 @@ def read(path, fmt: str | None = None, **opt) -> Recording:
     sensor_notes = []
     if opt.get("sensor"):
         from imubench.recordings.sensors import default_units
-        opt.update(default_units(opt["sensor"], opt, sensor_notes))
+        units = default_units(opt["sensor"], opt, sensor_notes)
+        opt.update(units)
+        detected.update(units)
     rec = {"csv": read_csv, "imutk": read_imutk, "imucal": read_imucal, "npz": read_npz,
            "capture": read_capture, "rosbag": read_rosbag}[fmt](p, **opt)
     if opt.get("sensor"):
@@ -417,12 +420,13 @@ def _time_seconds(raw: np.ndarray, unit: str | None, what: str, detected: list, 
 
 
 def _layout_lines(lay: Layout, rate_hz: float | None, has_time: bool, detected: list, notes: list,
-                  options: dict) -> float | None:
+                  options: dict, mapped: bool = False) -> float | None:
     """What the layout settled, one line each (the preamble and header; a rate the preamble
-    states), and the rate to use when the file has no time column."""
+    states), and the rate to use when the file has no time column. mapped: every column was
+    named by an option (a commented header then settles nothing)."""
     d = lay.describe()
     if d:
-        detected.append(d)
+        (notes if mapped and not lay.preamble else detected).append(d)
         if lay.preamble:
             options["skip_rows"] = lay.header_line if lay.header is not None else lay.start
     pre = _preamble_rate(lay)
@@ -480,7 +484,7 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
     missing = [v for v in mapping.values() if v.lower() not in low]
     if missing:
         raise RecordingError(f"{path.name} has no column {missing[0]!r}; its columns are {', '.join(cols)}")
-    rate_hz = _layout_lines(lay, rate_hz, "t" in mapping, detected, notes, options)
+    rate_hz = _layout_lines(lay, rate_hz, "t" in mapping, detected, notes, options, mapped=not found_by_name)
     if found_by_name:
         used = {mapping[k].lower() for k in mapping}
         ignored = [c for c in cols if c.lower() not in used]

@@ -120,6 +120,7 @@ def apply_sensor(rec: Recording, spec: str, gyro_range_dps: float | None = None)
                                  f"settings (±{_fmt(acc.accel, 'g')} g, {acc.source}): check the sensor, or give "
                                  "--accel-scale COUNTS_PER_G")
         rec.accel_counts_per_g = cpg
+        rec.options["accel_counts_per_g"] = cpg
         rec.detected.append(f"accelerometer full scale ±{fs:g} g of the {acc.name} ({cpg:.6g} counts per g, "
                             f"{acc.source}): the median |a| is {norm:.6g} counts")
     if gyr is not None and rec.gyro_unit == "counts" and not rec.gyro_counts_per_dps:
@@ -136,3 +137,4 @@ def apply_sensor(rec: Recording, spec: str, gyro_range_dps: float | None = None)
         rec.detected.append(f"gyro full scale ±{match[0]:g} °/s of the {gyr.name} ({gyr.gyro[match[0]]:.5g} counts "
                             f"per °/s, {gyr.source})")
         rec.options.setdefault("gyro_range_dps", match[0])
+        rec.options["gyro_counts_per_dps"] = gyr.gyro[match[0]]
