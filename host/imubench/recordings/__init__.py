@@ -11,7 +11,11 @@ imucal's CSV layouts, our own captures (`imubench decode --npz`, a session's cap
 and ROS 1/2 bags with sensor_msgs/Imu (the optional `rosbags` library).
 
 Units are declared, never guessed: accelerometer m/s², g, mg or raw counts (with a nominal
-scale in counts per g, or none), gyro rad/s, °/s or raw counts (counts per °/s, or none).
+scale in counts per g, from a named sensor's data sheet (recordings.sensors), or none), gyro
+rad/s, °/s or raw counts (counts per °/s, or none). Raw counts stored unsigned are found by
+their values and their offset subtracted (unsigned_offset). What a reader settles without
+being told is said (Recording.detected) and kept as the options that read the file again
+(Recording.options, command_options).
 A declared unit that the data contradict is refused by the caller that can see it
 (imubench.procedures.from_file: |a| of the still intervals far from 1 g).
 
