@@ -187,6 +187,19 @@ def test_sensor_profiles_give_the_counts_scale_or_ask_for_the_setting(rec6, tmp_
     assert read(p, sensor="BMI160", gyro_counts_per_dps=70.0).gyro_counts_per_dps == 70.0
     with pytest.raises(RecordingError, match="not known; known: MPU-6050"):
         read(p, sensor="MPU-1234")
+    q = write_table(tmp_path / "si.csv", np.column_stack([np.arange(n) * 10.0, ag, gd]), delim=",",
+                    header=("t_ms", "ax", "ay", "az", "gx", "gy", "gz"))
+    si = read(q, sensor="MPU-6050", accel_unit="g", gyro_unit="dps")
+    assert "--sensor MPU-6050: not used for the accelerometer and gyro (declared in a unit, not counts)" in si.notes
+
+
+def test_decimal_commas_are_named(rec6, tmp_path):
+    ag, gd, _, _ = rec6
+    p = tmp_path / "euro.csv"
+    p.write_text("ax;ay;az;gx;gy;gz\n" + "".join(";".join(f"{v:.5f}".replace(".", ",") for v in row) + "\n"
+                                                  for row in np.column_stack([ag, gd])[:50]))
+    with pytest.raises(RecordingError, match="decimal commas"):
+        read(p, accel_unit="g", gyro_unit="dps", rate_hz=FS)
 
 
 def test_formats_by_content_and_the_options_read_the_file_again(rec6, tmp_path):

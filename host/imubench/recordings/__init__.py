@@ -44,7 +44,7 @@ _ACCEL_ALIASES = {"m/s2": "mps2", "m/s^2": "mps2", "m/s²": "mps2", "ms2": "mps2
 _GYRO_ALIASES = {"rad/s": "rad_s", "rad_s": "rad_s", "rads": "rad_s", "deg/s": "dps", "dps": "dps",
                  "°/s": "dps", "deg_s": "dps", "counts": "counts", "raw": "counts", "lsb": "counts",
                  "a.u.": "counts"}
-JITTER_RESAMPLE = 0.1        # a step off the median dt by more than this fraction: resample
+JITTER_RESAMPLE = 0.1        # a step off the mean step by more than this fraction: resample
 GAP_FACTOR = 1.5             # a step longer than this × the nominal step may be a gap (_gaps decides)
 GAP_WINDOW = 25              # samples each side compared to tell a gap from a jittery clock's long step
 

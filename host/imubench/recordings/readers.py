@@ -189,6 +189,9 @@ def _layout(path: Path, skip_rows: int | None = None) -> Layout:
         if best is None or score > best[0]:
             best = (score, delim, width)
     if best is None:
+        if any(re.search(r"\d,\d", ln) and ";" in ln for _, ln in rows):
+            raise RecordingError(f"{path.name}: its numbers have decimal commas (1,5 for 1.5), which are not "
+                                 "read: export the file with decimal points")
         raise RecordingError(f"{path.name}: no rows of numbers in its first {len(lines)} lines"
                              + (f" after the {skip} rows skipped" if skip else "")
                              + "; is it a table of samples? (--skip-rows N starts at line N + 1)")

@@ -112,6 +112,10 @@ def apply_sensor(rec: Recording, spec: str, gyro_range_dps: float | None = None)
     """Give rec's raw counts the nominal scales of the named sensor's full-scale settings
     (declared scales win), saying which setting and why, one line each."""
     acc, gyr = sensors(spec)
+    unused = [w for w, s, u in (("accelerometer", acc, rec.accel_unit), ("gyro", gyr, rec.gyro_unit))
+              if s is not None and u != "counts"]
+    if unused:
+        rec.notes.append(f"--sensor {spec}: not used for the {' and '.join(unused)} (declared in a unit, not counts)")
     if acc is not None and rec.accel_unit == "counts" and not rec.accel_counts_per_g:
         norm = float(np.median(np.linalg.norm(rec.accel, axis=1)))
         fs, cpg = min(acc.accel.items(), key=lambda kv: abs(norm / kv[1] - 1.0))
