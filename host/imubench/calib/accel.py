@@ -541,7 +541,8 @@ def _best_start(starts, solve, u: np.ndarray, g: float) -> tuple[tuple, int]:
 
 
 def multi_position(means, sigmas=None, init: TriadFit | None = None, g: float = G0_MPS2, *,
-                   chi2_scaling: str = "inflate", check: bool = True, covs=None, hold=()) -> TriadFit:
+                   chi2_scaling: str = "inflate", check: bool = True, covs=None, hold=(),
+                   held_sigma=None) -> TriadFit:
     """Multi-position calibration: 9 parameters from |M⁻¹(u_i − b)| = g at m ≥ 9 attitudes.
 
     θ = (b_x, b_y, b_z, s_x, s_y, s_z, a_yx, a_zx, a_zy), M = diag(s)·(I + A), A strictly lower
@@ -558,8 +559,13 @@ def multi_position(means, sigmas=None, init: TriadFit | None = None, g: float = 
     covs (m, 3, 3): a further covariance of each mean (a rest's own motion, calib.rests), added
     to diag(sigmas²) when |x_i|'s sigma is propagated (needs sigmas). hold: names of
     MULTI_PARAM_NAMES held at their nominal values (b = 0, s = 1, angles 0): a nested model,
-    fitted on the others; a held parameter has sigma 0 and its entries of M / b count as not
-    estimated."""
+    fitted on the others; its entries of M / b count as not estimated. held_sigma: {name: σ}
+    the size a held parameter may have in truth (its unit: g's unit for biases, 1 for scales, rad
+    for angles). It is not assumed exact: a held parameter is a "consider" parameter (Schmidt,
+    Application of state-space methods to navigation problems, 1966): its σ adds to each
+    pose's |a| sigma what it could change there (J_h σ_h), and to the fitted parameters'
+    covariance what it would move them by (K Σ_h Kᵀ, K = −(J_fᵀWJ_f)⁻¹J_fᵀWJ_h); its own
+    sigma is reported as given."""
     u = np.asarray(means, dtype=np.float64)
     _units(u)
     _check_g(u, g)
@@ -631,6 +637,9 @@ def multi_position(means, sigmas=None, init: TriadFit | None = None, g: float = 
 
     sr = sig_r(theta)
     r, J, _ = _residuals_and_jac(theta, u, g)
+    sh = np.array([(held_sigma or {}).get(n, 0.0) for n in MULTI_PARAM_NAMES])[~free]
+    Jh = J[:, ~free] * sh[None, :]                 # |a| change per rest from each held parameter's σ
+    sr = np.sqrt(sr ** 2 + np.sum(Jh ** 2, axis=1))
     Jw = J[:, free] / sr[:, None]
     rw = r / sr
     chi2 = float(rw @ rw)
@@ -642,7 +651,12 @@ def multi_position(means, sigmas=None, init: TriadFit | None = None, g: float = 
         raise NotObservable("the multi-position fit is singular at its solution: spread the poses "
                             "over faces, edges and corners (POSE_PLAN)")
     cov_t = np.zeros((9, 9))
-    cov_t[np.ix_(free, free)] = np.linalg.inv(N) * _chi2_factor(chi2, dof, sig is not None, chi2_scaling)
+    Ninv = np.linalg.inv(N)
+    cov_t[np.ix_(free, free)] = Ninv * _chi2_factor(chi2, dof, sig is not None, chi2_scaling)
+    if np.any(sh > 0):                             # consider parameters: their effect on the fitted ones
+        K = -Ninv @ Jw.T @ (Jh / sr[:, None])
+        cov_t[np.ix_(free, free)] += K @ K.T
+        cov_t[~free, ~free] = sh ** 2
     G = _param_jacobian_mb(theta)
     cov = G @ cov_t @ G.T
     M, b = multi_params_to_mb(theta)

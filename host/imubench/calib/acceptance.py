@@ -44,7 +44,8 @@ MAX_LEFT_OUT_FRACTION = 0.25
 # taken as the smallest initial errors MEMS accelerometer data sheets specify, of the order of
 # 25 mg offset, 1 % sensitivity and 1 % cross-axis sensitivity: fitting it then gives a smaller
 # expected squared error (σ²) than holding it at nominal (the error itself, squared). Biases in
-# g, scales dimensionless, angles in rad.
+# g, scales dimensionless, angles in rad. A parameter held at nominal is taken to be this size
+# in truth (a consider parameter, accel.multi_position's held_sigma).
 RESOLVED_LIMITS = {"bias_g": 0.025, "scale": 0.01, "angle_rad": 0.01}
 # Six-position takes every face as square to gravity: what its residuals hold beyond the noise is
 # the faces' tilt, which it reads as cross-axis terms. A board laid on a table on each face is
@@ -84,13 +85,22 @@ class AccelChoice:
     candidates: list = field(default_factory=list)   # per candidate: name, status, reason, numbers
 
 
-# (name, method, hold)
-_CANDIDATES = {
-    "multi9": ("multi-position, biases, scales and non-orthogonality angles", "multi", ()),
-    "six12": ("six-position, full matrix and biases", "six", ()),
-    "multi6": ("multi-position, biases and scales", "multi", ANGLES),
-}
-ORDER = {"auto": ("multi9", "six12", "multi6"), "multi": ("multi9", "multi6"), "six": ("six12",)}
+def _multi(hold: tuple) -> tuple:
+    free = [a for a in ANGLES if a not in hold]
+    what = ("biases, scales and non-orthogonality angles" if not hold else
+            "biases and scales" if not free else f"biases, scales and {' and '.join(free)}")
+    return (f"multi-position, {what}", "multi", hold)
+
+
+# kind: (name, method, hold); the levels, largest model first (the models of one level are
+# tried together and the best kept of them wins)
+_CANDIDATES = {"multi9": _multi(()), "six12": ("six-position, full matrix and biases", "six", ()),
+               **{f"multi8-{a}": _multi((a,)) for a in ANGLES},
+               **{f"multi7-{a}": _multi(tuple(x for x in ANGLES if x != a)) for a in ANGLES},
+               "multi6": _multi(ANGLES)}
+_LEVELS_MULTI = (("multi9",), tuple(f"multi8-{a}" for a in ANGLES), tuple(f"multi7-{a}" for a in ANGLES),
+                 ("multi6",))
+ORDER = {"auto": (_LEVELS_MULTI[0], ("six12",)) + _LEVELS_MULTI[1:], "multi": _LEVELS_MULTI, "six": (("six12",),)}
 
 
 def abs_residuals(u, sigmas, covs, fit: TriadFit | None, g: float) -> tuple[np.ndarray, np.ndarray]:
@@ -137,7 +147,8 @@ def _run(kind: str, u, sig, covs, g: float, init: TriadFit | None) -> TriadFit:
     name, method, hold = _CANDIDATES[kind]
     if method == "six":
         return CA.six_position(u, sig, g, skip_non_faces=True, covs=covs)
-    return CA.multi_position(u, sig, init=init, g=g, covs=covs, hold=hold)
+    return CA.multi_position(u, sig, init=init, g=g, covs=covs, hold=hold,
+                             held_sigma={n: RESOLVED_LIMITS["angle_rad"] for n in hold})
 
 
 def _unresolved(fit: TriadFit, g: float) -> list[str]:
@@ -323,17 +334,21 @@ def fit_accel(means, sigmas, covs=None, method: str = "auto", g: float = 9.80665
     except CalibrationError:
         pass
     cands = []
-    for kind in ORDER[method]:
-        c = _try(kind, u, sig, cv, g, init, excess_limit)
-        cands.append(c)
-        if c["status"] == "kept":
+    last = None
+    for level in ORDER[method]:
+        tried = [_try(kind, u, sig, cv, g, init, excess_limit) for kind in level]
+        cands += tried
+        kept = [c for c in tried if c["status"] == "kept"]
+        if kept:
+            last = min(kept, key=lambda c: c["chi2"] / c["dof"])
             break
     report = [{k: v for k, v in c.items() if k not in ("fit", "active")} | {"left_out": sorted(c["left_out"])}
               for c in cands]
-    last = cands[-1]
+    if last is None:               # the rests as the largest model that could be fitted saw them
+        last = next((c for c in cands if "fit" in c), cands[-1])
     rests = _rest_uses(u, sig, cv, motions_text, last, g)
     if last["status"] != "kept":
-        lines = "; ".join(f"{c['model']}: {c['reason']}" for c in cands)
+        lines = "; ".join(f"{c['model']}: {c['reason']}" for c in cands if not c["kind"].startswith(("multi8", "multi7")))
         raise FitRefused(
             f"no accelerometer model is both resolved by the rests and better than no calibration, so nothing is "
             f"calibrated ({lines}). Next: record more rests, each held still, spread over faces, edges and "
