@@ -105,3 +105,19 @@ def test_ten_rests_one_per_face_and_four_edges(tmp_path):
     assert res["accel_held"] == ["a_yx"] and "a_yx held at nominal" in res["verdict"]
     assert res["accel_candidates"][0]["kind"] == "multi9" and res["accel_candidates"][0]["status"] != "kept"
     assert len(res["rests"]) == 10
+
+
+def test_gyro_motions_never_about_z_fit_the_rest_and_hold_its_column(tmp_path):
+    """Issue 40 item 5 for the gyro: turns about X and Y only leave M's Z column (m02, m12,
+    m22) unresolved; the rotation method fits the other six entries and holds those."""
+    z, y, x = [0, 0, 1], [0, 1, 0], [1, 0, 0]
+    neg = lambda v: [-a for a in v]     # noqa: E731
+    ups = [z, y, neg(z), neg(y), z, x, neg(z), neg(x), z, neg(y), neg(z), y, z, neg(x), neg(z), x, z]
+    r, truth = _run(tmp_path, "gyro", ups, seed=4)
+    res = _accepted(r, tmp_path / "gyro", truth)
+    g = res["gyro"]
+    assert g["method"] == "rotation" and g["extra"]["held"] == ["m02", "m12", "m22"]
+    assert "m02, m12, m22 held at nominal" in res["verdict"]
+    m, sm = np.array(g["m"]), np.array(g["sigma_m"])
+    assert np.all(m[:, 2] == np.eye(3)[:, 2]) and np.all(sm[:, 2] > 0)
+    assert np.all(np.abs((m - truth["gyro_m"]) / sm)[:, :2] < 3)

@@ -346,8 +346,7 @@ class FileAnalysis:
                 self._note(f"motion {j} ({keep[j].stop / fs:.1f}–{keep[j + 1].start / fs:.1f} s) not used by the "
                            f"rotation method: the recording is not continuous inside it (break at sample {inside[0]})")
         try:
-            fits["rotation"] = CG.rotation_method(u_rot, fs, [(i.start, i.stop) for i in keep], up, b_rot,
-                                                  max_rate_rad_s=clip, exclude_motions=bad)
+            fits["rotation"] = self._rotation_nested(u_rot, fs, keep, up, b_rot, clip, bad)
         except CalibrationError as e:
             errs["rotation"] = e
         why = {k: str(e) for k, e in errs.items()}
@@ -372,6 +371,32 @@ class FileAnalysis:
             return comb.fit
         self._note(f"gyro: the {other} method is not used: {why[other]}")
         return fits[main]
+
+    def _rotation_nested(self, u_rot, fs, keep, up, b_rot, clip, bad) -> TriadFit:
+        """The rotation method with every entry of M; where the motions leave entries unresolved
+        (σ unbounded or above the limit), again with those held at nominal, while some are
+        left to fit: the largest model the motions carry (calib.gyro.rotation_method's hold)."""
+        from imubench.calib import gyro as CG
+        iv = [(i.start, i.stop) for i in keep]
+        hold: list[int] = []
+        first = None
+        while True:
+            try:
+                fit = CG.rotation_method(u_rot, fs, iv, up, b_rot, max_rate_rad_s=clip, exclude_motions=bad,
+                                         hold=hold)
+            except CalibrationError as e:
+                entries = getattr(e, "entries", None)
+                first = first or e
+                if not entries or len(set(hold) | set(entries)) >= 9:
+                    raise first from None
+                hold = sorted(set(hold) | set(entries))
+                continue
+            if hold:
+                self._note(f"gyro: the rotation method holds {', '.join(fit.extra['held'])} at nominal (their σ "
+                           f"would be above {fit.extra['max_sigma']:g}: the motions do not resolve them; fitted with "
+                           f"every entry: {first}); the others are fitted, the held ones' possible size carried into "
+                           "their σ")
+            return fit
 
     def _result(self, means, sigmas) -> dict:
         rec, cfg, accel = self.rec, self.cfg, self.accel
@@ -472,7 +497,8 @@ def verdict_text(accel_ok: bool, rms_mg: float, tol_mg: float, gyro_method, gyro
         return f"{acc}; gyro not: {refused} ({kept}). To calibrate it, {RECORD_ADVICE}"
     if gyro is None or gyro.method == "bias":
         return acc + "; gyro bias at rest only (scale and misalignment not asked for)"
-    return acc + f"; gyro calibrated ({gyro.method})"
+    held = (gyro.extra or {}).get("held") or []
+    return acc + f"; gyro calibrated ({gyro.method}" + (f"; {', '.join(held)} held at nominal)" if held else ")")
 
 
 # ------------------------------------------------------------------ the whole run
