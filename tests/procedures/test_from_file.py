@@ -363,7 +363,6 @@ def test_cli_end_to_end(session, tmp_path):
     (["--accel-unit", "furlongs", "--gyro-unit", "dps"], 1, "unknown accelerometer unit 'furlongs'"),
     (["--accel-unit", "g", "--gyro-unit", "dps", "--port", "socket://127.0.0.1:1"], 2, "--from and --port exclude"),
     (["--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "turntable"], 2, "--gyro turntable needs a turntable"),
-    (["--accel-unit", "g", "--gyro-unit", "dps", "--method", "multi"], 1, "cannot be observed"),
 ])
 def test_cli_mistakes_give_one_line(session, tmp_path, args, code, needle):
     ua, ug, _, _ = session

@@ -85,6 +85,9 @@ class FileAnalysis:
         self._bias: TriadFit | None = None
         self.gyro_refused: str | None = None
         self.gsens: dict | None = None
+        self.rests: list = []           # calib.rests.RestRecord per rest found, in time order: how the fit used it
+        self.accel_choice = None        # calib.acceptance.AccelChoice: the model kept and why
+        self.accel_candidates: list = []  # every accelerometer model tried: kept, refused or unresolved, and why
 
     def _note(self, text: str) -> None:
         self.notes.append(text)
@@ -107,8 +110,7 @@ class FileAnalysis:
         self.fa = fa
         acc = rec.accel * fa
         ivs = detect_static(acc, fs, window_s=cfg.window_s, min_duration_s=cfg.min_still_s)
-        dropped = [i for i in ivs if not i.clean]
-        keep = [i for i in ivs if i.clean]
+        keep = list(ivs)                # a rest that moved is weighed by its motion, not dropped (calib.rests)
         self.gyro_refused = None        # why the gyro (scale, misalignment; or all of it) was not calibrated
         warn = None
         if keep:
@@ -135,13 +137,10 @@ class FileAnalysis:
             if len(keep) < min(n0, 9 if cfg.method == "multi" else 6):
                 self._note(f"cutting where the gyro turned would leave {len(keep)} of {n0} still intervals: not cut "
                            "(check the gyro unit)")
-                keep = [i for i in ivs if i.clean]
+                keep = list(ivs)
             elif len(keep) != n0:
                 self._note(f"{len(keep) - n0:+d} still intervals after cutting where the gyro turned "
                            "(the accelerometer alone did not show it)")
-        for i in dropped:
-            self._note(f"still interval at {i.t_start_s:.1f} s ({i.duration_s:.1f} s) not used: its mean moved "
-                       f"within it ({i.drift_z:.1f} σ)")
         need = 9 if cfg.method == "multi" else 6
         require_static(keep if len(keep) < len(ivs) else ivs, need)
         self.intervals = keep
@@ -151,7 +150,11 @@ class FileAnalysis:
         self.say(f"still intervals: {len(keep)} found by the data (window {cfg.window_s:g} s, k = {ivs.k:g} × the "
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
                                             for f, i in zip(self.faces, keep)))
-        accel = self._fit_accel(means, sigmas)
+        accel = self._fit_accel(means, sigmas, acc)
+        used = [k for k, r in enumerate(self.rests) if r.use != "left out"]
+        keep = [keep[k] for k in used]               # the gyro and the tables: the rests the fit used
+        self.intervals, self.faces = keep, [self.faces[k] for k in used]
+        means, sigmas = means[used], sigmas[used]
         # ---- gyro: a refusal keeps the accelerometer's result (verdict: "accelerometer calibrated; gyro not")
         if cfg.gyro and self.gyro_refused is None:
             try:
@@ -257,32 +260,52 @@ class FileAnalysis:
                              estimated=np.array([False] * 9 + [True] * 3),
                              extra=dict(bias.extra, source="weighted mean of the rests"))
 
-    def _fit_accel(self, means: np.ndarray, sigmas: np.ndarray) -> TriadFit:
-        """The accelerometer fit: six-position, multi-position, or (auto) multi when the
-        attitudes constrain its 9 parameters."""
-        from imubench.calib import accel as CA
+    def _fit_accel(self, means: np.ndarray, sigmas: np.ndarray, acc: np.ndarray) -> TriadFit:
+        """The accelerometer fit (calib.acceptance.fit_accel): every rest weighed by its noise and
+        its own motion (calib.rests), the largest model the rests resolve that is better than
+        none, outlying rests left out; self.rests says how each rest was used. Raises
+        FitRefused (a CalibrationError) when no model is kept, with self.rests filled."""
+        from imubench.calib.acceptance import FitRefused, fit_accel
+        from imubench.calib.rests import RestRecord, motion_covariances
         cfg = self.cfg
-        self.method = cfg.method
-        if cfg.method == "auto":
-            try:
-                CA.check_observability(means, "multi_position")
-                self.method = "multi"
-                self.say("method: multi-position |a| = g (the attitudes constrain its 9 parameters)")
-            except CalibrationError as e:
-                self.method = "six"
-                self.say(f"method: six-position (the multi-position fit cannot be used: {e})")
-        if self.method == "six":
-            accel = CA.six_position(means, sigmas, skip_non_faces=True)
+        covs, motion = motion_covariances(acc, self.intervals)
+        texts = [m.describe(U.G0_MPS2) if m.significant else "" for m in motion]
+        sig_g = np.linalg.norm(means / np.linalg.norm(means, axis=1)[:, None] * sigmas, axis=1) / U.G0_MPS2
+        tol, _ = self._tolerance(sig_g)
+
+        def records(uses):
+            self.rests = [RestRecord(start=int(i.start), stop=int(i.stop), t_start_s=i.t_start_s,
+                                     duration_s=i.duration_s, face=f, use=r.use, use_reason=r.use_reason,
+                                     sigma_inflation=r.sigma_inflation,
+                                     motion={"direction_deg": m.direction_deg,
+                                             "magnitude_change_mg": m.magnitude_change / U.G0_MPS2 * 1e3,
+                                             "drift_chi2": m.chi2, "drift_p": m.p, "significant": m.significant})
+                          for i, f, r, m in zip(self.intervals, self.faces, uses, motion)]
+            for r in self.rests:
+                if r.use != "used":
+                    self._note(f"rest at {r.t_start_s:.1f} s ({r.duration_s:.1f} s, {r.face}) {r.use}: {r.use_reason}")
+
+        try:
+            choice = fit_accel(means, sigmas, covs, cfg.method, U.G0_MPS2,
+                               excess_limit=tol.accel_rms_mg * 1e-3 * U.G0_MPS2, motions_text=texts)
+        except FitRefused as e:
+            records(e.rests)
+            self.accel_candidates = e.candidates
+            raise
+        records(choice.rests)
+        self.accel_choice = choice
+        self.accel_candidates = choice.candidates
+        self.method = "six" if choice.fit.method == "six_position" else "multi"
+        short = {"multi_position": "multi-position |a| = g", "six_position": "six-position"}
+        first = choice.candidates[0]
+        if first["status"] == "kept":
+            self.say(f"method: {short[choice.fit.method]} (the rests resolve its parameters and it fits them)")
         else:
-            CA.check_observability(means, "multi_position")
-            init = None
-            try:
-                init = CA.six_position(means, sigmas, skip_non_faces=True)
-            except CalibrationError:
-                pass
-            accel = CA.multi_position(means, sigmas, init=init)
-        self.accel = accel
-        return accel
+            self.say(f"method: {short[choice.fit.method]} (the {first['model'].split(',')[0]} fit cannot be used: "
+                     f"{first['reason']})")
+        self.say(f"accelerometer model: {choice.summary}")
+        self.accel = choice.fit
+        return choice.fit
 
     def _part_turns(self, gyr, acc, keep, up, accel) -> list:
         """Turns from the file's named parts (*_rot), for files cut tightly around each turn."""
@@ -323,8 +346,7 @@ class FileAnalysis:
                 self._note(f"motion {j} ({keep[j].stop / fs:.1f}–{keep[j + 1].start / fs:.1f} s) not used by the "
                            f"rotation method: the recording is not continuous inside it (break at sample {inside[0]})")
         try:
-            fits["rotation"] = CG.rotation_method(u_rot, fs, [(i.start, i.stop) for i in keep], up, b_rot,
-                                                  max_rate_rad_s=clip, exclude_motions=bad)
+            fits["rotation"] = self._rotation_nested(u_rot, fs, keep, up, b_rot, clip, bad)
         except CalibrationError as e:
             errs["rotation"] = e
         why = {k: str(e) for k, e in errs.items()}
@@ -350,6 +372,32 @@ class FileAnalysis:
         self._note(f"gyro: the {other} method is not used: {why[other]}")
         return fits[main]
 
+    def _rotation_nested(self, u_rot, fs, keep, up, b_rot, clip, bad) -> TriadFit:
+        """The rotation method with every entry of M; where the motions leave entries unresolved
+        (σ unbounded or above the limit), again with those held at nominal, while some are
+        left to fit: the largest model the motions carry (calib.gyro.rotation_method's hold)."""
+        from imubench.calib import gyro as CG
+        iv = [(i.start, i.stop) for i in keep]
+        hold: list[int] = []
+        first = None
+        while True:
+            try:
+                fit = CG.rotation_method(u_rot, fs, iv, up, b_rot, max_rate_rad_s=clip, exclude_motions=bad,
+                                         hold=hold)
+            except CalibrationError as e:
+                entries = getattr(e, "entries", None)
+                first = first or e
+                if not entries or len(set(hold) | set(entries)) >= 9:
+                    raise first from None
+                hold = sorted(set(hold) | set(entries))
+                continue
+            if hold:
+                self._note(f"gyro: the rotation method holds {', '.join(fit.extra['held'])} at nominal (their σ "
+                           f"would be above {fit.extra['max_sigma']:g}: the motions do not resolve them; fitted with "
+                           f"every entry: {first}); the others are fitted, the held ones' possible size carried into "
+                           "their σ")
+            return fit
+
     def _result(self, means, sigmas) -> dict:
         rec, cfg, accel = self.rec, self.cfg, self.accel
         before = np.linalg.norm(means, axis=1)
@@ -369,6 +417,7 @@ class FileAnalysis:
                   "accel_scaled": rec.accel_scaled, "gyro_scaled": rec.gyro_scaled}
         seg = [{"face": self.faces[i], "start": iv.start, "stop": iv.stop, "t_start_s": iv.t_start_s,
                 "duration_s": iv.duration_s} for i, iv in enumerate(self.intervals)]
+        rests = [asdict(r) for r in self.rests]
         turns = [{"label": t.label, "start": t.start, "stop": t.stop, "t_start_s": t.start / fs,
                   "duration_s": t.duration_s, "known_deg": math.degrees(t.angle_rad),
                   "before_deg": math.degrees(t.measured_rad), "off_axis_deg": t.off_axis_deg,
@@ -388,6 +437,9 @@ class FileAnalysis:
         tol, tol_text = self._tolerance(sig_g)
         verdict = verdict_text(rms_after_mg <= tol.accel_rms_mg, rms_after_mg, tol.accel_rms_mg, cfg.gyro,
                                self.gyro, self.gyro_refused)
+        if self.accel_choice is not None and self.accel_choice.held:
+            verdict = verdict.replace("accelerometer calibrated", f"accelerometer calibrated ({self.accel_choice.model}; "
+                                      f"{', '.join(self.accel_choice.held)} held at nominal)", 1)
         result = CalibrationRecord.from_fit(
             device={"mcu_uid": device_id(name), "board": f"IMU '{name}' (from a file)", "fw_version": "",
                     "fw_build": "", "accel_ids": [], "gyro_pid": [], "gyro_sn": []},
@@ -397,7 +449,10 @@ class FileAnalysis:
             sections={"source": source, "segmentation": seg, "turns": turns, "gyro_parts": self.gyro_parts,
                       "notes": list(self.notes), "annotation": annotation, "device_name": name,
                       "tolerance_source": tol_text, "gyro_refused": self.gyro_refused, "verdict": verdict,
-                      "accel_noise_ug_rthz": self.accel_noise_ug, "gsens": self.gsens}).to_json()
+                      "accel_noise_ug_rthz": self.accel_noise_ug, "gsens": self.gsens, "rests": rests,
+                      "accel_model": self.accel_choice.summary if self.accel_choice else None,
+                      "accel_held": self.accel_choice.held if self.accel_choice else [],
+                      "accel_candidates": self.accel_candidates}).to_json()
         if not rec.accel_scaled:
             result["accel_counts_per_g"] = (accel.m / self.fa * U.G0_MPS2).tolist()
         if not rec.gyro_scaled and self.gyro is not None:
@@ -442,7 +497,8 @@ def verdict_text(accel_ok: bool, rms_mg: float, tol_mg: float, gyro_method, gyro
         return f"{acc}; gyro not: {refused} ({kept}). To calibrate it, {RECORD_ADVICE}"
     if gyro is None or gyro.method == "bias":
         return acc + "; gyro bias at rest only (scale and misalignment not asked for)"
-    return acc + f"; gyro calibrated ({gyro.method})"
+    held = (gyro.extra or {}).get("held") or []
+    return acc + f"; gyro calibrated ({gyro.method}" + (f"; {', '.join(held)} held at nominal)" if held else ")")
 
 
 # ------------------------------------------------------------------ the whole run
