@@ -516,7 +516,7 @@ def _run_from_file(a) -> int:
                      gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
                      writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol,
                      tolerance_from_imu=a.tolerance_mg is None)
-    directory = Path(a.dir or f"imubench-file-{path.stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    directory = Path(a.dir or f"imubench-file-{Path(a.from_file).stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: "nothing is kept from an interrupted analysis; run the command again"
     # what the analysis says quotes the file (its column names, its parts): printed safe
     result, fa = calibrate_recording(rec, directory, cfg, say=lambda line: print(printable(line)))
