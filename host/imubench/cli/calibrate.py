@@ -515,7 +515,7 @@ def _run_from_file(a) -> int:
                      angle_sigma_deg=a.turn_sigma, axis_sigma_deg=a.turn_axis_sigma,
                      gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
                      writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol,
-                     tolerance_from_imu=a.tolerance_mg is None)
+                     tolerance_from_imu=a.tolerance_mg is None, command="imubench " + shlex.join(sys.argv[1:]))
     directory = Path(a.dir or f"imubench-file-{Path(a.from_file).stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: "nothing is kept from an interrupted analysis; run the command again"
     # what the analysis says quotes the file (its column names, its parts): printed safe
@@ -540,7 +540,8 @@ def _run_from_file(a) -> int:
     for kind, files in result.get("exports", {}).items():
         if files:
             print(f"{kind}: {one_line(', '.join(files))}")
-    print(f"session directory: {one_line(directory)} (session.json, residuals.png, segmentation.png)")
+    print(f"session directory: {one_line(directory)} (session.json, residuals.png, segmentation.png, "
+          "rests.csv, README.md)")
     print(f"report: {one_line(result['report'])}")
     _record_history(result, a.db, directory / "session.json")
     print(f"tolerance: {result['tolerance_source']}")
