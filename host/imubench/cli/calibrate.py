@@ -196,7 +196,8 @@ def _add_from_file(p) -> None:
     g.add_argument("--turn-axis-sigma", type=positive_float, default=0.5, metavar="DEG",
                    help="--gyro turns: 1σ of the turn axis off the measured vertical (table not level, board lifted)")
     g.add_argument("--gyro-range", type=positive_float, metavar="DPS",
-                   help="the gyro's range: a turn reaching it is clipped and not used")
+                   help="the gyro's range: a motion reaching it is clipped and left out of the gyro fit (without "
+                        "it, clipping is found in the data: samples held at the extreme of the values)")
     g.add_argument("--annotation", type=existing_file, metavar="JSON",
                    help="imucal's section list, to compare the segmentation with")
     g.add_argument("--export", action="append", default=[], choices=WRITERS, metavar="|".join(WRITERS),

@@ -298,8 +298,9 @@ class FileAnalysis:
                 rs = [r for r in inside if r.axis == ax]
                 parts.append(f"{rs[0].axis_name} at {level(rs[0].level)} for {sum(r.n for r in rs)} samples from "
                              f"{rs[0].start / fs:.2f} s")
-            src = "the declared --gyro-range" if all(r.source == "declared" for r in inside) else "found in the data"
-            out[j] = "; ".join(parts) + f" (full scale {src})"
+            src = "at the declared --gyro-range" if all(r.source == "declared" for r in inside) else \
+                "full scale found in the data"
+            out[j] = "; ".join(parts) + f" ({src})"
             self.clipping["gyro"].append({"motion": j, "t_start_s": s0 / fs, "t_stop_s": (s1 - 1) / fs,
                                           "axes": [{"axis": r.axis_name, "level": level(r.level), "start": r.start,
                                                     "samples": r.n, "source": r.source} for r in inside]})
@@ -631,6 +632,14 @@ def _leave_evidence(d: Path, fa: FileAnalysis, error: Exception, say) -> None:
     from imubench.results.recording import plot_segmentation, rests_table, write_evidence
     reason = str(error) if isinstance(error, ImubenchError) else f"internal error ({type(error).__name__}: {error})"
     rec = fa.rec
+    if not fa.clipping["gyro"] and len(fa.intervals) >= 2:   # refused before the gyro: its clipping is evidence too
+        quiet, fa.say = fa.say, (lambda _line: None)
+        try:
+            fa._clipped_motions(fa.intervals)
+        except Exception:  # noqa: BLE001 - the refusal's evidence, not a second failure
+            pass
+        finally:
+            fa.say = quiet
     result = {"source": fa.source(), "rests": fa.rest_rows(), "clipping": fa.clipping, "notes": list(fa.notes),
               "refused": reason, "turns": [], "segmentation": []}
     try:

@@ -107,14 +107,16 @@ def segmentation_table(result: dict) -> str:
     return "\n".join(rows)
 
 
+SIGMA_FLOOR_MG = 1e-3       # 1 µg: no accelerometer's mean is known better (a clipped axis has σ = 0)
+
+
 def _rest_cells(r: dict) -> list[str]:
-    """A rest's row as text, the means to the precision their σ allows (two digits of σ)."""
-    sig_g = [x / 1e3 for x in r["sigma_mg"]]
-    dm = max(0, decimals_for(min(x for x in sig_g if x > 0))) if any(x > 0 for x in sig_g) else 6
-    ds = max(0, decimals_for(min(x for x in r["sigma_mg"] if x > 0))) if any(x > 0 for x in r["sigma_mg"]) else 3
-    return [str(r["index"]), f"{r['t_start_s']:.2f}", f"{r['duration_s']:.2f}", r["face"],
-            *(f"{x:+.{dm}f}" for x in r["mean_g"]), *(f"{x:.{ds}f}" for x in r["sigma_mg"]), r["use"],
-            f"{r['sigma_inflation']:.3g}", r["reason"]]
+    """A rest's row as text, each mean to the precision its own σ allows (two digits of σ)."""
+    sig = [max(float(x), SIGMA_FLOOR_MG) for x in r["sigma_mg"]]
+    means = [f"{m:+.{max(0, decimals_for(s / 1e3))}f}" for m, s in zip(r["mean_g"], sig)]
+    sigmas = [f"{x:.{max(0, decimals_for(s))}f}" for x, s in zip(r["sigma_mg"], sig)]
+    return [str(r["index"]), f"{r['t_start_s']:.2f}", f"{r['duration_s']:.2f}", r["face"], *means, *sigmas,
+            r["use"], f"{r['sigma_inflation']:.3g}", r["reason"]]
 
 
 def rests_table(result: dict) -> str:
