@@ -578,8 +578,10 @@ def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -
     from imubench.results.report import build_report
     from imubench.results.recording import README, RESTS_CSV, rests_table, write_evidence
     d = Path(directory)
-    if (d / "session.json").exists() or (d / RESTS_CSV).exists():
-        raise RecordingError(f"{d} already holds a session; choose another --dir (nothing was overwritten)")
+    held = [f for f in ("session.json", RESTS_CSV, README, "segmentation.png") if (d / f).exists()]
+    if held:
+        raise RecordingError(f"{d} already holds a session ({', '.join(held)}); choose another --dir (nothing was "
+                             "overwritten)")
     for line in timing_lines(rec) + rec.notes:
         say(f"  {line}")
     fa = FileAnalysis(rec, cfg, say)
