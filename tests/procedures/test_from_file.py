@@ -517,6 +517,17 @@ def test_gyro_clipped_in_a_third_of_its_motions_leaves_them_out(declared):
         CG.rotation_method(ug, CLIP_FS, [(i.start, i.stop) for i in keep], up, fa.gyro.b, max_rate_rad_s=None)
 
 
+def test_known_angle_turns_where_the_gyro_clipped_are_not_used_and_say_why():
+    ua, ug, _, _ = ferraris_session(fs=FS, seed=2)             # its turns peak at 180 °/s
+    r = np.radians(150.0)
+    fa, res = _analyse(from_arrays(ua, np.clip(ug, -r, r), rate_hz=FS))
+    assert [t["label"] for t in res["turns"]] == ["turn about +X", "turn about +Y", "turn about +Z"]
+    for t, ax in zip(res["turns"], "XYZ"):
+        assert not t["usable"] and re.match(rf"the gyro clipped in it, {ax} at \+150\.0 °/s for \d+ samples from "
+                                            r"\d+\.\d\d s \(full scale found in the data\): turn slower", t["reason"])
+    assert res["gyro_refused"].startswith("known-angle turns: 0 usable turn(s)") and res["passed"]
+
+
 def test_gyro_clipped_in_nearly_all_motions_is_refused_with_the_reason():
     from imu_synth import clipped_gyro_session
     fast = tuple(j for j in range(18) if j not in (0, 6, 12))

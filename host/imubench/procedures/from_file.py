@@ -228,7 +228,7 @@ class FileAnalysis:
         self.turns = detect_turns(gyr, fs, keep, up, turn_deg=cfg.turn_deg, breaks=brk)
         for t in self.turns:
             if t.usable and t.rest_before in clipped:
-                t.usable, t.reason = False, f"the gyro clipped in it ({clipped[t.rest_before]}): turn slower"
+                t.usable, t.reason = False, f"the gyro clipped in it, {clipped[t.rest_before]}: turn slower"
 
         if not any(t.usable for t in self.turns) and rec.parts:
             self.turns = self._part_turns(gyr, acc, keep, up, accel)
