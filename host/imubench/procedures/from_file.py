@@ -94,6 +94,7 @@ class FileAnalysis:
         self.rests: list = []           # every rest found, used or not (the evidence of a refusal too)
         self._left_out: dict[int, str] = {}      # id(rest) -> why it was left out (today's kept/dropped)
         self.clipping: dict = {"gyro": [], "accel": []}
+        self._acc_clip: list = []       # calib.clipping.ClipRun of the accelerometer
 
     def _note(self, text: str) -> None:
         self.notes.append(text)
@@ -229,7 +230,6 @@ class FileAnalysis:
         for t in self.turns:
             if t.usable and t.rest_before in clipped:
                 t.usable, t.reason = False, f"the gyro clipped in it, {clipped[t.rest_before]}: turn slower"
-
         if not any(t.usable for t in self.turns) and rec.parts:
             self.turns = self._part_turns(gyr, acc, keep, up, accel)
             if self.turns:
@@ -253,7 +253,7 @@ class FileAnalysis:
         runs = self._acc_clip
         out = set()
         fs = self.rec.fs_hz
-        for k, iv in enumerate(ivs):
+        for iv in ivs:
             inside = runs_in(runs, iv.start, iv.stop)
             if not inside:
                 continue
