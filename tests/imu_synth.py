@@ -218,3 +218,56 @@ def spread_ups(n=26):
             for sz in (1, -1):
                 out.append(np.array([sx, sy, sz], float) / math.sqrt(3))
     return out[:n]
+
+
+# ------------------------------------------------------------------ issue 32: a gyro that clips
+# 18 motions between 19 rests of 2 s: ±90° about X, then Y, both ways while horizontal, Z off the
+# vertical, then flips about X; every rest a face, so the accelerometer sees all six.
+CLIP_PLAN = (((1, 0, 0), -90), ((1, 0, 0), 90), ((1, 0, 0), 90), ((1, 0, 0), -90),
+             ((0, 1, 0), -90), ((0, 1, 0), 90), ((0, 1, 0), 90), ((0, 1, 0), -90),
+             ((0, 1, 0), 90), ((0, 0, 1), 90), ((0, 0, 1), -90), ((0, 0, 1), -90), ((0, 0, 1), 90),
+             ((0, 1, 0), -90), ((1, 0, 0), 180), ((1, 0, 0), 90), ((1, 0, 0), 180), ((1, 0, 0), 90))
+
+
+def motion_session(plan, fs=100.0, seed=0, truth=None, rest_s=2.0, peak_dps=120.0, fast=(), fast_peak_dps=320.0,
+                   accel_noise=0.004, gyro_noise=np.radians(0.05)):
+    """(accel m/s², gyro rad/s, truth, events): rests joined by the plan's rotations (body axis, degrees),
+    each a raised cosine peaking at peak_dps, those whose index is in `fast` at fast_peak_dps."""
+    truth = truth or ferraris_truth(seed)
+    rng = np.random.default_rng(seed + 1)
+    c = np.eye(3)
+    acc, gyr, events = [], [], []
+
+    def rest():
+        n = int(rest_s * fs)
+        acc.append(np.repeat((up_in_body(c) * G0)[None, :], n, 0))
+        gyr.append(np.zeros((n, 3)))
+        events.append(("rest", sum(len(a) for a in acc) - n, sum(len(a) for a in acc)))
+
+    rest()
+    for j, (axis, deg) in enumerate(plan):
+        sec = 2.0 * abs(deg) / (fast_peak_dps if j in fast else peak_dps)   # the raised cosine's peak: 2·angle/T
+        n = int(round(sec * fs))
+        t = (np.arange(n) + 0.5) / n
+        rate = np.radians(deg) / (n / fs) * (1 - np.cos(2 * np.pi * t))
+        ax = np.asarray(axis, float) / np.linalg.norm(axis)
+        a_out = np.empty((n, 3))
+        for k in range(n):
+            c = c @ _rodrigues(ax, rate[k] / fs)
+            a_out[k] = up_in_body(c) * G0
+        acc.append(a_out)
+        gyr.append(rate[:, None] * ax[None, :])
+        events.append(("rot", sum(len(a) for a in acc) - n, sum(len(a) for a in acc)))
+        rest()
+    x_a, x_g = np.concatenate(acc), np.concatenate(gyr)
+    u_a = x_a @ truth["accel_m"].T + truth["accel_b"] + rng.normal(0, accel_noise, x_a.shape)
+    u_g = x_g @ truth["gyro_m"].T + truth["gyro_b"] + rng.normal(0, gyro_noise, x_g.shape)
+    return u_a, u_g, truth, events
+
+
+def clipped_gyro_session(fast, range_dps=250.0, fs=100.0, seed=0):
+    """motion_session(CLIP_PLAN) whose motions in `fast` peak at 320 °/s, read by a gyro whose range is
+    ±range_dps: its output held at the range (as a saturated converter holds its code)."""
+    ua, ug, truth, events = motion_session(CLIP_PLAN, fs=fs, seed=seed, fast=fast)
+    r = np.radians(range_dps)
+    return ua, np.clip(ug, -r, r), truth, events

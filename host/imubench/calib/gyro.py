@@ -521,14 +521,18 @@ def _check_motion_count(J: int, k: int) -> None:
             "and 12–24 are recommended (e.g. ±90° and ±180° about X, Y and Z from different poses)")
 
 
-def _check_clipping(u: np.ndarray, max_rate_rad_s: float | None) -> None:
+def _check_clipping(u: np.ndarray, max_rate_rad_s: float | None, iv: np.ndarray, keep: np.ndarray) -> None:
+    """Refuse when a motion the fit uses reaches the gyro's range (motions left out are not looked at)."""
     if max_rate_rad_s is None:
         return
-    over = np.flatnonzero(np.max(np.abs(u), axis=1) >= max_rate_rad_s)
-    if over.size:
-        raise CalibrationError(
-            f"rotation_method: {over.size} samples at or beyond ±{math.degrees(max_rate_rad_s):.0f} °/s "
-            f"(first at sample {over[0]}): the gyro may have clipped; turn slower")
+    for j in np.flatnonzero(keep):
+        s0 = int(iv[j, 1]) - 1
+        over = np.flatnonzero(np.max(np.abs(u[s0:int(iv[j + 1, 0]) + 1]), axis=1) >= max_rate_rad_s)
+        if over.size:
+            raise CalibrationError(
+                f"rotation_method: motion {j} has {over.size} samples at or beyond ±"
+                f"{math.degrees(max_rate_rad_s):.0f} °/s (first at sample {s0 + over[0]}): the gyro may have "
+                "clipped; leave the motion out (exclude_motions) or turn slower")
 
 
 def _excitation(mo, m0: np.ndarray, b_motion: np.ndarray) -> np.ndarray:
@@ -678,7 +682,7 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
     m0 = np.eye(3) if init_m is None else np.asarray(init_m, dtype=np.float64).reshape(3, 3)
     if abs(np.linalg.det(m0)) < 1e-12:
         raise CalibrationError("init_m is singular")
-    _check_clipping(u, max_rate_rad_s)
+    _check_clipping(u, max_rate_rad_s, iv, keep)
     gsig = np.broadcast_to(np.asarray(gravity_sigma, float), (k,)).astype(float)
     mo = RM.motions(u, fs_hz, iv, g, gsig, keep)
     if motion_bias is None:
