@@ -1,6 +1,6 @@
 # imubench top-level Makefile. The two commands of README.md:
 #   make demo   build what is needed and run a session against a device
-#   make test   the whole test suite (what CI runs through .ci/run)
+#   make test   the static check (ruff, pyproject.toml) and the whole test suite (what CI runs through .ci/run)
 # Both set up everything themselves on a fresh machine and are safe to run twice.
 
 PYTHON ?= python3
@@ -89,6 +89,7 @@ lint: system-deps
 # the 30 slowest tests are listed at the end, to see where the time goes.
 PYTEST_WORKERS ?= 2
 test: system-deps venv c-tests sim firmware
+	$(VENV)/bin/ruff check --no-cache host bench tests
 	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadscope --durations=30
 
 demo: system-deps venv sim

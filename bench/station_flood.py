@@ -131,9 +131,9 @@ def table(out: dict) -> str:
             f"{out['rss_after_flood_mb']:.0f} MB (target: within 50 MB) |\n"
             f"| `/api/start` with {ns} event streams asked for, median of 5 | "
             + " / ".join(_ms(r["median_s"]) for r in rows) + " ms (target < 500 ms) |\n"
-            f"| the same, worst of 5 | " + " / ".join(_ms(r["worst_s"]) for r in rows) + " ms |\n"
+            "| the same, worst of 5 | " + " / ".join(_ms(r["worst_s"]) for r in rows) + " ms |\n"
             f"| event streams served of {ns} asked for | " + " / ".join(str(r["served"]) for r in rows) + " |\n"
-            f"| another browser took the operator's device | "
+            "| another browser took the operator's device | "
             + ("never" if all(r["kept"] for r in rows) else "YES") + " |\n")
 
 

@@ -289,7 +289,7 @@ def test_each_shape_through_the_command_line(rec6, tmp_path, name):
     # the options that read it again: printed, in session.json and the README, and they do
     cmd = res["source"]["command"]
     assert cmd.startswith(f"imubench calibrate --from {path.name} --format ")
-    assert f"    {cmd}" in (tmp_path / "out" / "README.md").read_text()
+    assert f"\n```\n{cmd}\n```\n" in (tmp_path / "out" / "README.md").read_text()
     assert f"the same reading, every option stated: {cmd}" in out
     r2 = _cli([*cmd.split()[2:], "--dir", "again"], tmp_path)
     assert r2.returncode == 0 and "detected:" not in r2.stdout, r2.stdout + r2.stderr

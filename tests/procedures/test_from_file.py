@@ -369,7 +369,6 @@ def test_cli_end_to_end(session, tmp_path):
     (["--accel-unit", "furlongs", "--gyro-unit", "dps"], 1, "unknown accelerometer unit 'furlongs'"),
     (["--accel-unit", "g", "--gyro-unit", "dps", "--port", "socket://127.0.0.1:1"], 2, "--from and --port exclude"),
     (["--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "turntable"], 2, "--gyro turntable needs a turntable"),
-    (["--accel-unit", "g", "--gyro-unit", "dps", "--method", "multi"], 1, "cannot be observed"),
 ])
 def test_cli_mistakes_give_one_line(session, tmp_path, args, code, needle):
     ua, ug, _, _ = session
@@ -486,3 +485,151 @@ def test_live_six_with_rotation_is_refused_before_capture(tmp_path):
     assert r.returncode == 2, r.stdout + r.stderr
     assert "6 attitudes give 5 motion(s)" in r.stderr and "nothing was captured" in r.stderr
     assert not (tmp_path / "s").exists()
+
+
+# ------------------------------------------------------------------ issue 32: clipping, evidence, README's command
+CLIP_FS = 100.0
+THIRD = tuple(range(2, 18, 3))                  # 6 of the 18 motions faster than the gyro's ±250 °/s
+
+
+@pytest.mark.parametrize("declared", [None, 250.0], ids=["found-in-the-data", "declared-range"])
+def test_gyro_clipped_in_a_third_of_its_motions_leaves_them_out(declared):
+    """Clipped motions are found by default (a plateau at the extreme of the values) or at the
+    declared --gyro-range, named, left out of the gyro fit; the rest still calibrate it."""
+    from imu_synth import clipped_gyro_session
+    ua, ug, truth, _ = clipped_gyro_session(THIRD, range_dps=250.0, fs=CLIP_FS, seed=0)
+    assert np.sum(np.abs(np.degrees(ug)) >= 250.0 - 1e-9) > 100           # the synthetic gyro did clip
+    said = []
+    fa = FileAnalysis(from_arrays(ua, ug, rate_hz=CLIP_FS), FileConfig(gyro_range_dps=declared), say=said.append)
+    res = fa.run()
+    assert res["gyro_refused"] is None and fa.gyro.method == "rotation"
+    assert [m["motion"] for m in res["clipping"]["gyro"]] == list(THIRD)
+    src = "declared" if declared else "data"
+    for m in res["clipping"]["gyro"]:
+        assert {a["source"] for a in m["axes"]} == {src} and all(a["level"] in ("+250.0 °/s", "-250.0 °/s")
+                                                                for a in m["axes"])
+    named = [n for n in res["notes"] if "left out of the gyro fit: the gyro clipped" in n]
+    assert len(named) == len(THIRD) and re.search(r"motion 2 \(\d+\.\d–\d+\.\d s\) left out .* X at \+250\.0 °/s "
+                                                  r"for \d+ samples from \d+\.\d\d s", named[0]), named
+    assert "gyro clipped in 6 of 18 motions: those are left out of the gyro fit" in said
+    z = (fa.gyro.m - truth["gyro_m"]) / fa.gyro.sigma_m
+    assert np.abs(z).max() < 3, z
+    # without leaving them out, the same motions spoil the fit: the check is what makes it work
+    from imubench.calib import gyro as CG
+    keep = fa.intervals
+    up = fa.accel.correct(np.array([i.mean for i in keep]))
+    with pytest.raises(CG.CalibrationError, match="does not explain the gravity directions"):
+        CG.rotation_method(ug, CLIP_FS, [(i.start, i.stop) for i in keep], up, fa.gyro.b, max_rate_rad_s=None)
+
+
+def test_known_angle_turns_where_the_gyro_clipped_are_not_used_and_say_why():
+    ua, ug, _, _ = ferraris_session(fs=FS, seed=2)             # its turns peak at 180 °/s
+    r = np.radians(150.0)
+    fa, res = _analyse(from_arrays(ua, np.clip(ug, -r, r), rate_hz=FS))
+    assert [t["label"] for t in res["turns"]] == ["turn about +X", "turn about +Y", "turn about +Z"]
+    for t, ax in zip(res["turns"], "XYZ"):
+        assert not t["usable"] and re.match(rf"the gyro clipped in it, {ax} at \+150\.0 °/s for \d+ samples from "
+                                            r"\d+\.\d\d s \(full scale found in the data\): turn slower", t["reason"])
+    assert res["gyro_refused"].startswith("known-angle turns: 0 usable turn(s)") and res["passed"]
+
+
+def test_gyro_clipped_in_nearly_all_motions_is_refused_with_the_reason():
+    from imu_synth import clipped_gyro_session
+    fast = tuple(j for j in range(18) if j not in (0, 6, 12))
+    ua, ug, _, _ = clipped_gyro_session(fast, fs=CLIP_FS, seed=0)
+    fa, res = _analyse(from_arrays(ua, ug, rate_hz=CLIP_FS), gyro="auto")
+    assert len(res["clipping"]["gyro"]) == 15
+    assert re.search(r"rotation_method: 3 motion\(s\) .* at least 6 are needed.*\(15 of 18 motions left out: the gyro "
+                     r"clipped in them; turn slower than its range\)", res["gyro_refused"]), res["gyro_refused"]
+    assert res["passed"] and res["gyro"]["method"] == "bias"           # the accelerometer and the bias stand
+    assert "gyro not:" in res["verdict"] and "clipped" in res["verdict"]
+
+
+def test_accelerometer_rest_at_full_scale_is_left_out_and_named():
+    """Rests where the accelerometer sat at its full scale (here Z, clipped just under the +Z
+    rests' reading) are left out of the fit and named; the other attitudes still calibrate it."""
+    from imubench.calib.accel import lower_triangular_form
+    ua, ug, truth, _ = ferraris_session(fs=FS, seed=7, edges=True)
+    ua_c = ua.copy()
+    ua_c[:, 2] = np.minimum(ua[:, 2], ua[:300, 2].mean() - 0.002 * G0)
+    fa = FileAnalysis(from_arrays(ua_c, ug, rate_hz=FS), FileConfig(gyro=None, method="multi"), say=lambda s: None)
+    res = fa.run()
+    left = [r for r in res["rests"] if r["use"] == "left out"]
+    assert len(left) >= 3 and {r["face"] for r in left} == {"+Z"}
+    assert all(re.match(r"clipped: accelerometer Z held at \+0\.98\d+ g \(its full scale, found in the data\)",
+                        r["use_reason"]) for r in left), left
+    assert not any(r["face"] == "+Z" and r["use"] == "used" for r in res["rests"])
+    assert len(res["clipping"]["accel"]) == len(left)
+    l_true, _ = lower_triangular_form(truth["accel_m"])
+    assert np.abs(fa.accel.m - l_true).max() < 5 * np.nanmax(fa.accel.sigma_m) + 1e-4
+    assert res["passed"]
+
+
+def _few_faces_file(tmp_path):
+    """A recording whose rests show four faces: the six-position fit is refused."""
+    from imu_synth import clipped_gyro_session
+    ua, ug, _, events = clipped_gyro_session((), fs=CLIP_FS, seed=0)
+    cut = [e for e in events if e[0] == "rest"][6][2]
+    p = tmp_path / "few_faces.csv"
+    np.savetxt(p, np.column_stack([ua[:cut], ug[:cut]]), delimiter=",", header="acc_x,acc_y,acc_z,gyr_x,gyr_y,gyr_z",
+               comments="", fmt="%.9g")
+    return p
+
+
+def test_a_refused_accelerometer_leaves_its_evidence(tmp_path):
+    """A refusal writes the folder: the segmentation plot, the rests table (CSV and README) and
+    the reason, and says where; the error is still one line."""
+    p = _few_faces_file(tmp_path)
+    r = _cli(["--from", str(p), "--accel-unit", "mps2", "--gyro-unit", "rad_s", "--rate", "100", "--dir", "out",
+              "--db", str(tmp_path / "h.sqlite")], tmp_path)
+    err = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 1 and len(err) == 1 and "Traceback" not in r.stdout + r.stderr, r.stdout + r.stderr
+    assert "missing faces: -X, -Z" in err[0]
+    d = tmp_path / "out"
+    assert f"refused; what was found is in {Path('out')}: segmentation.png" in r.stdout
+    assert (d / "segmentation.png").stat().st_size > 10_000 and not (d / "session.json").exists()
+    import csv
+    rows = list(csv.DictReader((d / "rests.csv").open()))
+    assert [row["index"] for row in rows] == [str(k) for k in range(7)]
+    assert [row["face"] for row in rows] == ["+Z", "-Y", "+Z", "+Y", "+Z", "+X", "+Z"]
+    assert all(row["use"] in ("used", "down-weighted", "left out") for row in rows)
+    assert abs(float(rows[0]["mean_z_g"]) - 1.0) < 0.02 and float(rows[0]["duration_s"]) > 1.0
+    readme = (d / "README.md").read_text()
+    reason = err[0].split("error: calibration failed: ", 1)[1].split("; see docs/")[0]
+    assert f"**REFUSED:** {reason}" in readme
+    assert "imubench calibrate --from" in readme and rests_header() in readme
+    # the same folder again: refused, nothing overwritten
+    r2 = _cli(["--from", str(p), "--accel-unit", "mps2", "--gyro-unit", "rad_s", "--rate", "100", "--dir", "out",
+               "--db", str(tmp_path / "h.sqlite")], tmp_path)
+    assert r2.returncode == 1 and "already holds a session" in r2.stderr
+
+
+def rests_header() -> str:
+    return "rests found by the data (σ: the 1σ of each mean; σ ×: its inflation in the fit):"
+
+
+def test_readme_first_command_without_dir_from_an_empty_folder(tmp_path):
+    """Issue 32 item 6: `calibrate --from FILE --accel-unit mps2 --gyro-unit rad_s --rate 100`,
+    no --dir: it ran into a NameError. Now it names its folder after the file and leaves the
+    evidence there, accepted (here: the gyro clipped in a third of its motions, left out)."""
+    from imu_synth import clipped_gyro_session
+    ua, ug, _, _ = clipped_gyro_session(THIRD, fs=CLIP_FS, seed=0)
+    data = tmp_path / "data"
+    data.mkdir()
+    p = data / "myimu.csv"
+    np.savetxt(p, np.column_stack([ua, ug]), delimiter=",", header="acc_x,acc_y,acc_z,gyr_x,gyr_y,gyr_z",
+               comments="", fmt="%.9g")
+    work = tmp_path / "empty"
+    work.mkdir()
+    r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--from", str(p), "--accel-unit", "mps2",
+                        "--gyro-unit", "rad_s", "--rate", "100"], capture_output=True, text=True, cwd=work,
+                       timeout=180, stdin=subprocess.DEVNULL, env={**__import__("os").environ,
+                                                                   "IMUBENCH_DB": str(tmp_path / "h.sqlite")})
+    assert r.returncode == 0 and r.stderr == "", r.stdout + r.stderr
+    (d,) = list(work.glob("imubench-file-myimu-*"))
+    for f in ("session.json", "segmentation.png", "rests.csv", "README.md", "report.html"):
+        assert (d / f).is_file(), f
+    assert "gyro clipped in 6 of 18 motions" in r.stdout and "rests: 19 used, 0 down-weighted, 0 left out" in r.stdout
+    state = json.loads((d / "session.json").read_text())["result"]
+    assert [m["motion"] for m in state["clipping"]["gyro"]] == list(THIRD) and len(state["rests"]) == 19
+    assert "## Clipping" in (d / "README.md").read_text() and rests_header() in (d / "report.html").read_text()

@@ -9,7 +9,6 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import pytest
 
 from procio import finish, wait_for_line
 from imubench.station.runner import SIM_KEY, Station

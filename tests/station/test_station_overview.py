@@ -22,7 +22,6 @@ import sys
 import urllib.request
 from pathlib import Path
 
-import pytest
 
 from procio import finish, wait_for_line
 from imubench.station.runner import Station

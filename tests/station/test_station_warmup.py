@@ -20,7 +20,6 @@ import json
 import re
 from pathlib import Path
 
-import pytest
 
 from imubench.station.runner import SIM_KEY, Station
 from imubench.station.server import Server

@@ -117,6 +117,28 @@ def lower_triangular_form(m) -> tuple[np.ndarray, np.ndarray]:
     return L, Q
 
 
+def deletion_chi2(Aw: np.ndarray, rw: np.ndarray, k: int) -> np.ndarray:
+    """Per pose (k consecutive whitened rows each): by how much χ² drops when that pose is left
+    out of the (linearised) fit, q_i = e_iᵀ (I − H_ii)⁻¹ e_i, H the hat matrix of the whitened
+    design Aw, e_i the pose's whitened residuals. q_i is the squared Mahalanobis distance of the
+    pose from what the other poses predict for it: χ² with k dof when the model holds and the
+    sigmas are right (Cook & Weisberg, Residuals and Influence in Regression, 1982). Infinite
+    where the other poses cannot predict the pose (H_ii singular: it alone fixes a parameter)."""
+    q, _ = np.linalg.qr(Aw)
+    H = q @ q.T
+    m = len(rw) // k
+    out = np.empty(m)
+    for i in range(m):
+        sl = slice(k * i, k * i + k)
+        A = np.eye(k) - H[sl, sl]
+        e = rw[sl]
+        if np.linalg.cond(A) > 1e10:
+            out[i] = math.inf
+        else:
+            out[i] = float(e @ np.linalg.solve(A, e))
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # six-position
 # --------------------------------------------------------------------------------------------
@@ -163,7 +185,7 @@ def _check_faces(faces, angles, skip_non_faces: bool) -> None:
 
 
 def six_position(means, sigmas=None, g: float = G0_MPS2, *, skip_non_faces: bool = False,
-                 chi2_scaling: str = "inflate") -> TriadFit:
+                 chi2_scaling: str = "inflate", covs=None) -> TriadFit:
     """Six-position calibration: every pose lies on a face, so its true specific force is ±g on
     one board axis; weighted linear least squares on the stacked z = A·β, β = (M row-major, b).
 
@@ -172,7 +194,9 @@ def six_position(means, sigmas=None, g: float = G0_MPS2, *, skip_non_faces: bool
     residuals). Raises NotObservable naming missing (and repeated) faces. The covariance is
     (AᵀWA)⁻¹ × max(1, χ²/dof) (see _chi2_factor): the spread of (M, b) from the noise of the
     means, inflated when the residuals exceed that noise — it does not cover a tilt of the
-    faces that the residuals cannot see (docs/calibration.md)."""
+    faces that the residuals cannot see (docs/calibration.md). covs (m, 3, 3): a further
+    covariance of each mean (a rest's own motion, calib.rests) added to diag(sigmas²); each
+    pose's three rows are then whitened by the Cholesky factor of the sum (needs sigmas)."""
     u = np.asarray(means, dtype=np.float64)
     faces, angles = identify_faces(u)
     _check_faces(faces, angles, skip_non_faces)
@@ -183,6 +207,9 @@ def six_position(means, sigmas=None, g: float = G0_MPS2, *, skip_non_faces: bool
     m = len(u)
     sig = _sigmas(sigmas, len(u_all))
     sig = sig[use] if sig is not None else None
+    if covs is not None and sig is None:
+        raise ValueError("covs needs sigmas (the noise of the means they add to)")
+    cv = None if covs is None else np.asarray(covs, dtype=np.float64).reshape(len(u_all), 3, 3)[use]
 
     f_true = np.zeros((m, 3))
     for i, f in enumerate([f for f in faces if f is not None]):
@@ -195,12 +222,19 @@ def six_position(means, sigmas=None, g: float = G0_MPS2, *, skip_non_faces: bool
             A[3 * i + a, 3 * a:3 * a + 3] = f_true[i]
             A[3 * i + a, 9 + a] = 1.0
     z = u.ravel()
-    w = 1.0 / (sig.ravel() if sig is not None else np.ones(3 * m))
-    Aw = A * w[:, None]
-    zw = z * w
+    if cv is None:
+        w = 1.0 / (sig.ravel() if sig is not None else np.ones(3 * m))
+        Wh = np.diag(w)
+    else:                         # block whitening: L_i⁻¹ with L_i·L_iᵀ = diag(σ_i²) + C_i
+        Wh = np.zeros((3 * m, 3 * m))
+        for i in range(m):
+            L = np.linalg.cholesky(np.diag(sig[i] ** 2) + cv[i])
+            Wh[3 * i:3 * i + 3, 3 * i:3 * i + 3] = np.linalg.inv(L)
+    Aw = Wh @ A
+    zw = Wh @ z
     beta, *_ = np.linalg.lstsq(Aw, zw, rcond=None)
     res = z - A @ beta
-    chi2 = float(np.sum((res * w) ** 2))
+    chi2 = float(np.sum((Wh @ res) ** 2))
     dof = 3 * m - 12
     N = Aw.T @ Aw
     cov = np.linalg.inv(N) * _chi2_factor(chi2, dof, sig is not None, chi2_scaling)
@@ -216,6 +250,7 @@ def six_position(means, sigmas=None, g: float = G0_MPS2, *, skip_non_faces: bool
         "chi2": chi2,
         "chi2_red": chi2 / dof if dof > 0 else float("nan"),
         "chi2_scaling": chi2_scaling if sig is not None else "always (unweighted)",
+        "deletion_chi2": deletion_chi2(Aw, Wh @ res, 3),
         # misfit as an angle: the rms residual over g; a large value means the faces were not
         # square to gravity (or the board moved)
         "residual_angle_deg": math.degrees(float(np.sqrt(np.mean(res ** 2))) / g),
@@ -342,6 +377,18 @@ def _obs_jacobian(d: np.ndarray) -> np.ndarray:
     return J
 
 
+def _free_mask(hold) -> np.ndarray:
+    """Boolean mask over MULTI_PARAM_NAMES: False for the parameters held at nominal."""
+    hold = tuple(hold or ())
+    bad = [h for h in hold if h not in MULTI_PARAM_NAMES]
+    if bad:
+        raise ValueError(f"unknown parameters to hold: {bad}; the parameters are {MULTI_PARAM_NAMES}")
+    return np.array([n not in hold for n in MULTI_PARAM_NAMES])
+
+
+NOMINAL_THETA = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+
+
 def dilution(directions) -> np.ndarray | None:
     """Per parameter of the |a| = g model (MULTI_PARAM_NAMES), its 1-sigma from poses in these
     directions (m, 3) with unit noise on |a|, at the nominal point (M = I, b = 0; biases per
@@ -364,6 +411,13 @@ def _param_sigmas_unit(J: np.ndarray) -> np.ndarray | None:
 _REF_SIGMA_SQRTM = _param_sigmas_unit(_obs_jacobian(_PLAN_DIRS)) * math.sqrt(len(_PLAN_DIRS))
 
 
+def _ref_sigma_sqrtm(free: np.ndarray) -> np.ndarray:
+    """The 26-attitude plan's per-pose sigma of the free parameters (DOP 1)."""
+    if free.all():
+        return _REF_SIGMA_SQRTM
+    return _param_sigmas_unit(_obs_jacobian(_PLAN_DIRS)[:, free]) * math.sqrt(len(_PLAN_DIRS))
+
+
 def _distinct(d: np.ndarray, tol_deg: float = DISTINCT_DEG) -> int:
     """Number of distinct attitudes: greedy, a pose within tol_deg of a kept one is a repeat."""
     c = math.cos(math.radians(tol_deg))
@@ -375,14 +429,16 @@ def _distinct(d: np.ndarray, tol_deg: float = DISTINCT_DEG) -> int:
     return int(keep.sum())
 
 
-def check_observability(means, method: str = "multi_position") -> dict:
+def check_observability(means, method: str = "multi_position", hold=()) -> dict:
     """Raise NotObservable with the reason when the poses cannot constrain the model; return a
     report otherwise: {"method", "n_poses", "n_distinct", "dop" (multi: per parameter, 1 = as
     well constrained per pose as the 26-pose plan), "worst", "warnings"}.
 
     six_position: the six faces must all be present. multi_position: ≥ 9 distinct attitudes
     (warn under 12); every axis pointed up and down (within 60° of ±g: a corner counts); the |a| = g Jacobian at
-    the nominal point of full rank, and no parameter's dilution of precision above DOP_MAX."""
+    the nominal point of full rank, and no parameter's dilution of precision above DOP_MAX.
+    hold: names of MULTI_PARAM_NAMES held at nominal (a nested model): the attitudes then need
+    to constrain only the others (as many distinct attitudes as free parameters)."""
     u = np.asarray(means, dtype=np.float64)
     d = _units(u)
     rep: dict = {"method": method, "n_poses": len(u), "n_distinct": _distinct(d), "warnings": []}
@@ -393,12 +449,14 @@ def check_observability(means, method: str = "multi_position") -> dict:
     if method != "multi_position":
         raise ValueError(f"method must be 'six_position' or 'multi_position', not {method!r}")
 
+    free = _free_mask(hold)
+    nfree = int(free.sum())
     nd = rep["n_distinct"]
-    if nd < MIN_ATTITUDES:
+    if nd < min(MIN_ATTITUDES, nfree):
         raise NotObservable(
             f"too few poses: {len(u)} given, {nd} distinct attitudes (poses within "
-            f"{DISTINCT_DEG:.0f}° count once); the 9-parameter |a| = g model needs at least "
-            f"{MIN_ATTITUDES}, in practice 12–26 well spread (faces, edges and corners: POSE_PLAN)")
+            f"{DISTINCT_DEG:.0f}° count once); the {nfree}-parameter |a| = g model needs at least "
+            f"{min(MIN_ATTITUDES, nfree)}, in practice 12–26 well spread (faces, edges and corners: POSE_PLAN)")
     for a in range(3):
         up, down = d[:, a].max(), d[:, a].min()
         lacks = [w for w, ok in (("up", up >= UPDOWN_COS), ("down", down <= -UPDOWN_COS)) if not ok]
@@ -410,7 +468,8 @@ def check_observability(means, method: str = "multi_position") -> dict:
                 f"{' and '.join(('+g' if w == 'up' else '−g') for w in lacks)} is needed, or its bias "
                 f"and scale factor cannot be told apart. Add poses with {want} "
                 f"(e.g. {', '.join(repr(_face_pose(a, w == 'up')) for w in lacks)}).")
-    J = _obs_jacobian(d)
+    names_free = [n for n, f in zip(MULTI_PARAM_NAMES, free) if f]
+    J = _obs_jacobian(d)[:, free]
     sig = _param_sigmas_unit(J)
     if sig is None:
         # name the parameters of the unconstrained combination (the null vector of the
@@ -418,25 +477,25 @@ def check_observability(means, method: str = "multi_position") -> dict:
         Jn = J / np.maximum(np.linalg.norm(J, axis=0), 1e-300)
         _, vec = np.linalg.eigh(Jn.T @ Jn)
         v = vec[:, 0]
-        names = [MULTI_PARAM_NAMES[i] for i in np.argsort(-np.abs(v)) if abs(v[i]) > 0.25]
+        names = [names_free[i] for i in np.argsort(-np.abs(v)) if abs(v[i]) > 0.25]
         raise NotObservable(
             f"the poses leave a combination of {', '.join(names)} unconstrained (the |a| = g "
             f"Jacobian is rank-deficient): spread the attitudes over faces, edges and corners "
             f"(POSE_PLAN); {_missing_str(u)}")
-    dop = sig * math.sqrt(len(d)) / _REF_SIGMA_SQRTM
-    rep["dop"] = dict(zip(MULTI_PARAM_NAMES, dop.tolist()))
+    dop = sig * math.sqrt(len(d)) / _ref_sigma_sqrtm(free)
+    rep["dop"] = dict(zip(names_free, dop.tolist()))
     worst = int(np.argmax(dop))
-    rep["worst"] = MULTI_PARAM_NAMES[worst]
+    rep["worst"] = names_free[worst]
     if dop[worst] > DOP_MAX:
         raise NotObservable(
-            f"the poses constrain {MULTI_PARAM_NAMES[worst]} poorly: {dop[worst]:.0f}× worse per "
+            f"the poses constrain {names_free[worst]} poorly: {dop[worst]:.0f}× worse per "
             f"pose than the 26-attitude plan (limit {DOP_MAX:.0f}). Spread the attitudes: "
             f"faces, edges and corners (POSE_PLAN); {_missing_str(u)}")
-    if nd < GOOD_ATTITUDES:
+    if nd < GOOD_ATTITUDES and free.all():
         rep["warnings"].append(f"only {nd} distinct attitudes: ≥ {GOOD_ATTITUDES} give a reliable "
                                f"fit (the 26 of POSE_PLAN best)")
     if dop[worst] > DOP_WARN:
-        rep["warnings"].append(f"{MULTI_PARAM_NAMES[worst]} is weakly constrained "
+        rep["warnings"].append(f"{names_free[worst]} is weakly constrained "
                                f"({dop[worst]:.1f}× the plan's dilution of precision)")
     return rep
 
@@ -482,7 +541,8 @@ def _best_start(starts, solve, u: np.ndarray, g: float) -> tuple[tuple, int]:
 
 
 def multi_position(means, sigmas=None, init: TriadFit | None = None, g: float = G0_MPS2, *,
-                   chi2_scaling: str = "inflate", check: bool = True) -> TriadFit:
+                   chi2_scaling: str = "inflate", check: bool = True, covs=None, hold=(),
+                   held_sigma=None) -> TriadFit:
     """Multi-position calibration: 9 parameters from |M⁻¹(u_i − b)| = g at m ≥ 9 attitudes.
 
     θ = (b_x, b_y, b_z, s_x, s_y, s_z, a_yx, a_zx, a_zy), M = diag(s)·(I + A), A strictly lower
@@ -494,39 +554,66 @@ def multi_position(means, sigmas=None, init: TriadFit | None = None, g: float = 
     per axis (the first start that converges to a plausible solution is kept, else the lowest
     χ² of all). Covariance of θ: (JᵀJ)⁻¹ at the solution × max(1, χ²/dof) (see _chi2_factor),
     propagated to (M, b) through ∂(M, b)/∂θ; the three entries of M above the diagonal are 0
-    by the frame convention (estimated = False, variance 0)."""
+    by the frame convention (estimated = False, variance 0).
+
+    covs (m, 3, 3): a further covariance of each mean (a rest's own motion, calib.rests), added
+    to diag(sigmas²) when |x_i|'s sigma is propagated (needs sigmas). hold: names of
+    MULTI_PARAM_NAMES held at their nominal values (b = 0, s = 1, angles 0): a nested model,
+    fitted on the others; its entries of M / b count as not estimated. held_sigma: {name: σ}
+    the size a held parameter may have in truth (its unit: g's unit for biases, 1 for scales, rad
+    for angles). It is not assumed exact: a held parameter is a "consider" parameter (Schmidt,
+    Application of state-space methods to navigation problems, 1966): its σ adds to each
+    pose's |a| sigma what it could change there (J_h σ_h), and to the fitted parameters'
+    covariance what it would move them by (K Σ_h Kᵀ, K = −(J_fᵀWJ_f)⁻¹J_fᵀWJ_h); its own
+    sigma is reported as given."""
     u = np.asarray(means, dtype=np.float64)
     _units(u)
     _check_g(u, g)
     m = len(u)
-    rep = check_observability(u, "multi_position") if check else {"warnings": []}
+    free = _free_mask(hold)
+    rep = check_observability(u, "multi_position", hold=hold) if check else {"warnings": []}
     sig = _sigmas(sigmas, m)
+    cv = None
+    if covs is not None:
+        if sig is None:
+            raise ValueError("covs needs sigmas (the noise of the means they add to)")
+        cv = np.asarray(covs, dtype=np.float64).reshape(m, 3, 3)
 
-    xs = np.array([g * 1e-2] * 3 + [1e-2] * 6)
+    xs = np.array([g * 1e-2] * 3 + [1e-2] * 6)[free]
+    theta_nom = NOMINAL_THETA * np.array([g] * 3 + [1.0] * 6)
+
+    def full(tf):
+        t = theta_nom.copy()
+        t[free] = tf
+        return t
 
     def sig_r(theta):
         if sig is None:
             return np.ones(m)
         _, _, v = _residuals_and_jac(theta, u, g)
-        return np.sqrt(np.sum((v * sig) ** 2, axis=1))
+        var = np.sum((v * sig) ** 2, axis=1)
+        if cv is not None:
+            var = var + np.einsum("ij,ijk,ik->i", v, cv, v)
+        return np.sqrt(var)
 
     def solve(theta0):
         """LM from theta0, re-weighting until the weights settle; (theta, cost, nfev, sol)."""
         theta = theta0.copy()
+        theta[~free] = theta_nom[~free]
         nfev = 0
         sr = sig_r(theta)
         sol = None
         for _ in range(3):
             def fun(t, sr=sr):
-                return _residuals_and_jac(t, u, g)[0] / sr
+                return _residuals_and_jac(full(t), u, g)[0] / sr
 
             def jac(t, sr=sr):
-                return _residuals_and_jac(t, u, g)[1] / sr[:, None]
+                return _residuals_and_jac(full(t), u, g)[1][:, free] / sr[:, None]
 
-            sol = optimize.least_squares(fun, theta, jac=jac, method="lm", x_scale=xs,
+            sol = optimize.least_squares(fun, theta[free], jac=jac, method="lm", x_scale=xs,
                                          xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=2000)
             nfev += sol.nfev
-            theta = sol.x
+            theta = full(sol.x)
             if not (np.all(np.isfinite(theta)) and np.all(theta[3:6] > 0)):
                 raise CalibrationError("non-finite or negative scale")
             sr_new = sig_r(theta)
@@ -550,23 +637,36 @@ def multi_position(means, sigmas=None, init: TriadFit | None = None, g: float = 
 
     sr = sig_r(theta)
     r, J, _ = _residuals_and_jac(theta, u, g)
-    Jw = J / sr[:, None]
+    sh = np.array([(held_sigma or {}).get(n, 0.0) for n in MULTI_PARAM_NAMES])[~free]
+    Jh = J[:, ~free] * sh[None, :]                 # |a| change per rest from each held parameter's σ
+    sr = np.sqrt(sr ** 2 + np.sum(Jh ** 2, axis=1))
+    Jw = J[:, free] / sr[:, None]
     rw = r / sr
     chi2 = float(rw @ rw)
-    dof = m - 9
+    dof = m - int(free.sum())
     N = Jw.T @ Jw
     cn = np.sqrt(np.diag(N))
     ev = np.linalg.eigvalsh(N / np.outer(cn, cn)) if np.all(cn > 0) else np.zeros(1)
     if not ev[0] > 1e-12 * ev[-1]:
         raise NotObservable("the multi-position fit is singular at its solution: spread the poses "
                             "over faces, edges and corners (POSE_PLAN)")
-    cov_t = np.linalg.inv(N) * _chi2_factor(chi2, dof, sig is not None, chi2_scaling)
+    cov_t = np.zeros((9, 9))
+    Ninv = np.linalg.inv(N)
+    cov_t[np.ix_(free, free)] = Ninv * _chi2_factor(chi2, dof, sig is not None, chi2_scaling)
+    if np.any(sh > 0):                             # consider parameters: their effect on the fitted ones
+        K = -Ninv @ Jw.T @ (Jh / sr[:, None])
+        cov_t[np.ix_(free, free)] += K @ K.T
+        cov_t[~free, ~free] = sh ** 2
     G = _param_jacobian_mb(theta)
     cov = G @ cov_t @ G.T
     M, b = multi_params_to_mb(theta)
     est = np.ones(12, dtype=bool)
     for rr, cc in ((0, 1), (0, 2), (1, 2)):
         est[3 * rr + cc] = False
+    for p, (rr, cc) in enumerate(_ANGLE_POS):      # a held angle: that entry of M is nominal
+        est[3 * rr + cc] &= bool(free[6 + p])
+    for a in range(3):                             # a held bias
+        est[9 + a] &= bool(free[a])
     st = np.sqrt(np.clip(np.diag(cov_t), 0, None))
     # converged |a| residuals must be small compared with g; otherwise a local minimum
     rms = float(np.sqrt(np.mean(r ** 2)))
@@ -590,6 +690,9 @@ def multi_position(means, sigmas=None, init: TriadFit | None = None, g: float = 
         "status": sol.status,
         "message": sol.message,
         "observability": rep,
+        "held": [n for n, f in zip(MULTI_PARAM_NAMES, free) if not f],
+        "sigma_r": sr,
+        "deletion_chi2": deletion_chi2(Jw, rw, 1),
         "frame": "x = sensor X axis, y in the sensor X-Y plane (M lower triangular)",
         "g": g,
     }

@@ -521,14 +521,18 @@ def _check_motion_count(J: int, k: int) -> None:
             "and 12–24 are recommended (e.g. ±90° and ±180° about X, Y and Z from different poses)")
 
 
-def _check_clipping(u: np.ndarray, max_rate_rad_s: float | None) -> None:
+def _check_clipping(u: np.ndarray, max_rate_rad_s: float | None, iv: np.ndarray, keep: np.ndarray) -> None:
+    """Refuse when a motion the fit uses reaches the gyro's range (motions left out are not looked at)."""
     if max_rate_rad_s is None:
         return
-    over = np.flatnonzero(np.max(np.abs(u), axis=1) >= max_rate_rad_s)
-    if over.size:
-        raise CalibrationError(
-            f"rotation_method: {over.size} samples at or beyond ±{math.degrees(max_rate_rad_s):.0f} °/s "
-            f"(first at sample {over[0]}): the gyro may have clipped; turn slower")
+    for j in np.flatnonzero(keep):
+        s0 = int(iv[j, 1]) - 1
+        over = np.flatnonzero(np.max(np.abs(u[s0:int(iv[j + 1, 0]) + 1]), axis=1) >= max_rate_rad_s)
+        if over.size:
+            raise CalibrationError(
+                f"rotation_method: motion {j} has {over.size} samples at or beyond ±"
+                f"{math.degrees(max_rate_rad_s):.0f} °/s (first at sample {s0 + over[0]}): the gyro may have "
+                "clipped; leave the motion out (exclude_motions) or turn slower")
 
 
 def _excitation(mo, m0: np.ndarray, b_motion: np.ndarray) -> np.ndarray:
@@ -563,17 +567,24 @@ def _null_hint(idx, eps_perp: np.ndarray, min_turn_rad: float) -> str:
     return "; ".join(out)
 
 
-def _check_observable(model, m0: np.ndarray, cov_b, eps_perp: np.ndarray, min_turn_rad: float) -> None:
+def _refusal(message: str, entries) -> NotObservable:
+    e = NotObservable(message)
+    e.entries = [int(i) for i in entries]       # flat indices of M's unresolved entries
+    return e
+
+
+def _check_observable(model, m0: np.ndarray, cov_b, eps_perp: np.ndarray, min_turn_rad: float,
+                      free=None) -> None:
     """Before the fit: refuse when the motions leave some combination of M's entries with no
     information at all (its σ is unbounded), naming the entries and what to record."""
     from imubench.calib.rotation_model import parameter_sigmas
-    sig, null = parameter_sigmas(model, m0.ravel(), 1.0, cov_b)
+    sig, null = parameter_sigmas(model, m0.ravel(), 1.0, cov_b, free)
     if np.any(np.isinf(sig)):
         idx = np.flatnonzero(np.isinf(sig))
-        raise NotObservable(
+        raise _refusal(
             f"rotation_method: the motions leave {_param_names(idx)} undetermined (σ unbounded): "
             f"{_null_hint(idx, eps_perp, min_turn_rad)}. Turn the board about that axis while it is off the "
-            "vertical (a turn about the vertical does not move gravity), both ways and from several attitudes")
+            "vertical (a turn about the vertical does not move gravity), both ways and from several attitudes", idx)
 
 
 def _check_sigma_limit(m_cov: np.ndarray, max_sigma: float, eps_perp, min_turn_rad: float,
@@ -583,13 +594,13 @@ def _check_sigma_limit(m_cov: np.ndarray, max_sigma: float, eps_perp, min_turn_r
     over = np.flatnonzero(~(sig <= max_sigma))
     if over.size:
         worst = int(over[np.argmax(np.where(np.isfinite(sig[over]), sig[over], np.inf))])
-        raise NotObservable(
+        raise _refusal(
             f"rotation_method: {_param_names(over)} known only to "
             + ", ".join(f"σ {sig[i]:.3g}" for i in over)
             + f" (limit {max_sigma:g}; worst m{worst // 3}{worst % 3}): "
             + _null_hint(over, eps_perp, min_turn_rad)
             + (". The rest bias's uncertainty is propagated: a longer rest, or turns both ways, shrink it"
-               if bias_known else ""))
+               if bias_known else ""), over)
 
 
 def _axis_flip_hint(model, m0: np.ndarray, ang0: np.ndarray) -> str:
@@ -626,7 +637,7 @@ def _check_fit_quality(fit: TriadFit, model, m0, ang, ang0, max_residual_deg: fl
 def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, init_m=None, *,
                     gravity_sigma=0.0, max_rate_rad_s: float | None = _ADXRS450_RANGE_RAD_S,
                     min_turn_deg: float = 30.0, max_residual_deg: float = 1.0,
-                    max_sigma: float = MAX_SIGMA_M, exclude_motions=(), motion_bias=None) -> TriadFit:
+                    max_sigma: float = MAX_SIGMA_M, exclude_motions=(), motion_bias=None, hold=()) -> TriadFit:
     """Gyro M without a turntable, from rotations between static poses (imu_tk's method).
 
     gyro: (n, 3) readings u in rad/s at fs_hz. static_intervals: k half-open sample ranges
@@ -654,6 +665,12 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
 
     exclude_motions: indices j of motions (from interval j to j+1) to leave out, e.g. those
     with a gap in the recording (the integral would miss part of the rotation).
+
+    hold: flat indices (row-major, 0–8) of M's entries held at init_m's (nominal) value, a
+    nested model for motions that do not resolve them: the held entries' possible size
+    (max_sigma) is carried into the others' covariance (rotation_model.solve) and is their σ;
+    estimated marks them False and extra["held"] names them. A refusal for unresolved entries
+    carries their indices in the exception's .entries.
     """
     from imubench.calib import rotation_model as RM
     u, iv, g = _check_rotation_inputs(gyro, fs_hz, static_intervals, gravity_dirs)
@@ -665,7 +682,7 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
     m0 = np.eye(3) if init_m is None else np.asarray(init_m, dtype=np.float64).reshape(3, 3)
     if abs(np.linalg.det(m0)) < 1e-12:
         raise CalibrationError("init_m is singular")
-    _check_clipping(u, max_rate_rad_s)
+    _check_clipping(u, max_rate_rad_s, iv, keep)
     gsig = np.broadcast_to(np.asarray(gravity_sigma, float), (k,)).astype(float)
     mo = RM.motions(u, fs_hz, iv, g, gsig, keep)
     if motion_bias is None:
@@ -678,9 +695,13 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
     model = RM.GravityModel(mo, b_motion)
     eps_perp = _excitation(mo, m0, model.b)
     min_turn = math.radians(min_turn_deg)
-    _check_observable(model, m0, cov_b, eps_perp, min_turn)
+    free = np.ones(9, bool)
+    free[list(hold)] = False
+    if not free.any():
+        raise CalibrationError("rotation_method: every entry of M held; nothing to fit")
+    _check_observable(model, m0, cov_b, eps_perp, min_turn, free)
 
-    sol = RM.solve(model, m0, cov_b)
+    sol = RM.solve(model, m0, cov_b, free, max_sigma if not free.all() else 0.0)
     if not sol.converged:
         raise CalibrationError(f"rotation_method: the fit did not converge ({sol.message})")
     jac_check = None
@@ -707,7 +728,7 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
         residual_rms=float(np.sqrt(np.mean(ang**2))),
         residuals=ang,
         dof=sol.dof,
-        estimated=np.array([True] * 9 + [cov_b is not None] * 3),
+        estimated=np.array(free.tolist() + [cov_b is not None] * 3),
         extra={
             "angle_residuals_deg": np.degrees(ang),
             "angle_residuals_initial_deg": np.degrees(ang0),
@@ -726,12 +747,21 @@ def rotation_method(gyro, fs_hz: float, static_intervals, gravity_dirs, bias, in
             "n_motions": J,
             "excluded_motions": [int(j) for j in np.flatnonzero(~keep)],
             "max_sigma": max_sigma,
+            "held": [f"m{i // 3}{i % 3}" for i in np.flatnonzero(~free)],
             "warnings": warnings,
             **({"jacobian_check": jac_check} if jac_check is not None else {}),
         },
     )
-    _check_fit_quality(fit, model, m0, ang, ang0, max_residual_deg)
-    _check_sigma_limit(sol.m_cov, max_sigma, eps_perp, min_turn, cov_b is not None)
+    try:
+        _check_fit_quality(fit, model, m0, ang, ang0, max_residual_deg)
+    except CalibrationError as e:      # the entries the motions could not resolve, predicted at m0
+        sig0, _ = RM.parameter_sigmas(model, m0.ravel(), 1.0, cov_b, free)
+        over = np.flatnonzero(free & ~(sig0 <= max_sigma))
+        if over.size:
+            e.entries = [int(i) for i in over]
+        raise
+    _check_sigma_limit(np.where(np.outer(free, free), sol.m_cov, 0.0), max_sigma, eps_perp, min_turn,
+                       cov_b is not None)
     return fit
 
 

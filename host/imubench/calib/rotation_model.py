@@ -167,6 +167,19 @@ class GravityModel:
         return jm, jb
 
 
+class _Held:
+    """A GravityModel seen through its free entries of M (the others fixed at mflat's)."""
+
+    def __init__(self, model: GravityModel, mflat: np.ndarray, free: np.ndarray):
+        self.model, self.x0, self.free = model, np.asarray(mflat, float).copy(), free
+
+    def jacobian(self, x, with_bias: bool = False):
+        t = self.x0.copy()
+        t[self.free] = x
+        out = self.model.jacobian(t, with_bias=with_bias)
+        return (out[0][:, self.free], out[1]) if with_bias else out[:, self.free]
+
+
 @dataclass
 class Solution:
     m: np.ndarray               # (3, 3)
@@ -181,16 +194,31 @@ class Solution:
     residual: np.ndarray        # weighted residuals at the solution
 
 
-def solve(model: GravityModel, m0: np.ndarray, cov_b: np.ndarray | None) -> Solution:
+def solve(model: GravityModel, m0: np.ndarray, cov_b: np.ndarray | None, free=None,
+          held_sigma: float = 0.0) -> Solution:
     """Levenberg–Marquardt on M (scipy.optimize.least_squares); covariance = (JᵀJ)⁻¹ scaled by
-    the reduced χ² (with the common bias error removed from χ²), plus ∂M/∂b·Σb·∂M/∂bᵀ."""
-    sol = optimize.least_squares(model.residual, m0.ravel(), jac=model.jacobian, method="lm",
+    the reduced χ² (with the common bias error removed from χ²), plus ∂M/∂b·Σb·∂M/∂bᵀ.
+    free: (9,) bool, the entries of M (row-major) fitted; the others are held at m0's and
+    considered (Schmidt 1966): held_sigma, the size they may have, is carried into the fitted
+    entries' covariance (K·σ²·Kᵀ, K = −(J_fᵀJ_f)⁻¹J_fᵀJ_h) and is their own σ."""
+    free = np.ones(9, bool) if free is None else np.asarray(free, bool)
+    x0 = m0.ravel().astype(float)
+
+    def full(x):
+        t = x0.copy()
+        t[free] = x
+        return t
+
+    sol = optimize.least_squares(lambda x: model.residual(full(x)), x0[free],
+                                 jac=lambda x: model.jacobian(full(x))[:, free], method="lm",
                                  xtol=1e-10, ftol=1e-10, gtol=1e-10)
-    rw = model.residual(sol.x)
+    x = full(sol.x)
+    rw = model.residual(x)
     if cov_b is not None:
-        Jm, Jb = model.jacobian(sol.x, with_bias=True)
+        Jall, Jb = model.jacobian(x, with_bias=True)
     else:
-        Jm, Jb = model.jacobian(sol.x), None
+        Jall, Jb = model.jacobian(x), None
+    Jm, Jh = Jall[:, free], Jall[:, ~free]
     C = np.linalg.pinv(Jm.T @ Jm)
     chi2 = float(rw @ rw)
     if cov_b is not None:
@@ -199,30 +227,44 @@ def solve(model: GravityModel, m0: np.ndarray, cov_b: np.ndarray | None) -> Solu
         Z = Jb @ Lb
         v = Z.T @ rw
         chi2 -= float(v @ np.linalg.solve(np.eye(3) + Z.T @ Z, v))
-    dof = rw.size - 9
+    dof = rw.size - int(free.sum())
     s2 = chi2 / dof if dof > 0 else float("nan")
-    m_cov = C * s2 if dof > 0 else C
+    cf = C * s2 if dof > 0 else C
     mb_cov = None
     if cov_b is not None:
-        dm_db = -C @ (Jm.T @ Jb)                                   # (9, 3)
-        m_cov = m_cov + dm_db @ cov_b @ dm_db.T
-        mb_cov = dm_db @ cov_b
-    return Solution(m=sol.x.reshape(3, 3), m_cov=m_cov, mb_cov=mb_cov, chi2=chi2, dof=dof, reduced_chi2=s2,
+        dm_db = -C @ (Jm.T @ Jb)                                   # (free, 3)
+        cf = cf + dm_db @ cov_b @ dm_db.T
+        mb_cov = np.zeros((9, 3))
+        mb_cov[free] = dm_db @ cov_b
+    if Jh.shape[1] and held_sigma > 0:
+        K = -C @ (Jm.T @ Jh)
+        cf = cf + K @ K.T * held_sigma ** 2
+    m_cov = np.zeros((9, 9))
+    m_cov[np.ix_(free, free)] = cf
+    m_cov[~free, ~free] = held_sigma ** 2
+    return Solution(m=x.reshape(3, 3), m_cov=m_cov, mb_cov=mb_cov, chi2=chi2, dof=dof, reduced_chi2=s2,
                     nfev=int(sol.nfev), converged=bool(sol.status > 0), message=str(sol.message), residual=rw)
 
 
 def parameter_sigmas(model: GravityModel, mflat: np.ndarray, noise_scale: float,
-                     cov_b: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+                     cov_b: np.ndarray | None, free=None) -> tuple[np.ndarray, np.ndarray]:
     """Predicted 1σ of M's 9 entries at mflat before fitting (inf where the motions leave an
     entry undetermined), with the residuals' scale noise_scale and the bias's uncertainty; and
-    the null direction (9,) of the Jacobian when it is singular (else zeros)."""
+    the null direction (9,) of the Jacobian when it is singular (else zeros). free: the
+    entries fitted (the others held: σ 0 here)."""
+    free = np.ones(9, bool) if free is None else np.asarray(free, bool)
+    if not free.all():
+        sig, null = parameter_sigmas(_Held(model, mflat, free), mflat[free], noise_scale, cov_b)
+        out, nul = np.zeros(9), np.zeros(9)
+        out[free], nul[free] = sig, null
+        return out, nul
     if cov_b is not None:
         Jm, Jb = model.jacobian(mflat, with_bias=True)
     else:
         Jm, Jb = model.jacobian(mflat), None
     cn = np.linalg.norm(Jm, axis=0)
     s, vt = np.linalg.svd(Jm / np.maximum(cn, 1e-300), full_matrices=False)[1:]
-    null = np.zeros(9)
+    null = np.zeros(Jm.shape[1])
     if np.any(cn < 1e-9 * max(cn.max(), 1e-300)) or s[-1] < 1e-7 * s[0]:
         null = vt[-1]
         sig = np.where(np.abs(null) > 0.3, np.inf, np.nan)

@@ -197,7 +197,8 @@ def _add_from_file(p) -> None:
     g.add_argument("--turn-axis-sigma", type=positive_float, default=0.5, metavar="DEG",
                    help="--gyro turns: 1σ of the turn axis off the measured vertical (table not level, board lifted)")
     g.add_argument("--gyro-range", type=positive_float, metavar="DPS",
-                   help="the gyro's range: a turn reaching it is clipped and not used")
+                   help="the gyro's range: a motion reaching it is clipped and left out of the gyro fit (without "
+                        "it, clipping is found in the data: samples held at the extreme of the values)")
     g.add_argument("--annotation", type=existing_file, metavar="JSON",
                    help="imucal's section list, to compare the segmentation with")
     g.add_argument("--export", action="append", default=[], choices=WRITERS, metavar="|".join(WRITERS),
@@ -550,8 +551,8 @@ def _run_from_file(a) -> int:
                      angle_sigma_deg=a.turn_sigma, axis_sigma_deg=a.turn_axis_sigma,
                      gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
                      writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol,
-                     tolerance_from_imu=a.tolerance_mg is None)
-    directory = Path(a.dir or f"imubench-file-{path.stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
+                     tolerance_from_imu=a.tolerance_mg is None, command="imubench " + shlex.join(sys.argv[1:]))
+    directory = Path(a.dir or f"imubench-file-{Path(a.from_file).stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: "nothing is kept from an interrupted analysis; run the command again"
     # what the analysis says quotes the file (its column names, its parts): printed safe
     result, fa = calibrate_recording(rec, directory, cfg, say=lambda line: print(printable(line)))
@@ -575,7 +576,8 @@ def _run_from_file(a) -> int:
     for kind, files in result.get("exports", {}).items():
         if files:
             print(f"{kind}: {one_line(', '.join(files))}")
-    print(f"session directory: {one_line(directory)} (session.json, residuals.png, segmentation.png)")
+    print(f"session directory: {one_line(directory)} (session.json, residuals.png, segmentation.png, "
+          "rests.csv, README.md)")
     print(f"report: {one_line(result['report'])}")
     _record_history(result, a.db, directory / "session.json")
     print(f"tolerance: {result['tolerance_source']}")

@@ -39,6 +39,9 @@ GYRO_FILE_METHODS = ("auto", "bias", "turns", "rotation")
 ACCEL_CLASSES = ((60.0, 1.0, "low-noise MEMS", "ADXL355, 25 µg/√Hz"),
                  (200.0, 2.0, "mid-range MEMS", "BMI160, 180 µg/√Hz"),
                  (float("inf"), 3.0, "consumer MEMS", "MPU-6050/MPU-9150, 400 µg/√Hz"))
+# a plateau found in the data is a gyro's clip level only at or beyond this rate: no MEMS gyro's range is below
+# ±125 °/s, and a slow hand's peak, rounded in a text file, can repeat a value too (calib.clipping)
+CLIP_MIN_DPS = 100.0
 RECORD_ADVICE = ("record turns about each board axis while it is off the vertical, both ways and from several "
                  "attitudes (rotation method: 12-24 motions between rests), or one full turn about X, Y and Z each "
                  "pointing up with a rest before and after (--gyro turns)")
@@ -56,6 +59,7 @@ class FileConfig:
     window_s: float = 0.5                # still detection window
     min_still_s: float = 1.0             # shortest still interval kept
     note: str = ""
+    command: str = ""                    # the command line that ran (the folder's README repeats it)
     device: str | None = None            # a name for the IMU (the history groups runs by it)
     writers: tuple = ()                  # results.paramfiles.WRITERS to write
     annotation: list | None = None       # (name, start, stop) sections to compare the segmentation with
@@ -85,6 +89,16 @@ class FileAnalysis:
         self._bias: TriadFit | None = None
         self.gyro_refused: str | None = None
         self.gsens: dict | None = None
+        self.fa: float | None = None
+        self.intervals: list = []       # the rests the fits use (updated as the analysis goes)
+        self._fit_rests: list = []      # the still intervals handed to the accelerometer fit, parallel to self.rests
+        self.rests: list = []           # calib.rests.RestRecord per rest the fit weighed, in time order: how it used it
+        self.accel_choice = None        # calib.acceptance.AccelChoice: the model kept and why
+        self.accel_candidates: list = []  # every accelerometer model tried: kept, refused or unresolved, and why
+        self._clipped_rests: list = []  # still intervals left out because the accelerometer sat at full scale
+        self._left_out: dict[int, str] = {}      # id(rest) -> why it was left out before the fit (clipping)
+        self.clipping: dict = {"gyro": [], "accel": []}
+        self._acc_clip: list = []       # calib.clipping.ClipRun of the accelerometer
 
     def _note(self, text: str) -> None:
         self.notes.append(text)
@@ -106,9 +120,21 @@ class FileAnalysis:
                        f"counts per g (the still intervals' median |a| = {U.G0_MPS2 / fa:.6g} counts)")
         self.fa = fa
         acc = rec.accel * fa
-        ivs = detect_static(acc, fs, window_s=cfg.window_s, min_duration_s=cfg.min_still_s)
-        dropped = [i for i in ivs if not i.clean]
-        keep = [i for i in ivs if i.clean]
+        from imubench.calib.clipping import find_clipping
+        self._acc_clip = find_clipping(rec.accel)
+        noise = None
+        if self._acc_clip:          # a clipped axis is noiseless there: the rest noise from the samples that are not
+            from imubench.calib.static import rest_noise
+            ok = np.ones(len(acc), bool)
+            for r in self._acc_clip:
+                ok[r.start:r.stop] = False
+            noise = rest_noise(acc[ok], fs, cfg.window_s)
+        ivs = detect_static(acc, fs, noise_sigma=noise, window_s=cfg.window_s, min_duration_s=cfg.min_still_s)
+        clipped = self._rests_at_full_scale(ivs)
+        self._clipped_rests = [i for i in ivs if id(i) in clipped]
+        # a rest that moved is weighed by its motion, not dropped (calib.rests); one at full scale is left out
+        keep = [i for i in ivs if id(i) not in clipped]
+        self.intervals = self._fit_rests = list(keep)
         self.gyro_refused = None        # why the gyro (scale, misalignment; or all of it) was not calibrated
         warn = None
         if keep:
@@ -135,23 +161,24 @@ class FileAnalysis:
             if len(keep) < min(n0, 9 if cfg.method == "multi" else 6):
                 self._note(f"cutting where the gyro turned would leave {len(keep)} of {n0} still intervals: not cut "
                            "(check the gyro unit)")
-                keep = [i for i in ivs if i.clean]
+                keep = [i for i in ivs if id(i) not in clipped]
             elif len(keep) != n0:
                 self._note(f"{len(keep) - n0:+d} still intervals after cutting where the gyro turned "
                            "(the accelerometer alone did not show it)")
-        for i in dropped:
-            self._note(f"still interval at {i.t_start_s:.1f} s ({i.duration_s:.1f} s) not used: its mean moved "
-                       f"within it ({i.drift_z:.1f} σ)")
+        self.intervals = self._fit_rests = list(keep)
         need = 9 if cfg.method == "multi" else 6
         require_static(keep if len(keep) < len(ivs) else ivs, need)
-        self.intervals = keep
         means = np.array([i.mean for i in keep])
         sigmas = np.array([i.sigma_mean for i in keep])
         self.faces = [face_of(m) for m in means]
         self.say(f"still intervals: {len(keep)} found by the data (window {cfg.window_s:g} s, k = {ivs.k:g} × the "
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
                                             for f, i in zip(self.faces, keep)))
-        accel = self._fit_accel(means, sigmas)
+        accel = self._fit_accel(means, sigmas, acc)
+        used = [k for k, r in enumerate(self.rests) if r.use != "left out"]
+        keep = [keep[k] for k in used]               # the gyro and the tables: the rests the fit used
+        self.intervals, self.faces = keep, [self.faces[k] for k in used]
+        means, sigmas = means[used], sigmas[used]
         # ---- gyro: a refusal keeps the accelerometer's result (verdict: "accelerometer calibrated; gyro not")
         if cfg.gyro and self.gyro_refused is None:
             try:
@@ -174,7 +201,7 @@ class FileAnalysis:
         fg = rec.gyro_factor()
         up = accel.correct(means)
         up = up / np.linalg.norm(up, axis=1)[:, None]
-        clip = None if cfg.gyro_range_dps is None else math.radians(cfg.gyro_range_dps)
+        clipped = self._clipped_motions(keep)
         turn_rad = math.radians(cfg.turn_deg)
         longest = max(range(len(keep)), key=lambda k: keep[k].n)
         if fg is None:
@@ -206,7 +233,10 @@ class FileAnalysis:
         if bias is not None:
             self.say(f"gyro bias from the longest still interval ({keep[longest].t_start_s:.1f} s, "
                      f"{keep[longest].duration_s:.1f} s)")
-        self.turns = detect_turns(gyr, fs, keep, up, turn_deg=cfg.turn_deg, breaks=brk, clip_rad_s=clip)
+        self.turns = detect_turns(gyr, fs, keep, up, turn_deg=cfg.turn_deg, breaks=brk)
+        for t in self.turns:
+            if t.usable and t.rest_before in clipped:
+                t.usable, t.reason = False, f"the gyro clipped in it, {clipped[t.rest_before]}: turn slower"
         if not any(t.usable for t in self.turns) and rec.parts:
             self.turns = self._part_turns(gyr, acc, keep, up, accel)
             if self.turns:
@@ -220,8 +250,72 @@ class FileAnalysis:
             raise CalibrationError("the turntable method needs a turntable's known rates; from a recording use "
                                    "--gyro turns (known-angle turns) or --gyro rotation")
         if cfg.gyro in ("turns", "rotation", "auto"):
-            return self._gyro_fit(gyr, fs, keep, up, bias, brk, clip)
+            return self._gyro_fit(gyr, fs, keep, up, bias, brk, clipped)
         return bias
+
+    def _rests_at_full_scale(self, ivs) -> set[int]:
+        """The rests where the accelerometer sat at its full scale (calib.clipping, from the data):
+        left out of the fit and named; returns their ids."""
+        from imubench.calib.clipping import runs_in
+        runs = self._acc_clip
+        out = set()
+        fs = self.rec.fs_hz
+        for iv in ivs:
+            inside = runs_in(runs, iv.start, iv.stop)
+            if not inside:
+                continue
+            r = max(inside, key=lambda x: x.n)
+            level = r.level * self.fa / U.G0_MPS2
+            why = (f"accelerometer {r.axis_name} held at {level:+.4g} g (its full scale, found in the data) for "
+                   f"{sum(x.n for x in inside)} samples from {r.start / fs:.2f} s")
+            out.add(id(iv))
+            self._left_out[id(iv)] = f"clipped: {why}"
+            self.clipping["accel"].append({"rest_t_start_s": iv.t_start_s, "axis": r.axis_name, "level_g": level,
+                                           "samples": sum(x.n for x in inside), "first_s": r.start / fs})
+            self._note(f"still interval at {iv.t_start_s:.1f} s ({iv.duration_s:.1f} s) not used: {why}")
+        return out
+
+    def _clipped_motions(self, keep) -> dict[int, str]:
+        """The motions between rests where the gyro held its full scale (calib.clipping: a plateau
+        at the extreme of the values, or at the declared --gyro-range): motion j -> what clipped,
+        each named in a note; the gyro fits leave them out."""
+        from imubench.calib.clipping import find_clipping, runs_in
+        rec, fs = self.rec, self.rec.fs_hz
+        f_nom = rec.gyro_factor()                 # rad/s per file unit (None: counts without a scale)
+        declared = min_level = None
+        if f_nom is not None:
+            min_level = math.radians(CLIP_MIN_DPS) / f_nom
+            if self.cfg.gyro_range_dps is not None:
+                declared = math.radians(self.cfg.gyro_range_dps) / f_nom
+        elif self.cfg.gyro_range_dps is not None:
+            self._note("--gyro-range is in °/s and the gyro is in counts without a nominal scale: clipping is found "
+                       "from the data alone")
+        runs = find_clipping(rec.gyro, declared=declared, min_level=min_level or 0.0)
+
+        def level(x: float) -> str:
+            return f"{math.degrees(x * f_nom):+.1f} °/s" if f_nom is not None else f"{x:+.6g} counts"
+        out: dict[int, str] = {}
+        for j in range(len(keep) - 1):
+            s0, s1 = keep[j].stop - 1, keep[j + 1].start + 1
+            inside = runs_in(runs, s0, s1)
+            if not inside:
+                continue
+            parts = []
+            for ax in sorted({r.axis for r in inside}):
+                rs = [r for r in inside if r.axis == ax]
+                parts.append(f"{rs[0].axis_name} at {level(rs[0].level)} for {sum(r.n for r in rs)} samples from "
+                             f"{rs[0].start / fs:.2f} s")
+            src = "at the declared --gyro-range" if all(r.source == "declared" for r in inside) else \
+                "full scale found in the data"
+            out[j] = "; ".join(parts) + f" ({src})"
+            self.clipping["gyro"].append({"motion": j, "t_start_s": s0 / fs, "t_stop_s": (s1 - 1) / fs,
+                                          "axes": [{"axis": r.axis_name, "level": level(r.level), "start": r.start,
+                                                    "samples": r.n, "source": r.source} for r in inside]})
+            self._note(f"motion {j} ({s0 / fs:.1f}–{(s1 - 1) / fs:.1f} s) left out of the gyro fit: the gyro clipped, "
+                       f"{out[j]}")
+        if out:
+            self.say(f"gyro clipped in {len(out)} of {len(keep) - 1} motions: those are left out of the gyro fit")
+        return out
 
     def _rotation_bias(self, gyr, fs, keep, bias: TriadFit) -> tuple[np.ndarray, TriadFit]:
         """The gyro series and bias the gyro fits use: b + G·f(t) when the rests resolve a
@@ -261,32 +355,52 @@ class FileAnalysis:
                              estimated=np.array([False] * 9 + [True] * 3),
                              extra=dict(bias.extra, source="weighted mean of the rests"))
 
-    def _fit_accel(self, means: np.ndarray, sigmas: np.ndarray) -> TriadFit:
-        """The accelerometer fit: six-position, multi-position, or (auto) multi when the
-        attitudes constrain its 9 parameters."""
-        from imubench.calib import accel as CA
+    def _fit_accel(self, means: np.ndarray, sigmas: np.ndarray, acc: np.ndarray) -> TriadFit:
+        """The accelerometer fit (calib.acceptance.fit_accel): every rest weighed by its noise and
+        its own motion (calib.rests), the largest model the rests resolve that is better than
+        none, outlying rests left out; self.rests says how each rest was used. Raises
+        FitRefused (a CalibrationError) when no model is kept, with self.rests filled."""
+        from imubench.calib.acceptance import FitRefused, fit_accel
+        from imubench.calib.rests import RestRecord, motion_covariances
         cfg = self.cfg
-        self.method = cfg.method
-        if cfg.method == "auto":
-            try:
-                CA.check_observability(means, "multi_position")
-                self.method = "multi"
-                self.say("method: multi-position |a| = g (the attitudes constrain its 9 parameters)")
-            except CalibrationError as e:
-                self.method = "six"
-                self.say(f"method: six-position (the multi-position fit cannot be used: {e})")
-        if self.method == "six":
-            accel = CA.six_position(means, sigmas, skip_non_faces=True)
+        covs, motion = motion_covariances(acc, self.intervals)
+        texts = [m.describe(U.G0_MPS2) if m.significant else "" for m in motion]
+        sig_g = np.linalg.norm(means / np.linalg.norm(means, axis=1)[:, None] * sigmas, axis=1) / U.G0_MPS2
+        tol, _ = self._tolerance(sig_g)
+
+        def records(uses):
+            self.rests = [RestRecord(start=int(i.start), stop=int(i.stop), t_start_s=i.t_start_s,
+                                     duration_s=i.duration_s, face=f, use=r.use, use_reason=r.use_reason,
+                                     sigma_inflation=r.sigma_inflation,
+                                     motion={"direction_deg": m.direction_deg,
+                                             "magnitude_change_mg": m.magnitude_change / U.G0_MPS2 * 1e3,
+                                             "drift_chi2": m.chi2, "drift_p": m.p, "significant": m.significant})
+                          for i, f, r, m in zip(self.intervals, self.faces, uses, motion)]
+            for r in self.rests:
+                if r.use != "used":
+                    self._note(f"rest at {r.t_start_s:.1f} s ({r.duration_s:.1f} s, {r.face}) {r.use}: {r.use_reason}")
+
+        try:
+            choice = fit_accel(means, sigmas, covs, cfg.method, U.G0_MPS2,
+                               excess_limit=tol.accel_rms_mg * 1e-3 * U.G0_MPS2, motions_text=texts)
+        except FitRefused as e:
+            records(e.rests)
+            self.accel_candidates = e.candidates
+            raise
+        records(choice.rests)
+        self.accel_choice = choice
+        self.accel_candidates = choice.candidates
+        self.method = "six" if choice.fit.method == "six_position" else "multi"
+        short = {"multi_position": "multi-position |a| = g", "six_position": "six-position"}
+        first = choice.candidates[0]
+        if first["status"] == "kept":
+            self.say(f"method: {short[choice.fit.method]} (the rests resolve its parameters and it fits them)")
         else:
-            CA.check_observability(means, "multi_position")
-            init = None
-            try:
-                init = CA.six_position(means, sigmas, skip_non_faces=True)
-            except CalibrationError:
-                pass
-            accel = CA.multi_position(means, sigmas, init=init)
-        self.accel = accel
-        return accel
+            self.say(f"method: {short[choice.fit.method]} (the {first['model'].split(',')[0]} fit cannot be used: "
+                     f"{first['reason']})")
+        self.say(f"accelerometer model: {choice.summary}")
+        self.accel = choice.fit
+        return choice.fit
 
     def _part_turns(self, gyr, acc, keep, up, accel) -> list:
         """Turns from the file's named parts (*_rot), for files cut tightly around each turn."""
@@ -306,8 +420,7 @@ class FileAnalysis:
                                       label=f"turn about {face_of(d)} (part {name})"))
         return out
 
-    def _gyro_fit(self, gyr, fs, keep, up, bias, brk, clip) -> TriadFit:
-        from imubench.calib import gyro as CG
+    def _gyro_fit(self, gyr, fs, keep, up, bias, brk, clipped: dict) -> TriadFit:
         from imubench.calib.turns import combine_fits, known_angle_turns
         cfg = self.cfg
         fits: dict[str, TriadFit] = {}
@@ -319,17 +432,19 @@ class FileAnalysis:
                 "noise_density_rad_s_rthz"], angle_sigma_deg=cfg.angle_sigma_deg, axis_sigma_deg=cfg.axis_sigma_deg)
         except CalibrationError as e:
             errs["turns"] = e
-        bad = []
+        bad = sorted(clipped)
         for j in range(len(keep) - 1):
             inside = [b for b in brk if keep[j].stop - 1 < b <= keep[j + 1].start]
-            if inside:
+            if inside and j not in clipped:
                 bad.append(j)
                 self._note(f"motion {j} ({keep[j].stop / fs:.1f}–{keep[j + 1].start / fs:.1f} s) not used by the "
                            f"rotation method: the recording is not continuous inside it (break at sample {inside[0]})")
         try:
-            fits["rotation"] = CG.rotation_method(u_rot, fs, [(i.start, i.stop) for i in keep], up, b_rot,
-                                                  max_rate_rad_s=clip, exclude_motions=bad)
+            fits["rotation"] = self._rotation_nested(u_rot, fs, keep, up, b_rot, bad)
         except CalibrationError as e:
+            if clipped:
+                e = type(e)(f"{e} ({len(clipped)} of {len(keep) - 1} motions left out: the gyro clipped in them; "
+                            "turn slower than its range)")
             errs["rotation"] = e
         why = {k: str(e) for k, e in errs.items()}
         self.gyro_parts = {"fits": {k: fit_dict(v, "rad_s") for k, v in fits.items()}, "refused": why}
@@ -354,6 +469,32 @@ class FileAnalysis:
         self._note(f"gyro: the {other} method is not used: {why[other]}")
         return fits[main]
 
+    def _rotation_nested(self, u_rot, fs, keep, up, b_rot, bad) -> TriadFit:
+        """The rotation method with every entry of M; where the motions leave entries unresolved
+        (σ unbounded or above the limit), again with those held at nominal, while some are
+        left to fit: the largest model the motions carry (calib.gyro.rotation_method's hold)."""
+        from imubench.calib import gyro as CG
+        iv = [(i.start, i.stop) for i in keep]
+        hold: list[int] = []
+        first = None
+        while True:
+            try:
+                fit = CG.rotation_method(u_rot, fs, iv, up, b_rot, max_rate_rad_s=None, exclude_motions=bad,
+                                         hold=hold)
+            except CalibrationError as e:
+                entries = getattr(e, "entries", None)
+                first = first or e
+                if not entries or len(set(hold) | set(entries)) >= 9:
+                    raise first from None
+                hold = sorted(set(hold) | set(entries))
+                continue
+            if hold:
+                self._note(f"gyro: the rotation method holds {', '.join(fit.extra['held'])} at nominal (their σ "
+                           f"would be above {fit.extra['max_sigma']:g}: the motions do not resolve them; fitted with "
+                           f"every entry: {first}); the others are fitted, the held ones' possible size carried into "
+                           "their σ")
+            return fit
+
     def _result(self, means, sigmas) -> dict:
         rec, cfg, accel = self.rec, self.cfg, self.accel
         before = np.linalg.norm(means, axis=1)
@@ -366,12 +507,7 @@ class FileAnalysis:
                   "before_g": float(before[i] / U.G0_MPS2), "after_g": float(after[i] / U.G0_MPS2),
                   "sigma_g": float(sig_g[i]), "temp_c": None}
                  for i, iv in enumerate(self.intervals)]
-        source = {"file": rec.source, "format": rec.fmt, "units": rec.unit_text(), "rate_hz": fs,
-                  "samples": len(rec), "duration_s": rec.duration_s, "timing": timing_lines(rec),
-                  "reader_notes": list(rec.notes), "breaks": [[int(b), r] for b, r in rec.breaks],
-                  "detected": list(rec.detected), "options": command_options(rec), "command": command_line(rec),
-                  "accel_factor_si": self.fa, "gyro_factor_si": self.fg,
-                  "accel_scaled": rec.accel_scaled, "gyro_scaled": rec.gyro_scaled}
+        source = self.source()
         seg = [{"face": self.faces[i], "start": iv.start, "stop": iv.stop, "t_start_s": iv.t_start_s,
                 "duration_s": iv.duration_s} for i, iv in enumerate(self.intervals)]
         turns = [{"label": t.label, "start": t.start, "stop": t.stop, "t_start_s": t.start / fs,
@@ -393,6 +529,9 @@ class FileAnalysis:
         tol, tol_text = self._tolerance(sig_g)
         verdict = verdict_text(rms_after_mg <= tol.accel_rms_mg, rms_after_mg, tol.accel_rms_mg, cfg.gyro,
                                self.gyro, self.gyro_refused)
+        if self.accel_choice is not None and self.accel_choice.held:
+            verdict = verdict.replace("accelerometer calibrated", f"accelerometer calibrated ({self.accel_choice.model}; "
+                                      f"{', '.join(self.accel_choice.held)} held at nominal)", 1)
         result = CalibrationRecord.from_fit(
             device={"mcu_uid": device_id(name), "board": f"IMU '{name}' (from a file)", "fw_version": "",
                     "fw_build": "", "accel_ids": [], "gyro_pid": [], "gyro_sn": []},
@@ -402,13 +541,52 @@ class FileAnalysis:
             sections={"source": source, "segmentation": seg, "turns": turns, "gyro_parts": self.gyro_parts,
                       "notes": list(self.notes), "annotation": annotation, "device_name": name,
                       "tolerance_source": tol_text, "gyro_refused": self.gyro_refused, "verdict": verdict,
-                      "accel_noise_ug_rthz": self.accel_noise_ug, "gsens": self.gsens}).to_json()
+                      "accel_noise_ug_rthz": self.accel_noise_ug, "gsens": self.gsens,
+                      "rests": self.rest_rows(), "clipping": self.clipping,
+                      "accel_model": self.accel_choice.summary if self.accel_choice else None,
+                      "accel_held": self.accel_choice.held if self.accel_choice else [],
+                      "accel_candidates": self.accel_candidates}).to_json()
         if not rec.accel_scaled:
             result["accel_counts_per_g"] = (accel.m / self.fa * U.G0_MPS2).tolist()
         if not rec.gyro_scaled and self.gyro is not None:
             result["gyro_counts_per_dps"] = (self.gyro.m / self.fg * math.pi / 180.0).tolist()
         return result
 
+
+    def source(self) -> dict:
+        """The recording as the result and the evidence describe it."""
+        rec = self.rec
+        return {"file": rec.source, "format": rec.fmt, "units": rec.unit_text(), "rate_hz": rec.fs_hz,
+                "samples": len(rec), "duration_s": rec.duration_s, "timing": timing_lines(rec),
+                "reader_notes": list(rec.notes), "breaks": [[int(b), r] for b, r in rec.breaks],
+                "detected": list(rec.detected), "options": command_options(rec), "command": command_line(rec),
+                "accel_factor_si": self.fa, "gyro_factor_si": self.fg,
+                "accel_scaled": rec.accel_scaled, "gyro_scaled": rec.gyro_scaled}
+
+    def rest_rows(self) -> list[dict]:
+        """Every rest found, in time order, with its use in the accelerometer fit: "used",
+        "down-weighted" (its σ inflated by sigma_inflation) or "left out", and the reason with its
+        numbers. The rests the fit weighed carry their calib.rests.RestRecord; a rest at full
+        scale was left out before the fit; a refusal before the fit leaves every rest "used" by
+        nothing yet, so their use is what the analysis had kept."""
+        weighed = len(self.rests) == len(self._fit_rests)
+        items = [(iv, self.rests[k] if weighed else None) for k, iv in enumerate(self._fit_rests)]
+        items += [(iv, None) for iv in self._clipped_rests]
+        rows = []
+        for k, (iv, rr) in enumerate(sorted(items, key=lambda x: x[0].start)):
+            if rr is not None:
+                use, reason, infl, motion = rr.use, rr.use_reason, rr.sigma_inflation, rr.motion
+            else:
+                left = self._left_out.get(id(iv))
+                use, reason, infl, motion = ("left out", left, 1.0, None) if left else ("used", "", 1.0, None)
+            mean = np.asarray(iv.mean, float)
+            rows.append({"index": k, "start": int(iv.start), "stop": int(iv.stop), "t_start_s": float(iv.t_start_s),
+                         "duration_s": float(iv.duration_s), "face": face_of(mean),
+                         "mean_g": (mean / U.G0_MPS2).tolist(),
+                         "sigma_mg": (np.asarray(iv.sigma_mean, float) / U.G0_MPS2 * 1e3).tolist(),
+                         "use": use, "use_reason": str(reason or ""), "sigma_inflation": float(infl),
+                         "motion": motion})
+        return rows
 
     def _tolerance(self, sig_g: np.ndarray) -> tuple[Tolerances, str]:
         """The pass tolerance for this IMU: given (--tolerance-mg), or from its class by the
@@ -447,7 +625,8 @@ def verdict_text(accel_ok: bool, rms_mg: float, tol_mg: float, gyro_method, gyro
         return f"{acc}; gyro not: {refused} ({kept}). To calibrate it, {RECORD_ADVICE}"
     if gyro is None or gyro.method == "bias":
         return acc + "; gyro bias at rest only (scale and misalignment not asked for)"
-    return acc + f"; gyro calibrated ({gyro.method})"
+    held = (gyro.extra or {}).get("held") or []
+    return acc + f"; gyro calibrated ({gyro.method}" + (f"; {', '.join(held)} held at nominal)" if held else ")")
 
 
 # ------------------------------------------------------------------ the whole run
@@ -460,13 +639,20 @@ def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -
     from imubench.results.calibration import plot_pose_residuals
     from imubench.results.recording import plot_segmentation
     from imubench.results.report import build_report
+    from imubench.results.recording import README, RESTS_CSV, rests_table, write_evidence
     d = Path(directory)
-    if (d / "session.json").exists():
-        raise RecordingError(f"{d} already holds a session; choose another --dir (nothing was overwritten)")
+    held = [f for f in ("session.json", RESTS_CSV, README, "segmentation.png") if (d / f).exists()]
+    if held:
+        raise RecordingError(f"{d} already holds a session ({', '.join(held)}); choose another --dir (nothing was "
+                             "overwritten)")
     for line in timing_lines(rec) + rec.notes:
         say(f"  {line}")
     fa = FileAnalysis(rec, cfg, say)
-    result = fa.run()
+    try:
+        result = fa.run()
+    except Exception as e:      # noqa: BLE001 - refused or not, the folder shows what was found; then the error
+        _leave_evidence(d, fa, e, say)
+        raise
     d.mkdir(parents=True, exist_ok=True)
     result["capture_dir"] = str(d.resolve())
     files = {}
@@ -491,24 +677,47 @@ def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -
                        for p, iv in zip(result["poses"], fa.intervals)],
              "result": result, "complete": True}
     write_json_atomic(d / "session.json", jsonable(state))
-    write_readme(rec, d)
     plot_pose_residuals(result, d / "residuals.png")
     plot_segmentation(rec, result, d / "segmentation.png", accel_factor=fa.fa, gyro_factor=fa.fg)
+    write_evidence(d, result, command=cfg.command)
     result["report"] = str(build_report(d))
+    uses = [r["use"] for r in result["rests"]]
+    if any(u != "used" for u in uses):
+        say(rests_table(result))
+    say(f"rests: {uses.count('used')} used, {uses.count('down-weighted')} down-weighted, {uses.count('left out')} "
+        f"left out (the table: {d / RESTS_CSV}, {d / README})")
     return result, fa
 
 
-def write_readme(rec: Recording, d: Path) -> Path:
-    """DIR/README.md: the command that reads the recording again the same way (its options
-    declared and detected), and what the reader detected, one line each (issue 40, 6)."""
-    lines = ["# Calibrated from a recording", "", "Read again the same way with:", "",
-             f"    {command_line(rec)}", ""]
-    if rec.detected:
-        lines += ["What the reader detected (each settled without an option; the command above states it):", ""]
-        lines += [f"- {line}" for line in rec.detected] + [""]
-    path = d / "README.md"
-    path.write_text("\n".join(lines), encoding="utf-8")
-    return path
+def _leave_evidence(d: Path, fa: FileAnalysis, error: Exception, say) -> None:
+    """A refused (or failed) analysis still writes its folder: the segmentation plot with the
+    rests coloured by use, rests.csv and README.md with the reason; and says where. A failure
+    to write it is said, never raised over the refusal."""
+    from imubench.errors import ImubenchError
+    from imubench.results.recording import plot_segmentation, rests_table, write_evidence
+    reason = str(error) if isinstance(error, ImubenchError) else f"internal error ({type(error).__name__}: {error})"
+    rec = fa.rec
+    if not fa.clipping["gyro"] and len(fa.intervals) >= 2:   # refused before the gyro: its clipping is evidence too
+        quiet, fa.say = fa.say, (lambda _line: None)
+        try:
+            fa._clipped_motions(fa.intervals)
+        except Exception:  # noqa: BLE001 - the refusal's evidence, not a second failure
+            pass
+        finally:
+            fa.say = quiet
+    result = {"source": fa.source(), "rests": fa.rest_rows(), "clipping": fa.clipping, "notes": list(fa.notes),
+              "refused": reason, "turns": [], "segmentation": []}
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        fa_si = fa.fa or U.G0_MPS2 / max(float(np.median(np.linalg.norm(rec.accel, axis=1))), 1e-300)
+        plot_segmentation(rec, result, d / "segmentation.png", accel_factor=fa_si, gyro_factor=fa.fg or 1.0)
+        write_evidence(d, result, command=fa.cfg.command)
+    except (OSError, ValueError, ImubenchError) as e:
+        say(f"note: the evidence of the refusal could not be written to {d}: {e}")
+        return
+    say(rests_table(result))
+    say(f"refused; what was found is in {d}: segmentation.png (rests coloured by use), rests.csv, README.md "
+        "(the reason)")
 
 
 def _safe(name: str) -> str:

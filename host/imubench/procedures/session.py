@@ -34,7 +34,7 @@ from imubench.procedures.capture import PoseCapture
 from imubench.procedures.config import PoseRecord, SessionConfig, Tolerances  # noqa: F401 - where callers found them
 from imubench.procedures.errors import SessionAborted
 from imubench.procedures.motion import MotionCapture
-from imubench.procedures.poses import DETECT_TOL_DEG, enough_attitudes, pose_words, suggest_next
+from imubench.procedures.poses import enough_attitudes, pose_words, suggest_next
 from imubench.procedures.presenter import TURN_POSE_SUFFIX, Presenter  # noqa: F401 - TURN_POSE_SUFFIX: where callers found it
 from imubench.procedures.virtual import SimPresenter  # noqa: F401 - where callers found it
 from imubench.procedures.writeback import (  # noqa: F401 - wear_warning: where callers found it

@@ -293,6 +293,10 @@ def params_table(result: dict) -> str:
          "  M = " + "\n      ".join(rows),
          "  b = " + "   ".join(f"{ax} {pm(v, s, 'mg', scale=1e3 / U.G0_MPS2)}"
                               for ax, v, s in zip("xyz", a["b_mps2"], a["sigma_b_mps2"]))]
+    held = (a.get("extra") or {}).get("held") or []
+    if held:
+        L.append(f"  held at nominal (not resolved by the rests): {', '.join(held)}; the size they may have "
+                 "is carried into the σ above")
     g = result.get("gyro")
     if g:
         L.append(f"gyro ({g['method']}):")
