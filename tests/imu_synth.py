@@ -48,7 +48,7 @@ def ferraris_session(fs=100.0, seed=0, truth=None, rest_s=4.0, turn_s=4.0, accel
         n = int(sec * fs)
         t = (np.arange(n) + 0.5) / n
         w = (1 - np.cos(2 * np.pi * t))           # raised cosine, integrates to n / n = 1 over [0, 1]
-        rate = np.radians(deg) / sec * w           # rad/s, integral = deg
+        rate = np.radians(deg) / sec * w * (sec * fs / n)   # rad/s, integral = deg (n = sec·fs rounded down)
         ax = np.asarray(axis_body, float) / np.linalg.norm(axis_body)
         a_out = np.empty((n, 3))
         for k in range(n):
@@ -115,6 +115,50 @@ def write_csv(path, acc_g, gyr_dps, fs, header=("t_ms", "acc_x", "acc_y", "acc_z
     np.savetxt(path, np.column_stack([t, acc_g, gyr_dps]), delimiter=",", header=",".join(header), comments="",
                fmt="%.9g")
     return path
+
+
+# ------------------------------------------------------------------ the shapes of other people's files (issues 32, 40)
+def write_table(path, rows, *, delim=" ", fmt="%.9g", header=None, comment_header=None, preamble=(), line_end="\n"):
+    """A text table as loggers write them: preamble lines (metadata such as ``Fs,100``), a header
+    row or a ``# name name ...`` comment line, then the rows; line_end is what ends each line
+    (" \\n": a space before the newline)."""
+    out = [*preamble]
+    if comment_header is not None:
+        out.append("# " + " ".join(comment_header))
+    if header is not None:
+        out.append(delim.join(header))
+    out += [delim.join(fmt % v for v in row) for row in np.asarray(rows)]
+    with open(path, "w") as f:
+        f.write("".join(line + line_end for line in out))
+    return path
+
+
+def unsigned_counts(x, per_unit, bits=16):
+    """Signed readings x (in a physical unit) as a register of `bits` read unsigned: round(x · per_unit)
+    + 2^(bits−1), held within 0 .. 2^bits − 1."""
+    half = 2 ** (bits - 1)
+    return np.clip(np.round(np.asarray(x) * per_unit) + half, 0, 2 * half - 1)
+
+
+def write_imutk_pair(directory, stem, t_s, acc, gyr):
+    """imu_tk's ASCII pair: STEM_acc.mat and STEM_gyro.mat, each line 't x y z' (t in seconds)."""
+    from pathlib import Path
+    d = Path(directory)
+    a, g = d / f"{stem}_acc.mat", d / f"{stem}_gyro.mat"
+    np.savetxt(a, np.column_stack([t_s, acc]), fmt="%.9g")
+    np.savetxt(g, np.column_stack([t_s, gyr]), fmt="%.9g")
+    return a, g
+
+
+def logger_times(n, fs, t0=1535632344.47, late_s=0.005, late_every=8, resolution_s=0.001, seed=0):
+    """Time stamps of a logging PC: the samples are uniform at fs, none missing, but stamped at the
+    PC's clock resolution and one in `late_every` (at random) stamped late_s late, so the steps
+    alternate long and short around 1/fs. Unix time (seconds) from t0."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    late = rng.random(n) < 1.0 / late_every
+    late[1:] &= ~late[:-1]                  # never two late in a row: each long step is made up by the next
+    return t0 + np.floor((t + late * late_s) / resolution_s) * resolution_s
 
 
 def _toward(u, tgt):

@@ -88,8 +88,14 @@ def test_imutk_two_files(session, tmp_path):
     counts_per_g, counts_per_dps = 16384.0, 131.0
     np.savetxt(tmp_path / "acc.mat", np.column_stack([t, np.round(ua / G0 * counts_per_g)]), fmt="%.9g")
     np.savetxt(tmp_path / "gyro.mat", np.column_stack([t, np.round(np.degrees(ug) * counts_per_dps)]), fmt="%.9g")
-    with pytest.raises(RecordingError, match="--gyro-file"):
+    # the pair is found by name beside the accelerometer's file, and said so; without it, asked for
+    found = read(tmp_path / "acc.mat", accel_unit="counts", gyro_unit="counts", accel_counts_per_g=counts_per_g,
+                 gyro_counts_per_dps=counts_per_dps)
+    assert found.fmt == "imutk" and any("the gyro file gyro.mat beside it" in d for d in found.detected)
+    (tmp_path / "gyro.mat").rename(tmp_path / "rates.mat")
+    with pytest.raises(RecordingError, match="give the gyro file with --gyro-file"):
         read(tmp_path / "acc.mat", "imutk", accel_unit="counts", gyro_unit="counts")
+    (tmp_path / "rates.mat").rename(tmp_path / "gyro.mat")
     rec = read(tmp_path / "acc.mat", "imutk", gyro_file=tmp_path / "gyro.mat", accel_unit="counts",
                gyro_unit="counts", accel_counts_per_g=counts_per_g, gyro_counts_per_dps=counts_per_dps)
     fa, _ = _analyse(rec)

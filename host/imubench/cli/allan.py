@@ -63,6 +63,10 @@ def register(sub) -> None:
     g.add_argument("--gyro-unit", metavar="UNIT", help="gyro unit in the file: rad_s, dps or counts")
     g.add_argument("--accel-scale", type=positive_float, metavar="COUNTS_PER_G", help="nominal scale of raw counts")
     g.add_argument("--gyro-scale", type=positive_float, metavar="COUNTS_PER_DPS", help="nominal scale of raw counts")
+    from imubench.cli.calibrate import add_reader_options
+    add_reader_options(g)
+    g.add_argument("--gyro-range", type=positive_float, metavar="DPS",
+                   help="with --sensor: the gyro's full-scale setting in the recording")
     g.add_argument("--columns", metavar="KEY=NAME,...", help="CSV columns (as calibrate --from)")
     g.add_argument("--time-column", metavar="NAME", help="CSV: the time column")
     g.add_argument("--time-unit", choices=("s", "ms", "us", "ns"), help="CSV: the time column's unit")
@@ -98,7 +102,8 @@ def run(a) -> int:
     if a.from_file is not None:
         return _run_from_file(a)
     file_only = [k for k in ("format", "gyro_file", "accel_unit", "gyro_unit", "accel_scale", "gyro_scale", "columns",
-                             "time_column", "time_unit", "profile", "topic", "device") if getattr(a, k) is not None]
+                             "time_column", "time_unit", "profile", "topic", "device", "skip_rows", "accel_offset",
+                             "gyro_offset", "sensor", "gyro_range") if getattr(a, k) is not None]
     if file_only or a.export:
         raise UsageError(f"--{(file_only or ['export'])[0].replace('_', '-')} goes with --from FILE",
                          "give the recording with --from, or drop it")

@@ -179,6 +179,7 @@ def _add_from_file(p) -> None:
                    help="nominal scale of raw accelerometer counts (datasheet); without it the fit reports counts per g")
     g.add_argument("--gyro-scale", type=positive_float, metavar="COUNTS_PER_DPS",
                    help="nominal scale of raw gyro counts (datasheet); without it the fit reports counts per °/s")
+    add_reader_options(g)
     g.add_argument("--columns", metavar="KEY=NAME,...",
                    help="CSV columns: ax=...,ay=...,az=...,gx=...,gy=...,gz=...[,t=...] (default: common names)")
     g.add_argument("--time-column", metavar="NAME", help="CSV: the time column")
@@ -207,6 +208,32 @@ def _add_from_file(p) -> None:
     g.add_argument("--tolerance-mg", type=positive_float, metavar="MG",
                    help="pass when the RMS of |a| − g over the still intervals after calibration is at most this "
                         "(default: the device's, 1 mg)")
+
+
+def add_reader_options(g) -> None:
+    """The reading options calibrate --from and allan --from share beyond units and columns
+    (imubench.recordings: what detection cannot settle)."""
+    g.add_argument("--skip-rows", type=_count, metavar="N",
+                   help="text files: skip N lines before the header row (or the data); default: found by the reader")
+    g.add_argument("--accel-offset", type=float, metavar="COUNTS",
+                   help="counts subtracted from the accelerometer (default: 2^(n-1) for unsigned n-bit counts, said "
+                        "when found; 0 keeps the values)")
+    g.add_argument("--gyro-offset", type=float, metavar="COUNTS", help="counts subtracted from the gyro (as --accel-offset)")
+    g.add_argument("--sensor", metavar="NAME[,NAME]",
+                   help="the IMU chip, for the nominal scale of its raw counts from its data sheet (MPU-6050, MPU-9150, "
+                        "MPU-9250, ICM-20602, ICM-20948, BMI160, LSM6DSO, LSM6DS3, LSM6DSL, ADXL355, ADXRS450); the "
+                        "gyro's full-scale setting with --gyro-range")
+
+
+def _count(s: str) -> int:
+    import argparse
+    try:
+        n = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not a number of lines") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"{n}: give 0 or more lines")
+    return n
 
 
 def _check_history(db) -> None:
@@ -451,7 +478,8 @@ def _add_station_fields(result: dict, a, directory: Path, before, after, url) ->
 
 # ------------------------------------------------------------------ from a file
 _FILE_ONLY = ("format", "gyro_file", "accel_unit", "gyro_unit", "accel_scale", "gyro_scale", "columns", "time_column",
-              "time_unit", "profile", "topic", "device", "gyro_range", "annotation", "tolerance_mg")
+              "time_unit", "profile", "topic", "device", "gyro_range", "annotation", "tolerance_mg", "skip_rows",
+              "accel_offset", "gyro_offset", "sensor")
 
 
 def _columns(text: str) -> dict:
@@ -479,13 +507,20 @@ def read_recording_args(a):
     given = {"accel_unit": a.accel_unit, "gyro_unit": a.gyro_unit, "accel_counts_per_g": a.accel_scale,
              "gyro_counts_per_dps": a.gyro_scale, "rate_hz": a.rate, "time_column": a.time_column,
              "time_unit": a.time_unit, "topic": a.topic, "gyro_file": a.gyro_file, "device": a.device,
-             "columns": _columns(a.columns) if a.columns else None}
+             "columns": _columns(a.columns) if a.columns else None, "skip_rows": a.skip_rows,
+             "accel_offset": a.accel_offset, "gyro_offset": a.gyro_offset, "sensor": a.sensor,
+             "gyro_range_dps": getattr(a, "gyro_range", None)}
     opts.update({k: v for k, v in given.items() if v is not None})
     if opts.get("topic") and (fmt or "") not in ("", "rosbag"):
         raise UsageError("--topic is for ROS bags", "drop it, or give --format rosbag")
     rec = read(path, fmt, **opts)
     print(f"recording: {one_line(rec.source)} ({rec.fmt}), {len(rec)} samples at {rec.fs_hz:.5g} Hz "
           f"({rec.duration_s:.1f} s); {rec.unit_text()}")
+    for line in rec.detected:                   # what the reader settled without being told, one line each
+        print(f"  detected: {printable(line)}")
+    if rec.detected:
+        from imubench.recordings import command_line
+        print(f"  the same reading, every option stated: {printable(command_line(rec, a.cmd))}")
     return rec
 
 

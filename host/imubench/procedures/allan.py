@@ -74,7 +74,7 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
     fa, fg = rec.accel_factor(), rec.gyro_factor()
     if fa is None or fg is None:
         raise RecordingError("the Allan figures are in SI: give the raw counts' nominal scale (--accel-scale "
-                             "COUNTS_PER_G, --gyro-scale COUNTS_PER_DPS) or declare an SI unit")
+                             "COUNTS_PER_G, --gyro-scale COUNTS_PER_DPS, or --sensor NAME) or declare an SI unit")
     n = len(rec)
     if n < 64:
         raise RecordingError(f"{n} samples: far too few for an Allan analysis (record a still IMU for hours)")

@@ -28,7 +28,7 @@ from imubench.calib import CalibrationError, TriadFit
 from imubench.procedures.recording_checks import (check_accel_unit, check_gyro_unit, check_turn_scale,
                                                   compare_annotation, face_of)
 from imubench.procedures.session import Tolerances
-from imubench.recordings import Recording, RecordingError, timing_lines
+from imubench.recordings import Recording, RecordingError, command_line, command_options, timing_lines
 from imubench.results.atomic import write_json_atomic
 from imubench.results.record import CalibrationRecord, fit_dict, jsonable, now_utc
 from imubench.results.sessionfile import SESSION_SCHEMA
@@ -188,6 +188,10 @@ class FileAnalysis:
                 self.gyro = self._bias
         if self.gyro_refused:
             self.say(f"gyro not calibrated: {self.gyro_refused}")
+        if self.fg is None:         # raw gyro counts that no turn scaled: nothing of the gyro can be said in °/s
+            raise RecordingError("the gyro is in counts without a nominal scale and no known-angle turn in the "
+                                 "recording scales it: give --gyro-scale COUNTS_PER_DPS (the data sheet's), or "
+                                 "--sensor NAME with --gyro-range DPS (its full-scale setting)")
         return self._result(means, sigmas)
 
     def _gyro(self, rec, cfg, fs, keep, acc, means, accel) -> TriadFit:
@@ -555,6 +559,7 @@ class FileAnalysis:
         return {"file": rec.source, "format": rec.fmt, "units": rec.unit_text(), "rate_hz": rec.fs_hz,
                 "samples": len(rec), "duration_s": rec.duration_s, "timing": timing_lines(rec),
                 "reader_notes": list(rec.notes), "breaks": [[int(b), r] for b, r in rec.breaks],
+                "detected": list(rec.detected), "options": command_options(rec), "command": command_line(rec),
                 "accel_factor_si": self.fa, "gyro_factor_si": self.fg,
                 "accel_scaled": rec.accel_scaled, "gyro_scaled": rec.gyro_scaled}
 

@@ -11,7 +11,11 @@ imucal's CSV layouts, our own captures (`imubench decode --npz`, a session's cap
 and ROS 1/2 bags with sensor_msgs/Imu (the optional `rosbags` library).
 
 Units are declared, never guessed: accelerometer m/s², g, mg or raw counts (with a nominal
-scale in counts per g, or none), gyro rad/s, °/s or raw counts (counts per °/s, or none).
+scale in counts per g, from a named sensor's data sheet (recordings.sensors), or none), gyro
+rad/s, °/s or raw counts (counts per °/s, or none). Raw counts stored unsigned are found by
+their values and their offset subtracted (unsigned_offset). What a reader settles without
+being told is said (Recording.detected) and kept as the options that read the file again
+(Recording.options, command_options).
 A declared unit that the data contradict is refused by the caller that can see it
 (imubench.procedures.from_file: |a| of the still intervals far from 1 g).
 
@@ -28,7 +32,7 @@ from imubench.errors import ImubenchError
 from imubench.units import G0_MPS2
 
 __all__ = ["Recording", "RecordingError", "ACCEL_UNITS", "GYRO_UNITS", "accel_unit", "gyro_unit",
-           "check_timing", "from_arrays", "read", "FORMATS"]
+           "check_timing", "from_arrays", "read", "FORMATS", "unsigned_offset", "command_options", "command_line"]
 
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
 
@@ -40,8 +44,9 @@ _ACCEL_ALIASES = {"m/s2": "mps2", "m/s^2": "mps2", "m/s²": "mps2", "ms2": "mps2
 _GYRO_ALIASES = {"rad/s": "rad_s", "rad_s": "rad_s", "rads": "rad_s", "deg/s": "dps", "dps": "dps",
                  "°/s": "dps", "deg_s": "dps", "counts": "counts", "raw": "counts", "lsb": "counts",
                  "a.u.": "counts"}
-JITTER_RESAMPLE = 0.1        # a step off the median dt by more than this fraction: resample
-GAP_FACTOR = 1.5             # a step longer than this × the median dt is a gap
+JITTER_RESAMPLE = 0.1        # a step off the mean step by more than this fraction: resample
+GAP_FACTOR = 1.5             # a step longer than this × the nominal step may be a gap (_gaps decides)
+GAP_WINDOW = 25              # samples each side compared to tell a gap from a jittery clock's long step
 
 
 class RecordingError(ImubenchError, ValueError):
@@ -86,6 +91,8 @@ class Recording:
     timing: dict = field(default_factory=dict)
     parts: list | None = None
     device: str | None = None                    # a name for the IMU, when the file has one
+    detected: list = field(default_factory=list)  # what the reader settled without being told, one line each
+    options: dict = field(default_factory=dict)   # read() options that read the file again the same way
 
     def __len__(self) -> int:
         return len(self.accel)
@@ -141,17 +148,51 @@ class Recording:
 
 
 # ------------------------------------------------------------------ timing
+def _nominal_step(dt: np.ndarray) -> float:
+    """The clock's nominal step: the median over the recording of the mean step of GAP_WINDOW
+    consecutive steps (a jittery clock's long and short steps average out; a few gaps do not
+    move the median)."""
+    w = min(GAP_WINDOW, len(dt))
+    c = np.concatenate([[0.0], np.cumsum(dt)])
+    return float(np.median((c[w:] - c[:-w]) / w))
+
+
+def _gaps(t: np.ndarray, dt: np.ndarray, step: float, gap_factor: float) -> tuple[list, int]:
+    """(gaps [(k, missing)], long steps that are jitter): a step k longer than gap_factor × step is
+    a gap only when the clock's phase (t − i·step) after it stays ahead of its phase before it by
+    half a step or more, compared as medians over GAP_WINDOW samples each side (up to the next long
+    step): samples are missing. A long step the next ones make up for (a logging PC's late stamp,
+    then an early one) is jitter, and the samples on both sides are continuous."""
+    long = np.flatnonzero(dt > gap_factor * step)
+    if not long.size:
+        return [], 0
+    phase = t - t[0] - np.arange(len(t)) * step
+    out = []
+    bounds = np.concatenate([[-1], long, [len(dt)]])
+    for j, k in enumerate(long):
+        lo = max(bounds[j] + 1, k - GAP_WINDOW + 1)
+        hi = min(bounds[j + 2] + 1, k + 1 + GAP_WINDOW)
+        shift = float(np.median(phase[k + 1:hi]) - np.median(phase[lo:k + 1]))
+        missing = int(round(shift / step))
+        if missing >= 1:
+            out.append((int(k), missing))
+    return out, int(long.size - len(out))
+
+
 def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: bool = True):
     """Find and handle what is wrong with a recording's timestamps.
 
     Returns (t, accel, gyro, fs_hz, breaks, timing): timestamps that go backwards are refused
     (RecordingError naming the row); samples with the same timestamp as the one before are
-    dropped (counted); a step longer than gap_factor × the median step (and than the median plus
-    6 robust sigmas of the steps, for a jittery clock) is a gap (a break,
-    with its length and the samples missing); when steps off the median by more than
-    JITTER_RESAMPLE of it remain outside the gaps, each continuous piece is resampled onto a
-    uniform grid at the median rate by linear interpolation (numpy.interp) — the integrals of
-    the gyro assume uniform samples. timing says all of it (counts, jitter, what was done)."""
+    dropped (counted); a step longer than gap_factor × the clock's nominal step is a gap (a break,
+    with its length and the samples missing) only when the time stamps after it stay ahead of
+    the sample count (_gaps: a jittery clock's long steps, made up by the next ones, are not
+    gaps). The rate is the measured mean (the mean step outside the gaps), the jitter the RMS of
+    the steps about it. When steps off the mean by more than JITTER_RESAMPLE of it remain, each
+    continuous piece is resampled onto a uniform grid at the mean rate by linear interpolation
+    (numpy.interp) between the time stamps: the gyro's integrals (which assume uniform samples)
+    then integrate over the time stamps the file has. timing says all of it (counts, jitter,
+    what was done)."""
     t = np.asarray(t_s, dtype=np.float64).reshape(-1)
     a = np.asarray(accel, dtype=np.float64)
     g = np.asarray(gyro, dtype=np.float64)
@@ -177,31 +218,32 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
         timing["duplicates_identical"] = same
         t, a, g = t[keep], a[keep], g[keep]
         dt = np.diff(t)
-    med = float(np.median(dt))
-    if not med > 0:
+    if len(dt) < 2 or not float(np.median(dt)) > 0:
         raise RecordingError("the timestamps do not advance (median step 0); check the time column and its unit")
-    fs = 1.0 / med
-    mad = 1.4826 * float(np.median(np.abs(dt - med)))
-    gap_dt = max(gap_factor * med, med + 6.0 * mad)       # jittery clocks: beyond their own spread
-    gaps = np.flatnonzero(dt > gap_dt)
+    step = _nominal_step(dt)
+    found, jitter_long = _gaps(t, dt, step, gap_factor)
+    gaps = np.array([k for k, _ in found], dtype=np.int64)
     inside = np.ones(len(dt), bool)
     inside[gaps] = False
-    dev = np.abs(dt[inside] - med) / med if inside.any() else np.zeros(1)
-    jitter = float(np.std(dt[inside]) / med) if inside.any() else 0.0
-    timing.update({"median_dt_s": med, "fs_hz": fs, "jitter_rel": jitter,
-                   "max_step_dev_rel": float(dev.max()) if dev.size else 0.0,
+    mean = float(np.mean(dt[inside])) if inside.any() else step
+    fs = 1.0 / mean
+    steps = dt[inside] if inside.any() else np.array([mean])
+    dev = np.abs(steps - mean) / mean
+    timing.update({"median_dt_s": float(np.median(dt)), "mean_dt_s": mean, "fs_hz": fs,
+                   "jitter_rel": float(np.std(steps) / mean), "jitter_s": float(np.std(steps)),
+                   "min_dt_s": float(steps.min()), "max_dt_s": float(steps.max()),
+                   "max_step_dev_rel": float(dev.max()), "long_steps_jitter": jitter_long,
                    "gaps": [{"index": int(k + 1), "t_s": float(t[k]), "duration_s": float(dt[k]),
-                             "missing": int(round(dt[k] / med)) - 1} for k in gaps]})
-    breaks = [(int(k + 1), f"gap of {dt[k]:.3f} s ({int(round(dt[k] / med)) - 1} samples missing) at t = {t[k]:.3f} s")
-              for k in gaps]
+                             "missing": m} for k, m in found]})
+    breaks = [(int(k + 1), f"gap of {dt[k]:.3f} s ({m} samples missing) at t = {t[k]:.3f} s") for k, m in found]
     timing["resampled"] = False
-    if resample and dev.size and dev.max() > JITTER_RESAMPLE:
+    if resample and dev.max() > JITTER_RESAMPLE:
         pieces = np.split(np.arange(len(t)), gaps + 1)
         ts, As, Gs, nb = [], [], [], []
         n0 = 0
         for p in pieces:
             tp = t[p]
-            grid = tp[0] + np.arange(int(math.floor((tp[-1] - tp[0]) / med + 1e-9)) + 1) * med
+            grid = tp[0] + np.arange(int(math.floor((tp[-1] - tp[0]) / mean + 1e-9)) + 1) * mean
             ts.append(grid)
             As.append(np.column_stack([np.interp(grid, tp, a[p, j]) for j in range(3)]))
             Gs.append(np.column_stack([np.interp(grid, tp, g[p, j]) for j in range(3)]))
@@ -221,8 +263,17 @@ def timing_lines(rec: Recording) -> list[str]:
     out = []
     if not tm:
         return [f"{len(rec)} samples at {rec.fs_hz:g} Hz (declared rate; no timestamps to check)"]
-    out.append(f"{tm['n_read']} samples, median step {tm['median_dt_s'] * 1e3:.4g} ms ({tm['fs_hz']:.4g} Hz), "
-               f"step jitter {100 * tm['jitter_rel']:.2g} % (largest {100 * tm['max_step_dev_rel']:.2g} % off)")
+    mean = tm.get("mean_dt_s", tm["median_dt_s"])
+    rate = f"{tm['n_read']} samples at {tm['fs_hz']:.4g} Hz measured from the time stamps (mean step {mean * 1e3:.4g} ms)"
+    if tm["jitter_rel"] < 1e-4:
+        out.append(f"{rate}, regular steps (jitter {100 * tm['jitter_rel']:.1g} %)")
+    else:
+        out.append(f"{rate}, step jitter {tm.get('jitter_s', tm['jitter_rel'] * mean) * 1e3:.2g} ms RMS "
+                   f"({100 * tm['jitter_rel']:.2g} %; steps {tm.get('min_dt_s', mean) * 1e3:.3g}"
+                   f"–{tm.get('max_dt_s', mean) * 1e3:.3g} ms outside gaps)")
+    if tm.get("long_steps_jitter"):
+        out.append(f"{tm['long_steps_jitter']} steps longer than {GAP_FACTOR:g}× the mean are the clock's jitter, "
+                   "not gaps: the next time stamps make them up (no sample missing)")
     if tm.get("duplicates"):
         out.append(f"{tm['duplicates']} samples repeat the timestamp before them "
                    f"({tm.get('duplicates_identical', 0)} identical rows): dropped")
@@ -233,16 +284,94 @@ def timing_lines(rec: Recording) -> list[str]:
         out.append(f"… {len(tm['gaps']) - 10} more gaps")
     if tm.get("resampled"):
         out.append(f"irregular steps: each continuous piece was resampled to a uniform {tm['fs_hz']:.4g} Hz grid "
-                   f"(linear interpolation), {tm['n_used']} samples")
+                   f"(linear interpolation between the time stamps), {tm['n_used']} samples")
     return out
+
+
+#: samples whose values are integers in [0, 2^n) for one of these n are looked at as unsigned counts
+UNSIGNED_BITS = (12, 16, 24, 32)
+
+
+def unsigned_offset(x) -> tuple[int, int] | None:
+    """(2^(n−1), n) when x ((n, 3) samples) holds signed counts stored unsigned: every value an
+    integer in [0, 2^n), the largest 2^(n−1) or more (which no signed n-bit value is) and every
+    axis's median within 60 % of 2^(n−1) of it (a signed reading's zero: a MEMS axis at rest
+    reads within ±1 g of 0, and its full scale is at least ±2 g); else None."""
+    v = np.asarray(x, dtype=np.float64)
+    if not v.size or v.min() < 0 or v.max() < 2 ** (UNSIGNED_BITS[0] - 1) or not np.array_equal(v, np.round(v)):
+        return None
+    n = next((b for b in UNSIGNED_BITS if v.max() < 2 ** b), None)
+    if n is None or v.max() < 2 ** (n - 1):
+        return None
+    half = 2 ** (n - 1)
+    return (half, n) if np.all(np.abs(np.median(v, axis=0) - half) <= 0.6 * half) else None
+
+
+def _offset(v: np.ndarray, declared, unit: str, what: str, flag: str, detected: list, options: dict) -> np.ndarray:
+    """v less its offset: declared (--accel-offset / --gyro-offset, 0 for none), else 2^(n−1) when
+    the values are unsigned counts (unsigned_offset), said in one line; unsigned counts under a
+    physical unit are refused (the unit is wrong, and a scale cannot stand in for an offset)."""
+    if declared is not None:
+        if not math.isfinite(declared):
+            raise RecordingError(f"--{flag}-offset must be a number of counts, got {declared}")
+        return v - declared if declared else v
+    found = unsigned_offset(v)
+    if found is None:
+        return v
+    half, n = found
+    med = ", ".join(f"{m:.0f}" for m in np.median(v, axis=0))
+    seen = f"every value an integer in 0..{2 ** n - 1}, axis medians {med}"
+    if unit != "counts":
+        raise RecordingError(f"the {what} holds unsigned {n}-bit counts centred on {half} ({seen}), not {unit}: "
+                             f"declare --{flag}-unit counts (and --{flag}-scale or --sensor NAME for its scale); "
+                             f"{half} is then subtracted (--{flag}-offset N declares another offset)")
+    detected.append(f"{what}: unsigned {n}-bit counts centred on {half} ({seen}): {half} subtracted "
+                    f"(--{flag}-offset {half}; --{flag}-offset 0 keeps the values as they are)")
+    options[f"{flag}_offset"] = half
+    return v - half
+
+
+#: read() options and the command-line options that give them (imubench calibrate/allan --from)
+_FLAGS = (("format", "--format"), ("gyro_file", "--gyro-file"), ("skip_rows", "--skip-rows"),
+          ("columns", "--columns"), ("time_column", "--time-column"), ("time_unit", "--time-unit"),
+          ("rate_hz", "--rate"), ("accel_unit", "--accel-unit"), ("gyro_unit", "--gyro-unit"), ("sensor", "--sensor"),
+          ("accel_counts_per_g", "--accel-scale"), ("gyro_counts_per_dps", "--gyro-scale"),
+          ("accel_offset", "--accel-offset"), ("gyro_offset", "--gyro-offset"), ("gyro_range_dps", "--gyro-range"),
+          ("topic", "--topic"), ("device", "--device"))
+
+
+def command_options(rec: Recording) -> list[str]:
+    """The command-line options that read rec's file again the same way (rec.options: declared
+    and detected), for a person to type and for session.json."""
+    out = []
+    for key, flag in _FLAGS:
+        v = rec.options.get(key)
+        if v is None or v == {}:
+            continue
+        if isinstance(v, dict):
+            v = ",".join(f"{k}={x}" for k, x in v.items())
+        elif isinstance(v, float):
+            v = f"{v:g}"
+        out += [flag, str(v)]
+    return out
+
+
+def command_line(rec: Recording, command: str = "calibrate") -> str:
+    """`imubench COMMAND --from FILE OPTIONS`: the command that reads rec's file again the same way."""
+    import shlex
+    return " ".join(["imubench", command, "--from"] + [shlex.quote(x) for x in
+                                                       [rec.source.split(" + ")[0], *command_options(rec)]])
 
 
 def from_arrays(accel, gyro, *, t_s=None, rate_hz: float | None = None, accel_unit_name: str = "mps2",
                 gyro_unit_name: str = "rad_s", accel_counts_per_g: float | None = None,
                 gyro_counts_per_dps: float | None = None, source: str = "arrays", fmt: str = "arrays",
-                breaks=(), notes=(), parts=None, device: str | None = None) -> Recording:
+                breaks=(), notes=(), parts=None, device: str | None = None, accel_offset: float | None = None,
+                gyro_offset: float | None = None, detected=(), options: dict | None = None) -> Recording:
     """A Recording from arrays: time from t_s (seconds; checked by check_timing) or from
-    rate_hz (uniform samples)."""
+    rate_hz (uniform samples). accel_offset, gyro_offset: counts subtracted (None: 2^(n−1) when
+    the values are unsigned counts, see unsigned_offset; 0: none). detected, options: what the
+    reader settled (one line each) and the options that read the file again the same way."""
     a = np.asarray(accel, dtype=np.float64)
     g = np.asarray(gyro, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3 or g.shape != a.shape:
@@ -258,6 +387,9 @@ def from_arrays(accel, gyro, *, t_s=None, rate_hz: float | None = None, accel_un
     if bad.any():
         raise RecordingError(f"{int(bad.sum())} samples hold a missing or non-numeric value (first at sample "
                              f"{int(np.flatnonzero(bad)[0])}); fix or cut the file")
+    detected, options = list(detected), dict(options or {})
+    a = _offset(a, accel_offset, au, "accelerometer", "accel", detected, options)
+    g = _offset(g, gyro_offset, gu, "gyro", "gyro", detected, options)
     timing: dict = {}
     t = None
     if t_s is not None:
@@ -275,7 +407,7 @@ def from_arrays(accel, gyro, *, t_s=None, rate_hz: float | None = None, accel_un
                      accel_counts_per_g=accel_counts_per_g if au == "counts" else None,
                      gyro_counts_per_dps=gyro_counts_per_dps if gu == "counts" else None,
                      source=source, fmt=fmt, breaks=brk, notes=notes, timing=timing, parts=parts,
-                     device=device)
+                     device=device, detected=detected, options=options)
 
 
 def read(path, fmt: str | None = None, **options) -> Recording:

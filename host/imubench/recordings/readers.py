@@ -26,7 +26,9 @@ import csv
 import gzip
 import io
 import json
+import re
 import zipfile
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +58,8 @@ KEYS = ("ax", "ay", "az", "gx", "gy", "gz")
 _CANDIDATES = {
     "accel": [("acc_x", "acc_y", "acc_z"), ("ax", "ay", "az"), ("accel_x", "accel_y", "accel_z"),
               ("accx", "accy", "accz"), ("ax_mps2", "ay_mps2", "az_mps2"), ("ax_g", "ay_g", "az_g"),
-              ("linear_acceleration_x", "linear_acceleration_y", "linear_acceleration_z")],
+              ("linear_acceleration_x", "linear_acceleration_y", "linear_acceleration_z"),
+              ("accelx", "accely", "accelz"), ("a_x", "a_y", "a_z"), ("tx", "ty", "tz")],
     "gyro": [("gyr_x", "gyr_y", "gyr_z"), ("gx", "gy", "gz"), ("gyro_x", "gyro_y", "gyro_z"),
              ("gyrx", "gyry", "gyrz"), ("wx_rad_s", "wy_rad_s", "wz_rad_s"), ("wx", "wy", "wz"),
              ("angular_velocity_x", "angular_velocity_y", "angular_velocity_z")],
@@ -88,42 +91,167 @@ def _lines(f, path: Path):
         raise RecordingError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
 
 
-def _header(path: Path) -> tuple[list[str], str]:
-    with _open_text(path) as f:
-        for line in _lines(f, path):
-            if line.strip() and not line.lstrip().startswith("#"):
-                break
-        else:
-            raise RecordingError(f"{path} is empty")
+#: lines looked at to find a text table's layout (preamble, header, delimiter)
+SNIFF_LINES = 400
+#: delimiters tried, in this order on a tie; None: runs of whitespace (spaces, tabs, at line ends too)
+_DELIMS = (",", ";", "\t", None)
+_COMMENT = ("#", "%")
+#: a preamble line's key that states the sample rate in Hz (compared lower-case, letters only)
+_RATE_KEYS = {"fs", "fshz", "samplerate", "sampleratehz", "samplingrate", "samplingratehz", "samplingfrequency",
+              "samplingfrequencyhz", "samplefrequency", "frequency", "frequencyhz", "rate", "ratehz", "datarate",
+              "odr", "odrhz", "outputdatarate", "samplespersecond", "sps"}
+
+
+@dataclass
+class Layout:
+    """Where a text table's numbers are: its delimiter (None: whitespace), columns, the line
+    (0-based) of its first data row, its header (a row, or a # comment line, or none) and the
+    lines before it (the preamble, metadata such as ``Fs,100``)."""
+    delim: str | None
+    ncols: int
+    start: int
+    header: list[str] | None = None
+    header_line: int | None = None
+    header_commented: bool = False
+    preamble: list[tuple[int, str]] = field(default_factory=list)
+    skip_rows: int = 0
+
+    def describe(self) -> str | None:
+        """One line on what was found before the data, or None when it is a plain table."""
+        if not self.preamble and not self.header_commented:
+            return None
+        where = f"line {self.header_line + 1}" if self.header is not None else f"line {self.start + 1}"
+        what = ("columns named by the comment line" if self.header_commented else
+                "header row" if self.header is not None else "data")
+        pre = ""
+        if self.preamble:
+            shown = ", ".join(repr(t[:30]) for _, t in self.preamble[:3]) + (", ..." if len(self.preamble) > 3 else "")
+            pre = f" after {len(self.preamble)} line(s) of preamble ({shown}), read as metadata"
+        return f"{what} at {where}{pre} (--skip-rows N to start elsewhere)"
+
+
+def _fields(line: str, delim: str | None) -> list[str]:
+    """The fields of a line: whitespace at its ends and a trailing delimiter are format, not fields."""
+    s = line.strip()
+    if delim is None:
+        return s.split()
+    f = [c.strip() for c in s.split(delim)]
+    return f[:-1] if len(f) > 1 and f[-1] == "" else f
+
+
+def _is_comment(line: str) -> bool:
+    return line.lstrip().startswith(_COMMENT)
+
+
+def _is_number(c: str) -> bool:
     try:
-        delim = csv.Sniffer().sniff(line, delimiters=",;\t ").delimiter
-    except csv.Error:
-        delim = ","
-    cols = [c.strip() for c in next(csv.reader([line], delimiter=delim))]
-    return cols, delim
+        float(c)
+    except ValueError:
+        return False
+    return True
 
 
 def _numeric(cols: list[str]) -> bool:
     """True when every field of a line is a number (a headerless table)."""
-    try:
-        [float(c) for c in cols]
-    except ValueError:
-        return False
-    return bool(cols)
+    return bool(cols) and all(map(_is_number, cols))
 
 
-def _chunks(path: Path, header: bool):
-    """Lists of at most CHUNK_LINES data lines of a text file (after its header line when it has
-    one; blank lines and # comments skipped): the file is streamed, never held whole."""
+def _datarow(cols: list[str]) -> bool:
+    """A row of samples: three numbers or more, and at most a quarter of its fields not numbers
+    (a label such as imucal's part name)."""
+    n = sum(map(_is_number, cols))
+    return n >= 3 and n >= 0.75 * len(cols)
+
+
+def _layout(path: Path, skip_rows: int | None = None) -> Layout:
+    """The layout of a text table, from its first lines: the delimiter under which the most lines
+    are rows of numbers of one width; the data from the first of 5 such rows in a row; the
+    header the line before (a row of that width with names, or a # comment line that splits
+    into that many names); the lines above it the preamble. skip_rows: lines skipped first."""
+    skip = int(skip_rows or 0)
+    lines = []
     with _open_text(path) as f:
-        lines = _lines(f, path)
-        if header:
-            for line in lines:
-                if line.strip() and not line.lstrip().startswith("#"):
+        for i, line in enumerate(_lines(f, path)):
+            if i >= skip + SNIFF_LINES:
+                break
+            lines.append(line)
+    body = [(i, ln) for i, ln in enumerate(lines) if i >= skip and ln.strip()]
+    if not body:
+        raise RecordingError(f"{path} is empty" + (f" after the {skip} rows skipped" if skip else ""))
+    rows = [(i, ln) for i, ln in body if not _is_comment(ln)]
+    best = None
+    for delim in _DELIMS:
+        widths = [len(f) for f in (_fields(ln, delim) for _, ln in rows) if _datarow(f)]
+        if not widths:
+            continue
+        width = max(set(widths), key=lambda w: (widths.count(w), w))
+        score = (widths.count(width), width)
+        if best is None or score > best[0]:
+            best = (score, delim, width)
+    if best is None:
+        if any(re.search(r"\d,\d", ln) and ";" in ln for _, ln in rows):
+            raise RecordingError(f"{path.name}: its numbers have decimal commas (1,5 for 1.5), which are not "
+                                 "read: export the file with decimal points")
+        raise RecordingError(f"{path.name}: no rows of numbers in its first {len(lines)} lines"
+                             + (f" after the {skip} rows skipped" if skip else "")
+                             + "; is it a table of samples? (--skip-rows N starts at line N + 1)")
+    _, delim, width = best
+    ok = [len(f) == width and _datarow(f) for f in (_fields(ln, delim) for _, ln in rows)]
+    run = 5
+    start_k = next((k for k in range(len(rows)) if all(ok[k:k + run])), None)
+    if start_k is None:
+        raise RecordingError(f"{path.name}: no {run} rows of {width} numbers in a row in its first {len(lines)} lines; "
+                             "check the file, or start it with --skip-rows N")
+    start = rows[start_k][0]
+    lay = Layout(delim=delim, ncols=width, start=start, skip_rows=skip)
+    before = [(i, ln) for i, ln in body if i < start]
+    # the header: the row just before the data, or the nearest of the comment lines just before it
+    k = len(before) - 1
+    if k >= 0 and not _is_comment(before[k][1]):
+        f = _fields(before[k][1], delim)
+        if len(f) == width and not _datarow(f):
+            lay.header, lay.header_line = f, before[k][0]
+    else:
+        while k >= 0 and _is_comment(before[k][1]):
+            text = before[k][1].strip().lstrip("#%").strip()
+            for d in dict.fromkeys((delim, None)):
+                f = _fields(text, d)
+                if len(f) == width and not _datarow(f):
+                    lay.header, lay.header_line, lay.header_commented = f, before[k][0], True
                     break
+            if lay.header is not None:
+                break
+            k -= 1
+    top = lay.header_line if lay.header is not None else start
+    lay.preamble = [(i, ln.strip()) for i, ln in before if i < top and not (lay.header_commented and _is_comment(ln))]
+    return lay
+
+
+def _preamble_rate(lay: Layout) -> tuple[float, str] | None:
+    """The sample rate a preamble states (a line such as ``Fs,100`` or ``Sample rate: 200 Hz``), with
+    the line; None when it states none, or several different ones."""
+    found = {}
+    for _, text in lay.preamble:
+        m = re.match(r"^[#%\s]*([A-Za-z][A-Za-z _()/.-]*?)\s*(?:\(hz\)|\[hz\])?\s*[,;:=\t ]\s*"
+                     r"([0-9]+(?:\.[0-9]*)?(?:[eE][+-]?[0-9]+)?)\s*(hz)?\s*[,;]*\s*$", text, re.IGNORECASE)
+        if not m:
+            continue
+        key = re.sub(r"[^a-z]", "", m.group(1).lower())
+        if key in _RATE_KEYS and float(m.group(2)) > 0:
+            found.setdefault(float(m.group(2)), text)
+    if len(found) != 1:
+        return None
+    (rate, text), = found.items()
+    return rate, text
+
+
+def _chunks(path: Path, start: int):
+    """Lists of at most CHUNK_LINES data lines of a text file from its line start (0-based; blank
+    lines and # or % comments skipped): the file is streamed, never held whole."""
+    with _open_text(path) as f:
         chunk = []
-        for line in lines:
-            if line.strip() and not line.lstrip().startswith("#"):
+        for i, line in enumerate(_lines(f, path)):
+            if i >= start and line.strip() and not _is_comment(line):
                 chunk.append(line)
                 if len(chunk) == CHUNK_LINES:
                     yield chunk
@@ -132,16 +260,18 @@ def _chunks(path: Path, header: bool):
             yield chunk
 
 
-def _load(path: Path, delim: str | None, usecols: list[int] | None, header: bool = True) -> np.ndarray:
-    """The numbers of the columns usecols (all when None) of a text table, parsed CHUNK_LINES
+def _load(path: Path, delim: str | None, usecols: list[int], start: int) -> np.ndarray:
+    """The numbers of the columns usecols of a text table from its line start, parsed CHUNK_LINES
     lines at a time into one array sized from the file's size (bounded memory: the text of one
     chunk and the numbers read; no second copy)."""
     out, n = None, 0
     size = path.stat().st_size
     try:
-        for chunk in _chunks(path, header):
-            a = np.loadtxt(chunk, delimiter=None if delim in (" ", None) else delim, usecols=usecols,
-                           comments="#", ndmin=2, dtype=np.float64)
+        for chunk in _chunks(path, start):
+            if delim not in (None, " ", "\t"):       # whitespace at line ends is format (np.loadtxt: None)
+                chunk = [ln.strip() for ln in chunk]
+            a = np.loadtxt(chunk, delimiter=None if delim in (" ", "\t", None) else delim, usecols=usecols,
+                           comments=_COMMENT, ndmin=2, dtype=np.float64)
             if out is None:
                 per_line = max(1.0, sum(map(len, chunk)) / len(chunk))
                 rows = len(a) if len(chunk) < CHUNK_LINES or path.suffix == ".gz" else int(size / per_line * 1.02)
@@ -158,15 +288,17 @@ def _load(path: Path, delim: str | None, usecols: list[int] | None, header: bool
     except RecordingError:
         raise
     except ValueError as e:
-        raise RecordingError(f"{path}: not numbers where numbers are expected ({' '.join(str(e).split())[:160]}); "
-                             "check the delimiter and the header") from None
+        raise RecordingError(f"{path}: not numbers where numbers are expected ({' '.join(str(e).split())[:160]}, "
+                             f"counted from line {start + 1}); check the delimiter and the header, or start at the "
+                             "header row with --skip-rows N (the lines before it)") from None
     if out is None:
-        return np.empty((0, len(usecols) if usecols else 0))
+        return np.empty((0, len(usecols)))
     return out[:n]
 
 
-def detect_format(path) -> str:
-    """The format of a file by its extension and header (the choice is printed by the caller)."""
+def detect_format(path, skip_rows: int | None = None) -> str:
+    """The format of a file by its extension, else by its content (a header, the width of its rows);
+    the choice is printed by the caller."""
     p = Path(path)
     if p.is_dir():
         if (p / "metadata.yaml").exists():
@@ -180,33 +312,64 @@ def detect_format(path) -> str:
         return "npz"
     if ext == ".bin":
         return "capture"
-    if ext.startswith(".csv") or ext.startswith(".txt"):
-        cols, _ = _header(p)
-        low = [c.lower() for c in cols]
+    try:                    # by content: a text table
+        lay = _layout(p, skip_rows)
+    except RecordingError:
+        if ext.startswith((".csv", ".txt")):
+            raise
+        lay = None
+    except (UnicodeDecodeError, OSError):
+        lay = None
+    if lay is not None:
+        low = [c.lower() for c in lay.header or []]
         if low[:1] == ["n_samples"] or low[:2] == ["part", "samples"]:
             return "imucal"
+        if lay.header is None and lay.ncols == 4:
+            return "imutk"
         return "csv"
-    try:                                  # any other name: a text table of numbers is read as csv
-        cols, _ = _header(p)
-    except (UnicodeDecodeError, OSError):
-        cols = []
-    if len(cols) in (6, 7) and _numeric(cols):
-        return "csv"
-    raise RecordingError(f"cannot tell the format of {p.name} from its name: give --format "
+    raise RecordingError(f"cannot tell the format of {p.name} from its name or its content: give --format "
                          f"({'|'.join(FORMATS)})")
 
 
 def read(path, fmt: str | None = None, **opt) -> Recording:
+    """Read a recording (fmt None: detect_format) with the options of the readers; the result's
+    options are those that read it again the same way (declared and detected)."""
     p = Path(path)
     if not p.exists():
         raise RecordingError(f"{p}: no such file or directory; check the path")
     if not p.is_dir():
         _regular(p)                 # a FIFO or a device is refused before anything reads it
-    fmt = fmt or detect_format(p)
+    declared = {k: v for k, v in opt.items() if v not in (None, {}, "")}
+    detected = {}
+    if not fmt:
+        fmt = "imutk" if opt.get("gyro_file") else detect_format(p, opt.get("skip_rows"))
+        detected["format"] = fmt
+        ext = "".join(p.suffixes[-2:]).lower()
+        if fmt == "imutk" or (fmt == "csv" and not ext.startswith((".csv", ".txt"))):
+            why = "--gyro-file given" if opt.get("gyro_file") else "the file's content"
+            detected_line = f"format {fmt} from {why} (--format {fmt})"
+        else:
+            detected_line = None
+    else:
+        detected_line = None
     if fmt not in FORMATS:
         raise RecordingError(f"unknown format {fmt!r}; one of {', '.join(FORMATS)}")
-    return {"csv": read_csv, "imutk": read_imutk, "imucal": read_imucal, "npz": read_npz,
-            "capture": read_capture, "rosbag": read_rosbag}[fmt](p, **opt)
+    sensor_notes = []
+    if opt.get("sensor"):
+        from imubench.recordings.sensors import default_units
+        units = default_units(opt["sensor"], opt, sensor_notes)
+        opt.update(units)
+        detected.update(units)
+    rec = {"csv": read_csv, "imutk": read_imutk, "imucal": read_imucal, "npz": read_npz,
+           "capture": read_capture, "rosbag": read_rosbag}[fmt](p, **opt)
+    if opt.get("sensor"):
+        from imubench.recordings.sensors import apply_sensor
+        apply_sensor(rec, opt["sensor"], opt.get("gyro_range_dps"))
+    rec.detected = sensor_notes + rec.detected
+    rec.options = {**declared, **detected, **rec.options}
+    if detected_line:
+        rec.detected.insert(0, detected_line)
+    return rec
 
 
 def _regular(path: Path) -> None:
@@ -223,25 +386,78 @@ def _need_units(opt: dict, what: str) -> tuple[str, str]:
     if missing:
         raise RecordingError(f"{what} does not say its units: give {' and '.join(missing)} "
                              "(accelerometer mps2|g|mg|counts, gyro rad_s|dps|counts; for counts also "
-                             "--accel-scale COUNTS_PER_G / --gyro-scale COUNTS_PER_DPS if known)")
+                             "--accel-scale COUNTS_PER_G / --gyro-scale COUNTS_PER_DPS, or --sensor NAME)")
     return au, gu
 
 
 def _common(opt: dict) -> dict:
     return {"accel_counts_per_g": opt.get("accel_counts_per_g"), "gyro_counts_per_dps": opt.get("gyro_counts_per_dps"),
-            "device": opt.get("device")}
+            "device": opt.get("device"), "accel_offset": opt.get("accel_offset"),
+            "gyro_offset": opt.get("gyro_offset")}
+
+
+#: Unix time stamps of the years 2001 to 2100 in seconds: a time column in this range × 1000^k is in s, ms, us, ns
+_EPOCH_S = (1.0e9, 4.1e9)
+
+
+def _time_seconds(raw: np.ndarray, unit: str | None, what: str, detected: list, options: dict) -> np.ndarray:
+    """A time column in seconds: its unit declared, else settled when the values are Unix time
+    stamps (their size says s, ms, us or ns; said in one line), else asked for."""
+    if not unit and len(raw):
+        mid = float(np.median(raw))
+        for u, f in _TIME_SUFFIX.items():
+            if _EPOCH_S[0] <= mid * f <= _EPOCH_S[1]:
+                unit = u
+                import datetime as _dt
+                day = _dt.datetime.fromtimestamp(mid * f, _dt.timezone.utc).strftime("%Y-%m-%d")
+                detected.append(f"time unit {u}: {what} holds Unix time stamps in {u} ({mid:.6g}, i.e. {day}) "
+                                f"(--time-unit {u})")
+                options["time_unit"] = u
+                break
+    if not unit:
+        raise RecordingError(f"{what} does not say its unit: give --time-unit s|ms|us|ns "
+                             "(or --rate HZ to ignore it)")
+    if unit not in _TIME_SUFFIX:
+        raise RecordingError(f"--time-unit {unit!r}: one of s, ms, us, ns")
+    return raw * _TIME_SUFFIX[unit]
+
+
+def _layout_lines(lay: Layout, rate_hz: float | None, has_time: bool, detected: list, notes: list,
+                  options: dict, mapped: bool = False) -> float | None:
+    """What the layout settled, one line each (the preamble and header; a rate the preamble
+    states), and the rate to use when the file has no time column. mapped: every column was
+    named by an option (a commented header then settles nothing)."""
+    d = lay.describe()
+    if d:
+        (notes if mapped and not lay.preamble else detected).append(d)
+        if lay.preamble:
+            options["skip_rows"] = lay.header_line if lay.header is not None else lay.start
+    pre = _preamble_rate(lay)
+    if pre is None:
+        return rate_hz
+    r, text = pre
+    if has_time and not rate_hz:
+        notes.append(f"the preamble states {text!r}; the file's time stamps are used")
+    elif rate_hz and abs(rate_hz - r) > 1e-9 * r:
+        notes.append(f"the preamble states {text!r}; --rate {rate_hz:g} is used")
+    elif not rate_hz:
+        detected.append(f"sample rate {r:g} Hz from the preamble line {text!r} (--rate {r:g})")
+        options["rate_hz"] = r
+        return r
+    return rate_hz
 
 
 # ------------------------------------------------------------------ csv
 def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None = None,
              time_unit: str | None = None, rate_hz: float | None = None, accel_unit: str | None = None,
-             gyro_unit: str | None = None, **opt) -> Recording:
-    cols, delim = _header(path)
-    if _numeric(cols):
-        return _read_headerless(path, cols, delim, columns=columns, time_unit=time_unit, rate_hz=rate_hz,
+             gyro_unit: str | None = None, skip_rows: int | None = None, **opt) -> Recording:
+    lay = _layout(path, skip_rows)
+    if lay.header is None:
+        return _read_headerless(path, lay, columns=columns, time_unit=time_unit, rate_hz=rate_hz,
                                 accel_unit=accel_unit, gyro_unit=gyro_unit, **opt)
+    cols = lay.header
     low = {c.lower(): i for i, c in enumerate(cols)}
-    notes = []
+    notes, detected, options = [], [], {}
     mapping = dict(columns or {})
     if time_column:
         mapping["t"] = time_column
@@ -268,14 +484,22 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
                 mapping["t"] = cols[low[c]]
                 found_by_name.append(f"time {cols[low[c]]}")
                 break
-    if found_by_name:
-        notes.append("columns found by name: " + "; ".join(found_by_name) + " (map others with --columns)")
     missing = [v for v in mapping.values() if v.lower() not in low]
     if missing:
         raise RecordingError(f"{path.name} has no column {missing[0]!r}; its columns are {', '.join(cols)}")
+    rate_hz = _layout_lines(lay, rate_hz, "t" in mapping, detected, notes, options, mapped=not found_by_name)
+    if found_by_name:
+        used = {mapping[k].lower() for k in mapping}
+        ignored = [c for c in cols if c.lower() not in used]
+        line = ("columns found by name: " + "; ".join(found_by_name)
+                + (f"; not used: {', '.join(ignored)}" if ignored else "") + " (map others with --columns)")
+        (detected if ignored or lay.header_commented else notes).append(line)
+        options["columns"] = {k: v for k, v in mapping.items() if k != "t"}
+        if "t" in mapping:
+            options["time_column"] = mapping["t"]
     idx = [low[mapping[k].lower()] for k in KEYS]
     t_idx = low[mapping["t"].lower()] if "t" in mapping else None
-    data = _load(path, delim, idx + ([t_idx] if t_idx is not None else []))
+    data = _load(path, lay.delim, idx + ([t_idx] if t_idx is not None else []), lay.start)
     # units: declared, or declared by the column names
     if not accel_unit:
         suf = mapping["ax"].lower().rsplit("_", 1)[-1]
@@ -296,21 +520,16 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
             unit = suf if "_" in mapping["t"] and suf in _TIME_SUFFIX else None
             if unit:
                 notes.append(f"time unit {unit} from the column name {mapping['t']}")
-        if not unit:
-            raise RecordingError(f"the time column {mapping['t']!r} does not say its unit: give --time-unit "
-                                 "s|ms|us|ns (or --rate HZ to ignore it)")
-        if unit not in _TIME_SUFFIX:
-            raise RecordingError(f"--time-unit {unit!r}: one of s, ms, us, ns")
-        t = data[:, 6] * _TIME_SUFFIX[unit]
+        t = _time_seconds(data[:, 6], unit, f"the time column {mapping['t']!r}", detected, options)
     return from_arrays(data[:, :3], data[:, 3:6], t_s=t, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
-                       source=str(path), fmt="csv", notes=notes, **_common(opt))
+                       source=str(path), fmt="csv", notes=notes, detected=detected, options=options, **_common(opt))
 
 
-def _read_headerless(path: Path, cols: list[str], delim: str, *, columns: dict | None, time_unit: str | None,
+def _read_headerless(path: Path, lay: Layout, *, columns: dict | None, time_unit: str | None,
                      rate_hz: float | None, accel_unit: str | None, gyro_unit: str | None, **opt) -> Recording:
     """A table of numbers without a header: columns by position (1-based in ``columns``)."""
-    n = len(cols)
-    notes = []
+    n = lay.ncols
+    notes, detected, options = [], [], {}
     if columns:
         try:
             pos = {k: int(v) - 1 for k, v in columns.items()}
@@ -329,21 +548,18 @@ def _read_headerless(path: Path, cols: list[str], delim: str, *, columns: dict |
     else:
         raise RecordingError(f"{path.name} has no header row and {n} columns: map them by position with "
                              "--columns ax=1,ay=2,az=3,gx=4,gy=5,gz=6[,t=7]")
+    rate_hz = _layout_lines(lay, rate_hz, "t" in pos, detected, notes, options)
     if rate_hz:
         pos.pop("t", None)
     use = [pos[k] for k in KEYS] + ([pos["t"]] if "t" in pos else [])
-    data = _load(path, delim, use, header=False)
+    data = _load(path, lay.delim, use, lay.start)
     au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, path.name)
     t = None
     if "t" in pos:
-        if not time_unit:
-            raise RecordingError(f"{path.name}: the time column (position {pos['t'] + 1}) does not say its unit: "
-                                 "give --time-unit s|ms|us|ns, or --rate HZ to ignore it")
-        if time_unit not in _TIME_SUFFIX:
-            raise RecordingError(f"--time-unit {time_unit!r}: one of s, ms, us, ns")
-        t = data[:, 6] * _TIME_SUFFIX[time_unit]
+        t = _time_seconds(data[:, 6], time_unit, f"{path.name}: the time column (position {pos['t'] + 1})",
+                          detected, options)
     return from_arrays(data[:, :3], data[:, 3:6], t_s=t, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
-                       source=str(path), fmt="csv", notes=notes, **_common(opt))
+                       source=str(path), fmt="csv", notes=notes, detected=detected, options=options, **_common(opt))
 
 
 # ------------------------------------------------------------------ imu_tk
@@ -352,7 +568,8 @@ def _imutk_file(path: Path, what: str) -> np.ndarray:
         raise RecordingError(f"{path}: no such file; check the path")
     _regular(path)
     try:
-        d = _load(path, None, None, header=False)
+        lay = _layout(path)
+        d = _load(path, lay.delim, list(range(lay.ncols)), lay.start)
     except RecordingError as e:
         raise RecordingError(f"not imu_tk's layout (lines of 't x y z' numbers): {e}") from None
     if d.shape[1] != 4:
@@ -360,11 +577,45 @@ def _imutk_file(path: Path, what: str) -> np.ndarray:
     return d
 
 
+#: the words that name imu_tk's accelerometer file, and those of its gyro file beside it (xsens_acc.mat, xsens_gyro.mat)
+_ACC_WORDS = ("accelerometer", "accel", "acc")
+_GYRO_WORDS = ("gyroscope", "gyro", "gyr")
+
+
+def _imutk_pair(path: Path) -> Path | None:
+    """The gyro file beside imu_tk's accelerometer file: its name with the accelerometer's word
+    replaced by a gyro's (acc -> gyro, gyr, ...), when exactly one such file exists."""
+    name = path.name
+    low = name.lower()
+    found = []
+    for a in _ACC_WORDS:
+        k = low.find(a)
+        if k < 0:
+            continue
+        for g in _GYRO_WORDS:
+            for cand in (name[:k] + g + name[k + len(a):], name[:k] + g.capitalize() + name[k + len(a):],
+                         name[:k] + g.upper() + name[k + len(a):]):
+                q = path.with_name(cand)
+                if q.is_file() and q not in found:
+                    found.append(q)
+        break
+    return found[0] if len(found) == 1 else None
+
+
 def read_imutk(path: Path, *, gyro_file=None, accel_unit: str | None = None, gyro_unit: str | None = None,
                rate_hz: float | None = None, **opt) -> Recording:
+    detected, options = [], {}
     if not gyro_file:
-        raise RecordingError("imu_tk keeps the accelerometer and the gyro in separate files: give the "
-                             "accelerometer file with --from and the gyro file with --gyro-file")
+        if any(w in path.name.lower() for w in _GYRO_WORDS):
+            raise RecordingError(f"{path.name} looks like imu_tk's gyro file (t x y z a line): imu_tk keeps the "
+                                 "accelerometer and the gyro in separate files: give the accelerometer file with "
+                                 "--from and this one with --gyro-file")
+        gyro_file = _imutk_pair(path)
+        if gyro_file is None:
+            raise RecordingError(f"{path.name} has 4 numbers a line (imu_tk's layout, t x y z): imu_tk keeps the "
+                                 "accelerometer and the gyro in separate files: give the gyro file with --gyro-file")
+        detected.append(f"imu_tk's pair: the gyro file {gyro_file.name} beside it, by name (--gyro-file {gyro_file})")
+        options["gyro_file"] = str(gyro_file)
     au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, "imu_tk's format")
     a = _imutk_file(path, "accelerometer")
     g = _imutk_file(Path(gyro_file), "gyro")
@@ -379,13 +630,15 @@ def read_imutk(path: Path, *, gyro_file=None, accel_unit: str | None = None, gyr
         notes.append("the gyro file's times differ from the accelerometer's: the gyro was interpolated "
                      "(linearly) at the accelerometer's times over their common span")
     return from_arrays(a[:, 1:], g[:, 1:], t_s=a[:, 0], rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
-                       source=f"{path} + {gyro_file}", fmt="imutk", notes=notes, **_common(opt))
+                       source=f"{path} + {gyro_file}", fmt="imutk", notes=notes, detected=detected, options=options,
+                       **_common(opt))
 
 
 # ------------------------------------------------------------------ imucal
 def read_imucal(path: Path, *, rate_hz: float | None = None, accel_unit: str | None = None,
-                gyro_unit: str | None = None, **opt) -> Recording:
-    cols, delim = _header(path)
+                gyro_unit: str | None = None, skip_rows: int | None = None, **opt) -> Recording:
+    lay = _layout(path, skip_rows)
+    cols, delim = lay.header or [], lay.delim
     low = [c.lower() for c in cols]
     if not rate_hz:
         raise RecordingError("imucal's CSV has a sample index, not a time: give --rate HZ "
@@ -400,8 +653,8 @@ def read_imucal(path: Path, *, rate_hz: float | None = None, accel_unit: str | N
     breaks = []
     notes = []
     if low[0] == "part":
-        names = [r[0] for chunk in _chunks(path, header=True) for r in csv.reader(chunk, delimiter=delim)]
-        data = _load(path, delim, idx)
+        names = [r[0] for chunk in _chunks(path, lay.start) for r in csv.reader(chunk, delimiter=delim)]
+        data = _load(path, delim, idx, lay.start)
         parts = []
         start = 0
         for i in range(1, len(names) + 1):
@@ -414,7 +667,7 @@ def read_imucal(path: Path, *, rate_hz: float | None = None, accel_unit: str | N
         notes.append(f"{len(parts)} parts named in the file ({', '.join(p[0] for p in parts)}): each cut is a "
                      "break; the parts are not used to find the poses, only to compare with")
     else:
-        data = _load(path, delim, idx)
+        data = _load(path, delim, idx, lay.start)
     return from_arrays(data[:, :3], data[:, 3:], rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
                        source=str(path), fmt="imucal", breaks=breaks, notes=notes, parts=parts, **_common(opt))
 
@@ -561,7 +814,9 @@ def read_rosbag(path: Path, *, topic: str | None = None, **opt) -> Recording:
 
 def load_profile(path) -> dict:
     """A CSV profile (TOML): [columns] ax = "...", ..., t = "..."; [units] accel, gyro, time,
-    accel_counts_per_g, gyro_counts_per_dps; rate_hz. Returned as read() options."""
+    accel_counts_per_g, gyro_counts_per_dps, accel_offset, gyro_offset; rate_hz; skip_rows (lines
+    before the header row, for a preamble the reader cannot tell from the header); sensor.
+    Returned as read() options."""
     import tomllib
     try:
         d = tomllib.loads(read_text(path, MAX_JSON_BYTES, "profile"))
@@ -569,7 +824,7 @@ def load_profile(path) -> dict:
         raise RecordingError(str(e)) from None
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise RecordingError(f"profile {path}: {e}") from None
-    known = {"columns", "units", "rate_hz", "format", "device"}
+    known = {"columns", "units", "rate_hz", "format", "device", "skip_rows", "sensor"}
     extra = set(d) - known
     if extra:
         raise RecordingError(f"profile {path}: unknown key(s) {', '.join(sorted(extra))}; "
@@ -579,6 +834,8 @@ def load_profile(path) -> dict:
            "time_column": d.get("columns", {}).get("t"), "time_unit": u.get("time"),
            "accel_unit": u.get("accel"), "gyro_unit": u.get("gyro"),
            "accel_counts_per_g": u.get("accel_counts_per_g"), "gyro_counts_per_dps": u.get("gyro_counts_per_dps"),
-           "rate_hz": d.get("rate_hz"), "format": d.get("format"), "device": d.get("device")}
+           "rate_hz": d.get("rate_hz"), "format": d.get("format"), "device": d.get("device"),
+           "skip_rows": d.get("skip_rows"), "sensor": d.get("sensor"), "accel_offset": u.get("accel_offset"),
+           "gyro_offset": u.get("gyro_offset")}
     return {k: v for k, v in out.items() if v not in (None, {})}
 

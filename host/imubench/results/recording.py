@@ -155,6 +155,10 @@ def write_evidence(directory, result: dict, *, command: str = "") -> list[Path]:
     lines = [f"# imubench calibrate --from {src.get('file', '?')}", ""]
     if command:
         lines += ["```", command, "```", ""]
+    if src.get("detected"):          # what the reader settled, and the command that states it (issue 40, 6)
+        lines += ["The reader detected (each settled without an option):", ""]
+        lines += [f"- {d}" for d in src["detected"]] + ["", "The same reading with every option stated:", "",
+                                                         "```", src.get("command", ""), "```", ""]
     lines += [f"**{'REFUSED' if refused else 'Verdict'}:** {refused or result.get('verdict', '')}", "",
               f"Recording: {src.get('format', '?')}, {src.get('samples', '?')} samples at "
               f"{float(src.get('rate_hz', math.nan)):.5g} Hz; {src.get('units', '')}.", "",
