@@ -52,6 +52,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "host"))
 
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT  # noqa: E402
 from imubench import units as U  # noqa: E402
 from imubench.device.sim import VirtualBench  # noqa: E402
 
@@ -72,7 +73,7 @@ def fresh_bench(speed: float, seed: int, random_walk: bool = True) -> VirtualBen
     vb = VirtualBench(speed=speed, seed=seed, truth="random")
     vb.set_thermal(enabled=True)            # the part's own constants, drawn with its truth
     if not random_walk:                     # the temperature error alone: no bias random walk
-        vb.set_truth(accel={"rw_k": [0.0] * 3}, gyro=[{"bias_rw_k": 0.0}] * 3)
+        vb.set_truth(accel={"rw_k": [0.0] * 3}, gyro=[GYRO_NO_DRIFT] * 3)
     return vb
 
 
