@@ -31,17 +31,17 @@ def _lib() -> ctypes.CDLL:
     lib.sim_adxrs450_flicker_taus.argtypes = []
     lib.sim_adxrs450_flicker_weight.restype = ctypes.c_double
     lib.sim_adxrs450_flicker_weight.argtypes = []
+    lib.sim_adxrs450_flicker_n.restype = ctypes.c_int
+    lib.sim_adxrs450_flicker_n.argtypes = []
     return lib
-
-
-FLICKER_N = 5      # SIM_ADXRS450_FLICKER_N (checked against the library by the tests)
 
 
 def flicker_bank() -> tuple[np.ndarray, float]:
     """(correlation times in s, each process's σ / B) of the model's bias-instability bank."""
     lib = _lib()
     p = lib.sim_adxrs450_flicker_taus()
-    return np.array([p[i] for i in range(FLICKER_N)]), float(lib.sim_adxrs450_flicker_weight())
+    return (np.array([p[i] for i in range(lib.sim_adxrs450_flicker_n())]),
+            float(lib.sim_adxrs450_flicker_weight()))
 
 
 def record(seed: int, n: int, rate_hz: float = 10.0, axis: int = 0, random_truth: bool = False) -> np.ndarray:

@@ -186,6 +186,8 @@ const double *sim_adxrs450_flicker_taus(void) { return flicker_tau_s; }
 
 double sim_adxrs450_flicker_weight(void) { return SIM_ADXRS450_FLICKER_WEIGHT; }
 
+int sim_adxrs450_flicker_n(void) { return SIM_ADXRS450_FLICKER_N; }
+
 double sim_adxrs450_flicker_bias_rad_s(const sim_adxrs450_t *m)
 {
     double z = 0.0;

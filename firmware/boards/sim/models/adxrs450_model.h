@@ -263,6 +263,7 @@ double sim_adxrs450_flicker_bias_rad_s(const sim_adxrs450_t *m);
  * sigma / B (for the curve the model should give: imubench.device.sim_gyro). */
 const double *sim_adxrs450_flicker_taus(void);
 double sim_adxrs450_flicker_weight(void);
+int sim_adxrs450_flicker_n(void);
 
 /* Current noise-free chip output (the r(t) above), rad/s. */
 double sim_adxrs450_true_rate_rad_s(const sim_adxrs450_t *m);
