@@ -38,6 +38,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "host"))
 
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT  # noqa: E402
 from imubench.device.sim import VirtualBench, build_sim  # noqa: E402
 from imubench.procedures.fixture import FixtureRun, Station  # noqa: E402
 from imubench.procedures.virtual import PlatePresenter  # noqa: E402
@@ -68,7 +69,7 @@ def run(n: int, rate: int, hold_s: float, speed: float, config: str = "six-plan"
     try:
         for k in range(n):
             vb = VirtualBench(speed=speed, seed=500 + k, truth="random")
-            vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)
+            vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
             benches.append(vb)
         with tempfile.TemporaryDirectory(prefix="imubench-multi-") as d:
             cfg = CONFIGS[config](rate, hold_s)

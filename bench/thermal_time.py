@@ -28,13 +28,13 @@ warming and cooling shows there) and over the warming branch alone. Gyro in °/s
 accelerometer in mg (x, y, z of the output; Z carries 1 g, so its scale tempco shows too).
 
 Each method runs twice (--random-walk both, the default): on the part as drawn, and with its
-bias random walk off. Over the hours a sweep takes the walk moves the bias as much as the
-temperature error left behind (it is not a temperature effect: no method removes it), so the
-second run shows the temperature error alone.
+gyro bias drift (bias instability and rate random walk, docs/simulator.md) and accelerometer
+random walk off. Over the hours a sweep takes the drift moves the bias (it is not a
+temperature effect: no method removes it), so the second run shows the temperature error alone.
 
 Ends with one JSON line: step_time_s, warmup_time_s, step_nowait_time_s and
 {step,step_nowait,warmup}_drift_{gyro_dps,accel_mg} (per-axis lists x, y, z, both branches;
-the part as drawn), the same with _warming (warming branch only) and with _no_rw (random walk
+the part as drawn), the same with _warming (warming branch only) and with _no_rw (bias drift
 off), aim_met / aim_met_no_rw, and the part's thermal constants.
 Aim (issue 23): warm-up drift no worse than the step method's, in at most a third of its time.
 """
@@ -52,6 +52,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "host"))
 
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT  # noqa: E402
 from imubench import units as U  # noqa: E402
 from imubench.device.sim import VirtualBench  # noqa: E402
 
@@ -71,8 +72,8 @@ SENSORS = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
 def fresh_bench(speed: float, seed: int, random_walk: bool = True) -> VirtualBench:
     vb = VirtualBench(speed=speed, seed=seed, truth="random")
     vb.set_thermal(enabled=True)            # the part's own constants, drawn with its truth
-    if not random_walk:                     # the temperature error alone: no bias random walk
-        vb.set_truth(accel={"rw_k": [0.0] * 3}, gyro=[{"bias_rw_k": 0.0}] * 3)
+    if not random_walk:                     # the temperature error alone: no bias drift
+        vb.set_truth(accel={"rw_k": [0.0] * 3}, gyro=[GYRO_NO_DRIFT] * 3)
     return vb
 
 
@@ -174,7 +175,7 @@ def _axes(v) -> str:
 
 
 METHODS = (("step, waiting for the lag", "step"), ("step, not waiting", "step_nowait"), ("warm-up", "warmup"))
-VARIANTS = (("", "the part as drawn (bias random walk on)"), ("_no_rw", "random walk off: the temperature error alone"))
+VARIANTS = (("", "the part as drawn (bias drift on)"), ("_no_rw", "bias drift off: the temperature error alone"))
 
 
 def table(runs: dict, truth_d: dict, thermal: dict, span, suffixes) -> str:
@@ -226,7 +227,8 @@ def main() -> int:
     ap.add_argument("--speed", type=float, default=300.0, help="device time per wall time")
     ap.add_argument("--span", default="5,45", help="LO,HI in °C (default 5,45)")
     ap.add_argument("--random-walk", choices=("on", "off", "both"), default="both",
-                    help="the part's bias random walk: as drawn (on), off (the temperature error alone), or both runs")
+                    help="the part's bias drift (gyro bias instability and random walks): as drawn (on), off "
+                         "(the temperature error alone), or both runs")
     add_arguments(ap)
     a = ap.parse_args()
     try:
@@ -278,7 +280,7 @@ def main() -> int:
     publish("thermal_time", md, {"seed": a.seed, "span": f"{span[0]:g}–{span[1]:g} °C", "sim speed": f"{a.speed:g}",
                                  "wall time": f"{wall:.0f} s"}, enabled=not a.no_publish)
     line = {"drift": "per-axis lists x, y, z: max − min of 2 °C bin means of the calibrated stream over the span, "
-                     "warming and cooling together (_warming: warming only); _no_rw: the part's bias random walk off",
+                     "warming and cooling together (_warming: warming only); _no_rw: the part's bias drift off",
             "seed": a.seed, "tau_s": [round(t, 1) for t in thermal["tau_s"]],
             "self_heat_c": [round(t, 2) for t in thermal["self_heat_c"]]}
     for _, k in METHODS:

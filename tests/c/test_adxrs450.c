@@ -113,6 +113,7 @@ static void make_ideal(void)
         sim_adxrs450_truth_t t = sim_adxrs450_default_truth(i);
         t.noise_n = 0.0;
         t.bias_rw_k = 0.0;
+        t.bias_instability_rad_s = 0.0;
         sim_adxrs450_set_truth(&B.gyro[i], &t);
     }
 }
@@ -747,6 +748,7 @@ static void test_white_noise(void)
     ib_adxrs450_t g;
     sim_adxrs450_truth_t t = sim_adxrs450_default_truth(0);
     t.bias_rw_k = 0.0;
+    t.bias_instability_rad_s = 0.0;
     sim_adxrs450_set_truth(&B.gyro[0], &t);
     CHECK_EQ_INT(init_chip(&g, 0), IB_ADXRS450_OK);
     const double n_counts = t.noise_n / DEG2RAD * 80.0; /* N in counts/sqrt(Hz) */
@@ -779,6 +781,7 @@ static void test_bias_random_walk(void)
         sim_adxrs450_truth_t t = sim_adxrs450_default_truth(0);
         t.noise_n = 0.0;
         t.bias_rw_k = k;
+        t.bias_instability_rad_s = 0.0;
         sim_adxrs450_set_truth(&m[i], &t);
         for (int s = 1; s <= 200; s++) {
             sim_adxrs450_advance(&m[i], (uint64_t)s * 500000u, &w);
@@ -812,6 +815,67 @@ static void test_bias_random_walk(void)
         }
     }
     CHECK(moved);
+}
+
+static void test_bias_instability_bank(void)
+{
+    /* across many chips, each process of the bank is stationary with sigma W*B, so the
+     * bias-instability part has sigma W*B*sqrt(5) at any time, and its increments over a
+     * short step are those of the processes' correlation (the rng is the chip's own: the
+     * white noise's sequence does not change with B) */
+    static sim_adxrs450_t m[400];
+    const double b = 25.0 / 3600.0 * DEG2RAD;
+    const double w = sim_adxrs450_flicker_weight();
+    sim_world_t wd;
+    memset(&wd, 0, sizeof wd);
+    wd.temperature_c = 25.0;
+    double sum2_0 = 0.0, sum2_1 = 0.0, dsum2 = 0.0;
+    for (int i = 0; i < 400; i++) {
+        sim_adxrs450_init(&m[i], 5000u + (uint64_t)i, 0);
+        double b0 = sim_adxrs450_flicker_bias_rad_s(&m[i]);
+        for (int s = 1; s <= 1000; s++) { /* 1000 s in 1 s steps */
+            sim_adxrs450_advance(&m[i], (uint64_t)s * 1000000u, &wd);
+        }
+        double b1 = sim_adxrs450_flicker_bias_rad_s(&m[i]);
+        sum2_0 += b0 * b0;
+        sum2_1 += b1 * b1;
+        dsum2 += (b1 - b0) * (b1 - b0);
+    }
+    const double sd = w * b * sqrt((double)SIM_ADXRS450_FLICKER_N);
+    CHECK_NEAR(sqrt(sum2_0 / 400.0) / sd, 1.0, 0.12);
+    CHECK_NEAR(sqrt(sum2_1 / 400.0) / sd, 1.0, 0.12);
+    /* over 1000 s: var of the change = 2*(W*B)^2 * sum(1 - exp(-1000/T)) */
+    const double *tau = sim_adxrs450_flicker_taus();
+    double want = 0.0;
+    for (int k = 0; k < SIM_ADXRS450_FLICKER_N; k++) {
+        want += 2.0 * (w * b) * (w * b) * (1.0 - exp(-1000.0 / tau[k]));
+    }
+    CHECK_NEAR(sqrt(dsum2 / 400.0) / sqrt(want), 1.0, 0.12);
+
+    /* the default chip carries the data sheet's B; B = 0 takes the part out, at once */
+    sim_adxrs450_t *c = &m[0];
+    CHECK_NEAR(sim_adxrs450_get_truth(c)->bias_instability_rad_s, b, 1e-15);
+    double before = sim_adxrs450_true_bias_rad_s(c);
+    double part = sim_adxrs450_flicker_bias_rad_s(c);
+    CHECK(part != 0.0);
+    sim_adxrs450_truth_t t = *sim_adxrs450_get_truth(c);
+    t.bias_instability_rad_s = 0.0;
+    sim_adxrs450_set_truth(c, &t);
+    CHECK_NEAR(sim_adxrs450_true_bias_rad_s(c), before - part, 1e-15);
+    CHECK_NEAR(sim_adxrs450_flicker_bias_rad_s(c), 0.0, 1e-15);
+
+    /* same seed, same drift: deterministic per seed, different per seed */
+    sim_adxrs450_t a1, a2, a3;
+    sim_adxrs450_init(&a1, 77u, 1);
+    sim_adxrs450_init(&a2, 77u, 1);
+    sim_adxrs450_init(&a3, 78u, 1);
+    for (int s = 1; s <= 500; s++) {
+        sim_adxrs450_advance(&a1, (uint64_t)s * 7000u, &wd);
+        sim_adxrs450_advance(&a2, (uint64_t)s * 7000u, &wd);
+        sim_adxrs450_advance(&a3, (uint64_t)s * 7000u, &wd);
+    }
+    CHECK(sim_adxrs450_true_bias_rad_s(&a1) == sim_adxrs450_true_bias_rad_s(&a2));
+    CHECK(sim_adxrs450_true_bias_rad_s(&a1) != sim_adxrs450_true_bias_rad_s(&a3));
 }
 
 static void test_tempco(void)
@@ -991,6 +1055,7 @@ int main(void)
     RUN(test_temperature);
     RUN(test_white_noise);
     RUN(test_bias_random_walk);
+    RUN(test_bias_instability_bank);
     RUN(test_tempco);
     RUN(test_curve_and_hysteresis);
     RUN(test_random_truth);

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench import units as U
 from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
 from imubench.device.sim import VirtualBench
@@ -241,7 +242,7 @@ def test_whole_calibration_session_on_the_image(target, tmp_path):
     100 Hz, with short holds (the figures are not the point, the path is): capture, fit, write-back with bit-exact read-back, save through the image's
     flash driver, reboot, read-back from flash, and the device's own calibrated output."""
     with VirtualBench(speed=0, seed=31, truth="random", target=target) as vb:
-        vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)
+        vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         cfg = SessionConfig(method="multi", gyro="turntable", rate_hz=100, rest_s=0.5, settle_s=0.1, hold_s=0.25,
                             turntable_s=0.8, turntable_rates_dps=(90.0,))
         with _connect(vb, timeout=10.0) as dev:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench import units as U
 from imubench.cli import main as imubench
 from imubench.device.arm.bootloader import ACK, NACK, FlashFile, RomBootloader
@@ -241,7 +242,7 @@ def test_stm32flash_writes_starts_and_a_reflash_keeps_the_calibration(name, tmp_
 
     with VirtualBench(speed=0, seed=41, truth="random", target=name, flash=flash, elf=elfs) as vb:
         assert f'"elf": "{prev_elf}"' in Path(vb.log_path).read_text() or vb.info["elf"]
-        vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)
+        vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         cfg = SessionConfig(method="multi", gyro="turntable", rate_hz=100, rest_s=0.5, settle_s=0.1, hold_s=0.25,
                             turntable_s=0.8, turntable_rates_dps=(90.0,))
         with Device.open(vb.port_url, timeout=10.0) as dev:
@@ -264,7 +265,7 @@ def test_stm32flash_writes_starts_and_a_reflash_keeps_the_calibration(name, tmp_
     assert flash.read_bytes() == params_before                   # not one byte of the slots changed
 
     with VirtualBench(speed=0, seed=41, truth="random", target=name, flash=flash, elf=elfs) as vb:
-        vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)
+        vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         with Device.open(vb.port_url, timeout=10.0) as dev:
             info = dev.info()
             assert info.fw_build == image_tag(image_bytes(cur_elf))["build"]

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from scipy.optimize import curve_fit
 
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench import units as U
 from imubench.device.sim import SimError, VirtualBench, build_sim
 from imubench.device.sim_thermal import truth_bias
@@ -185,7 +186,7 @@ def test_each_register_lags_with_its_own_tau_after_a_step(bench):
 ACC_TRUTH = {"bias_tc": [2e-3, -1.5e-3, 0.0], "bias_tc2": [4e-5, -3e-5, 0.0], "bias_tc3": [1e-6, 0.0, 0.0],
              "hysteresis": [3e-3, -2e-3, 0.0], "hysteresis_width_c": 2.0, "rw_k": 0.0}
 GYR_TRUTH = [{"bias_tempco_rad_s_per_c": c1 * DEG, "bias_tc2": c2 * DEG, "bias_tc3": c3 * DEG,
-              "hysteresis": h * DEG, "hysteresis_width_c": 2.0, "bias_rw_k": 0.0}
+              "hysteresis": h * DEG, "hysteresis_width_c": 2.0, **GYRO_NO_DRIFT}
              for c1, c2, c3, h in ((0.01, 2e-4, 3e-6, 0.05), (-0.008, -1e-4, 0.0, -0.04), (0.005, 0.0, -2e-6, 0.03))]
 
 

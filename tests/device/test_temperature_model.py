@@ -11,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench import units as U
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
@@ -48,7 +49,7 @@ def test_calibrated_stream_applies_the_clamped_cubic_like_the_host(target):
     p = _cubic_params()
     with VirtualBench(speed=0, seed=8, target=target) as vb, Device.open(vb.port_url, timeout=10.0) as dev:
         vb.set_truth(accel={"noise_n": 0.0, "rw_k": 0.0},
-                     gyro=[{"noise_n": 0.0, "bias_rw_k": 0.0, "bias_rad_s": 0.01 * (k + 1)} for k in range(3)])
+                     gyro=[{"noise_n": 0.0, **GYRO_NO_DRIFT, "bias_rad_s": 0.01 * (k + 1)} for k in range(3)])
         g = np.array([0.3, -0.5, 0.81])
         vb.set_orientation(gravity=list(g))
         vb.set_rate(list(25.0 * g / np.linalg.norm(g)))       # turning about the vertical: gravity stays put

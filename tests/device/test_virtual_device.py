@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 import pytest
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench import units as U
 from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
 from imubench.device.sim import VirtualBench
@@ -457,7 +458,7 @@ def test_calibrated_output_equals_the_host_correction(vb, dev):
     """Noise-free parts, a tilted board turning at a constant rate: every raw sample is the
     same, so the device's calibrated output can be compared with the host's correction."""
     vb.set_truth(accel={"noise_n": 0.0, "rw_k": 0.0},
-                 gyro=[{"noise_n": 0.0, "bias_rw_k": 0.0, "bias_rad_s": 0.01 * (k + 1)} for k in range(3)])
+                 gyro=[{"noise_n": 0.0, **GYRO_NO_DRIFT, "bias_rad_s": 0.01 * (k + 1)} for k in range(3)])
     g = np.array([0.3, -0.5, 0.81])
     vb.set_orientation(gravity=list(g))
     vb.set_rate(list(25.0 * g / np.linalg.norm(g)))   # turning about the vertical: gravity stays put

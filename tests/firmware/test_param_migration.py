@@ -14,6 +14,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
 from imubench.wire import params as PR
@@ -129,7 +130,7 @@ def _gsens_session(tmp_path, target: str):
     from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for
     from imubench.wire.protocol_gen import ParamsWhich as W
     with VirtualBench(speed=20 if target == "host" else 0, seed=31, truth="random", target=target) as vb:
-        vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)
+        vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         with Device.open(vb.port_url, timeout=5.0) as dev:
             method = "multi" if host else "six"
             s = Session(dev, tmp_path / "s", SessionConfig(method=method, gyro="bias", write=True,

@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench.analysis import closure as ACL
 from imubench.analysis import strapdown as SD
 from imubench.cli import main as imubench
@@ -226,7 +227,7 @@ def calibrated_run(tmp_path_factory):
     closure check on the box path."""
     out = tmp_path_factory.mktemp("closure")
     with VirtualBench(speed=20, seed=31, truth="random") as vb:
-        vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)
+        vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         with vb.device(timeout=5.0) as dev:
             params = CL.calibrate_virtual(vb, dev, out / "session", seed=31, say=lambda s: None)
             truth = vb.get_truth()
@@ -311,7 +312,7 @@ def test_truth_is_drawn_in_the_navigation_frame(tmp_path):
     last verification attitude): the driven path must be drawn in the integration's frame,
     where the measured track lies on it, not in the simulator's world frame."""
     with VirtualBench(speed=20, seed=8) as vb:       # ideal parts: nominal scaling is the truth
-        vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)
+        vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         vb.set_orientation(roll_deg=15, pitch_deg=-60, yaw_deg=130)
         with vb.device(timeout=5.0) as dev:
             said = []

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench.cli import main as imubench
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
@@ -29,7 +30,7 @@ def _benches(n: int, seed0: int, speed: float = 20) -> list[VirtualBench]:
     try:
         for k in range(n):
             vb = VirtualBench(speed=speed, seed=seed0 + k, truth="random")
-            vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)      # a fixed truth
+            vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)      # a fixed truth
             out.append(vb)
     except BaseException:
         for vb in out:

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 from scipy import stats
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
 from imubench.procedures.session import (
@@ -27,7 +28,7 @@ NO_DRIFT = {"rw_k": 0.0}                    # a fixed truth: the bias does not w
 def _bench(seed: int, drift: bool = False) -> VirtualBench:
     vb = VirtualBench(speed=20, seed=seed, truth="random")
     if not drift:
-        vb.set_truth(accel=NO_DRIFT, gyro=[{"bias_rw_k": 0.0}] * 3)
+        vb.set_truth(accel=NO_DRIFT, gyro=[GYRO_NO_DRIFT] * 3)
     return vb
 
 
@@ -200,7 +201,7 @@ def test_session_accuracy_over_random_truths(tmp_path):
     with VirtualBench(speed=20, seed=100, truth="random") as vb:
         for k in range(16):
             vb.randomize_truth(seed=1000 + k)
-            vb.set_truth(accel=NO_DRIFT, gyro=[{"bias_rw_k": 0.0}] * 3)
+            vb.set_truth(accel=NO_DRIFT, gyro=[GYRO_NO_DRIFT] * 3)
             _, result = _run(vb, tmp_path, write=False, name=f"acc{k}", hold=1.0)
             zs.append(_z_scores(result, vb.get_truth()))
     z = np.concatenate(zs)

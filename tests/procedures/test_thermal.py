@@ -9,6 +9,7 @@ import json
 
 import numpy as np
 import pytest
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench import units as U
 from imubench.analysis import thermal as ATH
 from imubench.cli import main as imubench
@@ -75,7 +76,7 @@ def test_apply_tempcos_validates():
 def test_sweep_on_virtual_device_cuts_drift_10x():
     with VirtualBench(speed=20, seed=4) as vb, vb.device() as dev:
         vb.set_truth(accel={"bias_tc": ACC_BTC.tolist(), "scale_tc": ACC_STC.tolist(), "rw_k": [0.0] * 3},
-                     gyro=[{"bias_tempco_rad_s_per_c": float(b), "scale_tempco_per_c": float(s), "bias_rw_k": 0.0}
+                     gyro=[{"bias_tempco_rad_s_per_c": float(b), "scale_tempco_per_c": float(s), **GYRO_NO_DRIFT}
                            for b, s in zip(GYR_BTC, GYR_STC)])
         dev.set_params(PR.identity())
         hooks = TH.sim_hooks(vb)

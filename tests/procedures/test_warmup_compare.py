@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench import units as U
 from imubench.analysis.thermal import apply_tempcos, fit_sweep
 from imubench.device.sim import VirtualBench
@@ -40,7 +41,7 @@ DRIFT = DriftSweep(ramp_c_per_min=4.0, rate_hz=50, bin_c=4.0, min_chunks=10)
 def _bench() -> VirtualBench:
     vb = VirtualBench(speed=SPEED, seed=PART_SEED, truth="random")
     vb.set_thermal(enabled=True, tau_s=TAU_S, self_heat_c=SELF_HEAT_C)
-    vb.set_truth(accel={"rw_k": [0.0] * 3}, gyro=[{"bias_rw_k": 0.0}] * 3)
+    vb.set_truth(accel={"rw_k": [0.0] * 3}, gyro=[GYRO_NO_DRIFT] * 3)
     return vb
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench.cli import main as imubench
 from imubench.device.link import Device
 from imubench.device.sim import VirtualBench
@@ -25,7 +26,7 @@ NOTE = 'bench A <script>alert("x")</script> & co'
 def session_dir(tmp_path_factory):
     d = tmp_path_factory.mktemp("sess") / "s"
     with VirtualBench(speed=20, seed=5, truth="random") as vb:
-        vb.set_truth(accel={"rw_k": 0.0}, gyro=[{"bias_rw_k": 0.0}] * 3)
+        vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         with Device.open(vb.port_url, timeout=5.0) as dev:
             cfg = SessionConfig(method="six", gyro="bias", write=False, hold_s=1.0, rest_s=2.0, note=NOTE)
             Session(dev, d, cfg, SimPresenter(vb, quiet=True)).run(plan_for("six"))

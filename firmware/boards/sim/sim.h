@@ -235,7 +235,10 @@ void sim_advance_to(uint64_t t_us);   /* move device time forward (never back) *
 void sim_models_sync(void);           /* advance every model to the current device time */
 void sim_model_advance(int cs);       /* advance one model (chip select) to now */
 void sim_model_world(int cs, sim_world_t *w); /* world for advancing model cs to now */
-void sim_seed_models(uint64_t seed, int random_truth);
+/* Seed the models; target names the board's identity (sim_identity_seed in sim_board.c):
+ * "host" (or NULL) for the host build, "f103" / "f4" for the ARM images. */
+void sim_seed_models(uint64_t seed, int random_truth, const char *target);
+uint64_t sim_identity_seed(uint64_t seed, const char *target);
 void sim_randomize_truth(uint64_t seed);
 void sim_spin_reset(void);
 int sim_spi_exchange(uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len);

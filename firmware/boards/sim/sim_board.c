@@ -126,7 +126,23 @@ void sim_randomize_truth(uint64_t seed)
     sim_thermal_random(&g_sim.thermal, &r);
 }
 
-void sim_seed_models(uint64_t seed, int random_truth)
+/* The seed a board's identity (MCU UID, gyro serial numbers) is derived from: the seed
+ * itself on the host build, the seed XOR a 64-bit FNV-1a hash of the target's name on the
+ * ARM targets, so an F103 and an F4 (and the host build) of the same seed are different
+ * boards, each the same board on every run. */
+uint64_t sim_identity_seed(uint64_t seed, const char *target)
+{
+    if (target == NULL || target[0] == '\0' || strcmp(target, "host") == 0) {
+        return seed;
+    }
+    uint64_t h = 0xCBF29CE484222325ull;
+    for (const char *c = target; *c; c++) {
+        h = (h ^ (uint8_t)*c) * 0x100000001B3ull;
+    }
+    return seed ^ h;
+}
+
+void sim_seed_models(uint64_t seed, int random_truth, const char *target)
 {
     adxl355_model_init(&g_sim.accel, derive(seed, 1));
     for (int i = 0; i < 3; i++) {
@@ -139,7 +155,18 @@ void sim_seed_models(uint64_t seed, int random_truth)
     }
     sim_rng_seed(&g_sim.spi_fault_rng, derive(seed, 10));
     sim_rng_seed(&g_sim.link.fault_rng, derive(seed, 11));
-    uint64_t u0 = derive(seed, 200), u1 = derive(seed, 201);
+    /* identity: the UID and the gyros' serial numbers of (target, seed); on the host build
+     * the serials are the ones the gyros' own seeds gave them (as before targets counted) */
+    uint64_t id = sim_identity_seed(seed, target);
+    if (id != seed) {
+        for (int i = 0; i < 3; i++) {
+            sim_rng_t r;
+            sim_rng_seed(&r, derive(id, 2 + (uint64_t)i));
+            uint32_t sn = (uint32_t)(sim_rng_u64(&r) >> 32);
+            g_sim.gyro[i].serial = sn != 0u ? sn : 1u;
+        }
+    }
+    uint64_t u0 = derive(id, 200), u1 = derive(id, 201);
     for (int i = 0; i < 8; i++) {
         g_sim.uid[i] = (uint8_t)(u0 >> (8 * i));
     }

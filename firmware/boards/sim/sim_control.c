@@ -39,7 +39,7 @@
  *   set_truth         {accel: {m: 3x3 | 9, bias_mps2, noise_n, rw_k, bias_tc, scale_tc,
  *                      bias_tc2, bias_tc3, hysteresis, hysteresis_width_c, st_force_g},
  *                      gyro: [{sens: [3], bias_rad_s, noise_n, bias_rw_k,
- *                      bias_tempco_rad_s_per_c, scale_tempco_per_c, gsens_rad_s_per_mps2,
+ *                      bias_instability_rad_s, bias_tempco_rad_s_per_c, scale_tempco_per_c, gsens_rad_s_per_mps2,
  *                      bias_tc2, bias_tc3, hysteresis, hysteresis_width_c} | null, x3] or
  *                      {x: {...}, y: ..., z: ...}}  partial updates; accel vectors may be
  *                      given as one number for all three axes. The temperature terms are
@@ -873,8 +873,9 @@ static int parse_gyro_truth(req_t *q, int n, sim_adxrs450_truth_t *t, const char
     if (d->nodes[n].type != SJ_OBJ) {
         return fail("%s must be an object or null", who);
     }
-    if (check_keys(q, n, "sens,bias_rad_s,noise_n,bias_rw_k,bias_tempco_rad_s_per_c,scale_tempco_per_c,"
-                         "gsens_rad_s_per_mps2,bias_tc2,bias_tc3,hysteresis,hysteresis_width_c") != 0) {
+    if (check_keys(q, n, "sens,bias_rad_s,noise_n,bias_rw_k,bias_instability_rad_s,bias_tempco_rad_s_per_c,"
+                         "scale_tempco_per_c,gsens_rad_s_per_mps2,bias_tc2,bias_tc3,hysteresis,"
+                         "hysteresis_width_c") != 0) {
         return -1;
     }
     int k;
@@ -887,17 +888,17 @@ static int parse_gyro_truth(req_t *q, int n, sim_adxrs450_truth_t *t, const char
     }
     static const char *names[] = {"bias_rad_s", "noise_n", "bias_rw_k", "bias_tempco_rad_s_per_c",
                                   "scale_tempco_per_c", "bias_tc2", "bias_tc3", "hysteresis",
-                                  "hysteresis_width_c"};
+                                  "hysteresis_width_c", "bias_instability_rad_s"};
     double *dst[] = {&t->bias_rad_s, &t->noise_n, &t->bias_rw_k, &t->bias_tempco_rad_s_per_c,
                      &t->scale_tempco_per_c, &t->bias_tc2, &t->bias_tc3, &t->hysteresis,
-                     &t->hysteresis_width_c};
-    for (int i = 0; i < 9; i++) {
+                     &t->hysteresis_width_c, &t->bias_instability_rad_s};
+    for (int i = 0; i < 10; i++) {
         if ((k = sj_get(d, n, names[i])) >= 0 && node_num(d, k, names[i], dst[i]) != 0) {
             return -1;
         }
     }
-    if (t->noise_n < 0.0 || t->bias_rw_k < 0.0) {
-        return fail("gyro noise_n and bias_rw_k must be >= 0");
+    if (t->noise_n < 0.0 || t->bias_rw_k < 0.0 || t->bias_instability_rad_s < 0.0) {
+        return fail("gyro noise_n, bias_rw_k and bias_instability_rad_s must be >= 0");
     }
     if (!(t->hysteresis_width_c >= 0.0 && t->hysteresis_width_c <= 50.0)) {
         return fail("gyro hysteresis_width_c must be in 0 .. 50 degC");
@@ -1043,6 +1044,7 @@ static int cmd_get_truth(req_t *q)
         put_num(r, "bias_rad_s", t->bias_rad_s);
         put_num(r, "noise_n", t->noise_n);
         put_num(r, "bias_rw_k", t->bias_rw_k);
+        put_num(r, "bias_instability_rad_s", t->bias_instability_rad_s);
         put_num(r, "bias_tempco_rad_s_per_c", t->bias_tempco_rad_s_per_c);
         put_num(r, "scale_tempco_per_c", t->scale_tempco_per_c);
         put_vec(r, "gsens_rad_s_per_mps2", t->gsens_rad_s_per_mps2, 3);
@@ -1054,6 +1056,7 @@ static int cmd_get_truth(req_t *q)
         put_num(r, "die_temperature_c", die[1 + i]);
         put_num(r, "true_bias_rad_s", sim_adxrs450_true_bias_rad_s(m));
         put_num(r, "rw_bias_rad_s", m->bias_rw_rad_s);
+        put_num(r, "bi_bias_rad_s", sim_adxrs450_flicker_bias_rad_s(m));
         put_u64(r, "serial", m->serial);
         put_bool(r, "missing", m->missing);
         put_u64(r, "persistent_faults", m->fault_persistent);

@@ -76,6 +76,14 @@ static int g_want_pty;
 void simlib_set_pty(int on) { g_want_pty = on; }
 const char *simlib_pty_name(void) { return g_sim.link.pty_master >= 0 ? g_sim.link.pty_name : ""; }
 
+/* The target whose board the seed names (its UID and gyro serials, sim_identity_seed):
+ * set before simlib_open; "" or "host" gives the host build's board. */
+static char g_identity_target[16];
+void simlib_set_identity_target(const char *name)
+{
+    snprintf(g_identity_target, sizeof g_identity_target, "%s", name != NULL ? name : "");
+}
+
 int simlib_open(uint64_t seed, int truth_random, const uint8_t *uid, int tcp_port, int control_port,
                 double speed)
 {
@@ -95,7 +103,7 @@ int simlib_open(uint64_t seed, int truth_random, const uint8_t *uid, int tcp_por
     if (sim_control_open(control_port) != 0) {
         return -1;
     }
-    sim_seed_models(seed, truth_random);
+    sim_seed_models(seed, truth_random, g_identity_target);
     if (uid != NULL) {
         memcpy(s->uid, uid, sizeof s->uid);
     }

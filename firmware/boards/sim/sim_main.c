@@ -615,7 +615,7 @@ int main(int argc, char **argv)
     if (sim_control_open(control_port) != 0) {
         goto out;
     }
-    sim_seed_models(seed, s->truth_random);
+    sim_seed_models(seed, s->truth_random, "host");
     if (have_uid) {
         memcpy(s->uid, uid, sizeof uid);
     }

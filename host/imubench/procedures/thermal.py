@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from imubench.device.sim_gyro import NO_DRIFT as GYRO_NO_DRIFT
 from imubench import units as U
 from imubench.analysis.thermal import AXES, POSES, TempPoint, apply_tempcos, fit_sweep
 from imubench.errors import ImubenchError
@@ -400,5 +401,5 @@ def run_thermal(dev, out_dir, temps: Sequence[float | None], hooks: Hooks, *, n:
 
 # truth of the virtual device with --sim (within the device's limits)
 SIM_ACCEL_TRUTH = {"bias_tc": [2e-3, -1.5e-3, 1e-3], "scale_tc": [0.0, 0.0, 2e-4], "rw_k": [0.0] * 3}
-SIM_GYRO_TRUTH = [{"bias_tempco_rad_s_per_c": v * U.DEG, "scale_tempco_per_c": s, "bias_rw_k": 0.0}
+SIM_GYRO_TRUTH = [{"bias_tempco_rad_s_per_c": v * U.DEG, "scale_tempco_per_c": s, **GYRO_NO_DRIFT}
                   for v, s in ((0.01, 1e-4), (-0.008, -5e-5), (0.006, 0.0))]

@@ -99,8 +99,9 @@ sim_adxrs450_truth_t sim_adxrs450_default_truth(int axis)
     if (axis >= 0 && axis < 3) {
         t.sens[axis] = 1.0;
     }
-    t.noise_n = 0.015 * DEG2RAD;
-    t.bias_rw_k = 0.001 * DEG2RAD;
+    t.noise_n = SIM_ADXRS450_NOISE_DPS_RTHZ * DEG2RAD;
+    t.bias_instability_rad_s = SIM_ADXRS450_BIAS_INSTABILITY_DPH / 3600.0 * DEG2RAD;
+    t.bias_rw_k = SIM_ADXRS450_RATE_RW_DPS_RTS * DEG2RAD;
     return t;
 }
 
@@ -177,11 +178,46 @@ const sim_adxrs450_truth_t *sim_adxrs450_get_truth(const sim_adxrs450_t *m)
 
 /* ---- physics ---- */
 
+/* The bias-instability bank: first-order Gauss-Markov processes, one per decade of
+ * correlation time, each of standard deviation FLICKER_WEIGHT * B (see the header). */
+static const double flicker_tau_s[SIM_ADXRS450_FLICKER_N] = {2.0, 20.0, 200.0, 2000.0, 20000.0};
+
+const double *sim_adxrs450_flicker_taus(void) { return flicker_tau_s; }
+
+double sim_adxrs450_flicker_weight(void) { return SIM_ADXRS450_FLICKER_WEIGHT; }
+
+int sim_adxrs450_flicker_n(void) { return SIM_ADXRS450_FLICKER_N; }
+
+double sim_adxrs450_flicker_bias_rad_s(const sim_adxrs450_t *m)
+{
+    double z = 0.0;
+    for (int i = 0; i < SIM_ADXRS450_FLICKER_N; i++) {
+        z += m->flicker[i];
+    }
+    return m->truth.bias_instability_rad_s * SIM_ADXRS450_FLICKER_WEIGHT * z;
+}
+
+/* Move the slow bias terms (bank and rate random walk) over dt seconds: exact for any dt
+ * (x <- a*x + sqrt(1 - a^2)*n for each unit-variance process, a = exp(-dt/T)). */
+static void drift_step(sim_adxrs450_t *m, double dt)
+{
+    if (m->truth.bias_instability_rad_s > 0.0) {
+        for (int i = 0; i < SIM_ADXRS450_FLICKER_N; i++) {
+            double a = exp(-dt / flicker_tau_s[i]);
+            m->flicker[i] = a * m->flicker[i] + sqrt(1.0 - a * a) * sim_rng_gauss(&m->drift_rng);
+        }
+    }
+    if (m->truth.bias_rw_k > 0.0) {
+        m->bias_rw_rad_s += m->truth.bias_rw_k * sqrt(dt) * sim_rng_gauss(&m->drift_rng);
+    }
+}
+
 double sim_adxrs450_true_bias_rad_s(const sim_adxrs450_t *m)
 {
     const sim_adxrs450_truth_t *t = &m->truth;
     double dt_c = m->world.temperature_c - SIM_ADXRS450_T_REF_C;
-    double b = t->bias_rad_s + t->bias_tempco_rad_s_per_c * dt_c + m->bias_rw_rad_s;
+    double b = t->bias_rad_s + t->bias_tempco_rad_s_per_c * dt_c + m->bias_rw_rad_s +
+               sim_adxrs450_flicker_bias_rad_s(m);
     /* curved part and hysteresis (0 for a part without them: b unchanged) */
     return b + (dt_c * dt_c * (t->bias_tc2 + t->bias_tc3 * dt_c) + t->hysteresis * m->hyst_h);
 }
@@ -210,11 +246,14 @@ void sim_adxrs450_advance(sim_adxrs450_t *m, uint64_t t_us, const sim_world_t *w
         return;
     }
     double dt = (double)(t_us - m->t_us) * 1e-6;
-    if (m->truth.bias_rw_k > 0.0) {
-        m->bias_rw_rad_s += m->truth.bias_rw_k * sqrt(dt) * sim_rng_gauss(&m->rng);
-    }
     m->rate_integral_rad += sim_adxrs450_true_rate_rad_s(m) * dt;
     m->t_us = t_us;
+    /* the slow terms move in steps of at least SIM_ADXRS450_DRIFT_STEP_US (the bias is
+     * constant in between): cheap at kHz advance rates, exact at the step instants */
+    if (t_us - m->drift_t_us >= SIM_ADXRS450_DRIFT_STEP_US) {
+        drift_step(m, (double)(t_us - m->drift_t_us) * 1e-6);
+        m->drift_t_us = t_us;
+    }
 }
 
 static int16_t to_counts(double rate_rad_s)
@@ -484,8 +523,47 @@ void sim_adxrs450_init(sim_adxrs450_t *m, uint64_t seed, int axis)
     if (m->serial == 0u) {
         m->serial = 1u;
     }
+    /* the slow bias terms draw from an rng of their own (the white noise's sequence does not
+     * depend on them); the bank starts in its stationary state, as in a part already running */
+    sim_rng_seed(&m->drift_rng, seed ^ 0x44524946544Bull);
+    for (int i = 0; i < SIM_ADXRS450_FLICKER_N; i++) {
+        m->flicker[i] = sim_rng_gauss(&m->drift_rng);
+    }
     m->pid = SIM_ADXRS450_PID;
     m->startup_us = SIM_ADXRS450_STARTUP_US;
     m->world.temperature_c = SIM_ADXRS450_T_REF_C;
     sim_adxrs450_power_cycle(m);
+}
+
+/* ---- a chip alone, for noise tests and benches ---- */
+
+int sim_adxrs450_record(uint64_t seed, int axis, int random_truth, double rate_hz, size_t n,
+                        int16_t *counts)
+{
+    if (!(rate_hz > 0.0) || rate_hz > 1e4 || counts == NULL) {
+        return -1;
+    }
+    static sim_adxrs450_t m; /* large-ish; one recording at a time */
+    sim_adxrs450_init(&m, seed, axis);
+    if (random_truth) {
+        sim_rng_t r;
+        sim_rng_seed(&r, seed ^ 0x5245434F5244ull);
+        sim_adxrs450_truth_t t;
+        sim_adxrs450_random_truth(&t, &r, axis);
+        sim_adxrs450_set_truth(&m, &t);
+    }
+    m.startup_us = 0;
+    sim_world_t w = m.world; /* at rest, 25 degC */
+    const uint8_t cmd[4] = {0x20, 0x00, 0x00, 0x00}; /* sensor data, SQ 0, odd parity */
+    uint8_t rx[4];
+    for (size_t i = 0; i <= n; i++) {
+        sim_adxrs450_advance(&m, (uint64_t)((double)(i + 1) * 1e6 / rate_hz + 0.5), &w);
+        sim_adxrs450_spi(&m, cmd, rx, 4);
+        if (i > 0) { /* the reply to the previous frame's command: the sample it latched */
+            uint32_t word = ((uint32_t)rx[0] << 24) | ((uint32_t)rx[1] << 16) |
+                            ((uint32_t)rx[2] << 8) | (uint32_t)rx[3];
+            counts[i - 1] = (int16_t)(uint16_t)(word >> 10);
+        }
+    }
+    return 0;
 }

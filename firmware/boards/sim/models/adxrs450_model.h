@@ -15,13 +15,23 @@
  * ---- Physics (all in rad/s; T = world temperature in degC = this chip's die temperature;
  *      reference T_REF = 25 degC, dT = T - 25) --
  *   chip rate r(t) = (1 + scale_tempco*dT) * (sens . omega_board)
- *                    + bias_rad_s + bias_tempco*dT + b_rw(t) + gsens . f_board
+ *                    + bias_rad_s + bias_tempco*dT + b_rw(t) + b_bi(t) + gsens . f_board
  *                    + bias_tc2*dT^2 + bias_tc3*dT^3 + hysteresis*h
  *   h: thermal hysteresis branch in [-1, 1], a play operator of dead band hysteresis_width_c
  *      on T (as the ADXL355 model: +1 on the warming branch, -1 on the cooling branch, 0 at
  *      the start), updated whenever the world changes; the branches are 2*hysteresis apart.
- *   b_rw: bias random walk, b_rw += K*sqrt(dt)*n at every advance() step of length dt
+ *   b_rw: rate random walk, b_rw += K*sqrt(dt)*n over each drift step of length dt
  *         (so ADEV = K*sqrt(tau/3) whatever the step size; docs/conventions.md).
+ *   b_bi: bias instability (flicker), B * FLICKER_WEIGHT * sum of SIM_ADXRS450_FLICKER_N
+ *         unit-variance first-order Gauss-Markov processes with correlation times 2, 20,
+ *         200, 2000, 20000 s (one per decade, the usual sum-of-Gauss-Markov stand-in for
+ *         1/f noise). FLICKER_WEIGHT = 0.8603 puts the bank's own Allan deviation at
+ *         0.664*B (IEEE Std 952-1997: the flicker floor of a bias instability B) within
+ *         +-2 % over tau = 20 .. 5000 s and +-4 % over 10 .. 10^4 s; below 10 s it falls
+ *         under the white noise, above 2*10^4 s it falls as 1/sqrt(tau) and the rate random
+ *         walk takes over. The bank starts in its stationary state.
+ *   b_rw and b_bi draw from an rng of their own and move in steps of at least
+ *   SIM_ADXRS450_DRIFT_STEP_US (10 ms; each step exact for its length), constant between.
  *   Sampling (integrate and dump): a sample latched at time t is the mean of r over the
  *   interval since the previous latch, plus white noise of sigma N/sqrt(dt), so a stream
  *   read at rate fs has per-sample sigma N*sqrt(fs) and ADEV = N/sqrt(tau) whatever fs.
@@ -100,6 +110,19 @@
 #define SIM_ADXRS450_T_REF_C 25.0           /* reference temperature of the tempcos */
 #define SIM_ADXRS450_LSB_PER_DPS 80.0
 
+/* The default chip's noise (docs/simulator.md, "Gyro noise"): white rate noise density
+ * 0.015 deg/s/sqrt(Hz) and in-run bias stability 25 deg/h (Analog Devices, ADXRS450 data
+ * sheet, Rev. C: specifications and front page), read as IEEE Std 952-1997's bias
+ * instability B (Allan floor 0.664*B = 16.6 deg/h, the read-off of docs/noise.md); a rate
+ * random walk the data sheet does not give, 8e-5 deg/s*sqrt(Hz) (engineering estimate:
+ * it meets the floor at tau = 10^4 s, so the curve rises with slope +1/2 after that). */
+#define SIM_ADXRS450_NOISE_DPS_RTHZ 0.015
+#define SIM_ADXRS450_BIAS_INSTABILITY_DPH 25.0
+#define SIM_ADXRS450_RATE_RW_DPS_RTS 8.0e-5
+#define SIM_ADXRS450_FLICKER_N 5
+#define SIM_ADXRS450_FLICKER_WEIGHT 0.8603 /* each process's sigma / B */
+#define SIM_ADXRS450_DRIFT_STEP_US 10000u
+
 /* FAULT register bits (same values as the driver's IB_ADXRS450_FAULT_*) */
 #define SIM_ADXRS450_FAULT_FAIL 0x0800u
 #define SIM_ADXRS450_FAULT_AMP 0x0400u
@@ -124,7 +147,8 @@ typedef struct sim_adxrs450_truth {
     double sens[3];           /* chip rate = sens . omega_board (+ bias); ideal: unit row */
     double bias_rad_s;        /* null offset at 25 degC */
     double noise_n;           /* white noise, Allan coefficient N, rad/s/sqrt(Hz) */
-    double bias_rw_k;         /* bias random walk K, rad/s*sqrt(Hz) */
+    double bias_rw_k;         /* rate random walk K, rad/s*sqrt(Hz) (ADEV = K*sqrt(tau/3)) */
+    double bias_instability_rad_s; /* bias instability B, rad/s (flicker floor 0.664*B) */
     double bias_tempco_rad_s_per_c; /* bias change per degC away from 25 degC */
     double scale_tempco_per_c;      /* relative scale change per degC away from 25 degC */
     double gsens_rad_s_per_mps2[3]; /* g-sensitivity: the chip reads gsens . f more (f the board's
@@ -146,6 +170,9 @@ typedef struct sim_adxrs450 {
     double hyst_h;                /* hysteresis branch, -1 .. 1 */
     uint8_t hyst_started;
     double bias_rw_rad_s;         /* accumulated random-walk part of the bias */
+    double flicker[SIM_ADXRS450_FLICKER_N]; /* bias-instability bank, unit variance each */
+    uint64_t drift_t_us;          /* time the slow terms were last moved to */
+    sim_rng_t drift_rng;          /* their rng (seeded from the chip's seed) */
     double rate_integral_rad;     /* integral of the noise-free chip rate since last latch */
     uint64_t last_latch_us;
     int16_t last_counts;          /* last latched sample */
@@ -173,10 +200,12 @@ typedef struct sim_adxrs450 {
     uint32_t last_cmd;
 } sim_adxrs450_t;
 
-/* The ideal chip for `axis` (0/1/2): unit sensitivity row, zero bias, zero tempcos,
- * N = 0.015 deg/s/sqrt(Hz) ([U] datasheet figure) = 2.618e-4 rad/s/sqrt(Hz), and
- * K = 0.001 deg/s*sqrt(Hz) = 1.745e-5 rad/s*sqrt(Hz); with that N the Allan minimum is
- * about 2*sqrt(N*K/sqrt(3)) = 21 deg/h, close to the datasheet's 25 deg/h bias stability.
+/* The ideal chip for `axis` (0/1/2): unit sensitivity row, zero bias, zero tempcos, and
+ * the data sheet's noise (above): N = 0.015 deg/s/sqrt(Hz) = 2.618e-4 rad/s/sqrt(Hz),
+ * B = 25 deg/h = 1.212e-4 rad/s, K = 8e-5 deg/s*sqrt(Hz) = 1.396e-6 rad/s*sqrt(Hz).
+ * Allan deviation (all three terms): 55 deg/h at 1 s, 23.4 at 10 s, 17.4 at 100 s, 17.4 at
+ * 1000 s, 23 at 10^4 s; minimum 17.2 deg/h near 175 s, so the read-off min/0.664 gives
+ * 25.9 deg/h (white noise and random walk add 3 % to B's floor there).
  * An axis outside 0..2 gives a zero row. */
 sim_adxrs450_truth_t sim_adxrs450_default_truth(int axis);
 
@@ -184,7 +213,7 @@ sim_adxrs450_truth_t sim_adxrs450_default_truth(int axis);
  * [U] datasheet figures are null +-3 deg/s, sensitivity +-3 %):
  *   bias      Gaussian, sigma 0.5 deg/s, clipped to +-3 deg/s
  *   scale     1 + uniform +-3 %            cross-axis terms uniform +-1 % each
- *   N         default * uniform 0.8..1.2   K default
+ *   N         default * uniform 0.8..1.2   K, B default
  *   bias tempco  uniform +-0.01 deg/s/degC scale tempco uniform +-1e-4 /degC
  *   g-sensitivity  Gaussian, sigma 0.03 deg/s/g per component, clipped to +-0.1 (drawn from
  *                  an rng of its own seeded from rng's state, so the other draws and the other
@@ -203,12 +232,13 @@ void sim_adxrs450_random_truth(sim_adxrs450_truth_t *t, sim_rng_t *rng, int axis
  * DNC 0, no faults, startup_us = SIM_ADXRS450_STARTUP_US, the world at rest at 25 degC. */
 void sim_adxrs450_init(sim_adxrs450_t *m, uint64_t seed, int axis);
 
-/* Replace / read the truth. set_truth keeps the accumulated random-walk bias. */
+/* Replace / read the truth. set_truth keeps the accumulated random-walk bias (K = 0 freezes
+ * it) and the bank's state (B = 0 takes the bias-instability part out: b_bi = 0). */
 void sim_adxrs450_set_truth(sim_adxrs450_t *m, const sim_adxrs450_truth_t *t);
 const sim_adxrs450_truth_t *sim_adxrs450_get_truth(const sim_adxrs450_t *m);
 
 /* Move time to t_us (microseconds, the simulator's clock) with `world` holding over
- * (previous time, t_us]: accumulates the bias random walk and the rate integral.
+ * (previous time, t_us]: accumulates the rate integral and moves the slow bias terms.
  * t_us not after the current time only replaces the world. world == NULL keeps it. */
 void sim_adxrs450_advance(sim_adxrs450_t *m, uint64_t t_us, const sim_world_t *world);
 
@@ -219,12 +249,21 @@ void sim_adxrs450_advance(sim_adxrs450_t *m, uint64_t t_us, const sim_world_t *w
 int sim_adxrs450_spi(sim_adxrs450_t *m, const uint8_t *tx, uint8_t *rx, size_t len);
 
 /* Current true bias (constant + temperature terms at the current temperature and hysteresis
- * branch + random walk), rad/s. */
+ * branch + random walk + bias instability), rad/s. */
 double sim_adxrs450_true_bias_rad_s(const sim_adxrs450_t *m);
 
 /* Temperature-dependent part of the bias at temp_c on hysteresis branch h (-1 .. 1), rad/s:
  * bias_tempco*dT + bias_tc2*dT^2 + bias_tc3*dT^3 + hysteresis*h. */
 double sim_adxrs450_truth_thermal_bias(const sim_adxrs450_truth_t *t, double temp_c, double h);
+
+/* The bias-instability part b_bi of the true bias, rad/s. */
+double sim_adxrs450_flicker_bias_rad_s(const sim_adxrs450_t *m);
+
+/* The bank's correlation times, s (SIM_ADXRS450_FLICKER_N of them), and each process's
+ * sigma / B (for the curve the model should give: imubench.device.sim_gyro). */
+const double *sim_adxrs450_flicker_taus(void);
+double sim_adxrs450_flicker_weight(void);
+int sim_adxrs450_flicker_n(void);
 
 /* Current noise-free chip output (the r(t) above), rad/s. */
 double sim_adxrs450_true_rate_rad_s(const sim_adxrs450_t *m);
@@ -250,6 +289,14 @@ void sim_adxrs450_power_cycle(sim_adxrs450_t *m);
 
 /* Override the PID register (to test a wrong part). */
 void sim_adxrs450_set_pid(sim_adxrs450_t *m, uint16_t pid);
+
+/* One chip alone at rest at 25 degC, read the way the firmware reads it (a sensor-data
+ * command per sample at rate_hz, the reply in the next frame): n rate samples in counts
+ * (80 LSB per deg/s), the default truth for `axis`, or with random_truth the truth
+ * sim_adxrs450_random_truth draws from an rng seeded from `seed`. For noise tests without a
+ * virtual session (libimumodels.so; imubench.device.sim_gyro). 0, or -1 for a bad rate. */
+int sim_adxrs450_record(uint64_t seed, int axis, int random_truth, double rate_hz, size_t n,
+                        int16_t *counts);
 
 /* ---- pure encoders (exposed for tests) ---- */
 

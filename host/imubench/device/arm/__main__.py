@@ -160,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         flash = os.path.join(tmpdir, "flash.bin")
 
     lib.simlib_set_pty(1 if a.pty else 0)
+    lib.simlib_set_identity_target(a.target.encode())   # the seed names a board of this target
     tcp = a.tcp if not a.pty or a.tcp else -1     # --pty alone: no TCP endpoint
     if lib.simlib_open(a.seed, 1 if a.truth == "random" else 0, uid, tcp, a.control, a.speed) != 0:
         print("imubench-arm: cannot open the serial endpoint / control channel", file=sys.stderr)

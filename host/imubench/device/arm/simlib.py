@@ -38,6 +38,7 @@ _SIGNATURES = {
     "simlib_open": (c_int, [c_uint64, c_int, c_char_p, c_int, c_int, c_double]),
     "simlib_close": (None, []),
     "simlib_set_pty": (None, [c_int]),
+    "simlib_set_identity_target": (None, [c_char_p]),
     "simlib_pty_name": (c_char_p, []),
     "simlib_set_log": (None, [c_int]),
     "simlib_tcp_port": (c_int, []),

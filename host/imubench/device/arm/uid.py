@@ -1,8 +1,9 @@
 """The 96-bit unique device ID and the flash size register in system memory.
 
 F1: RM0008 30.1-30.2 (F_SIZE at 0x1FFFF7E0, UID at 0x1FFFF7E8); F4: RM0090 39.1-39.2 (UID at
-0x1FFF7A10, F_SIZE at 0x1FFF7A22). The ID is the virtual device's (libimumodels.so derives
-it from the seed, or --uid), so a seed names the same board on every target.
+0x1FFF7A10, F_SIZE at 0x1FFF7A22). The ID is the virtual device's: libimumodels.so derives
+it from the target and the seed (sim_identity_seed in firmware/boards/sim/sim_board.c), or
+--uid gives it. An F103 and an F4 of the same seed are two boards, each the same on every run.
 """
 from __future__ import annotations
 
