@@ -104,9 +104,25 @@ def test_commented_header_names_the_columns_of_wide_logger_rows(rec6, tmp_path):
     assert rec.options["columns"] == {"ax": "tx", "ay": "ty", "az": "tz", "gx": "wx", "gy": "wy", "gz": "wz"}
 
 
-def test_relative_time_still_asks_for_its_unit(rec6, tmp_path):
+@pytest.mark.parametrize("step, unit", [(0.01, "s"), (10.0, "ms"), (2500.0, "us"), (1e6, "ns"), (0.0005, "s")])
+def test_relative_time_unit_from_the_only_unit_that_gives_an_imu_rate(rec6, tmp_path, step, unit):
+    """Steps of 10 ms read as 0.01, 10, 10000 or 1e7: the units differ by 1000 and an IMU's
+    rates (10 Hz to 5 kHz) by 500, so one unit at most fits; it is used and said."""
     ag, gd, _, _ = rec6
-    p = write_table(tmp_path / "r.csv", np.column_stack([np.arange(len(ag)) * 10.0, ag, gd]), delim=",",
+    p = write_table(tmp_path / "r.csv", np.column_stack([np.arange(len(ag)) * step, ag, gd]), delim=",",
+                    header=("time", "ax", "ay", "az", "gx", "gy", "gz"))
+    rec = read(p, accel_unit="g", gyro_unit="dps")
+    f = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}[unit]
+    assert rec.fs_hz == pytest.approx(1.0 / (step * f), rel=1e-9) and rec.options["time_unit"] == unit
+    assert sum(f"time unit {unit}: the time column 'time' steps by" in d for d in rec.detected) == 1
+
+
+@pytest.mark.parametrize("step", [0.15, 150.0])
+def test_relative_time_between_the_units_still_asks_for_its_unit(rec6, tmp_path, step):
+    """A step of 0.15 is 6.7 Hz in s or 6.7 kHz in ms: neither an IMU rate of 10 Hz to 5 kHz, so
+    the unit is asked for rather than guessed."""
+    ag, gd, _, _ = rec6
+    p = write_table(tmp_path / "r.csv", np.column_stack([np.arange(len(ag)) * step, ag, gd]), delim=",",
                     header=("time", "ax", "ay", "az", "gx", "gy", "gz"))
     with pytest.raises(RecordingError, match="does not say its unit: give --time-unit"):
         read(p, accel_unit="g", gyro_unit="dps")

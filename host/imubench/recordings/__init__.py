@@ -266,7 +266,7 @@ def timing_lines(rec: Recording) -> list[str]:
     mean = tm.get("mean_dt_s", tm["median_dt_s"])
     rate = f"{tm['n_read']} samples at {tm['fs_hz']:.4g} Hz measured from the time stamps (mean step {mean * 1e3:.4g} ms)"
     if tm["jitter_rel"] < 1e-4:
-        out.append(f"{rate}, regular steps (jitter {100 * tm['jitter_rel']:.1g} %)")
+        out.append(f"{rate}, regular steps (jitter under 0.01 % of a step)")
     else:
         out.append(f"{rate}, step jitter {tm.get('jitter_s', tm['jitter_rel'] * mean) * 1e3:.2g} ms RMS "
                    f"({100 * tm['jitter_rel']:.2g} %; steps {tm.get('min_dt_s', mean) * 1e3:.3g}"

@@ -400,9 +400,35 @@ def _common(opt: dict) -> dict:
 _EPOCH_S = (1.0e9, 4.1e9)
 
 
+#: the sample rates an IMU log is taken to have when only its time steps tell the unit: the range is
+#: narrower than the factor 1000 between units, so one unit at most puts the median step inside it
+_RATE_RANGE_HZ = (10.0, 5000.0)
+
+
+def _unit_from_steps(raw: np.ndarray, what: str, detected: list, options: dict) -> str | None:
+    """The time unit in which the median step of relative time stamps is a sample period of
+    10 Hz to 5 kHz (s, ms, us or ns differ by 1000, the range by 500: at most one fits); said
+    in one line. None when no unit fits (the step is between the ranges, or not increasing)."""
+    d = np.diff(raw[: min(len(raw), 100_001)])
+    d = d[np.isfinite(d) & (d > 0)]
+    if len(d) < max(2, len(raw) // 10):
+        return None
+    step = float(np.median(d))
+    fits = [u for u, f in _TIME_SUFFIX.items() if _RATE_RANGE_HZ[0] <= 1.0 / (step * f) <= _RATE_RANGE_HZ[1]]
+    if len(fits) != 1:
+        return None
+    u = fits[0]
+    detected.append(f"time unit {u}: {what} steps by {step:.6g} (median), a {1.0 / (step * _TIME_SUFFIX[u]):.4g} Hz "
+                    f"rate in {u}; no other unit gives an IMU's {_RATE_RANGE_HZ[0]:g}–{_RATE_RANGE_HZ[1]:g} Hz "
+                    f"(--time-unit {u})")
+    options["time_unit"] = u
+    return u
+
+
 def _time_seconds(raw: np.ndarray, unit: str | None, what: str, detected: list, options: dict) -> np.ndarray:
     """A time column in seconds: its unit declared, else settled when the values are Unix time
-    stamps (their size says s, ms, us or ns; said in one line), else asked for."""
+    stamps (their size says s, ms, us or ns) or when only one unit makes the median step an IMU's
+    sample period (10 Hz to 5 kHz); each said in one line; else asked for."""
     if not unit and len(raw):
         mid = float(np.median(raw))
         for u, f in _TIME_SUFFIX.items():
@@ -414,6 +440,8 @@ def _time_seconds(raw: np.ndarray, unit: str | None, what: str, detected: list, 
                                 f"(--time-unit {u})")
                 options["time_unit"] = u
                 break
+    if not unit and len(raw) > 2:
+        unit = _unit_from_steps(raw, what, detected, options)
     if not unit:
         raise RecordingError(f"{what} does not say its unit: give --time-unit s|ms|us|ns "
                              "(or --rate HZ to ignore it)")
