@@ -24,7 +24,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "host"))
 
 import allantools  # noqa: E402
-import numpy as np  # noqa: E402
 from imubench import units as U  # noqa: E402
 from imubench.analysis.allan import allan_axis  # noqa: E402
 from imubench.device import sim_gyro as G  # noqa: E402
