@@ -67,9 +67,11 @@ def test_csv_columns_mapped_by_option_and_by_profile(session, tmp_path):
     with pytest.raises(RecordingError, match="no accel columns found.*--columns"):
         read(p, accel_unit="mps2", gyro_unit="rad_s")
     cols = {"ax": "Acc1", "ay": "Acc2", "az": "Acc3", "gx": "Rot1", "gy": "Rot2", "gz": "Rot3"}
-    with pytest.raises(RecordingError, match="does not say its unit"):
-        read(p, columns=cols, time_column="Time", accel_unit="mps2", gyro_unit="rad_s")
+    # a time column in seconds at 100 Hz: only s makes its steps an IMU's rate (detected and said)
+    found = read(p, columns=cols, time_column="Time", accel_unit="mps2", gyro_unit="rad_s")
+    assert found.options["time_unit"] == "s" and found.fs_hz == pytest.approx(FS)
     rec = read(p, columns=cols, time_column="Time", time_unit="s", accel_unit="mps2", gyro_unit="rad_s")
+    assert np.array_equal(found.t_s, rec.t_s)
     _check_truth(_analyse(rec)[0], truth)
     from imubench.recordings.readers import load_profile
     prof = tmp_path / "vendor.toml"
