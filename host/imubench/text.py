@@ -10,6 +10,11 @@ Each destination has one function here and every writer uses it:
                  escapes (``\\x1b``, ``\\u202e``); line breaks kept only when asked;
 - ``one_line``   a field that must stay on its line (a comment in a parameter file, one line
                  of a terminal): ``printable`` with line breaks escaped too;
+- ``comment``    a comment line in another tool's file (`# ...` in YAML, OpenCV FileStorage, a
+                 QGroundControl or MAVProxy parameter file): ``one_line`` after the marker, so that
+                 no quoted name can end the comment and start a line the tool reads;
+- ``token``      a name quoted as a value (imu_utils' `name:`, a ROS topic): only letters,
+                 digits and ``_ . / ~ -``, every other character ``_``;
 - ``xml_text``   XML 1.0 character data or attribute values (JUnit): characters XML cannot
                  carry at all are dropped (escaping <, &, quotes is the serialiser's job).
 """
@@ -47,6 +52,21 @@ def printable(text, keep_newlines: bool = True) -> str:
 def one_line(text) -> str:
     """printable(text) on one line: newlines and tabs escaped too (a comment, a field)."""
     return printable(text, keep_newlines=False)
+
+
+def comment(text, marker: str = "#") -> str:
+    """One comment line in another tool's file: marker, a space, one_line(text). Every line break
+    those tools know (LF, CR, VT, FF, NEL, U+2028/9) and every control character is escaped."""
+    return f"{marker} {one_line(text)}"
+
+
+_NOT_TOKEN = re.compile(r"[^A-Za-z0-9_./~-]")
+
+
+def token(text, default: str = "imu") -> str:
+    """text as a bare value no parser reads as syntax: letters, digits and _ . / ~ - kept,
+    anything else '_' (a YAML scalar, a ROS name); default when nothing is left."""
+    return _NOT_TOKEN.sub("_", str(text)) or default
 
 
 def xml_text(text) -> str:

@@ -83,7 +83,8 @@ def test_openvins_and_vins_fusion_files_as_opencv_reads_them(exported):
     assert ov["gyroscope_noise_density"] == pytest.approx(NG, rel=0.06)
     vf = _opencv_yaml(out / "vins-fusion-imu.yaml")
     assert set(vf) == {"imu_topic", "acc_n", "gyr_n", "acc_w", "gyr_w", "g_norm"}
-    assert vf["acc_n"] == pytest.approx(NA, rel=0.06) and vf["gyr_n"] == pytest.approx(NG, rel=0.06)
+    # VINS-Fusion's acc_n, gyr_n are the σ of one sample (integration_base.h): N·√f, the record's own σ
+    assert vf["acc_n"] == pytest.approx(NA * np.sqrt(FS), rel=0.06) and vf["gyr_n"] == pytest.approx(NG * np.sqrt(FS), rel=0.06)
     assert vf["g_norm"] == pytest.approx(9.80665) and vf["imu_topic"] == "/my/imu"
 
 
@@ -94,8 +95,8 @@ def test_imu_utils_file_keeps_imu_utils_meaning(exported):
     for key, n_key, w_key, n_true in (("Gyr", "gyr_n", "gyr_w", NG), ("Acc", "acc_n", "acc_w", NA)):
         blk = d[key]
         assert set(blk) == {"unit", "avg-axis", "x-axis", "y-axis", "z-axis"}
-        assert blk["avg-axis"][n_key] == pytest.approx(n_true, rel=0.06)
-        assert isinstance(blk["x-axis"][w_key], float)        # the Allan minimum (B), or .nan when withheld
+        assert blk["avg-axis"][n_key] == pytest.approx(n_true * np.sqrt(FS), rel=0.06)   # imu_utils: N·√f
+        assert isinstance(blk["x-axis"][w_key], float)        # the Allan minimum (0.664·B), or .nan when withheld
     assert "NOT a random walk" in (out / "imu_utils.yaml").read_text()
 
 
@@ -132,14 +133,19 @@ def test_kalibr_intrinsics_read_back_with_and_without_g(calibration):
     fa, _, d = calibration
     f, = _write("kalibr", fa, d)
     k = yaml.safe_load(f.read_text())["imu0"]
-    assert k["model"] == "scale-misalignment" and "A" not in k["gyroscopes"]
-    assert np.allclose(k["accelerometers"]["M"], fa.accel.m) and np.allclose(k["gyroscopes"]["M"], fa.gyro.m)
-    assert np.array(k["gyroscopes"]["C_gyro_i"]).shape == (3, 3)
+    assert k["model"] == "scale-misalignment" and np.count_nonzero(k["gyroscopes"]["A"]) == 0
+    la = np.array(k["accelerometers"]["M"])
+    assert np.array_equal(la, np.tril(la))                                 # Kalibr's lower-triangular M
+    lg, c = np.array(k["gyroscopes"]["M"]), np.array(k["gyroscopes"]["C_gyro_i"])
+    from imubench.results.paramfiles import rq
+    qa = rq(fa.accel.m)[1]
+    assert np.allclose(la @ qa, fa.accel.m) and np.allclose(lg @ c @ qa, fa.gyro.m)   # the products are ours
     g = np.radians([[0.03, 0, 0], [0, -0.02, 0.01], [0, 0, 0.04]])        # rad/s per g
     f, = _write("kalibr", fa, d, gsens=g)
     k = yaml.safe_load(f.read_text())["imu0"]
-    assert k["model"] == "scale-misalignment-gsensitivity"
-    assert np.allclose(k["gyroscopes"]["A"], g / 9.80665)                 # (rad/s)/(m/s²), Kalibr's unit
+    assert k["model"] == "scale-misalignment"
+    c = np.array(k["gyroscopes"]["C_gyro_i"])
+    assert np.allclose(np.array(k["gyroscopes"]["A"]) @ c @ qa, g / 9.80665)   # (rad/s)/(m/s²), Kalibr's unit
 
 
 def test_imu_calib_yaml_reproduces_our_correction(calibration):

@@ -1,6 +1,7 @@
 """`imubench calibrate`: the guided calibration session, write-back, verification, history."""
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
 import shlex
 import sys
@@ -205,6 +206,11 @@ def _add_from_file(p) -> None:
                    help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON, ArduPilot's "
                         "parameters, Kalibr's IMU intrinsics, PX4's CAL_ACC0/CAL_GYRO0 parameters or ROS imu_calib's "
                         "YAML (repeatable)")
+    g.add_argument("--px4-acc-id", type=px4_device_id, metavar="ID",
+                   help="--export px4: the PX4 device id of the accelerometer (`listener sensor_accel`, or CAL_ACC0_ID "
+                        "of the vehicle's current parameters); PX4 ignores a calibration slot without it")
+    g.add_argument("--px4-gyro-id", type=px4_device_id, metavar="ID",
+                   help="--export px4: the PX4 device id of the gyro (`listener sensor_gyro`, or CAL_GYRO0_ID)")
     g.add_argument("--tolerance-mg", type=positive_float, metavar="MG",
                    help="pass when the RMS of |a| − g over the still intervals after calibration is at most this "
                         "(default: the device's, 1 mg)")
@@ -476,10 +482,21 @@ def _add_station_fields(result: dict, a, directory: Path, before, after, url) ->
     result["capture"] = capture_ref(directory)
 
 
+def px4_device_id(s: str) -> int:
+    """A PX4 device id (decimal, or 0x hex): a positive INT32, as PX4's CAL_*_ID parameters hold it."""
+    try:
+        v = int(s, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not an integer device id (decimal or 0x hex)") from None
+    if not 0 < v < 2 ** 31:
+        raise argparse.ArgumentTypeError(f"{v} is not a PX4 device id (1 .. 2147483647)")
+    return v
+
+
 # ------------------------------------------------------------------ from a file
 _FILE_ONLY = ("format", "gyro_file", "accel_unit", "gyro_unit", "accel_scale", "gyro_scale", "columns", "time_column",
               "time_unit", "profile", "topic", "device", "gyro_range", "annotation", "tolerance_mg", "skip_rows",
-              "accel_offset", "gyro_offset", "sensor")
+              "accel_offset", "gyro_offset", "sensor", "px4_acc_id", "px4_gyro_id")
 
 
 def _columns(text: str) -> dict:
@@ -550,7 +567,8 @@ def _run_from_file(a) -> int:
     cfg = FileConfig(method=a.method or "auto", gyro=None if a.gyro == "none" else a.gyro, turn_deg=a.turn_angle,
                      angle_sigma_deg=a.turn_sigma, axis_sigma_deg=a.turn_axis_sigma,
                      gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
-                     writers=tuple(dict.fromkeys(a.export)), annotation=annotation, tolerances=tol,
+                     writers=tuple(dict.fromkeys(a.export)), px4_acc_id=a.px4_acc_id, px4_gyro_id=a.px4_gyro_id,
+                     annotation=annotation, tolerances=tol,
                      tolerance_from_imu=a.tolerance_mg is None, command="imubench " + shlex.join(sys.argv[1:]))
     directory = Path(a.dir or f"imubench-file-{Path(a.from_file).stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
     a.on_interrupt = lambda: "nothing is kept from an interrupted analysis; run the command again"
@@ -576,6 +594,9 @@ def _run_from_file(a) -> int:
     for kind, files in result.get("exports", {}).items():
         if files:
             print(f"{kind}: {one_line(', '.join(files))}")
+    if result.get("exports", {}).get("px4") and result.get("px4_missing_ids"):
+        from imubench.results.paramfiles import PX4_ID_HOW
+        print(f"px4: NOT USABLE AS IS, no {' / '.join(result['px4_missing_ids'])} (PX4 ignores the slot): {PX4_ID_HOW}")
     print(f"session directory: {one_line(directory)} (session.json, residuals.png, segmentation.png, "
           "rests.csv, README.md)")
     print(f"report: {one_line(result['report'])}")

@@ -62,6 +62,8 @@ class FileConfig:
     command: str = ""                    # the command line that ran (the folder's README repeats it)
     device: str | None = None            # a name for the IMU (the history groups runs by it)
     writers: tuple = ()                  # results.paramfiles.WRITERS to write
+    px4_acc_id: int | None = None        # PX4 device ids for CAL_ACC0_ID / CAL_GYRO0_ID (--export px4)
+    px4_gyro_id: int | None = None
     annotation: list | None = None       # (name, start, stop) sections to compare the segmentation with
     tolerances: Tolerances = field(default_factory=Tolerances)
     tolerance_from_imu: bool = True      # the pass tolerance from this IMU's noise and class (else tolerances')
@@ -665,6 +667,8 @@ def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -
             result["notes"].append(f"{kind} not written: {e}")
             say(f"  note: {kind} not written: {e}")
     result["exports"] = files
+    if files.get("px4"):
+        result["px4_missing_ids"] = paramfiles.px4_missing_ids(cfg.px4_acc_id, cfg.px4_gyro_id, fa.gyro is not None)
     state = {"schema": SESSION_SCHEMA, "started": result["started"],
              "config": {"method": fa.method, "gyro": cfg.gyro, "rate_hz": rec.fs_hz, "hold_s": cfg.min_still_s,
                         "rest_s": 0.0, "settle_s": cfg.window_s, "note": cfg.note, "write": False,
@@ -742,4 +746,5 @@ def _write_one(kind: str, prefix: Path, fa: FileAnalysis, result: dict, paramfil
         params = params_from_fits(fa.accel, fa.gyro, PR.identity(), 0, g_fit)
     return paramfiles.write(kind, prefix, accel=fa.accel, gyro=fa.gyro, accel_factor=fa.fa, gyro_factor=fa.fg,
                         accel_unit=rec.accel_unit, gyro_unit=rec.gyro_unit, scaled=rec.accel_scaled,
-                        params=params, comment=comment, gsens=gsens)
+                        params=params, comment=comment, gsens=gsens, px4_acc_id=fa.cfg.px4_acc_id,
+                        px4_gyro_id=fa.cfg.px4_gyro_id)

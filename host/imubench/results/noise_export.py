@@ -2,16 +2,23 @@
 
     write_noise(kind, path, res, topic=...)      kind in NOISE_WRITERS; res: allan.json's dict
 
-Every consumer here wants **continuous-time** densities and random walks (docs/noise.md):
-white noise as its Allan coefficient N (the density: m/s²/√Hz, rad/s/√Hz; σ of one sample at
-rate f is N·√f) and the bias random walk K (m/s³/√Hz, rad/s²/√Hz: ADEV(τ) = K·√(τ/3)). One field
-takes one number: the worst axis goes in it, the three axes are in comments (kalibr#143). When
-the record shows no +1/2 slope, K is not read off; the file then holds the upper bound the
-longest τ allows, K ≤ ADEV(τ_max)·√(3/τ_max), and says so.
+Each file holds what its consumer's own code takes (docs/noise.md; the consumers' sources named
+there). Kalibr and OpenVINS want **continuous-time** figures: white noise as its Allan coefficient
+N (the density: m/s²/√Hz, rad/s/√Hz; σ of one sample at rate f is N·√f) and the bias random walk
+K (m/s³/√Hz, rad/s²/√Hz: ADEV(τ) = K·√(τ/3)). VINS-Fusion's integration_base.h uses its acc_n,
+gyr_n as the σ of one sample and acc_w, gyr_w as the σ of one step's bias increment over dt:
+the file holds N·√f and K·√f. imu_utils' own output (src/gyr_lib/fitallan_gyr.cpp) holds
+`*_n` = N·√f and `*_w` = the Allan deviation's minimum (0.664·B, not a random walk): the
+imu-utils file writes exactly that and names it. One field takes one number: the worst axis
+goes in it, the three axes are in comments (kalibr#143). When the record shows no +1/2 slope,
+K is not read off; the file then holds the upper bound the longest τ allows,
+K ≤ ADEV(τ_max)·√(3/τ_max), and says so.
 
-imu_utils is the exception: its own output's `gyr_w`/`acc_w` are the Allan minimum (bias
-instability B), not a random walk (its src/gyr_lib/fitallan_gyr.cpp); the imu-utils file keeps
-that meaning, as a file imu_utils wrote, and gives K beside it in a comment.
+OpenVINS' VioManagerOptions.h requires Tw, Ta, R_IMUtoACC, R_IMUtoGYRO and Tg for every IMU model
+(it stops with "unable to parse all parameters" otherwise): the file is for imubench's
+calibrated stream, so they are identities and Tg zero.
+
+Quoted names (the recording's, the topic) are made safe (imubench.text: comment, token).
 
 The usual advice to inflate these for an estimator (several times, for unmodelled effects:
 vibration, temperature, the bias's own model) is written as a comment with its sources (kalibr
@@ -22,7 +29,10 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
+
 from imubench.results.atomic import write_text_atomic
+from imubench.text import comment, token
 
 NOISE_WRITERS = ("kalibr", "openvins", "vins-fusion", "imu-utils")
 G0 = 9.80665
@@ -64,9 +74,13 @@ def _axes_comment(label: str, vals, unit: str) -> str:
 
 def _header(res: dict, consumer: str) -> str:
     src = ", ".join(map(str, res.get("source", []))) or "?"
-    return (f"# {consumer} noise parameters from imubench's Allan analysis of {src}\n"
-            f"# ({res.get('samples', 0)} samples at {res['rate_hz']:.6g} Hz, {res['duration_s'] / 3600:.3g} h; "
-            "docs/noise.md). Continuous-time: density N (sample sigma = N*sqrt(rate)), random walk K.\n")
+    return (comment(f"{consumer} noise parameters from imubench's Allan analysis of {src}") + "\n"
+            + f"# ({res.get('samples', 0)} samples at {res['rate_hz']:.6g} Hz, {res['duration_s'] / 3600:.3g} h; "
+            "docs/noise.md). Allan figures: density N (sample sigma = N*sqrt(rate)), random walk K.\n")
+
+
+def _matrix(m) -> str:
+    return "".join(f"    - [{', '.join(f'{v:.12g}' for v in row)}]\n" for row in np.asarray(m, float))
 
 
 def _per_axis(t: dict) -> str:
@@ -83,7 +97,7 @@ def _per_axis(t: dict) -> str:
 def kalibr_text(res: dict, topic: str) -> str:
     t = noise_terms(res)
     return (_header(res, "Kalibr imu.yaml") + _per_axis(t) + INFLATE
-            + f"rostopic: {topic}\n"
+            + f"rostopic: \"{token(topic)}\"\n"
             + f"update_rate: {res['rate_hz']:.6g}  # Hz\n"
             + f"accelerometer_noise_density: {t['accel']['n_worst']:.6g}  # m/s^2/sqrt(Hz)\n"
             + f"accelerometer_random_walk: {t['accel']['k_worst']:.6g}  # m/s^3/sqrt(Hz)\n"
@@ -95,14 +109,17 @@ def openvins_text(res: dict, topic: str) -> str:
     t = noise_terms(res)
     eye = "\n".join(f"    - [{', '.join('1.0' if i == j else '0.0' for j in range(4))}]" for i in range(4))
     return ("%YAML:1.0\n" + _header(res, "OpenVINS kalibr_imu_chain.yaml") + _per_axis(t) + INFLATE
-            + "# model 'calibrated': the intrinsics are already applied (imubench's calibrated stream)\n"
+            + "# model 'calibrated': the intrinsics are already applied (imubench's calibrated stream), so\n"
+            + "# Tw = Ta = R_IMUtoACC = R_IMUtoGYRO = I and Tg = 0 (ov_msckf VioManagerOptions.h requires all five)\n"
             + "imu0:\n"
             + "  T_i_b:\n" + eye + "\n"
+            + "".join(f"  {key}:\n" + _matrix(np.eye(3) if key != "Tg" else np.zeros((3, 3)))
+                      for key in ("Tw", "R_IMUtoGYRO", "Ta", "R_IMUtoACC", "Tg"))
             + f"  accelerometer_noise_density: {t['accel']['n_worst']:.6g}  # m/s^2/sqrt(Hz)\n"
             + f"  accelerometer_random_walk: {t['accel']['k_worst']:.6g}  # m/s^3/sqrt(Hz)\n"
             + f"  gyroscope_noise_density: {t['gyro']['n_worst']:.6g}  # rad/s/sqrt(Hz)\n"
             + f"  gyroscope_random_walk: {t['gyro']['k_worst']:.6g}  # rad/s^2/sqrt(Hz)\n"
-            + f"  rostopic: {topic}\n"
+            + f"  rostopic: \"{token(topic)}\"\n"
             + "  time_offset: 0.0\n"
             + f"  update_rate: {res['rate_hz']:.6g}  # Hz\n"
             + "  model: calibrated\n")
@@ -110,38 +127,46 @@ def openvins_text(res: dict, topic: str) -> str:
 
 def vins_fusion_text(res: dict, topic: str) -> str:
     t = noise_terms(res)
+    root_f = math.sqrt(float(res["rate_hz"]))
     return ("%YAML:1.0\n" + _header(res, "VINS-Fusion (the IMU keys of its config file)") + _per_axis(t) + INFLATE
-            + f"# the IMU streams at {res['rate_hz']:.6g} Hz\n"
-            + f"imu_topic: \"{topic}\"\n"
-            + f"acc_n: {t['accel']['n_worst']:.6g}  # accelerometer noise density, m/s^2/sqrt(Hz)\n"
-            + f"gyr_n: {t['gyro']['n_worst']:.6g}  # gyroscope noise density, rad/s/sqrt(Hz)\n"
-            + f"acc_w: {t['accel']['k_worst']:.6g}  # accelerometer bias random walk, m/s^3/sqrt(Hz)\n"
-            + f"gyr_w: {t['gyro']['k_worst']:.6g}  # gyroscope bias random walk, rad/s^2/sqrt(Hz)\n"
+            + "# VINS-Fusion (integration_base.h) uses acc_n, gyr_n as the sigma of ONE sample and acc_w, gyr_w\n"
+            + "# as the sigma of one step's bias increment over dt: they hold N*sqrt(f) and K*sqrt(f), f = the IMU\n"
+            + f"# rate, {res['rate_hz']:.6g} Hz here (at another rate multiply N, K above by sqrt(rate)).\n"
+            + f"imu_topic: \"{token(topic)}\"\n"
+            + f"acc_n: {t['accel']['n_worst'] * root_f:.6g}  # accelerometer sample sigma N*sqrt(f), m/s^2\n"
+            + f"gyr_n: {t['gyro']['n_worst'] * root_f:.6g}  # gyroscope sample sigma N*sqrt(f), rad/s\n"
+            + f"acc_w: {t['accel']['k_worst'] * root_f:.6g}  # accelerometer bias random walk K*sqrt(f), m/s^3\n"
+            + f"gyr_w: {t['gyro']['k_worst'] * root_f:.6g}  # gyroscope bias random walk K*sqrt(f), rad/s^2\n"
             + f"g_norm: {G0}  # m/s^2, standard gravity (use your site's value if you know it)\n")
+
+
+ADEV_MIN_PER_B = 0.664                # B = min ADEV / 0.664 (imubench.analysis.allan); imu_utils keeps the minimum
 
 
 def imu_utils_text(res: dict, name: str) -> str:
     t = noise_terms(res)
+    root_f = math.sqrt(float(res["rate_hz"]))
 
     def block(kind: str, unit: str, n_key: str, w_key: str) -> str:
         d = t[kind]
-        b = d["b"]
-        bw = max((v for v in b if v is not None), default=None)
+        n = [v * root_f for v in d["n"]]
+        w = [None if v is None else v * ADEV_MIN_PER_B for v in d["b"]]
+        known = [v for v in w if v is not None]
+        nan = ".nan  # withheld: the record is too short to show the minimum"
         lines = [f"{'Gyr' if kind == 'gyro' else 'Acc'}:", f"   unit: \" {unit}\"",
-                 "   avg-axis:", f"      {n_key}: {sum(d['n']) / 3:.6g}",
-                 f"      {w_key}: " + (_num(sum(v for v in b if v is not None) / sum(v is not None for v in b))
-                                       if bw is not None else ".nan  # B withheld: the record is too short")]
-        for ax, n, bv in zip(AXES, d["n"], b):
-            lines += [f"   {ax}-axis:", f"      {n_key}: {n:.6g}",
-                      f"      {w_key}: " + (".nan  # B withheld: the record is too short" if bv is None else _num(bv))]
+                 "   avg-axis:", f"      {n_key}: {sum(n) / 3:.6g}",
+                 f"      {w_key}: " + (_num(sum(known) / len(known)) if known else nan)]
+        for ax, nv, wv in zip(AXES, n, w):
+            lines += [f"   {ax}-axis:", f"      {n_key}: {nv:.6g}", f"      {w_key}: " + (nan if wv is None else _num(wv))]
         return "\n".join(lines) + "\n"
     return ("%YAML:1.0\n" + _header(res, "imu_utils output") + _per_axis(t) + INFLATE
-            + "# As imu_utils writes it: *_n the white noise density, *_w the Allan MINIMUM (bias instability B),\n"
-            + "# NOT a random walk (imu_utils src/gyr_lib/fitallan_gyr.cpp). For a random walk use K above.\n"
-            + "# Its avg-axis is the mean of the axes (imu_utils' own choice).\n"
+            + "# What imu_utils writes (src/gyr_lib/fitallan_gyr.cpp, src/acc_lib/fitallan_acc.cpp):\n"
+            + f"# *_n = N*sqrt(f), the sigma of one sample at f = {res['rate_hz']:.6g} Hz (getWhiteNoise);\n"
+            + "# *_w = the MINIMUM of the Allan deviation (getBiasInstability; = 0.664*B), NOT a random walk:\n"
+            + "# for a random walk use K above. avg-axis is the mean of the axes (imu_utils' own choice).\n"
             + "---\n"
             + "type: IMU\n"
-            + f"name: {name}\n"
+            + f"name: \"{token(name)}\"\n"
             + block("gyro", "gyr_n: rad / s, gyr_w: rad / s", "gyr_n", "gyr_w")
             + block("accel", "acc_n: m / s^2, acc_w: m / s^2", "acc_n", "acc_w"))
 

@@ -22,14 +22,22 @@ writer maps that onto its tool's equation:
                scale ∘ (raw − offset), element-wise, in m/s² (rad/s): offset = b, scale_i = 1/M_ii.
                ArduPilot's model has no cross-axis terms: the off-diagonal of M is dropped, and
                the file says how large the dropped terms are.
-- ``kalibr``   Kalibr's IMU intrinsics (its imu-*.yaml output, ScaledMisalignedImu): a_meas =
-               M_a·a + b, ω_meas = M_g·C_gyro_i·ω (+ A·a) + b: M_a = M, M_g = M (SI), C_gyro_i = I
-               (imubench's M holds the rotation), A = G / 9.80665 ((rad/s)/(m/s²)) with a
-               g-sensitivity (model scale-misalignment-gsensitivity), else model
-               scale-misalignment. Kalibr's own M is lower triangular; ours is full (said in the file).
+- ``kalibr``   Kalibr's IMU intrinsics (its imu-*.yaml output, IccSensors.py ScaledMisalignedImu,
+               model ``scale-misalignment``): a_meas = M_a·a_i + b, ω_meas = M_g·C_gyro_i·ω_i +
+               A·C_gyro_i·a_i + b, with Kalibr's M lower-triangular. Our full M = L·Q (RQ, ``rq``):
+               the IMU frame i is the accelerometer's triangle frame, a_i = Q_a·x (Q_a is a rotation
+               of our body axes, which Kalibr keeps in its camera-IMU extrinsics), accelerometers
+               M = L_a, and M_g·Q_aᵀ = L_g·C_gyro_i gives gyroscopes M = L_g and C_gyro_i. A = G/g0
+               in (rad/s)/(m/s²) taken into the same frames (zero when G was not fitted). The
+               product is exact: read as OpenVINS maps it (Tw ← M, R_IMUtoGYRO ← C_gyro_i,
+               Ta ← M) the lower triangle it keeps of Tw⁻¹, Ta⁻¹ is the whole inverse.
 - ``px4``      PX4's CAL_ACC0_* and CAL_GYRO0_* in QGroundControl's parameter file layout: corrected
                = (raw − OFF)·SCALE per axis (m/s², rad/s): OFF = b, SCALE = 1/M_ii; PX4 has no
                cross-axis terms, no gyro scale and no g-sensitivity: the file says what it drops.
+               PX4 uses a slot only when its CAL_ACC0_ID / CAL_GYRO0_ID equals the sensor's device
+               id (sensor_calibration/Utilities.cpp FindCurrentCalibrationIndex): with the ids given
+               (``px4_acc_id``, ``px4_gyro_id``) they are written with CAL_*0_PRIO = -1 (PX4's
+               default priority); without, the file says in its header that it is not usable as is.
 - ``imu-calib`` ROS imu_calib's YAML (dpkoch/imu_calib): corrected = SM·raw − bias, accelerometer
                only: SM = M⁻¹ (row-major, 9), bias = M⁻¹·b (m/s²).
 """
@@ -42,7 +50,8 @@ from pathlib import Path
 import numpy as np
 
 from imubench.results.atomic import write_json_atomic, write_text_atomic
-from imubench.text import one_line
+from imubench.text import comment as comment_line
+from imubench.units import G0_MPS2
 
 WRITERS = ("params", "imutk", "imucal", "ardupilot", "kalibr", "px4", "imu-calib")
 SI_WRITERS = ("params", "ardupilot", "kalibr", "px4", "imu-calib")     # need a declared nominal scale
@@ -103,7 +112,7 @@ def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> s
     worst = float(np.max(np.abs(dropped)))
     # the largest |a| error the dropped cross-axis terms make at 1 g, over the six faces
     err_mg = max(float(np.linalg.norm(np.linalg.inv(np.diag(np.diag(m))) @ (m @ e) - e)) for e in np.eye(3)) * 1e3
-    lines = [f"# {one_line(comment)}" if comment else "# imubench calibration",      # a comment stays one line
+    lines = [comment_line(comment or "imubench calibration"),      # a comment stays one line
              "# ArduPilot: corrected = INS_ACCSCAL * (raw - INS_ACCOFFS), per axis, m/s² (AP_InertialSensor)",
              f"# ArduPilot has no cross-axis terms: dropped off-diagonal of M up to {worst:.2e} "
              f"(≈ {err_mg:.2f} mg at 1 g); frame: the axes of the recording (ArduPilot applies these after "
@@ -123,25 +132,73 @@ def _yaml_matrix(m, indent: str) -> str:
     return "\n".join(f"{indent}- [{', '.join(f'{v:.12g}' for v in row)}]" for row in np.asarray(m, float))
 
 
+def rq(m) -> tuple[np.ndarray, np.ndarray]:
+    """(L, Q) with L·Q = m, L lower-triangular with a positive diagonal, Q a rotation (det +1;
+    for det m < 0 the last diagonal element of L is negative)."""
+    q1, r1 = np.linalg.qr(np.asarray(m, float).T)          # mᵀ = q1·r1  →  m = r1ᵀ·q1ᵀ
+    low, q = r1.T, q1.T
+    d = np.sign(np.diag(low))
+    d[d == 0] = 1.0
+    low, q = low * d, d[:, None] * q                       # L·D, D·Q: the same product, diag(L) > 0
+    if np.linalg.det(q) < 0:
+        low[:, 2], q[2] = -low[:, 2], -q[2]
+    return np.tril(low), q
+
+
+def kalibr_intrinsics(acc_m, gyro_m, gsens_rad_s_per_g=None) -> dict:
+    """Kalibr's lower-triangular form of our model (module docstring): {'Ma', 'Mg', 'C_gyro_i', 'A',
+    'Q_a'} with Q_a the rotation of the IMU frame from our body axes (a_i = Q_a·x)."""
+    la, qa = rq(acc_m)
+    lg, c = rq(np.asarray(gyro_m, float) @ qa.T)
+    g = np.zeros((3, 3)) if gsens_rad_s_per_g is None else np.asarray(gsens_rad_s_per_g, float) / G0_MPS2
+    # u_g = M_g·ω + (G/g0)·f = L_g·C·ω_i + (G/g0)·Q_aᵀ·f_i, and Kalibr's term is A·(C·f_i)
+    return {"Ma": la, "Mg": lg, "C_gyro_i": c, "A": g @ qa.T @ c.T, "Q_a": qa}
+
+
 def kalibr_intrinsics_text(acc_m, gyro_m, gsens_rad_s_per_g=None, comment: str = "") -> str:
     """Kalibr's imu-*.yaml intrinsics block (imu0: model, accelerometers: M, gyroscopes: M, A, C_gyro_i)."""
-    model = "scale-misalignment" if gsens_rad_s_per_g is None else "scale-misalignment-gsensitivity"
-    lines = [f"# {comment}" if comment else "# imubench calibration",
-             "# Kalibr ScaledMisalignedImu: a_meas = M_a*a + b_a; w_meas = M_g*C_gyro_i*w + A*a + b_g (SI).",
-             "# imubench's M is a full 3x3 (u = M*x + b): it holds the triad's rotation, so C_gyro_i = I; Kalibr's",
-             "# own M is lower triangular with the rotation elsewhere. A: gyro g-sensitivity, (rad/s)/(m/s^2).",
-             "imu0:", f"  model: {model}", "  accelerometers:", "    M:", _yaml_matrix(acc_m, "      "),
-             "  gyroscopes:", "    M:", _yaml_matrix(gyro_m, "      "), "    C_gyro_i:", _yaml_matrix(np.eye(3), "      ")]
-    if gsens_rad_s_per_g is not None:
-        lines += ["    A:", _yaml_matrix(np.asarray(gsens_rad_s_per_g, float) / 9.80665, "      ")]
+    k = kalibr_intrinsics(acc_m, gyro_m, gsens_rad_s_per_g)
+    lines = [comment_line(comment or "imubench calibration"),
+             "# Kalibr scale-misalignment (IccSensors.py): a_meas = M_a*a_i + b_a;",
+             "# w_meas = M_g*C_gyro_i*w_i + A*C_gyro_i*a_i + b_g (SI), M_a and M_g lower-triangular.",
+             "# imubench's full M = L*Q: accelerometers M = L_a, gyroscopes M, C_gyro_i from M_g*Q_a^T; exact.",
+             "# The IMU frame i is rotated from imubench's body axes: a_i = Q_a*a_body (Kalibr estimates this",
+             "# rotation with the camera-IMU extrinsics). Q_a, rows:",
+             *[comment_line(" ".join(f"{v:.12g}" for v in row)) for row in k["Q_a"]],
+             "# A: gyro g-sensitivity, (rad/s)/(m/s^2) in the gyro frame"
+             + (" (zeros: none was fitted)." if gsens_rad_s_per_g is None else "."),
+             "# Biases are not in this file (estimated online by Kalibr and OpenVINS).",
+             "imu0:", "  model: scale-misalignment", "  accelerometers:", "    M:", _yaml_matrix(k["Ma"], "      "),
+             "  gyroscopes:", "    M:", _yaml_matrix(k["Mg"], "      "), "    A:", _yaml_matrix(k["A"], "      "),
+             "    C_gyro_i:", _yaml_matrix(k["C_gyro_i"], "      ")]
     return "\n".join(lines) + "\n"
 
 
-def px4_text(acc_m, acc_b_mps2, gyro_m=None, gyro_b_rad_s=None, gsens=None, comment: str = "") -> str:
-    """PX4's CAL_ACC0_* / CAL_GYRO0_* as a QGroundControl parameter file (tab separated)."""
+PX4_ID_HOW = ("find the ids with `listener sensor_accel` / `listener sensor_gyro` (device_id) in the PX4 shell, or "
+              "read CAL_ACC0_ID / CAL_GYRO0_ID of the vehicle's current parameters, and give them as "
+              "--px4-acc-id / --px4-gyro-id")
+
+
+def px4_missing_ids(acc_id, gyro_id, with_gyro: bool) -> list[str]:
+    """The CAL_*0_ID a .px4.params file lacks (it is then not usable as is)."""
+    return ([] if acc_id is not None else ["CAL_ACC0_ID"]) + ([] if gyro_id is not None or not with_gyro
+                                                               else ["CAL_GYRO0_ID"])
+
+
+def px4_text(acc_m, acc_b_mps2, gyro_m=None, gyro_b_rad_s=None, gsens=None, comment: str = "",
+             acc_id: int | None = None, gyro_id: int | None = None) -> str:
+    """PX4's CAL_ACC0_* / CAL_GYRO0_* as a QGroundControl parameter file (tab separated); acc_id,
+    gyro_id: the PX4 device ids of the sensors (CAL_ACC0_ID, CAL_GYRO0_ID)."""
     m = np.asarray(acc_m, float)
     dropped = float(np.max(np.abs(m - np.diag(np.diag(m)))))
-    rows = [f"# {comment}" if comment else "# imubench calibration",
+    missing = px4_missing_ids(acc_id, gyro_id, gyro_b_rad_s is not None)
+    rows = [comment_line(comment or "imubench calibration")]
+    if missing:
+        rows += [comment_line(f"NOT USABLE AS IS: no {' / '.join(missing)}. PX4 uses a calibration slot only when its "
+                              "id equals the sensor's device id (FindCurrentCalibrationIndex); otherwise it loads "
+                              "these values and ignores them."),
+                 comment_line(f"To fix: {PX4_ID_HOW}.")]
+    rows += [
             "# PX4 (src/modules/sensors): corrected = (raw - CAL_*_OFF) * CAL_*_SCALE per axis; offsets in m/s^2 "
             "and rad/s.",
             f"# PX4 cannot hold: the accelerometer's cross-axis terms (off-diagonal of M, up to {dropped:.2e}, dropped)"]
@@ -152,11 +209,17 @@ def px4_text(acc_m, acc_b_mps2, gyro_m=None, gyro_b_rad_s=None, gsens=None, comm
     if gsens is not None:
         rows.append("# and the gyro g-sensitivity G (PX4 has none): its bias is the one at zero specific force")
     rows += ["# Onboard parameters for Vehicle 1", "#", "# Vehicle-Id Component-Id Name Value Type"]
+    ints = [] if acc_id is None else [("CAL_ACC0_ID", acc_id), ("CAL_ACC0_PRIO", -1)]
+    if gyro_b_rad_s is not None and gyro_id is not None:
+        ints += [("CAL_GYRO0_ID", gyro_id), ("CAL_GYRO0_PRIO", -1)]
+    if ints:
+        rows.append("# CAL_*0_PRIO = -1: PX4's default priority (50 internal, 75 external sensor); 0 would disable it")
     vals = [(f"CAL_ACC0_{ax}OFF", float(acc_b_mps2[i])) for i, ax in enumerate("XYZ")]
     vals += [(f"CAL_ACC0_{ax}SCALE", 1.0 / float(m[i, i])) for i, ax in enumerate("XYZ")]
     if gyro_b_rad_s is not None:
         vals += [(f"CAL_GYRO0_{ax}OFF", float(gyro_b_rad_s[i])) for i, ax in enumerate("XYZ")]
-    rows += [f"1\t1\t{name}\t{v:.9g}\t9" for name, v in vals]
+    rows += [f"1\t1\t{name}\t{int(v)}\t6" for name, v in ints]            # MAV_PARAM_TYPE_INT32
+    rows += [f"1\t1\t{name}\t{v:.9g}\t9" for name, v in vals]            # MAV_PARAM_TYPE_REAL32
     return "\n".join(rows) + "\n"
 
 
@@ -164,7 +227,7 @@ def imu_calib_text(acc_m, acc_b_mps2, comment: str = "") -> str:
     """ROS imu_calib's calibration YAML: corrected = SM·raw − bias (accelerometer)."""
     sm = np.linalg.inv(np.asarray(acc_m, float))
     bias = sm @ np.asarray(acc_b_mps2, float)
-    return ((f"# {comment}\n" if comment else "# imubench calibration\n")
+    return (comment_line(comment or "imubench calibration") + "\n"
             + "# ROS imu_calib (dpkoch): corrected = SM*raw - bias, accelerometer, m/s^2; SM row-major.\n"
             + f"SM: [{', '.join(f'{v:.12g}' for v in sm.ravel())}]\n"
             + f"bias: [{', '.join(f'{v:.12g}' for v in bias)}]\n")
@@ -172,7 +235,7 @@ def imu_calib_text(acc_m, acc_b_mps2, comment: str = "") -> str:
 
 def write(kind: str, prefix: Path, *, accel, gyro=None, accel_factor: float, gyro_factor: float | None,
           accel_unit: str, gyro_unit: str, scaled: bool, params=None, comment: str = "",
-          gsens=None) -> list[Path]:
+          gsens=None, px4_acc_id: int | None = None, px4_gyro_id: int | None = None) -> list[Path]:
     """Write one layout; prefix is the path without extension. accel, gyro: TriadFit in SI (or
     None); accel_factor / gyro_factor: SI per unit of the recording; scaled: whether the
     recording's unit had a declared nominal scale (ours and ArduPilot's need one); params:
@@ -191,7 +254,8 @@ def write(kind: str, prefix: Path, *, accel, gyro=None, accel_factor: float, gyr
             accel.m, np.eye(3) if gyro is None else gyro.m, gsens, comment))]
     if kind == "px4":
         return [write_text_atomic(prefix.with_suffix(".px4.params"), px4_text(
-            accel.m, accel.b, None if gyro is None else gyro.m, None if gyro is None else gyro.b, gsens, comment))]
+            accel.m, accel.b, None if gyro is None else gyro.m, None if gyro is None else gyro.b, gsens, comment,
+            px4_acc_id, px4_gyro_id))]
     if kind == "imu-calib":
         return [write_text_atomic(prefix.with_suffix(".imu_calib.yaml"), imu_calib_text(accel.m, accel.b, comment))]
     am, ab = raw_model(accel.m, accel.b, accel_factor)

@@ -36,7 +36,7 @@ import numpy as np
 
 from imubench.analysis.thermal_poly import AxisFit, shift_poly
 from imubench.results.atomic import write_text_atomic
-from imubench.text import one_line
+from imubench.text import comment as comment_line
 
 KINDS = ("px4", "ardupilot")
 AP_TREF_C = 35.0          # ArduPilot's TEMP_REFERENCE
@@ -70,7 +70,7 @@ def _dropped(fits: dict) -> list[str]:
 
 def px4_text(fits: dict, t_ref: dict, gyro_temp: str, comment: str = "") -> str:
     """QGroundControl parameter file (tab separated) with TC_A0_* and TC_G0_*."""
-    rows = [f"# {one_line(comment)}" if comment else "# imubench warm-up temperature calibration",
+    rows = [comment_line(comment or "imubench warm-up temperature calibration"),
             "# PX4 temperature_compensation: offset = X0 + X1*dT + X2*dT^2 + X3*dT^3, dT = clamp(T, TMIN, TMAX) - TREF;",
             "# corrected = (raw - offset - CAL_*_OFF) * CAL_*_SCALE; m/s^2 (TC_A0) and rad/s (TC_G0).",
             "# X0 = 0: the offset at TREF stays in CAL_ACC0_xOFF / CAL_GYRO0_xOFF (imubench calibrate --export px4).",
@@ -96,7 +96,7 @@ def px4_text(fits: dict, t_ref: dict, gyro_temp: str, comment: str = "") -> str:
 
 def ardupilot_text(fits: dict, t_ref: dict, imu_temp: str, comment: str = "") -> str:
     """Mission Planner parameter file (NAME,VALUE) with INS_TCAL1_* and the calibration temperatures."""
-    lines = [f"# {one_line(comment)}" if comment else "# imubench warm-up temperature calibration",
+    lines = [comment_line(comment or "imubench warm-up temperature calibration"),
              "# ArduPilot TCal: v -= p(clamp(T,TMIN,TMAX)-35) - p(clamp(CALTEMP,TMIN,TMAX)-35),",
              "# p(d) = (c1 + (c2 + c3*d)*d)*d * 1e-6, c_k = INS_TCAL1_ACCk_* / INS_TCAL1_GYRk_*; m/s^2 and rad/s;",
              "# applied before INS_ACCOFFS/INS_ACCSCAL (INS_GYROFFS). Our polynomial re-expanded about 35 degC;",
