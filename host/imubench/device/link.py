@@ -484,7 +484,8 @@ class Device:
              calibrated: bool | None = None, timeout: float | None = None) -> SampleBlock:
         """Collect samples of the running stream: n_samples of them, or for duration_s on the
         link's clock (host time; device time for a lockstep virtual device). Raises LinkTimeout
-        if they do not arrive within timeout."""
+        if they do not arrive within timeout (lockstep: device seconds beyond the time the
+        samples take at the stream's rate)."""
         cal = (self._stream_mode == StreamMode.CALIBRATED) if calibrated is None else calibrated
         blocks, have = [], 0
         left = self._leftover.pop(cal, None)
@@ -498,6 +499,8 @@ class Device:
         t_end = t0 + (duration_s if duration_s is not None else 0)
         limit = t0 + (timeout if timeout is not None else
                       (duration_s or 0) + 5.0 + (n_samples or 0) / 500.0)
+        if clock.lockstep:      # device time: the timeout is on top of what the samples take
+            limit += (duration_s or 0) + (n_samples or 0) / self._rate_hz
         while True:
             need = (n_samples - have) if n_samples is not None else 1
             step = None

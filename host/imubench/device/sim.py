@@ -577,17 +577,18 @@ class VirtualBench:
         return self.control("wait", device_s=float(device_s), timeout=self._wait_timeout(device_s))
 
     def wait_idle(self, temperature: bool = False, timeout: float | None = 600.0,
-                  die_tolerance_c: float | None = None) -> dict:
+                  die_tolerance_c: float | None = None, device_limit_s: float = 86400.0) -> dict:
         """Return when no move (and with temperature=True, no temperature ramp) is running;
         with die_tolerance_c also when every die is within that of its steady temperature
-        (chamber + self-heating; at once with the thermal model off)."""
+        (chamber + self-heating; at once with the thermal model off). timeout: wall seconds
+        on the real-time clock. Lockstep: the device runs to the first device time the
+        condition holds, at most device_limit_s (SimError when it did not)."""
         if self.clock.lockstep:
-            # timeout: device seconds (None: a day of device time)
             stop = "dies" if die_tolerance_c is not None else "temperature" if temperature else "idle"
-            limit = 86400.0 if timeout is None else float(timeout)
-            r = self.clock.run(limit, stop=stop, die_tolerance_c=die_tolerance_c)
+            r = self.clock.run(float(device_limit_s), stop=stop, die_tolerance_c=die_tolerance_c)
             if not r.get("done"):
-                raise SimError(f"wait_idle: the bench was not idle ({stop}) within {limit:g} s of device time")
+                raise SimError(f"wait_idle: the bench was not idle ({stop}) within {device_limit_s:g} s of "
+                               "device time")
             return r
         kw: dict[str, Any] = {"temperature": bool(temperature) or die_tolerance_c is not None}
         if die_tolerance_c is not None:
