@@ -482,6 +482,7 @@ static int cmd_status(req_t *q)
     put_u64(r, "ticks", s->ticks);
     put_u64(r, "ticks_missed", s->ticks_missed);
     put_u64(r, "pacing_slips", s->slips);
+    put_u64(r, "samples_dropped", s->core.stats.samples_dropped); /* by the core: TX ring full */
     put_u64(r, "spi_transfers", s->spi_transfers);
     double inj[IB_CS_COUNT];
     for (int i = 0; i < IB_CS_COUNT; i++) {

@@ -83,6 +83,7 @@ class LockstepClock:
         self.link = None                    # the Link on this device's port (its byte counts)
         self.grants = 0
         self._next_request_id = 1           # request ids continue across links (no repeats)
+        self._lock = threading.RLock()      # one grant at a time (a presenter's thread and a reader's)
 
     # ------------------------------------------------------------ the link
     def attach(self, link) -> None:
@@ -109,6 +110,10 @@ class LockstepClock:
     def run(self, seconds: float, stop: str | None = None, die_tolerance_c: float | None = None) -> dict:
         """Grant `seconds` of device time (with stop: until the wait_idle condition holds,
         at most that long) and return the reply {time_us, link_tx, done}."""
+        with self._lock:
+            return self._run(seconds, stop, die_tolerance_c)
+
+    def _run(self, seconds: float, stop: str | None, die_tolerance_c: float | None) -> dict:
         until = self.t_us + max(0, int(round(seconds * 1e6)))
         link = self.link
         kw: dict = {"until_us": until, "link_rx": link.bytes_out if link is not None else 0}

@@ -117,8 +117,9 @@ class VirtualBench:
 
     speed     device time per wall time (20 for CI; 1 = real time; 0 = as fast as possible);
               with clock="lockstep" a ceiling
-    clock     "lockstep" (default: device time granted by the host's waits, deterministic) or
-              "realtime" (device time against the wall clock; module docstring)
+    clock     "lockstep" (device time granted by the host's waits, deterministic; the default of
+              the host build) or "realtime" (device time against the wall clock; module
+              docstring; the default of the ARM targets, which have no lockstep yet)
     seed      seed of the sensor models (noise, random truth, serial numbers, uid)
     truth     "default" (ideal parts with datasheet noise) or "random" (errors drawn from seed)
     flash     parameter flash file; None = a temporary file kept for this object's lifetime
@@ -140,13 +141,16 @@ class VirtualBench:
                  uid: str | None = None, binary: str | os.PathLike | None = None,
                  startup_timeout: float = 15.0, start: bool = True, target: str = "host",
                  boot0: bool = False, elf: Sequence[str | os.PathLike] | None = None,
-                 thermal: bool = False, clock: str = "lockstep"):
+                 thermal: bool = False, clock: str | None = None):
         if target not in TARGETS:
             raise ValueError(f"target must be one of {', '.join(TARGETS)}")
+        if clock is None:               # the ARM emulator has no lockstep yet (docs/simulator.md)
+            clock = "lockstep" if target == "host" else "realtime"
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {', '.join(CLOCKS)}")
         if clock == "lockstep" and target != "host":
-            clock = "realtime"          # the ARM emulator has no lockstep yet (docs/simulator.md)
+            raise SimError(f"the {target} emulator runs on the real-time clock only (no lockstep yet): "
+                           "give clock realtime (--sim-clock realtime)")
         self.clock_name = clock
         self.clock = clocks.LockstepClock(self) if clock == "lockstep" else clocks.WALL
         self.target = target
