@@ -531,13 +531,15 @@ class Device:
         return out
 
     def stream(self, calibrated: bool | None = None, poll_s: float = 0.05) -> Iterator[SampleBlock]:
-        """Yield sample blocks as they arrive, until the caller stops iterating."""
+        """Yield sample blocks as they arrive, until the caller stops iterating. Against a
+        lockstep virtual device each wait grants poll_s of device time (a block per poll_s)."""
+        step = poll_s if self.clock.lockstep else None
         cal = (self._stream_mode == StreamMode.CALIBRATED) if calibrated is None else calibrated
         left = self._leftover.pop(cal, None)
         if left is not None:
             yield left
         while True:
-            self.link.wait_samples(1, cal, timeout=poll_s)
+            self.link.wait_samples(1, cal, timeout=poll_s, step_s=step)
             if self.link.error is not None:
                 raise self.link._failure()
             b = self.link.take_samples(cal)
