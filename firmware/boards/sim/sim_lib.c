@@ -110,6 +110,30 @@ void simlib_close(void)
 }
 
 void simlib_set_log(int on) { g_log_enabled = on; }
+/* --clock lockstep: device time moves only inside a granted run (sim_control.c "run"); the
+ * emulator's serve loop asks sim_control_run_target how far. */
+void simlib_set_lockstep(int on) { g_sim.lockstep = on; }
+
+/* Another board's identity (each target is its own board): every byte of the UID and each
+ * gyro's serial number mixed with `salt` (a --uid given stays as given: uid_given). */
+void simlib_set_identity_salt(uint64_t salt, int uid_given)
+{
+    sim_rng_t r;
+    sim_rng_seed(&r, salt ^ g_sim.seed);
+    if (!uid_given) {
+        uint64_t a = sim_rng_u64(&r), b = sim_rng_u64(&r);
+        for (int i = 0; i < 8; i++) {
+            g_sim.uid[i] ^= (uint8_t)(a >> (8 * i));
+        }
+        for (int i = 0; i < 4; i++) {
+            g_sim.uid[8 + i] ^= (uint8_t)(b >> (8 * i));
+        }
+    }
+    for (int i = 0; i < 3; i++) {
+        uint32_t sn = g_sim.gyro[i].serial ^ (uint32_t)(sim_rng_u64(&r) >> 32);
+        g_sim.gyro[i].serial = sn != 0u ? sn : 1u;
+    }
+}
 int simlib_tcp_port(void) { return g_sim.link.tcp_port; }
 int simlib_control_port(void) { return g_sim.control_port; }
 void simlib_uid(uint8_t out[12]) { memcpy(out, g_sim.uid, 12); }

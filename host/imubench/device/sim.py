@@ -117,9 +117,8 @@ class VirtualBench:
 
     speed     device time per wall time (20 for CI; 1 = real time; 0 = as fast as possible);
               with clock="lockstep" a ceiling
-    clock     "lockstep" (device time granted by the host's waits, deterministic; the default of
-              the host build) or "realtime" (device time against the wall clock; module
-              docstring; the default of the ARM targets, which have no lockstep yet)
+    clock     "lockstep" (the default: device time granted by the host's waits, deterministic)
+              or "realtime" (device time against the wall clock; module docstring)
     seed      seed of the sensor models (noise, random truth, serial numbers, uid)
     truth     "default" (ideal parts with datasheet noise) or "random" (errors drawn from seed)
     flash     parameter flash file; None = a temporary file kept for this object's lifetime
@@ -144,13 +143,9 @@ class VirtualBench:
                  thermal: bool = False, clock: str | None = None):
         if target not in TARGETS:
             raise ValueError(f"target must be one of {', '.join(TARGETS)}")
-        if clock is None:               # the ARM emulator has no lockstep yet (docs/simulator.md)
-            clock = "lockstep" if target == "host" else "realtime"
+        clock = "lockstep" if clock is None else clock
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {', '.join(CLOCKS)}")
-        if clock == "lockstep" and target != "host":
-            raise SimError(f"the {target} emulator runs on the real-time clock only (no lockstep yet): "
-                           "give clock realtime (--sim-clock realtime)")
         self.clock_name = clock
         self.clock = clocks.LockstepClock(self) if clock == "lockstep" else clocks.WALL
         self.target = target
