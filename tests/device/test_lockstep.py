@@ -129,3 +129,39 @@ def test_same_seed_same_session_idle_and_beside_two_busy_processes(tmp_path):
     busy = _calibrate(tmp_path, "busy", busy=2)
     assert idle[0] == busy[0]                         # the captures, byte for byte
     assert idle[1] == busy[1]                         # every number of the session
+
+
+def _arm_session(target: str, path: Path, busy: int = 0) -> str:
+    """A short session on the ARM image in lockstep (info, a stream, a turn while streaming),
+    beside `busy` CPU-bound processes: the SHA-256 of the link's capture."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(busy)]
+    try:
+        with VirtualBench(speed=0, seed=3, target=target) as vb, open(path, "wb") as cap, \
+                Device.open(vb.port_url, capture=cap, timeout=5.0) as dev:
+            assert vb.info["clock"] == "lockstep"
+            dev.info()
+            dev.start_stream(1000)
+            dev.read(n_samples=300)
+            vb.rotate("z", rate_dps=90, duration_s=0.3)
+            dev.read(duration_s=0.2)
+            dev.stop_stream()
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait()
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_the_f4_image_gives_the_same_bytes_idle_and_busy(tmp_path):
+    assert _arm_session("f4", tmp_path / "idle.bin") == _arm_session("f4", tmp_path / "busy.bin", busy=2)
+
+
+def test_targets_of_one_seed_are_boards_of_their_own():
+    ids = {}
+    for target in ("host", "f103", "f4"):
+        with VirtualBench(seed=9, target=target) as vb, Device.open(vb.port_url, timeout=5.0) as dev:
+            info = dev.info()
+            ids[target] = (bytes(info.mcu_uid).hex(), tuple(info.gyro_sn))
+            assert ids[target][0] == vb.info["uid"]
+    assert len({u for u, _ in ids.values()}) == 3          # three UIDs
+    assert len({sn for _, sn in ids.values()}) == 3        # three sets of gyro serial numbers

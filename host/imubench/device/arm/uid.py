@@ -2,7 +2,8 @@
 
 F1: RM0008 30.1-30.2 (F_SIZE at 0x1FFFF7E0, UID at 0x1FFFF7E8); F4: RM0090 39.1-39.2 (UID at
 0x1FFF7A10, F_SIZE at 0x1FFF7A22). The ID is the virtual device's (libimumodels.so derives
-it from the seed, or --uid), so a seed names the same board on every target.
+it from the seed, or --uid), mixed with the target (simlib_set_identity_salt) unless --uid gave
+it: each target of a seed is a board of its own.
 """
 from __future__ import annotations
 
