@@ -18,16 +18,31 @@ Timeouts given to a LockstepClock are device seconds. The wall-clock limits that
 (a device process that hangs) are generous guards, not timing.
 
 The link finds the clock of a virtual device by its URL: VirtualBench registers its clock
-under its port's URL (`register`), Link looks it up (`for_url`); any other URL has the wall
-clock.
+under its port's URL (`register`), Link looks it up (`for_url`). Processes started while the
+bench runs (a command given `--port URL` in a subprocess) find it too: `register` also lists
+the URL with its control channel in the environment variable IMUBENCH_LOCKSTEP, and there
+`for_url` opens a control connection of its own (one process grants at a time: the one that
+waits). Any other URL has the wall clock.
 """
 from __future__ import annotations
 
+import json
+import os
+import socket
 import threading
 import time
 from typing import Callable
 
-__all__ = ["WallClock", "LockstepClock", "WALL", "for_url", "register", "unregister"]
+from imubench.errors import ImubenchError
+
+__all__ = ["ClockError", "WallClock", "LockstepClock", "WALL", "for_url", "register", "unregister"]
+
+#: {port URL: {"control": "HOST:PORT", "speed": X}} of the lockstep devices of the processes above
+ENV = "IMUBENCH_LOCKSTEP"
+
+
+class ClockError(ImubenchError, RuntimeError):
+    """The lockstep device's control channel failed or refused a grant."""
 
 #: wall-clock guard on one grant of device time (a hung simulator, not a slow one), s
 GRANT_GUARD_WALL_S = 600.0
@@ -77,17 +92,20 @@ class LockstepClock:
     STEP_MIN_S = 0.001
     STEP_MAX_S = 0.1
 
-    def __init__(self, bench):
-        self.bench = bench
+    def __init__(self, bench, first_request_id: int = 1):
+        self.bench = bench                  # has control(cmd, timeout=, **fields) and speed
         self.t_us = 0                       # device time at the last grant's end
         self.link = None                    # the Link on this device's port (its byte counts)
         self.grants = 0
-        self._next_request_id = 1           # request ids continue across links (no repeats)
+        self._next_request_id = first_request_id    # ids continue across links (no repeats)
         self._lock = threading.RLock()      # one grant at a time (a presenter's thread and a reader's)
 
     # ------------------------------------------------------------ the link
     def attach(self, link) -> None:
+        """The link now on the device's port; the device time is taken afresh (a process
+        started from this one may have run the device meanwhile)."""
         self.link = link
+        self.sync()
 
     def detach(self, link) -> None:
         if self.link is link:
@@ -105,7 +123,8 @@ class LockstepClock:
 
     def sync(self) -> None:
         """Take the device's time (e.g. after it was started)."""
-        self.t_us = int(self.bench.control("status")["time_us"])
+        with self._lock:
+            self.t_us = int(self.bench.control("status")["time_us"])
 
     def run(self, seconds: float, stop: str | None = None, die_tolerance_c: float | None = None) -> dict:
         """Grant `seconds` of device time (with stop: until the wait_idle condition holds,
@@ -154,22 +173,88 @@ class LockstepClock:
                 step = min(step * 2, self.STEP_MAX_S)
 
 
+class _Control:
+    """A control connection of its own to a lockstep device another process started."""
+
+    def __init__(self, address: str, speed: float):
+        host, _, port = address.rpartition(":")
+        self.address = address
+        self.speed = float(speed)
+        try:
+            self._sock = socket.create_connection((host, int(port)), timeout=10.0)
+        except OSError as e:
+            raise ClockError(f"cannot reach the virtual device's control channel {address}: {e}") from e
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._rfile = self._sock.makefile("rb")
+        self._lock = threading.Lock()
+
+    def control(self, _cmd: str, *, timeout: float | None = 10.0, **fields) -> dict:
+        with self._lock:
+            try:
+                self._sock.settimeout(timeout)
+                self._sock.sendall((json.dumps({"cmd": _cmd, **fields}) + "\n").encode())
+                line = self._rfile.readline()
+            except OSError as e:
+                raise ClockError(f"the virtual device's control channel {self.address} failed: {e}") from e
+        if not line:
+            raise ClockError(f"the virtual device closed its control channel {self.address}")
+        r = json.loads(line)
+        if not r.get("ok"):
+            raise ClockError(f"{_cmd}: {r.get('error', 'refused')}")
+        return r
+
+
 _BY_URL: dict[str, LockstepClock] = {}
 _BY_URL_LOCK = threading.Lock()
 
 
-def register(url: str, clock: LockstepClock) -> None:
+def _env_set(url: str, entry: dict | None) -> None:
+    try:
+        known = json.loads(os.environ.get(ENV) or "{}")
+    except ValueError:
+        known = {}
+    if entry is None:
+        known.pop(url, None)
+    else:
+        known[url] = entry
+    if known:
+        os.environ[ENV] = json.dumps(known)
+    else:
+        os.environ.pop(ENV, None)
+
+
+def register(url: str, clock: LockstepClock, control: str | None = None) -> None:
+    """Make `url` a lockstep device's (control: its control channel "HOST:PORT", for the
+    processes this one starts)."""
     with _BY_URL_LOCK:
         _BY_URL[url] = clock
+        if control is not None:
+            _env_set(url, {"control": control, "speed": float(clock.bench.speed)})
 
 
 def unregister(clock: LockstepClock) -> None:
     with _BY_URL_LOCK:
         for k in [k for k, v in _BY_URL.items() if v is clock]:
             del _BY_URL[k]
+            _env_set(k, None)
 
 
 def for_url(url: str):
-    """The clock of the device on `url`: a registered lockstep clock, else the wall clock."""
+    """The clock of the device on `url`: a lockstep clock registered here or by a process
+    above this one (IMUBENCH_LOCKSTEP), else the wall clock."""
     with _BY_URL_LOCK:
-        return _BY_URL.get(url, WALL)
+        if url in _BY_URL:
+            return _BY_URL[url]
+        try:
+            entry = json.loads(os.environ.get(ENV) or "{}").get(url)
+        except ValueError:
+            entry = None
+        if not isinstance(entry, dict) or "control" not in entry:
+            return WALL
+        ctl = _Control(str(entry["control"]), float(entry.get("speed", 0.0)))
+        t_us = int(ctl.control("status")["time_us"])
+        # request ids from the device time: not those the process above used just before
+        clock = LockstepClock(ctl, first_request_id=(t_us // 1000) % 0xFFFF + 1)
+        clock.t_us = t_us
+        _BY_URL[url] = clock
+        return clock

@@ -232,9 +232,9 @@ class VirtualBench:
             if self.clock.lockstep:
                 self.clock.sync()
                 clocks.unregister(self.clock)
-                clocks.register(self.port_url, self.clock)
+                clocks.register(self.port_url, self.clock, control=self.info["control"])
                 if self.pty:
-                    clocks.register(self.pty, self.clock)
+                    clocks.register(self.pty, self.clock, control=self.info["control"])
             if self.thermal:
                 self.set_thermal(True)
         except BaseException:
@@ -450,6 +450,7 @@ class VirtualBench:
     def now(self) -> float:
         """Device time, s (lockstep: where the device is frozen; real-time: asks it)."""
         if self.clock.lockstep:
+            self.clock.sync()       # a process started from this one may have run the device
             return self.clock.now()
         return float(self.status()["time_us"]) * 1e-6
 
@@ -572,6 +573,7 @@ class VirtualBench:
         """Return after device_s seconds of device time (lockstep: granted, with every link
         byte of that time received by the host)."""
         if self.clock.lockstep:
+            self.clock.sync()
             return self.clock.run(float(device_s))
         return self.control("wait", device_s=float(device_s), timeout=self._wait_timeout(device_s))
 
@@ -584,6 +586,7 @@ class VirtualBench:
         condition holds, at most device_limit_s (SimError when it did not)."""
         if self.clock.lockstep:
             stop = "dies" if die_tolerance_c is not None else "temperature" if temperature else "idle"
+            self.clock.sync()
             r = self.clock.run(float(device_limit_s), stop=stop, die_tolerance_c=die_tolerance_c)
             if not r.get("done"):
                 raise SimError(f"wait_idle: the bench was not idle ({stop}) within {device_limit_s:g} s of "
