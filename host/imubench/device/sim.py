@@ -118,7 +118,8 @@ class VirtualBench:
     speed     device time per wall time (20 for CI; 1 = real time; 0 = as fast as possible);
               with clock="lockstep" a ceiling
     clock     "lockstep" (the default: device time granted by the host's waits, deterministic)
-              or "realtime" (device time against the wall clock; module docstring)
+              or "realtime" (device time against the wall clock; module docstring; the
+              default with boot0, whose ROM bootloader serves stm32flash, which grants nothing)
     seed      seed of the sensor models (noise, random truth, serial numbers, uid)
     truth     "default" (ideal parts with datasheet noise) or "random" (errors drawn from seed)
     flash     parameter flash file; None = a temporary file kept for this object's lifetime
@@ -143,9 +144,13 @@ class VirtualBench:
                  thermal: bool = False, clock: str | None = None):
         if target not in TARGETS:
             raise ValueError(f"target must be one of {', '.join(TARGETS)}")
-        clock = "lockstep" if clock is None else clock
+        # BOOT0 high: the ROM bootloader serves stm32flash on the pty, which grants no time
+        clock = ("realtime" if boot0 else "lockstep") if clock is None else clock
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {', '.join(CLOCKS)}")
+        if clock == "lockstep" and boot0:
+            raise SimError("the ROM bootloader (boot0) runs on the real-time clock only: stm32flash grants "
+                           "no device time")
         self.clock_name = clock
         self.clock = clocks.LockstepClock(self) if clock == "lockstep" else clocks.WALL
         self.target = target
