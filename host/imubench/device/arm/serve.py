@@ -156,9 +156,10 @@ class Server:
                 self.speed = lib.simlib_speed()
                 until = target.value * 1e-6
                 now = m.now()
-                m.set_model_time(now)
-                ext = lib.simlib_next_event()
-                m.ext_deadline = ext * 1e-6 if ext != 0xFFFFFFFFFFFFFFFF and ext * 1e-6 > now else INF
+                # the grant's end is the only stop: the models, the link and the status are
+                # brought to device time there alone (a stop of the wall budget in between must
+                # not advance a model: its rate is the mean since its last advance)
+                m.ext_deadline = INF
                 m._recompute_next()
                 if until > now:
                     m.run_until(until, 0.02)
@@ -167,10 +168,15 @@ class Server:
                     # run on (by the image alone) until it closes
                     m.run_until(now + 1e-6, 0.02)
                 now = m.now()
-                m.usart.drain(now)
-                m.set_model_time(now)
+                final = now >= until
+                if final:
+                    m.usart.drain(now)
+                    m.set_model_time(now)
                 self._flush_blocking()
-                if now >= until and self.speed > 0:         # the ceiling
+                if not final:
+                    self._io(pfd, 0.0)
+                    continue
+                if self.speed > 0:                          # the ceiling
                     ahead = now - self._pace_target(time.monotonic())
                     if ahead > 0:
                         time.sleep(ahead / self.speed)
