@@ -156,17 +156,18 @@ class Server:
                 self.speed = lib.simlib_speed()
                 until = target.value * 1e-6
                 now = m.now()
-                # the grant's end is the only stop: the models, the link and the status are
-                # brought to device time there alone (a stop of the wall budget in between must
-                # not advance a model: its rate is the mean since its last advance)
+                # the grant's end is the only stop (no wall budget): the models, the link and the
+                # status are brought to device time there alone, and the float device time is
+                # summed over the same segments whatever the machine's load (the models library
+                # hands the link bytes to the host as they fill up, waiting for it)
                 m.ext_deadline = INF
                 m._recompute_next()
                 if until > now:
-                    m.run_until(until, 0.02)
+                    m.run_until(until, INF)
                 elif lib.simlib_time() < target.value:
                     # at the end, but an SPI transaction holds the models at its chip select:
                     # run on (by the image alone) until it closes
-                    m.run_until(now + 1e-6, 0.02)
+                    m.run_until(now + 1e-6, INF)
                 now = m.now()
                 final = now >= until
                 if final:
