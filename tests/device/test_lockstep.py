@@ -152,8 +152,10 @@ def _arm_session(target: str, path: Path, busy: int = 0) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def test_the_f4_image_gives_the_same_bytes_idle_and_busy(tmp_path):
-    assert _arm_session("f4", tmp_path / "idle.bin") == _arm_session("f4", tmp_path / "busy.bin", busy=2)
+@pytest.mark.parametrize("target", ["f103", "f4"])
+def test_the_arm_images_give_the_same_bytes_idle_and_busy(target, tmp_path):
+    idle = _arm_session(target, tmp_path / "idle.bin")
+    assert idle == _arm_session(target, tmp_path / "busy.bin", busy=2)
 
 
 def test_targets_of_one_seed_are_boards_of_their_own():
