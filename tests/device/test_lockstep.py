@@ -85,9 +85,20 @@ def test_run_is_refused_on_the_realtime_clock_and_checked():
             vb.control("run", until_us=1, stop="dies")
 
 
-def test_the_arm_targets_refuse_lockstep_by_name():
+def test_the_rom_bootloader_runs_on_the_realtime_clock_by_name():
+    """BOOT0 high: stm32flash talks to the ROM bootloader and grants no device time."""
     with pytest.raises(SimError, match="real-time clock only"):
-        VirtualBench(target="f103", clock="lockstep", start=False)
+        VirtualBench(target="f103", boot0=True, clock="lockstep", start=False)
+    vb = VirtualBench(target="f103", boot0=True, start=False)
+    try:
+        assert vb.clock_name == "realtime" and not vb.clock.lockstep
+    finally:
+        vb.close()
+    vb = VirtualBench(target="f103", start=False)
+    try:
+        assert vb.clock_name == "lockstep" and vb.clock.lockstep       # the image itself: lockstep
+    finally:
+        vb.close()
 
 
 # ------------------------------------------------------------------ same seed, same bytes
