@@ -19,7 +19,11 @@ constants given), starting at 25 °C ambient just after power-up, level (+Z up):
   low end (a night in a fridge: not counted, it needs nobody), then the room at the high end;
   polynomial of the order the data choose, span clamped on the device.
 
-Time = device time from the method's first command to its parameters written and verified.
+Time = device time from the method's first command to its parameters written and verified
+(the virtual device in lockstep: device time does not depend on the machine's load); the
+wall time each method took is printed and tabled apart, labelled with its clock. A link or
+simulator error in a method, or in its drift measurement, is caught per method and named
+(which method, which stage, which error) in the output and the table.
 Residual drift = on the device's CALIBRATED stream (100 Hz, level, still), the ambient soaked
 at the low end then ramped at 0.5 °C/min past the high end (warming) and back below the low
 end (cooling); chunk means (1 s) binned by each sensor's own die temperature in 2 °C bins over
@@ -185,7 +189,10 @@ def table(runs: dict, truth_d: dict, thermal: dict, span, suffixes) -> str:
     rows = []
     for suffix, words in VARIANTS:
         if suffix in suffixes:
-            rows.append((f"device time; {words}", [_minutes(runs[k + suffix]["time_s"]) for _, k in cols]))
+            rows.append((f"calibration time, device clock; {words}",
+                         [_minutes(runs[k + suffix]["time_s"]) for _, k in cols]))
+            rows.append((f"this run's wall time (calibration and drift), wall clock; {words}",
+                         [_minutes(runs[k + suffix].get("wall_s", math.nan)) for _, k in cols]))
     rows.append(("temperature model fitted", [runs[k + first]["order"] for _, k in cols]))
     if "warmup" + first in runs and runs["warmup" + first].get("result"):
         rows.append(("warm-up stopped because", ["", "", str(runs["warmup" + first]["result"].get("stop_reason"))]))
@@ -209,6 +216,15 @@ def table(runs: dict, truth_d: dict, thermal: dict, span, suffixes) -> str:
     return head + body + foot + errors
 
 
+def _failed(key: str, stage: str, e: BaseException) -> dict:
+    """A method's result when its `stage` raised e (a link error, a timeout, the simulator)."""
+    what = f"{stage}: {type(e).__name__}: {e}"
+    print(f"{key}: FAILED in the {what}", flush=True)
+    return {"time_s": math.nan, "order": f"failed ({stage})", "error": what,
+            "drift": {k: np.full(3, np.nan) for k in ("gyro_dps", "accel_mg", "gyro_dps_warming", "accel_mg_warming")}
+            | {"bins_filled": [0, 0], "nbins": 0}}
+
+
 def _verdict(runs: dict, suffix: str) -> tuple[bool, str]:
     st, wu = runs["step" + suffix], runs["warmup" + suffix]
     ratio = wu["time_s"] / st["time_s"]
@@ -224,7 +240,8 @@ def _verdict(runs: dict, suffix: str) -> tuple[bool, str]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seed", type=int, default=7, help="the virtual part (random truth and thermal constants)")
-    ap.add_argument("--speed", type=float, default=300.0, help="device time per wall time")
+    ap.add_argument("--speed", type=float, default=300.0,
+                    help="ceiling of device time per wall time (the virtual device runs in lockstep)")
     ap.add_argument("--span", default="5,45", help="LO,HI in °C (default 5,45)")
     ap.add_argument("--random-walk", choices=("on", "off", "both"), default="both",
                     help="the part's bias drift (gyro bias instability and random walks): as drawn (on), off "
@@ -255,13 +272,13 @@ def main() -> int:
                         r = (warmup_method(vb, out, span) if method == "warmup"
                              else step_method(vb, out, span, wait=method == "step"))
                     except Exception as e:  # noqa: BLE001 - a method that fails is a result too
-                        print(f"{key}: FAILED: {type(e).__name__}: {e}", flush=True)
-                        r = {"time_s": math.nan, "order": f"failed: {str(e)[:60]}", "error": str(e),
-                             "drift": {k: np.full(3, np.nan) for k in ("gyro_dps", "accel_mg", "gyro_dps_warming",
-                                                                         "accel_mg_warming")} | {"bins_filled": [0, 0], "nbins": 0}}
+                        r = _failed(key, "calibration", e)
                     else:
                         print(f"{key}: calibrated in {r['time_s']:.0f} s of device time; measuring the drift …", flush=True)
-                        r["drift"] = drift(vb, span, thermal["self_heat_c"])
+                        try:
+                            r["drift"] = drift(vb, span, thermal["self_heat_c"])
+                        except Exception as e:  # noqa: BLE001 - LinkTimeout, LinkError, SimError: named
+                            r = {**_failed(key, "drift measurement", e), "time_s": r["time_s"], "order": r["order"]}
                 r["wall_s"] = time.monotonic() - w0
                 runs[key] = r
                 d = r["drift"]
@@ -279,7 +296,9 @@ def main() -> int:
     print(f"wall time {wall:.0f} s at sim speed {a.speed:g}")
     publish("thermal_time", md, {"seed": a.seed, "span": f"{span[0]:g}–{span[1]:g} °C", "sim speed": f"{a.speed:g}",
                                  "wall time": f"{wall:.0f} s"}, enabled=not a.no_publish)
-    line = {"drift": "per-axis lists x, y, z: max − min of 2 °C bin means of the calibrated stream over the span, "
+    line = {"wall_s": {k: round(r.get("wall_s", math.nan), 1) for k, r in runs.items()},
+            "errors": {k: r["error"] for k, r in runs.items() if r.get("error")},
+            "drift": "per-axis lists x, y, z: max − min of 2 °C bin means of the calibrated stream over the span, "
                      "warming and cooling together (_warming: warming only); _no_rw: the part's bias drift off",
             "seed": a.seed, "tau_s": [round(t, 1) for t in thermal["tau_s"]],
             "self_heat_c": [round(t, 2) for t in thermal["self_heat_c"]]}

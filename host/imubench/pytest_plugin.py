@@ -21,13 +21,18 @@ def pytest_addoption(parser):
     g.addoption("--imubench-port", default=None,
                 help="pyserial URL of the device under test (default: $IMUBENCH_PORT, else the virtual device)")
     g.addoption("--imubench-sim-speed", type=float, default=20.0,
-                help="speed factor of the virtual device when one is started (default 20)")
+                help="speed factor of the virtual device when one is started (default 20; in lockstep a "
+                     "ceiling)")
+    g.addoption("--imubench-sim-clock", choices=("lockstep", "realtime"), default=None,
+                help="clock of the virtual device: lockstep (the default; deterministic, nothing dropped) or "
+                     "realtime (against the wall clock, as a real board)")
 
 
 @pytest.fixture(scope="session")
 def virtual_bench(request):
     from imubench.device.sim import VirtualBench
-    with VirtualBench(speed=request.config.getoption("--imubench-sim-speed")) as vb:
+    with VirtualBench(speed=request.config.getoption("--imubench-sim-speed"),
+                      clock=request.config.getoption("--imubench-sim-clock")) as vb:
         yield vb
 
 

@@ -53,6 +53,7 @@ def test_calibrated_stream_applies_the_clamped_cubic_like_the_host(target):
         g = np.array([0.3, -0.5, 0.81])
         vb.set_orientation(gravity=list(g))
         vb.set_rate(list(25.0 * g / np.linalg.norm(g)))       # turning about the vertical: gravity stays put
+        vb.wait(0.1)            # turning for a while: no sample averages the start of the turn
         # a small command first, as every imubench procedure starts (info): on the F103 a
         # 263-byte set_params frame sent while the image still starts its sensors overflows the
         # 255 bytes its RX ring holds and waits for the host's retry (docs/firmware.md, RX ring)

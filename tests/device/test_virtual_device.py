@@ -188,10 +188,8 @@ def _raw_command(dev: Device, frame: bytes):
     with link._cond:
         pend = link._pending[rid] = _Pending(P.cobs.decode(frame[:-1])[1], None, [])
     link._write(frame)
-    deadline = time.monotonic() + 3
+    dev.clock.wait_for(lambda: pend.ack is not None, 3, link._cond)     # device time in lockstep
     with link._cond:
-        while pend.ack is None and time.monotonic() < deadline:
-            link._cond.wait(0.1)
         link._pending.pop(rid, None)
     return pend.ack
 
@@ -213,7 +211,7 @@ def test_bad_frames_are_nacked_or_counted(dev):
     bad = bytearray(frame(v, 0x01, 904, b"\0\0\0\0"))
     bad[5] ^= 0x10                                    # CRC no longer matches: no answer, counted
     dev.link._write(bytes(bad) + b"\x55" * 10 + b"\0")
-    time.sleep(0.2)
+    dev.clock.sleep(0.2)
     assert dev.stats().rx_frame_errors == before + 2
     assert dev.ping() < 2.0                            # and it still serves commands
 
@@ -463,6 +461,7 @@ def test_calibrated_output_equals_the_host_correction(vb, dev):
     vb.set_orientation(gravity=list(g))
     vb.set_rate(list(25.0 * g / np.linalg.norm(g)))   # turning about the vertical: gravity stays put
     vb.set_temperature(31.0)
+    vb.wait(0.1)            # turning for a while: no sample averages the start of the turn
     p = _params_example()
     dev.set_params(p)
     dev.start_stream(1000)
@@ -564,7 +563,7 @@ def test_a_link_too_slow_for_the_stream_drops_whole_batches_and_says_so():
         d.start_stream(4000)
         b = d.read(n_samples=20000, timeout=60)
         d.stop_stream()
-        time.sleep(0.3)
+        d.clock.sleep(0.3)
         d.discard_buffered()             # take (and count) everything that arrived
         dev_stats = d.stats()
         host = d.link.decoder.stats

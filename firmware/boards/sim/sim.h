@@ -67,6 +67,8 @@ typedef struct sim_link {
     /* statistics */
     uint64_t bytes_written_os, bytes_discarded, bytes_dropped, bytes_flipped, bytes_received;
     uint64_t tx_refused;        /* bytes link_write could not take (should stay 0) */
+    uint64_t conn_rx, conn_tx;  /* bytes received from / written to the current connection
+                                   (since the TCP client was accepted; the pty: since start) */
     uint32_t clients_accepted;
 } sim_link_t;
 
@@ -160,6 +162,8 @@ typedef struct sim {
     uint64_t anchor_wall_ns; /* pacing anchor: device time anchor_dev_us at wall anchor */
     uint64_t anchor_dev_us;
     uint64_t slips;          /* times the pacing re-anchored because the CPU fell behind */
+    int lockstep;            /* --clock lockstep: device time moves only inside a granted run
+                                (sim_control.c "run"); speed is then a ceiling */
 
     /* sample tick */
     uint32_t tick_hz;
@@ -326,5 +330,9 @@ int sim_control_pollfds(struct pollfd *pfd, int max);   /* fds to watch */
 void sim_control_handle(struct pollfd *pfd, int n);     /* after poll() */
 void sim_control_check_waits(void);                     /* deferred replies now due */
 uint64_t sim_control_next_deadline(void);               /* device time of the earliest wait */
+/* Lockstep: 0 = no run granted (the device is frozen); 2 = a run is asked for but the host's
+ * link bytes have not all arrived yet (receive them first); 1 = granted: *target (when not
+ * NULL) is the device time to run to. */
+int sim_control_run_target(uint64_t *target);
 
 #endif

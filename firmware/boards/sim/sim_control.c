@@ -31,8 +31,18 @@
  *                     plus self_heat_c[i]; omitted figures keep theirs (nominal, or drawn
  *                     with the random truth). Off (the default) every die is at the ambient.
  *                     Switching on starts every die at the ambient (as a power-up)
- *   set_speed         {speed}  (0 = as fast as possible)
- *   wait              {device_s}  reply after that much device time
+ *   set_speed         {speed}  (0 = as fast as possible; in lockstep a ceiling)
+ *   run               {until_us, stop: "idle"|"temperature"|"dies" (optional),
+ *                      die_tolerance_c, link_rx}  LOCKSTEP (--clock lockstep): the device is
+ *                     frozen except while a run is granted. It first receives link_rx bytes
+ *                     (what the host wrote on its link connection so far), then runs to
+ *                     device time until_us (or, with stop, to the first device time the
+ *                     wait_idle condition holds, at most until_us), hands every link byte
+ *                     produced up to then to the host (waiting for the host to take them:
+ *                     nothing is dropped), and replies {time_us, link_tx (bytes written on
+ *                     the link connection so far), done (stop: the condition holds)}.
+ *                     Refused in the real-time clock
+ *   wait              {device_s}  reply after that much device time (lockstep: a run)
  *   wait_idle         {temperature: bool (also wait for a ramp to end; default false),
  *                      die_tolerance_c: number (also wait until every die is within this of
  *                      its steady temperature, ambient + self-heating; implies temperature)}
@@ -86,7 +96,7 @@
 #define CTL_LINE_MAX 65536
 #define DEG (M_PI / 180.0)
 
-enum { WAIT_NONE = 0, WAIT_TIME, WAIT_IDLE, WAIT_IDLE_TEMP, WAIT_IDLE_DIES };
+enum { WAIT_NONE = 0, WAIT_TIME, WAIT_IDLE, WAIT_IDLE_TEMP, WAIT_IDLE_DIES, WAIT_RUN };
 
 typedef struct {
     int fd;
@@ -97,12 +107,15 @@ typedef struct {
     int wait;
     uint64_t wait_until;
     double wait_tol_c;  /* WAIT_IDLE_DIES: tolerance of every die */
+    int run_stop;       /* WAIT_RUN: WAIT_NONE (run to wait_until) or WAIT_IDLE* (stop when idle) */
+    uint64_t run_link_rx; /* WAIT_RUN: link bytes the host wrote before it asked (received first) */
     char wait_id[80]; /* JSON of the id to echo in the deferred reply ("" = none) */
 } conn_t;
 
 static conn_t g_conn[CTL_MAX_CONN];
 static int g_map[CTL_MAX_CONN + 1]; /* pollfd slot -> connection index, -1 = listener */
 static char g_err[256];
+static conn_t *run_conn(void);
 
 static int fail(const char *fmt, ...) __attribute__((format(printf, 1, 2)));
 static int fail(const char *fmt, ...)
@@ -469,6 +482,7 @@ static int cmd_status(req_t *q)
     put_u64(r, "ticks", s->ticks);
     put_u64(r, "ticks_missed", s->ticks_missed);
     put_u64(r, "pacing_slips", s->slips);
+    put_u64(r, "samples_dropped", s->core.stats.samples_dropped); /* by the core: TX ring full */
     put_u64(r, "spi_transfers", s->spi_transfers);
     double inj[IB_CS_COUNT];
     for (int i = 0; i < IB_CS_COUNT; i++) {
@@ -809,6 +823,81 @@ static int cmd_wait(req_t *q)
     }
     q->c->wait = WAIT_TIME;
     q->c->wait_until = g_sim.t_us + (uint64_t)llround(sec * 1e6);
+    if (g_sim.lockstep) { /* a run of that length */
+        q->c->wait = WAIT_RUN;
+        q->c->run_stop = WAIT_NONE;
+        q->c->run_link_rx = 0;
+    }
+    return 1;
+}
+
+/* The wait_idle condition of `kind` (WAIT_IDLE, _TEMP, _DIES) at the current device time. */
+static int idle_reached(int kind, double tol_c)
+{
+    sim_t *s = &g_sim;
+    int idle = !sim_phys_moving(&s->phys, s->t_us);
+    if (kind == WAIT_IDLE) {
+        return idle;
+    }
+    idle = idle && sim_phys_temperature(&s->phys, s->t_us) == s->phys.temp_target_c;
+    if (kind == WAIT_IDLE_DIES) {
+        idle = idle && sim_thermal_settle_time(&s->thermal, &s->phys, s->t_us, tol_c) <= s->t_us;
+    }
+    return idle;
+}
+
+/* The next device time the wait_idle condition of `kind` may start to hold (a move's or a
+ * ramp's end, the dies' settling), UINT64_MAX when nothing is due. */
+static uint64_t idle_next(int kind, double tol_c)
+{
+    sim_t *s = &g_sim;
+    uint64_t t = sim_phys_next_event(&s->phys, s->t_us);
+    if (kind == WAIT_IDLE_DIES) {
+        uint64_t d = sim_thermal_settle_time(&s->thermal, &s->phys, s->t_us, tol_c);
+        if (d > s->t_us && d < t) {
+            t = d;
+        }
+    }
+    return t;
+}
+
+/* Returns 1: deferred. */
+static int cmd_run(req_t *q)
+{
+    double until, rx = 0.0, tol = 0.0;
+    int ns, nt;
+    if (!g_sim.lockstep) {
+        return fail("run is a command of the lockstep clock (this device runs on the real-time clock)");
+    }
+    if (check_keys(q, q->root, "cmd,id,until_us,stop,die_tolerance_c,link_rx") != 0 ||
+        req_num(q, q->root, "until_us", &until) != 0 || opt_num(q, q->root, "link_rx", &rx) < 0 ||
+        (nt = opt_num(q, q->root, "die_tolerance_c", &tol)) < 0) {
+        return -1;
+    }
+    if (!(until >= 0.0 && until < 1.8e19) || !(rx >= 0.0 && rx < 1.8e19)) {
+        return fail("until_us and link_rx must be counts >= 0");
+    }
+    int stop = WAIT_NONE;
+    ns = sj_get(q->d, q->root, "stop");
+    if (ns >= 0 && !is_null(q->d, ns)) {
+        const char *v = q->d->nodes[ns].type == SJ_STR ? q->d->nodes[ns].str : "";
+        stop = !strcmp(v, "idle") ? WAIT_IDLE : !strcmp(v, "temperature") ? WAIT_IDLE_TEMP
+             : !strcmp(v, "dies") ? WAIT_IDLE_DIES : -1;
+        if (stop < 0) {
+            return fail("stop must be \"idle\", \"temperature\" or \"dies\"");
+        }
+    }
+    if (nt && (stop != WAIT_IDLE_DIES || !(tol > 0.0 && tol <= 100.0))) {
+        return fail("die_tolerance_c goes with stop \"dies\" and must be in (0, 100] degC");
+    }
+    if (stop == WAIT_IDLE_DIES && !nt) {
+        return fail("stop \"dies\" needs die_tolerance_c");
+    }
+    q->c->wait = WAIT_RUN;
+    q->c->run_stop = stop;
+    q->c->wait_tol_c = tol;
+    q->c->wait_until = (uint64_t)until;
+    q->c->run_link_rx = (uint64_t)rx;
     return 1;
 }
 
@@ -827,6 +916,12 @@ static int cmd_wait_idle(req_t *q)
     }
     q->c->wait = nt ? WAIT_IDLE_DIES : temp ? WAIT_IDLE_TEMP : WAIT_IDLE;
     q->c->wait_tol_c = tol;
+    if (g_sim.lockstep) { /* a run to the first time it holds (at most 1e7 s) */
+        q->c->run_stop = q->c->wait;
+        q->c->wait = WAIT_RUN;
+        q->c->wait_until = g_sim.t_us + 10000000000000ull;
+        q->c->run_link_rx = 0;
+    }
     return 1;
 }
 
@@ -1249,6 +1344,7 @@ static const struct {
     {"set_speed", cmd_set_speed},
     {"wait", cmd_wait},
     {"wait_idle", cmd_wait_idle},
+    {"run", cmd_run},
     {"set_truth", cmd_set_truth},
     {"randomize_truth", cmd_randomize_truth},
     {"get_truth", cmd_get_truth},
@@ -1376,6 +1472,10 @@ static void finish_wait(conn_t *c)
     sj_buf_t r = {0};
     sj_raw(&r, "{\"ok\": true");
     put_u64(&r, "time_us", g_sim.t_us);
+    if (c->wait == WAIT_RUN) {
+        put_u64(&r, "link_tx", g_sim.link.conn_tx);
+        put_bool(&r, "done", c->run_stop != WAIT_NONE && idle_reached(c->run_stop, c->wait_tol_c));
+    }
     if (c->wait_id[0]) {
         sj_key(&r, "id");
         sj_raw(&r, c->wait_id);
@@ -1395,23 +1495,16 @@ void sim_control_check_waits(void)
         if (c->fd < 0 || c->wait == WAIT_NONE) {
             continue;
         }
-        int done = 0;
-        switch (c->wait) {
-        case WAIT_TIME:
+        int done;
+        if (c->wait == WAIT_TIME) {
             done = s->t_us >= c->wait_until;
-            break;
-        case WAIT_IDLE:
-            done = !sim_phys_moving(&s->phys, s->t_us);
-            break;
-        case WAIT_IDLE_DIES:
-            done = !sim_phys_moving(&s->phys, s->t_us) &&
-                   sim_phys_temperature(&s->phys, s->t_us) == s->phys.temp_target_c &&
-                   sim_thermal_settle_time(&s->thermal, &s->phys, s->t_us, c->wait_tol_c) <= s->t_us;
-            break;
-        default:
-            done = !sim_phys_moving(&s->phys, s->t_us) &&
-                   sim_phys_temperature(&s->phys, s->t_us) == s->phys.temp_target_c;
-            break;
+        } else if (c->wait == WAIT_RUN) {
+            /* ran to its end (or its condition holds) and every link byte up to now is out */
+            done = sim_control_run_target(NULL) == 1 && c == run_conn() &&
+                   (s->t_us >= c->wait_until || (c->run_stop != WAIT_NONE && idle_reached(c->run_stop, c->wait_tol_c))) &&
+                   sim_link_staged(&s->link) == 0;
+        } else {
+            done = idle_reached(c->wait, c->wait_tol_c);
         }
         if (done) {
             finish_wait(c);
@@ -1435,6 +1528,43 @@ uint64_t sim_control_next_deadline(void)
         }
     }
     return t;
+}
+
+/* The connection whose run is granted: the first one with a run pending. */
+static conn_t *run_conn(void)
+{
+    for (int i = 0; i < CTL_MAX_CONN; i++) {
+        if (g_conn[i].fd >= 0 && g_conn[i].wait == WAIT_RUN) {
+            return &g_conn[i];
+        }
+    }
+    return NULL;
+}
+
+int sim_control_run_target(uint64_t *target)
+{
+    sim_t *s = &g_sim;
+    conn_t *c = run_conn();
+    if (c == NULL) {
+        return 0;
+    }
+    /* the host's link bytes first (or as many as the device can hold) */
+    if (s->link.conn_rx < c->run_link_rx && (s->link.rx_head - s->link.rx_tail) < SIM_RX_RING) {
+        return 2;
+    }
+    if (target != NULL) {
+        uint64_t t = c->wait_until;
+        if (c->run_stop != WAIT_NONE && !idle_reached(c->run_stop, c->wait_tol_c)) {
+            uint64_t e = idle_next(c->run_stop, c->wait_tol_c);
+            if (e < t) {
+                t = e;
+            }
+        } else if (c->run_stop != WAIT_NONE) {
+            t = s->t_us; /* holds already: no further */
+        }
+        *target = t < s->t_us ? s->t_us : t;
+    }
+    return 1;
 }
 
 static void accept_conn(void)

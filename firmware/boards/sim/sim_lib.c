@@ -25,6 +25,8 @@
 #define _GNU_SOURCE
 #include "sim.h"
 
+#include <errno.h>
+#include <poll.h>
 #include <stdarg.h>
 #include <stdio.h>
 #include <string.h>
@@ -118,6 +120,10 @@ void simlib_close(void)
 }
 
 void simlib_set_log(int on) { g_log_enabled = on; }
+/* --clock lockstep: device time moves only inside a granted run (sim_control.c "run"); the
+ * emulator's serve loop asks sim_control_run_target how far. */
+void simlib_set_lockstep(int on) { g_sim.lockstep = on; }
+
 int simlib_tcp_port(void) { return g_sim.link.tcp_port; }
 int simlib_control_port(void) { return g_sim.control_port; }
 void simlib_uid(uint8_t out[12]) { memcpy(out, g_sim.uid, 12); }
@@ -295,12 +301,34 @@ void simlib_link_flush(void) { sim_link_flush(&g_sim.link); }
 size_t simlib_link_staged(void) { return sim_link_staged(&g_sim.link); }
 int simlib_link_blocked(void) { return g_sim.link.os_blocked; }
 
+/* Lockstep: hand staged bytes to the OS, waiting while the host's socket is full, until at
+ * most `keep` are staged (the emulated USART then never finds the ring full because the host
+ * is slow; nothing the device does depends on when the host reads). */
+static void flush_blocking(size_t keep)
+{
+    sim_link_t *l = &g_sim.link;
+    while (sim_link_staged(l) > keep) {
+        sim_link_flush(l);
+        if (!l->os_blocked) {
+            continue;
+        }
+        int fd = l->tcp_client >= 0 ? l->tcp_client : l->pty_master;
+        struct pollfd p = {fd, POLLOUT, 0};
+        if (poll(&p, 1, 100) < 0 && errno != EINTR) {
+            return;
+        }
+    }
+}
+
 /* Bytes the emulated USART has shifted out; what the ring cannot take is refused. */
 size_t simlib_link_push(const uint8_t *data, size_t len)
 {
     sim_link_uart_update(&g_sim.link, g_sim.t_us);
     size_t n = sim_link_write(&g_sim.link, data, len);
     sim_link_uart_update(&g_sim.link, g_sim.t_us + 1u);
+    if (g_sim.lockstep && sim_link_staged(&g_sim.link) > (SIM_TX_STORE - SIM_TX_RING) / 4) {
+        flush_blocking(0);
+    }
     return n;
 }
 

@@ -238,6 +238,7 @@ int sim_link_accept(sim_link_t *l)
     setsockopt(c, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
     l->tcp_client = c;
     l->clients_accepted++;
+    l->conn_rx = l->conn_tx = 0;
     /* bytes already on the wire were meant for the previous client */
     l->bytes_discarded += l->tx_uart - l->tx_os;
     l->tx_os = l->tx_uart;
@@ -291,6 +292,7 @@ void sim_link_flush(sim_link_t *l)
         if (n > 0) {
             l->tx_os += (uint64_t)n;
             l->bytes_written_os += (uint64_t)n;
+            l->conn_tx += (uint64_t)n;
             continue;
         }
         if (n < 0 && errno == EINTR) {
@@ -329,6 +331,7 @@ static int read_into_rx(sim_link_t *l, int fd, int is_tcp)
         if (n > 0) {
             l->rx_head += (uint32_t)n;
             l->bytes_received += (uint64_t)n;
+            l->conn_rx += (uint64_t)n;
             continue;
         }
         if (n < 0 && errno == EINTR) {

@@ -4,6 +4,7 @@
  *
  *   imubench-sim [--pty] [--tcp PORT] [--control PORT] [--flash FILE] [--speed X]
  *                [--seed N] [--truth default|random] [--baud B] [--uid HEX24]
+ *                [--clock realtime|lockstep]
  *
  * Without --pty and --tcp the link listens on TCP (a free port). Once the ports are open
  * it prints ONE JSON line on stdout, e.g.
@@ -28,6 +29,18 @@
  * (pausing up to 50 ms when the host does not read the link), idle device time follows
  * the wall clock but jumps straight to the next pending event (wait deadline, end of a
  * move or temperature ramp).
+ *
+ * Lockstep (--clock lockstep). The device is frozen except while the host grants it time
+ * with the control command "run" (sim_control.c): the run first receives the link bytes the
+ * host wrote, then runs the ticks up to its end (speed > 0: no faster than speed x the wall
+ * clock, a ceiling), moves device time to the end and polls once, hands every link byte
+ * shifted out by then to the OS, waiting for the host to read when its socket is full
+ * (flow control: nothing is dropped because the host is slow), and replies. Intermediate
+ * stops (the wall budget, the ceiling) fall only between ticks, so what the device does
+ * depends on device time alone: the same seed and the same host gives the same bytes on
+ * any machine, idle or busy. The real-time clock (the default of this program) is the
+ * pacing above: device time runs against the wall clock and a host that does not read
+ * loses bytes, as with a real board.
  *
  * Resets. A power cut (flash op, control command) and board.reboot() longjmp out of the
  * core back to core_call() when they happen inside a core call, exactly like a reset
@@ -183,9 +196,33 @@ static uint64_t tick_time(uint64_t n)
     return s->tick_base_us + n * 1000000ull / s->tick_hz;
 }
 
+/* Lockstep: hand the link bytes to the OS, waiting (poll) while the host's socket is full,
+ * until at most `keep` bytes are staged. The host reads in a thread of its own; a host that
+ * is gone (client dropped) discards them. */
+static void flush_blocking(size_t keep)
+{
+    sim_t *s = &g_sim;
+    sim_link_t *l = &s->link;
+    while (sim_link_staged(l) > keep && !g_signal) {
+        sim_link_flush(l);
+        if (!l->os_blocked) {
+            continue;
+        }
+        int fd = l->tcp_client >= 0 ? l->tcp_client : l->pty_master;
+        struct pollfd p = {fd, POLLOUT, 0};
+        if (poll(&p, 1, 100) == 0 && g_parent != 0 && getppid() != g_parent) {
+            g_parent_gone = 1;
+            s->quit = 1;
+            return;
+        }
+    }
+}
+
 /* Run the device up to device time `target`. Returns 1 when it stopped early (wall
- * budget used up) with ticks still due. */
-static int run_device(uint64_t target, uint64_t budget_end_ns)
+ * budget used up) with ticks still due. `final` 0 (lockstep, below the run's end): run the
+ * ticks due by `target` only, no idle advance and poll at `target` (stops that depend on the
+ * wall clock must not change what the device does). */
+static int run_device_to(uint64_t target, uint64_t budget_end_ns, int final)
 {
     sim_t *s = &g_sim;
     if (s->reset_pending) {
@@ -220,6 +257,9 @@ static int run_device(uint64_t target, uint64_t budget_end_ns)
             boot(s->reset_pending);
             return 0;
         }
+        if (s->lockstep && sim_link_staged(&s->link) > (SIM_TX_STORE - SIM_TX_RING) / 4) {
+            flush_blocking(0); /* the UART never stalls on a slow host */
+        }
         if (s->t_us > target) {
             return 0;
         }
@@ -227,11 +267,19 @@ static int run_device(uint64_t target, uint64_t budget_end_ns)
             return 1;
         }
     }
+    if (!final) {
+        return 0;
+    }
     sim_advance_to(target);
     if (core_call(CORE_POLL, 0, 0) != 0) {
         boot(s->reset_kind);
     }
     return 0;
+}
+
+static int run_device(uint64_t target, uint64_t budget_end_ns)
+{
+    return run_device_to(target, budget_end_ns, 1);
 }
 
 /* ---- options ---- */
@@ -241,13 +289,18 @@ static void usage(FILE *f)
     fprintf(f,
             "usage: imubench-sim [--pty] [--tcp PORT] [--control PORT] [--flash FILE]\n"
             "                    [--speed X] [--seed N] [--truth default|random] [--baud B]\n"
-            "                    [--uid HEX24] [--orphan-cleanup DIR]\n"
+            "                    [--uid HEX24] [--orphan-cleanup DIR] [--clock realtime|lockstep]\n"
             "  --pty          expose the device's serial port on a new pseudo-terminal\n"
             "  --tcp PORT     ... and/or on TCP 127.0.0.1:PORT (0 = free port; the default\n"
             "                 when neither --pty nor --tcp is given)\n"
             "  --control PORT JSON-lines control channel on 127.0.0.1 (default 0 = free port)\n"
             "  --flash FILE   parameter flash file (created 0xFF-filled; default: temp dir)\n"
-            "  --speed X      device time runs X times real time (default 1; 0 = max)\n"
+            "  --speed X      device time runs X times real time (default 1; 0 = max);\n"
+            "                 with --clock lockstep a ceiling\n"
+            "  --clock C      realtime (default): device time runs against the wall clock,\n"
+            "                 bytes the host does not read in time are dropped; lockstep:\n"
+            "                 device time moves only when the host grants it (control\n"
+            "                 command run), nothing is dropped, the run is deterministic\n"
             "  --seed N       seed of the sensor models (default 1)\n"
             "  --truth T      default | random (the sensors' errors drawn from the seed)\n"
             "  --baud B       link speed that drains the TX buffer (default 2000000)\n"
@@ -328,6 +381,8 @@ static void print_startup_line(const char *flash_path)
     sj_printf(&b, "%llu", (unsigned long long)s->seed);
     sj_key(&b, "speed");
     sj_num(&b, s->speed);
+    sj_key(&b, "clock");
+    sj_str(&b, s->lockstep ? "lockstep" : "realtime");
     sj_key(&b, "baud");
     sj_printf(&b, "%u", s->baud);
     sj_key(&b, "truth");
@@ -350,6 +405,65 @@ static void print_startup_line(const char *flash_path)
 
 static uint64_t min_u64(uint64_t a, uint64_t b) { return a < b ? a : b; }
 
+/* One lockstep iteration: run as far as the granted run allows (and the speed ceiling),
+ * flush, answer finished runs. Returns 1 when more can be done at once. */
+static int lockstep_step(uint64_t now, int *was_active)
+{
+    sim_t *s = &g_sim;
+    uint64_t until;
+    int st = sim_control_run_target(&until);
+    if (st == 2) {
+        /* the host's link bytes first: a new connection is accepted before it is counted */
+        while (s->link.tcp_listen >= 0 && sim_link_accept(&s->link) == 0) {
+            sim_log("link: TCP client connected");
+        }
+        sim_link_receive(&s->link);
+        st = sim_control_run_target(&until);
+    }
+    if (st != 1) {
+        *was_active = 0;
+        return 0;
+    }
+    if (!*was_active) { /* the ceiling counts from the grant: frozen time is not credit */
+        s->anchor_dev_us = s->t_us;
+        s->anchor_wall_ns = now;
+        *was_active = 1;
+    }
+    uint64_t target = until;
+    if (s->speed > 0.0) {
+        uint64_t ceiling = pace_target(now);
+        if (ceiling < target) {
+            target = ceiling;
+        }
+    }
+    int more = run_device_to(target, now + BUDGET_NS, target == until);
+    flush_blocking(0);
+    sim_control_check_waits();
+    if (sim_control_run_target(NULL) != 1) {
+        *was_active = 0;
+        return 0;
+    }
+    return more || s->speed <= 0.0;
+}
+
+/* Lockstep: how long poll() may sleep (ms). A granted run under the speed ceiling sleeps
+ * until its next tick is due on the wall clock; a frozen device until I/O arrives. */
+static int lockstep_sleep_ms(void)
+{
+    sim_t *s = &g_sim;
+    uint64_t until;
+    if (sim_control_run_target(&until) != 1) {
+        return IDLE_POLL_MS;
+    }
+    uint64_t tgt = pace_target(sim_wall_ns());
+    uint64_t next = s->tick_hz != 0 && s->next_tick_us < until ? s->next_tick_us : until;
+    if (next <= tgt || !(s->speed > 0.0)) {
+        return 0;
+    }
+    double ms = (double)(next - tgt) / s->speed / 1000.0;
+    return ms >= IDLE_POLL_MS ? IDLE_POLL_MS : (int)ceil(ms);
+}
+
 static void main_loop(void)
 {
     sim_t *s = &g_sim;
@@ -359,6 +473,7 @@ static void main_loop(void)
     uint64_t last_slip_log = 0;
 
     uint64_t last_parent_check = 0;
+    int run_was_active = 0;
     while (!s->quit && !g_signal) {
         uint64_t now = sim_wall_ns();
         if (g_parent != 0 && now - last_parent_check > 100000000ull) {
@@ -371,6 +486,10 @@ static void main_loop(void)
         }
         uint64_t target;
         int more = 0, bp_wait = 0;
+        if (s->lockstep) {
+            more = lockstep_step(now, &run_was_active);
+            goto io;
+        }
         if (s->speed > 0.0) {
             target = pace_target(now);
             double max_lag = MAX_LAG_WALL_US * s->speed;
@@ -414,6 +533,7 @@ static void main_loop(void)
             sim_link_flush(&s->link);
         }
         sim_control_check_waits();
+    io:
         if (s->quit || g_signal) {
             break;
         }
@@ -422,6 +542,8 @@ static void main_loop(void)
         int timeout_ms;
         if (more) {
             timeout_ms = 0;
+        } else if (s->lockstep) {
+            timeout_ms = lockstep_sleep_ms();
         } else if (s->speed > 0.0) {
             uint64_t tgt = pace_target(sim_wall_ns());
             uint64_t wait_dev;
@@ -564,6 +686,8 @@ int main(int argc, char **argv)
             s->baud = (uint32_t)v;
         } else if (!strcmp(a, "--uid") && parse_uid(val, uid) == 0) {
             have_uid = 1;
+        } else if (!strcmp(a, "--clock") && (!strcmp(val, "realtime") || !strcmp(val, "lockstep"))) {
+            s->lockstep = !strcmp(val, "lockstep");
         } else if (!strcmp(a, "--orphan-cleanup")) {
             g_orphan_dir = val;
         } else {

@@ -325,7 +325,7 @@ def run(a) -> int:
         return _run_web(a, cfg, directory)
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random", target=a.target)
+        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random", target=a.target, clock=a.sim_clock)
     with bench if a.sim else nullcontext() as vb:
         if vb is not None:
             for slot, sensor in a.sim_fault:

@@ -100,7 +100,14 @@ def add_sim(p: argparse.ArgumentParser, what: str, speed: float = 20.0) -> None:
     p.add_argument("--sim", action="store_true", help=what)
     p.add_argument("--sim-seed", type=int, default=1, metavar="N", help="random seed of the virtual device's truth")
     p.add_argument("--sim-speed", type=positive_float, default=speed, metavar="X",
-                   help="virtual device time per wall-clock time (1 = real time)")
+                   help="virtual device time per wall-clock time (1 = real time); with --sim-clock lockstep "
+                        "a ceiling")
+    p.add_argument("--sim-clock", choices=("lockstep", "realtime"), default=None,
+                   help="lockstep (the default of --target host): the virtual device's time moves only as "
+                        "the host takes what it sends, nothing is dropped and the same seed gives the same "
+                        "session on any machine; realtime (the default of the ARM targets, which have no "
+                        "lockstep yet): it runs against the wall clock and drops what a slow host does not "
+                        "read, as a real board does (docs/simulator.md)")
     add_target(p)
 
 

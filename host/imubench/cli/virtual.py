@@ -31,6 +31,11 @@ def register(sub) -> None:
     p.add_argument("--speed", type=non_negative_float, default=1.0,
                    help="device time per wall-clock time (1 = real time, 0 = as fast as it goes)")
     p.add_argument("--seed", type=int, default=1, help="seed of the sensor models")
+    p.add_argument("--clock", choices=("realtime", "lockstep"), default="realtime",
+                   help="realtime (the default here: another program connects, and nobody grants time): device "
+                        "time runs against the wall clock and bytes not read in time are dropped; lockstep: "
+                        "frozen until a client grants device time with the control command run "
+                        "(docs/simulator.md)")
     p.add_argument("--truth", choices=("default", "random"), default="default",
                    help="ideal parts, or random errors drawn from the seed")
     p.add_argument("--flash", type=new_file, metavar="FILE",
@@ -123,7 +128,7 @@ def run_sim(a) -> int:
         raise UsageError("--boot0 is a setting of the STM32 boards", "give --target f103 or --target f4")
     with VirtualBench(speed=a.speed, seed=a.seed, truth=a.truth, flash=a.flash, pty=a.pty,
                       baud=a.baud, tcp=tcp, control_port=a.control, target=a.target, boot0=a.boot0,
-                      thermal=a.thermal_lag) as bench, _ctrl_c_stops():
+                      thermal=a.thermal_lag, clock=a.clock) as bench, _ctrl_c_stops():
         return _serve_sim(a, bench)
     return 0
 

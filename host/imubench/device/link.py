@@ -13,6 +13,11 @@ one ack; a missing ack is retried with the same request id (the device answers a
 id without running the command twice), then raises LinkTimeout. An ack whose data frame
 (info, params_readback, stats, self_test_result) was damaged is retried the same way.
 A nack raises DeviceError.
+
+Every wait here (an ack, samples, a reboot's info, read's duration) goes through the link's
+clock (imubench.device.clock): the wall clock for a real port, device time for a virtual
+device in lockstep, whose waits grant it the time they wait for. Timeouts are then device
+seconds.
 """
 from __future__ import annotations
 
@@ -26,6 +31,7 @@ from typing import BinaryIO, Iterator
 
 import serial
 
+from imubench.device import clock as clocks
 from imubench.wire import frame as P
 from imubench.wire.decoder import DecodedFrame, SampleBlock, StreamDecoder
 from imubench.wire.protocol_gen import (
@@ -179,13 +185,18 @@ class Link:
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._pending: dict[int, _Pending] = {}
+        self.clock = clocks.for_url(self.url)     # wall clock, or a lockstep device's time
         self._next_id = int.from_bytes(os.urandom(2), "little") % 0xFFFF + 1   # SPEC.md: random start
+        self.bytes_in = 0       # bytes read from the port (lockstep: every grant waits for its bytes)
+        self.bytes_out = 0      # bytes written to it
         self.fault_events: deque[tuple[float, FaultEvent]] = deque(maxlen=1000)
         self.boot_infos: deque[Info] = deque(maxlen=10)
         self.last_stats: Stats | None = None
         self.error: BaseException | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._reader, name=f"imubench-link {self.url}", daemon=True)
+        if self.clock.lockstep:
+            self.clock.attach(self)
         self._thread.start()
         self._write(b"\0")     # ends any partial frame the device holds (protocol/SPEC.md, Framing)
 
@@ -217,18 +228,16 @@ class Link:
                         self.error = CaptureError(getattr(self.capture, "name", "?"), e)
                         break
                 with self._cond:
+                    self.bytes_in += len(data)
                     frames = self.decoder.feed(data)
                     if self.decoder.foreign_version is not None:
                         # another protocol version: say so at once, before any timeout or
                         # half-understood reply (every request now fails with this error)
                         self.error = ProtocolVersionError(self.url, self.decoder.foreign_version)
                         break
-                    if frames:
-                        for f in frames:
-                            self._dispatch(f)
-                        self._cond.notify_all()
-                    elif self.decoder.pending_samples() or self.decoder.pending_samples(True):
-                        self._cond.notify_all()
+                    for f in frames:
+                        self._dispatch(f)
+                    self._cond.notify_all()
         except (serial.SerialException, OSError, TypeError, AttributeError) as e:
             if not self._stop.is_set():
                 self.error = e
@@ -254,7 +263,7 @@ class Link:
             self._pending[rid].data.append(m)
             return
         if f.type == MsgType.FAULT_EVENT:
-            self.fault_events.append((time.monotonic(), m))
+            self.fault_events.append((self.clock.now(), m))
         elif f.type == MsgType.INFO:            # unsolicited: the device (re)booted
             self.boot_infos.append(m)        # the decoder itself forgot the streams on it
         elif f.type == MsgType.STATS:
@@ -273,21 +282,19 @@ class Link:
         d = P.MESSAGES_BY_NAME[P.message_name(msg)]
         payload = P.encode_message(msg)
         with self._cond:
-            rid = self._next_id
-            self._next_id = self._next_id % 0xFFFF + 1     # 1..65535; 0 means unsolicited
+            if self.clock.lockstep:
+                rid = self.clock.request_id()               # the same ids on every run
+            else:
+                rid = self._next_id
+                self._next_id = self._next_id % 0xFFFF + 1     # 1..65535; 0 means unsolicited
             pend = self._pending[rid] = _Pending(d.id, None, [])
-        frame = P.build_frame(d.id, payload, rid, int(time.monotonic() * 1e6))
+        frame = P.build_frame(d.id, payload, rid, int(self.clock.now() * 1e6) & 0xFFFFFFFF)
         data_lost = 0
         try:
             for _attempt in range(retries + 1):
                 self._write(frame)
-                deadline = time.monotonic() + timeout
+                self.clock.wait_for(lambda: pend.ack is not None or self.error is not None, timeout, self._cond)
                 with self._cond:
-                    while pend.ack is None and self.error is None:
-                        left = deadline - time.monotonic()
-                        if left <= 0:
-                            break
-                        self._cond.wait(left)
                     if self.error is not None:
                         raise self._failure()
                     if pend.ack is not None:
@@ -317,6 +324,19 @@ class Link:
             self.port.flush()
         except (serial.SerialException, OSError) as e:
             raise LinkError(f"write to {self.url} failed: {e}") from e
+        self.bytes_out += len(data)
+
+    def wait_bytes_in(self, n: int, guard_wall_s: float) -> None:
+        """Lockstep: wait until n bytes were read from the port since it was opened (the
+        device has sent them; the wall-clock guard is against a reader that died)."""
+        deadline = time.monotonic() + guard_wall_s
+        with self._cond:
+            while self.bytes_in < n and self.error is None and self._thread.is_alive():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise LinkError(f"{self.url}: the virtual device sent {n} bytes, {self.bytes_in} arrived "
+                                    f"within {guard_wall_s:g} s")
+                self._cond.wait(min(left, 0.5))
 
     # ----------------------------------------------------------------- samples
     def take_samples(self, calibrated: bool = False) -> SampleBlock | None:
@@ -330,16 +350,15 @@ class Link:
             self.decoder.take_samples(True)
             self.decoder.reset_sequence()
 
-    def wait_samples(self, n: int, calibrated: bool, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while self.decoder.pending_samples(calibrated) < n and self.error is None:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return
-                self._cond.wait(min(left, 0.1))
+    def wait_samples(self, n: int, calibrated: bool, timeout: float, step_s: float | None = None) -> None:
+        """Wait until n samples are buffered (or timeout on the link's clock; lockstep: grants of
+        step_s device seconds)."""
+        self.clock.wait_for(lambda: self.decoder.pending_samples(calibrated) >= n or self.error is not None,
+                            timeout, self._cond, step_s=step_s)
 
     def close(self) -> None:
+        if self.clock.lockstep:
+            self.clock.detach(self)
         self._stop.set()
         self._thread.join(timeout=2.0)
         try:
@@ -357,12 +376,19 @@ class Device:
         self.timeout = timeout
         self.retries = retries
         self._stream_mode: StreamMode | None = None
+        self._rate_hz = 1000
         self.last_save_unchanged = False      # the last save_params found the block already stored
         self._leftover: dict[bool, SampleBlock] = {}
 
     @classmethod
     def open(cls, url: str | None = None, **kw) -> "Device":
         return cls(url, **kw)
+
+    @property
+    def clock(self):
+        """The clock the host waits by (imubench.device.clock): the wall clock, or the device
+        time of a lockstep virtual device."""
+        return self.link.clock
 
     def __enter__(self) -> "Device":
         return self
@@ -404,6 +430,7 @@ class Device:
         self._leftover.clear()
         ack, _ = self._req(StartStream(rate_hz=rate_hz, mode=mode, batch=batch, accel_range_g=accel_range_g))
         self._stream_mode = mode
+        self._rate_hz = max(int(rate_hz), 1)
         return ack.value
 
     def stop_stream(self) -> None:
@@ -440,11 +467,8 @@ class Device:
         self._stream_mode = None
         if wait_s <= 0:
             return None
-        deadline = time.monotonic() + wait_s
-        while time.monotonic() < deadline:
-            if len(self.link.boot_infos) > n_before:
-                return self.link.boot_infos[-1]
-            time.sleep(0.01)
+        if self.clock.wait_for(lambda: len(self.link.boot_infos) > n_before, wait_s, self.link._cond):
+            return self.link.boot_infos[-1]
         raise LinkTimeout(f"device did not announce itself within {wait_s} s of reboot")
 
     # ----------------------------------------------------------------- samples
@@ -458,8 +482,10 @@ class Device:
 
     def read(self, n_samples: int | None = None, duration_s: float | None = None,
              calibrated: bool | None = None, timeout: float | None = None) -> SampleBlock:
-        """Collect samples of the running stream: n_samples of them, or for duration_s of
-        host time. Raises LinkTimeout if they do not arrive within timeout."""
+        """Collect samples of the running stream: n_samples of them, or for duration_s on the
+        link's clock (host time; device time for a lockstep virtual device). Raises LinkTimeout
+        if they do not arrive within timeout (lockstep: device seconds beyond the time the
+        samples take at the stream's rate)."""
         cal = (self._stream_mode == StreamMode.CALIBRATED) if calibrated is None else calibrated
         blocks, have = [], 0
         left = self._leftover.pop(cal, None)
@@ -468,19 +494,27 @@ class Device:
             have = len(left)
         if n_samples is None and duration_s is None:
             raise ValueError("give n_samples or duration_s")
-        t_end = time.monotonic() + (duration_s if duration_s is not None else 0)
-        limit = time.monotonic() + (timeout if timeout is not None else
-                                    (duration_s or 0) + 5.0 + (n_samples or 0) / 500.0)
+        clock = self.clock
+        t0 = clock.now()
+        t_end = t0 + (duration_s if duration_s is not None else 0)
+        limit = t0 + (timeout if timeout is not None else
+                      (duration_s or 0) + 5.0 + (n_samples or 0) / 500.0)
+        if clock.lockstep:      # device time: the timeout is on top of what the samples take
+            limit += (duration_s or 0) + (n_samples or 0) / self._rate_hz
         while True:
             need = (n_samples - have) if n_samples is not None else 1
-            self.link.wait_samples(max(need, 1), cal, timeout=0.05)
+            step = None
+            if clock.lockstep:      # grant what the samples still missing take (device time)
+                step = (max(t_end - clock.now(), 0.001) if n_samples is None else
+                        min(max(need / self._rate_hz, 0.001) + 0.002, 1.0))
+            self.link.wait_samples(max(need, 1), cal, timeout=0.05 if step is None else step, step_s=step)
             b = self.link.take_samples(cal)
             if b is not None and len(b):
                 blocks.append(b)
                 have += len(b)
             if self.link.error is not None:
                 raise self.link._failure()
-            now = time.monotonic()
+            now = clock.now()
             # duration_s of host time, but at least one block: a device whose batches come in
             # bursts (a USB-serial latency timer, a network hop, an emulated device running
             # near real time) can leave a short window empty; that is not a missing stream
@@ -497,13 +531,15 @@ class Device:
         return out
 
     def stream(self, calibrated: bool | None = None, poll_s: float = 0.05) -> Iterator[SampleBlock]:
-        """Yield sample blocks as they arrive, until the caller stops iterating."""
+        """Yield sample blocks as they arrive, until the caller stops iterating. Against a
+        lockstep virtual device each wait grants poll_s of device time (a block per poll_s)."""
+        step = poll_s if self.clock.lockstep else None
         cal = (self._stream_mode == StreamMode.CALIBRATED) if calibrated is None else calibrated
         left = self._leftover.pop(cal, None)
         if left is not None:
             yield left
         while True:
-            self.link.wait_samples(1, cal, timeout=poll_s)
+            self.link.wait_samples(1, cal, timeout=poll_s, step_s=step)
             if self.link.error is not None:
                 raise self.link._failure()
             b = self.link.take_samples(cal)

@@ -15,6 +15,15 @@ The process runs in its own process group; `stop()` (also at exit of the with-bl
 interpreter exit) asks it to quit, then SIGTERMs and SIGKILLs the group, and always reaps
 it. The simulator also exits by itself when its parent process dies.
 
+Clocks. clock="lockstep" (the default): device time moves only while the host waits on the
+device (imubench.device.clock.LockstepClock: a Device opened on this bench's port grants
+the time its waits need; wait() and wait_idle() grant theirs), nothing the device sends is
+dropped, and every bench action applies at the device time the device is frozen at: the
+same seed and the same host code give the same bytes on any machine, idle or busy. `speed`
+is then a ceiling (0: none). clock="realtime": device time runs at `speed` times the wall
+clock whatever the host does, and bytes the host does not read in time are dropped, as with
+a real board (the link-fault and slow-host tests name it).
+
 The control channel is JSON lines over TCP (one request, one reply per line); see
 firmware/boards/sim/sim_control.c for every command and its arguments. `control()` sends
 one and returns the reply as a dict, raising SimError when the simulator refuses it.
@@ -36,15 +45,19 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from imubench.device import artifacts
+from imubench.device import clock as clocks
 from imubench.device.tmpdirs import owned_tmpdir
 from imubench.errors import ImubenchError
 
-__all__ = ["SimError", "TARGETS", "VirtualBench", "arm_command", "build_sim", "repo_root"]
+__all__ = ["CLOCKS", "SimError", "TARGETS", "VirtualBench", "arm_command", "build_sim", "repo_root"]
 
 # What runs the firmware: "host" = the core and drivers built for Linux (imubench-sim);
 # "f103" / "f4" = the exact STM32 image under the ARM emulator (imubench.device.arm), against
 # the same sensor models, serial endpoint and control channel.
 TARGETS = ("host", "f103", "f4")
+# How device time moves (module docstring): "lockstep" (deterministic, the default) or
+# "realtime" (against the wall clock, bytes dropped when the host lags).
+CLOCKS = ("lockstep", "realtime")
 
 
 def arm_command(target: str) -> list[str]:
@@ -102,7 +115,11 @@ def _stop_all() -> None:
 class VirtualBench:
     """One simulator process (the virtual device, its turntable and climate chamber).
 
-    speed     device time per wall time (20 for CI; 1 = real time; 0 = as fast as possible)
+    speed     device time per wall time (20 for CI; 1 = real time; 0 = as fast as possible);
+              with clock="lockstep" a ceiling
+    clock     "lockstep" (the default: device time granted by the host's waits, deterministic)
+              or "realtime" (device time against the wall clock; module docstring; the
+              default with boot0, whose ROM bootloader serves stm32flash, which grants nothing)
     seed      seed of the sensor models (noise, random truth, serial numbers, uid)
     truth     "default" (ideal parts with datasheet noise) or "random" (errors drawn from seed)
     flash     parameter flash file; None = a temporary file kept for this object's lifetime
@@ -124,9 +141,18 @@ class VirtualBench:
                  uid: str | None = None, binary: str | os.PathLike | None = None,
                  startup_timeout: float = 15.0, start: bool = True, target: str = "host",
                  boot0: bool = False, elf: Sequence[str | os.PathLike] | None = None,
-                 thermal: bool = False):
+                 thermal: bool = False, clock: str | None = None):
         if target not in TARGETS:
             raise ValueError(f"target must be one of {', '.join(TARGETS)}")
+        # BOOT0 high: the ROM bootloader serves stm32flash on the pty, which grants no time
+        clock = ("realtime" if boot0 else "lockstep") if clock is None else clock
+        if clock not in CLOCKS:
+            raise ValueError(f"clock must be one of {', '.join(CLOCKS)}")
+        if clock == "lockstep" and boot0:
+            raise SimError("the ROM bootloader (boot0) runs on the real-time clock only: stm32flash grants "
+                           "no device time")
+        self.clock_name = clock
+        self.clock = clocks.LockstepClock(self) if clock == "lockstep" else clocks.WALL
         self.target = target
         if (boot0 or elf) and target == "host":
             raise ValueError("boot0 and elf are settings of the ARM targets (f103, f4)")
@@ -181,6 +207,8 @@ class VirtualBench:
         args = [*prefix, "--speed", repr(float(self.speed)), "--seed", str(self.seed),
                 "--truth", self.truth, "--flash", self.flash, "--baud", str(self.baud),
                 "--control", str(control_port)]
+        if self.clock.lockstep:
+            args += ["--clock", "lockstep"]
         if self.pty_enabled:
             args.append("--pty")
         if self.boot0:
@@ -206,6 +234,12 @@ class VirtualBench:
             line = self._read_startup_line()
             self.info = json.loads(line)
             self._connect_control()
+            if self.clock.lockstep:
+                self.clock.sync()
+                clocks.unregister(self.clock)
+                clocks.register(self.port_url, self.clock, control=self.info["control"])
+                if self.pty:
+                    clocks.register(self.pty, self.clock, control=self.info["control"])
             if self.thermal:
                 self.set_thermal(True)
         except BaseException:
@@ -359,6 +393,8 @@ class VirtualBench:
     def close(self) -> None:
         """stop() and remove the temporary directory (and the flash file if it lives there)."""
         self.stop()
+        if self.clock.lockstep:
+            clocks.unregister(self.clock)
         if not self._closed:
             self._closed = True
             shutil.rmtree(self._tmpdir, ignore_errors=True)
@@ -409,8 +445,19 @@ class VirtualBench:
         return r
 
     def _wait_timeout(self, device_s: float) -> float:
+        """A timeout for waiting device_s of device time: device seconds in lockstep (plus a
+        margin), wall seconds on the real-time clock."""
+        if self.clock.lockstep:
+            return device_s + 30.0
         sp = float(self.speed)
         return 30.0 + (device_s / sp if sp > 0 else device_s / 50.0)
+
+    def now(self) -> float:
+        """Device time, s (lockstep: where the device is frozen; real-time: asks it)."""
+        if self.clock.lockstep:
+            self.clock.sync()       # a process started from this one may have run the device
+            return self.clock.now()
+        return float(self.status()["time_us"]) * 1e-6
 
     # convenience wrappers
     def status(self) -> dict:
@@ -528,14 +575,28 @@ class VirtualBench:
         return int(self.control("flash_ops")["flash_ops"])
 
     def wait(self, device_s: float) -> dict:
-        """Return after device_s seconds of device time."""
+        """Return after device_s seconds of device time (lockstep: granted, with every link
+        byte of that time received by the host)."""
+        if self.clock.lockstep:
+            self.clock.sync()
+            return self.clock.run(float(device_s))
         return self.control("wait", device_s=float(device_s), timeout=self._wait_timeout(device_s))
 
     def wait_idle(self, temperature: bool = False, timeout: float | None = 600.0,
-                  die_tolerance_c: float | None = None) -> dict:
+                  die_tolerance_c: float | None = None, device_limit_s: float = 86400.0) -> dict:
         """Return when no move (and with temperature=True, no temperature ramp) is running;
         with die_tolerance_c also when every die is within that of its steady temperature
-        (chamber + self-heating; at once with the thermal model off)."""
+        (chamber + self-heating; at once with the thermal model off). timeout: wall seconds
+        on the real-time clock. Lockstep: the device runs to the first device time the
+        condition holds, at most device_limit_s (SimError when it did not)."""
+        if self.clock.lockstep:
+            stop = "dies" if die_tolerance_c is not None else "temperature" if temperature else "idle"
+            self.clock.sync()
+            r = self.clock.run(float(device_limit_s), stop=stop, die_tolerance_c=die_tolerance_c)
+            if not r.get("done"):
+                raise SimError(f"wait_idle: the bench was not idle ({stop}) within {device_limit_s:g} s of "
+                               "device time")
+            return r
         kw: dict[str, Any] = {"temperature": bool(temperature) or die_tolerance_c is not None}
         if die_tolerance_c is not None:
             kw["die_tolerance_c"] = float(die_tolerance_c)
@@ -548,7 +609,8 @@ class VirtualBench:
 
     def __repr__(self) -> str:
         state = f"pid {self.pid}" if self.running else "stopped"
-        return f"<VirtualBench {self.info.get('port_url', '?')} speed={self.speed} seed={self.seed} {state}>"
+        return (f"<VirtualBench {self.info.get('port_url', '?')} speed={self.speed} seed={self.seed} "
+                f"clock={self.clock_name} {state}>")
 
 
 # ---------------------------------------------------------------- command line

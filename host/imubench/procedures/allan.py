@@ -135,7 +135,8 @@ def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int 
             log(f"recording raw at {rate_hz} Hz for {duration_s:g} s of device time to {capture_path}; "
                 "Ctrl-C stops and analyses what was recorded")
             try:
-                for b in dev.stream(poll_s=0.1):
+                # a lockstep virtual device: a second of device time per step (hours take minutes)
+                for b in dev.stream(poll_s=1.0 if dev.clock.lockstep else 0.1):
                     if len(b):
                         have += len(b)
                         t_first = b.t_us[0] if t_first is None else t_first

@@ -70,9 +70,9 @@ def record_path(dev, start: Callable[[], None], finished: Callable[[list[SampleB
         blocks = [dev.read(n_samples=int(round(rest_s * rate_hz)))]
         start()
         moving: list[SampleBlock] = []
-        t0 = time.monotonic()
+        t0 = dev.clock.now()            # device time against a lockstep virtual device
         while not finished(moving):
-            if time.monotonic() - t0 > max_s:
+            if dev.clock.now() - t0 > max_s:
                 raise ClosureError(f"the motion did not end within {max_s:g} s")
             moving.append(dev.read(n_samples=chunk))
         blocks += moving

@@ -175,13 +175,14 @@ class Session:
         """The samples of the next 1/20 s (at least one): a pause of the stream shorter than
         `timeout` (a busy host, the buffer just discarded) is waited out, not an error."""
         from imubench.device.link import LinkTimeout
-        t_end = time.monotonic() + timeout
+        clock = self.dev.clock          # the wall clock, or a lockstep virtual device's time
+        t_end = clock.now() + timeout
         while True:
             try:
                 b = self.dev.read(duration_s=0.05, timeout=timeout)
                 break
             except LinkTimeout:
-                if time.monotonic() > t_end:
+                if clock.now() > t_end:
                     raise
         self._count_block(b)
         return b

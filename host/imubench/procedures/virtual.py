@@ -14,6 +14,10 @@ from imubench.calib.geometry import rotation_to
 from imubench.procedures.presenter import Presenter
 
 
+#: how long the virtual person waits after the prompt before a known-angle turn, device s
+KNOWN_TURN_PAUSE_S = 1.0
+
+
 class SimPresenter(Presenter):
     """Drives the virtual bench: moves the board by real rotations (so the gyros see the
     motion) and runs the turntable. Optional tilt_deg misaligns every pose (a box that is
@@ -50,6 +54,10 @@ class SimPresenter(Presenter):
         g = np.asarray(self.vb.status()["gravity_board"], dtype=float)
         g /= np.linalg.norm(g)
         self.say(f"virtual bench turns the board {angle_deg:g}° about the vertical (board {np.round(g, 2).tolist()})")
+        # a person reads the prompt first: the board lies still a moment longer (in lockstep the
+        # turn would otherwise start on the sample the rest was seen complete, and a recording
+        # analysed later finds that rest cut short by its own detection windows)
+        self.vb.wait(KNOWN_TURN_PAUSE_S)
         self.vb.rotate(list(g), rate_dps=-self.rate_dps, duration_s=angle_deg / self.rate_dps, wait=False)
 
 

@@ -49,6 +49,7 @@ def _parse_args(argv: list[str] | None) -> tuple[argparse.Namespace, bytes | Non
     ap.add_argument("--control", type=int, default=0)
     ap.add_argument("--flash")
     ap.add_argument("--speed", type=float, default=1.0)
+    ap.add_argument("--clock", choices=("realtime", "lockstep"), default="realtime")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--truth", choices=("default", "random"), default="default")
     ap.add_argument("--uid")
@@ -79,7 +80,7 @@ def _startup_line(a, lib, target, elf, flash: str, code_file: str, uid: bytes) -
     line = {"pty": pty_name, "port_url": f"socket://127.0.0.1:{port}" if port >= 0 else pty_name,
             "tcp_port": port if port >= 0 else None,
             "control": f"127.0.0.1:{ctl}", "control_port": ctl, "pid": os.getpid(),
-            "flash": os.path.realpath(flash), "seed": a.seed, "speed": a.speed, "baud": a.baud,
+            "flash": os.path.realpath(flash), "seed": a.seed, "speed": a.speed, "clock": a.clock, "baud": a.baud,
             "truth": a.truth, "uid": uid.hex(), "build": f"arm-{a.target}",
             "target": a.target, "elf": str(elf), "cpi": target.cpi, "boot0": a.boot0,
             "code_flash": os.path.realpath(code_file) if os.path.exists(code_file) else None}
@@ -165,6 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     if lib.simlib_open(a.seed, 1 if a.truth == "random" else 0, uid, tcp, a.control, a.speed) != 0:
         print("imubench-arm: cannot open the serial endpoint / control channel", file=sys.stderr)
         return 1
+    lib.simlib_set_lockstep(1 if a.clock == "lockstep" else 0)
 
     from .bootloader import BootloaderServer, FlashFile, RomBootloader, code_path
     from .image import flash_segments, match_elf
@@ -243,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 _log(f"[imubench-arm {a.target}] Go 0x{act[1]:08X}: starting {image}")
                 machine = new_machine(image, t_dev)
-            server = Server(machine, lib, a.speed)
+            server = Server(machine, lib, a.speed, lockstep=a.clock == "lockstep")
             server.serve(should_stop)
             t_dev = machine.now()
             machine.flash.close()

@@ -1,7 +1,10 @@
 """Serving an emulated board (machine.Machine): its serial endpoint and control channel on
-sockets or a pty, paced to the requested speed against the wall clock."""
+sockets or a pty, paced to the requested speed against the wall clock (the real-time clock),
+or in lockstep: frozen except inside a run the host grants (firmware/boards/sim/sim_control.c
+"run"; the same semantics as imubench-sim's --clock lockstep, sim_main.c)."""
 from __future__ import annotations
 
+import ctypes
 import select
 import time
 
@@ -13,7 +16,8 @@ class Server:
     """The process around a Machine: the serial endpoint and control channel of
     libimumodels.so, pacing device time against the wall clock (speed), as imubench-sim."""
 
-    def __init__(self, machine: Machine, lib, speed: float):
+    def __init__(self, machine: Machine, lib, speed: float, lockstep: bool = False):
+        self.lockstep = lockstep
         self.m = machine
         self.lib = lib
         self.speed = speed
@@ -28,6 +32,8 @@ class Server:
         return self.anchor_dev + (wall - self.anchor_wall) * (self.speed if self.speed > 0 else 1.0)
 
     def serve(self, should_stop=lambda: False) -> None:
+        if self.lockstep:
+            return self._serve_lockstep(should_stop)
         lib, m = self.lib, self.m
         pfd = (simlib.PollFd * 16)()
         last_wall = time.monotonic()
@@ -125,3 +131,81 @@ class Server:
                 # has received and the transaction committed at chip select rise
                 spi.control_during_transaction = True
             lib.sim_control_handle(pfd, n_ctl)
+
+    # ------------------------------------------------------------ lockstep
+    def _serve_lockstep(self, should_stop) -> None:
+        """Run only inside a granted run: take the host's link bytes, run the image to the
+        run's end (segments end at events and at the end only, so the wall clock decides
+        nothing), hand every byte to the host waiting for it to read, reply; speed > 0 is a
+        ceiling (the reply waits until the wall clock allows the device time it ran)."""
+        lib, m = self.lib, self.m
+        pfd = (simlib.PollFd * 16)()
+        target = ctypes.c_uint64()
+        active = False
+        while not self.quit and not should_stop() and not m.exit_to_rom:
+            st = lib.sim_control_run_target(ctypes.byref(target))
+            if st == 2:
+                while lib.simlib_link_accept() == 0:
+                    m.log("link: TCP client connected")
+                lib.simlib_link_receive()
+                st = lib.sim_control_run_target(ctypes.byref(target))
+            if st == 1:
+                if not active:      # a new grant: the host's bytes start arriving now
+                    self.anchor_wall, self.anchor_dev, active = time.monotonic(), m.now(), True
+                    m.usart.schedule_rx(m.now())
+                self.speed = lib.simlib_speed()
+                until = target.value * 1e-6
+                now = m.now()
+                # the grant's end is the only stop (no wall budget): the models, the link and the
+                # status are brought to device time there alone, and the float device time is
+                # summed over the same segments whatever the machine's load (the models library
+                # hands the link bytes to the host as they fill up, waiting for it)
+                m.ext_deadline = INF
+                m._recompute_next()
+                if until > now:
+                    m.run_until(until, INF)
+                elif lib.simlib_time() < target.value:
+                    # at the end, but an SPI transaction holds the models at its chip select:
+                    # run on (by the image alone) until it closes
+                    m.run_until(now + 1e-6, INF)
+                now = m.now()
+                final = now >= until
+                if final:
+                    m.usart.drain(now)
+                    m.set_model_time(now)
+                self._flush_blocking()
+                if not final:
+                    self._io(pfd, 0.0)
+                    continue
+                if self.speed > 0:                          # the ceiling
+                    ahead = now - self._pace_target(time.monotonic())
+                    if ahead > 0:
+                        time.sleep(ahead / self.speed)
+                m.publish()
+                lib.sim_control_check_waits()
+                if lib.simlib_quit():
+                    break
+                active = lib.sim_control_run_target(None) == 1
+            else:
+                active = False
+            self._io(pfd, 0.0 if active else 0.02)
+            k = lib.simlib_take_reset()
+            if k == RESET_POWER_CUT:
+                m.request_reset("power_cut", "power cut (control channel)")
+                m.take_reset()
+                if m.exit_to_rom:
+                    break
+
+    def _flush_blocking(self) -> None:
+        """Every staged link byte to the host, waiting while its socket is full."""
+        lib = self.lib
+        while lib.simlib_link_staged():
+            lib.simlib_link_flush()
+            if lib.simlib_link_blocked():
+                lfd, cfd = ctypes.c_int(), ctypes.c_int()
+                lib.simlib_link_fds(ctypes.byref(lfd), ctypes.byref(cfd))
+                if cfd.value < 0:
+                    break
+                p = select.poll()
+                p.register(cfd.value, select.POLLOUT)
+                p.poll(100)

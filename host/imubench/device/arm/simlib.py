@@ -77,6 +77,8 @@ _SIGNATURES = {
     "sim_control_check_waits": (None, []),
     "sim_control_next_deadline": (c_uint64, []),
     "simlib_next_event": (c_uint64, []),
+    "simlib_set_lockstep": (None, [c_int]),
+    "sim_control_run_target": (c_int, [POINTER(c_uint64)]),
 }
 
 
