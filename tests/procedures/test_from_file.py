@@ -514,6 +514,13 @@ def test_gyro_clipped_in_a_third_of_its_motions_leaves_them_out(declared):
     assert len(named) == len(THIRD) and re.search(r"motion 2 \(\d+\.\d–\d+\.\d s\) left out .* X at \+250\.0 °/s "
                                                   r"for \d+ samples from \d+\.\d\d s", named[0]), named
     assert "gyro clipped in 6 of 18 motions: those are left out of the gyro fit" in said
+    # a full scale found in the data is said once, as the option that declares it (issue 40, item 6)
+    det = [d for d in res["source"]["detected"] if d.startswith("gyro full scale")]
+    if declared is None:
+        assert len(det) == 1 and det[0].startswith("gyro full scale ±250 °/s from the values' clip level")
+        assert "--gyro-range 250" in det[0] and res["source"]["options"][-2:] == ["--gyro-range", "250"]
+    else:
+        assert not det
     z = (fa.gyro.m - truth["gyro_m"]) / fa.gyro.sigma_m
     assert np.abs(z).max() < 3, z
     # without leaving them out, the same motions spoil the fit: the check is what makes it work

@@ -296,6 +296,14 @@ class FileAnalysis:
 
         def level(x: float) -> str:
             return f"{math.degrees(x * f_nom):+.1f} °/s" if f_nom is not None else f"{x:+.6g} counts"
+        found = [r for r in runs if r.source != "declared"]
+        if found and f_nom is not None and self.cfg.gyro_range_dps is None and "gyro_range_dps" not in rec.options:
+            fs_dps = max(abs(math.degrees(r.level * f_nom)) for r in found)     # the sensor's full scale, seen
+            line = (f"gyro full scale ±{fs_dps:.4g} °/s from the values' clip level ({sum(r.n for r in found)} "
+                    f"samples held there in {len(found)} run(s)) (--gyro-range {fs_dps:.4g})")
+            rec.detected.append(line)
+            rec.options["gyro_range_dps"] = float(f"{fs_dps:.4g}")
+            self.say(f"  detected: {line}")
         out: dict[int, str] = {}
         for j in range(len(keep) - 1):
             s0, s1 = keep[j].stop - 1, keep[j + 1].start + 1
