@@ -2,7 +2,6 @@
 firmware core on the simulated board -> drivers -> register-level sensor models."""
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
