@@ -120,7 +120,11 @@ def virtual_port():
 
 
 def _env(tmp_path: Path, port: str) -> dict:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("IMUBENCH_")}
+    # nothing of this process's IMUBENCH_* settings, except how a subprocess reaches the lockstep
+    # virtual device's clock (imubench.device.clock.ENV): a user's `imubench info` against a
+    # virtual bench started by the same session finds it there
+    from imubench.device.clock import ENV
+    env = {k: v for k, v in os.environ.items() if not k.startswith("IMUBENCH_") or k == ENV}
     env.update(IMUBENCH_DB=str(tmp_path / "history.sqlite"), IMUBENCH_PORT=port)
     return env
 
