@@ -28,6 +28,16 @@ def ferraris_truth(seed=0):
     return {"accel_m": ma, "accel_b": rng.normal(0, 0.1, 3), "gyro_m": mg, "gyro_b": np.radians(rng.normal(0, 0.5, 3))}
 
 
+def turned(c, ax, rate, fs):
+    """The body attitude c carried through a turn about the body axis ax (unit) at rate (rad/s,
+    one value a sample): (c at its end, the specific force in m/s² of each sample)."""
+    a_out = np.empty((len(rate), 3))
+    for k in range(len(rate)):
+        c = c @ _rodrigues(ax, rate[k] / fs)
+        a_out[k] = up_in_body(c) * G0
+    return c, a_out
+
+
 def ferraris_session(fs=100.0, seed=0, truth=None, rest_s=4.0, turn_s=4.0, accel_noise=0.004,
                      gyro_noise=np.radians(0.05), both_ways=False, edges=False):
     """(accel m/s², gyro rad/s (n, 3) each, truth dict, events): the measured u of both triads."""
@@ -50,10 +60,7 @@ def ferraris_session(fs=100.0, seed=0, truth=None, rest_s=4.0, turn_s=4.0, accel
         w = (1 - np.cos(2 * np.pi * t))           # raised cosine, integrates to n / n = 1 over [0, 1]
         rate = np.radians(deg) / sec * w * (sec * fs / n)   # rad/s, integral = deg (n = sec·fs rounded down)
         ax = np.asarray(axis_body, float) / np.linalg.norm(axis_body)
-        a_out = np.empty((n, 3))
-        for k in range(n):
-            c = c @ _rodrigues(ax, rate[k] / fs)
-            a_out[k] = up_in_body(c) * G0
+        c, a_out = turned(c, ax, rate, fs)
         acc.append(a_out)
         gyr.append(rate[:, None] * ax[None, :])
         events.append(("rot", sum(len(a) for a in acc) - n, sum(len(a) for a in acc)))
@@ -211,10 +218,7 @@ def handheld_session(ups, fs=100.0, seed=0, truth=None, rest_s=4.0, move_s=1.5, 
         t = (np.arange(n) + 0.5) / n
         w = 1 - np.cos(2 * np.pi * t)
         rate = ang / (n / fs) * w
-        out = np.empty((n, 3))
-        for k in range(n):
-            c = c @ _rodrigues(ax, rate[k] / fs)
-            out[k] = up_in_body(c) * G0
+        c, out = turned(c, ax, rate, fs)
         return out, rate[:, None] * ax[None, :]
 
     for i, up in enumerate(ups):
@@ -295,10 +299,7 @@ def motion_session(plan, fs=100.0, seed=0, truth=None, rest_s=2.0, peak_dps=120.
         t = (np.arange(n) + 0.5) / n
         rate = np.radians(deg) / (n / fs) * (1 - np.cos(2 * np.pi * t))
         ax = np.asarray(axis, float) / np.linalg.norm(axis)
-        a_out = np.empty((n, 3))
-        for k in range(n):
-            c = c @ _rodrigues(ax, rate[k] / fs)
-            a_out[k] = up_in_body(c) * G0
+        c, a_out = turned(c, ax, rate, fs)
         acc.append(a_out)
         gyr.append(rate[:, None] * ax[None, :])
         events.append(("rot", sum(len(a) for a in acc) - n, sum(len(a) for a in acc)))
