@@ -95,18 +95,13 @@ class Server:
                 asleep = m.cpu.wfi and not m.streaming() and m.ext_deadline == INF
                 timeout = 0.002 if asleep else 0.0
             self._io(pfd, timeout)
-            if self._power_cut_taken():
-                break
+            k = lib.simlib_take_reset()
+            if k == RESET_POWER_CUT:
+                m.request_reset("power_cut", "power cut (control channel)")
+                m.take_reset()
+                if m.exit_to_rom:
+                    break
             m.usart.schedule_rx(m.now())
-
-    def _power_cut_taken(self) -> bool:
-        """A power cut asked on the control channel, taken now (the board resets where it is);
-        True when the board then leaves for its ROM bootloader (BOOT0 high)."""
-        if self.lib.simlib_take_reset() != RESET_POWER_CUT:
-            return False
-        self.m.request_reset("power_cut", "power cut (control channel)")
-        self.m.take_reset()
-        return bool(self.m.exit_to_rom)
 
     def _io(self, pfd, timeout: float) -> None:
         lib = self.lib
@@ -194,8 +189,12 @@ class Server:
             else:
                 active = False
             self._io(pfd, 0.0 if active else 0.02)
-            if self._power_cut_taken():
-                break
+            k = lib.simlib_take_reset()
+            if k == RESET_POWER_CUT:
+                m.request_reset("power_cut", "power cut (control channel)")
+                m.take_reset()
+                if m.exit_to_rom:
+                    break
 
     def _flush_blocking(self) -> None:
         """Every staged link byte to the host, waiting while its socket is full."""
