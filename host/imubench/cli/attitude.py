@@ -39,7 +39,7 @@ def register(sub) -> None:
                    help="draw the angles to this PNG and write their numbers beside it (PNG with .json): "
                         "what imubench report --attitude embeds")
     p.add_argument("--print-hz", type=positive_float, default=4.0, help="live lines per second")
-    add_sim(p, "run on a virtual device with ideal parts (its calibrated output is exact)")
+    add_sim(p, "run on a virtual device with ideal parts (its calibrated output is exact)", lockstep_speed=20.0)
     p.add_argument("--steps", action="store_true",
                    help="with --sim: step the virtual turntable -20..+20 deg about X and Y and measure each "
                         "filter's settling time and static error")
