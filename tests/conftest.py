@@ -52,6 +52,11 @@ def browser():
             b.close()
 
 
+def pytest_configure(config):
+    # pytest-xdist registers it; without xdist (-p no:xdist) the mark would be unknown
+    config.addinivalue_line("markers", "xdist_group(name): tests that run on one pytest-xdist worker")
+
+
 def pytest_collection_modifyitems(config, items):
     """Spread the tests over the workers one by one (`make test` runs pytest-xdist with --dist
     loadgroup), except a module whose tests share a fixture set up once for the module (a
