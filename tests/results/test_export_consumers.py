@@ -308,6 +308,56 @@ def test_calibrate_from_takes_the_px4_ids_and_says_when_they_are_missing(tmp_pat
     assert r.returncode == 2 and "not a PX4 device id" in r.stderr
 
 
+# ------------------------------------------------------------------ 7. ArduPilot
+def _mavparm(text: str) -> dict:
+    """pymavlink mavparm.MAVParmDict.load: '#' lines and blank lines skipped, a line split on ',' or
+    white space into NAME VALUE (a third field ignored), anything else a bad line."""
+    out = {}
+    for ln in text.splitlines():
+        ln = ln.strip()
+        if not ln or ln[0] == "#":
+            continue
+        f = ln.replace(",", " ").split()
+        assert len(f) >= 2, ln                             # a line of ours it would reject: none
+        out[f[0]] = float(f[1])
+    return out
+
+
+def test_ardupilot_file_as_ardupilot_applies_it_with_its_stated_loss(tmp_path, truth):
+    acc, gyr = truth
+    f, = PF.write("ardupilot", tmp_path / "cal", accel=acc, gyro=gyr, accel_factor=1.0, gyro_factor=1.0,
+                  accel_unit="mps2", gyro_unit="rad_s", scaled=True)
+    text = f.read_text()
+    p = _mavparm(text)
+    assert set(p) == {f"INS_{k}_{a}" for k in ("ACCOFFS", "ACCSCAL", "GYROFFS") for a in "XYZ"}
+    ua, ug, _, w = _samples(acc, gyr)
+    # AP_InertialSensor_Backend::_rotate_and_correct_accel: (raw - offset) * scale; gyro: raw - offset
+    got_a = (ua - [p[f"INS_ACCOFFS_{a}"] for a in "XYZ"]) * [p[f"INS_ACCSCAL_{a}"] for a in "XYZ"]
+    np.testing.assert_allclose(got_a, (ua - acc.b) / np.diag(acc.m), atol=1e-6)
+    got_g = ug - [p[f"INS_GYROFFS_{a}"] for a in "XYZ"]
+    # the gyro's scale and cross-axis terms are dropped: the loss the file states bounds the measured one
+    err_dps = np.degrees(np.linalg.norm(got_g - w, axis=1))
+    rate_dps = np.degrees(np.linalg.norm(w, axis=1))
+    bound = PF.gyro_scale_loss_dps(gyr.m, 1.0) * rate_dps
+    assert np.all(err_dps <= bound + 1e-9) and np.max(err_dps / bound) > 0.5      # a bound, and a tight one
+    line = next(ln for ln in text.splitlines() if "no gyro scale" in ln)
+    assert f"{PF.gyro_scale_loss_dps(gyr.m, 300.0):.2f} deg/s at 300 deg/s" in line
+    head = " ".join(ln for ln in text.splitlines() if ln.startswith("#"))
+    assert "INS_ACC_ID" in head and "INS_GYR_ID" in head and "register_accel" in head
+    assert "3D Accel calibration needed" in head
+
+
+def test_ardupilot_thermal_file_says_enable_then_reboot(tmp_path):
+    texts = _thermal_texts("imubench")
+    text = texts["ardupilot"]
+    p = _mavparm(text)
+    assert p["INS_TCAL1_ENABLE"] == 1
+    names = [ln.split(",")[0] for ln in text.splitlines() if ln and not ln.startswith("#")]
+    assert names[0] == "INS_TCAL1_ENABLE"                    # first, so that a partial load enables it
+    head = " ".join(ln for ln in text.splitlines() if ln.startswith("#"))
+    assert "INS_TCAL1_ENABLE = 1" in head and "reboot" in head and "load it again" in head
+
+
 # ------------------------------------------------------------------ 8. names through every export
 NAMES = ["board\nCBRK_IO_SAFETY,22027\n1\t1\tCBRK_IO_SAFETY\t22027\t6",
          "a\rSM: [1,0,0,0,1,0,0,0,1]\r\nbias: [9,9,9]",
@@ -324,7 +374,7 @@ def _not_comments(text: str) -> list[str]:
 def _calibration_texts(comment: str, truth) -> dict:
     acc, gyr = truth
     g = np.radians(np.diag([0.03, -0.02, 0.04]))
-    return {"ardupilot": PF.ardupilot_text(acc.m, acc.b, gyr.b, comment),
+    return {"ardupilot": PF.ardupilot_text(acc.m, acc.b, gyr.b, comment, gyr.m),
             "kalibr": PF.kalibr_intrinsics_text(acc.m, gyr.m, g, comment),
             "px4": PF.px4_text(acc.m, acc.b, gyr.m, gyr.b, g, comment),
             "px4-ids": PF.px4_text(acc.m, acc.b, gyr.m, gyr.b, g, comment, acc_id=1, gyro_id=2),

@@ -104,7 +104,23 @@ def imucal_dict(acc_m_raw, acc_b_raw, gyr_m_raw_per_dps, gyr_b_raw, from_acc_uni
             "b_g": np.asarray(gyr_b_raw, float).tolist(), "cal_type": "Ferraris", "_format_version": "2.0.0"}
 
 
-def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> str:
+AP_ID_HOW = ("ArduPilot counts INS_ACCOFFS/INS_ACCSCAL as this sensor's calibration only when the INS_ACC_ID it has "
+             "stored equals the id of the accelerometer it detects (AP_InertialSensor::register_accel sets "
+             "_accel_id_ok; a mismatch or none stored fails accel_calibrated_ok_all, pre-arm '3D Accel "
+             "calibration needed'; INS_GYR_ID likewise for the gyro). This file does not set "
+             "them: load it into the vehicle whose INS_ACC_ID / INS_GYR_ID already name this sensor (check with "
+             "`param show INS_ACC_ID` in MAVProxy or the Full Parameter List), and record in the board's axes")
+
+
+def gyro_scale_loss_dps(gyro_m, rate_dps: float) -> float:
+    """The largest rate error (°/s) a firmware without gyro scale and cross-axis terms makes at
+    rate_dps: corrected = raw − offset = M_g·ω, so the error is (M_g − I)·ω, at most the largest
+    singular value of M_g − I times the rate."""
+    g = np.asarray(gyro_m, float)
+    return float(np.linalg.norm(g - np.eye(3), 2)) * rate_dps
+
+
+def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "", gyro_m=None) -> str:
     m = np.asarray(acc_m, float)
     scale = 1.0 / np.diag(m)
     off = np.asarray(acc_b_mps2, float)
@@ -116,7 +132,16 @@ def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> s
              "# ArduPilot: corrected = INS_ACCSCAL * (raw - INS_ACCOFFS), per axis, m/s² (AP_InertialSensor)",
              f"# ArduPilot has no cross-axis terms: dropped off-diagonal of M up to {worst:.2e} "
              f"(≈ {err_mg:.2f} mg at 1 g); frame: the axes of the recording (ArduPilot applies these after "
-             "rotating the sensor into the autopilot board's axes, before AHRS_ORIENTATION: record in those axes)"]
+             "rotating the sensor into the autopilot board's axes, before AHRS_ORIENTATION: record in those axes)",
+             *[comment_line(part) for part in _wrap(f"Before loading: {AP_ID_HOW}.")]]
+    if gyro_b_rad_s is not None and gyro_m is not None:
+        g = np.asarray(gyro_m, float)
+        lines += [comment_line(
+            "ArduPilot has no gyro scale and no gyro cross-axis terms (corrected = raw - INS_GYROFFS): dropped "
+            f"M_g diagonal {', '.join(f'{v:.6f}' for v in np.diag(g))}, off-diagonal up to "
+            f"{float(np.max(np.abs(g - np.diag(np.diag(g))))):.2e}; the rate error this leaves is up to "
+            f"{gyro_scale_loss_dps(g, 100.0):.2f} deg/s at 100 deg/s and {gyro_scale_loss_dps(g, 300.0):.2f} deg/s "
+            "at 300 deg/s")]
     for i, ax in enumerate("XYZ"):
         lines.append(f"INS_ACCOFFS_{ax},{off[i]:.9g}")
     for i, ax in enumerate("XYZ"):
@@ -126,6 +151,12 @@ def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> s
         for i, ax in enumerate("XYZ"):
             lines.append(f"INS_GYROFFS_{ax},{float(gyro_b_rad_s[i]):.9g}")
     return "\n".join(lines) + "\n"
+
+
+def _wrap(text: str, width: int = 110) -> list[str]:
+    """A long comment as several lines (each becomes its own comment line)."""
+    import textwrap
+    return textwrap.wrap(text, width, break_long_words=False, break_on_hyphens=False) or [""]
 
 
 def _yaml_matrix(m, indent: str) -> str:
@@ -248,7 +279,8 @@ def write(kind: str, prefix: Path, *, accel, gyro=None, accel_factor: float, gyr
         return [write_json_atomic(prefix.with_suffix(".params.json"), PR.to_json(params))]
     if kind == "ardupilot":
         return [write_text_atomic(prefix.with_suffix(".ardupilot.param"),
-                                  ardupilot_text(accel.m, accel.b, None if gyro is None else gyro.b, comment))]
+                                  ardupilot_text(accel.m, accel.b, None if gyro is None else gyro.b, comment,
+                                                 None if gyro is None else gyro.m))]
     if kind == "kalibr":
         return [write_text_atomic(prefix.with_suffix(".kalibr-imu.yaml"), kalibr_intrinsics_text(
             accel.m, np.eye(3) if gyro is None else gyro.m, gsens, comment))]

@@ -104,7 +104,11 @@ def ardupilot_text(fits: dict, t_ref: dict, imu_temp: str, comment: str = "") ->
              f"# ArduPilot has one temperature per IMU for accelerometer and gyro: these are fitted against {imu_temp}.",
              "# ArduPilot holds: a bias polynomial of order <= 3 per axis about 35 degC without its constant term,",
              f"# clamped to one TMIN..TMAX per IMU; ours: orders accel {_orders(fits['accel'])}, gyro {_orders(fits['gyro'])}.",
-             "# ArduPilot cannot hold: scale temperature terms, a temperature per gyro axis, a constant term."]
+             "# ArduPilot cannot hold: scale temperature terms, a temperature per gyro axis, a constant term.",
+             "# LOAD IN TWO STEPS: the INS_TCAL1_* parameters exist only once INS_TCAL1_ENABLE = 1 and the board has",
+             "# rebooted (AP_Param enable flag). Load this file, reboot the autopilot, then load it again: the first",
+             "# load sets INS_TCAL1_ENABLE and the second the coefficients (until then they are refused as unknown).",
+             "# INS_ACC_ID / INS_GYR_ID on the vehicle must name this IMU (the calibration of another is not used)."]
     lines += [f"# {d}" for d in _dropped(fits)]
     lo = max(_span(fits["accel"])[0], _span(fits["gyro"])[0])
     hi = min(_span(fits["accel"])[1], _span(fits["gyro"])[1])
