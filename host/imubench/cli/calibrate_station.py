@@ -137,6 +137,14 @@ def _run_station(a, cfg) -> int:
         else:
             res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
                               link_timeout_s=a.link_timeout, baudrate=a.baud, plate_timeout_s=plate_timeout)
+    if getattr(a, "export", ()):
+        from imubench.cli.calibrate import write_exports
+        print()
+        for b in res.boards:
+            rec = res.results.get(b.slot) or {}
+            print(f"slot {b.slot} {b.uid or b.port}:")
+            write_exports(a, rec, directory / f"slot-{b.slot}", b.uid or f"slot-{b.slot}", b.state == "passed",
+                          say=lambda line: print(f"  {line}"))
     print()
     print(_station_table(res))
     print(f"station session {res.session_id}: {len(res.passed)} of {len(res.boards)} boards passed "

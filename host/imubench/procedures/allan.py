@@ -27,9 +27,11 @@ from imubench.wire.ids import device_identity, uid_text
 from imubench.wire.protocol_gen import MsgType
 
 
-def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=print) -> dict:
+def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=print, exports=(),
+                    topic: str = "/imu0") -> dict:
     """Decode capture file(s), convert raw counts to SI, run allan() on accel and gyro,
-    write allan.json and the two PNGs to out_dir; returns the summary dict."""
+    write allan.json, the two PNGs and each consumer's noise file of `exports`
+    (results.noise_export) to out_dir; returns the summary dict."""
     data = b"".join(read_bytes(p, MAX_CAPTURE_BYTES, "the capture") for p in paths)
     msgs, raw, _cal, stats = decode_bytes(data)
     infos = [m.msg for m in msgs if m.type == MsgType.INFO]     # record() asks for one into the capture
@@ -55,11 +57,17 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
             "the analysis joins the pieces (fine for a few, biased for many)")
     res["accel_usual"] = {a: usual_units(res["accel"][a], "accel") for a in AXES}
     res["gyro_usual"] = {a: usual_units(res["gyro"][a], "gyro") for a in AXES}
+    if exports:
+        from imubench.results.noise_export import write_noise_files
+        name = (res["device"] or {}).get("mcu_uid") or "imubench"
+        res["exports"] = write_noise_files(exports, out_dir, res, topic=topic, name=name)
     write_json_atomic(out_dir / "allan.json", res)
     plot_allan(res["accel"], out_dir / "allan_accel.png", "Accelerometer (ADXL355)", "m/s²", "accel")
     plot_allan(res["gyro"], out_dir / "allan_gyro.png", "Gyroscope (ADXRS450)", "rad/s", "gyro")
     for line in format_readoffs(res):
         log(line)
+    for kind, f in (res.get("exports") or {}).items():
+        log(f"{kind}: {f}")
     log(f"wrote {out_dir / 'allan.json'}, {out_dir / 'allan_accel.png'}, {out_dir / 'allan_gyro.png'}")
     return res
 
@@ -115,7 +123,7 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
     analyse_capture's, plus each consumer's noise file of `exports` (results.noise_export)."""
     from imubench.procedures.recording_checks import check_accel_unit, check_gyro_unit
     from imubench.recordings import RecordingError
-    from imubench.results.noise_export import write_noise
+    from imubench.results.noise_export import write_noise_files
     fa, fg = rec.accel_factor(), rec.gyro_factor()
     if fa is None or fg is None:
         raise RecordingError("the Allan figures are in SI: give the raw counts' nominal scale (--accel-scale "
@@ -147,11 +155,7 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
            "accel": allan(acc, rec.fs_hz), "gyro": allan(gyr, rec.fs_hz)}
     res["accel_usual"] = {a: usual_units(res["accel"][a], "accel") for a in AXES}
     res["gyro_usual"] = {a: usual_units(res["gyro"][a], "gyro") for a in AXES}
-    files = {}
-    for kind in dict.fromkeys(exports):
-        ext = {"kalibr": "kalibr-imu.yaml", "openvins": "openvins-kalibr_imu_chain.yaml",
-               "vins-fusion": "vins-fusion-imu.yaml", "imu-utils": "imu_utils.yaml"}[kind]
-        files[kind] = str(write_noise(kind, out_dir / ext, res, topic=topic, name=name))
+    files = write_noise_files(exports, out_dir, res, topic=topic, name=name)
     res["exports"] = files
     write_json_atomic(out_dir / "allan.json", res)
     plot_allan(res["accel"], out_dir / "allan_accel.png", f"Accelerometer ({name})", "m/s²", "accel")

@@ -32,9 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from imubench.results.atomic import write_text_atomic
+from imubench.results.exports import names
 from imubench.text import comment, token
 
-NOISE_WRITERS = ("kalibr", "openvins", "vins-fusion", "imu-utils")
+NOISE_WRITERS = names("noise")              # the export registry's (results.exports)
 G0 = 9.80665
 AXES = ("x", "y", "z")
 INFLATE = ("# Estimators are usually given these inflated several times (commonly x2 to x10) for what the\n"
@@ -219,6 +220,19 @@ def write_noise(kind: str, path, res: dict, *, topic: str = "/imu0", name: str =
     """Write one consumer's file; returns its path."""
     if kind not in NOISE_WRITERS:
         raise ValueError(f"unknown noise export {kind!r}; one of {', '.join(NOISE_WRITERS)}")
+    from imubench.results import exports as X
     text = {"kalibr": lambda: kalibr_text(res, topic), "openvins": lambda: openvins_text(res, topic),
             "vins-fusion": lambda: vins_fusion_text(res, topic), "imu-utils": lambda: imu_utils_text(res, name)}[kind]()
-    return write_text_atomic(Path(path), text)
+    return write_text_atomic(Path(path), X.stamp(text, X.get("noise", kind)))
+
+
+def write_noise_files(kinds, out_dir, res: dict, *, topic: str = "/imu0", name: str = "imu") -> dict:
+    """Each consumer's file of `kinds` into out_dir under the registry's file name (results.exports),
+    and the index beside them; returns {kind: path as str}."""
+    from imubench.results import exports as X
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    files = {k: str(write_noise(k, Path(out_dir) / X.file_names("noise", k)[0], res, topic=topic, name=name))
+             for k in dict.fromkeys(kinds)}
+    if files:
+        X.write_index(out_dir, "noise", {k: [v] for k, v in files.items()}, f"noise figures of {name}")
+    return files

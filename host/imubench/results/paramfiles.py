@@ -50,10 +50,11 @@ from pathlib import Path
 import numpy as np
 
 from imubench.results.atomic import write_json_atomic, write_text_atomic
+from imubench.results.exports import names
 from imubench.text import comment as comment_line
 from imubench.units import G0_MPS2
 
-WRITERS = ("params", "imutk", "imucal", "ardupilot", "kalibr", "px4", "imu-calib")
+WRITERS = names("calibration")                                        # the export registry's (results.exports)
 SI_WRITERS = ("params", "ardupilot", "kalibr", "px4", "imu-calib")     # need a declared nominal scale
 
 
@@ -267,35 +268,40 @@ def imu_calib_text(acc_m, acc_b_mps2, comment: str = "") -> str:
 def write(kind: str, prefix: Path, *, accel, gyro=None, accel_factor: float, gyro_factor: float | None,
           accel_unit: str, gyro_unit: str, scaled: bool, params=None, comment: str = "",
           gsens=None, px4_acc_id: int | None = None, px4_gyro_id: int | None = None) -> list[Path]:
-    """Write one layout; prefix is the path without extension. accel, gyro: TriadFit in SI (or
-    None); accel_factor / gyro_factor: SI per unit of the recording; scaled: whether the
-    recording's unit had a declared nominal scale (ours and ArduPilot's need one); params:
-    the parameter block for 'params'. Returns the files written."""
+    """Write one layout; prefix is the path without extension (the file names are the export
+    registry's, results.exports). accel, gyro: TriadFit in SI (or None); accel_factor /
+    gyro_factor: SI per unit of the recording; scaled: whether the recording's unit had a declared
+    nominal scale (ours and ArduPilot's need one); params: the parameter block for 'params'. Each
+    file is stamped with what it holds, cannot hold and leaves to do (exports.stamp). Returns the
+    files written."""
+    from imubench.results import exports as X
     prefix = Path(prefix)
     if kind not in WRITERS:
         raise ValueError(f"unknown writer {kind!r}; one of {', '.join(WRITERS)}")
+    fmt = X.get("calibration", kind)
+    paths = [prefix.parent / n for n in X.file_names("calibration", kind, prefix.name)]
+
+    def put(path: Path, text: str) -> Path:
+        return write_text_atomic(path, X.stamp(text, fmt))
     if kind == "params":
         from imubench.wire import params as PR
-        return [write_json_atomic(prefix.with_suffix(".params.json"), PR.to_json(params))]
+        return [write_json_atomic(paths[0], PR.to_json(params))]
     if kind == "ardupilot":
-        return [write_text_atomic(prefix.with_suffix(".ardupilot.param"),
-                                  ardupilot_text(accel.m, accel.b, None if gyro is None else gyro.b, comment,
-                                                 None if gyro is None else gyro.m))]
+        return [put(paths[0], ardupilot_text(accel.m, accel.b, None if gyro is None else gyro.b, comment,
+                                             None if gyro is None else gyro.m))]
     if kind == "kalibr":
-        return [write_text_atomic(prefix.with_suffix(".kalibr-imu.yaml"), kalibr_intrinsics_text(
-            accel.m, np.eye(3) if gyro is None else gyro.m, gsens, comment))]
+        return [put(paths[0], kalibr_intrinsics_text(accel.m, np.eye(3) if gyro is None else gyro.m, gsens, comment))]
     if kind == "px4":
-        return [write_text_atomic(prefix.with_suffix(".px4.params"), px4_text(
-            accel.m, accel.b, None if gyro is None else gyro.m, None if gyro is None else gyro.b, gsens, comment,
-            px4_acc_id, px4_gyro_id))]
+        return [put(paths[0], px4_text(accel.m, accel.b, None if gyro is None else gyro.m,
+                                       None if gyro is None else gyro.b, gsens, comment, px4_acc_id, px4_gyro_id))]
     if kind == "imu-calib":
-        return [write_text_atomic(prefix.with_suffix(".imu_calib.yaml"), imu_calib_text(accel.m, accel.b, comment))]
+        return [put(paths[0], imu_calib_text(accel.m, accel.b, comment))]
     am, ab = raw_model(accel.m, accel.b, accel_factor)
     if kind == "imutk":
-        out = [write_text_atomic(Path(f"{prefix}_acc.calib"), imutk_text(am, ab))]
+        out = [write_text_atomic(paths[0], imutk_text(am, ab))]
         if gyro is not None and gyro_factor:
             gm, gb = raw_model(gyro.m, gyro.b, gyro_factor)
-            out.append(write_text_atomic(Path(f"{prefix}_gyro.calib"), imutk_text(gm, gb)))
+            out.append(write_text_atomic(paths[1], imutk_text(gm, gb)))
         return out
     # imucal: gyro out in deg/s
     if gyro is not None and gyro_factor:
@@ -307,6 +313,4 @@ def write(kind: str, prefix: Path, *, accel, gyro=None, accel_factor: float, gyr
     d = imucal_dict(am, ab, gm, gb, units.get(accel_unit, accel_unit), units.get(gyro_unit, gyro_unit), comment)
     if gsens is not None and gyro_factor:   # imucal's K_ga: raw gyro units per (m/s²) of calibrated acceleration
         d["K_ga"] = (np.asarray(gsens, float) / 9.80665 / gyro_factor).tolist()
-    path = prefix.with_suffix(".imucal.json")
-    write_text_atomic(path, json.dumps(d, indent=4) + "\n")
-    return [path]
+    return [put(paths[0], json.dumps(d, indent=4) + "\n")]
