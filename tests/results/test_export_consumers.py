@@ -358,6 +358,43 @@ def test_ardupilot_thermal_file_says_enable_then_reboot(tmp_path):
     assert "INS_TCAL1_ENABLE = 1" in head and "reboot" in head and "load it again" in head
 
 
+# ------------------------------------------------------------------ the consumers' own code, installed (pyproject [test])
+def test_ardupilot_files_through_pymavlinks_own_loader(tmp_path, truth):
+    """pymavlink mavparm.MAVParmDict.load (what MAVProxy's `param load` runs): every line of ours it
+    reads is a parameter, none is 'Invalid line', and the values are the ones we wrote."""
+    from pymavlink import mavparm
+    acc, gyr = truth
+    f, = PF.write("ardupilot", tmp_path / "cal", accel=acc, gyro=gyr, accel_factor=1.0, gyro_factor=1.0,
+                  accel_unit="mps2", gyro_unit="rad_s", scaled=True, comment="board\nINS_ACCSCAL_X,5")
+    texts = {"cal": f.read_text(), "thermal": _thermal_texts("warm\nINS_TCAL1_ENABLE,0")["ardupilot"]}
+    for key, text in texts.items():
+        path = tmp_path / f"{key}.param"
+        path.write_text(text)
+        p = mavparm.MAVParmDict()
+        assert p.load(str(path)) is True
+        assert dict(p) == _mavparm(text), key                    # exactly our rows, nothing from a comment
+    p = mavparm.MAVParmDict()
+    p.load(str(tmp_path / "cal.param"))
+    got = (np.asarray(_samples(acc, gyr)[0]) - [p[f"INS_ACCOFFS_{a}"] for a in "XYZ"]) * [p[f"INS_ACCSCAL_{a}"]
+                                                                                       for a in "XYZ"]
+    np.testing.assert_allclose(got, (_samples(acc, gyr)[0] - acc.b) / np.diag(acc.m), atol=1e-6)
+
+
+def test_imucal_file_through_imucals_own_loader_and_calibrate(tmp_path, truth):
+    """imucal (PyPI) loads our file with its own load_calibration_info and its calibrate() gives
+    our correction: accelerometer in m/s², gyro in deg/s (its units), g-sensitivity included."""
+    from imucal.management import load_calibration_info
+    acc, gyr = truth
+    g = np.radians(np.diag([0.03, -0.02, 0.04]))                  # rad/s per g
+    f, = PF.write("imucal", tmp_path / "cal", accel=acc, gyro=gyr, accel_factor=1.0, gyro_factor=1.0,
+                  accel_unit="mps2", gyro_unit="rad_s", scaled=True, gsens=g, comment='a "name"\n}{')
+    cal = load_calibration_info(f)
+    ua, ug, f_true, w_true = _samples(acc, gyr, gsens=g)
+    a_cal, g_cal = cal.calibrate(ua, ug, acc_unit=cal.from_acc_unit, gyr_unit=cal.from_gyr_unit)
+    np.testing.assert_allclose(a_cal, f_true, atol=1e-9)
+    np.testing.assert_allclose(g_cal, np.degrees(w_true), atol=1e-7)
+
+
 # ------------------------------------------------------------------ 8. names through every export
 NAMES = ["board\nCBRK_IO_SAFETY,22027\n1\t1\tCBRK_IO_SAFETY\t22027\t6",
          "a\rSM: [1,0,0,0,1,0,0,0,1]\r\nbias: [9,9,9]",
