@@ -318,6 +318,9 @@ def run(a) -> int:
                               f"imubench calibrate --resume {shlex.quote(str(directory))}" + (" --sim" if a.sim else "")
                               if (directory / "session.json").exists() else "nothing was captured")
     if a.ui == "web":
+        if a.export:
+            print("note: --ui web: the page offers every export format of a calibration that passed as a download "
+                  f"(the files go to {directory}/exports); --export writes them from the terminal session")
         if a.redo or a.closure:
             raise UsageError(f"{'--redo' if a.redo else '--closure'} is a terminal option",
                              "run it without --ui web (the page resumes a session with its Resume button)")

@@ -59,7 +59,8 @@ FORMATS: tuple[Format, ...] = (
     # ---------------------------------------------------------------- a calibration result
     Format("calibration", "params", "imubench (this device's parameter block)", "protocol/params (wire.params.to_json)",
            ("{prefix}.params.json",), "M, b of both triads and the gyro g-sensitivity, in SI", "nothing",
-           "write it with `imubench params load` (a session writes it itself)", ""),
+           ("a session writes it to the device itself; for a factory image: `imubench param-page --params FILE "
+            "--layout BOARD -o PAGE`"), ""),
     Format("calibration", "imutk", "imu_tk (Tedaldi et al. 2014)", "imu_tk include/imu_tk/calibration.h CalibratedTriad_::load",
            ("{prefix}_acc.calib", "{prefix}_gyro.calib"), "M, b of both triads exactly (T unit-diagonal, K, B)",
            "the gyro g-sensitivity", "", ""),
