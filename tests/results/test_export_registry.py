@@ -14,6 +14,7 @@ from imu_synth import ferraris_truth
 
 from imubench.calib import TriadFit
 from imubench.cli.main import build_parser
+from imubench.procedures.export_files import write_calibration
 from imubench.results import exports as X
 from imubench.results import noise_export as NE
 from imubench.results import paramfiles as PF
@@ -83,7 +84,7 @@ def _result(acc, gyr) -> dict:
 
 def test_a_session_result_writes_every_format_and_each_file_says_what_it_is(tmp_path, truth):
     acc, gyr = truth
-    files = X.write_calibration(X.names("calibration"), tmp_path, _result(acc, gyr), name="ABC123",
+    files = write_calibration(X.names("calibration"), tmp_path, _result(acc, gyr), name="ABC123",
                                 comment="imubench calibration of ABC123", px4_acc_id=1310988, px4_gyro_id=2163722)
     assert set(files) == set(X.names("calibration"))
     for kind, paths in files.items():
@@ -150,7 +151,7 @@ def _all_files(tmp_path, name: str, truth) -> dict:
     acc, gyr = truth
     out = {}
     d = tmp_path / "cal"
-    for kind, paths in X.write_calibration(X.names("calibration"), d, _result(acc, gyr), name=name,
+    for kind, paths in write_calibration(X.names("calibration"), d, _result(acc, gyr), name=name,
                                            comment=f"imubench calibration of {name}", px4_acc_id=5,
                                            px4_gyro_id=6).items():
         for i, p in enumerate(paths):

@@ -27,6 +27,7 @@ from imubench.cli.calibrate_station import (
     _run_station,
     _sim_fault,
     _station_session,
+    write_exports,
 )
 from imubench.cli.station import add_web
 from imubench.results import exports as X
@@ -483,29 +484,6 @@ def _add_station_fields(result: dict, a, directory: Path, before, after, url) ->
     result["params_before"] = PR.to_json(before) if before is not None else None
     result["params_after"] = PR.to_json(after) if after is not None and result.get("written") else None
     result["capture"] = capture_ref(directory)
-
-
-def write_exports(a, result: dict, directory: Path, name: str, ok: bool, say=print) -> dict:
-    """The --export files of a session's (or one station board's) result into directory, as
-    calibration-NAME.* (results.exports.write_calibration); none for a result that did not pass
-    (a file a tool would load must hold a calibration that passed). Says each file, and when the
-    PX4 file lacks its ids."""
-    kinds = tuple(getattr(a, "export", ()) or ())
-    if not kinds:
-        return {}
-    if not ok or not (result.get("accel") or {}).get("m"):
-        say(f"exports ({', '.join(kinds)}) not written: the calibration did not pass")
-        return {}
-    comment = f"imubench calibration of {name}, {result.get('finished') or ''}".strip(", ")
-    files = X.write_calibration(kinds, directory, result, name=name, comment=comment, px4_acc_id=a.px4_acc_id,
-                                px4_gyro_id=a.px4_gyro_id)
-    for kind, paths in files.items():
-        say(f"{kind}: {one_line(', '.join(paths))}")
-    from imubench.results.paramfiles import PX4_ID_HOW, px4_missing_ids
-    missing = px4_missing_ids(a.px4_acc_id, a.px4_gyro_id, result.get("gyro") is not None)
-    if files.get("px4") and missing:
-        say(f"px4: NOT USABLE AS IS, no {' / '.join(missing)} (PX4 ignores the slot): {PX4_ID_HOW}")
-    return files
 
 
 def px4_device_id(s: str) -> int:

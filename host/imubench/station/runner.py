@@ -563,10 +563,11 @@ def _warmup_summary(result: dict, d: Path, stopped: bool, closing: bool = False)
 def _board_exports(key: str, result: dict, d: Path) -> list[dict]:
     """Every calibration format of the export registry for one board that passed, in
     d/exports (a download each on its column: /export/KEY/FILE); [] when they cannot be made."""
+    from imubench.procedures.export_files import write_calibration
     from imubench.results import exports as X
     uid = (result.get("device") or {}).get("mcu_uid") or _safe(key)
     try:
-        files = X.write_calibration(X.names("calibration"), Path(d) / "exports", result, name=uid,
+        files = write_calibration(X.names("calibration"), Path(d) / "exports", result, name=uid,
                                     comment=f"imubench calibration of {uid}, {result.get('finished') or ''}")
     except (ValueError, OSError, KeyError) as e:
         return [{"kind": "error", "name": _one_line(e), "url": None}]
