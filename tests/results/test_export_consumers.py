@@ -270,6 +270,11 @@ def test_px4_file_with_ids_is_used_by_the_sensor_it_names(tmp_path, truth):
     diag_only = (ua - acc.b) / np.diag(acc.m)
     np.testing.assert_allclose(got, diag_only, atol=1e-6)
     assert np.max(np.abs(got - acc.correct(ua))) > 0          # the cross-axis terms it cannot hold
+    # the gyro: offsets only (Gyroscope::Correct has no scale): the loss the file states bounds the measured one
+    _, ug, _, w = _samples(acc, gyr)
+    err_dps = np.degrees(np.linalg.norm(ug - [p[f"CAL_GYRO0_{a}OFF"] for a in "XYZ"] - w, axis=1))
+    assert np.all(err_dps <= PF.gyro_scale_loss_dps(gyr.m, 1.0) * np.degrees(np.linalg.norm(w, axis=1)) + 1e-9)
+    assert f"{PF.gyro_scale_loss_dps(gyr.m, 300.0):.2f} deg/s at 300 deg/s" in f.read_text()
     np.testing.assert_array_equal(_px4_correct(p, 999, ua), ua)     # another sensor: slot not used
 
 

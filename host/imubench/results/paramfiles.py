@@ -238,6 +238,8 @@ def px4_text(acc_m, acc_b_mps2, gyro_m=None, gyro_b_rad_s=None, gsens=None, comm
         g = np.asarray(gyro_m, float)
         rows.append(f"# and the gyro's scale and cross-axis terms (M_g diagonal {', '.join(f'{v:.6f}' for v in np.diag(g))}"
                     f", off-diagonal up to {float(np.max(np.abs(g - np.diag(np.diag(g))))):.2e}: PX4 has no gyro scale)")
+        rows.append(f"#   the rate error this leaves: up to {gyro_scale_loss_dps(g, 100.0):.2f} deg/s at 100 deg/s, "
+                    f"{gyro_scale_loss_dps(g, 300.0):.2f} deg/s at 300 deg/s")
     if gsens is not None:
         rows.append("# and the gyro g-sensitivity G (PX4 has none): its bias is the one at zero specific force")
     rows += ["# Onboard parameters for Vehicle 1", "#", "# Vehicle-Id Component-Id Name Value Type"]
