@@ -143,11 +143,22 @@ def _lines_not_comments(text: str) -> list[str]:
     return [ln for ln in text.splitlines() if not ln.lstrip().startswith("#")]
 
 
+_FITS: dict = {}
+
+
+def _thermal_fits():
+    """The warm-up fits of test_warmup, fitted once for every name (a second of cross-validation)."""
+    if not _FITS:
+        from test_warmup import _fits_for_export
+        _FITS["fits"] = _fits_for_export(np.random.default_rng(2))
+    return _FITS["fits"]
+
+
 def _all_files(tmp_path, name: str, truth) -> dict:
     """Every export of every family written to disk the way the commands write them, with name in
     every place a name goes (the device name, the comment, the topic, the file name)."""
     from test_export_consumers import _res
-    from test_warmup import T_REF, _fits_for_export
+    from test_warmup import T_REF
     acc, gyr = truth
     out = {}
     d = tmp_path / "cal"
@@ -160,7 +171,7 @@ def _all_files(tmp_path, name: str, truth) -> dict:
     res = _res(source=f"/data/{name}.csv", name=name)
     for kind, p in NE.write_noise_files(X.names("noise"), tmp_path / "noise", res, topic=name, name=name).items():
         out[f"noise {kind}"] = open(p).read()
-    fits = _fits_for_export(np.random.default_rng(2))
+    fits = _thermal_fits()
     (tmp_path / "thermal").mkdir(parents=True)
     files = TX.write_exports(tmp_path / "thermal", {k: (fits, name) for k in TX.KINDS},
                              {"accel": T_REF, "gyro": T_REF}, TX.KINDS, comment=f"imubench from {name}.csv")
