@@ -182,6 +182,7 @@ def test_known_angle_turns_by_hand_on_the_station_page(tmp_path):
         assert e["url"] == f"/export/sim/{e['name']}" and st.export_path("sim", e["name"]).is_file()
     assert st.export_path("sim", "../session.json") is None and st.export_path("other", ex["px4"]["name"]) is None
     assert "# Holds: " in st.export_path("sim", ex["kalibr"]["name"]).read_text()
+    assert "not usable" in ex["px4"]["label"] and "NOT USABLE AS IS" in st.export_path("sim", ex["px4"]["name"]).read_text()
 
 
 def test_any_order_with_a_hint_no_timeout_and_adaptive_stop(tmp_path):

@@ -571,10 +571,15 @@ def _board_exports(key: str, result: dict, d: Path) -> list[dict]:
                                     comment=f"imubench calibration of {uid}, {result.get('finished') or ''}")
     except (ValueError, OSError, KeyError) as e:
         return [{"kind": "error", "name": _one_line(e), "url": None}]
-    out = [{"kind": kind, "name": Path(p).name, "path": str(p), "url": f"/export/{_safe(key)}/{Path(p).name}"}
-           for kind, paths in files.items() for p in paths]
+    # the page has no PX4 device ids: its px4 file says it is not usable as is, and so does its link
+    label = {"px4": "px4 (not usable without CAL_*_ID: see the file)"}
+    out = [{"kind": kind, "label": label.get(kind, kind) if len(paths) == 1 else f"{kind} {'accel' if k == 0 else 'gyro'}",
+            "consumer": X.get("calibration", kind).consumer, "name": Path(p).name, "path": str(p),
+            "url": f"/export/{_safe(key)}/{Path(p).name}"}
+           for kind, paths in files.items() for k, p in enumerate(paths)]
     idx = Path(d) / "exports" / "exports-calibration.txt"
-    out.append({"kind": "index", "name": idx.name, "path": str(idx), "url": f"/export/{_safe(key)}/{idx.name}"})
+    out.append({"kind": "index", "label": "what each file is for", "consumer": "", "name": idx.name,
+                "path": str(idx), "url": f"/export/{_safe(key)}/{idx.name}"})
     return out
 
 
