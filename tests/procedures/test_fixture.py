@@ -202,8 +202,19 @@ def test_the_plate_moves_once_when_every_live_board_asked_and_stops_waiting_for_
 def test_cli_station_session_on_virtual_devices(tmp_path, capsys):
     db = tmp_path / "line.sqlite"
     assert imubench(["calibrate", "--sim", "--sim-boards", "2", "--sim-seed", "41", "--dir", str(tmp_path / "st"),
-                     "--db", str(db), "--station", "S9", "--operator", "bo", "--fixture", "plate-1"]) == 0
+                     "--db", str(db), "--station", "S9", "--operator", "bo", "--fixture", "plate-1",
+                     "--export", "px4,kalibr", "--export", "imucal", "--px4-acc-id", "1310988",
+                     "--px4-gyro-id", "2163722"]) == 0
     out = capsys.readouterr().out
+    # every board's result in the files its consumers read (issue 34): one set per slot, named by its UID
+    for slot in (1, 2):
+        d = tmp_path / "st" / f"slot-{slot}"
+        (px4,) = d.glob("calibration-*.px4.params")
+        rows = {ln.split("\t")[2]: ln.split("\t")[3] for ln in px4.read_text().splitlines() if not ln.startswith("#")}
+        assert rows["CAL_ACC0_ID"] == "1310988" and rows["CAL_GYRO0_ID"] == "2163722"
+        assert len(list(d.glob("calibration-*.kalibr-imu.yaml"))) == 1 and len(list(d.glob("calibration-*.imucal.json"))) == 1
+        assert (d / "exports-calibration.txt").is_file()
+    assert "NOT USABLE" not in out
     table = [ln for ln in out.splitlines() if ln.strip()[:1].isdigit() and "PASSED" in ln]
     assert len(table) == 2 and all("written and verified" in ln for ln in table)
     assert "2 of 2 boards passed" in out
@@ -213,6 +224,11 @@ def test_cli_station_session_on_virtual_devices(tmp_path, capsys):
     import xml.etree.ElementTree as ET
     root = ET.parse(tmp_path / "s.xml").getroot()
     assert len(root.findall("testsuite")) == 2 and root.get("failures") == "0" and int(root.get("tests")) >= 10
+    # both formats at once (the registry's option syntax): one file each in the directory
+    assert imubench(["history", "--db", str(db), "--export", sid, "--format", "json,junit",
+                     "--out", str(tmp_path / "both")]) == 0
+    assert sorted(p.name for p in (tmp_path / "both").iterdir()) == sorted(
+        [f"session-{sid}.json", f"session-{sid}.junit.xml"])
 
 
 @pytest.mark.parametrize("args, words", [
@@ -256,8 +272,11 @@ def test_cli_station_file(tmp_path, capsys):
 def test_a_one_board_session_records_the_production_fields_too(tmp_path, capsys):
     db = tmp_path / "one.sqlite"
     assert imubench(["calibrate", "--sim", "--sim-seed", "61", "--dir", str(tmp_path / "s"), "--db", str(db),
-                     "--station", "S5", "--operator", "di", "--fixture", "cube-2"]) == 0
-    capsys.readouterr()
+                     "--station", "S5", "--operator", "di", "--fixture", "cube-2",
+                     "--export", "params,px4", "--export", "ardupilot"]) == 0
+    out = capsys.readouterr().out
+    assert "px4: NOT USABLE AS IS, no CAL_ACC0_ID / CAL_GYRO0_ID" in out       # no ids given: said, with how
+    assert "listener sensor_accel" in out
     with History(db, readonly=True) as h:
         (dev,) = h.devices()
         (run,) = h.runs(dev["mcu_uid"])
@@ -268,6 +287,15 @@ def test_a_one_board_session_records_the_production_fields_too(tmp_path, capsys)
     assert run["capture_sha256"] == hashlib.sha256(cap.read_bytes()).hexdigest()
     assert run["capture_uri"].endswith(str(cap.resolve()))
     assert {m["name"] for m in run["measurements"]} >= {"accel_norm_rms_mg", "params_written"}
+    # the live session's files (issue 34): our parameter file is the block written to the device
+    uid = dev["mcu_uid"]
+    params = json.loads((tmp_path / "s" / f"calibration-{uid}.params.json").read_text())
+    assert params == run["params_after"]
+    ap = (tmp_path / "s" / f"calibration-{uid}.ardupilot.param").read_text()
+    vals = {ln.split(",")[0]: float(ln.split(",")[1]) for ln in ap.splitlines() if ln and not ln.startswith("#")}
+    m = np.array(run["params_after"]["accel_m"]).reshape(3, 3)
+    np.testing.assert_allclose([vals[f"INS_ACCSCAL_{a}"] for a in "XYZ"], 1.0 / np.diag(m), rtol=1e-7)
+    assert "INS_ACC_ID" in ap and "# Holds: " in ap
 
 
 def test_a_board_still_needing_an_attitude_is_served_before_another_boards_verification():

@@ -148,6 +148,7 @@ def test_station_server_answers_bad_requests_in_one_line(tmp_path):
         code, body = call("api/start", {"port": "socket://127.0.0.1:1", "gyro": "spin"})
         assert code == 400 and json.loads(body)["error"].startswith("gyro must be one of")
         assert call("report/none/report.html")[0] == 404
+        assert call("export/none/calibration-x.px4.params")[0] == 404
         code, svg = call("turn.svg?axis=0,0,1&angle=360")          # a known-angle turn by hand
         assert code == 200 and "+360°" in svg
         assert call("turn.svg?axis=0,0,1&angle=full")[0] == 400
@@ -173,6 +174,15 @@ def test_known_angle_turns_by_hand_on_the_station_page(tmp_path):
     steps = [x for x in b.steps if x["kind"] == "turn-pose"]
     assert len(steps) == 3 and all(x["state"] == "done" for x in steps) and "lie still" in steps[0]["text"]
     assert any(r[0] == "gyro Mxx − 1" for r in b.result["parameters"]), b.result["parameters"]
+    # a download per board of every calibration format of the export registry (issue 34)
+    from imubench.results import exports as X
+    ex = {e["kind"]: e for e in b.result["exports"]}
+    assert set(ex) == set(X.names("calibration")) | {"index"}
+    for e in b.result["exports"]:
+        assert e["url"] == f"/export/sim/{e['name']}" and st.export_path("sim", e["name"]).is_file()
+    assert st.export_path("sim", "../session.json") is None and st.export_path("other", ex["px4"]["name"]) is None
+    assert "# Holds: " in st.export_path("sim", ex["kalibr"]["name"]).read_text()
+    assert "not usable" in ex["px4"]["label"] and "NOT USABLE AS IS" in st.export_path("sim", ex["px4"]["name"]).read_text()
 
 
 def test_any_order_with_a_hint_no_timeout_and_adaptive_stop(tmp_path):

@@ -29,8 +29,10 @@ from imubench.cli.calibrate_station import (
     _run_station,
     _sim_fault,
     _station_session,
+    write_exports,
 )
 from imubench.cli.station import add_web
+from imubench.results import exports as X
 from imubench.results.record import verdict
 from imubench.text import one_line, printable
 
@@ -39,10 +41,10 @@ CAPTURES = ("adaptive", "plan")
 SIX_WARNING = ("warning: --method six needs a square fixture (a machined cube against a square): held by hand the "
                "faces are degrees off square and the fit fails; --method multi needs none")
 GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "auto", "none")
-# imubench.recordings.FORMATS and imubench.results.paramfiles.WRITERS, named here so that building
-# the parser loads neither (tests/procedures/test_from_file.py checks they agree)
+# imubench.recordings.FORMATS, named here so that building the parser does not load it
+# (tests/procedures/test_from_file.py checks they agree); the export formats are the registry's
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
-WRITERS = ("params", "imutk", "imucal", "ardupilot", "kalibr", "px4", "imu-calib")
+WRITERS = X.names("calibration")
 
 
 def rate_hz(s: str) -> float:
@@ -169,6 +171,13 @@ def _station_file(s: str) -> dict:
 
 def _add_from_file(p) -> None:
     """--from FILE and what reading a recording needs (imubench.procedures.from_file)."""
+    e = p.add_argument_group("the result in other tools' files (a session, every board of a station, or --from)")
+    X.add_option(e, "calibration")
+    e.add_argument("--px4-acc-id", type=px4_device_id, metavar="ID",
+                   help="--export px4: the PX4 device id of the accelerometer (`listener sensor_accel`, or CAL_ACC0_ID "
+                        "of the vehicle's current parameters); PX4 ignores a calibration slot without it")
+    e.add_argument("--px4-gyro-id", type=px4_device_id, metavar="ID",
+                   help="--export px4: the PX4 device id of the gyro (`listener sensor_gyro`, or CAL_GYRO0_ID)")
     g = p.add_argument_group("calibrate from a recording (any 6-axis IMU; docs/calibration.md, From files)")
     g.add_argument("--from", dest="from_file", metavar="FILE",
                    help="calibrate from a recording instead of a device: the same analysis, report and history")
@@ -203,15 +212,6 @@ def _add_from_file(p) -> None:
                         "it, clipping is found in the data: samples held at the extreme of the values)")
     g.add_argument("--annotation", type=existing_file, metavar="JSON",
                    help="imucal's section list, to compare the segmentation with")
-    g.add_argument("--export", action="append", default=[], choices=WRITERS, metavar="|".join(WRITERS),
-                   help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON, ArduPilot's "
-                        "parameters, Kalibr's IMU intrinsics, PX4's CAL_ACC0/CAL_GYRO0 parameters or ROS imu_calib's "
-                        "YAML (repeatable)")
-    g.add_argument("--px4-acc-id", type=px4_device_id, metavar="ID",
-                   help="--export px4: the PX4 device id of the accelerometer (`listener sensor_accel`, or CAL_ACC0_ID "
-                        "of the vehicle's current parameters); PX4 ignores a calibration slot without it")
-    g.add_argument("--px4-gyro-id", type=px4_device_id, metavar="ID",
-                   help="--export px4: the PX4 device id of the gyro (`listener sensor_gyro`, or CAL_GYRO0_ID)")
     g.add_argument("--tolerance-mg", type=positive_float, metavar="MG",
                    help="pass when the RMS of |a| − g over the still intervals after calibration is at most this "
                         "(default: the device's, 1 mg)")
@@ -269,7 +269,7 @@ def run(a) -> int:
     _check_history(a.db or (a.station_file or {}).get("db"))
     if a.from_file is not None:
         return _run_from_file(a)
-    stray = [k for k in _FILE_ONLY if getattr(a, k, None) is not None] + (["export"] if a.export else [])
+    stray = [k for k in _FILE_ONLY if getattr(a, k, None) is not None]
     if stray:
         raise UsageError(f"--{stray[0].replace('_', '-')} goes with --from FILE",
                          "drop it to calibrate a device, or give the recording with --from")
@@ -318,6 +318,9 @@ def run(a) -> int:
                               f"imubench calibrate --resume {shlex.quote(str(directory))}" + (" --sim" if a.sim else "")
                               if (directory / "session.json").exists() else "nothing was captured")
     if a.ui == "web":
+        if a.export:
+            print("note: --ui web: the page offers every export format of a calibration that passed as a download "
+                  f"(the files go to {directory}/exports); --export writes them from the terminal session")
         if a.redo or a.closure:
             raise UsageError(f"{'--redo' if a.redo else '--closure'} is a terminal option",
                              "run it without --ui web (the page resumes a session with its Resume button)")
@@ -352,6 +355,7 @@ def run(a) -> int:
                 sess.finish(result)
     _record_history(result, a.db or (getattr(a, "station_file", None) or {}).get("db"), sess.state_path)
     ok, _ = verdict(result, cfg.write)
+    write_exports(a, result, sess.dir, (result.get("device") or {}).get("mcu_uid") or "device", ok)
     print("\ncalibration " + ("PASSED" if ok else "FAILED"))
     if not ok and result.get("gyro_refused"):
         raise CommandError(f"accelerometer calibrated; gyro not: {result['gyro_refused']}; nothing was written "
@@ -495,7 +499,7 @@ def px4_device_id(s: str) -> int:
 # ------------------------------------------------------------------ from a file
 _FILE_ONLY = ("format", "gyro_file", "accel_unit", "gyro_unit", "accel_scale", "gyro_scale", "columns", "time_column",
               "time_unit", "profile", "topic", "device", "gyro_range", "annotation", "tolerance_mg", "skip_rows",
-              "accel_offset", "gyro_offset", "sensor", "px4_acc_id", "px4_gyro_id")
+              "accel_offset", "gyro_offset", "sensor")
 
 
 def _columns(text: str) -> dict:
@@ -566,7 +570,7 @@ def _run_from_file(a) -> int:
     cfg = FileConfig(method=a.method or "auto", gyro=None if a.gyro == "none" else a.gyro, turn_deg=a.turn_angle,
                      angle_sigma_deg=a.turn_sigma, axis_sigma_deg=a.turn_axis_sigma,
                      gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
-                     writers=tuple(dict.fromkeys(a.export)), px4_acc_id=a.px4_acc_id, px4_gyro_id=a.px4_gyro_id,
+                     writers=tuple(a.export), px4_acc_id=a.px4_acc_id, px4_gyro_id=a.px4_gyro_id,
                      annotation=annotation, tolerances=tol,
                      tolerance_from_imu=a.tolerance_mg is None, command="imubench " + shlex.join(sys.argv[1:]))
     directory = Path(a.dir or f"imubench-file-{Path(a.from_file).stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")

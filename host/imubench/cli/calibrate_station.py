@@ -7,6 +7,7 @@ import shlex
 from pathlib import Path
 
 from imubench.cli.common import CommandError, UsageError, speed_text
+from imubench.text import one_line
 
 SIM_SPEED = 20.0
 #: a station session's plate deadline (fixture.Plate) when --plate-timeout is not given: the
@@ -137,6 +138,13 @@ def _run_station(a, cfg) -> int:
         else:
             res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
                               link_timeout_s=a.link_timeout, baudrate=a.baud, plate_timeout_s=plate_timeout)
+    if getattr(a, "export", ()):
+        print()
+        for b in res.boards:
+            rec = res.results.get(b.slot) or {}
+            print(f"slot {b.slot} {b.uid or b.port}:")
+            write_exports(a, rec, directory / f"slot-{b.slot}", b.uid or f"slot-{b.slot}", b.state == "passed",
+                          say=lambda line: print(f"  {line}"))
     print()
     print(_station_table(res))
     print(f"station session {res.session_id}: {len(res.passed)} of {len(res.boards)} boards passed "
@@ -202,6 +210,30 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
     if "error" in box:
         raise box["error"]
     return box["res"]
+
+
+def write_exports(a, result: dict, directory: Path, name: str, ok: bool, say=print) -> dict:
+    """The --export files of a session's (or one station board's) result into directory, as
+    calibration-NAME.* (procedures.export_files.write_calibration); none for a result that did not pass
+    (a file a tool would load must hold a calibration that passed). Says each file, and when the
+    PX4 file lacks its ids."""
+    kinds = tuple(getattr(a, "export", ()) or ())
+    if not kinds:
+        return {}
+    if not ok or not (result.get("accel") or {}).get("m"):
+        say(f"exports ({', '.join(kinds)}) not written: the calibration did not pass")
+        return {}
+    comment = f"imubench calibration of {name}, {result.get('finished') or ''}".strip(", ")
+    from imubench.procedures.export_files import write_calibration
+    files = write_calibration(kinds, directory, result, name=name, comment=comment, px4_acc_id=a.px4_acc_id,
+                                px4_gyro_id=a.px4_gyro_id)
+    for kind, paths in files.items():
+        say(f"{kind}: {one_line(', '.join(paths))}")
+    from imubench.results.paramfiles import PX4_ID_HOW, px4_missing_ids
+    missing = px4_missing_ids(a.px4_acc_id, a.px4_gyro_id, result.get("gyro") is not None)
+    if files.get("px4") and missing:
+        say(f"px4: NOT USABLE AS IS, no {' / '.join(missing)} (PX4 ignores the slot): {PX4_ID_HOW}")
+    return files
 
 
 def _shown(db) -> str:

@@ -17,6 +17,7 @@ from imubench.cli.common import (
     out_dir,
     positive_float,
 )
+from imubench.results import exports as X
 from imubench.results import thermal_export as TX
 
 
@@ -72,8 +73,7 @@ def register(sub) -> None:
                    help="stop when every sensor has covered LO..HI °C (default: when the temperatures stop rising)")
     w.add_argument("--face", type=_face, default="+z", metavar="±X|±Y|±Z",
                    help="the board face that points up during the warm-up")
-    w.add_argument("--export", type=_exports, default=None, metavar="px4,ardupilot",
-                   help="also write autopilot parameter files (" + ", ".join(TX.KINDS) + ") beside thermal.json")
+    X.add_option(w, "thermal", what="also write (beside thermal.json)")
     w.add_argument("--stop-rate", type=positive_float, default=None, metavar="C_PER_MIN",
                    help="the temperatures have stopped rising when every |dT/dt| is below this (default 0.05; --sim 0.3)")
     w.add_argument("--stop-window", type=positive_float, default=None, metavar="S",
@@ -106,14 +106,6 @@ def _face(s: str) -> str:
     if f not in POSES:
         raise argparse.ArgumentTypeError(f"{s!r}: one of +x, -x, +y, -y, +z, -z (the face pointing up)")
     return f
-
-
-def _exports(s: str) -> tuple[str, ...]:
-    kinds = tuple(dict.fromkeys(x.strip().lower() for x in s.split(",") if x.strip()))
-    bad = [k for k in kinds if k not in TX.KINDS]
-    if bad or not kinds:
-        raise argparse.ArgumentTypeError(f"{s!r}: one or more of {', '.join(TX.KINDS)}, comma separated")
-    return kinds
 
 
 def run(a) -> int:

@@ -675,6 +675,9 @@ def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -
             result["notes"].append(f"{kind} not written: {e}")
             say(f"  note: {kind} not written: {e}")
     result["exports"] = files
+    if any(files.values()):             # what each file is for, also those that take no comments (imu_tk, JSON)
+        from imubench.results.exports import write_index
+        write_index(d, "calibration", {k: v for k, v in files.items() if v}, f"calibration of {result['device_name']}")
     if files.get("px4"):
         result["px4_missing_ids"] = paramfiles.px4_missing_ids(cfg.px4_acc_id, cfg.px4_gyro_id, fa.gyro is not None)
     state = {"schema": SESSION_SCHEMA, "started": result["started"],

@@ -236,6 +236,12 @@ def create_app(station: Station, access: PageAccess | None = None):
             return JSONResponse({"error": "no report for this device yet"}, status_code=404)
         return FileResponse(p, media_type="text/html")
 
+    async def export(request: Request):
+        p = station.export_path(request.path_params["key"], request.path_params["name"])
+        if p is None or not p.is_file():
+            return JSONResponse({"error": "no such export for this device"}, status_code=404)
+        return FileResponse(p, media_type="text/plain; charset=utf-8", filename=p.name)
+
     from importlib.resources import files
     static_dir = str(files("imubench.station") / "static")
     routes = [Route("/", page), Route("/api/hello", hello, methods=["POST"]),
@@ -244,7 +250,7 @@ def create_app(station: Station, access: PageAccess | None = None):
               Route("/api/warmup", warmup, methods=["POST"]),
               Route("/api/stop", stop, methods=["POST"]), Route("/api/resume", resume, methods=["POST"]),
               Route("/pose.svg", pose_svg), Route("/turn.svg", turn_svg),
-              Route("/report/{key}/report.html", report), Mount("/static", StaticFiles(directory=static_dir))]
+              Route("/report/{key}/report.html", report), Route("/export/{key}/{name}", export), Mount("/static", StaticFiles(directory=static_dir))]
     app = Starlette(routes=routes, exception_handlers={StationError: bad_request})
     return guard(app, access)
 

@@ -202,7 +202,11 @@
       $(".report-line", el).innerHTML = `${b.result.attitudes} attitudes` +
         (b.result.bench_time_s != null ? `, bench time ${fmt(b.result.bench_time_s, 0)} s` : "") + "; " +
         (b.result.report ? `<a class="report-link" href="${esc(b.result.report)}" target="_blank">the HTML report</a>` : "no report (nothing was fitted)") +
-        (b.result.history ? `; ${esc(b.result.history)}` : "") + `<br><small>session directory ${esc(b.result.session_dir)}</small>`;
+        (b.result.history ? `; ${esc(b.result.history)}` : "") +
+        ((b.result.exports || []).length ? `<br><small>for other tools: ` + b.result.exports.map((e) => e.url
+          ? `<a class="export-link" href="${esc(e.url)}" download="${esc(e.name)}" title="${esc(e.name)}${e.consumer ? " for " + esc(e.consumer) : ""}">${esc(e.label || e.name)}</a>`
+          : esc(e.name)).join(", ") + `</small>` : "") +
+        `<br><small>session directory ${esc(b.result.session_dir)}</small>`;
     } else res.hidden = true;
     $(".log", el).textContent = b.log.join("\n");
   }
