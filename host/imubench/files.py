@@ -47,6 +47,11 @@ class FileRefused(ImubenchError):
     where a regular input file is expected, an input above its size limit)."""
 
 
+def kind_of(mode: int) -> str:
+    """What a file of this st_mode is, in words ("a FIFO (named pipe)", "a regular file")."""
+    return "a regular file" if stat.S_ISREG(mode) else _kind(mode)
+
+
 def _kind(mode: int) -> str:
     for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
                        (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),

@@ -9,6 +9,8 @@ from __future__ import annotations
 import http.client
 import http.cookiejar
 import json
+import os
+import re
 import socket
 import subprocess
 import sys
@@ -246,6 +248,42 @@ def test_the_ports_a_page_may_open(tmp_path):
     with pytest.raises(ValueError, match="not a pyserial URL handler"):
         PortPolicy(handlers=("ftp",))
     assert target.read_text() == "keep me\n"
+
+
+def test_the_allow_list_decides_by_what_a_device_is(tmp_path):
+    """issue 36 item 6: the path inside alt:// was not checked (a regular file, a FIFO,
+    /dev/zero, /dev/watchdog were opened read-write), and /dev/tty0 and /dev/tty1 (virtual
+    consoles) passed as serial devices by their names. Now the kernel's tty driver table
+    decides: UARTs, USB-serial and pty slaves pass, for every handler that takes a path."""
+    master, slave = os.openpty()
+    try:
+        pty = os.ttyname(slave)
+        link = tmp_path / "imu0"
+        link.symlink_to(pty)                     # a udev-style alias of a serial device
+        fifo = tmp_path / "fifo"
+        os.mkfifo(fifo)
+        zero_link = tmp_path / "ttyUSB9"
+        zero_link.symlink_to("/dev/zero")
+        p = PortPolicy(handlers=("alt", "spy"))
+        for ok in (pty, str(link), f"alt://{pty}?class=PosixPollSerial", f"spy://{pty}?color"):
+            assert p.check(ok) == ok
+        refused = {"/dev/tty0": "current virtual console", "/dev/tty1": "a virtual console",
+                   "/dev/tty": "controlling terminal", "/dev/console": "system console",
+                   "/dev/ptmx": "pseudo-terminal multiplexer", "/dev/zero": "no tty (1:5)",
+                   str(zero_link): "no tty (1:5)", str(fifo): "a FIFO", str(tmp_path): "a directory",
+                   "/etc/passwd": "a regular file", "/dev/../etc/passwd": "a regular file", "/dev/ttyUSB0/../../etc/passwd": "(/dev/ttyUSB0",
+                   "alt:///dev/zero?class=PosixPollSerial": "no tty (1:5)",
+                   "alt:///dev/tty1?class=PosixPollSerial": "a virtual console",
+                   f"alt://{fifo}?class=PosixPollSerial": "a FIFO",
+                   "alt:///etc/passwd?class=PosixPollSerial": "a regular file",
+                   "alt://relative/path": "not a serial device", "spy:///dev/tty0": "current virtual console"}
+        for port, why in refused.items():
+            with pytest.raises(StationError, match=re.escape(why)) as e:
+                p.check(port)
+            assert "\n" not in str(e.value) and "not a serial device" in str(e.value)
+    finally:
+        os.close(master)
+        os.close(slave)
 
 
 def test_a_page_cannot_open_other_ports_through_the_server(served, operator, tmp_path):

@@ -318,7 +318,13 @@ def _kind(v) -> str:
 # ------------------------------------------------------------------ what: the device port
 SERIAL_PATH = re.compile(r"/dev/(tty[A-Za-z0-9_.-]+|cu\.[A-Za-z0-9_.-]+|rfcomm[0-9]+"
                          r"|serial/by-(id|path)/[A-Za-z0-9_.:@+-]+)")
-SERIAL_TARGET = re.compile(r"/dev/(tty[A-Za-z0-9_.-]+|cu\.[A-Za-z0-9_.-]+|rfcomm[0-9]+)")
+# what a character device is, from the kernel's table of tty drivers (/proc/tty/drivers: name,
+# node, major, minors, type): "serial" (8250 UARTs, USB-serial, ACM, ...) and "pty:slave" (a
+# pseudo-terminal: socat, a virtual device) are serial ports; "console" (the virtual consoles
+# /dev/tty1..63), "system" (/dev/tty, /dev/console, /dev/ptmx, /dev/tty0) and every device that
+# is no tty at all (/dev/zero, /dev/watchdog) are not
+SERIAL_KINDS = ("serial", "pty:slave")
+TTY_DRIVERS = "/proc/tty/drivers"
 WINDOWS_PORT = re.compile(r"(\\\\\.\\)?COM[0-9]{1,3}", re.I)
 URL = re.compile(r"([A-Za-z][A-Za-z0-9+.-]*)://(.*)", re.S)
 
@@ -366,23 +372,46 @@ class PortPolicy:
                                    f"{', '.join(SPY_OPTIONS)}; its log goes to the station's terminal)")
             inner = parts.netloc + parts.path               # what spy:// opens: a serial device
             self._serial(inner)
+        elif scheme == "alt":                               # alt://PATH?class=...: PATH as any port
+            parts = urlsplit(port)
+            self._serial(parts.netloc + parts.path)
+        elif scheme == "hwgrep":
+            self._hwgrep(m.group(2).split("&")[0])
         return port
 
     def _serial(self, path: str) -> str:
+        """path, if it is a serial device: decided by what the device is (tty_kind), not by its
+        name; a path that does not exist yet must at least be named as a serial device."""
         if WINDOWS_PORT.fullmatch(path):
             return path
-        if not SERIAL_PATH.fullmatch(path) or "/../" in path or path.endswith("/.."):
+        if not path.startswith("/") or "\0" in path:
             raise StationError(f"{path[:80]!r} is not a serial device (/dev/ttyUSB0, /dev/ttyACM0, "
                                "/dev/serial/by-id/..., COM3) nor socket://HOST:PORT or rfc2217://HOST:PORT")
-        if os.path.lexists(path):
-            real = os.path.realpath(path)
-            try:
-                is_chr = stat.S_ISCHR(os.stat(real).st_mode)
-            except OSError:
-                is_chr = False
-            if not SERIAL_TARGET.fullmatch(real) or not is_chr:
-                raise StationError(f"{path} is not a serial device (it is {real})")
+        if not os.path.lexists(path):
+            if not SERIAL_PATH.fullmatch(path) or "/../" in path or path.endswith("/.."):
+                raise StationError(f"{path[:80]!r} is not a serial device (/dev/ttyUSB0, /dev/ttyACM0, "
+                                   "/dev/serial/by-id/..., COM3) nor socket://HOST:PORT or rfc2217://HOST:PORT")
+            return path                 # not plugged in: opening it will say so
+        real = os.path.realpath(path)
+        kind = tty_kind(real)
+        if kind not in SERIAL_KINDS:
+            shown = path if real == path else f"{path} ({real})"
+            raise StationError(f"{shown[:160]} is not a serial device: it is {kind}; a page opens UARTs, "
+                               "USB-serial adapters and pseudo-terminals only")
         return path
+
+    def _hwgrep(self, regex: str) -> None:
+        """hwgrep:// opens the first serial port whose description matches: each one it could
+        open is checked as a path is."""
+        from serial.tools import list_ports
+        try:
+            found = [p.device for p in list_ports.grep(regex)]
+        except re.error as e:
+            raise StationError(f"hwgrep://{regex[:40]}: not a regular expression ({e})") from None
+        if not found:
+            raise StationError(f"hwgrep://{regex[:40]}: no serial port matches")
+        for dev in found:
+            self._serial(dev)
 
     def _network(self, port: str, scheme: str) -> str:
         p = urlsplit(port)
@@ -396,6 +425,47 @@ class PortPolicy:
             return port
         raise StationError(f"{p.hostname} is not this machine: a page opens {scheme}:// ports on this machine only; "
                            f"start the station with --allow-port-host {p.hostname} to reach it")
+
+
+def tty_kind(path: str) -> str:
+    """What the file at path is, in words: 'serial' or 'pty:slave' for a serial port, else what
+    it is instead ('a virtual console', 'a character device that is no tty (1:5)', 'a regular
+    file', ...). On Linux by the device's major and minor number in /proc/tty/drivers; where
+    there is no such table (macOS, BSD), by the name the device node has in /dev."""
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        return f"not readable ({e.strerror})"
+    if not stat.S_ISCHR(st.st_mode):
+        from imubench.files import kind_of
+        return kind_of(st.st_mode)
+    major, minor = os.major(st.st_rdev), os.minor(st.st_rdev)
+    try:
+        with open(TTY_DRIVERS, encoding="ascii", errors="replace") as fh:
+            table = fh.read(1 << 16)
+    except OSError:
+        table = None
+    if table is None:
+        name = os.path.basename(path)
+        if re.fullmatch(r"(tty|cu)\.[A-Za-z0-9_.-]+|tty(USB|ACM|S|AMA|SAC|p)[0-9]+|pts/[0-9]+", name) or \
+                re.fullmatch(r"/dev/pts/[0-9]+", path):
+            return "serial"
+        return f"a character device not named as a serial port ({major}:{minor})"
+    for line in table.splitlines():
+        f = line.split()
+        if len(f) < 5 or not f[2].isdigit() or int(f[2]) != major:
+            continue
+        lo, _, hi = f[3].partition("-")
+        if lo.isdigit() and int(lo) <= minor <= int(hi or lo):
+            kind = f[4]
+            if kind in SERIAL_KINDS:
+                return kind
+            words = {"console": "a virtual console", "system:vtmaster": "the current virtual console",
+                     "system:/dev/tty": "the controlling terminal", "system:console": "the system console",
+                     "pty:master": "the master side of a pseudo-terminal",
+                     "system": "a system tty (the pseudo-terminal multiplexer)"}
+            return f"{words.get(kind, 'a tty of the kind ' + kind)} ({f[1]}, {major}:{minor})"
+    return f"a character device that is no tty ({major}:{minor})"
 
 
 def _loopback(host: str) -> bool:
