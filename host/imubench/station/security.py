@@ -36,6 +36,16 @@ MAX_JSON_KEYS = 16
 MAX_KEY_CHARS = 32                  # a JSON member name
 MAX_PORT_CHARS = 256                # a device port URL (also the key of its column)
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
+SESSION_HEADER = "x-imubench-session"   # the session the page holds (sessionStorage: this origin only)
+LAUNCH_HEADER = "x-imubench-launch"     # the one-time launch secret the page trades for a session
+MAX_SECRETS = 4                     # launch secrets not yet traded (the printed one and any asked for)
+TICKET_S = 60.0                     # a report link's ticket: single use, this long
+MAX_TICKETS = 64
+# what a request may ask without a session: the page itself (static HTML, script, style), so
+# that it can trade the secret in its address for one; everything else needs the session
+PUBLIC_PATHS = ("/", "/favicon.ico")
+PUBLIC_PREFIXES = ("/static/",)
+REPORT_PATH = re.compile(r"/report/[^/]{1,300}/report\.html")
 # pyserial's URL handlers besides socket:// and rfc2217:// (serial.urlhandler.protocol_*)
 PORT_HANDLERS = ("alt", "cp2110", "hwgrep", "loop", "spy")
 ALWAYS_HANDLERS = ("socket", "rfc2217")
@@ -77,10 +87,82 @@ class PageAccess:
     def origins(self) -> set[str]:
         return {f"http://{a}" for a in self.authorities}
 
-    @property
-    def cookie_name(self) -> str:
-        # cookies are not kept apart by port: two stations on one machine must not share one
-        return f"imubench-station-{self.port}"
+
+
+class Launch:
+    """The launch secret, as Jupyter's token: the station prints (and opens) its address with
+    a secret in the fragment (http://127.0.0.1:PORT/#token=SECRET: a fragment never goes to
+    any server, nor into a Referer or a log); the page trades it once (POST /api/session with
+    the secret in X-Imubench-Launch) for a session, which it keeps in sessionStorage (scoped
+    to this scheme, host and port: no other local server's page can read it) and sends in
+    X-Imubench-Session with every request. Nothing rides in a cookie, since a browser sends a
+    127.0.0.1 cookie to every port of 127.0.0.1.
+
+    A secret is spent when traded; the station then makes a fresh one (on_new) for the next
+    browser, so the address left in a terminal, a browser's history or a process list opens
+    nothing once it was used. Sessions are the state's client identities (state.new_client),
+    made only here: they live as long as this launch and are known to this server only.
+
+    Report links (opened in a new tab, which cannot carry a header) get a ticket: single use,
+    TICKET_S long, for that one path."""
+
+    def __init__(self, on_new=None):
+        import threading
+        self._lock = threading.Lock()
+        self._secrets: list[str] = []
+        self._tickets: dict[str, tuple[str, float]] = {}
+        self.on_new = on_new            # called with each secret made after the first
+        self.issue()
+
+    def issue(self) -> str:
+        import secrets
+        secret = secrets.token_urlsafe(32)          # 256 bits
+        with self._lock:
+            self._secrets.append(secret)
+            del self._secrets[:-MAX_SECRETS]
+        return secret
+
+    def valid(self, secret: str | None) -> bool:
+        import hmac
+        if not secret or len(secret) > 100:
+            return False
+        with self._lock:
+            return any(hmac.compare_digest(secret.encode(), s.encode()) for s in self._secrets)
+
+    def trade(self, secret: str | None) -> bool:
+        """Spend secret (True if it was one not yet spent); a fresh one replaces it."""
+        import hmac
+        if not secret or len(secret) > 100:
+            return False
+        with self._lock:
+            hit = next((s for s in self._secrets if hmac.compare_digest(secret.encode(), s.encode())), None)
+            if hit is None:
+                return False
+            self._secrets.remove(hit)
+        fresh = self.issue()
+        if self.on_new is not None:
+            self.on_new(fresh)
+        return True
+
+    def ticket(self, path: str) -> str:
+        import secrets
+        import time
+        t = secrets.token_urlsafe(24)
+        now = time.monotonic()
+        with self._lock:
+            self._tickets = {k: v for k, v in self._tickets.items() if v[1] > now}
+            if len(self._tickets) >= MAX_TICKETS:
+                del self._tickets[min(self._tickets, key=lambda k: self._tickets[k][1])]
+            self._tickets[t] = (path, now + TICKET_S)
+        return t
+
+    def use_ticket(self, ticket: str | None, path: str) -> bool:
+        import time
+        if not ticket:
+            return False
+        with self._lock:
+            got = self._tickets.pop(ticket, None)
+        return got is not None and got[0] == path and got[1] > time.monotonic()
 
 
 def origin_authority(origin: str) -> str:
@@ -124,9 +206,11 @@ class PageGuard:
     framed; a report: no script), X-Frame-Options, nosniff and no referrer.
     """
 
-    def __init__(self, app, access: PageAccess):
+    def __init__(self, app, access: PageAccess, launch: Launch | None = None, is_session=None):
         self.app = app
         self.access = access
+        self.launch = launch
+        self.is_session = is_session
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
@@ -161,6 +245,9 @@ class PageGuard:
         origin = headers.get("origin")
         if origin is not None and origin not in a.origins:
             return 403, f"requests from {origin} are refused: only the station's own page drives it"
+        who = self._who(scope, headers)
+        if who is not None:
+            return who
         if scope["method"] in SAFE_METHODS:
             return None
         if origin is None:
@@ -170,6 +257,30 @@ class PageGuard:
         if ctype != "application/json":
             return 415, f"send JSON (Content-Type: application/json), not {ctype or 'no Content-Type'}"
         return None
+
+
+    def _who(self, scope, headers) -> tuple[int, str] | None:
+        """None if the request may go on: the page's own files, the secret's trade (with a
+        secret not yet spent), a report with its ticket, or anything with this launch's session."""
+        if self.launch is None:
+            return None
+        path, method = scope["path"], scope["method"]
+        if method in SAFE_METHODS and (path in PUBLIC_PATHS or path.startswith(PUBLIC_PREFIXES)):
+            return None
+        if path == "/api/session" and method == "POST":
+            if self.launch.valid(headers.get(LAUNCH_HEADER)):
+                return None
+            return 403, ("this address's secret is spent or wrong: open the newest address the station printed "
+                         "in its terminal (each opens the page once)")
+        if self.is_session(headers.get(SESSION_HEADER)):
+            return None
+        if method in SAFE_METHODS and REPORT_PATH.fullmatch(path):
+            ticket = parse_qs(scope.get("query_string", b"").decode("latin-1")).get("ticket", [None])[0]
+            if self.launch.use_ticket(ticket, path):
+                return None
+        return 403, ("no session of this station: open the address it printed in its terminal "
+                     "(http://127.0.0.1:PORT/#token=...: the secret in it opens the page once)").replace(
+                         "PORT", str(self.access.port))
 
 
 async def _bounded_body(receive, headers) -> tuple[bytes, tuple[int, str] | None]:
@@ -205,14 +316,15 @@ def _replay(body: bytes, receive):
     return again
 
 
-def guard(app, access: PageAccess):
+def guard(app, access: PageAccess, launch: Launch | None = None, is_session=None):
     """The app behind PageGuard (Host with the port, Origin, JSON, body size; a refusal says
     which address to open) and, inside it, Starlette's TrustedHostMiddleware: a second,
     independent check of the host name by the library's own Host parser, so that a mistake
     in PageGuard alone does not let a rebinding site in. (TrustedHostMiddleware alone is not
     enough: it ignores the port and answers only "Invalid host header".)"""
     from starlette.middleware.trustedhost import TrustedHostMiddleware
-    return PageGuard(TrustedHostMiddleware(app, allowed_hosts=access.hostnames, www_redirect=False), access)
+    return PageGuard(TrustedHostMiddleware(app, allowed_hosts=access.hostnames, www_redirect=False), access,
+                     launch, is_session)
 
 
 # ------------------------------------------------------------------ what: the request body

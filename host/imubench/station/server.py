@@ -2,17 +2,19 @@
 uvicorn, bound to 127.0.0.1 only. Live updates are server-sent events: one snapshot of the
 station's state (station.state) each time it changes, at most ten a second.
 
-Only the operator's own browser drives it (station.security; docs/production.md): every
-request passes PageGuard (Host with the served port, the page's Origin and a JSON body for
-every POST, bounded bodies) and TrustedHostMiddleware (the host name, again); a browser's
-identity is an HttpOnly, SameSite=Strict cookie the server issues (POST /api/hello), never a
-token from a body or a URL.
+Only the operator's own browser drives it (station.security; docs/station.md): the station
+prints its address with a one-time launch secret (security.Launch, as Jupyter's token); the
+page trades it for a session it sends in a header with every request. Every request passes
+PageGuard (Host with the served port, the page's Origin and a JSON body for every POST, the
+session, bounded bodies with a deadline) and TrustedHostMiddleware (the host name, again).
+Nothing is kept in a cookie: a browser sends 127.0.0.1's cookies to every port.
 
-    GET  /                     the page (static/station.html)
+    GET  /                     the page (static/station.html; no session needed, nor given)
     GET  /static/...           its CSS and JS (package data; nothing from the network)
-    POST /api/hello            {}: this browser's identity cookie (issued here if it has none)
+    POST /api/session          {} with X-Imubench-Launch: SECRET: a session -> {session}
+    POST /api/ticket           {path}: a single-use link to a report (a new tab sends no header)
     GET  /api/state            a snapshot (JSON)
-    GET  /api/events           server-sent events: snapshots as they change (the cookie says whose)
+    GET  /api/events           server-sent events: snapshots as they change (the session says whose)
     POST /api/claim            {key}: drive the device if it is free -> {key, yours}
     POST /api/start            {port, method, gyro, capture, write, note, rate_hz} (claims the device)
     POST /api/warmup           {port, span_lo_c, span_hi_c, face, write, rate_hz}: a temperature
@@ -38,7 +40,7 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
 from imubench.station.runner import Station, StationError
-from imubench.station.security import PageAccess, guard, parse_body
+from imubench.station.security import REPORT_PATH, SESSION_HEADER, Launch, PageAccess, guard, parse_body
 from imubench.station.state import Refused
 
 EVENT_MIN_INTERVAL_S = 0.1
@@ -128,34 +130,43 @@ async def bad_request(request: Request, exc: StationError):
                         headers={"Cache-Control": "no-store"})
 
 
-def create_app(station: Station, access: PageAccess | None = None):
+def create_app(station: Station, access: PageAccess | None = None, launch: Launch | None = None):
     """The station's ASGI app, guarded (security.guard): access says which Host and Origin
-    are the page's (its port is set once the server is bound)."""
+    are the page's (its port is set once the server is bound); launch holds the secret a
+    page trades for its session (a new one if not given)."""
     state = station.state
     access = access or PageAccess()
+    launch = launch or Launch()
     changes = _Changes(state)
 
     def identity(request: Request) -> str | None:
-        return state.client(request.cookies.get(access.cookie_name))
+        return state.client(request.headers.get(SESSION_HEADER))
 
     def need_identity(request: Request) -> str:
         tok = identity(request)
         if tok is None:
-            raise StationError("this page has no identity on the station (a cookie it issues): reload the page",
+            raise StationError("this page has no session on the station: open the address the station printed",
                                status=403)
         return tok
 
-    async def hello(request: Request):
+    async def session(request: Request):
+        from imubench.station.security import LAUNCH_HEADER
         await body(request)
-        tok = identity(request)
-        r = JSONResponse({"ok": True}, headers={"Cache-Control": "no-store"})
-        if tok is None:
-            try:
-                tok = state.new_client()
-            except Refused as e:
-                raise StationError(str(e), status=429) from None
-            r.set_cookie(access.cookie_name, tok, httponly=True, samesite="strict", path="/")
-        return r
+        if not launch.trade(request.headers.get(LAUNCH_HEADER)):     # spent since PageGuard looked
+            raise StationError("this address's secret is spent: open the newest address the station printed",
+                               status=403)
+        try:
+            tok = state.new_client()
+        except Refused as e:
+            raise StationError(str(e), status=429) from None
+        return JSONResponse({"session": tok}, headers={"Cache-Control": "no-store"})
+
+    async def ticket(request: Request):
+        d = await body(request)
+        path = d.get("path")
+        if not isinstance(path, str) or not REPORT_PATH.fullmatch(path):
+            raise StationError("a ticket is for a report: give path /report/KEY/report.html")
+        return JSONResponse({"url": f"{path}?ticket={launch.ticket(path)}"}, headers={"Cache-Control": "no-store"})
 
     async def snapshot(request: Request):
         return JSONResponse(_finite(state.snapshot(identity(request))), headers={"Cache-Control": "no-store"})
@@ -238,7 +249,8 @@ def create_app(station: Station, access: PageAccess | None = None):
 
     from importlib.resources import files
     static_dir = str(files("imubench.station") / "static")
-    routes = [Route("/", page), Route("/api/hello", hello, methods=["POST"]),
+    routes = [Route("/", page), Route("/api/session", session, methods=["POST"]),
+              Route("/api/ticket", ticket, methods=["POST"]),
               Route("/api/state", snapshot), Route("/api/events", events),
               Route("/api/claim", claim, methods=["POST"]), Route("/api/start", start, methods=["POST"]),
               Route("/api/warmup", warmup, methods=["POST"]),
@@ -246,7 +258,7 @@ def create_app(station: Station, access: PageAccess | None = None):
               Route("/pose.svg", pose_svg), Route("/turn.svg", turn_svg),
               Route("/report/{key}/report.html", report), Mount("/static", StaticFiles(directory=static_dir))]
     app = Starlette(routes=routes, exception_handlers={StationError: bad_request})
-    return guard(app, access)
+    return guard(app, access, launch, lambda tok: state.client(tok) is not None)
 
 
 @lru_cache(maxsize=64)
@@ -294,7 +306,10 @@ class Server:
         import uvicorn
         self.station = station
         self.access = PageAccess(allow_origins)
-        self.config = uvicorn.Config(create_app(station, self.access), host=host, port=port, log_level="warning",
+        self.launch = Launch(on_new=self._new_secret)
+        self.secret = self.launch._secrets[-1]      # the one the command prints
+        self.on_new_url = None                      # told each fresh address (serve_forever prints it)
+        self.config = uvicorn.Config(create_app(station, self.access, self.launch), host=host, port=port, log_level="warning",
                                      lifespan="off", access_log=False, timeout_graceful_shutdown=1,
                                      limit_concurrency=MAX_CONNECTIONS)
         self.server = uvicorn.Server(self.config)
@@ -309,7 +324,25 @@ class Server:
 
     @property
     def url(self) -> str:
+        """The page's address without a secret: it shows the page, which opens nothing."""
         return f"http://127.0.0.1:{self.port}/"
+
+    def secret_url(self, secret: str) -> str:
+        return f"{self.url}#token={secret}"
+
+    @property
+    def launch_url(self) -> str:
+        """The address the command prints: the page with the launch secret not yet spent."""
+        return self.secret_url(self.secret)
+
+    def new_launch_url(self) -> str:
+        """One more address with a fresh one-time secret (a second browser, a test's page)."""
+        return self.secret_url(self.launch.issue())
+
+    def _new_secret(self, secret: str) -> None:
+        self.secret = secret
+        if self.on_new_url is not None:
+            self.on_new_url(self.secret_url(secret))
 
     def start(self, timeout: float = 15.0) -> "Server":
         """Bind 127.0.0.1:port here (a port in use is a StationError, before anything else has
