@@ -30,6 +30,7 @@ from urllib.parse import parse_qs, urlsplit
 
 from imubench.errors import ImubenchError
 
+BODY_DEADLINE_S = 5.0               # a request's whole body, from its head (the page's arrive at once)
 MAX_BODY_BYTES = 16 * 1024          # the page's largest request (start: a port and a note) is < 1 KiB
 MAX_JSON_DEPTH = 1                  # every request is one flat object of scalars
 MAX_JSON_KEYS = 16
@@ -179,8 +180,10 @@ def origin_authority(origin: str) -> str:
 
 
 def _json_refusal(status: int, message: str):
+    """A refusal, and the connection closed after it (a body not read, a stranger's keep-alive)."""
     from starlette.responses import JSONResponse
-    return JSONResponse({"error": message}, status_code=status, headers={"Cache-Control": "no-store"})
+    return JSONResponse({"error": message}, status_code=status,
+                        headers={"Cache-Control": "no-store", "Connection": "close"})
 
 
 SAFE_METHODS = ("GET", "HEAD")
@@ -284,7 +287,12 @@ class PageGuard:
 
 
 async def _bounded_body(receive, headers) -> tuple[bytes, tuple[int, str] | None]:
+    """The body, read up to MAX_BODY_BYTES and within BODY_DEADLINE_S of its head: a body that
+    dribbles in holds no connection past the deadline (408)."""
+    import asyncio
+    import time
     too_big = (413, f"the request body is larger than {MAX_BODY_BYTES // 1024} KiB")
+    t_end = time.monotonic() + BODY_DEADLINE_S
     try:
         if int(headers.get("content-length", "0")) > MAX_BODY_BYTES:
             return b"", too_big
@@ -292,7 +300,10 @@ async def _bounded_body(receive, headers) -> tuple[bytes, tuple[int, str] | None
         return b"", (400, "Content-Length is not a number")
     parts, n = [], 0
     while True:
-        m = await receive()
+        try:
+            m = await asyncio.wait_for(receive(), max(0.0, t_end - time.monotonic()))
+        except asyncio.TimeoutError:
+            return b"", (408, f"the request body did not arrive within {BODY_DEADLINE_S:g} s")
         if m["type"] != "http.request":
             return b"", (400, "the client went away before sending its request")
         chunk = m.get("body", b"")
