@@ -16,6 +16,7 @@ from imubench.cli.common import (
     positive_float,
     stream_rate,
 )
+from imubench.files import make_dir
 
 
 def parse_duration(s: str) -> float:
@@ -119,7 +120,7 @@ def run(a) -> int:
         return 0
     if a.duration is None:
         raise UsageError("--duration is required to record", "give e.g. --duration 2h, or --analyse FILE")
-    out.mkdir(parents=True, exist_ok=True)
+    make_dir(out)
     cap = out / "capture.bin"
     if cap.exists() and cap.stat().st_size:
         raise CommandError(f"{cap} exists", f"analyse it with --analyse {shlex.quote(str(cap))}, or choose another --out")
