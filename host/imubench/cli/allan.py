@@ -5,6 +5,7 @@ import argparse
 import re
 import shlex
 import signal
+import stat
 from pathlib import Path
 
 from imubench.cli.common import (
@@ -124,6 +125,9 @@ def run(a) -> int:
     cap = out / "capture.bin"
     if cap.exists() and cap.stat().st_size:
         raise CommandError(f"{cap} exists", f"analyse it with --analyse {shlex.quote(str(cap))}, or choose another --out")
+    st = cap.lstat() if cap.is_symlink() or cap.exists() else None
+    if st is not None and stat.S_ISREG(st.st_mode) and st.st_size == 0 and st.st_nlink == 1:
+        cap.unlink()                # left empty by a start whose port did not open: a capture is a new file
     stop = {"now": False}
     old = None
     try:
