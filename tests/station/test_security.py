@@ -315,6 +315,12 @@ def test_the_allow_list_decides_by_what_a_device_is(tmp_path):
             with pytest.raises(StationError, match=re.escape(why)) as e:
                 p.check(port)
             assert "\n" not in str(e.value) and "not a serial device" in str(e.value)
+        # hwgrep:// picks from the serial ports it finds: what it could pick is checked too
+        h = PortPolicy(handlers=("hwgrep",))
+        with pytest.raises(StationError, match="no serial port matches"):
+            h.check("hwgrep://no-such-port-anywhere-zz9")
+        with pytest.raises(StationError, match="not a regular expression"):
+            h.check("hwgrep://(")
     finally:
         os.close(master)
         os.close(slave)

@@ -526,9 +526,9 @@ class PortPolicy:
     def _hwgrep(self, regex: str) -> None:
         """hwgrep:// opens the first serial port whose description matches: each one it could
         open is checked as a path is."""
-        from serial.tools import list_ports
+        from imubench.device.link import ports_matching
         try:
-            found = [p.device for p in list_ports.grep(regex)]
+            found = ports_matching(regex)
         except re.error as e:
             raise StationError(f"hwgrep://{regex[:40]}: not a regular expression ({e})") from None
         if not found:
