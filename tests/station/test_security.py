@@ -648,3 +648,70 @@ def test_a_hostile_page_in_chromium_cannot_drive_the_station(served, operator, m
             still_serves(served, operator)
         finally:
             browser.close()
+
+
+# ------------------------------------------------------------------------- deadlines
+def _closed_within(s: socket.socket, seconds: float) -> tuple[bool, bytes]:
+    """Whether the server closed s within seconds (and what it sent before)."""
+    s.settimeout(seconds)
+    got = b""
+    try:
+        while chunk := s.recv(65536):
+            got += chunk
+        return True, got
+    except ConnectionResetError:
+        return True, got
+    except socket.timeout:
+        return False, got
+
+
+def test_deadlines_close_silent_slow_and_idle_connections(served, operator, monkeypatch):
+    """issue 36 item 1: no deadline before the first request, none for a body. Here (with the
+    deadlines shortened) a silent connection, a head sent by halves, a stranger's idle
+    keep-alive and a body that never ends are each closed at their deadline; the operator's
+    kept-alive connection outlives a stranger's."""
+    from imubench.station import security, server
+    monkeypatch.setattr(server, "HEAD_DEADLINE_S", 0.5)
+    monkeypatch.setattr(server, "STRANGER_IDLE_S", 0.3)
+    monkeypatch.setattr(security, "BODY_DEADLINE_S", 0.5)
+    port = served.port
+    host = f"Host: 127.0.0.1:{port}\r\n"
+    silent = socket.create_connection(("127.0.0.1", port))
+    half = socket.create_connection(("127.0.0.1", port))
+    half.sendall(b"GET / HTTP/1.1\r\n" + host.encode())             # the head's end never comes
+    idle = socket.create_connection(("127.0.0.1", port))
+    idle.sendall(f"GET / HTTP/1.1\r\n{host}\r\n".encode())            # answered, then kept alive
+    mine = socket.create_connection(("127.0.0.1", port))
+    mine.sendall(f"GET /api/state HTTP/1.1\r\n{host}X-Imubench-Session: {operator.session}\r\n\r\n".encode())
+    slow = socket.create_connection(("127.0.0.1", port))
+    slow.sendall((f"POST /api/claim HTTP/1.1\r\n{host}Origin: http://127.0.0.1:{port}\r\n"
+                  f"X-Imubench-Session: {operator.session}\r\nContent-Type: application/json\r\n"
+                  "Content-Length: 100\r\n\r\n{\"key\": ").encode())          # the operator's own, too slow
+    t0 = time.monotonic()
+    try:
+        for s in (silent, half, idle):
+            closed, got = _closed_within(s, 3.0)
+            assert closed, got
+        closed, got = _closed_within(slow, 3.0)
+        assert closed and got.startswith(b"HTTP/1.1 408") and b"did not arrive within 0.5 s" in got, got
+        assert time.monotonic() - t0 < 3.0
+        closed, got = _closed_within(mine, 0.5)              # a session's keep-alive: 20 s
+        assert not closed and got.startswith(b"HTTP/1.1 200"), got[:100]
+    finally:
+        for s in (silent, half, idle, mine, slow):
+            s.close()
+    assert served.crowd.timed_out >= 3
+    still_serves(served, operator)
+
+
+def test_warnings_are_rate_limited():
+    import logging
+
+    from imubench.station.server import _FewWarnings
+    f = _FewWarnings()
+    recs = [logging.LogRecord("uvicorn.error", logging.WARNING, "", 0, "Invalid HTTP request received.", (), None)
+            for _ in range(5000)]
+    assert sum(f.filter(r) for r in recs) == 1
+    f.last = {k: v - 11 for k, v in f.last.items()}          # ten seconds later: one line, with the count
+    r = logging.LogRecord("uvicorn.error", logging.WARNING, "", 0, "Invalid HTTP request received.", (), None)
+    assert f.filter(r) and "4999 more like it in the last 10 s not shown" in r.getMessage()
