@@ -194,7 +194,8 @@ def test_a_crowd_of_local_connections_cannot_starve_the_operator(tmp_path):
         # the session is intact: the operator resumes it, still amid the crowd, and stops again
         (code, body), answers["resume"] = timed(lambda: ask("api/resume", {"key": "sim"}))
         assert (code, body) == (200, {"ok": True}), body
-        assert board()["status"] == "running"
+        b = board()
+        assert b["status"] == "running", (b["error"], b["log"][-5:])
         (code, body), answers["stop again"] = timed(lambda: ask("api/stop", {"key": "sim"}))
         assert code == 200, body
         # a new connection of the operator's (a second tab): answered, never refused

@@ -101,6 +101,7 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
         with page.context.expect_page() as opened:          # the link opens the report in a new tab
             col.locator("a.report-link").click()
         tab = opened.value
+        tab.wait_for_url("**/report/**")                    # about:blank first, then the ticket's address
         tab.wait_for_load_state()
         assert "/report/" in tab.url and "?ticket=" in tab.url and "IMU calibration report" in tab.content()
         assert page.request.get(tab.url).status == 403                     # a ticket opens once

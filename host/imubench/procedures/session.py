@@ -260,6 +260,8 @@ class Session:
     def _start_stream(self) -> None:
         """A new continuous stream, captured to its own file as it arrives."""
         self.stream_no = 1 + max([p.stream for p in self.poses] + [self.stream_no])
+        while (self.dir / f"capture-{self.stream_no}.bin").exists():
+            self.stream_no += 1     # a resumed session stopped before a pose: its stream keeps its file
         old = self.dev.link.capture
         self.dev.link.capture = open_growing(self.dir / f"capture-{self.stream_no}.bin")
         if old is not None:
