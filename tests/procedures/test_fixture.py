@@ -25,7 +25,7 @@ from imubench.wire import params as PR
 from imubench.wire.protocol_gen import ParamsWhich
 
 
-def _benches(n: int, seed0: int, speed: float = 20) -> list[VirtualBench]:
+def _benches(n: int, seed0: int, speed: float = 0) -> list[VirtualBench]:
     out = []
     try:
         for k in range(n):

@@ -26,7 +26,7 @@ NO_DRIFT = {"rw_k": 0.0}                    # a fixed truth: the bias does not w
 
 
 def _bench(seed: int, drift: bool = False) -> VirtualBench:
-    vb = VirtualBench(speed=20, seed=seed, truth="random")
+    vb = VirtualBench(speed=0, seed=seed, truth="random")
     if not drift:
         vb.set_truth(accel=NO_DRIFT, gyro=[GYRO_NO_DRIFT] * 3)
     return vb
@@ -198,7 +198,7 @@ def test_session_accuracy_over_random_truths(tmp_path):
     beyond 3 sigma than a binomial count allows, and the z-scores' spread ≈ 1 (the reported
     sigma agrees with the actual scatter within 20 %)."""
     zs = []
-    with VirtualBench(speed=20, seed=100, truth="random") as vb:
+    with VirtualBench(speed=0, seed=100, truth="random") as vb:
         for k in range(16):
             vb.randomize_truth(seed=1000 + k)
             vb.set_truth(accel=NO_DRIFT, gyro=[GYRO_NO_DRIFT] * 3)
@@ -272,6 +272,7 @@ def test_calibrate_command_end_to_end(tmp_path):
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
     assert "calibration PASSED" in r.stdout and "accelerometer (six_position): u = M·x + b" in r.stdout
     assert "--method six needs a square fixture" in r.stdout          # multi is the default for a person
+    assert "lockstep clock, no speed ceiling" in r.stdout              # the default virtual clock, named
     png = (tmp_path / "s" / "residuals.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     # the plot says what the run did: drawn after the write-back and verification (on main it

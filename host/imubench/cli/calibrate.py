@@ -17,6 +17,8 @@ from imubench.cli.common import (
     existing_file,
     out_dir,
     positive_float,
+    resolve_sim_speed,
+    speed_text,
     stream_rate,
 )
 from imubench.cli.calibrate_station import (
@@ -94,7 +96,6 @@ def register(sub) -> None:
     p.add_argument("--closure", action="store_true",
                    help="after a verified write-back, run the closure check (imubench closure) into DIR/closure: "
                         "the virtual bench drives a closed path, or you carry the board around one")
-    p.set_defaults(sim_speed=None)      # None: SIM_SPEED, capped for many boards (_station_sim_speed)
     p.add_argument("--sim-boards", type=_board_count, default=1, metavar="N",
                    help="with --sim: N virtual devices on one virtual fixture (each its own random truth and serial "
                         "numbers, seeds --sim-seed, --sim-seed + 1, ...): one station session")
@@ -260,11 +261,9 @@ def _check_history(db) -> None:
 
 
 def run(a) -> int:
-    if getattr(a, "sim_speed", None) is None:
-        a.sim_speed_given = False
-        a.sim_speed = SIM_SPEED
-    else:
-        a.sim_speed_given = True
+    resolve_sim_speed(a)              # `imubench demo` parses with calibrate's own parser
+    if a.sim and getattr(a, "ui", None) == "web" and not a.sim_speed_given and not a.sim_speed:
+        a.sim_speed = SIM_SPEED       # the station page: a ceiling a person can follow
     if a.db and Path(a.db).is_dir():
         raise UsageError(f"--db {a.db} is a directory", f"give the database file, e.g. {Path(a.db) / 'history.sqlite'}")
     _check_history(a.db or (a.station_file or {}).get("db"))
@@ -335,7 +334,7 @@ def run(a) -> int:
                 _inject_sim_fault(vb, sensor)
             url = vb.port_url
             ui = SimPresenter(vb, tilt_deg=a.sim_tilt, seed=a.sim_seed)
-            print(f"virtual device with random truth (seed {a.sim_seed}) on {url}")
+            print(f"virtual device with random truth (seed {a.sim_seed}) on {url}, {speed_text(a.sim_speed, a.sim_clock)}")
         else:
             from imubench.cli.terminal import HumanPresenter
             url, ui = a.port, HumanPresenter()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import datetime as _dt
 from pathlib import Path
 
-from imubench.cli.common import CommandError, UsageError
+from imubench.cli.common import CommandError, UsageError, speed_text
 from imubench.text import one_line, shell_word
 
 SIM_SPEED = 20.0
@@ -107,7 +107,7 @@ def _run_station(a, cfg) -> int:
                 _inject_sim_fault(benches[slot - 1], sensor)
             mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed)
             print(f"{len(benches)} virtual devices with random truth (seeds {a.sim_seed}..{a.sim_seed + len(benches) - 1}) "
-                  f"on one virtual fixture, speed {a.sim_speed:g}")
+                  f"on one virtual fixture, {speed_text(a.sim_speed, a.sim_clock)}")
         else:
             from imubench.cli.terminal import HumanPresenter
             mover = HumanPresenter()

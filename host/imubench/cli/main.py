@@ -29,7 +29,7 @@ from imubench.cli import (
     thermal,
     virtual,
 )
-from imubench.cli.common import EXIT_INTERRUPTED, Parser, debug_enabled, explain
+from imubench.cli.common import EXIT_INTERRUPTED, Parser, debug_enabled, explain, resolve_sim_speed
 from imubench.text import guard_terminal, one_line
 
 # the order of `imubench --help`: a session first, then what follows it, then the tools
@@ -79,6 +79,7 @@ def main(argv=None) -> int:
         return EXIT_INTERRUPTED
     prefix = f"imubench {args.cmd}: error: "
     try:
+        resolve_sim_speed(args)
         return int(args.run(args) or 0)
     except KeyboardInterrupt:
         if debug_enabled(args):

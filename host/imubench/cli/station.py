@@ -86,7 +86,7 @@ def register(sub) -> None:
     p.add_argument("--dir", type=out_dir, metavar="DIR", default=Path("."),
                    help="where the session directories are made")
     p.add_argument("--db", metavar="PATH", help="history database (default: in the user data directory)")
-    add_sim(p, "offer the virtual bench on the page (a simulated person presents the attitudes)")
+    add_sim(p, "offer the virtual bench on the page (a simulated person presents the attitudes)", lockstep_speed=20.0)
     p.set_defaults(run=run)
 
 

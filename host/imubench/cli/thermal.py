@@ -21,6 +21,11 @@ from imubench.results import thermal_export as TX
 from imubench.files import make_dir
 
 
+
+def _speed(a, realtime_default: float) -> float:
+    """--sim-speed, or on the real-time clock this command's pace when none was given."""
+    return realtime_default if a.sim_speed is None else a.sim_speed
+
 def _temps(s: str) -> list[float]:
     try:
         temps = [float(x) for x in s.split(",") if x.strip()]
@@ -56,7 +61,7 @@ def register(sub) -> None:
     p.add_argument("--settle-timeout", type=positive_float, default=7200.0, metavar="S",
                    help="give up waiting for a temperature after this many seconds")
     add_sim(p, "run on a virtual device with temperature coefficients in its truth; its bench drives "
-               "temperature, orientation and turntable (--sim-speed: default 20; 100 with --warmup)", speed=None)
+               "temperature, orientation and turntable (on the real-time clock --sim-speed 20, 100 with --warmup)", speed=None)
     p.add_argument("--ramp", type=non_negative_float, default=None, metavar="C_PER_S",
                    help="with --sim: the virtual chamber's ramp in °C/s (default 0.5; 0 = at once)")
     w = p.add_argument_group("warm-up method (no chamber: the board warms from cold while it lies still; "
@@ -160,7 +165,7 @@ def run(a) -> int:
 
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed or 20.0, seed=a.sim_seed, target=a.target, clock=a.sim_clock)
+        bench = VirtualBench(speed=_speed(a, 20.0), seed=a.sim_seed, target=a.target, clock=a.sim_clock)
     with bench if a.sim else nullcontext() as vb:
         if vb is not None:
             vb.set_truth(accel=SIM_ACCEL_TRUTH, gyro=SIM_GYRO_TRUTH)
@@ -225,7 +230,7 @@ def run_warmup_cmd(a) -> int:
     if sim:
         from imubench.device.sim import VirtualBench
         # a warm-up lasts tens of minutes of device time: the virtual part runs it faster
-        bench = VirtualBench(speed=a.sim_speed or 100.0, seed=a.sim_seed, target=a.target, clock=a.sim_clock, truth="random")
+        bench = VirtualBench(speed=_speed(a, 100.0), seed=a.sim_seed, target=a.target, clock=a.sim_clock, truth="random")
     with bench if sim else nullcontext() as vb:
         if vb is not None:
             tau = None if a.tau is None else [a.tau] * 4

@@ -115,8 +115,9 @@ def _stop_all() -> None:
 class VirtualBench:
     """One simulator process (the virtual device, its turntable and climate chamber).
 
-    speed     device time per wall time (20 for CI; 1 = real time; 0 = as fast as possible);
-              with clock="lockstep" a ceiling
+    speed     device time per wall time (1 = real time; 0 = as fast as possible); with
+              clock="lockstep" a ceiling (default None: none), with "realtime" the pace
+              (default None: 20)
     clock     "lockstep" (the default: device time granted by the host's waits, deterministic)
               or "realtime" (device time against the wall clock; module docstring; the
               default with boot0, whose ROM bootloader serves stm32flash, which grants nothing)
@@ -135,7 +136,7 @@ class VirtualBench:
               at the chamber's temperature
     """
 
-    def __init__(self, speed: float = 20, seed: int = 1, truth: str = "default",
+    def __init__(self, speed: float | None = None, seed: int = 1, truth: str = "default",
                  flash: str | os.PathLike | None = None, pty: bool = False,
                  baud: int = 2000000, *, tcp: bool | int = True, control_port: int = 0,
                  uid: str | None = None, binary: str | os.PathLike | None = None,
@@ -162,7 +163,8 @@ class VirtualBench:
             raise ValueError("truth must be 'default' or 'random'")
         if not pty and tcp is False:
             raise ValueError("give pty=True or tcp")
-        self.speed = speed
+        # no ceiling on the lockstep clock (the host's waits pace it); 20x real time on the wall clock
+        self.speed = (0.0 if clock == "lockstep" else 20.0) if speed is None else speed
         self.seed = int(seed)
         self.truth = truth
         self.thermal = bool(thermal)
