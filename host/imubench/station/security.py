@@ -179,11 +179,15 @@ def origin_authority(origin: str) -> str:
     return f"{host.lower()}:{port}"
 
 
-def _json_refusal(status: int, message: str):
-    """A refusal, and the connection closed after it (a body not read, a stranger's keep-alive)."""
+def _json_refusal(status: int, message: str, close: bool = False):
+    """A refusal; close: and the connection closed after it (a body cut short). Otherwise a
+    stranger's connection is closed by the server's idle deadline (server.Crowd): closing at
+    once would only invite a crowd to reconnect at once, each time costing the server more."""
     from starlette.responses import JSONResponse
-    return JSONResponse({"error": message}, status_code=status,
-                        headers={"Cache-Control": "no-store", "Connection": "close"})
+    headers = {"Cache-Control": "no-store"}
+    if close:
+        headers["Connection"] = "close"
+    return JSONResponse({"error": message}, status_code=status, headers=headers)
 
 
 SAFE_METHODS = ("GET", "HEAD")
@@ -220,8 +224,10 @@ class PageGuard:
             return await self.app(scope, receive, send)
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         refusal = self.refusal(scope, headers)
+        cut_short = False
         if refusal is None and scope["method"] not in SAFE_METHODS:
             body, refusal = await _bounded_body(receive, headers)
+            cut_short = refusal is not None
             if refusal is None:
                 receive = _replay(body, receive)
         csp = REPORT_CSP if scope["path"].startswith("/report/") else PAGE_CSP
@@ -233,7 +239,7 @@ class PageGuard:
                 m = {**m, "headers": [*m.get("headers", []), *extra]}
             await send(m)
         if refusal is not None:
-            return await _json_refusal(*refusal)(scope, receive, send_with_headers)
+            return await _json_refusal(*refusal, close=cut_short)(scope, receive, send_with_headers)
         return await self.app(scope, receive, send_with_headers)
 
     def refusal(self, scope, headers) -> tuple[int, str] | None:

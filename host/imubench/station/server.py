@@ -49,7 +49,7 @@ KEEPALIVE_S = 10.0
 # connection, idle or half-sent, and answered 503 to the operator's Stop once strangers held
 # 256. Here a connection is a stranger's until a request on it carries this launch's session:
 HEAD_DEADLINE_S = 5.0           # from the connection (or the last response) to a request's whole head
-STRANGER_IDLE_S = 1.0           # a stranger's connection after its answer (keep-alive): then closed
+STRANGER_IDLE_S = 2.0           # a stranger's connection after its answer (keep-alive): then closed
 KEEPALIVE_IDLE_S = 20.0         # a session's idle keep-alive connection: then closed
 MAX_STRANGERS = 1024            # strangers' silent connections at once: past it the oldest is closed
 MAX_SESSION_CONNECTIONS = 24    # one session's connections counted as its own (tabs, streams)
