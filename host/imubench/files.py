@@ -71,11 +71,13 @@ _DIRFLAGS = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _NOFOLLOW | getattr(os
 _OPENAT = os.open in os.supports_dir_fd and os.mkdir in os.supports_dir_fd and bool(_NOFOLLOW)
 
 
-def open_dir(path: str | os.PathLike, create: bool = True) -> int:
+def open_dir(path: str | os.PathLike, create: bool = True, _depth: int = 0) -> int:
     """A descriptor of the folder path, reached one component at a time without following a
     link at any of them (openat with O_NOFOLLOW | O_DIRECTORY); missing folders are made on
-    the way when create. A symlink or a non-folder on the way is a FileRefused naming it.
-    (Where openat is missing, Windows, each component is checked with lstat instead.)"""
+    the way when create. A symlink or a non-folder on the way is a FileRefused naming it,
+    but for the system's own links at the top of the tree (root's, in /: /tmp -> private/tmp
+    and /var on macOS, /home on some systems), which no other user can plant. (Where openat
+    is missing, Windows, each component is checked with lstat instead.)"""
     path = Path(path)
     if not _OPENAT:
         if create:
@@ -103,14 +105,34 @@ def open_dir(path: str | os.PathLike, create: bool = True) -> int:
                 nfd = os.open(name, _DIRFLAGS, dir_fd=fd)
             except OSError as e:
                 if e.errno in (errno.ELOOP, errno.ENOTDIR, errno.EMLINK):
+                    system = _system_link(fd, name) if path.is_absolute() and done.parent == Path(start) else None
+                    if system is not None and _depth < 4:
+                        os.close(fd)
+                        fd = -1
+                        rest = Path(*parts[2:]) if len(parts) > 2 else Path()
+                        return open_dir(Path(system) / rest, create, _depth + 1)
                     _refuse_component(done, fd, name)
                 raise
             os.close(fd)
             fd = nfd
         return fd
     except BaseException:
-        os.close(fd)
+        if fd >= 0:
+            os.close(fd)
         raise
+
+
+def _system_link(fd: int, name: str) -> str | None:
+    """The target of the link name in / (fd), if it is the system's: owned by root in a root
+    folder no one else may write."""
+    try:
+        st = os.lstat(name, dir_fd=fd)
+        top = os.fstat(fd)
+    except OSError:
+        return None
+    if not stat.S_ISLNK(st.st_mode) or st.st_uid != 0 or top.st_uid != 0 or top.st_mode & 0o022:
+        return None
+    return os.path.normpath(os.path.join("/", os.readlink(name, dir_fd=fd)))
 
 
 def _refuse_component(done: Path, fd: int, name: str):

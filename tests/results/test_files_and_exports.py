@@ -155,6 +155,17 @@ def test_outputs_follow_no_link_at_any_component_nor_a_hard_link(tmp_path):
         make_dir(out / "plain" / "sub")
     with pytest.raises(FileRefused, match="nowhere does not exist"):
         write_text(out / "nowhere" / "x.json", "{}")
+    # the system's own links at the top (root's, in /: /bin -> usr/bin here, /tmp and /var on
+    # macOS) are no one else's to plant: followed
+    from imubench.files import open_dir
+    system = [n for n in os.listdir("/") if os.path.islink("/" + n) and os.path.isdir("/" + n)
+              and os.lstat("/" + n).st_uid == 0]
+    for n in system:
+        fd = open_dir("/" + n, create=False)
+        try:
+            assert os.path.samestat(os.fstat(fd), os.stat("/" + n))
+        finally:
+            os.close(fd)
     # what is real is written as before; a relative path from the working folder too
     make_dir(out / "slot-3" / "a")
     write_text(out / "slot-3" / "a" / "s.json", "{}")
