@@ -343,3 +343,50 @@ def test_a_refused_fit_fails_that_board_only(tmp_path, monkeypatch):
     assert [(b.state, b.stage) for b in res.boards] == [("passed", "done"), ("failed", "fit")]
     assert res.boards[1].reason == "fit refused: the poses do not constrain the scale of Y (test)"
     assert untouched and res.results[2]["written"] is False
+
+
+def test_a_station_name_with_escapes_reaches_the_terminal_escaped(tmp_path, capsys):
+    """issue 36: a --station value with ESC and BEL was printed raw by the multi-board summary
+    (an ESC ] 0 ; ... BEL retitles the terminal, ESC [ 2 J clears it)."""
+    good = tmp_path / "station.toml"
+    good.write_text(f'db = "{tmp_path / "l.sqlite"}"\nports = ["socket://127.0.0.1:1", "socket://127.0.0.1:2"]\n')
+    evil = "S\x1b]0;owned\x07\x1b[2J\r\u202eX"
+    assert imubench(["calibrate", "--station-file", str(good), "--station", evil, "--dir", str(tmp_path / "st")]) == 1
+    cap = capsys.readouterr()
+    for stream in (cap.out, cap.err):
+        assert not any(c in stream for c in "\x1b\x07\r\u202e"), repr(stream[:300])
+    assert "station S\\x1b]0;owned\\x07\\x1b[2J\\r\\u202eX, session directory" in cap.out
+    assert "--export $'S\\x1b]0;owned" in cap.out
+
+
+def test_a_terminal_gets_no_control_characters_whatever_a_command_forgets(monkeypatch):
+    """The last guard (text.SafeTerminal): on a terminal every write is made printable; a
+    pipe or a file is left alone (a CSV's CR LF)."""
+    import io
+    import sys as _sys
+
+    from imubench.text import SafeTerminal, guard_terminal
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+    tty, pipe = Tty(), io.StringIO()
+    monkeypatch.setattr(_sys, "stdout", tty)
+    monkeypatch.setattr(_sys, "stderr", pipe)
+    guard_terminal(_sys)
+    assert isinstance(_sys.stdout, SafeTerminal) and _sys.stderr is pipe
+    print("name \x1b[31mred\x07\ttab", "a,b\r", sep="\n")
+    _sys.stderr.write("a,b\r\n")
+    assert tty.getvalue() == "name \\x1b[31mred\\x07\ttab\na,b\\r\n" and pipe.getvalue() == "a,b\r\n"
+    guard_terminal(_sys)                        # not wrapped twice
+    assert _sys.stdout._stream is tty
+
+
+def test_a_printed_command_reads_back_as_the_same_text_in_bash():
+    import subprocess
+
+    from imubench.text import shell_word
+    for s in ("S9-20261128T074142Z-dcab08", "a b", "S\x1b]0;o\x07\x1b[2J\r\u202eX'q\\z\n"):
+        w = shell_word(s)
+        assert not any(c in w for c in "\x1b\x07\r\n\u202e")
+        assert subprocess.run(["bash", "-c", "printf %s " + w], capture_output=True).stdout == s.encode()

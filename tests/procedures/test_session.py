@@ -422,3 +422,22 @@ def test_a_refused_gyro_keeps_the_accelerometer_and_writes_nothing(tmp_path, mon
     saved = json.loads((tmp_path / "s" / "session.json").read_text())
     kept = saved.get("result", saved)
     assert kept["gyro_refused"] == result["gyro_refused"] and kept["accel"]["m"] == result["accel"]["m"]
+
+
+def test_a_new_stream_never_reuses_a_capture_file(tmp_path):
+    """A session resumed after a stop that came before any attitude: its next stream gets
+    the next free capture-N.bin (a capture is never appended to: files.open_growing)."""
+    from types import SimpleNamespace
+
+    from imubench.procedures.session import Session
+    (tmp_path / "capture-1.bin").write_bytes(b"old")
+    s = Session.__new__(Session)
+    started = []
+    s.dir, s.poses, s.stream_no, s.cfg = tmp_path, [], 0, SimpleNamespace(rate_hz=100)
+    s.dev = SimpleNamespace(link=SimpleNamespace(capture=None), start_stream=started.append)
+    s._start_stream()
+    try:
+        assert s.stream_no == 2 and started == [100]
+        assert (tmp_path / "capture-2.bin").is_file() and (tmp_path / "capture-1.bin").read_bytes() == b"old"
+    finally:
+        s.dev.link.capture.close()

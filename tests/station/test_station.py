@@ -123,11 +123,13 @@ def test_station_server_answers_bad_requests_in_one_line(tmp_path):
     server = Server(Station(workdir=tmp_path, allow_sim=False)).start()
     origin = server.url.rstrip("/")
     opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
+    session = {}
     try:
-        def call(path, data=None):
-            # as the page does it: its Origin, JSON, the identity cookie the server set
+        def call(path, data=None, headers=None):
+            # as the page does it: its Origin, JSON, the session it traded the launch secret for
             req = urllib.request.Request(server.url + path, data=None if data is None else json.dumps(data).encode(),
-                                         headers={"Content-Type": "application/json", "Origin": origin})
+                                         headers={"Content-Type": "application/json", "Origin": origin, **session,
+                                                  **(headers or {})})
             try:
                 with opener.open(req, timeout=10) as r:
                     return r.status, r.read().decode()
@@ -136,13 +138,15 @@ def test_station_server_answers_bad_requests_in_one_line(tmp_path):
         code, page = call("")
         assert code == 200 and "/static/station.js" in page and "http" not in page.split("<body>")[1].split("://")[0]
         code, js = call("static/station.js")
-        assert code == 200 and "EventSource" in js
+        assert code == 200 and "/api/events" in js and "X-Imubench-Session" in js
+        code, body = call("pose.svg?up=1,0,0")
+        assert code == 403 and "no session of this station" in json.loads(body)["error"]
+        code, body = call("api/session", {}, {"X-Imubench-Launch": server.launch_url.split("#token=")[1]})
+        assert code == 200                                            # the page's first request: its session
+        session["X-Imubench-Session"] = json.loads(body)["session"]
         assert call("pose.svg?up=0,0,0")[0] == 400
         code, svg = call("pose.svg?up=1,0,0")
         assert code == 200 and svg.startswith("<svg")
-        code, body = call("api/start", {"port": "socket://127.0.0.1:1"})
-        assert code == 403 and "no identity on the station" in json.loads(body)["error"]
-        assert call("api/hello", {})[0] == 200                        # the page's first request: its cookie
         code, body = call("api/claim", {"key": "socket://127.0.0.1:1"})
         assert code == 200 and json.loads(body) == {"key": "socket://127.0.0.1:1", "yours": True}
         code, body = call("api/start", {"port": "socket://127.0.0.1:1", "gyro": "spin"})

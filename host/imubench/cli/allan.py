@@ -5,6 +5,7 @@ import argparse
 import re
 import shlex
 import signal
+import stat
 from pathlib import Path
 
 from imubench.results import exports as X
@@ -17,6 +18,7 @@ from imubench.cli.common import (
     positive_float,
     stream_rate,
 )
+from imubench.files import make_dir
 
 
 def parse_duration(s: str) -> float:
@@ -117,10 +119,13 @@ def run(a) -> int:
         return 0
     if a.duration is None:
         raise UsageError("--duration is required to record", "give e.g. --duration 2h, or --analyse FILE")
-    out.mkdir(parents=True, exist_ok=True)
+    make_dir(out)
     cap = out / "capture.bin"
     if cap.exists() and cap.stat().st_size:
         raise CommandError(f"{cap} exists", f"analyse it with --analyse {shlex.quote(str(cap))}, or choose another --out")
+    st = cap.lstat() if cap.is_symlink() or cap.exists() else None
+    if st is not None and stat.S_ISREG(st.st_mode) and st.st_size == 0 and st.st_nlink == 1:
+        cap.unlink()                # left empty by a start whose port did not open: a capture is a new file
     stop = {"now": False}
     old = None
     try:

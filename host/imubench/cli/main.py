@@ -30,7 +30,7 @@ from imubench.cli import (
     virtual,
 )
 from imubench.cli.common import EXIT_INTERRUPTED, Parser, debug_enabled, explain, resolve_sim_speed
-from imubench.text import one_line
+from imubench.text import guard_terminal, one_line
 
 # the order of `imubench --help`: a session first, then what follows it, then the tools
 MODULES = (calibrate, station, history, report, closure, allan, attitude, thermal, stream, virtual, flash, demo)
@@ -69,6 +69,7 @@ class _Version(argparse.Action):
 
 
 def main(argv=None) -> int:
+    guard_terminal(sys)              # no escape sequence from a name or a file acts on a terminal
     try:
         args = build_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as e:          # --help, --version (0) or a usage error (2, one line printed)

@@ -19,6 +19,7 @@ from imubench.cli.common import (
 )
 from imubench.results import exports as X
 from imubench.results import thermal_export as TX
+from imubench.files import make_dir
 
 
 
@@ -271,7 +272,7 @@ def _fit_warmups(a, out: Path, say) -> int:
     fj = fit_json(fits, t_ref)
     say(f"{len(runs)} warm-ups on faces {', '.join((r.get('config') or {}).get('face', '?') for r in runs)}")
     say(format_fit(fj))
-    out.mkdir(parents=True, exist_ok=True)
+    make_dir(out)
     data = {"schema": 1, "kind": "imubench thermal warmups", "created": now_utc(),
             "sources": [str(x) for x in a.fit_warmups], "faces": [(r.get("config") or {}).get("face") for r in runs],
             "device": runs[0].get("device"), "t_ref_c": t_ref, "fit": fj, "exports": {}}

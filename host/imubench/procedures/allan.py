@@ -19,7 +19,7 @@ from imubench.device.link import (
     LinkTimeout,
 )
 from imubench.errors import NotACapture
-from imubench.files import MAX_CAPTURE_BYTES, open_growing, read_bytes
+from imubench.files import MAX_CAPTURE_BYTES, make_dir, open_growing, read_bytes
 from imubench.results.allan import format_readoffs, plot_allan
 from imubench.results.atomic import write_json_atomic
 from imubench.wire.decoder import decode_bytes
@@ -43,7 +43,7 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
         rate_hz = (len(raw) - 1) / ((raw.t_us[-1] - raw.t_us[0]) / 1e6)
         rate_hz = float(np.round(rate_hz, 1))
     acc, gyr = raw.si()
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dir(out_dir)
     devices = {device_identity(i)["mcu_uid"]: device_identity(i) for i in infos}
     if len(devices) > 1:
         raise NotACapture(f"{', '.join(map(str, paths))} hold recordings of {len(devices)} devices "
@@ -147,7 +147,7 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
         if s0 < b < s1:
             log(f"warning: break at sample {b}: {why}; the analysis joins the pieces")
     acc, gyr = acc[s0:s1], gyr[s0:s1]
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dir(out_dir)
     name = rec.device or Path(rec.source.split(" + ")[0]).stem
     res = {"source": [rec.source], "device": {"name": name}, "samples": s1 - s0, "rate_hz": float(rec.fs_hz),
            "duration_s": (s1 - s0) / rec.fs_hz, "format": rec.fmt, "units": rec.unit_text(),

@@ -32,6 +32,7 @@ from imubench.recordings import Recording, RecordingError, command_line, command
 from imubench.results.atomic import write_json_atomic
 from imubench.results.record import CalibrationRecord, fit_dict, jsonable, now_utc
 from imubench.results.sessionfile import SESSION_SCHEMA
+from imubench.files import make_dir
 
 GYRO_FILE_METHODS = ("auto", "bias", "turns", "rotation")
 # what a class of accelerometer reaches after a linear calibration (RMS of |a| − g over the rests),
@@ -663,7 +664,7 @@ def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -
     except Exception as e:      # noqa: BLE001 - refused or not, the folder shows what was found; then the error
         _leave_evidence(d, fa, e, say)
         raise
-    d.mkdir(parents=True, exist_ok=True)
+    make_dir(d)
     result["capture_dir"] = str(d.resolve())
     files = {}
     for kind in cfg.writers:
@@ -723,7 +724,7 @@ def _leave_evidence(d: Path, fa: FileAnalysis, error: Exception, say) -> None:
     result = {"source": fa.source(), "rests": fa.rest_rows(), "clipping": fa.clipping, "notes": list(fa.notes),
               "refused": reason, "turns": [], "segmentation": []}
     try:
-        d.mkdir(parents=True, exist_ok=True)
+        make_dir(d)
         fa_si = fa.fa or U.G0_MPS2 / max(float(np.median(np.linalg.norm(rec.accel, axis=1))), 1e-300)
         plot_segmentation(rec, result, d / "segmentation.png", accel_factor=fa_si, gyro_factor=fa.fg or 1.0)
         write_evidence(d, result, command=fa.cfg.command)

@@ -29,7 +29,7 @@ from imubench.calib import CalibrationError, TriadFit
 from imubench.calib.gsens import with_zero_force_bias, zero_force_bias
 from imubench.calib.geometry import rotation_to  # noqa: F401 - where callers found it
 from imubench.device.link import Device
-from imubench.files import MAX_CAPTURE_BYTES, open_growing, read_bytes
+from imubench.files import MAX_CAPTURE_BYTES, make_dir, open_growing, read_bytes
 from imubench.procedures.capture import PoseCapture
 from imubench.procedures.config import PoseRecord, SessionConfig, Tolerances  # noqa: F401 - where callers found them
 from imubench.procedures.errors import SessionAborted
@@ -81,7 +81,7 @@ class Session:
         if resume:
             self._load()
         else:
-            self.dir.mkdir(parents=True, exist_ok=True)
+            make_dir(self.dir)
             if self.state_path.exists():
                 raise SessionAborted(f"{self.dir} already holds a session: use --resume {shlex.quote(str(self.dir))}, or another --dir")
             self.save()
@@ -260,6 +260,8 @@ class Session:
     def _start_stream(self) -> None:
         """A new continuous stream, captured to its own file as it arrives."""
         self.stream_no = 1 + max([p.stream for p in self.poses] + [self.stream_no])
+        while (self.dir / f"capture-{self.stream_no}.bin").exists():
+            self.stream_no += 1     # a resumed session stopped before a pose: its stream keeps its file
         old = self.dev.link.capture
         self.dev.link.capture = open_growing(self.dir / f"capture-{self.stream_no}.bin")
         if old is not None:
