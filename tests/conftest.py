@@ -3,12 +3,23 @@
 from __future__ import annotations
 
 import fcntl
+import os
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
 
 pytest_plugins = ["pytester"]
+
+# The suite never reads or writes the user's own data: the default history database
+# (platformdirs' user data directory) goes to a folder of this test run, for every worker and
+# every command a test starts. A database a newer imubench left in ~/.local/share must not
+# fail the suite, nor the suite fill it.
+if "IMUBENCH_TEST_DATA_HOME" not in os.environ:
+    os.environ["IMUBENCH_TEST_DATA_HOME"] = tempfile.mkdtemp(prefix="imubench-test-data-")
+os.environ["XDG_DATA_HOME"] = os.environ["IMUBENCH_TEST_DATA_HOME"]
+os.environ.pop("IMUBENCH_DB", None)
 
 ROOT = Path(__file__).resolve().parent.parent
 HOST_BUILD = ROOT / "build" / "host"
