@@ -48,7 +48,7 @@ def _stm32flash() -> None:
 # ------------------------------------------------------------- the protocol engine
 def _rom(tmp_path, name="f103"):
     t = ARM[name]
-    code = FlashFile(str(tmp_path / f"{name}.code"), t.param_base - t.flash_base)
+    code = FlashFile(str(tmp_path / f"{name}.code"), t.code_file_size)
     params = FlashFile(str(tmp_path / f"{name}.bin"), t.param_size)
     return RomBootloader(t, code, params, bytes(range(12)))
 
@@ -89,11 +89,141 @@ def test_bootloader_answers_as_the_chip(tmp_path, name, pid, version, erase):
     assert rom.code.mem[:16] == b"\xff" * 16
     assert _cmd(rom, 0x31, _addr(t.flash_base), bytes([15]) + data + bytes([cs])) == bytes([ACK, ACK, ACK])
     assert _cmd(rom, 0x11, _addr(t.flash_base), bytes([15, 0xF0])) == bytes([ACK, ACK, ACK]) + data
-    assert _cmd(rom, 0x11, _addr(0x60000000), bytes([3, 0xFC])) == bytes([ACK, ACK, NACK])   # nothing there
+    assert _cmd(rom, 0x11, _addr(0x60000000)) == bytes([ACK, NACK])     # nothing there: NACK after the address
     assert _cmd(rom, 0x11, _addr(t.uid_addr), bytes([11, 0xF4]))[3:] == bytes(range(12))
     # Go into flash leaves the bootloader
     assert _cmd(rom, 0x21, _addr(t.flash_base)) == bytes([ACK, ACK])
     assert rom.action == ("go", t.flash_base)
+
+
+def _block(data: bytes) -> bytes:
+    """Write Memory's N-1, the data and their XOR."""
+    cs = len(data) - 1
+    for v in data:
+        cs ^= v
+    return bytes([len(data) - 1]) + data + bytes([cs])
+
+
+def _synced(tmp_path, name):
+    rom = _rom(tmp_path, name)
+    rom.feed(b"\x7f")
+    assert rom.take_output() == bytes([ACK])
+    return rom
+
+
+@pytest.mark.parametrize("name", ["f103", "f4"])
+def test_flash_is_contiguous_across_the_parameter_pages(tmp_path, name):
+    """A read, a write and an erase across the border between code and parameter pages
+    (0x0800F800 on the F103, 0x080C0000 on the F4) act on both sides, as on the chip."""
+    rom = _synced(tmp_path, name)
+    t = ARM[name]
+    data = bytes(range(256))
+    border = t.param_base
+    assert _cmd(rom, 0x31, _addr(border - 128), _block(data)) == bytes([ACK, ACK, ACK])
+    assert rom.code.mem[border - 128 - t.flash_base:border - t.flash_base] == data[:128]
+    assert rom.params.mem[:128] == data[128:]
+    assert _cmd(rom, 0x11, _addr(border - 128), bytes([255, 0])) == bytes([ACK, ACK, ACK]) + data
+    # the erase of the last code page/sector and the first parameter one
+    first = rom._unit_of(border)
+    if name == "f103":
+        assert _cmd(rom, 0x43, bytes([1, first - 1, first, 1 ^ (first - 1) ^ first])) == bytes([ACK, ACK])
+    else:
+        body = bytes([0, 1, 0, first - 1, 0, first])
+        cs = 0
+        for v in body:
+            cs ^= v
+        assert _cmd(rom, 0x44, body + bytes([cs])) == bytes([ACK, ACK])
+    assert _cmd(rom, 0x11, _addr(border - 128), bytes([255, 0]))[3:] == b"\xff" * 256
+    # the F103CB's flash goes on above its parameter pages, up to 0x0801FFFF (128 KiB)
+    end = t.flash_base + t.flash_size
+    assert _cmd(rom, 0x31, _addr(end - 256), _block(data)) == bytes([ACK, ACK, ACK])
+    assert _cmd(rom, 0x11, _addr(end - 256), bytes([255, 0]))[3:] == data
+    assert _cmd(rom, 0x11, _addr(end - 16), bytes([31, 0xE0])) == bytes([ACK, ACK, NACK])   # runs past the end
+    assert _cmd(rom, 0x11, _addr(end)) == bytes([ACK, NACK])
+
+
+@pytest.mark.parametrize("name,fsize,kib", [("f103", 0x1FFFF7E0, 128), ("f4", 0x1FFF7A22, 1024)])
+def test_system_memory_reads_at_any_length_and_alignment(tmp_path, name, fsize, kib):
+    """The flash-size register and the unique ID read the same whatever the length and the
+    start of the read that covers them (stm32loader reads 256 B at 0x1FFF7A00 on an F4)."""
+    rom = _synced(tmp_path, name)
+    t = ARM[name]
+    uid = bytes(range(12))
+    for start in range(fsize - 37, fsize + 1, 3):
+        for n in (2, 16, 64, 256):
+            if start + n < fsize + 2:
+                continue
+            got = _cmd(rom, 0x11, _addr(start), bytes([n - 1, (n - 1) ^ 0xFF]))
+            sysmem_end = 0x1FFFF800 if name == "f103" else 0x1FFF8000
+            if start + n > sysmem_end:
+                assert got == bytes([ACK, ACK, NACK])
+                continue
+            assert got[:3] == bytes([ACK, ACK, ACK]) and len(got) == 3 + n, (hex(start), n)
+            mem = got[3:]
+            assert int.from_bytes(mem[fsize - start:fsize - start + 2], "little") == kib
+            if start <= t.uid_addr and t.uid_addr + 12 <= start + n:
+                assert mem[t.uid_addr - start:t.uid_addr - start + 12] == uid
+    got = _cmd(rom, 0x11, _addr(t.uid_addr & ~0xFF), bytes([255, 0]))
+    assert got[:3] == bytes([ACK, ACK, ACK]) and len(got) == 259
+
+
+@pytest.mark.parametrize("name", ["f103", "f4"])
+def test_address_checks_come_right_after_the_address(tmp_path, name):
+    """AN3155 3.4/3.6: an address that is not valid is NACKed right after the address and its
+    checksum, before the length or the data."""
+    rom = _synced(tmp_path, name)
+    t = ARM[name]
+    for bad in (0x00000000, 0x40000000, t.flash_base + t.flash_size, t.ram_base + t.ram_size):
+        assert _cmd(rom, 0x11, _addr(bad)) == bytes([ACK, NACK]), hex(bad)
+        assert _cmd(rom, 0x31, _addr(bad)) == bytes([ACK, NACK]), hex(bad)
+    assert _cmd(rom, 0x31, _addr(t.ram_base)) == bytes([ACK, NACK])             # the bootloader's own RAM
+    assert _cmd(rom, 0x31, _addr(t.uid_addr)) == bytes([ACK, NACK])             # system memory: read only
+    assert _cmd(rom, 0x11, _addr(t.uid_addr)) == bytes([ACK, ACK])              # ... but readable
+    rom.feed(bytes([11, 11 ^ 0xFF]))
+    assert rom.take_output() == bytes([ACK]) + bytes(range(12))
+    assert _cmd(rom, 0x31, _addr(t.flash_base + 2), _block(b"abcd")) == bytes([ACK, ACK, NACK])  # unaligned
+
+
+def test_option_byte_writes_set_protection_and_reset_f103(tmp_path):
+    """Write Memory to the option bytes (AN3155 3.6): programmed, then the chip resets; the
+    write protection and read protection they hold take effect."""
+    rom = _synced(tmp_path, "f103")
+    ob = 0x1FFFF800
+    assert _cmd(rom, 0x11, _addr(ob), bytes([15, 0xF0]))[3:] == bytes([0xA5, 0x5A] + [0xFF, 0x00] * 7)
+    new = bytes([0xA5, 0x5A, 0xFF, 0x00, 0x12, 0xED, 0xFF, 0x00, 0xFE, 0x01, 0xFF, 0x00, 0xFF, 0x00, 0x7F, 0x80])
+    assert _cmd(rom, 0x31, _addr(ob), _block(new)) == bytes([ACK, ACK, ACK])
+    assert rom.action == ("reset",)
+    rom.reset()
+    rom.feed(b"\x7f")
+    rom.take_output()
+    assert _cmd(rom, 0x11, _addr(ob), bytes([15, 0xF0]))[3:] == new
+    assert rom.wrp == {0, 124}                                   # WRP0 bit 0: pages 0-3, WRP3 bit 7: 124-127
+    assert _cmd(rom, 0x43, bytes([0, 1, 1])) == bytes([ACK, NACK])
+    assert _cmd(rom, 0x43, bytes([0, 4, 4])) == bytes([ACK, ACK])
+    # RDP not 0xA5: read protection on after the reset
+    assert _cmd(rom, 0x31, _addr(ob), _block(bytes([0x00, 0xFF]) + b"\xff" * 14)) == bytes([ACK, ACK, ACK])
+    rom.reset()
+    rom.feed(b"\x7f")
+    rom.take_output()
+    assert rom.rdp and _cmd(rom, 0x11) == bytes([NACK])
+
+
+def test_option_byte_writes_f4(tmp_path):
+    rom = _synced(tmp_path, "f4")
+    ob = 0x1FFFC000
+    cur = _cmd(rom, 0x11, _addr(ob), bytes([15, 0xF0]))[3:]
+    assert cur[:2] == bytes([0xED, 0xAA]) and cur[8:10] == bytes([0xFF, 0x0F])
+    new = bytearray(cur)
+    new[8:10] = bytes([0xFF, 0x03])                              # nWRP: sectors 10 and 11 protected
+    assert _cmd(rom, 0x31, _addr(ob), _block(bytes(new))) == bytes([ACK, ACK, ACK])
+    assert rom.action == ("reset",)
+    rom.reset()
+    rom.feed(b"\x7f")
+    rom.take_output()
+    assert rom.wrp == {10, 11} and not rom.rdp
+    assert _cmd(rom, 0x11, _addr(ob), bytes([15, 0xF0]))[3:] == bytes(new)
+    t = ARM["f4"]
+    assert _cmd(rom, 0x31, _addr(t.param_base), _block(b"abcd")) == bytes([ACK, ACK, NACK])   # protected
 
 
 def test_erase_geometry_and_the_global_erase_f103(tmp_path):
@@ -104,7 +234,8 @@ def test_erase_geometry_and_the_global_erase_f103(tmp_path):
     # Erase pages 0 and 63 (a parameter page: the bootloader erases what it is told)
     assert _cmd(rom, 0x43, bytes([1, 0, 5, 1 ^ 0 ^ 5])) == bytes([ACK, ACK])
     assert rom.erased_units == [0, 5]
-    assert _cmd(rom, 0x43, bytes([0, 64, 64])) == bytes([ACK, NACK])          # no page 64 on a C8
+    assert _cmd(rom, 0x43, bytes([0, 127, 127])) == bytes([ACK, ACK])         # page 127: the CB's last
+    assert _cmd(rom, 0x43, bytes([0, 128, 128])) == bytes([ACK, NACK])        # no page 128 on a CB
     assert _cmd(rom, 0x43, b"\xff\x00") == bytes([ACK, ACK])                   # global erase
     assert rom.params.mem[:4] == b"\xff" * 4                                   # ... wipes the calibration
 
