@@ -452,6 +452,149 @@ def test_a_reflash_keeps_a_block_the_previous_layout_stored(name, tmp_path, caps
             assert not any(got.accel_bias_tc2_mps2_per_c2 + got.gyro_bias_tc3_rad_s_per_c3)
 
 
+# ------------------------------------------- two clients, across the parameter pages
+def _boot0(name, tmp_path, seed=5):
+    return VirtualBench(speed=0, seed=seed, target=name, flash=tmp_path / "flash.bin", pty=True, tcp=False,
+                        boot0=True)
+
+
+def _stores(tmp_path, name, addr: int, n: int) -> bytes:
+    """[addr, addr+n) of the board's flash, from its two files (code and parameter pages)."""
+    t = ARM[name]
+    code = Path(str(tmp_path / "flash.bin") + ".code").read_bytes()
+    params = (tmp_path / "flash.bin").read_bytes()
+    whole = code[:t.param_base - t.flash_base] + params + code[t.param_base - t.flash_base:]
+    assert len(whole) == t.flash_size
+    return whole[addr - t.flash_base:addr - t.flash_base + n]
+
+
+def _sf(*args) -> subprocess.CompletedProcess:
+    return subprocess.run(["stm32flash", "-m", "8n1", *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("name", ["f103", "f4"])
+def test_stm32flash_across_the_parameter_pages(name, tmp_path):
+    """Debian's stm32flash, unchanged: writes, verifies, reads back and erases 8 KiB across the
+    border between code and parameter pages; on the F103 it reads the whole flash (-r, its own
+    help's example) and computes its CRC (-C) up to 0x08020000, the CB's 128 KiB. A .bin
+    written without -S erases only the file's pages (docs/firmware.md: not a mass erase)."""
+    _stm32flash()
+    t = ARM[name]
+    start, n = t.param_base - 4096, 8192
+    data = np.random.default_rng(3).integers(0, 256, n, dtype=np.uint8).tobytes()
+    src = tmp_path / "across.bin"
+    src.write_bytes(data)
+    back = tmp_path / "back.bin"
+    with _boot0(name, tmp_path) as vb:
+        r = _sf("-w", str(src), "-v", "-S", f"0x{start:08X}:{n}", vb.pty)
+        assert r.returncode == 0, r.stdout + r.stderr + vb.log
+        assert "Wrote and verified address" in r.stdout
+        assert _stores(tmp_path, name, start, n) == data
+        assert set(_erased(vb.log)) & PARAM_UNITS[name]         # the erase took the parameter page too
+        r = _sf("-r", str(back), "-S", f"0x{start:08X}:{n}", vb.pty)
+        assert r.returncode == 0 and back.read_bytes() == data, r.stdout + r.stderr
+        units = [(a, s) for a, s in _units(name) if a < start + n and start < a + s]   # erase-only: whole units
+        e0, e1 = units[0][0], units[-1][0] + units[-1][1]
+        log_at = len(vb.log)
+        r = _sf("-o", "-S", f"0x{e0:08X}:{e1 - e0}", vb.pty)
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert _erased(vb.log[log_at:]) == {i for i, u in enumerate(_units(name)) if u in units}
+        assert _stores(tmp_path, name, e0, e1 - e0) == b"\xff" * (e1 - e0)
+        if name == "f103":
+            whole = tmp_path / "whole.bin"
+            r = _sf("-r", str(whole), vb.pty)
+            assert r.returncode == 0, r.stdout + r.stderr
+            assert whole.read_bytes() == _stores(tmp_path, name, t.flash_base, t.flash_size)
+            assert len(whole.read_bytes()) == 128 * 1024
+            r = _sf("-C", vb.pty)
+            assert r.returncode == 0, r.stdout + r.stderr
+            crc = _stm32_crc(_stores(tmp_path, name, t.flash_base, t.flash_size))
+            assert f"CRC(0x08000000-0x08020000) = 0x{crc:08x}" in r.stdout, r.stdout
+            # a .bin without -S: stm32flash 0.7 erases the pages the file covers, not the flash
+            params = (tmp_path / "flash.bin").read_bytes()
+            small = tmp_path / "small.bin"
+            small.write_bytes(bytes(range(256)) * 12)           # 3 KiB: pages 0-2
+            log_at = len(vb.log)
+            r = _sf("-w", str(small), vb.pty)
+            assert r.returncode == 0, r.stdout + r.stderr
+            assert _erased(vb.log[log_at:]) == {0, 1, 2}
+            assert "mass erase" not in vb.log[log_at:]
+            assert (tmp_path / "flash.bin").read_bytes() == params
+
+
+@pytest.mark.parametrize("name", ["f103", "f4"])
+def test_stm32loader_library_across_the_parameter_pages(name, tmp_path):
+    """The stm32loader package's library (Stm32Bootloader over its SerialConnection on the
+    emulator's pty). Its command line starts by resetting the chip into the bootloader with
+    RTS/DTR, which a pseudo-terminal does not carry (pyserial's modem-line ioctls fail on a
+    pty), so the test sends the 0x7F synchronisation itself and then drives the library as its
+    main does: Get, Get Version, Get ID, the flash size and UID it reads from system memory,
+    page/sector erase, write, read and verify across the parameter pages, global erase."""
+    from stm32loader.bootloader import Stm32Bootloader
+    from stm32loader.uart import SerialConnection
+    t = ARM[name]
+    family = "F1" if name == "f103" else "F4"
+    start, n = t.param_base - 4096, 8192
+    data = np.random.default_rng(4).integers(0, 256, n, dtype=np.uint8).tobytes()
+    with _boot0(name, tmp_path, seed=6) as vb:
+        conn = SerialConnection(vb.pty, 115200, "N")      # a pty refuses PARENB (8E1), as with stm32flash -m 8n1
+        conn.connect()
+        try:
+            bl = Stm32Bootloader(conn, device_family=family, verbosity=0, show_progress=False)
+            bl.write(bl.Command.SYNCHRONIZE)
+            assert conn.read()[0] == bl.Reply.ACK
+            assert bl.get() == (0x22 if name == "f103" else 0x31)
+            assert bl.get_version() == (0x22 if name == "f103" else 0x31)
+            assert bl.get_id() == (0x410 if name == "f103" else 0x413)
+            if name == "f103":
+                size_kib, uid_read = bl.get_flash_size(), bytes(bl.get_uid())
+            else:
+                size_kib, uid_read = bl.get_flash_size_and_uid()
+                uid_read = bytes(uid_read)
+            assert size_kib == t.flash_kib
+            assert len(uid_read) == 12 and uid_read == bytes(bl.read_memory(t.uid_addr, 12))
+            assert uid_read == bytes.fromhex(vb.info["uid"])       # the board's own ID
+            units = [i for i, (a, s) in enumerate(_units(name)) if a < start + n and start < a + s]
+            assert set(units) & PARAM_UNITS[name]
+            if name == "f103":
+                bl.erase_memory(units)
+            else:
+                bl.extended_erase_memory(units)
+            bl.write_memory_data(start, data)
+            got = bytes(bl.read_memory_data(start, n))
+            bl.verify_data(got, data)
+            assert got == data and _stores(tmp_path, name, start, n) == data
+            bl.erase_memory() if name == "f103" else bl.extended_erase_memory()   # global / mass erase
+            assert _stores(tmp_path, name, t.flash_base, t.flash_size) == b"\xff" * t.flash_size
+        finally:
+            conn.disconnect()
+
+
+def _stm32_crc(data: bytes) -> int:
+    """The STM32 CRC unit's CRC-32 (polynomial 0x04C11DB7, initial 0xFFFFFFFF, 32-bit words
+    fed MSB first, RM0008 20.3; stm32flash computes the same): CRC-32/MPEG-2 over each
+    little-endian word's bytes reversed."""
+    table = []
+    for i in range(256):
+        c = i << 24
+        for _ in range(8):
+            c = ((c << 1) ^ 0x04C11DB7) if c & 0x80000000 else c << 1
+        table.append(c & 0xFFFFFFFF)
+    crc = 0xFFFFFFFF
+    for i in range(0, len(data), 4):
+        for b in data[i:i + 4][::-1]:
+            crc = ((crc << 8) & 0xFFFFFFFF) ^ table[(crc >> 24) ^ b]
+    return crc
+
+
+def _units(name):
+    from imubench.device.arm.bootloader import CHIP
+    a, out = ARM[name].flash_base, []
+    for size in CHIP[name]["units"]:
+        out.append((a, size))
+        a += size
+    return out
+
 # ------------------------------------------------------------- what goes wrong at a bench
 def test_bench_faults_power_cut_wrong_chip_not_a_bootloader(tmp_path, capsys):
     """Power cut half way through the write: stm32flash fails, the board is not bricked (the
