@@ -14,7 +14,6 @@ import argparse
 import signal
 import sys
 
-from imubench import __version__
 from imubench.cli import (
     allan,
     attitude,
@@ -63,6 +62,7 @@ class _Version(argparse.Action):
         try:
             text = version_text()
         except Exception as e:  # noqa: BLE001 - a damaged install still says its version
+            from imubench import __version__
             text = f"imubench {__version__} (compiled parts unreadable: {e})"
         print(text, flush=True)
         parser.exit(0)
