@@ -1,6 +1,7 @@
-"""Flashing proven with a real client: the STM32 ROM bootloader (AN3155) under the ARM emulator
-(imubench.device.arm.bootloader), Debian's stm32flash unchanged through `imubench flash
---probe serial`, a reflash that keeps the calibration, and what goes wrong at a bench.
+"""Flashing proven with real clients: the STM32 ROM bootloader (AN3155) under the ARM emulator
+(imubench.device.arm.bootloader), Debian's stm32flash unchanged (through `imubench flash
+--probe serial` and on its own) and the stm32loader package's library, a reflash that keeps the
+calibration, and what goes wrong at a bench.
 
 The reflash test calibrates a board running one image ("previous") and reflashes it with the
 current build. By default the previous image is the current build with another build id
@@ -259,6 +260,7 @@ def test_readout_and_write_protection(tmp_path):
     rom.feed(b"\x7f")
     rom.take_output()
     t = ARM["f103"]
+    assert _cmd(rom, 0x63, bytes([0, 32, 32])) == bytes([ACK, NACK])          # sector 32: pages 128-131, none
     assert _cmd(rom, 0x63, bytes([0, 0, 0])) == bytes([ACK, ACK])             # protect pages 0-3
     assert rom.action == ("reset",)
     rom.reset()

@@ -549,10 +549,10 @@ class RomBootloader:
         x = nb[0]
         for v in rest[:-1]:
             x ^= v
-        if x != rest[-1]:
-            self.out.append(NACK)
-            return
         step = self.chip["wrp_pages"]
+        if x != rest[-1] or any(s * step >= len(self.chip["units"]) for s in rest[:-1]):
+            self.out.append(NACK)           # a bad checksum, or a sector the part does not have
+            return
         for s in rest[:-1]:
             self.wrp.add(s * step)
         self.out.append(ACK)
