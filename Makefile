@@ -101,11 +101,26 @@ clean:
 
 # The release: the sdist, then the platform wheel built from it (setup.py compiles the virtual
 # device, the models library and the STM32 images into the package), both into dist/.
-# README.md, Install, says how to install either.
-dist: system-deps venv
+# README.md, Install, says how to install either. It needs only what the build needs: the
+# compilers (DIST_PKGS) and PyPA's `build` in a small environment of its own (DIST_VENV;
+# `build` installs setuptools and wheel in its isolated build environment), not the test
+# environment, Chromium or PostgreSQL. The wheel is reproducible (setup.py: SOURCE_DATE_EPOCH
+# = the last commit's time): its SHA-256, printed here, is the one a build from the tree or
+# pip's build from the sdist gives.
+DIST_PKGS := gcc make libc6-dev gcc-arm-none-eabi libnewlib-arm-none-eabi git
+DIST_VENV := $(BUILD)/dist-venv
+
+$(DIST_VENV)/.stamp:
+	@$(PYTHON) -m venv $(DIST_VENV)
+	@$(DIST_VENV)/bin/python -m pip install -q --disable-pip-version-check "build>=1.0"
+	@touch $@
+
+dist: $(DIST_VENV)/.stamp
+	@bash tools/ensure-system-deps.sh $(DIST_PKGS)
 	@rm -rf dist
-	$(PY) -m build --outdir dist .
+	$(DIST_VENV)/bin/python -m build --outdir dist .
 	@ls -l dist
+	@sha256sum dist/*.whl
 
 include firmware/arm.mk
 

@@ -39,8 +39,20 @@ MAX_TAU_FRACTION = 8.0
 AXES = ("x", "y", "z")
 
 
+def require_allantools():
+    """allantools, or a one-line error saying how to install it (the allan extra); called
+    before a recording starts too, so that hours of samples never wait on a missing package."""
+    try:
+        import allantools
+    except ImportError:
+        from imubench.errors import ImubenchError
+        raise ImubenchError("the Allan analysis needs allantools, the allan extra: "
+                            "pip install 'imubench[allan]' (or pip install allantools)") from None
+    return allantools
+
+
 def _edf_and_ci(taus, devs, slopes_pt, n_freq, fs_hz):
-    import allantools
+    allantools = require_allantools()
     edfs, lo, hi = [], [], []
     for tau, dev, s in zip(taus, devs, slopes_pt):
         # noise type from the local slope: ADEV ∝ τ^s  <=>  S_y ∝ f^α with α = −2s − 1
@@ -75,7 +87,7 @@ def _free_slope(logtau, logy, w):
 
 def allan_axis(x: np.ndarray, fs_hz: float) -> dict:
     """Allan analysis of one axis (1-D rate samples in SI at fs_hz)."""
-    import allantools
+    allantools = require_allantools()
     x = np.asarray(x, dtype=np.float64)
     taus, devs, _errs, ns = allantools.oadev(x, rate=fs_hz, data_type="freq", taus="octave")
     keep = (devs > 0) & (ns >= 1)

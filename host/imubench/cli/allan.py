@@ -98,7 +98,9 @@ def _run_from_file(a) -> int:
 
 
 def run(a) -> int:
+    from imubench.analysis.allan import require_allantools
     from imubench.procedures.allan import analyse_capture, record
+    require_allantools()                      # before hours of recording, not after
     if a.from_file is not None:
         return _run_from_file(a)
     file_only = [k for k in ("format", "gyro_file", "accel_unit", "gyro_unit", "accel_scale", "gyro_scale", "columns",

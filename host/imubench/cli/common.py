@@ -139,6 +139,20 @@ def speed_text(speed: float, clock: str | None) -> str:
     return "lockstep clock, no speed ceiling" if not speed else f"lockstep clock, speed ceiling {speed:g}"
 
 
+def image_help(what: str = "<board>") -> tuple[str, str, str]:
+    """(what `flash` does with the STM32 images, the default image's path, what --no-build does),
+    worded for the user's install: a wheel carries its images (nothing is built), a checkout
+    builds them with `make firmware`."""
+    from imubench.device import artifacts
+    if artifacts.installed():
+        d = artifacts.DATA / "firmware" / what
+        return ("Flash the STM32 firmware image that came with this installed package",
+                f"{d}/imubench.elf|.bin|.hex",
+                "accepted for scripts; nothing is built (the package's images were built with it)")
+    return ("Build (make firmware) and flash the STM32 firmware", f"build/arm/{what}/imubench.elf|.bin|.hex",
+            "do not run `make firmware` first")
+
+
 def add_target(p: argparse.ArgumentParser) -> None:
     """--target: what runs the virtual device's firmware (imubench.device.sim.TARGETS)."""
     p.add_argument("--target", choices=("host", "f103", "f4"), default="host",

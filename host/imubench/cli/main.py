@@ -14,7 +14,6 @@ import argparse
 import signal
 import sys
 
-from imubench import __version__
 from imubench.cli import (
     allan,
     attitude,
@@ -37,10 +36,14 @@ MODULES = (calibrate, station, history, report, closure, allan, attitude, therma
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from imubench.device.artifacts import installed
+    where = ("README.md lists the commands; docs/ has the methods (both in the sdist, imubench-<version>.tar.gz, "
+             "and the source repository: the docs/NAME.md the help texts name)." if installed() else
+             "README.md lists the commands; docs/ has the methods.")
     ap = Parser(prog="imubench",
                 description="Hardware-in-the-loop bench for calibrating MEMS IMUs (ADXL355 + ADXRS450 on an STM32).\n"
                             "Every command that talks to a device takes --port URL (default: $IMUBENCH_PORT).\n"
-                            "README.md lists the commands; docs/ has the methods.")
+                            + where)
     ap.add_argument("--version", action=_Version, nargs=0,
                     help="the package version, the source revision and the firmware images' versions")
     ap.add_argument("--debug", action="store_true",
@@ -63,6 +66,7 @@ class _Version(argparse.Action):
         try:
             text = version_text()
         except Exception as e:  # noqa: BLE001 - a damaged install still says its version
+            from imubench import __version__
             text = f"imubench {__version__} (compiled parts unreadable: {e})"
         print(text, flush=True)
         parser.exit(0)

@@ -88,9 +88,12 @@ class Session:
 
     # ------------------------------------------------------------ persistence
     def save(self, **extra) -> None:
+        """The session file: rewritten after every attitude as a checkpoint (one line: the
+        rest's samples make it ~250 KB, and indenting them through json's pure-Python encoder
+        took a second of the first session), indented once a result is in it."""
         state = {"schema": SESSION_SCHEMA, "started": self.started, "config": jsonable(asdict(self.cfg)),
                  "rest": self.rest, "poses": [asdict(p) for p in self.poses], **extra}
-        write_json_atomic(self.state_path, state)     # a crash leaves the old or the new file
+        write_json_atomic(self.state_path, state, indent=1 if extra else None)   # a crash leaves the old or the new file
 
     def finish(self, result: dict) -> None:
         """Save the result of a run that went to its end (fit, write-back, verification, and
