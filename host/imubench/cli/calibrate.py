@@ -28,6 +28,7 @@ from imubench.cli.calibrate_station import (
     _sim_fault,
     _station_session,
 )
+from imubench.calib.fit import gyro_method_names
 from imubench.cli.station import add_web
 from imubench.results.record import verdict
 from imubench.text import one_line, printable
@@ -36,7 +37,7 @@ METHODS = ("multi", "six")
 CAPTURES = ("adaptive", "plan")
 SIX_WARNING = ("warning: --method six needs a square fixture (a machined cube against a square): held by hand the "
                "faces are degrees off square and the fit fails; --method multi needs none")
-GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "auto", "none")
+GYRO_METHODS = gyro_method_names()          # calib.fit.GYRO_METHODS: the one list of gyro methods
 # imubench.recordings.FORMATS and imubench.results.paramfiles.WRITERS, named here so that building
 # the parser loads neither (tests/procedures/test_from_file.py checks they agree)
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")

@@ -25,6 +25,7 @@ import numpy as np
 
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
+from imubench.calib.fit import Evidence, fit, gyro_method_names
 from imubench.procedures.recording_checks import (check_accel_unit, check_gyro_unit, check_turn_scale,
                                                   compare_annotation, face_of)
 from imubench.procedures.session import Tolerances
@@ -33,7 +34,7 @@ from imubench.results.atomic import write_json_atomic
 from imubench.results.record import CalibrationRecord, fit_dict, jsonable, now_utc
 from imubench.results.sessionfile import SESSION_SCHEMA
 
-GYRO_FILE_METHODS = ("auto", "bias", "turns", "rotation")
+GYRO_FILE_METHODS = gyro_method_names(recording=True)   # calib.fit.GYRO_METHODS, the one list
 # what a class of accelerometer reaches after a linear calibration (RMS of |a| − g over the rests),
 # by its noise density measured at rest: (upper density µg/√Hz, tolerance mg, class, example)
 ACCEL_CLASSES = ((60.0, 1.0, "low-noise MEMS", "ADXL355, 25 µg/√Hz"),
@@ -176,18 +177,36 @@ class FileAnalysis:
         self.say(f"still intervals: {len(keep)} found by the data (window {cfg.window_s:g} s, k = {ivs.k:g} × the "
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
                                             for f, i in zip(self.faces, keep)))
-        accel = self._fit_accel(means, sigmas, acc)
-        used = [k for k, r in enumerate(self.rests) if r.use != "left out"]
-        keep = [keep[k] for k in used]               # the gyro and the tables: the rests the fit used
-        self.intervals, self.faces = keep, [self.faces[k] for k in used]
-        means, sigmas = means[used], sigmas[used]
-        # ---- gyro: a refusal keeps the accelerometer's result (verdict: "accelerometer calibrated; gyro not")
-        if cfg.gyro and self.gyro_refused is None:
+        picked: dict = {}
+
+        def chosen(choice) -> None:         # the rests the accelerometer's fit used: the gyro's and the tables'
+            used = self._accel_chosen(choice)
+            picked.update(keep=[keep[k] for k in used], means=means[used], sigmas=sigmas[used])
+            self.intervals, self.faces = picked["keep"], [self.faces[k] for k in used]
+
+        def gyro_fitter(cal):
+            chosen(cal.accel_choice)
             try:
-                self.gyro = self._gyro(rec, cfg, fs, keep, acc, means, accel)
-            except CalibrationError as e:
-                self.gyro_refused = str(e)
-                self.gyro = self._bias
+                return self._gyro(rec, cfg, fs, picked["keep"], acc, picked["means"], cal.accel)
+            finally:
+                cal.gyro_bias = self._bias
+        from imubench.calib.acceptance import FitRefused
+        try:
+            cal = fit(self._evidence(means, sigmas, acc), method=cfg.method,
+                      gyro=cfg.gyro if self.gyro_refused is None else None,
+                      excess_limit_mps2=self._excess_limit(means, sigmas), gsens=False, gyro_fitter=gyro_fitter)
+        except FitRefused as e:             # how the rests were seen stays for the evidence of the refusal
+            self._records(e.rests)
+            self.accel_candidates = e.candidates
+            raise
+        if not picked:                      # no gyro asked for: the accelerometer's choice, told here
+            chosen(cal.accel_choice)
+        self.calibration = cal
+        means, sigmas = picked["means"], picked["sigmas"]
+        if cal.gyro_refused is not None:    # a refusal keeps the accelerometer's result
+            self.gyro_refused, self.gyro = cal.gyro_refused, cal.gyro
+        elif cfg.gyro and self.gyro_refused is None:
+            self.gyro = cal.gyro
         if self.gyro_refused:
             self.say(f"gyro not calibrated: {self.gyro_refused}")
         if self.fg is None:         # raw gyro counts that no turn scaled: nothing of the gyro can be said in °/s
@@ -365,39 +384,38 @@ class FileAnalysis:
                              estimated=np.array([False] * 9 + [True] * 3),
                              extra=dict(bias.extra, source="weighted mean of the rests"))
 
-    def _fit_accel(self, means: np.ndarray, sigmas: np.ndarray, acc: np.ndarray) -> TriadFit:
-        """The accelerometer fit (calib.acceptance.fit_accel): every rest weighed by its noise and
-        its own motion (calib.rests), the largest model the rests resolve that is better than
-        none, outlying rests left out; self.rests says how each rest was used. Raises
-        FitRefused (a CalibrationError) when no model is kept, with self.rests filled."""
-        from imubench.calib.acceptance import FitRefused, fit_accel
-        from imubench.calib.rests import RestRecord, motion_covariances
-        cfg = self.cfg
-        covs, motion = motion_covariances(acc, self.intervals)
-        texts = [m.describe(U.G0_MPS2) if m.significant else "" for m in motion]
+    def _evidence(self, means: np.ndarray, sigmas: np.ndarray, acc: np.ndarray) -> Evidence:
+        """The rests as the fit takes them (calib.fit): each weighed by its noise and its own
+        motion (calib.rests, the covariance it adds and why)."""
+        from imubench.calib.rests import motion_covariances
+        covs, self._motion = motion_covariances(acc, self.intervals)
+        texts = [m.describe(U.G0_MPS2) if m.significant else "" for m in self._motion]
+        return Evidence(means_mps2=means, sigmas_mps2=sigmas, rate_hz=self.rec.fs_hz, covs=covs, motions_text=texts)
+
+    def _excess_limit(self, means: np.ndarray, sigmas: np.ndarray) -> float:
+        """The scatter beyond the noise the accelerometer fit accepts: this IMU's tolerance, m/s²."""
         sig_g = np.linalg.norm(means / np.linalg.norm(means, axis=1)[:, None] * sigmas, axis=1) / U.G0_MPS2
         tol, _ = self._tolerance(sig_g)
+        return tol.accel_rms_mg * 1e-3 * U.G0_MPS2
 
-        def records(uses):
-            self.rests = [RestRecord(start=int(i.start), stop=int(i.stop), t_start_s=i.t_start_s,
-                                     duration_s=i.duration_s, face=f, use=r.use, use_reason=r.use_reason,
-                                     sigma_inflation=r.sigma_inflation,
-                                     motion={"direction_deg": m.direction_deg,
-                                             "magnitude_change_mg": m.magnitude_change / U.G0_MPS2 * 1e3,
-                                             "drift_chi2": m.chi2, "drift_p": m.p, "significant": m.significant})
-                          for i, f, r, m in zip(self.intervals, self.faces, uses, motion)]
-            for r in self.rests:
-                if r.use != "used":
-                    self._note(f"rest at {r.t_start_s:.1f} s ({r.duration_s:.1f} s, {r.face}) {r.use}: {r.use_reason}")
+    def _records(self, uses) -> None:
+        """self.rests from the fit's use of each rest (calib.acceptance.RestUse), each use noted."""
+        from imubench.calib.rests import RestRecord
+        self.rests = [RestRecord(start=int(i.start), stop=int(i.stop), t_start_s=i.t_start_s,
+                                 duration_s=i.duration_s, face=f, use=r.use, use_reason=r.use_reason,
+                                 sigma_inflation=r.sigma_inflation,
+                                 motion={"direction_deg": m.direction_deg,
+                                         "magnitude_change_mg": m.magnitude_change / U.G0_MPS2 * 1e3,
+                                         "drift_chi2": m.chi2, "drift_p": m.p, "significant": m.significant})
+                      for i, f, r, m in zip(self.intervals, self.faces, uses, self._motion)]
+        for r in self.rests:
+            if r.use != "used":
+                self._note(f"rest at {r.t_start_s:.1f} s ({r.duration_s:.1f} s, {r.face}) {r.use}: {r.use_reason}")
 
-        try:
-            choice = fit_accel(means, sigmas, covs, cfg.method, U.G0_MPS2,
-                               excess_limit=tol.accel_rms_mg * 1e-3 * U.G0_MPS2, motions_text=texts)
-        except FitRefused as e:
-            records(e.rests)
-            self.accel_candidates = e.candidates
-            raise
-        records(choice.rests)
+    def _accel_chosen(self, choice) -> list[int]:
+        """Keep and tell the accelerometer model the fit chose (calib.acceptance.AccelChoice):
+        how each rest was used, the model and why; returns the indices of the rests it used."""
+        self._records(choice.rests)
         self.accel_choice = choice
         self.accel_candidates = choice.candidates
         self.method = "six" if choice.fit.method == "six_position" else "multi"
@@ -410,7 +428,7 @@ class FileAnalysis:
                      f"{first['reason']})")
         self.say(f"accelerometer model: {choice.summary}")
         self.accel = choice.fit
-        return choice.fit
+        return [k for k, r in enumerate(self.rests) if r.use != "left out"]
 
     def _part_turns(self, gyr, acc, keep, up, accel) -> list:
         """Turns from the file's named parts (*_rot), for files cut tightly around each turn."""
