@@ -2,8 +2,13 @@
 caller, one strategy, one result type."""
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
+
+import imubench.station
 
 from imu_synth import G0, handheld_session, spread_ups
 from imubench.calib.fit import (GYRO_METHODS, Calibration, Evidence, RotationEvidence, fit, gyro_method)
@@ -26,6 +31,9 @@ def test_every_caller_takes_its_gyro_methods_from_the_one_list():
     assert set(station_methods) == {m.name for m in GYRO_METHODS if m.live}
     assert set(GYRO_FILE_METHODS) == {m.name for m in GYRO_METHODS if m.recording}
     assert "turntable" not in GYRO_FILE_METHODS and "auto" not in station_methods
+    page = (Path(imubench.station.__file__).parent / "static" / "station.html").read_text()
+    select = re.search(r'<select name="gyro">(.*?)</select>', page, re.S).group(1)
+    assert sorted(re.findall(r'<option value="([^"]+)"', select)) == sorted(station_methods)   # the page offers them all
     assert gyro_method("none") is None and gyro_method(None) is None
     with pytest.raises(ValueError, match="unknown gyro method 'spin': one of turntable, rotation"):
         gyro_method("spin")
