@@ -87,7 +87,7 @@ class MotionCapture:
                 return None
 
     def _wait_still(self, timeout_s: float) -> None:
-        from imubench.calib.static import StillnessDetector
+        from imubench.calib.stillness import StillnessDetector
         det = StillnessDetector(self.cfg.rate_hz, np.asarray(self.rest["noise_mps2"]), window_s=self.cfg.settle_s)
         waited = 0
         while waited < timeout_s * self.cfg.rate_hz:
@@ -106,7 +106,7 @@ class MotionCapture:
         full turn on the table about the vertical, and lies still again. Returns per turn the
         samples (accel m/s², gyro rad/s) from the rest before to the rest after; the turns are
         found in them by calib.turns.detect_turns and fitted in calib.fit.known_turns_fit."""
-        from imubench.calib.static import StillnessDetector
+        from imubench.calib.stillness import StillnessDetector
         fs = self.cfg.rate_hz
         noise = np.asarray(self.rest["noise_mps2"])
         bias = np.mean(np.asarray(self.rest["gyro"]), axis=0) if self.rest.get("gyro") is not None else np.zeros(3)

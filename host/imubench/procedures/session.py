@@ -407,7 +407,7 @@ class Session:
 
     def verify(self, plan: list[tuple[str, np.ndarray]]) -> list[dict]:
         """The device's own calibrated output in a few attitudes: | |a| - g | per pose."""
-        from imubench.calib.static import StillnessDetector
+        from imubench.calib.stillness import StillnessDetector
         fs = self.cfg.rate_hz
         hold_n = int(self.cfg.hold_s * fs)
         out = []
