@@ -26,8 +26,9 @@ import numpy as np
 
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
+from imubench.calib.acceptance import FitRefused   # the accelerometer's refusal, raised by fit()
 
-__all__ = ["GyroMethod", "GYRO_METHODS", "gyro_method_names", "gyro_method", "ACCEL_METHODS",
+__all__ = ["FitRefused", "GyroMethod", "GYRO_METHODS", "gyro_method_names", "gyro_method", "ACCEL_METHODS",
            "RotationEvidence", "Evidence", "Calibration", "fit", "fit_gyro_method"]
 
 

@@ -190,7 +190,7 @@ class FileAnalysis:
                 return self._gyro(rec, cfg, fs, picked["keep"], acc, picked["means"], cal.accel)
             finally:
                 cal.gyro_bias = self._bias
-        from imubench.calib.acceptance import FitRefused
+        from imubench.calib.fit import FitRefused
         try:
             cal = fit(self._evidence(means, sigmas, acc), method=cfg.method,
                       gyro=cfg.gyro if self.gyro_refused is None else None,
