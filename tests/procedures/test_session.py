@@ -121,8 +121,11 @@ def test_tilted_faces_bias_six_position_but_not_multi_position(tmp_path):
     from imubench.calib import accel as CA
     from imubench.calib.acceptance import FitRefused
     with _bench(24) as vb:
-        with pytest.raises(FitRefused, match=r"six-position, full matrix and biases: not resolved by the rests: M00 σ"):
+        with pytest.raises(FitRefused, match=r"six-position, full matrix and biases: not resolved by the rests: M00 σ") \
+                as refused:
             _run(vb, tmp_path, tilt=5.0, write=False, name="six")
+        assert str(refused.value).endswith("or each face square to gravity (a machined cube against a square); "
+                                           "held by hand, --method multi")
         _, multi = _run(vb, tmp_path, method="multi", gyro=None, tilt=5.0, write=False, name="multi")
         truth = vb.get_truth()
     poses = json.loads((tmp_path / "six" / "session.json").read_text())["poses"]
