@@ -26,10 +26,20 @@ import numpy as np
 
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
-from imubench.calib.acceptance import FitRefused   # the accelerometer's refusal, raised by fit()
 
-__all__ = ["FitRefused", "GyroMethod", "GYRO_METHODS", "gyro_method_names", "gyro_method", "ACCEL_METHODS",
+__all__ = ["GyroMethod", "GYRO_METHODS", "gyro_method_names", "gyro_method", "ACCEL_METHODS",
            "RotationEvidence", "Evidence", "Calibration", "fit", "fit_gyro_method"]
+
+
+
+
+def __getattr__(name: str):
+    """FitRefused (calib.acceptance's, raised by fit()) named here without loading scipy when only
+    the methods are wanted (the command line's parser reads GYRO_METHODS at start-up)."""
+    if name == "FitRefused":
+        from imubench.calib.acceptance import FitRefused
+        return FitRefused
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ------------------------------------------------------------------ the methods
