@@ -341,7 +341,9 @@ def test_a_refused_fit_fails_that_board_only(tmp_path, monkeypatch):
         for vb in benches:
             vb.close()
     assert [(b.state, b.stage) for b in res.boards] == [("passed", "done"), ("failed", "fit")]
-    assert res.boards[1].reason == "fit refused: the poses do not constrain the scale of Y (test)"
+    # the acceptance rules (calib.fit) name the model refused and why, in one line
+    assert res.boards[1].reason.startswith("fit refused: no accelerometer model is both resolved by the rests")
+    assert "six-position, full matrix and biases: the poses do not constrain the scale of Y (test)" in res.boards[1].reason
     assert untouched and res.results[2]["written"] is False
 
 

@@ -349,11 +349,12 @@ def fit_accel(means, sigmas, covs=None, method: str = "auto", g: float = 9.80665
     rests = _rest_uses(u, sig, cv, motions_text, last, g)
     if last["status"] != "kept":
         lines = "; ".join(f"{c['model']}: {c['reason']}" for c in cands if not c["kind"].startswith(("multi8", "multi7")))
+        other = ("--method six with the board square on a table for each face" if method != "six" else
+                 "each face square to gravity (a machined cube against a square); held by hand, --method multi")
         raise FitRefused(
             f"no accelerometer model is both resolved by the rests and better than no calibration, so nothing is "
             f"calibrated ({lines}). Next: record more rests, each held still, spread over faces, edges and "
-            f"corners (12–26 attitudes, every axis up and down), or --method six with the board square on a "
-            f"table for each face", report, rests)
+            f"corners (12–26 attitudes, every axis up and down), or {other}", report, rests)
     held = last["held"]
     mg = 1e3 / g
     n_left = len(last["left_out"])

@@ -31,6 +31,7 @@ from imubench.cli.calibrate_station import (
     _station_session,
     write_exports,
 )
+from imubench.calib.fit import gyro_method_names
 from imubench.cli.station import add_web
 from imubench.results import exports as X
 from imubench.results.record import verdict
@@ -40,7 +41,7 @@ METHODS = ("multi", "six")
 CAPTURES = ("adaptive", "plan")
 SIX_WARNING = ("warning: --method six needs a square fixture (a machined cube against a square): held by hand the "
                "faces are degrees off square and the fit fails; --method multi needs none")
-GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "auto", "none")
+GYRO_METHODS = gyro_method_names()          # calib.fit.GYRO_METHODS: the one list of gyro methods
 # imubench.recordings.FORMATS, named here so that building the parser does not load it
 # (tests/procedures/test_from_file.py checks they agree); the export formats are the registry's
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")

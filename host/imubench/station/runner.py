@@ -10,6 +10,7 @@ import threading
 import time
 from pathlib import Path
 
+from imubench.calib.fit import gyro_method_names
 from imubench.errors import ImubenchError
 from imubench.station.presenter import SessionStopped, WebPresenter
 from imubench.station.security import PortPolicy, StationError, bool_field, int_field, number_field, text_field
@@ -17,7 +18,7 @@ from imubench.station.state import Refused, StationState
 
 SIM_KEY = "sim"
 METHODS = ("multi", "six")
-GYRO_METHODS = ("bias", "turntable", "rotation", "turns", "none")
+GYRO_METHODS = gyro_method_names(live=True)   # calib.fit.GYRO_METHODS: those a session on a device can use
 CAPTURES = ("adaptive", "plan")
 OPTIONS = ("port", "method", "gyro", "capture", "write", "note", "rate_hz")
 NOTE_CHARS = 500
