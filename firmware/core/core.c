@@ -12,7 +12,7 @@
 #define FW_VERSION_PATCH 0u
 
 #define G0_MPS2 9.80665f
-#define RAD_PER_GYRO_COUNT (3.14159265358979f / 180.0f / 80.0f)
+#define RAD_PER_DEG (3.14159265358979f / 180.0f)
 #define ACCEL_FIFO_MAX_SETS 32u
 /* TX room always kept free for replies when a sample batch is queued. */
 #define REPLY_RESERVE (2u * (IB_MAX_ENCODED + 1u))
@@ -362,15 +362,21 @@ static void load_params(ib_core_t *c)
 
 /* ----------------------------------------------------------------- sensors */
 
-static uint8_t range_code(uint8_t g) { return g == 8 ? IB_ADXL355_RANGE_8G : g == 4 ? IB_ADXL355_RANGE_4G : IB_ADXL355_RANGE_2G; }
+/* The register code of full scale g on the accelerometer's part (protocol/parts.toml); 0: none. */
+static uint8_t range_code(const ib_core_t *c, uint8_t g)
+{
+    const ib_part_range_t *r = ib_part_range(c->accel.part, g);
+    return r ? r->code : 0u;
+}
 
 static void sensors_init(ib_core_t *c)
 {
     const ib_spi_bus_t *bus = c->board->spi;
     c->present = 0;
-    ib_adxl355_config_t cfg = {range_code(c->accel_range_g), 2u, 0u};
+    ib_adxl355_config_t cfg = {1u, 2u, 0u}; /* code 1: every part's lowest range */
     if (ib_adxl355_init(&c->accel, bus, IB_CS_ACCEL, &cfg) == IB_ADXL355_OK) {
         c->present |= 1u << IB_SENSOR_ACCEL;
+        c->accel_range_g = (uint8_t)c->accel.part->default_full_scale;
     }
     for (int k = 0; k < 3; k++) {
         if (ib_adxrs450_init(&c->gyro[k], bus, (uint8_t)(IB_CS_GYRO_X + k)) == IB_ADXRS450_OK) {
@@ -565,11 +571,14 @@ static void read_sync(ib_core_t *c, sample_in_t *in)
 static void cal_prepare(ib_core_t *c)
 {
     float ta[3], tg[3];
-    float lsb = (float)ib_adxl355_lsb_per_g(range_code(c->accel_range_g));
-    float t_acc = 25.0f + ((float)c->accel_temp_counts - 1885.0f) / -9.05f;
+    const ib_part_desc_t *pa = c->accel.part ? c->accel.part : ib_part_by_id(IB_PART_ADXL355);
+    float lsb = (float)ib_adxl355_part_lsb_per_g(pa, range_code(c, c->accel_range_g));
+    float t_acc = pa->temp_ref_c + ((float)c->accel_temp_counts - pa->temp_offset_counts) / pa->temp_lsb_per_c;
     for (int k = 0; k < 3; k++) {
+        const ib_part_desc_t *pg = c->gyro[k].part ? c->gyro[k].part : ib_part_by_id(IB_PART_ADXRS450);
         ta[k] = t_acc;
-        tg[k] = 45.0f + (float)c->gyro_temp_raw10[k] / 5.0f;
+        c->gyro_rad_per_count[k] = RAD_PER_DEG / pg->ranges[0].lsb_per_unit;
+        tg[k] = pg->temp_ref_c + ((float)c->gyro_temp_raw10[k] - pg->temp_offset_counts) / pg->temp_lsb_per_c;
     }
     /* the accelerometer's terms in counts: the sample's counts go in as they are */
     correct_terms(&c->params, 0, &c->corr_accel, ta, G0_MPS2 / lsb, lsb / G0_MPS2, c->cal_bias[0], c->cal_w[0]);
@@ -640,7 +649,7 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
         }
         for (int k = 0; k < 3; k++) {
             u[k] = (float)acc[k]; /* counts: cal_prepare put the scale into cal_w[0] */
-            w[k] = (float)rate[k] * RAD_PER_GYRO_COUNT;
+            w[k] = (float)rate[k] * c->gyro_rad_per_count[k]; /* the part's scale, cal_prepare */
         }
         correct_apply(c->cal_w[0], u, c->cal_bias[0], cs.accel_mps2);
         const float *gs = c->params.gyro_g_rad_s_per_mps2; /* g-sensitivity: w − G·a first */
@@ -913,6 +922,10 @@ static void info_fill(ib_core_t *c, ib_msg_info_t *m, uint16_t rid)
     memcpy(m->mcu_uid, b->uid, sizeof m->mcu_uid);
     m->sensors_present = c->present;
     m->accel_range_g = c->accel_range_g;
+    m->parts[0] = c->accel.part && (c->present & 1u) ? c->accel.part->part : IB_PART_NONE;
+    for (int k = 0; k < 3; k++) {
+        m->parts[1 + k] = c->gyro[k].part && (c->present & (2u << k)) ? c->gyro[k].part->part : IB_PART_NONE;
+    }
     m->accel_ids[0] = c->accel.devid_ad;
     m->accel_ids[1] = c->accel.devid_mst;
     m->accel_ids[2] = c->accel.partid;
@@ -980,7 +993,7 @@ static uint8_t do_start_stream(ib_core_t *c, const ib_msg_start_stream_t *m, uin
     int odr = listed ? odr_for_rate(m->rate_hz, &avg) : -1;
     uint8_t maxb = m->mode == IB_STREAM_MODE_CALIBRATED ? IB_MSG_CAL_BATCH_MAX_RECORDS : IB_MSG_RAW_BATCH_MAX_RECORDS;
     if (odr < 0 || m->rate_hz > 4000u || m->mode > IB_STREAM_MODE_CALIBRATED || m->batch > maxb ||
-        !(m->accel_range_g == 0 || m->accel_range_g == 2 || m->accel_range_g == 4 || m->accel_range_g == 8)) {
+        (m->accel_range_g != 0u && (c->present & 1u) && range_code(c, m->accel_range_g) == 0u)) {
         return IB_ERROR_BAD_ARGUMENT;
     }
     if (c->stream_state != IB_STREAM_STATE_STOPPED) {
@@ -990,7 +1003,7 @@ static uint8_t do_start_stream(ib_core_t *c, const ib_msg_start_stream_t *m, uin
         c->accel_range_g = m->accel_range_g;
     }
     if (c->present & 1u) {
-        ib_adxl355_config_t cfg = {range_code(c->accel_range_g), (uint8_t)odr, 0u};
+        ib_adxl355_config_t cfg = {range_code(c, c->accel_range_g), (uint8_t)odr, 0u};
         if (ib_adxl355_configure(&c->accel, &cfg) != IB_ADXL355_OK) {
             c->stats.spi_errors++;
         }

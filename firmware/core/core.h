@@ -68,6 +68,7 @@ typedef struct ib_core {
      * (b + c1 dt + c2 dt^2 + c3 dt^3, dt the clamped temperature minus t_ref) and
      * W = M^-1 diag(unit / (1 + scale_tc dt)); cal_ready 0 after a parameter or range change */
     float cal_bias[2][3], cal_w[2][3][3];
+    float gyro_rad_per_count[3]; /* each gyro part's scale (protocol/parts.toml), rad/s per count */
     uint8_t cal_ready;
     uint8_t batch_buf[IB_MAX_FRAME];  /* raw frame being built: header, payload, CRC */
     uint8_t fault_state[4];       /* fault kind last reported per sensor, 0 = none */

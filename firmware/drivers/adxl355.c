@@ -8,19 +8,20 @@
 
 /* ---- helpers without bus access ---- */
 
-int32_t ib_adxl355_lsb_per_g(uint8_t range)
+int32_t ib_adxl355_part_lsb_per_g(const ib_part_desc_t *part, uint8_t range)
 {
-    switch (range) {
-    case IB_ADXL355_RANGE_2G:
-        return 256000;
-    case IB_ADXL355_RANGE_4G:
-        return 128000;
-    case IB_ADXL355_RANGE_8G:
-        return 64000;
-    default:
-        return 0;
+    if (part == NULL) {
+        part = ib_part_by_id(IB_PART_ADXL355);
     }
+    for (size_t i = 0; i < part->n_ranges; i++) {
+        if (range != 0u && part->ranges[i].code == range) {
+            return (int32_t)part->ranges[i].lsb_per_unit;
+        }
+    }
+    return 0;
 }
+
+int32_t ib_adxl355_lsb_per_g(uint8_t range) { return ib_adxl355_part_lsb_per_g(NULL, range); }
 
 uint32_t ib_adxl355_odr_period_us(uint8_t odr_code)
 {
@@ -98,10 +99,14 @@ static int write_reg(ib_adxl355_t *dev, uint8_t addr, uint8_t val)
 
 /* ---- identification, reset ---- */
 
-static int ids_ok(const ib_adxl355_t *dev)
+/* Identify the part from its ID registers against protocol/parts.toml (ADXL355, ADXL359). */
+static int ids_ok(ib_adxl355_t *dev)
 {
-    return dev->devid_ad == IB_ADXL355_DEVID_AD && dev->devid_mst == IB_ADXL355_DEVID_MST &&
-           dev->partid == IB_ADXL355_PARTID;
+    static const uint16_t regs[4] = {IB_ADXL355_REG_DEVID_AD, IB_ADXL355_REG_DEVID_MST, IB_ADXL355_REG_PARTID,
+                                     IB_ADXL355_REG_REVID};
+    const uint16_t vals[4] = {dev->devid_ad, dev->devid_mst, dev->partid, dev->revid};
+    dev->part = ib_part_identify(IB_PART_KIND_ACCEL_TRIAD, regs, vals, 4u);
+    return dev->part != NULL;
 }
 
 static int read_ids(ib_adxl355_t *dev)
@@ -245,9 +250,9 @@ static int leave_config(ib_adxl355_t *dev, uint8_t was_measuring, int r)
     return r;
 }
 
-static int config_valid(const ib_adxl355_config_t *cfg)
+static int config_valid(const ib_part_desc_t *part, const ib_adxl355_config_t *cfg)
 {
-    return ib_adxl355_lsb_per_g(cfg->range) != 0 && cfg->odr_code <= IB_ADXL355_ODR_CODE_MAX &&
+    return ib_adxl355_part_lsb_per_g(part, cfg->range) != 0 && cfg->odr_code <= IB_ADXL355_ODR_CODE_MAX &&
            cfg->hpf_code <= IB_ADXL355_HPF_CODE_MAX;
 }
 
@@ -276,7 +281,7 @@ static int write_config(ib_adxl355_t *dev, const ib_adxl355_config_t *cfg)
 
 int ib_adxl355_configure(ib_adxl355_t *dev, const ib_adxl355_config_t *cfg)
 {
-    if (dev == NULL || dev->bus == NULL || cfg == NULL || !config_valid(cfg)) {
+    if (dev == NULL || dev->bus == NULL || cfg == NULL || !config_valid(dev->part, cfg)) {
         return IB_ADXL355_ERR_ARG;
     }
     uint8_t was;
@@ -351,7 +356,7 @@ int ib_adxl355_init(ib_adxl355_t *dev, const ib_spi_bus_t *bus, uint8_t cs,
     if (cfg == NULL) {
         cfg = &def;
     }
-    if (!config_valid(cfg)) {
+    if (!config_valid(NULL, cfg)) { /* range codes 1..3 on every part of the family */
         return IB_ADXL355_ERR_ARG;
     }
     memset(dev, 0, sizeof *dev);
@@ -646,18 +651,16 @@ int ib_adxl355_self_test(ib_adxl355_t *dev, ib_adxl355_selftest_t *res)
         return r2;
     }
 
-    const int32_t lsb = ib_adxl355_lsb_per_g(st_cfg.range);
+    const ib_part_desc_t *part = dev->part ? dev->part : ib_part_by_id(IB_PART_ADXL355);
+    const int32_t lsb = ib_adxl355_part_lsb_per_g(part, st_cfg.range);
     res->lsb_per_g = lsb;
     int all = 1;
     for (int a = 0; a < 3; a++) {
         int32_t d = forced[a] - base[a];
         int32_t mag = d < 0 ? -d : d;
-        int32_t lo_mg = a < 2 ? IB_ADXL355_ST_XY_MIN_MG : IB_ADXL355_ST_Z_MIN_MG;
-        int32_t hi_mg = a < 2 ? IB_ADXL355_ST_XY_MAX_MG : IB_ADXL355_ST_Z_MAX_MG;
-        /* limits in counts: mg * lsb_per_g / 1000 (64000 * 3000 fits in int32 after /1000
-         * first: lsb is a multiple of 1000) */
-        int32_t lo = lo_mg * (lsb / 1000);
-        int32_t hi = hi_mg * (lsb / 1000);
+        /* the part's limits (protocol/parts.toml, g) in counts of the self-test range */
+        int32_t lo = (int32_t)(part->self_test_min[a] * (float)lsb + 0.5f);
+        int32_t hi = (int32_t)(part->self_test_max[a] * (float)lsb + 0.5f);
         res->delta_counts[a] = d;
         res->axis_pass[a] = (uint8_t)(mag >= lo && mag <= hi);
         if (!res->axis_pass[a]) {

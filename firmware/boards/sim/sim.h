@@ -243,6 +243,12 @@ void sim_model_world(int cs, sim_world_t *w); /* world for advancing model cs to
  * "host" (or NULL) for the host build, "f103" / "f4" for the ARM images. */
 void sim_seed_models(uint64_t seed, int random_truth, const char *target);
 uint64_t sim_identity_seed(uint64_t seed, const char *target);
+/* The board's parts (protocol/parts.toml): "accel=adxl359,gyro_z=adxrs453" (slots accel, gyro,
+ * gyro_x, gyro_y, gyro_z; names any case; unnamed slots keep ADXL355 / ADXRS450). Set before
+ * the models are seeded; 0, or -1 with a one-line reason in err. */
+int sim_set_parts(const char *spec, char *err, size_t errlen);
+const uint8_t *sim_parts(void);   /* enum ib_part per slot, sensor order */
+void sim_apply_parts(void);       /* give the models their parts (sim_seed_models does) */
 void sim_randomize_truth(uint64_t seed);
 void sim_spin_reset(void);
 int sim_spi_exchange(uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len);

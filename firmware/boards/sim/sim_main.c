@@ -290,6 +290,7 @@ static void usage(FILE *f)
             "usage: imubench-sim [--pty] [--tcp PORT] [--control PORT] [--flash FILE]\n"
             "                    [--speed X] [--seed N] [--truth default|random] [--baud B]\n"
             "                    [--uid HEX24] [--orphan-cleanup DIR] [--clock realtime|lockstep]\n"
+            "                    [--parts SLOT=PART,...]\n"
             "  --pty          expose the device's serial port on a new pseudo-terminal\n"
             "  --tcp PORT     ... and/or on TCP 127.0.0.1:PORT (0 = free port; the default\n"
             "                 when neither --pty nor --tcp is given)\n"
@@ -303,6 +304,8 @@ static void usage(FILE *f)
             "                 command run), nothing is dropped, the run is deterministic\n"
             "  --seed N       seed of the sensor models (default 1)\n"
             "  --truth T      default | random (the sensors' errors drawn from the seed)\n"
+            "  --parts SPEC   the board's parts (protocol/parts.toml), e.g. accel=adxl359,gyro_z=adxrs453;\n"
+            "                 slots accel, gyro (all three), gyro_x, gyro_y, gyro_z\n"
             "  --baud B       link speed that drains the TX buffer (default 2000000)\n"
             "  --uid HEX24    MCU unique id, 12 bytes in hex (default: from the seed)\n"
             "  --orphan-cleanup DIR  when the parent process dies (a host killed with\n"
@@ -690,6 +693,12 @@ int main(int argc, char **argv)
             s->lockstep = !strcmp(val, "lockstep");
         } else if (!strcmp(a, "--orphan-cleanup")) {
             g_orphan_dir = val;
+        } else if (!strcmp(a, "--parts")) {
+            char err[160];
+            if (sim_set_parts(val, err, sizeof err) != 0) {
+                fprintf(stderr, "imubench-sim: --parts %s\n", err);
+                return 2;
+            }
         } else {
             fprintf(stderr, "imubench-sim: bad option or value: %s %s\n", a, val);
             usage(stderr);

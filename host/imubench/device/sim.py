@@ -48,6 +48,7 @@ from imubench.device import artifacts
 from imubench.device import clock as clocks
 from imubench.device.tmpdirs import owned_tmpdir
 from imubench.errors import ImubenchError
+from imubench.parts_gen import PARTS
 
 __all__ = ["CLOCKS", "SimError", "TARGETS", "VirtualBench", "arm_command", "build_sim", "repo_root"]
 
@@ -112,6 +113,34 @@ def _stop_all() -> None:
             pass
 
 
+SIM_PART_SLOTS = {"accel": ("accel",), "gyro": ("gyro_x", "gyro_y", "gyro_z"),
+                  "gyro_x": ("gyro_x",), "gyro_y": ("gyro_y",), "gyro_z": ("gyro_z",)}
+
+
+def sim_parts_spec(parts: str | dict | None) -> str:
+    """The virtual board's parts (protocol/parts.toml) as the simulator's --parts text, e.g.
+    "accel=adxl359,gyro_z=adxrs453" (or a dict {"accel": "adxl359"}); slots accel, gyro (all
+    three), gyro_x, gyro_y, gyro_z; slots not named keep the ADXL355 and ADXRS450s. "" for the
+    default board. ValueError, one line naming the slots and parts known, for anything else."""
+    if not parts:
+        return ""
+    items = parts.items() if isinstance(parts, dict) else (
+        tuple(x.split("=", 1)) if "=" in x else (x, "") for x in str(parts).replace(" ", "").split(",") if x)
+    out = []
+    for slot, name in items:
+        slot, name = str(slot).lower(), str(name).lower()
+        if slot not in SIM_PART_SLOTS:
+            raise ValueError(f"--sim-parts: {slot!r} is no slot (slots: {', '.join(SIM_PART_SLOTS)}; "
+                             "e.g. accel=adxl359,gyro_z=adxrs453)")
+        kind = "accel_triad" if slot == "accel" else "gyro_axis"
+        known = [p.name.lower() for p in PARTS.values() if p.kind == kind]
+        if name not in known:
+            raise ValueError(f"--sim-parts: {slot}={name or '?'}: the {'accelerometer' if slot == 'accel' else 'gyro'} "
+                             f"parts are {', '.join(known)}")
+        out.append(f"{slot}={name}")
+    return ",".join(out)
+
+
 class VirtualBench:
     """One simulator process (the virtual device, its turntable and climate chamber).
 
@@ -141,7 +170,7 @@ class VirtualBench:
                  uid: str | None = None, binary: str | os.PathLike | None = None,
                  startup_timeout: float = 15.0, start: bool = True, target: str = "host",
                  boot0: bool = False, elf: Sequence[str | os.PathLike] | None = None,
-                 thermal: bool = False, clock: str | None = None):
+                 thermal: bool = False, clock: str | None = None, parts: str | dict | None = None):
         if target not in TARGETS:
             raise ValueError(f"target must be one of {', '.join(TARGETS)}")
         # BOOT0 high: the ROM bootloader serves stm32flash on the pty, which grants no time
@@ -162,6 +191,7 @@ class VirtualBench:
             raise ValueError("truth must be 'default' or 'random'")
         if not pty and tcp is False:
             raise ValueError("give pty=True or tcp")
+        self.parts = sim_parts_spec(parts)   # checked here: a bad name is one line, not a dead process
         self.speed = speed
         self.seed = int(seed)
         self.truth = truth
@@ -219,6 +249,8 @@ class VirtualBench:
             args += ["--tcp", str(tcp_port)]
         if self.uid:
             args += ["--uid", self.uid]
+        if self.parts:
+            args += ["--parts", self.parts]
         if self.target == "host":
             args += ["--orphan-cleanup", self._tmpdir]      # a SIGKILLed host's folder goes with the sim
         log = open(self.log_path, "ab")
