@@ -108,7 +108,24 @@ def add_sim(p: argparse.ArgumentParser, what: str, speed: float = 20.0) -> None:
                         "session on any machine; realtime (the default of the ARM targets, which have no "
                         "lockstep yet): it runs against the wall clock and drops what a slow host does not "
                         "read, as a real board does (docs/simulator.md)")
+    add_sim_parts(p, "--sim-parts")
     add_target(p)
+
+
+def sim_parts(s: str) -> str:
+    """--sim-parts: the virtual board's parts (imubench.device.sim.sim_parts_spec)."""
+    from imubench.device.sim import sim_parts_spec
+    try:
+        return sim_parts_spec(s)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("--sim-parts: ")) from None
+
+
+def add_sim_parts(p: argparse.ArgumentParser, *flags: str) -> None:
+    p.add_argument(*flags, dest="sim_parts", type=sim_parts, default="", metavar="SLOT=PART,...",
+                   help="the virtual board's sensor parts (protocol/parts.toml), e.g. "
+                        "accel=adxl359,gyro_z=adxrs453; slots accel, gyro (all three), gyro_x, gyro_y, gyro_z; "
+                        "unnamed slots keep the ADXL355 and ADXRS450s")
 
 
 def add_target(p: argparse.ArgumentParser) -> None:
