@@ -187,6 +187,24 @@ def test_sensor_faults_through_spi_are_reported_and_commands_keep_working(target
         _emulator_clean(vb)
 
 
+# ------------------------------------------------------------------ the largest command at reset
+def test_set_params_right_after_reset_is_applied_at_the_first_try():
+    """The F103's RX ring holds the largest command frame (set_params, 266 bytes on the wire)
+    with margin (512 bytes, firmware/arm.mk): a set_params sent the moment the image resets,
+    while it starts its sensors and its main loop reads nothing, is taken whole from the ring
+    afterwards and applied, with no retry (a 256-byte ring dropped its tail: docs/firmware.md)."""
+    new = _params(1.0)
+    with VirtualBench(speed=0, seed=5, target="f103") as vb:
+        with _connect(vb, timeout=3.0) as d:
+            d.reboot(wait_s=0)                 # the ack, then the image resets
+            d.retries = 0                      # one try only
+            d.set_params(new)
+            assert _pack(d.get_params(ParamsWhich.ACTIVE).params) == _pack(new)
+            assert d.info().param_source == ParamSource.UNSAVED
+            assert len(d.link.boot_infos) >= 1           # it did reset in between
+        _emulator_clean(vb)
+
+
 # ------------------------------------------------------------------ flash under power cuts
 def test_power_cut_at_every_flash_operation_of_a_save(target):
     """The image's own flash driver, cut at each of its erase/program operations in turn
