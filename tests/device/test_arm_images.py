@@ -260,11 +260,19 @@ def _z_scores(result: dict, truth: dict) -> np.ndarray:
     return np.array(z)
 
 
+# the sibling parts on the images (issue 35): the F103 a mixed board (two ADXRS450 and one
+# ADXRS453), the F4 every gyro an ADXRS453; both with the ADXL359 (+-10 g, 51200 LSB/g)
+SESSION_PARTS = {"f103": ("accel=adxl359,gyro_z=adxrs453", ["ADXL359", "ADXRS450", "ADXRS450", "ADXRS453"]),
+                 "f4": ("accel=adxl359,gyro=adxrs453", ["ADXL359", "ADXRS453", "ADXRS453", "ADXRS453"])}
+
+
 def test_whole_calibration_session_on_the_image(target, tmp_path):
     """Multi-position (26 attitudes) + turntable (both ways about each axis at 90 deg/s) at
     100 Hz, with short holds (the figures are not the point, the path is): capture, fit, write-back with bit-exact read-back, save through the image's
-    flash driver, reboot, read-back from flash, and the device's own calibrated output."""
-    with VirtualBench(speed=0, seed=31, truth="random", target=target) as vb:
+    flash driver, reboot, read-back from flash, and the device's own calibrated output; on a
+    board of the sibling parts, identified by the image from their ID registers."""
+    parts, names = SESSION_PARTS[target]
+    with VirtualBench(speed=0, seed=31, truth="random", target=target, parts=parts) as vb:
         vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         cfg = SessionConfig(method="multi", gyro="turntable", rate_hz=100, rest_s=0.5, settle_s=0.1, hold_s=0.25,
                             turntable_s=0.8, turntable_rates_dps=(90.0,))
@@ -289,6 +297,9 @@ def test_whole_calibration_session_on_the_image(target, tmp_path):
         truth = vb.get_truth()
         st = vb.status()
         _emulator_clean(vb)
+    assert result["device"]["parts"] == names and list(info.parts) == [
+        {"ADXL359": 2, "ADXRS450": 3, "ADXRS453": 4}[n] for n in names]
+    assert info.accel_range_g == 10                               # the ADXL359's lowest range
     assert wb["steps"][:3] == ["set", "read back", f"saved (generation {wb['generation']})"]
     assert wb["steps"][3:] == ["rebooted", "read back after reboot (flash)"]
     assert _pack(stored) == _pack(wb["params"])                    # bit-exact in flash
