@@ -133,7 +133,7 @@ def sim_parts_spec(parts: str | dict | None) -> str:
             raise ValueError(f"--sim-parts: {slot!r} is no slot (slots: {', '.join(SIM_PART_SLOTS)}; "
                              "e.g. accel=adxl359,gyro_z=adxrs453)")
         kind = "accel_triad" if slot == "accel" else "gyro_axis"
-        known = [p.name.lower() for p in PARTS.values() if p.kind == kind]
+        known = sorted(p.name.lower() for p in PARTS.values() if p.kind == kind)
         if name not in known:
             raise ValueError(f"--sim-parts: {slot}={name or '?'}: the {'accelerometer' if slot == 'accel' else 'gyro'} "
                              f"parts are {', '.join(known)}")
