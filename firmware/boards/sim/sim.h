@@ -29,6 +29,7 @@
 #include "adxrs450_model.h"
 #include "board.h"
 #include "core.h"
+#include "sim_flash.h"
 #include "sim_rng.h"
 #include "sim_world.h"
 
@@ -72,20 +73,7 @@ typedef struct sim_link {
     uint32_t clients_accepted;
 } sim_link_t;
 
-/* ---- flash (sim_flash.c) ---- */
-#define SIM_FLASH_SLOT_SIZE 2048u
-#define SIM_FLASH_SIZE (2u * SIM_FLASH_SLOT_SIZE)
-#define SIM_FLASH_PROGRAM_UNIT 4u
-
-typedef struct sim_flash {
-    int fd;
-    char path[512];
-    uint8_t mem[SIM_FLASH_SIZE]; /* mirror of the file */
-    uint64_t ops_since_boot;
-    uint64_t ops_total;
-    int64_t cut_after;           /* > 0: power cut during the cut_after-th next op; 0 off */
-    uint64_t cuts;
-} sim_flash_t;
+/* ---- flash: sim_flash.h ---- */
 
 /* ---- physics (sim_physics.c) ---- */
 #define SIM_PATH_MAX_LEGS 32
@@ -243,6 +231,7 @@ void sim_model_world(int cs, sim_world_t *w); /* world for advancing model cs to
  * "host" (or NULL) for the host build, "f103" / "f4" for the ARM images. */
 void sim_seed_models(uint64_t seed, int random_truth, const char *target);
 uint64_t sim_identity_seed(uint64_t seed, const char *target);
+void sim_board_flash_hooks(void); /* give g_sim.flash its clock, power and log (before opening it) */
 /* The board's parts (protocol/parts.toml): "accel=adxl359,gyro_z=adxrs453" (slots accel, gyro,
  * gyro_x, gyro_y, gyro_z; names any case; unnamed slots keep ADXL355 / ADXRS450). Set before
  * the models are seeded; 0, or -1 with a one-line reason in err. */
@@ -271,10 +260,6 @@ size_t sim_link_queued(const sim_link_t *l);        /* in the UART ring */
  * is queued. */
 uint64_t sim_link_next_drain_us(const sim_link_t *l);
 
-/* ---- sim_flash.c ---- */
-int sim_flash_open(sim_flash_t *f, const char *path);
-void sim_flash_close(sim_flash_t *f);
-void sim_flash_setup_if(sim_flash_t *f, ib_flash_if_t *fi);
 
 /* ---- sim_physics.c ---- */
 void sim_phys_init(sim_physics_t *p);

@@ -397,6 +397,16 @@ static void b_reboot(void *ctx)
     sim_request_reset(SIM_RESET_REBOOT); /* does not return when called from the core */
 }
 
+/* The flash's hooks (sim_flash.h): device time, the power cut, the log. */
+static void flash_busy_us(uint32_t us) { sim_advance_to(g_sim.t_us + us); }
+static void flash_power_cut(void) { sim_request_reset(SIM_RESET_POWER_CUT); }
+
+void sim_board_flash_hooks(void)
+{
+    static const sim_flash_hooks_t hooks = {flash_busy_us, flash_power_cut, sim_log};
+    sim_flash_set_hooks(&g_sim.flash, &hooks);
+}
+
 void sim_board_setup(void)
 {
     sim_t *s = &g_sim;

@@ -739,6 +739,7 @@ int main(int argc, char **argv)
         flash_path = g_tmpflash;
     }
     int rc = 1;
+    sim_board_flash_hooks();
     if (sim_flash_open(&s->flash, flash_path) != 0) {
         goto out;
     }
