@@ -10,7 +10,8 @@
  *   sim_link.c     UART TX ring drained in device time, pty and TCP endpoints
  *   sim_flash.c    ib_flash_if_t on a file (NOR semantics, power-cut injection)
  *   sim_physics.c  orientation, motion (turntable / rate table), temperature
- *   sim_control.c  control channel (JSON lines over TCP)
+ *   sim_control.c  control channel (JSON lines over TCP); its commands in sim_control_world.c
+ *                  and sim_control_truth.c, request helpers in sim_control_args.c
  *   sim_json.c     tiny JSON reader / writer for the control channel
  *
  * Device time: a 64-bit microsecond counter (sim.t_us) owned by the board. It advances
@@ -151,7 +152,7 @@ typedef struct sim {
     uint64_t anchor_dev_us;
     uint64_t slips;          /* times the pacing re-anchored because the CPU fell behind */
     int lockstep;            /* --clock lockstep: device time moves only inside a granted run
-                                (sim_control.c "run"); speed is then a ceiling */
+                                (sim_control_world.c "run"); speed is then a ceiling */
 
     /* sample tick */
     uint32_t tick_hz;
