@@ -10,6 +10,7 @@
  *   sim_link.c     UART TX ring drained in device time, pty and TCP endpoints
  *   sim_flash.c    ib_flash_if_t on a file (NOR semantics, power-cut injection)
  *   sim_physics.c  orientation, motion (turntable / rate table), temperature
+ *   sim_main.c     options, resets, pacing, main; sim_loop.c the main loop (host build only)
  *   sim_control.c  control channel (JSON lines over TCP); its commands in sim_control_world.c
  *                  and sim_control_truth.c, request helpers in sim_control_args.c
  *   sim_json.c     tiny JSON reader / writer for the control channel
