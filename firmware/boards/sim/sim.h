@@ -9,7 +9,8 @@
  *   sim_board.c    the ib_board_t / ib_spi_bus_t callbacks the core calls
  *   sim_link.c     UART TX ring drained in device time, pty and TCP endpoints
  *   sim_flash.c    ib_flash_if_t on a file (NOR semantics, power-cut injection)
- *   sim_physics.c  orientation, motion (turntable / rate table), temperature
+ *   sim_physics.c  orientation, motion (turntable / rate table), ambient temperature
+ *   sim_thermal.c  the dies' thermal lag behind the ambient
  *   sim_main.c     options, resets, pacing, main; sim_loop.c the main loop (host build only)
  *   sim_control.c  control channel (JSON lines over TCP); its commands in sim_control_world.c
  *                  and sim_control_truth.c, request helpers in sim_control_args.c
@@ -116,7 +117,7 @@ typedef struct sim_physics {
 
 enum { SIM_MOTION_NONE = 0, SIM_MOTION_ROTATE = 1, SIM_MOTION_RATE = 2, SIM_MOTION_PATH = 3 };
 
-/* ---- thermal model of the sensor dies (sim_physics.c) ----
+/* ---- thermal model of the sensor dies (sim_thermal.c) ----
  * One die per sensor, indexed like the chip selects: 0 = ADXL355, 1..3 = ADXRS450 X, Y, Z.
  * Enabled, each die follows the ambient (the chamber, sim_physics_t) with a first-order lag
  * plus the steady self-heating of the powered board:
@@ -133,7 +134,7 @@ typedef struct sim_thermal {
 } sim_thermal_t;
 
 /* Nominal thermal figures of the default (ideal) part; random truth draws its own
- * (sim_thermal_random, sources in sim_physics.c). */
+ * (sim_thermal_random, sources in sim_thermal.c). */
 #define SIM_THERMAL_NOMINAL_TAU_S {240.0, 300.0, 360.0, 420.0}
 #define SIM_THERMAL_NOMINAL_SELF_HEAT_C {1.5, 3.0, 3.5, 2.5}
 
