@@ -55,7 +55,7 @@ def test_warmup_step_on_the_station_page(tmp_path, browser):
         # while it runs: temperatures rising, their rate, the span covered, the fit's order per axis
         page.wait_for_function("() => document.querySelectorAll('.board-col .warm-fit tr').length === 7", polling=100)
         rows = page.evaluate(TEMPS)
-        assert [r[0] for r in rows] == ["accelerometer", "gyro X", "gyro Y", "gyro Z"]
+        assert [r[0] for r in rows] == ["ADXL355", "gyro X", "gyro Y", "gyro Z"]
         shown = [float(re.match(r"(-?\d+\.\d\d) °C", r[1]).group(1)) for r in rows]
         rates = [float(re.match(r"([+-]\d+\.\d\d) °C/min", r[2]).group(1)) for r in rows]
         covered = [tuple(float(x) for x in re.match(r"(-?\d+\.\d)–(-?\d+\.\d) °C", r[3]).groups()) for r in rows]
