@@ -742,7 +742,7 @@ def gen_python(sp: Spec) -> str:
     L.append("# fixed part: (first slot in STRUCT.unpack values, number of values, field path, kind, argument);")
     L.append("# per record type: (leaf field, kind, argument). kind 'enum': allowed values; 'min' / 'max':")
     L.append("# the bound; 'finite': None; 'flags': mask of the allowed bits.")
-    L.append(f"VALUE_REASONS = {{'enum': 'bad_enum', 'min': 'out_of_range', 'max': 'out_of_range', 'finite': 'not_finite', 'flags': 'bad_flags'}}")
+    L.append("VALUE_REASONS = {'enum': 'bad_enum', 'min': 'out_of_range', 'max': 'out_of_range', 'finite': 'not_finite', 'flags': 'bad_flags'}")
     L.append("VALUE_RULES = {")
     for m in sp.messages:
         leaves, _ = value_leaves(sp, m)
