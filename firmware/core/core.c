@@ -3,6 +3,18 @@
  * core_cmd.c hold the parameters, the sampling and the commands (core_priv.h). */
 #include "core_priv.h"
 
+/* The firmware version (setup.py and imubench.device.artifacts read these three lines). */
+#define FW_VERSION_MAJOR 0u
+#define FW_VERSION_MINOR 2u
+#define FW_VERSION_PATCH 0u
+
+void ibc_fw_version(uint8_t v[3])
+{
+    v[0] = FW_VERSION_MAJOR;
+    v[1] = FW_VERSION_MINOR;
+    v[2] = FW_VERSION_PATCH;
+}
+
 /* ------------------------------------------------------------------ helpers */
 
 uint32_t ibc_now_us(const ib_core_t *c) { return c->board->time_us(c->board->ctx); }

@@ -10,9 +10,7 @@ void ibc_info_fill(ib_core_t *c, ib_msg_info_t *m, uint16_t rid)
     m->request_id = rid;
     m->protocol_version = IB_PROTOCOL_VERSION;
     m->board = b->board_id;
-    m->fw_version[0] = FW_VERSION_MAJOR;
-    m->fw_version[1] = FW_VERSION_MINOR;
-    m->fw_version[2] = FW_VERSION_PATCH;
+    ibc_fw_version(m->fw_version);
     m->clock_source = b->clock_source;
     if (b->build) {
         strncpy(m->fw_build, b->build, sizeof m->fw_build - 1u);

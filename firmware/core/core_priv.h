@@ -11,10 +11,6 @@
 #include "param_store.h"
 #include "wire.h"
 
-#define FW_VERSION_MAJOR 0u
-#define FW_VERSION_MINOR 2u
-#define FW_VERSION_PATCH 0u
-
 #define G0_MPS2 9.80665f
 #define RAD_PER_DEG (3.14159265358979f / 180.0f)
 #define ACCEL_FIFO_MAX_SETS 32u
@@ -26,6 +22,7 @@
 #define SPAN_DEFAULT_MAX_C ((int8_t)85)
 
 /* core.c */
+void ibc_fw_version(uint8_t v[3]); /* major, minor, patch (FW_VERSION_* in core.c) */
 uint32_t ibc_now_us(const ib_core_t *c);
 void ibc_update_uptime(ib_core_t *c);
 void ibc_link_put(ib_core_t *c, const uint8_t *frame, size_t len);
