@@ -71,7 +71,7 @@ $(SIM_BIN): $(SIM_SRC) $(HOST)/libfw.a $(wildcard firmware/boards/sim/*.h)
 # ARM emulator (host/imubench/device/arm: the exact STM32 images under Unicorn), called
 # through ctypes: one set of models for both targets (firmware/boards/sim/sim_lib.c).
 SIM_LIB := $(HOST)/libimumodels.so
-SIM_LIB_SRC := $(filter-out firmware/boards/sim/sim_main.c,$(SIM_SRC)) firmware/boards/sim/sim_lib.c $(wildcard firmware/boards/sim/models/*.c)
+SIM_LIB_SRC := $(filter-out firmware/boards/sim/sim_main.c firmware/boards/sim/sim_loop.c,$(SIM_SRC)) firmware/boards/sim/sim_lib.c $(wildcard firmware/boards/sim/models/*.c) firmware/core/parts_gen.c
 $(SIM_LIB): $(SIM_LIB_SRC) $(wildcard firmware/boards/sim/*.h firmware/boards/sim/models/*.h firmware/core/*.h)
 	@mkdir -p $(dir $@)
 	$(CC_HOST) $(CFLAGS_HOST) -fPIC -shared -Wl,--no-undefined -Ifirmware/boards/sim $(SIM_LIB_SRC) -lm -o $@

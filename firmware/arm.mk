@@ -42,20 +42,21 @@ ARM_CHIP_f103    := stm32f1
 ARM_CPU_f103     := $(ARM_CPU_M3)
 ARM_LD_f103      := firmware/boards/stm32f1/f103.ld
 # -DIB_CRC32C_BYTEWISE=1: the one-table CRC-32C (1 KiB) rather than slicing-by-4 (4 KiB) in the
-# F103's 24 KiB (firmware/core/crc32c.c)
-ARM_DEFS_f103    := -DIB_CFG_QEMU=0 -DIB_CFG_TX_RING=1024 -DIB_CFG_RX_RING=256 -DIB_CRC32C_BYTEWISE=1
+# F103's flash (firmware/core/crc32c.c). RX ring 512: it holds 511 bytes, the largest command
+# frame (set_params, 266 bytes on the wire with COBS and the delimiter) 1.9 times over.
+ARM_DEFS_f103    := -DIB_CFG_QEMU=0 -DIB_CFG_TX_RING=1024 -DIB_CFG_RX_RING=512 -DIB_CRC32C_BYTEWISE=1
 
 ARM_CHIP_qemu-f1 := stm32f1
 ARM_CPU_qemu-f1  := $(ARM_CPU_M3)
 ARM_LD_qemu-f1   := firmware/boards/stm32f1/qemu_f1.ld
-ARM_DEFS_qemu-f1 := -DIB_CFG_QEMU=1 -DIB_CFG_QEMU_SYSCLK_HZ=24000000u -DIB_CFG_TX_RING=1024 -DIB_CFG_RX_RING=256 \
+ARM_DEFS_qemu-f1 := -DIB_CFG_QEMU=1 -DIB_CFG_QEMU_SYSCLK_HZ=24000000u -DIB_CFG_TX_RING=1024 -DIB_CFG_RX_RING=512 \
                     -DIB_CRC32C_BYTEWISE=1
 
 ARM_CHIP_f4      := stm32f4
 ARM_CPU_f4       := $(ARM_CPU_M4)
 ARM_LD_f4        := firmware/boards/stm32f4/f4.ld
 # -O2 (for speed) on the F4 image: 1 MiB of flash, and the calibrated 4 kHz stream's CPU
-# budget (bench/arm_cycles.py) is tight; the F103 stays -Os for its 24 KiB flash budget.
+# budget (bench/arm_cycles.py) is tight; the F103 stays -Os for its flash budget.
 ARM_OPT_f4       := -O2
 ARM_DEFS_f4      := -DIB_CFG_QEMU=0 -DIB_CFG_HSE_HZ=8000000u -DIB_CFG_TX_RING=4096 -DIB_CFG_RX_RING=512
 

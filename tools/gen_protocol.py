@@ -20,6 +20,9 @@ from pathlib import Path
 
 import tomllib
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import gen_parts  # noqa: E402  (the parts table, protocol/parts.toml)
+
 ROOT = Path(__file__).resolve().parent.parent
 SPEC = ROOT / "protocol" / "imubench.toml"
 OUT_H = ROOT / "firmware" / "core" / "protocol_gen.h"
@@ -66,7 +69,7 @@ class Spec:
     def __init__(self, data: dict):
         self.proto = data["protocol"]
         self.limits = data.get("limits", {})
-        self.enums = data.get("enum", [])
+        self.enums = data.get("enum", []) + [gen_parts.part_enum(gen_parts.load())]
         self.bitsets = data.get("bits", [])
         self.structs = {s["name"]: s for s in data.get("struct", [])}
         self.records = {r["name"]: r for r in data.get("record", [])}
@@ -739,7 +742,7 @@ def gen_python(sp: Spec) -> str:
     L.append("# fixed part: (first slot in STRUCT.unpack values, number of values, field path, kind, argument);")
     L.append("# per record type: (leaf field, kind, argument). kind 'enum': allowed values; 'min' / 'max':")
     L.append("# the bound; 'finite': None; 'flags': mask of the allowed bits.")
-    L.append(f"VALUE_REASONS = {{'enum': 'bad_enum', 'min': 'out_of_range', 'max': 'out_of_range', 'finite': 'not_finite', 'flags': 'bad_flags'}}")
+    L.append("VALUE_REASONS = {'enum': 'bad_enum', 'min': 'out_of_range', 'max': 'out_of_range', 'finite': 'not_finite', 'flags': 'bad_flags'}")
     L.append("VALUE_RULES = {")
     for m in sp.messages:
         leaves, _ = value_leaves(sp, m)
@@ -867,7 +870,7 @@ def gen_markdown(sp: Spec) -> str:
 def render() -> dict[Path, str]:
     sp = Spec(tomllib.loads(SPEC.read_text()))
     return {OUT_H: gen_c_header(sp), OUT_C: gen_c_source(sp), OUT_PY: gen_python(sp), OUT_DESC: gen_c_desc(sp),
-            OUT_MD: gen_markdown(sp)}
+            OUT_MD: gen_markdown(sp), **gen_parts.render(gen_parts.load())}
 
 
 def main() -> int:

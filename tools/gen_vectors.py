@@ -118,7 +118,7 @@ def main() -> int:
     V.append(good("info", G.Info(
         request_id=0, protocol_version=P.PROTOCOL_VERSION, board=2, fw_version=(0, 3, 12), clock_source=2,
         fw_build="v0.3.12-4-gabcdef0", mcu_uid=tuple(range(0x30, 0x3C)), sensors_present=0b1101,
-        accel_range_g=4, accel_ids=(0xAD, 0x1D, 0xED, 0x01), gyro_pid=(0x5201, 0x5202, 0),
+        accel_range_g=4, parts=(1, 3, 4, 0), accel_ids=(0xAD, 0x1D, 0xED, 0x01), gyro_pid=(0x5201, 0x5202, 0),
         gyro_sn=(0x12345678, 0x9ABCDEF0, 0), stream_state=1, param_source=1, stream_rate_hz=4000,
         max_rate_hz=4000, param_block_version=1, param_generation=17, baud=2000000, uptime_ms=3600000),
         102, 4000000000))
@@ -200,7 +200,7 @@ def main() -> int:
 
     one_raw = {k: v[:1] for k, v in raw_recs.items()}
     V.append(bad("batch_range_undefined", payload_frame(G.RawBatch(header=replace(hdr1, accel_range_g=7)), 210, one_raw),
-                 "bad_enum", "accel_range_g 7: only 2, 4 or 8 (never scaled with a guessed range)"))
+                 "bad_enum", "accel_range_g 7: only a full scale of a part of protocol/parts.toml (never scaled with a guessed range)"))
     V.append(bad("batch_period_zero", payload_frame(G.RawBatch(header=replace(hdr1, period_us=0)), 211, one_raw),
                  "out_of_range", "period_us 0: the sample period must be at least 1 us"))
     V.append(bad("batch_flags_undefined_bit", payload_frame(G.RawBatch(header=replace(hdr1, sensor_flags=0x80)), 212, one_raw),

@@ -23,7 +23,7 @@ typedef struct {
     float m_inv[3][3];
 } ib_triad_corr_t;
 
-/* One transfer of the sample chain (core.c, job_next). */
+/* One transfer of the sample chain (core_stream.c, job_next). */
 typedef struct {
     const uint8_t *tx;
     uint8_t *rx;
@@ -63,11 +63,12 @@ typedef struct ib_core {
     uint8_t batch_gyro_st_bad[3]; /* 0x80 | ST of a gyro reply with ST != 01 in this batch */
     ib_batch_header_t batch_hdr;
     uint32_t batch_t0_us;
-    /* the calibrated stream's per-batch terms (core.c, cal_prepare): per triad ([0] the
+    /* the calibrated stream's per-batch terms (core_stream.c, cal_prepare): per triad ([0] the
      * accelerometer, in counts, [1] the gyros, in rad/s) the bias at the batch's temperatures
      * (b + c1 dt + c2 dt^2 + c3 dt^3, dt the clamped temperature minus t_ref) and
      * W = M^-1 diag(unit / (1 + scale_tc dt)); cal_ready 0 after a parameter or range change */
     float cal_bias[2][3], cal_w[2][3][3];
+    float gyro_rad_per_count[3]; /* each gyro part's scale (protocol/parts.toml), rad/s per count */
     uint8_t cal_ready;
     uint8_t batch_buf[IB_MAX_FRAME];  /* raw frame being built: header, payload, CRC */
     uint8_t fault_state[4];       /* fault kind last reported per sensor, 0 = none */

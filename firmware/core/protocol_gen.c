@@ -396,6 +396,7 @@ size_t ib_msg_info_pack(const ib_msg_info_t *v, uint8_t *out)
     n += 1;
     ib_put_u8(out + n, v->accel_range_g);
     n += 1;
+    for (size_t i = 0; i < 4u; i++, n += 1) ib_put_u8(out + n, v->parts[i]);
     for (size_t i = 0; i < 4u; i++, n += 1) ib_put_u8(out + n, v->accel_ids[i]);
     for (size_t i = 0; i < 3u; i++, n += 2) ib_put_u16(out + n, v->gyro_pid[i]);
     for (size_t i = 0; i < 3u; i++, n += 4) ib_put_u32(out + n, v->gyro_sn[i]);
@@ -437,6 +438,7 @@ void ib_msg_info_unpack(const uint8_t *in, ib_msg_info_t *v)
     n += 1;
     v->accel_range_g = ib_get_u8(in + n);
     n += 1;
+    for (size_t i = 0; i < 4u; i++, n += 1) v->parts[i] = ib_get_u8(in + n);
     for (size_t i = 0; i < 4u; i++, n += 1) v->accel_ids[i] = ib_get_u8(in + n);
     for (size_t i = 0; i < 3u; i++, n += 2) v->gyro_pid[i] = ib_get_u16(in + n);
     for (size_t i = 0; i < 3u; i++, n += 4) v->gyro_sn[i] = ib_get_u32(in + n);
@@ -700,7 +702,7 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
         }
         for (size_t i = 0; i < 1u; i++) { /* accel_range_g */
             uint8_t x = ib_get_u8(payload + 4u + i * 1u);
-            if (x != 0 && x != 2 && x != 4 && x != 8) return IB_VALUE_BAD_ENUM;
+            if (x != 0 && x != 2 && x != 4 && x != 8 && x != 10 && x != 20 && x != 40) return IB_VALUE_BAD_ENUM;
         }
         for (size_t i = 0; i < 3u; i++) { /* reserved */
             uint8_t x = ib_get_u8(payload + 5u + i * 1u);
@@ -744,14 +746,14 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
         }
         for (size_t i = 0; i < 1u; i++) { /* accel_range_g */
             uint8_t x = ib_get_u8(payload + 37u + i * 1u);
-            if (x != 2 && x != 4 && x != 8) return IB_VALUE_BAD_ENUM;
+            if (x != 2 && x != 4 && x != 8 && x != 10 && x != 20 && x != 40) return IB_VALUE_BAD_ENUM;
         }
         for (size_t i = 0; i < 1u; i++) { /* stream_state */
-            uint8_t x = ib_get_u8(payload + 60u + i * 1u);
+            uint8_t x = ib_get_u8(payload + 64u + i * 1u);
             if (x != 0 && x != 1 && x != 2) return IB_VALUE_BAD_ENUM;
         }
         for (size_t i = 0; i < 1u; i++) { /* param_source */
-            uint8_t x = ib_get_u8(payload + 61u + i * 1u);
+            uint8_t x = ib_get_u8(payload + 65u + i * 1u);
             if (x != 0 && x != 1 && x != 2) return IB_VALUE_BAD_ENUM;
         }
         return IB_VALUE_OK;
@@ -823,7 +825,7 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
         }
         for (size_t i = 0; i < 1u; i++) { /* header.accel_range_g */
             uint8_t x = ib_get_u8(payload + 11u + i * 1u);
-            if (x != 2 && x != 4 && x != 8) return IB_VALUE_BAD_ENUM;
+            if (x != 2 && x != 4 && x != 8 && x != 10 && x != 20 && x != 40) return IB_VALUE_BAD_ENUM;
         }
         for (size_t i = 0; i < 1u; i++) { /* header.reserved2 */
             uint8_t x = ib_get_u8(payload + 21u + i * 1u);
@@ -846,7 +848,7 @@ int ib_msg_check_values(uint8_t type, const uint8_t *payload, size_t len)
         }
         for (size_t i = 0; i < 1u; i++) { /* header.accel_range_g */
             uint8_t x = ib_get_u8(payload + 11u + i * 1u);
-            if (x != 2 && x != 4 && x != 8) return IB_VALUE_BAD_ENUM;
+            if (x != 2 && x != 4 && x != 8 && x != 10 && x != 20 && x != 40) return IB_VALUE_BAD_ENUM;
         }
         for (size_t i = 0; i < 1u; i++) { /* header.reserved2 */
             uint8_t x = ib_get_u8(payload + 21u + i * 1u);

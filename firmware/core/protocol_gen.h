@@ -5,7 +5,7 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#define IB_PROTOCOL_VERSION 4u
+#define IB_PROTOCOL_VERSION 5u
 #define IB_SAVE_UNCHANGED_FLAG 0x80000000u  /* save_params ack value: already stored */
 #define IB_MAX_PAYLOAD 256u
 #define IB_HEADER_SIZE 8u
@@ -122,6 +122,15 @@ enum ib_params_which {
     IB_PARAMS_WHICH_STORED = 1, /* the newest valid block in flash */
 };
 
+/* Sensor part in a slot (protocol/parts.toml); info.parts. */
+enum ib_part {
+    IB_PART_NONE = 0, /* no part answered in this slot */
+    IB_PART_ADXL355 = 1, /* accel_triad, protocol/parts.toml */
+    IB_PART_ADXL359 = 2, /* accel_triad, protocol/parts.toml */
+    IB_PART_ADXRS450 = 3, /* gyro_axis, protocol/parts.toml */
+    IB_PART_ADXRS453 = 4, /* gyro_axis, protocol/parts.toml */
+};
+
 #define IB_SAMPLE_STATUS_ACCEL_BAD (1u << 0) /* accelerometer value not valid (stale, missing or read error) */
 #define IB_SAMPLE_STATUS_GYRO_X_BAD (1u << 1) /* gyro X not valid (parity, ST != 01, fault bits, missing) */
 #define IB_SAMPLE_STATUS_GYRO_Y_BAD (1u << 2)
@@ -198,7 +207,7 @@ typedef struct {
     uint8_t sensor_flags; /* batch_flags bits */
     uint16_t accel_temp_counts; /* [counts] ADXL355 TEMP, 12 bits (last of the batch) */
     uint8_t accel_status; /* OR of the ADXL355 STATUS reads in the batch */
-    uint8_t accel_range_g; /* [g] ADXL355 range of these samples: 2, 4 or 8 */
+    uint8_t accel_range_g; /* [g] accelerometer full scale of these samples (a range of info.parts[0], protocol/parts.toml) */
     int16_t gyro_temp_counts[3]; /* [counts] ADXRS450 TEM >> 6, signed 10 bits, X/Y/Z */
     uint8_t gyro_faults[3]; /* OR over the batch of response bits 7:1 (PLL,Q,NVM,POR,PWR,CST,CHK); bit 0 = a parity error was seen */
     uint8_t reserved2; /* 0 (anything else is refused) */
@@ -255,7 +264,7 @@ typedef struct {
     uint16_t rate_hz; /* [Hz] */
     uint8_t mode;
     uint8_t batch; /* [samples] samples per frame, 0 = automatic (about 250 frames/s) */
-    uint8_t accel_range_g; /* [g] 2, 4 or 8; 0 = keep the current range */
+    uint8_t accel_range_g; /* [g] a full scale of the accelerometer part (protocol/parts.toml); 0 = keep the current range; another: BAD_ARGUMENT */
     uint8_t reserved[3]; /* 0 (anything else is refused) */
 } ib_msg_start_stream_t;
 
@@ -360,9 +369,10 @@ typedef struct {
     uint8_t mcu_uid[12]; /* MCU unique ID (96 bits) */
     uint8_t sensors_present; /* bit per sensor enum value */
     uint8_t accel_range_g; /* [g] */
-    uint8_t accel_ids[4]; /* DEVID_AD, DEVID_MST, PARTID, REVID as read */
-    uint16_t gyro_pid[3]; /* ADXRS450 PID as read, X/Y/Z */
-    uint32_t gyro_sn[3]; /* ADXRS450 serial numbers, X/Y/Z */
+    uint8_t parts[4]; /* part found in each sensor slot (sensor enum order), identified at boot from its ID registers; NONE when missing */
+    uint8_t accel_ids[4]; /* accelerometer DEVID_AD, DEVID_MST, PARTID, REVID as read */
+    uint16_t gyro_pid[3]; /* gyro PID register as read, X/Y/Z */
+    uint32_t gyro_sn[3]; /* gyro serial numbers, X/Y/Z */
     uint8_t stream_state;
     uint8_t param_source;
     uint16_t stream_rate_hz; /* [Hz] */
@@ -373,7 +383,7 @@ typedef struct {
     uint32_t uptime_ms; /* [ms] */
 } ib_msg_info_t;
 
-#define IB_MSG_INFO_SIZE 80u /* fixed part of the payload */
+#define IB_MSG_INFO_SIZE 84u /* fixed part of the payload */
 size_t ib_msg_info_pack(const ib_msg_info_t *v, uint8_t *out);
 void ib_msg_info_unpack(const uint8_t *in, ib_msg_info_t *v);
 

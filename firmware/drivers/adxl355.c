@@ -1,26 +1,27 @@
-/* adxl355.c - ADXL355 driver; see adxl355.h. Integer math only. */
-#include "adxl355.h"
+/* adxl355.c - ADXL355-family driver (ADXL355, ADXL359: protocol/parts.toml), its register half:
+ * access, identification, reset, configuration; samples, FIFO and self-test in adxl355_data.c.
+ * See adxl355.h. Integer math only. */
+#include "adxl355_priv.h"
 
 #include <string.h>
 
-#define RW_READ 0x01u
-#define REGS_MAX 16u
 
 /* ---- helpers without bus access ---- */
 
-int32_t ib_adxl355_lsb_per_g(uint8_t range)
+int32_t ib_adxl355_part_lsb_per_g(const ib_part_desc_t *part, uint8_t range)
 {
-    switch (range) {
-    case IB_ADXL355_RANGE_2G:
-        return 256000;
-    case IB_ADXL355_RANGE_4G:
-        return 128000;
-    case IB_ADXL355_RANGE_8G:
-        return 64000;
-    default:
-        return 0;
+    if (part == NULL) {
+        part = ib_part_by_id(IB_PART_ADXL355);
     }
+    for (size_t i = 0; i < part->n_ranges; i++) {
+        if (range != 0u && part->ranges[i].code == range) {
+            return (int32_t)part->ranges[i].lsb_per_unit;
+        }
+    }
+    return 0;
 }
+
+int32_t ib_adxl355_lsb_per_g(uint8_t range) { return ib_adxl355_part_lsb_per_g(NULL, range); }
 
 uint32_t ib_adxl355_odr_period_us(uint8_t odr_code)
 {
@@ -46,13 +47,13 @@ const uint8_t ib_adxl355_fifo_read_tx[1u + 3u * IB_ADXL355_FIFO_SIZE] = {(IB_ADX
 
 /* ---- raw register access ---- */
 
-static int xfer(ib_adxl355_t *dev, const uint8_t *tx, uint8_t *rx, size_t len)
+int adxl355_xfer(ib_adxl355_t *dev, const uint8_t *tx, uint8_t *rx, size_t len)
 {
     int r = dev->bus->transfer(dev->bus->ctx, dev->cs, tx, rx, len);
     return r < 0 ? IB_ADXL355_ERR_BUS : IB_ADXL355_OK;
 }
 
-static void delay_us(const ib_adxl355_t *dev, uint32_t us)
+void adxl355_delay_us(const ib_adxl355_t *dev, uint32_t us)
 {
     dev->bus->delay_us(dev->bus->ctx, us);
 }
@@ -67,7 +68,7 @@ int ib_adxl355_read_regs(ib_adxl355_t *dev, uint8_t addr, uint8_t *buf, size_t n
     }
     memset(tx, 0, n + 1u);
     tx[0] = (uint8_t)((addr << 1) | RW_READ);
-    int r = xfer(dev, tx, rx, n + 1u);
+    int r = adxl355_xfer(dev, tx, rx, n + 1u);
     if (r == IB_ADXL355_OK) {
         memcpy(buf, &rx[1], n);
     }
@@ -83,7 +84,7 @@ int ib_adxl355_write_regs(ib_adxl355_t *dev, uint8_t addr, const uint8_t *buf, s
     }
     tx[0] = (uint8_t)(addr << 1);
     memcpy(&tx[1], buf, n);
-    return xfer(dev, tx, NULL, n + 1u);
+    return adxl355_xfer(dev, tx, NULL, n + 1u);
 }
 
 static int read_reg(ib_adxl355_t *dev, uint8_t addr, uint8_t *val)
@@ -91,17 +92,21 @@ static int read_reg(ib_adxl355_t *dev, uint8_t addr, uint8_t *val)
     return ib_adxl355_read_regs(dev, addr, val, 1);
 }
 
-static int write_reg(ib_adxl355_t *dev, uint8_t addr, uint8_t val)
+int adxl355_write_reg(ib_adxl355_t *dev, uint8_t addr, uint8_t val)
 {
     return ib_adxl355_write_regs(dev, addr, &val, 1);
 }
 
 /* ---- identification, reset ---- */
 
-static int ids_ok(const ib_adxl355_t *dev)
+/* Identify the part from its ID registers against protocol/parts.toml (ADXL355, ADXL359). */
+static int ids_ok(ib_adxl355_t *dev)
 {
-    return dev->devid_ad == IB_ADXL355_DEVID_AD && dev->devid_mst == IB_ADXL355_DEVID_MST &&
-           dev->partid == IB_ADXL355_PARTID;
+    static const uint16_t regs[4] = {IB_ADXL355_REG_DEVID_AD, IB_ADXL355_REG_DEVID_MST, IB_ADXL355_REG_PARTID,
+                                     IB_ADXL355_REG_REVID};
+    const uint16_t vals[4] = {dev->devid_ad, dev->devid_mst, dev->partid, dev->revid};
+    dev->part = ib_part_identify(IB_PART_KIND_ACCEL_TRIAD, regs, vals, 4u);
+    return dev->part != NULL;
 }
 
 static int read_ids(ib_adxl355_t *dev)
@@ -158,7 +163,7 @@ int ib_adxl355_wait_nvm(ib_adxl355_t *dev)
             return IB_ADXL355_OK;
         }
         if (i < IB_ADXL355_NVM_POLL_MAX) {
-            delay_us(dev, IB_ADXL355_NVM_POLL_US);
+            adxl355_delay_us(dev, IB_ADXL355_NVM_POLL_US);
         }
     }
     return IB_ADXL355_ERR_NVM_TIMEOUT;
@@ -183,12 +188,12 @@ int ib_adxl355_soft_reset(ib_adxl355_t *dev)
     }
     for (uint32_t attempt = 0; attempt < IB_ADXL355_RESET_TRIES; attempt++) {
         uint8_t after[IB_ADXL355_SHADOW_LEN];
-        r = write_reg(dev, IB_ADXL355_REG_RESET, IB_ADXL355_RESET_CODE);
+        r = adxl355_write_reg(dev, IB_ADXL355_REG_RESET, IB_ADXL355_RESET_CODE);
         if (r != IB_ADXL355_OK) {
             return r;
         }
         set_reset_config(dev);
-        delay_us(dev, IB_ADXL355_NVM_POLL_US);
+        adxl355_delay_us(dev, IB_ADXL355_NVM_POLL_US);
         r = ib_adxl355_wait_nvm(dev);
         if (r != IB_ADXL355_OK) {
             return r;
@@ -211,7 +216,7 @@ int ib_adxl355_standby(ib_adxl355_t *dev)
     if (dev == NULL || dev->bus == NULL) {
         return IB_ADXL355_ERR_ARG;
     }
-    int r = write_reg(dev, IB_ADXL355_REG_POWER_CTL, IB_ADXL355_POWER_STANDBY);
+    int r = adxl355_write_reg(dev, IB_ADXL355_REG_POWER_CTL, IB_ADXL355_POWER_STANDBY);
     if (r == IB_ADXL355_OK) {
         dev->measuring = 0;
     }
@@ -223,7 +228,7 @@ int ib_adxl355_measure(ib_adxl355_t *dev)
     if (dev == NULL || dev->bus == NULL) {
         return IB_ADXL355_ERR_ARG;
     }
-    int r = write_reg(dev, IB_ADXL355_REG_POWER_CTL, 0x00);
+    int r = adxl355_write_reg(dev, IB_ADXL355_REG_POWER_CTL, 0x00);
     if (r == IB_ADXL355_OK) {
         dev->measuring = 1;
     }
@@ -245,14 +250,14 @@ static int leave_config(ib_adxl355_t *dev, uint8_t was_measuring, int r)
     return r;
 }
 
-static int config_valid(const ib_adxl355_config_t *cfg)
+static int config_valid(const ib_part_desc_t *part, const ib_adxl355_config_t *cfg)
 {
-    return ib_adxl355_lsb_per_g(cfg->range) != 0 && cfg->odr_code <= IB_ADXL355_ODR_CODE_MAX &&
+    return ib_adxl355_part_lsb_per_g(part, cfg->range) != 0 && cfg->odr_code <= IB_ADXL355_ODR_CODE_MAX &&
            cfg->hpf_code <= IB_ADXL355_HPF_CODE_MAX;
 }
 
 /* Write RANGE (keeping bits 7:2) and FILTER; the part must be in standby. */
-static int write_config(ib_adxl355_t *dev, const ib_adxl355_config_t *cfg)
+int adxl355_write_config(ib_adxl355_t *dev, const ib_adxl355_config_t *cfg)
 {
     uint8_t range_reg;
     int r = read_reg(dev, IB_ADXL355_REG_RANGE, &range_reg);
@@ -260,11 +265,11 @@ static int write_config(ib_adxl355_t *dev, const ib_adxl355_config_t *cfg)
         return r;
     }
     range_reg = (uint8_t)((range_reg & (uint8_t)~IB_ADXL355_RANGE_MASK) | cfg->range);
-    r = write_reg(dev, IB_ADXL355_REG_RANGE, range_reg);
+    r = adxl355_write_reg(dev, IB_ADXL355_REG_RANGE, range_reg);
     if (r != IB_ADXL355_OK) {
         return r;
     }
-    r = write_reg(dev, IB_ADXL355_REG_FILTER, (uint8_t)((cfg->hpf_code << 4) | cfg->odr_code));
+    r = adxl355_write_reg(dev, IB_ADXL355_REG_FILTER, (uint8_t)((cfg->hpf_code << 4) | cfg->odr_code));
     if (r != IB_ADXL355_OK) {
         return r;
     }
@@ -276,13 +281,13 @@ static int write_config(ib_adxl355_t *dev, const ib_adxl355_config_t *cfg)
 
 int ib_adxl355_configure(ib_adxl355_t *dev, const ib_adxl355_config_t *cfg)
 {
-    if (dev == NULL || dev->bus == NULL || cfg == NULL || !config_valid(cfg)) {
+    if (dev == NULL || dev->bus == NULL || cfg == NULL || !config_valid(dev->part, cfg)) {
         return IB_ADXL355_ERR_ARG;
     }
     uint8_t was;
     int r = enter_config(dev, &was);
     if (r == IB_ADXL355_OK) {
-        r = write_config(dev, cfg);
+        r = adxl355_write_config(dev, cfg);
     }
     return leave_config(dev, was, r);
 }
@@ -351,7 +356,7 @@ int ib_adxl355_init(ib_adxl355_t *dev, const ib_spi_bus_t *bus, uint8_t cs,
     if (cfg == NULL) {
         cfg = &def;
     }
-    if (!config_valid(cfg)) {
+    if (!config_valid(NULL, cfg)) { /* range codes 1..3 on every part of the family */
         return IB_ADXL355_ERR_ARG;
     }
     memset(dev, 0, sizeof *dev);
@@ -376,293 +381,4 @@ int ib_adxl355_init(ib_adxl355_t *dev, const ib_spi_bus_t *bus, uint8_t cs,
         return r;
     }
     return ib_adxl355_measure(dev);
-}
-
-/* ---- data ---- */
-
-int ib_adxl355_read_sample(ib_adxl355_t *dev, ib_adxl355_sample_t *s)
-{
-    uint8_t b[13]; /* STATUS, FIFO_ENTRIES, TEMP2, TEMP1, X3 X2 X1, Y3 Y2 Y1, Z3 Z2 Z1 */
-    if (s == NULL) {
-        return IB_ADXL355_ERR_ARG;
-    }
-    int r = ib_adxl355_read_regs(dev, IB_ADXL355_REG_STATUS, b, sizeof b);
-    if (r != IB_ADXL355_OK) {
-        return r;
-    }
-    s->status = b[0];
-    s->fifo_entries = (uint8_t)(b[1] & 0x7Fu);
-    s->temp_counts = (uint16_t)(((uint16_t)(b[2] & 0x0Fu) << 8) | b[3]);
-    for (int i = 0; i < 3; i++) {
-        s->accel_counts[i] = ib_adxl355_counts_from_bytes(b[4 + 3 * i], b[5 + 3 * i], b[6 + 3 * i]);
-    }
-    /* A STATUS with reserved bits 7:5 or NVM_BUSY set is not a real status (0xFF while
-     * the NVM reloads, or MISO floating high): never report new data from it. */
-    const uint8_t bogus = IB_ADXL355_STATUS_RESERVED | IB_ADXL355_STATUS_NVM_BUSY;
-    s->new_data = (uint8_t)(((b[0] & IB_ADXL355_STATUS_DATA_RDY) != 0u && (b[0] & bogus) == 0u)
-                                ? 1u
-                                : 0u);
-    dev->last_status = b[0];
-    return IB_ADXL355_OK;
-}
-
-int ib_adxl355_wait_sample(ib_adxl355_t *dev, ib_adxl355_sample_t *s, uint32_t timeout_us)
-{
-    if (dev == NULL || s == NULL) {
-        return IB_ADXL355_ERR_ARG;
-    }
-    uint32_t poll_us = ib_adxl355_odr_period_us(dev->odr_code) / 4u;
-    if (poll_us < 20u) {
-        poll_us = 20u;
-    }
-    uint32_t waited = 0;
-    for (;;) {
-        int r = ib_adxl355_read_sample(dev, s);
-        if (r != IB_ADXL355_OK) {
-            return r;
-        }
-        if (s->new_data) {
-            return IB_ADXL355_OK;
-        }
-        if (waited >= timeout_us) {
-            return IB_ADXL355_ERR_NO_DATA;
-        }
-        delay_us(dev, poll_us);
-        waited += poll_us;
-    }
-}
-
-/* Pop `n` (<= IB_ADXL355_FIFO_CHUNK) entries in one burst from FIFO_DATA into out. */
-static int fifo_pop(ib_adxl355_t *dev, uint8_t *out, size_t n)
-{
-    uint8_t tx[1u + 3u * IB_ADXL355_FIFO_CHUNK];
-    uint8_t rx[1u + 3u * IB_ADXL355_FIFO_CHUNK];
-    size_t len = 1u + 3u * n;
-    memset(tx, 0, len);
-    tx[0] = (uint8_t)((IB_ADXL355_REG_FIFO_DATA << 1) | RW_READ);
-    int r = xfer(dev, tx, rx, len);
-    if (r == IB_ADXL355_OK) {
-        memcpy(out, &rx[1], 3u * n);
-    }
-    return r;
-}
-
-size_t ib_adxl355_fifo_entries(ib_adxl355_t *dev, const uint8_t hdr[2], size_t max_sets)
-{
-    dev->last_status = hdr[0];
-    size_t entries = hdr[1] & 0x7Fu;
-    if (entries > IB_ADXL355_FIFO_SIZE) {
-        entries = IB_ADXL355_FIFO_SIZE;
-    }
-    entries -= entries % 3u;
-    if (max_sets < IB_ADXL355_FIFO_SIZE / 3u && entries > max_sets * 3u) {
-        entries = max_sets * 3u;
-    }
-    return entries;
-}
-
-void ib_adxl355_fifo_parse_init(ib_adxl355_fifo_parse_t *p)
-{
-    p->axis = 0;
-    p->empty = 0;
-    p->sets = 0;
-    p->dropped = 0;
-}
-
-void ib_adxl355_fifo_parse(ib_adxl355_t *dev, ib_adxl355_fifo_parse_t *p, const uint8_t *buf, size_t n,
-                           int32_t (*xyz)[3], size_t max_sets)
-{
-    for (size_t k = 0; k < n && !p->empty; k++) {
-        const uint8_t *e = &buf[3u * k];
-        if (e[2] & IB_ADXL355_FIFO_MARKER_EMPTY) {
-            p->empty = 1; /* the rest of this burst is empty too */
-            break;
-        }
-        int32_t v = ib_adxl355_counts_from_bytes(e[0], e[1], e[2]);
-        size_t dropped = 0;
-        if (e[2] & IB_ADXL355_FIFO_MARKER_X) {
-            dropped = p->axis; /* a partial set cut short by a new X */
-            p->cur[0] = v;
-            p->axis = 1;
-        } else if (p->axis == 0) {
-            dropped = 1; /* Y or Z without its X: resynchronise */
-        } else {
-            p->cur[p->axis++] = v;
-            if (p->axis == 3u) {
-                if (p->sets < max_sets) {
-                    xyz[p->sets][0] = p->cur[0];
-                    xyz[p->sets][1] = p->cur[1];
-                    xyz[p->sets][2] = p->cur[2];
-                    p->sets++;
-                } else {
-                    dropped = 3;
-                }
-                p->axis = 0;
-            }
-        }
-        if (dropped) {
-            dev->fifo_discarded += (uint32_t)dropped;
-            p->dropped += dropped;
-        }
-    }
-}
-
-void ib_adxl355_fifo_parse_end(ib_adxl355_t *dev, ib_adxl355_fifo_parse_t *p)
-{
-    if (p->axis != 0) {
-        dev->fifo_discarded += p->axis; /* the FIFO ended inside a set */
-        p->axis = 0;
-    }
-}
-
-int ib_adxl355_read_fifo(ib_adxl355_t *dev, int32_t (*xyz)[3], size_t max_sets,
-                         size_t *n_sets)
-{
-    if (n_sets == NULL || (xyz == NULL && max_sets != 0)) {
-        return IB_ADXL355_ERR_ARG;
-    }
-    *n_sets = 0;
-    uint8_t hdr[2];
-    int r = ib_adxl355_read_regs(dev, IB_ADXL355_REG_STATUS, hdr, sizeof hdr);
-    if (r != IB_ADXL355_OK) {
-        return r;
-    }
-    size_t entries = ib_adxl355_fifo_entries(dev, hdr, max_sets);
-
-    /* `budget` grows by one for every discarded entry, but never beyond `limit`, so a
-     * garbage stream cannot keep the loop going. */
-    const size_t limit = entries + IB_ADXL355_FIFO_SIZE;
-    size_t budget = entries;
-    size_t popped = 0;
-    ib_adxl355_fifo_parse_t p;
-    ib_adxl355_fifo_parse_init(&p);
-    uint8_t buf[3u * IB_ADXL355_FIFO_CHUNK];
-
-    while (popped < budget && !p.empty) {
-        size_t n = budget - popped;
-        if (n > IB_ADXL355_FIFO_CHUNK) {
-            n = IB_ADXL355_FIFO_CHUNK;
-        }
-        r = fifo_pop(dev, buf, n);
-        if (r != IB_ADXL355_OK) {
-            *n_sets = p.sets;
-            return r;
-        }
-        popped += n;
-        size_t before = p.dropped;
-        ib_adxl355_fifo_parse(dev, &p, buf, n, xyz, max_sets);
-        budget += p.dropped - before;
-        if (budget > limit) {
-            budget = limit;
-        }
-    }
-    ib_adxl355_fifo_parse_end(dev, &p);
-    *n_sets = p.sets;
-    return IB_ADXL355_OK;
-}
-
-/* ---- self-test ---- */
-
-/* Wait for and sum IB_ADXL355_ST_AVERAGE fresh samples after discarding the settle
- * samples. */
-static int st_phase(ib_adxl355_t *dev, int32_t mean[3])
-{
-    ib_adxl355_sample_t s;
-    uint32_t timeout = 4u * ib_adxl355_odr_period_us(dev->odr_code) + 1000u;
-    int32_t sum[3] = {0, 0, 0};
-    /* Clear a DATA_RDY that may belong to a sample from before the switch. */
-    int r = ib_adxl355_read_sample(dev, &s);
-    for (uint32_t i = 0; r == IB_ADXL355_OK && i < IB_ADXL355_ST_SETTLE; i++) {
-        r = ib_adxl355_wait_sample(dev, &s, timeout);
-    }
-    for (uint32_t i = 0; r == IB_ADXL355_OK && i < IB_ADXL355_ST_AVERAGE; i++) {
-        r = ib_adxl355_wait_sample(dev, &s, timeout);
-        if (r == IB_ADXL355_OK) {
-            for (int a = 0; a < 3; a++) {
-                sum[a] += s.accel_counts[a]; /* 16 * 2^19 fits easily */
-            }
-        }
-    }
-    if (r != IB_ADXL355_OK) {
-        return r;
-    }
-    for (int a = 0; a < 3; a++) {
-        /* divide rounding to nearest (symmetric) */
-        int32_t h = (int32_t)(IB_ADXL355_ST_AVERAGE / 2u);
-        int32_t d = (int32_t)IB_ADXL355_ST_AVERAGE;
-        mean[a] = sum[a] >= 0 ? (sum[a] + h) / d : -((-sum[a] + h) / d);
-    }
-    return IB_ADXL355_OK;
-}
-
-int ib_adxl355_self_test(ib_adxl355_t *dev, ib_adxl355_selftest_t *res)
-{
-    if (dev == NULL || dev->bus == NULL || res == NULL) {
-        return IB_ADXL355_ERR_ARG;
-    }
-    memset(res, 0, sizeof *res);
-    const ib_adxl355_config_t saved = {dev->range, dev->odr_code, dev->hpf_code};
-    const uint8_t was_measuring = dev->measuring;
-    const ib_adxl355_config_t st_cfg = {IB_ADXL355_ST_RANGE, IB_ADXL355_ST_ODR_CODE, 0u};
-    int32_t base[3], forced[3];
-
-    int r = ib_adxl355_standby(dev);
-    if (r == IB_ADXL355_OK) {
-        r = write_config(dev, &st_cfg);
-    }
-    if (r == IB_ADXL355_OK) {
-        r = write_reg(dev, IB_ADXL355_REG_SELF_TEST, IB_ADXL355_SELF_TEST_ST1);
-    }
-    if (r == IB_ADXL355_OK) {
-        r = ib_adxl355_measure(dev);
-    }
-    if (r == IB_ADXL355_OK) {
-        r = st_phase(dev, base);
-    }
-    if (r == IB_ADXL355_OK) {
-        r = write_reg(dev, IB_ADXL355_REG_SELF_TEST,
-                      IB_ADXL355_SELF_TEST_ST1 | IB_ADXL355_SELF_TEST_ST2);
-    }
-    if (r == IB_ADXL355_OK) {
-        r = st_phase(dev, forced);
-    }
-
-    /* Restore whatever happened above (a bus error may make this fail too; the first
-     * error is the one reported). */
-    int r2 = write_reg(dev, IB_ADXL355_REG_SELF_TEST, 0x00);
-    if (r2 == IB_ADXL355_OK) {
-        r2 = ib_adxl355_standby(dev);
-    }
-    if (r2 == IB_ADXL355_OK) {
-        r2 = write_config(dev, &saved);
-    }
-    if (r2 == IB_ADXL355_OK && was_measuring) {
-        r2 = ib_adxl355_measure(dev);
-    }
-    if (r != IB_ADXL355_OK) {
-        return r;
-    }
-    if (r2 != IB_ADXL355_OK) {
-        return r2;
-    }
-
-    const int32_t lsb = ib_adxl355_lsb_per_g(st_cfg.range);
-    res->lsb_per_g = lsb;
-    int all = 1;
-    for (int a = 0; a < 3; a++) {
-        int32_t d = forced[a] - base[a];
-        int32_t mag = d < 0 ? -d : d;
-        int32_t lo_mg = a < 2 ? IB_ADXL355_ST_XY_MIN_MG : IB_ADXL355_ST_Z_MIN_MG;
-        int32_t hi_mg = a < 2 ? IB_ADXL355_ST_XY_MAX_MG : IB_ADXL355_ST_Z_MAX_MG;
-        /* limits in counts: mg * lsb_per_g / 1000 (64000 * 3000 fits in int32 after /1000
-         * first: lsb is a multiple of 1000) */
-        int32_t lo = lo_mg * (lsb / 1000);
-        int32_t hi = hi_mg * (lsb / 1000);
-        res->delta_counts[a] = d;
-        res->axis_pass[a] = (uint8_t)(mag >= lo && mag <= hi);
-        if (!res->axis_pass[a]) {
-            all = 0;
-        }
-    }
-    return all ? IB_ADXL355_OK : IB_ADXL355_ERR_SELFTEST;
 }

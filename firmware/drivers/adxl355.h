@@ -35,6 +35,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "parts_gen.h"
+#include "protocol_gen.h"
 #include "spi_bus.h"
 
 /* ---- register map (sensors.md 1.2) ---- */
@@ -144,6 +146,8 @@ typedef struct ib_adxl355 {
     uint8_t cs;
     /* IDs as read from the part by the last ib_adxl355_check_id() (for reporting). */
     uint8_t devid_ad, devid_mst, partid, revid;
+    /* The part those IDs name (protocol/parts.toml: ADXL355 or ADXL359); NULL when none. */
+    const ib_part_desc_t *part;
     /* Shadow bytes 0x50..0x54 read before the last soft reset. */
     uint8_t shadow[IB_ADXL355_SHADOW_LEN];
     /* Cached configuration (what the driver last wrote). */
@@ -173,15 +177,14 @@ typedef struct ib_adxl355_selftest {
     uint8_t axis_pass[3];    /* 1 when |delta| is inside the limit of that axis */
 } ib_adxl355_selftest_t;
 
-/* Self-test limits in milli-g on |delta| (sensors.md 1.4): X, Y 0.1..0.6 g, Z 0.5..3.0 g. */
-#define IB_ADXL355_ST_XY_MIN_MG 100
-#define IB_ADXL355_ST_XY_MAX_MG 600
-#define IB_ADXL355_ST_Z_MIN_MG 500
-#define IB_ADXL355_ST_Z_MAX_MG 3000
+/* Self-test limits on |delta|: the part's self_test_min/max (protocol/parts.toml). */
 
 /* ---- helpers without bus access ---- */
 
-/* LSB per g of a range code (256000/128000/64000), 0 for an invalid code. */
+/* LSB per g of a range code on `part` (protocol/parts.toml; NULL: the ADXL355), 0 for a
+ * code the part does not have. */
+int32_t ib_adxl355_part_lsb_per_g(const ib_part_desc_t *part, uint8_t range);
+/* The ADXL355's (256000/128000/64000). */
 int32_t ib_adxl355_lsb_per_g(uint8_t range);
 
 /* Sample period in microseconds of an ODR_LPF code: 250 << code (exact: ODR =

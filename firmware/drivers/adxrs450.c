@@ -420,7 +420,10 @@ ib_adxrs450_err_t ib_adxrs450_init(ib_adxrs450_t *dev, const ib_spi_bus_t *bus, 
     if (e != IB_ADXRS450_OK) {
         return e;
     }
-    if ((dev->pid >> 8) != IB_ADXRS450_PID_HIGH) {
+    /* the part from its PID (protocol/parts.toml: ADXRS453 0x5202, else ADXRS450 0x52xx) */
+    static const uint16_t pid_reg = IB_ADXRS450_REG_PID;
+    dev->part = ib_part_identify(IB_PART_KIND_GYRO_AXIS, &pid_reg, &dev->pid, 1u);
+    if (dev->part == NULL) {
         return IB_ADXRS450_ERR_BAD_PID;
     }
     uint16_t snh = 0, snl = 0;

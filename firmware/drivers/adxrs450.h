@@ -51,7 +51,7 @@
  *   7 read SNH, SNL     32-bit serial number kept in the struct
  *
  * Units: everything is raw counts (docs/conventions.md): rate_rad_s = counts / 80 *
- * pi / 180 (IB_ADXRS450_LSB_PER_DPS); temp_c = 45 + raw10 / 5.
+ * pi / 180 (the part's lsb_per_unit, protocol/parts.toml); temp_c = 45 + raw10 / 5.
  *
  * Typical use:
  *   ib_adxrs450_t gx;
@@ -64,6 +64,8 @@
 
 #include <stdint.h>
 
+#include "parts_gen.h"
+#include "protocol_gen.h"
 #include "spi_bus.h"
 
 /* ---- register map (sensors.md 2.8; 16-bit registers at even addresses) ---- */
@@ -120,8 +122,7 @@
 #define IB_ADXRS450_FAULT_ALL_MASK 0x0FFEu /* FAIL..CHK: FAULT bits 11:1 */
 
 /* ---- identification and scaling ---- */
-#define IB_ADXRS450_PID_HIGH 0x52 /* PID >> 8 */
-#define IB_ADXRS450_LSB_PER_DPS 80 /* rate counts per deg/s */
+/* PID values and the rate scale: protocol/parts.toml (ADXRS450, ADXRS453), via dev->part */
 #define IB_ADXRS450_TEMP_OFFSET_C 45 /* raw10 = 0 at 45 degC */
 #define IB_ADXRS450_TEMP_LSB_PER_C 5
 
@@ -133,7 +134,7 @@ typedef enum ib_adxrs450_err {
     IB_ADXRS450_OK = 0,
     IB_ADXRS450_ERR_BUS = -1,          /* the SPI bus reported an error */
     IB_ADXRS450_ERR_PARITY = -2,       /* a response failed the P0 or P1 check */
-    IB_ADXRS450_ERR_BAD_PID = -3,      /* PID high byte is not 0x52 */
+    IB_ADXRS450_ERR_BAD_PID = -3,      /* PID names no gyro of protocol/parts.toml */
     IB_ADXRS450_ERR_MISSING = -4,      /* no part: MISO reads all 0x00 (or all 0xFF) */
     IB_ADXRS450_ERR_CHK_FAILED = -5,   /* start-up: CHK responses not ST=10 + all faults */
     IB_ADXRS450_ERR_FAULT = -6,        /* fault bits set, or ST not 01 in a sensor reply */
@@ -150,6 +151,7 @@ typedef struct ib_adxrs450 {
     uint8_t last_rw_error;    /* SPI/RE/DU bits (>> 16) of the last R/W error reply */
     uint32_t powerup_word;    /* the first start-up reply, kept for the warning */
     uint16_t pid;             /* full PID register (0x52xx); 0 until read */
+    const ib_part_desc_t *part; /* the part the PID names (ADXRS450, ADXRS453); NULL until then */
     uint16_t startup_fault;   /* FAULT register value read during start-up */
     uint32_t serial;          /* (SNH << 16) | SNL; 0 until read */
     uint32_t last_response;   /* the last response word the driver evaluated */

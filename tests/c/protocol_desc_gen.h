@@ -117,6 +117,7 @@ static const ib_desc_field_t ib_msg_info_desc[] = {
     {"mcu_uid", 'u', offsetof(ib_msg_info_t, mcu_uid), 12, 1},
     {"sensors_present", 'u', offsetof(ib_msg_info_t, sensors_present), 1, 1},
     {"accel_range_g", 'u', offsetof(ib_msg_info_t, accel_range_g), 1, 1},
+    {"parts", 'u', offsetof(ib_msg_info_t, parts), 4, 1},
     {"accel_ids", 'u', offsetof(ib_msg_info_t, accel_ids), 4, 1},
     {"gyro_pid", 'u', offsetof(ib_msg_info_t, gyro_pid), 3, 2},
     {"gyro_sn", 'u', offsetof(ib_msg_info_t, gyro_sn), 3, 4},

@@ -249,7 +249,8 @@ static void test_filter_hpf(void)
 
 static void test_wrong_ids_and_missing(void)
 {
-    const uint8_t bad[3][3] = {{0xAC, 0x1D, 0xED}, {0xAD, 0x1E, 0xED}, {0xAD, 0x1D, 0xE9}};
+    /* 0xE9 is the ADXL359 (test_adxl359_sibling); 0xEA names no part of protocol/parts.toml */
+    const uint8_t bad[3][3] = {{0xAC, 0x1D, 0xED}, {0xAD, 0x1E, 0xED}, {0xAD, 0x1D, 0xEA}};
     for (int k = 0; k < 3; k++) {
         bench_t b;
         bench_init(&b, 5, 1);
@@ -676,6 +677,39 @@ static void test_standby(void)
     CHECK(abs(s2.accel_counts[2] - 64000) < 500);
 }
 
+/* The ADXL359 (protocol/parts.toml): identified by PARTID 0xE9 through the parts table, its
+ * +-10/20/40 g ranges at 51200/25600/12800 LSB/g on RANGE codes 1..3, self-test at code 3
+ * (+-40 g) against the part's limits, 1 g reads 51200 counts at +-10 g. */
+static void test_adxl359_sibling(void)
+{
+    bench_t b;
+    bench_init(&b, 19, 0);
+    adxl355_model_set_part(&b.model, ib_part_by_id(IB_PART_ADXL359));
+    ib_adxl355_t dev;
+    ib_adxl355_config_t cfg = {1u, 1, 0};
+    CHECK_EQ_INT(ib_adxl355_init(&dev, &b.bus, IB_CS_ACCEL, &cfg), IB_ADXL355_OK);
+    CHECK(dev.part != NULL && dev.part->part == IB_PART_ADXL359);
+    CHECK_EQ_INT(dev.partid, 0xE9);
+    CHECK_EQ_INT(ib_adxl355_part_lsb_per_g(dev.part, 1), 51200);
+    CHECK_EQ_INT(ib_adxl355_part_lsb_per_g(dev.part, 2), 25600);
+    CHECK_EQ_INT(ib_adxl355_part_lsb_per_g(dev.part, 3), 12800);
+    CHECK_EQ_INT(ib_part_range(dev.part, 10)->code, 1);
+    CHECK(ib_part_range(dev.part, 2) == NULL); /* an ADXL355 range is none of the ADXL359's */
+    ib_adxl355_sample_t s;
+    CHECK_EQ_INT(ib_adxl355_wait_sample(&dev, &s, 2000), IB_ADXL355_OK);
+    CHECK(abs(s.accel_counts[2] - 51200) < 400);
+    ib_adxl355_selftest_t st;
+    CHECK_EQ_INT(ib_adxl355_self_test(&dev, &st), IB_ADXL355_OK);
+    CHECK_EQ_INT(st.lsb_per_g, 12800);
+    CHECK_NEAR(st.delta_counts[2], 1.5 * 12800, 100);
+    /* the ADXL355 stays the ADXL355 */
+    bench_t b2;
+    bench_init(&b2, 20, 0);
+    ib_adxl355_t dev2;
+    CHECK_EQ_INT(ib_adxl355_init(&dev2, &b2.bus, IB_CS_ACCEL, &cfg), IB_ADXL355_OK);
+    CHECK(dev2.part != NULL && dev2.part->part == IB_PART_ADXL355);
+}
+
 static void test_self_test(void)
 {
     bench_t b;
@@ -954,6 +988,7 @@ int main(void)
     RUN(test_offset);
     RUN(test_standby);
     RUN(test_self_test);
+    RUN(test_adxl359_sibling);
     RUN(test_noise);
     RUN(test_random_walk);
     RUN(test_temperature);

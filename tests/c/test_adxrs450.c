@@ -335,10 +335,32 @@ static void test_wrong_pid(void)
     CHECK_EQ_INT(init_chip(&g, 2), IB_ADXRS450_ERR_BAD_PID);
     CHECK_EQ_INT(g.pid, 0x4201);
     CHECK_EQ_INT(g.ready, 0);
-    sim_adxrs450_set_pid(&B.gyro[2], 0x5202); /* an ADXRS453 revision: accepted */
+    sim_adxrs450_set_pid(&B.gyro[2], 0x5202); /* an ADXRS453: accepted, and named */
     sim_adxrs450_power_cycle(&B.gyro[2]);
     CHECK_EQ_INT(init_chip(&g, 2), IB_ADXRS450_OK);
     CHECK_EQ_INT(g.pid, 0x5202);
+    CHECK(g.part != NULL && g.part->part == IB_PART_ADXRS453);
+    sim_adxrs450_set_pid(&B.gyro[2], 0x5207); /* another revision of the family: an ADXRS450 */
+    sim_adxrs450_power_cycle(&B.gyro[2]);
+    CHECK_EQ_INT(init_chip(&g, 2), IB_ADXRS450_OK);
+    CHECK(g.part != NULL && g.part->part == IB_PART_ADXRS450);
+}
+
+/* The ADXRS453 model (protocol/parts.toml): PID 0x5202 and its 16 deg/h bias instability; the
+ * default chip keeps PID 0x5201 and 25 deg/h. */
+static void test_adxrs453_sibling(void)
+{
+    setup(5);
+    sim_adxrs450_set_part(&B.gyro[1], ib_part_by_id(IB_PART_ADXRS453));
+    ib_adxrs450_t g0, g1;
+    CHECK_EQ_INT(init_chip(&g0, 0), IB_ADXRS450_OK);
+    CHECK_EQ_INT(init_chip(&g1, 1), IB_ADXRS450_OK);
+    CHECK_EQ_INT(g0.pid, 0x5201);
+    CHECK_EQ_INT(g1.pid, 0x5202);
+    CHECK(g0.part->part == IB_PART_ADXRS450 && g1.part->part == IB_PART_ADXRS453);
+    CHECK_NEAR(B.gyro[1].truth.bias_instability_rad_s * 180.0 / 3.14159265358979 * 3600.0, 16.0, 1e-3);
+    CHECK_NEAR(B.gyro[0].truth.bias_instability_rad_s * 180.0 / 3.14159265358979 * 3600.0, 25.0, 1e-3);
+    CHECK_EQ_INT((int)g1.part->ranges[0].lsb_per_unit, 80);
 }
 
 static void test_startup_faults(void)
@@ -1046,6 +1068,7 @@ int main(void)
     RUN(test_startup_each_chip);
     RUN(test_missing_chip);
     RUN(test_wrong_pid);
+    RUN(test_adxrs453_sibling);
     RUN(test_startup_faults);
     RUN(test_rate_sign_and_scale);
     RUN(test_faults);

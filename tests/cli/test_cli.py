@@ -82,7 +82,8 @@ def test_monitor_streams_and_records(tmp_path):
 def test_info_and_missing_port(monkeypatch):
     with FakeDevice() as fake:
         r = run("info", "--port", fake.port_url)
-    assert r.returncode == 0 and "ADXL355 IDs AD 1D ED 01" in r.stdout
+    assert r.returncode == 0 and "accelerometer IDs AD 1D ED 01" in r.stdout
+    assert "parts: accel ADXL355, gyro_x ADXRS450, gyro_y ADXRS450, gyro_z ADXRS450" in r.stdout
     env = {k: v for k, v in os.environ.items() if k != "IMUBENCH_PORT"}
     r = subprocess.run([sys.executable, "-m", "imubench", "info"], capture_output=True, text=True, env=env)
     assert r.returncode == 2 and "IMUBENCH_PORT" in r.stderr

@@ -187,6 +187,24 @@ def test_sensor_faults_through_spi_are_reported_and_commands_keep_working(target
         _emulator_clean(vb)
 
 
+# ------------------------------------------------------------------ the largest command at reset
+def test_set_params_right_after_reset_is_applied_at_the_first_try():
+    """The F103's RX ring holds the largest command frame (set_params, 266 bytes on the wire)
+    with margin (512 bytes, firmware/arm.mk): a set_params sent the moment the image resets,
+    while it starts its sensors and its main loop reads nothing, is taken whole from the ring
+    afterwards and applied, with no retry (a 256-byte ring dropped its tail: docs/firmware.md)."""
+    new = _params(1.0)
+    with VirtualBench(speed=0, seed=5, target="f103") as vb:
+        with _connect(vb, timeout=3.0) as d:
+            d.reboot(wait_s=0)                 # the ack, then the image resets
+            d.retries = 0                      # one try only
+            d.set_params(new)
+            assert _pack(d.get_params(ParamsWhich.ACTIVE).params) == _pack(new)
+            assert d.info().param_source == ParamSource.UNSAVED
+            assert len(d.link.boot_infos) >= 1           # it did reset in between
+        _emulator_clean(vb)
+
+
 # ------------------------------------------------------------------ flash under power cuts
 def test_power_cut_at_every_flash_operation_of_a_save(target):
     """The image's own flash driver, cut at each of its erase/program operations in turn
@@ -242,11 +260,19 @@ def _z_scores(result: dict, truth: dict) -> np.ndarray:
     return np.array(z)
 
 
+# the sibling parts on the images (issue 35): the F103 a mixed board (two ADXRS450 and one
+# ADXRS453), the F4 every gyro an ADXRS453; both with the ADXL359 (+-10 g, 51200 LSB/g)
+SESSION_PARTS = {"f103": ("accel=adxl359,gyro_z=adxrs453", ["ADXL359", "ADXRS450", "ADXRS450", "ADXRS453"]),
+                 "f4": ("accel=adxl359,gyro=adxrs453", ["ADXL359", "ADXRS453", "ADXRS453", "ADXRS453"])}
+
+
 def test_whole_calibration_session_on_the_image(target, tmp_path):
     """Multi-position (26 attitudes) + turntable (both ways about each axis at 90 deg/s) at
     100 Hz, with short holds (the figures are not the point, the path is): capture, fit, write-back with bit-exact read-back, save through the image's
-    flash driver, reboot, read-back from flash, and the device's own calibrated output."""
-    with VirtualBench(speed=0, seed=31, truth="random", target=target) as vb:
+    flash driver, reboot, read-back from flash, and the device's own calibrated output; on a
+    board of the sibling parts, identified by the image from their ID registers."""
+    parts, names = SESSION_PARTS[target]
+    with VirtualBench(speed=0, seed=31, truth="random", target=target, parts=parts) as vb:
         vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         cfg = SessionConfig(method="multi", gyro="turntable", rate_hz=100, rest_s=0.5, settle_s=0.1, hold_s=0.25,
                             turntable_s=0.8, turntable_rates_dps=(90.0,))
@@ -271,6 +297,9 @@ def test_whole_calibration_session_on_the_image(target, tmp_path):
         truth = vb.get_truth()
         st = vb.status()
         _emulator_clean(vb)
+    assert result["device"]["parts"] == names and list(info.parts) == [
+        {"ADXL359": 2, "ADXRS450": 3, "ADXRS453": 4}[n] for n in names]
+    assert info.accel_range_g == 10                               # the ADXL359's lowest range
     assert wb["steps"][:3] == ["set", "read back", f"saved (generation {wb['generation']})"]
     assert wb["steps"][3:] == ["rebooted", "read back after reboot (flash)"]
     assert _pack(stored) == _pack(wb["params"])                    # bit-exact in flash

@@ -32,7 +32,8 @@ def make_result(uid=UID_A, started="2026-11-22T06:40:00+00:00", accel_b_mps2=(0.
     return {
         "schema": 1,
         "device": {"mcu_uid": uid, "board": "SIM", "fw_version": "0.2.0", "fw_build": "sim-0.1.0",
-                   "accel_ids": [173, 29, 237, 1], "gyro_pid": [20993, 20993, 20993], "gyro_sn": list(gyro_sn)},
+                   "parts": ["ADXL355", "ADXRS450", "ADXRS450", "ADXRS453"],
+                   "accel_ids": [173, 29, 237, 1], "gyro_pid": [20993, 20993, 20994], "gyro_sn": list(gyro_sn)},
         "started": started, "finished": started[:11] + "07:05:00+00:00",
         "method": "six", "gyro_method": "turntable" if gyro else None,
         "accel": {"m": m.tolist(), "b_mps2": list(accel_b_mps2), "sigma_m": np.full((3, 3), 3e-6).tolist(),
@@ -78,7 +79,8 @@ def test_record_runs_round_trip(db):
     assert got["fw_version"] == "0.2.0" and got["fw_build"] == "sim-0.1.0"
     assert got["gyro_sn"] == [1001, 1002, 1003]
     assert devs == [{
-        "mcu_uid": UID_A, "board": "SIM", "accel_ids": [173, 29, 237, 1], "gyro_pid": [20993] * 3,
+        "mcu_uid": UID_A, "board": "SIM", "parts": ["ADXL355", "ADXRS450", "ADXRS450", "ADXRS453"],
+        "accel_ids": [173, 29, 237, 1], "gyro_pid": [20993, 20993, 20994],
         "gyro_sn": [1001, 1002, 1003], "first_seen": "2026-11-22T06:40:00.000000+00:00",
         "last_seen": "2026-11-22T06:40:00.000000+00:00", "runs": 1,
         "last_run": {"started": "2026-11-22T06:40:00.000000+00:00", "method": "six", "gyro_method": "turntable",

@@ -170,8 +170,9 @@ def test_a_schema_1_file_is_upgraded_in_place(tmp_path):
         assert new == 4
         assert h.run(new)["station_id"] == "S1" and h.run(1)["station_id"] is None
     con = sqlite3.connect(db)
-    assert con.execute("SELECT version FROM schema_version").fetchall() == [(2,)]
+    assert con.execute("SELECT version FROM schema_version").fetchall() == [(3,)]
     assert con.execute("SELECT id, record FROM runs WHERE id <= 3 ORDER BY id").fetchall() == v1_rows
+    assert "parts" in {r[1] for r in con.execute("PRAGMA table_info(devices)")}     # schema 3
     cols = {r[1] for r in con.execute("PRAGMA table_info(runs)")}
     assert {"station_id", "operator", "fixture", "host_version", "params_before", "params_after",
             "capture_sha256", "capture_uri", "failure"} <= cols
@@ -187,9 +188,9 @@ def test_the_cli_upgrades_on_request(tmp_path, capsys):
     assert imubench(["history", "--db", str(db)]) == 1
     assert "--upgrade" in capsys.readouterr().err
     assert imubench(["history", "--db", str(db), "--upgrade"]) == 0
-    assert "from schema 1 to 2" in capsys.readouterr().out
+    assert "from schema 1 to 3" in capsys.readouterr().out
     assert imubench(["history", "--db", str(db), "--upgrade"]) == 0
-    assert "already at schema 2" in capsys.readouterr().out
+    assert "already at schema 3" in capsys.readouterr().out
     assert imubench(["history", "--db", str(db)]) == 0
     assert UID_A in capsys.readouterr().out
 

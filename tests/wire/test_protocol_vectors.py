@@ -169,10 +169,10 @@ def test_worked_example_of_the_spec():
     """protocol/SPEC.md works one ping frame out by hand; the codec must agree."""
     from imubench.wire.protocol_gen import Ping
     assert P.encode(Ping(nonce=0x12345678), seq=7, timestamp_us=99).hex(" ") == \
-        "04 04 01 07 02 63 01 01 09 78 56 34 12 33 e2 9d 34 00"
+        "04 05 01 07 02 63 01 01 09 78 56 34 12 03 36 ec 05 00"
     assert P.crc32c(bytes.fromhex("020107006300000078563412")) == 0x93B91A93
     spec = (ROOT / "protocol" / "SPEC.md").read_text()
-    assert "04 04 01 07 02 63 01 01 09 78 56 34 12 33 e2 9d 34 00" in spec
+    assert "04 05 01 07 02 63 01 01 09 78 56 34 12 03 36 ec 05 00" in spec
     assert P.crc32c(b"123456789") == 0xE3069283
 
 

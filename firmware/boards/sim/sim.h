@@ -9,8 +9,11 @@
  *   sim_board.c    the ib_board_t / ib_spi_bus_t callbacks the core calls
  *   sim_link.c     UART TX ring drained in device time, pty and TCP endpoints
  *   sim_flash.c    ib_flash_if_t on a file (NOR semantics, power-cut injection)
- *   sim_physics.c  orientation, motion (turntable / rate table), temperature
- *   sim_control.c  control channel (JSON lines over TCP)
+ *   sim_physics.c  orientation, motion (turntable / rate table), ambient temperature
+ *   sim_thermal.c  the dies' thermal lag behind the ambient
+ *   sim_main.c     options, resets, pacing, main; sim_loop.c the main loop (host build only)
+ *   sim_control.c  control channel (JSON lines over TCP); its commands in sim_control_world.c
+ *                  and sim_control_truth.c, request helpers in sim_control_args.c
  *   sim_json.c     tiny JSON reader / writer for the control channel
  *
  * Device time: a 64-bit microsecond counter (sim.t_us) owned by the board. It advances
@@ -29,6 +32,7 @@
 #include "adxrs450_model.h"
 #include "board.h"
 #include "core.h"
+#include "sim_flash.h"
 #include "sim_rng.h"
 #include "sim_world.h"
 
@@ -72,20 +76,7 @@ typedef struct sim_link {
     uint32_t clients_accepted;
 } sim_link_t;
 
-/* ---- flash (sim_flash.c) ---- */
-#define SIM_FLASH_SLOT_SIZE 2048u
-#define SIM_FLASH_SIZE (2u * SIM_FLASH_SLOT_SIZE)
-#define SIM_FLASH_PROGRAM_UNIT 4u
-
-typedef struct sim_flash {
-    int fd;
-    char path[512];
-    uint8_t mem[SIM_FLASH_SIZE]; /* mirror of the file */
-    uint64_t ops_since_boot;
-    uint64_t ops_total;
-    int64_t cut_after;           /* > 0: power cut during the cut_after-th next op; 0 off */
-    uint64_t cuts;
-} sim_flash_t;
+/* ---- flash: sim_flash.h ---- */
 
 /* ---- physics (sim_physics.c) ---- */
 #define SIM_PATH_MAX_LEGS 32
@@ -126,7 +117,7 @@ typedef struct sim_physics {
 
 enum { SIM_MOTION_NONE = 0, SIM_MOTION_ROTATE = 1, SIM_MOTION_RATE = 2, SIM_MOTION_PATH = 3 };
 
-/* ---- thermal model of the sensor dies (sim_physics.c) ----
+/* ---- thermal model of the sensor dies (sim_thermal.c) ----
  * One die per sensor, indexed like the chip selects: 0 = ADXL355, 1..3 = ADXRS450 X, Y, Z.
  * Enabled, each die follows the ambient (the chamber, sim_physics_t) with a first-order lag
  * plus the steady self-heating of the powered board:
@@ -143,7 +134,7 @@ typedef struct sim_thermal {
 } sim_thermal_t;
 
 /* Nominal thermal figures of the default (ideal) part; random truth draws its own
- * (sim_thermal_random, sources in sim_physics.c). */
+ * (sim_thermal_random, sources in sim_thermal.c). */
 #define SIM_THERMAL_NOMINAL_TAU_S {240.0, 300.0, 360.0, 420.0}
 #define SIM_THERMAL_NOMINAL_SELF_HEAT_C {1.5, 3.0, 3.5, 2.5}
 
@@ -163,7 +154,7 @@ typedef struct sim {
     uint64_t anchor_dev_us;
     uint64_t slips;          /* times the pacing re-anchored because the CPU fell behind */
     int lockstep;            /* --clock lockstep: device time moves only inside a granted run
-                                (sim_control.c "run"); speed is then a ceiling */
+                                (sim_control_world.c "run"); speed is then a ceiling */
 
     /* sample tick */
     uint32_t tick_hz;
@@ -243,6 +234,13 @@ void sim_model_world(int cs, sim_world_t *w); /* world for advancing model cs to
  * "host" (or NULL) for the host build, "f103" / "f4" for the ARM images. */
 void sim_seed_models(uint64_t seed, int random_truth, const char *target);
 uint64_t sim_identity_seed(uint64_t seed, const char *target);
+void sim_board_flash_hooks(void); /* give g_sim.flash its clock, power and log (before opening it) */
+/* The board's parts (protocol/parts.toml): "accel=adxl359,gyro_z=adxrs453" (slots accel, gyro,
+ * gyro_x, gyro_y, gyro_z; names any case; unnamed slots keep ADXL355 / ADXRS450). Set before
+ * the models are seeded; 0, or -1 with a one-line reason in err. */
+int sim_set_parts(const char *spec, char *err, size_t errlen);
+const uint8_t *sim_parts(void);   /* enum ib_part per slot, sensor order */
+void sim_apply_parts(void);       /* give the models their parts (sim_seed_models does) */
 void sim_randomize_truth(uint64_t seed);
 void sim_spin_reset(void);
 int sim_spi_exchange(uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len);
@@ -265,10 +263,6 @@ size_t sim_link_queued(const sim_link_t *l);        /* in the UART ring */
  * is queued. */
 uint64_t sim_link_next_drain_us(const sim_link_t *l);
 
-/* ---- sim_flash.c ---- */
-int sim_flash_open(sim_flash_t *f, const char *path);
-void sim_flash_close(sim_flash_t *f);
-void sim_flash_setup_if(sim_flash_t *f, ib_flash_if_t *fi);
 
 /* ---- sim_physics.c ---- */
 void sim_phys_init(sim_physics_t *p);

@@ -18,6 +18,7 @@
 #define _GNU_SOURCE
 #include "sim.h"
 
+#include <stdio.h>
 #include <string.h>
 
 #define SIM_SPI_US_PER_BYTE 1u
@@ -173,6 +174,86 @@ void sim_seed_models(uint64_t seed, int random_truth, const char *target)
     for (int i = 0; i < 4; i++) {
         g_sim.uid[8 + i] = (uint8_t)(u1 >> (8 * i));
     }
+    sim_apply_parts();
+}
+
+/* ---- the board's parts (--parts), kept across the models' re-seeding ---- */
+
+static uint8_t g_parts[4] = {IB_PART_ADXL355, IB_PART_ADXRS450, IB_PART_ADXRS450, IB_PART_ADXRS450};
+
+void sim_apply_parts(void)
+{
+    adxl355_model_set_part(&g_sim.accel, ib_part_by_id(g_parts[0]));
+    for (int i = 0; i < 3; i++) {
+        sim_adxrs450_set_part(&g_sim.gyro[i], ib_part_by_id(g_parts[1 + i]));
+    }
+}
+
+const uint8_t *sim_parts(void) { return g_parts; }
+
+static const char *const SLOT_NAMES[4] = {"accel", "gyro_x", "gyro_y", "gyro_z"};
+
+/* One "slot=part" item of length n into out[]; 0, or -1 with the reason in err. */
+static int parse_part_item(const char *item, size_t n, uint8_t out[4], char *err, size_t errlen)
+{
+    const char *eq = memchr(item, '=', n);
+    size_t kl = eq ? (size_t)(eq - item) : n;
+    int slot = -1;
+    for (int i = 0; i < 4; i++) {
+        if (strlen(SLOT_NAMES[i]) == kl && strncmp(item, SLOT_NAMES[i], kl) == 0) {
+            slot = i;
+        }
+    }
+    if (!strncmp(item, "gyro", kl) && kl == 4) {
+        slot = 4; /* every gyro */
+    }
+    if (eq == NULL || slot < 0) {
+        snprintf(err, errlen, "'%.*s': expected SLOT=PART with SLOT one of accel, gyro, gyro_x, gyro_y, gyro_z",
+                 (int)n, item);
+        return -1;
+    }
+    const char *v = eq + 1;
+    size_t vl = n - kl - 1u;
+    const uint8_t kind = slot == 0 ? IB_PART_KIND_ACCEL_TRIAD : IB_PART_KIND_GYRO_AXIS;
+    for (size_t i = 0; i < IB_PART_COUNT; i++) {
+        const ib_part_desc_t *d = &ib_parts[i];
+        int same = strlen(d->name) == vl;
+        for (size_t j = 0; same && j < vl; j++) {
+            same = (v[j] | 0x20) == (d->name[j] | 0x20);
+        }
+        if (same && d->kind == kind) {
+            for (int k = slot == 4 ? 1 : slot; k <= (slot == 4 ? 3 : slot); k++) {
+                out[k] = d->part;
+            }
+            return 0;
+        }
+    }
+    char names[96] = "";
+    for (size_t i = 0; i < IB_PART_COUNT; i++) {
+        if (ib_parts[i].kind == kind) {
+            size_t used = strlen(names);
+            snprintf(names + used, sizeof names - used, "%s%s", used ? ", " : "", ib_parts[i].name);
+        }
+    }
+    snprintf(err, errlen, "'%.*s': no such %s part (known: %s)", (int)vl, v, slot == 0 ? "accelerometer" : "gyro",
+             names);
+    return -1;
+}
+
+int sim_set_parts(const char *spec, char *err, size_t errlen)
+{
+    uint8_t parts[4] = {IB_PART_ADXL355, IB_PART_ADXRS450, IB_PART_ADXRS450, IB_PART_ADXRS450};
+    const char *p = spec ? spec : "";
+    while (*p) {
+        const char *end = strchr(p, ',');
+        size_t n = end ? (size_t)(end - p) : strlen(p);
+        if (n > 0 && parse_part_item(p, n, parts, err, errlen) != 0) {
+            return -1;
+        }
+        p += n + (end ? 1u : 0u);
+    }
+    memcpy(g_parts, parts, sizeof parts);
+    return 0;
 }
 
 void sim_power_cycle_models(void)
@@ -314,6 +395,16 @@ static void b_reboot(void *ctx)
 {
     (void)ctx;
     sim_request_reset(SIM_RESET_REBOOT); /* does not return when called from the core */
+}
+
+/* The flash's hooks (sim_flash.h): device time, the power cut, the log. */
+static void flash_busy_us(uint32_t us) { sim_advance_to(g_sim.t_us + us); }
+static void flash_power_cut(void) { sim_request_reset(SIM_RESET_POWER_CUT); }
+
+void sim_board_flash_hooks(void)
+{
+    static const sim_flash_hooks_t hooks = {flash_busy_us, flash_power_cut, sim_log};
+    sim_flash_set_hooks(&g_sim.flash, &hooks);
 }
 
 void sim_board_setup(void)

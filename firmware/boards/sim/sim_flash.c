@@ -17,11 +17,12 @@
  * Operations (one program() call or one erase() call = one op) are counted since boot and
  * in total. Power-cut injection: with cut_after = N > 0, the N-th following op is applied
  * only in part (the first half of its bytes; for an erase, the first half of the slot) and
- * the device loses power: sim_request_reset(SIM_RESET_POWER_CUT) does not return, the
- * main loop re-initialises the core as after a real power cycle.
+ * the device loses power: the board's power_cut hook does not return, the main loop
+ * re-initialises the core as after a real power cycle. The board gives the clock, the power
+ * and the log (sim_flash.h, sim_flash_hooks_t); this file knows nothing else of it.
  */
 #define _GNU_SOURCE
-#include "sim.h"
+#include "sim_flash.h"
 
 #include <errno.h>
 #include <fcntl.h>
@@ -41,7 +42,7 @@ static int write_through(sim_flash_t *f, uint32_t addr, size_t len)
             if (errno == EINTR) {
                 continue;
             }
-            sim_log("flash: write to %s failed: %s", f->path, strerror(errno));
+            f->hooks.log("flash: write to %s failed: %s", f->path, strerror(errno));
             return IB_FLASH_ERR_IO;
         }
         done += (size_t)n;
@@ -51,22 +52,24 @@ static int write_through(sim_flash_t *f, uint32_t addr, size_t len)
 
 int sim_flash_open(sim_flash_t *f, const char *path)
 {
+    const sim_flash_hooks_t hooks = f->hooks; /* the board's, set before (sim_flash_set_hooks) */
     memset(f, 0, sizeof *f);
+    f->hooks = hooks;
     f->fd = -1;
     if (strlen(path) >= sizeof f->path) {
-        sim_log("flash: path too long");
+        f->hooks.log("flash: path too long");
         return -1;
     }
     strcpy(f->path, path);
     int fd = open(path, O_RDWR | O_CREAT | O_CLOEXEC, 0644);
     if (fd < 0) {
-        sim_log("flash: cannot open %s: %s", path, strerror(errno));
+        f->hooks.log("flash: cannot open %s: %s", path, strerror(errno));
         return -1;
     }
     f->fd = fd;
     struct stat st;
     if (fstat(fd, &st) != 0) {
-        sim_log("flash: cannot stat %s: %s", path, strerror(errno));
+        f->hooks.log("flash: cannot stat %s: %s", path, strerror(errno));
         return -1;
     }
     if (st.st_size == 0) {
@@ -74,7 +77,7 @@ int sim_flash_open(sim_flash_t *f, const char *path)
         if (write_through(f, 0, sizeof f->mem) != IB_FLASH_OK) {
             return -1;
         }
-        sim_log("flash: created %s (%u bytes of 0xFF)", path, SIM_FLASH_SIZE);
+        f->hooks.log("flash: created %s (%u bytes of 0xFF)", path, SIM_FLASH_SIZE);
     } else if (st.st_size == (off_t)SIM_FLASH_SIZE) {
         size_t got = 0;
         while (got < sizeof f->mem) {
@@ -83,13 +86,13 @@ int sim_flash_open(sim_flash_t *f, const char *path)
                 if (n < 0 && errno == EINTR) {
                     continue;
                 }
-                sim_log("flash: cannot read %s", path);
+                f->hooks.log("flash: cannot read %s", path);
                 return -1;
             }
             got += (size_t)n;
         }
     } else {
-        sim_log("flash: %s has %lld bytes, expected %u (or an empty/missing file)", path,
+        f->hooks.log("flash: %s has %lld bytes, expected %u (or an empty/missing file)", path,
                 (long long)st.st_size, SIM_FLASH_SIZE);
         return -1;
     }
@@ -135,12 +138,12 @@ static int flash_erase(void *ctx, uint32_t addr)
     }
     int cut = count_op(f);
     size_t n = cut ? SIM_FLASH_SLOT_SIZE / 2 : SIM_FLASH_SLOT_SIZE;
-    sim_advance_to(g_sim.t_us + (cut ? SIM_FLASH_ERASE_US / 2 : SIM_FLASH_ERASE_US));
+    f->hooks.busy_us(cut ? SIM_FLASH_ERASE_US / 2 : SIM_FLASH_ERASE_US);
     memset(f->mem + addr, 0xFF, n);
     int rc = write_through(f, addr, n);
     if (cut) {
-        sim_log("flash: power cut during erase of 0x%03X (half erased)", (unsigned)addr);
-        sim_request_reset(SIM_RESET_POWER_CUT);
+        f->hooks.log("flash: power cut during erase of 0x%03X (half erased)", (unsigned)addr);
+        f->hooks.power_cut();
     }
     return rc;
 }
@@ -156,17 +159,16 @@ static int flash_program(void *ctx, uint32_t addr, const void *data, size_t len)
     }
     int cut = count_op(f);
     size_t n = cut ? len / 2 : len;
-    sim_advance_to(g_sim.t_us + (uint64_t)((n + SIM_FLASH_PROGRAM_UNIT - 1) / SIM_FLASH_PROGRAM_UNIT) *
-                                    SIM_FLASH_PROGRAM_US);
+    f->hooks.busy_us((uint32_t)((n + SIM_FLASH_PROGRAM_UNIT - 1) / SIM_FLASH_PROGRAM_UNIT) * SIM_FLASH_PROGRAM_US);
     const uint8_t *d = data;
     for (size_t i = 0; i < n; i++) {
         f->mem[addr + i] &= d[i];
     }
     int rc = write_through(f, addr, n);
     if (cut) {
-        sim_log("flash: power cut while programming %zu bytes at 0x%03X (%zu written)", len,
+        f->hooks.log("flash: power cut while programming %zu bytes at 0x%03X (%zu written)", len,
                 (unsigned)addr, n);
-        sim_request_reset(SIM_RESET_POWER_CUT);
+        f->hooks.power_cut();
     }
     return rc;
 }
@@ -184,6 +186,8 @@ static int flash_read(void *ctx, uint32_t addr, void *data, size_t len)
     }
     return IB_FLASH_OK;
 }
+
+void sim_flash_set_hooks(sim_flash_t *f, const sim_flash_hooks_t *hooks) { f->hooks = *hooks; }
 
 void sim_flash_setup_if(sim_flash_t *f, ib_flash_if_t *fi)
 {

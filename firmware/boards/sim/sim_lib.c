@@ -86,6 +86,12 @@ void simlib_set_identity_target(const char *name)
     snprintf(g_identity_target, sizeof g_identity_target, "%s", name != NULL ? name : "");
 }
 
+/* --parts (sim_set_parts): set before simlib_open; 0, or -1 with the reason in err. */
+int simlib_set_parts(const char *spec, char *err, int errlen)
+{
+    return sim_set_parts(spec, err, errlen > 0 ? (size_t)errlen : 0u);
+}
+
 int simlib_open(uint64_t seed, int truth_random, const uint8_t *uid, int tcp_port, int control_port,
                 double speed)
 {

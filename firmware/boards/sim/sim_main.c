@@ -61,17 +61,15 @@
 #include <unistd.h>
 
 #include "sim_json.h"
+#include "sim_main_priv.h"
 
 sim_t g_sim;
 
-static volatile sig_atomic_t g_signal;
-static pid_t g_parent; /* 0: do not watch */
-static int g_parent_gone;
+volatile sig_atomic_t g_sim_signal;
+pid_t g_sim_parent; /* 0: do not watch */
+int g_sim_parent_gone;
 static const char *g_orphan_dir; /* --orphan-cleanup DIR: the host's folder, removed if it dies */
 
-#define MAX_LAG_WALL_US 200000.0 /* CPU behind by more than this (wall) -> slip the anchor */
-#define IDLE_POLL_MS 20
-#define BUDGET_NS 5000000ull     /* wall time spent running ticks before serving I/O */
 
 uint64_t sim_wall_ns(void)
 {
@@ -169,7 +167,7 @@ static void boot(int kind)
 
 /* ---- pacing ---- */
 
-static uint64_t pace_target(uint64_t now_ns)
+uint64_t sim_pace_target(uint64_t now_ns)
 {
     sim_t *s = &g_sim;
     if (now_ns <= s->anchor_wall_ns) {
@@ -183,7 +181,7 @@ void sim_set_speed(double speed)
 {
     sim_t *s = &g_sim;
     uint64_t now = sim_wall_ns();
-    uint64_t target = pace_target(now);
+    uint64_t target = sim_pace_target(now);
     /* paced -> paced: keep the device's lead or lag; from "as fast as possible": now */
     s->anchor_dev_us = s->speed > 0.0 ? target : s->t_us;
     s->anchor_wall_ns = now;
@@ -199,19 +197,19 @@ static uint64_t tick_time(uint64_t n)
 /* Lockstep: hand the link bytes to the OS, waiting (poll) while the host's socket is full,
  * until at most `keep` bytes are staged. The host reads in a thread of its own; a host that
  * is gone (client dropped) discards them. */
-static void flush_blocking(size_t keep)
+void sim_flush_blocking(size_t keep)
 {
     sim_t *s = &g_sim;
     sim_link_t *l = &s->link;
-    while (sim_link_staged(l) > keep && !g_signal) {
+    while (sim_link_staged(l) > keep && !g_sim_signal) {
         sim_link_flush(l);
         if (!l->os_blocked) {
             continue;
         }
         int fd = l->tcp_client >= 0 ? l->tcp_client : l->pty_master;
         struct pollfd p = {fd, POLLOUT, 0};
-        if (poll(&p, 1, 100) == 0 && g_parent != 0 && getppid() != g_parent) {
-            g_parent_gone = 1;
+        if (poll(&p, 1, 100) == 0 && g_sim_parent != 0 && getppid() != g_sim_parent) {
+            g_sim_parent_gone = 1;
             s->quit = 1;
             return;
         }
@@ -222,7 +220,7 @@ static void flush_blocking(size_t keep)
  * budget used up) with ticks still due. `final` 0 (lockstep, below the run's end): run the
  * ticks due by `target` only, no idle advance and poll at `target` (stops that depend on the
  * wall clock must not change what the device does). */
-static int run_device_to(uint64_t target, uint64_t budget_end_ns, int final)
+int sim_run_device_to(uint64_t target, uint64_t budget_end_ns, int final)
 {
     sim_t *s = &g_sim;
     if (s->reset_pending) {
@@ -258,7 +256,7 @@ static int run_device_to(uint64_t target, uint64_t budget_end_ns, int final)
             return 0;
         }
         if (s->lockstep && sim_link_staged(&s->link) > (SIM_TX_STORE - SIM_TX_RING) / 4) {
-            flush_blocking(0); /* the UART never stalls on a slow host */
+            sim_flush_blocking(0); /* the UART never stalls on a slow host */
         }
         if (s->t_us > target) {
             return 0;
@@ -277,9 +275,9 @@ static int run_device_to(uint64_t target, uint64_t budget_end_ns, int final)
     return 0;
 }
 
-static int run_device(uint64_t target, uint64_t budget_end_ns)
+int sim_run_device(uint64_t target, uint64_t budget_end_ns)
 {
-    return run_device_to(target, budget_end_ns, 1);
+    return sim_run_device_to(target, budget_end_ns, 1);
 }
 
 /* ---- options ---- */
@@ -290,6 +288,7 @@ static void usage(FILE *f)
             "usage: imubench-sim [--pty] [--tcp PORT] [--control PORT] [--flash FILE]\n"
             "                    [--speed X] [--seed N] [--truth default|random] [--baud B]\n"
             "                    [--uid HEX24] [--orphan-cleanup DIR] [--clock realtime|lockstep]\n"
+            "                    [--parts SLOT=PART,...]\n"
             "  --pty          expose the device's serial port on a new pseudo-terminal\n"
             "  --tcp PORT     ... and/or on TCP 127.0.0.1:PORT (0 = free port; the default\n"
             "                 when neither --pty nor --tcp is given)\n"
@@ -303,6 +302,8 @@ static void usage(FILE *f)
             "                 command run), nothing is dropped, the run is deterministic\n"
             "  --seed N       seed of the sensor models (default 1)\n"
             "  --truth T      default | random (the sensors' errors drawn from the seed)\n"
+            "  --parts SPEC   the board's parts (protocol/parts.toml), e.g. accel=adxl359,gyro_z=adxrs453;\n"
+            "                 slots accel, gyro (all three), gyro_x, gyro_y, gyro_z\n"
             "  --baud B       link speed that drains the TX buffer (default 2000000)\n"
             "  --uid HEX24    MCU unique id, 12 bytes in hex (default: from the seed)\n"
             "  --orphan-cleanup DIR  when the parent process dies (a host killed with\n"
@@ -340,7 +341,7 @@ static int parse_uid(const char *s, uint8_t uid[12])
     return 0;
 }
 
-static void on_signal(int sig) { g_signal = sig; }
+static void on_signal(int sig) { g_sim_signal = sig; }
 
 static void print_startup_line(const char *flash_path)
 {
@@ -401,224 +402,6 @@ static void print_startup_line(const char *flash_path)
     sj_buf_free(&b);
 }
 
-/* ---- the loop ---- */
-
-static uint64_t min_u64(uint64_t a, uint64_t b) { return a < b ? a : b; }
-
-/* One lockstep iteration: run as far as the granted run allows (and the speed ceiling),
- * flush, answer finished runs. Returns 1 when more can be done at once. */
-static int lockstep_step(uint64_t now, int *was_active)
-{
-    sim_t *s = &g_sim;
-    uint64_t until;
-    int st = sim_control_run_target(&until);
-    if (st == 2) {
-        /* the host's link bytes first: a new connection is accepted before it is counted */
-        while (s->link.tcp_listen >= 0 && sim_link_accept(&s->link) == 0) {
-            sim_log("link: TCP client connected");
-        }
-        sim_link_receive(&s->link);
-        st = sim_control_run_target(&until);
-    }
-    if (st != 1) {
-        *was_active = 0;
-        return 0;
-    }
-    if (!*was_active) { /* the ceiling counts from the grant: frozen time is not credit */
-        s->anchor_dev_us = s->t_us;
-        s->anchor_wall_ns = now;
-        *was_active = 1;
-    }
-    uint64_t target = until;
-    if (s->speed > 0.0) {
-        uint64_t ceiling = pace_target(now);
-        if (ceiling < target) {
-            target = ceiling;
-        }
-    }
-    int more = run_device_to(target, now + BUDGET_NS, target == until);
-    flush_blocking(0);
-    sim_control_check_waits();
-    if (sim_control_run_target(NULL) != 1) {
-        *was_active = 0;
-        return 0;
-    }
-    return more || s->speed <= 0.0;
-}
-
-/* Lockstep: how long poll() may sleep (ms). A granted run under the speed ceiling sleeps
- * until its next tick is due on the wall clock; a frozen device until I/O arrives. */
-static int lockstep_sleep_ms(void)
-{
-    sim_t *s = &g_sim;
-    uint64_t until;
-    if (sim_control_run_target(&until) != 1) {
-        return IDLE_POLL_MS;
-    }
-    uint64_t tgt = pace_target(sim_wall_ns());
-    uint64_t next = s->tick_hz != 0 && s->next_tick_us < until ? s->next_tick_us : until;
-    if (next <= tgt || !(s->speed > 0.0)) {
-        return 0;
-    }
-    double ms = (double)(next - tgt) / s->speed / 1000.0;
-    return ms >= IDLE_POLL_MS ? IDLE_POLL_MS : (int)ceil(ms);
-}
-
-static void main_loop(void)
-{
-    sim_t *s = &g_sim;
-    struct pollfd pfd[64];
-    uint64_t last_wall = sim_wall_ns();
-    uint64_t bp_since = 0; /* speed 0: when the link back-pressure wait began */
-    uint64_t last_slip_log = 0;
-
-    uint64_t last_parent_check = 0;
-    int run_was_active = 0;
-    while (!s->quit && !g_signal) {
-        uint64_t now = sim_wall_ns();
-        if (g_parent != 0 && now - last_parent_check > 100000000ull) {
-            last_parent_check = now;
-            if (getppid() != g_parent) {
-                sim_log("parent process %ld is gone: exiting", (long)g_parent);
-                g_parent_gone = 1;
-                break;
-            }
-        }
-        uint64_t target;
-        int more = 0, bp_wait = 0;
-        if (s->lockstep) {
-            more = lockstep_step(now, &run_was_active);
-            goto io;
-        }
-        if (s->speed > 0.0) {
-            target = pace_target(now);
-            double max_lag = MAX_LAG_WALL_US * s->speed;
-            if (target > s->t_us && (double)(target - s->t_us) > max_lag) {
-                s->anchor_dev_us = s->t_us;
-                s->anchor_wall_ns = now;
-                target = s->t_us;
-                s->slips++;
-                if (s->slips == 1 || now - last_slip_log > 10000000000ull) {
-                    sim_log("cannot keep up with speed %g: running slower (slip %llu)", s->speed,
-                            (unsigned long long)s->slips);
-                    last_slip_log = now;
-                }
-            }
-        } else {
-            /* as fast as possible */
-            uint64_t idle = s->t_us + (now - last_wall) / 1000u;
-            if (s->tick_hz != 0) {
-                target = s->next_tick_us + 50000u;
-                if (s->link.os_blocked && sim_link_staged(&s->link) > (SIM_TX_STORE - SIM_TX_RING) / 2) {
-                    if (bp_since == 0) {
-                        bp_since = now;
-                    }
-                    if (now - bp_since < 50000000ull) {
-                        bp_wait = 1;
-                        target = s->t_us;
-                    }
-                } else {
-                    bp_since = 0;
-                }
-            } else {
-                uint64_t ev = min_u64(sim_control_next_deadline(), sim_phys_next_event(&s->phys, s->t_us));
-                target = ev != UINT64_MAX && ev > idle ? ev : idle;
-            }
-        }
-        last_wall = now;
-        if (!bp_wait) {
-            more = run_device(target, now + BUDGET_NS);
-        }
-        if (sim_link_staged(&s->link) > 0) {
-            sim_link_flush(&s->link);
-        }
-        sim_control_check_waits();
-    io:
-        if (s->quit || g_signal) {
-            break;
-        }
-
-        /* how long to sleep */
-        int timeout_ms;
-        if (more) {
-            timeout_ms = 0;
-        } else if (s->lockstep) {
-            timeout_ms = lockstep_sleep_ms();
-        } else if (s->speed > 0.0) {
-            uint64_t tgt = pace_target(sim_wall_ns());
-            uint64_t wait_dev;
-            if (s->t_us > tgt) {
-                wait_dev = s->t_us - tgt;
-            } else {
-                uint64_t ev = UINT64_MAX;
-                if (s->tick_hz != 0) {
-                    ev = s->next_tick_us;
-                }
-                ev = min_u64(ev, sim_control_next_deadline());
-                ev = min_u64(ev, sim_phys_next_event(&s->phys, s->t_us));
-                uint64_t drain = sim_link_next_drain_us(&s->link);
-                if (drain) {
-                    ev = min_u64(ev, s->t_us + drain);
-                }
-                wait_dev = ev == UINT64_MAX ? UINT64_MAX : (ev > tgt ? ev - tgt : 0);
-            }
-            double wall_ms = wait_dev == UINT64_MAX ? IDLE_POLL_MS : (double)wait_dev / s->speed / 1000.0;
-            timeout_ms = wall_ms >= IDLE_POLL_MS ? IDLE_POLL_MS : (int)ceil(wall_ms);
-            if (timeout_ms < 1) {
-                timeout_ms = 1;
-            }
-        } else if (bp_wait) {
-            timeout_ms = 5;
-        } else if (s->tick_hz != 0 || sim_control_next_deadline() != UINT64_MAX ||
-                   sim_phys_next_event(&s->phys, s->t_us) != UINT64_MAX) {
-            timeout_ms = 0;
-        } else {
-            timeout_ms = sim_link_queued(&s->link) ? 1 : IDLE_POLL_MS;
-        }
-
-        int n = 0;
-        sim_link_t *l = &s->link;
-        int i_listen = -1, i_client = -1, i_pty = -1;
-        if (l->tcp_listen >= 0) {
-            i_listen = n;
-            pfd[n++] = (struct pollfd){l->tcp_listen, POLLIN, 0};
-        }
-        int want_out = l->os_blocked && sim_link_staged(l) > 0;
-        short in = (l->rx_head - l->rx_tail) < SIM_RX_RING ? POLLIN : 0; /* room to receive */
-        if (l->tcp_client >= 0) {
-            i_client = n;
-            pfd[n++] = (struct pollfd){l->tcp_client, (short)(in | (want_out ? POLLOUT : 0)), 0};
-        }
-        if (l->pty_master >= 0) {
-            i_pty = n;
-            pfd[n++] = (struct pollfd){l->pty_master,
-                                       (short)(in | (want_out && l->tcp_client < 0 ? POLLOUT : 0)), 0};
-        }
-        int n_ctl = sim_control_pollfds(pfd + n, (int)(sizeof pfd / sizeof pfd[0]) - n);
-        int r = poll(pfd, (nfds_t)(n + n_ctl), timeout_ms);
-        if (r < 0) {
-            if (errno == EINTR) {
-                continue;
-            }
-            sim_log("poll failed: %s", strerror(errno));
-            break;
-        }
-        if (r == 0) {
-            continue;
-        }
-        if (i_listen >= 0 && (pfd[i_listen].revents & POLLIN)) {
-            if (sim_link_accept(l) == 0) {
-                sim_log("link: TCP client connected");
-            }
-        }
-        if ((i_client >= 0 && (pfd[i_client].revents & (POLLIN | POLLHUP | POLLERR))) ||
-            (i_pty >= 0 && (pfd[i_pty].revents & POLLIN))) {
-            sim_link_receive(l);
-        }
-        sim_control_handle(pfd + n, n_ctl);
-    }
-}
-
 static char g_tmpdir[256];
 static char g_tmpflash[300];
 
@@ -630,7 +413,7 @@ static void cleanup_tmp(void)
     if (g_tmpdir[0]) {
         rmdir(g_tmpdir);
     }
-    if (g_orphan_dir && g_parent_gone) {
+    if (g_orphan_dir && g_sim_parent_gone) {
         /* only the files the host puts there: a folder holding anything else stays */
         static const char *const names[] = {"flash.bin", "sim.log", "owner.json"};
         char p[1024];
@@ -640,6 +423,40 @@ static void cleanup_tmp(void)
         }
         rmdir(g_orphan_dir);
     }
+}
+
+/* No orphans: exit when the parent process dies. PR_SET_PDEATHSIG alone would also fire when
+ * the parent THREAD that started us ends (e.g. a Python worker thread), so the loop checks
+ * getppid() instead, at least every 100 ms. SIGTERM/INT/HUP end the loop (no SA_RESTART:
+ * poll() returns EINTR). */
+static void watch_parent_and_signals(void)
+{
+    g_sim_parent = getppid();
+    if (g_sim_parent == 1) {
+        g_sim_parent = 0; /* started by init / a daemon: nothing to watch */
+    }
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = on_signal;
+    sigemptyset(&sa.sa_mask);
+    sigaction(SIGTERM, &sa, NULL);
+    sigaction(SIGINT, &sa, NULL);
+    sigaction(SIGHUP, &sa, NULL);
+    signal(SIGPIPE, SIG_IGN);
+}
+
+/* No --flash: a flash file in a temporary directory of our own (removed at exit); NULL when
+ * it cannot be made (said on stderr). */
+static const char *temp_flash_path(void)
+{
+    const char *tmp = getenv("TMPDIR");
+    snprintf(g_tmpdir, sizeof g_tmpdir, "%s/imubench-sim-XXXXXX", tmp && *tmp ? tmp : "/tmp");
+    if (mkdtemp(g_tmpdir) == NULL) {
+        fprintf(stderr, "imubench-sim: cannot create a temp dir: %s\n", strerror(errno));
+        return NULL;
+    }
+    snprintf(g_tmpflash, sizeof g_tmpflash, "%s/flash.bin", g_tmpdir);
+    return g_tmpflash;
 }
 
 int main(int argc, char **argv)
@@ -690,6 +507,12 @@ int main(int argc, char **argv)
             s->lockstep = !strcmp(val, "lockstep");
         } else if (!strcmp(a, "--orphan-cleanup")) {
             g_orphan_dir = val;
+        } else if (!strcmp(a, "--parts")) {
+            char err[160];
+            if (sim_set_parts(val, err, sizeof err) != 0) {
+                fprintf(stderr, "imubench-sim: --parts %s\n", err);
+                return 2;
+            }
         } else {
             fprintf(stderr, "imubench-sim: bad option or value: %s %s\n", a, val);
             usage(stderr);
@@ -701,35 +524,15 @@ int main(int argc, char **argv)
         tcp_port = 0;
     }
 
-    /* No orphans: exit when the parent process dies. PR_SET_PDEATHSIG alone would also fire
-     * when the parent THREAD that started us ends (e.g. a Python worker thread), so the
-     * loop checks getppid() instead, at least every 100 ms. */
-    g_parent = getppid();
-    if (g_parent == 1) {
-        g_parent = 0; /* started by init / a daemon: nothing to watch */
-    }
-    struct sigaction sa;
-    memset(&sa, 0, sizeof sa);
-    sa.sa_handler = on_signal; /* no SA_RESTART: poll() returns EINTR */
-    sigemptyset(&sa.sa_mask);
-    sigaction(SIGTERM, &sa, NULL);
-    sigaction(SIGINT, &sa, NULL);
-    sigaction(SIGHUP, &sa, NULL);
-    signal(SIGPIPE, SIG_IGN);
+    watch_parent_and_signals();
 
     s->seed = seed;
     s->speed = speed;
-    if (flash_path == NULL) {
-        const char *tmp = getenv("TMPDIR");
-        snprintf(g_tmpdir, sizeof g_tmpdir, "%s/imubench-sim-XXXXXX", tmp && *tmp ? tmp : "/tmp");
-        if (mkdtemp(g_tmpdir) == NULL) {
-            fprintf(stderr, "imubench-sim: cannot create a temp dir: %s\n", strerror(errno));
-            return 1;
-        }
-        snprintf(g_tmpflash, sizeof g_tmpflash, "%s/flash.bin", g_tmpdir);
-        flash_path = g_tmpflash;
+    if (flash_path == NULL && (flash_path = temp_flash_path()) == NULL) {
+        return 1;
     }
     int rc = 1;
+    sim_board_flash_hooks();
     if (sim_flash_open(&s->flash, flash_path) != 0) {
         goto out;
     }
@@ -751,9 +554,9 @@ int main(int argc, char **argv)
     s->anchor_wall_ns = sim_wall_ns();
     s->anchor_dev_us = 0;
     boot(SIM_RESET_NONE);
-    main_loop();
+    sim_main_loop();
     rc = 0;
-    sim_log("exiting (%s)", g_signal ? strsignal(g_signal) : (s->quit ? "quit" : "parent gone"));
+    sim_log("exiting (%s)", g_sim_signal ? strsignal(g_sim_signal) : (s->quit ? "quit" : "parent gone"));
 out:
     sim_control_close();
     sim_link_close(&s->link);

@@ -25,7 +25,7 @@ G0 = U.G0_MPS2
 
 
 def _temperatures(block: SampleBlock) -> tuple[np.ndarray, np.ndarray]:
-    return (U.accel_temp_counts_to_c(block.accel_temp_counts), U.gyro_temp_counts_to_c(block.gyro_temp_counts))
+    return (U.accel_temp_counts_to_c(block.accel_temp_counts, range_g=block.accel_range_g), U.gyro_temp_counts_to_c(block.gyro_temp_counts))
 
 
 def corrected(block: SampleBlock, params: Params) -> tuple[np.ndarray, np.ndarray]:

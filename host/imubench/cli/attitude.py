@@ -56,7 +56,7 @@ def run(a) -> int:
         raise UsageError("--steps needs --sim", "a real board has no turntable imubench can drive")
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, target=a.target, clock=a.sim_clock)
+        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, target=a.target, clock=a.sim_clock, parts=a.sim_parts)
     with bench if a.sim else nullcontext() as vb:
         url = vb.port_url if vb is not None else a.port
         with Device.open(url, baudrate=a.baud, capture=None) as dev:

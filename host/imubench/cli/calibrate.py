@@ -328,7 +328,7 @@ def run(a) -> int:
         return _run_web(a, cfg, directory)
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random", target=a.target, clock=a.sim_clock)
+        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random", target=a.target, clock=a.sim_clock, parts=a.sim_parts)
     with bench if a.sim else nullcontext() as vb:
         if vb is not None:
             for slot, sensor in a.sim_fault:
@@ -376,7 +376,7 @@ def _run_web(a, cfg, directory: Path) -> int:
     session can be resumed there; the exit code is the last session's verdict."""
     from imubench.cli.station import port_policy, serve_page
     from imubench.station.runner import SIM_KEY, Station
-    station = Station(workdir=directory.parent, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed,
+    station = Station(workdir=directory.parent, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed, sim_parts=a.sim_parts,
                       allow_sim=a.sim, person={"offset_deg": (a.sim_tilt, a.sim_tilt)} if a.sim_tilt else None,
                       ports=port_policy(a))
     station.state.mode = "session"

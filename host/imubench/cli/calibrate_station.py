@@ -97,7 +97,7 @@ def _run_station(a, cfg) -> int:
                       "host decodes alongside them" + (" and the page" if a.ui == "web" else "")
                       + "; --sim-speed X to choose")
             benches = [stack.enter_context(VirtualBench(speed=a.sim_speed, seed=a.sim_seed + k, truth="random",
-                                                        target=a.target, clock=a.sim_clock))
+                                                        target=a.target, clock=a.sim_clock, parts=a.sim_parts))
                        for k in range(a.sim_boards)]
             ports = [vb.port_url for vb in benches]
             for slot, sensor in a.sim_fault:

@@ -67,7 +67,7 @@ def run(a) -> int:
     a.on_interrupt = recording_hint
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random", target=a.target, clock=a.sim_clock)
+        bench = VirtualBench(speed=a.sim_speed, seed=a.sim_seed, truth="random", target=a.target, clock=a.sim_clock, parts=a.sim_parts)
     with bench if a.sim else nullcontext() as vb:
         url = vb.port_url if vb is not None else a.port
         with Device.open(url, baudrate=a.baud, timeout=5.0) as dev:

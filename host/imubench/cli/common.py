@@ -113,6 +113,7 @@ def add_sim(p: argparse.ArgumentParser, what: str, speed: float | None = 20.0, l
                         "it sends, nothing is dropped and the same seed gives the same session on any machine, "
                         "the host build and the ARM images alike; realtime: it runs against the wall clock and "
                         "drops what a slow host does not read, as a real board does (docs/simulator.md)")
+    add_sim_parts(p, "--sim-parts")
     add_target(p)
 
 
@@ -151,6 +152,22 @@ def image_help(what: str = "<board>") -> tuple[str, str, str]:
                 "accepted for scripts; nothing is built (the package's images were built with it)")
     return ("Build (make firmware) and flash the STM32 firmware", f"build/arm/{what}/imubench.elf|.bin|.hex",
             "do not run `make firmware` first")
+
+
+def sim_parts(s: str) -> str:
+    """--sim-parts: the virtual board's parts (imubench.device.sim.sim_parts_spec)."""
+    from imubench.device.sim import sim_parts_spec
+    try:
+        return sim_parts_spec(s)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("--sim-parts: ")) from None
+
+
+def add_sim_parts(p: argparse.ArgumentParser, *flags: str) -> None:
+    p.add_argument(*flags, dest="sim_parts", type=sim_parts, default="", metavar="SLOT=PART,...",
+                   help="the virtual board's sensor parts (protocol/parts.toml), e.g. "
+                        "accel=adxl359,gyro_z=adxrs453; slots accel, gyro (all three), gyro_x, gyro_y, gyro_z; "
+                        "unnamed slots keep the ADXL355 and ADXRS450s")
 
 
 def add_target(p: argparse.ArgumentParser) -> None:

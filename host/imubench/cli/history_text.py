@@ -9,7 +9,7 @@ from imubench.results.export import measurement_text
 from imubench.results.numbers import pm
 from imubench.results.record import _parse_time
 from imubench.text import one_line
-from imubench.wire.ids import sn_text
+from imubench.wire.ids import parts_text, sn_text
 
 _AXES = ("x", "y", "z")
 
@@ -37,14 +37,16 @@ def _yes(b: bool) -> str:
 def format_devices(devs: list[dict], path) -> str:
     if not devs:
         return f"no calibrations recorded yet in {path}"
-    lines = [f"{'MCU UID':<24}  {'board':<6} {'runs':>4}  {'last calibration':<20}  {'method':<16}  result"]
+    lines = [f"{'MCU UID':<24}  {'board':<6} {'runs':>4}  {'last calibration':<20}  {'method':<16}  {'result':<34}  "
+             "parts (accel, gyro X Y Z)"]
     for d in devs:
         lr = d["last_run"] or {}
         method = lr.get("method", "-") + (f"/{lr['gyro_method']}" if lr.get("gyro_method") else "")
         res = ("passed" if lr.get("passed") else "FAILED") + (", written" if lr.get("written") else ", not written") \
             + (", verified" if lr.get("verified") else ", not verified") if lr else "-"
+        parts = " ".join(d.get("parts") or ["-"])
         lines.append(f"{d['mcu_uid']:<24}  {d['board'] or '-':<6} {d['runs']:>4}  {_when(d['last_seen']):<20}  "
-                     f"{method:<16}  {res}")
+                     f"{method:<16}  {res:<34}  {parts}".rstrip())
     lines.append(f"({len(devs)} device{'s' if len(devs) != 1 else ''} in {path}; "
                  "`imubench history DEVICE` for one device's runs and drift)")
     return "\n".join(lines)
@@ -70,6 +72,7 @@ def format_device_report(rep: dict) -> str:
     runs = rep["runs"]
     sn = dev.get("gyro_sn")
     out = [f"device {dev['mcu_uid']}  board {dev['board'] or '-'}"
+           + (f"  parts {parts_text(dev['parts'])}" if dev.get("parts") else "")
            + (f"  gyro SN {' '.join(sn_text(x) for x in sn)}" if sn else "")
            + f"  {len(runs)} run{'s' if len(runs) != 1 else ''}"]
     for s in runs:

@@ -130,7 +130,7 @@ def serve_page(station, a, until=None, start=lambda: None) -> None:
 
 def run(a) -> int:
     from imubench.station.runner import Station
-    station = Station(workdir=a.dir, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed, allow_sim=a.sim,
+    station = Station(workdir=a.dir, db=a.db, sim_speed=a.sim_speed, sim_seed=a.sim_seed, sim_parts=a.sim_parts, allow_sim=a.sim,
                       ports=port_policy(a))
     try:
         serve_page(station, a)

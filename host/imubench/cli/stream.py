@@ -20,7 +20,7 @@ from imubench.device.link import Device, DeviceError, LinkError, LinkTimeout
 from imubench.files import MAX_CAPTURE_BYTES, atomic_output, read_bytes
 from imubench.text import one_line
 from imubench.wire.decoder import decode_bytes
-from imubench.wire.ids import SENSOR_NAMES, board_name, byte_ids_text, pid_text, sn_text, uid_text
+from imubench.wire.ids import SENSOR_NAMES, board_name, byte_ids_text, part_names, parts_text, pid_text, sn_text, uid_text
 from imubench.wire.protocol_gen import (
     Board,
     ClockSource,
@@ -134,7 +134,7 @@ def run_decode(a) -> int:
         acc, gyr = block.si()
         cols = {"t_us": block.t_us, "sample_index": block.sample_index, "status": block.status,
                 "accel_mps2": acc, "rate_rad_s": gyr,
-                "accel_temp_c": U.accel_temp_counts_to_c(block.accel_temp_counts),
+                "accel_temp_c": U.accel_temp_counts_to_c(block.accel_temp_counts, range_g=block.accel_range_g),
                 "gyro_temp_c": U.gyro_temp_counts_to_c(block.gyro_temp_counts)}
         if not block.calibrated:
             cols["accel_counts"] = block.accel_counts
@@ -164,8 +164,9 @@ def _print_info(info) -> None:
           f"({one_line(info.fw_build)}), protocol {info.protocol_version}, MCU UID {uid}")
     print(f"  clock {_enum_name(ClockSource, info.clock_source)}, uptime {info.uptime_ms / 1000:.1f} s, "
           f"baud {info.baud or '-'}; " + ", ".join(sensors))
-    print(f"  ADXL355 IDs {byte_ids_text(info.accel_ids)}, range ±{info.accel_range_g} g; "
-          f"ADXRS450 PID {' '.join(pid_text(x) for x in info.gyro_pid)} "
+    print(f"  parts: {parts_text(part_names(info))}")
+    print(f"  accelerometer IDs {byte_ids_text(info.accel_ids)}, range ±{info.accel_range_g} g; "
+          f"gyro PID {' '.join(pid_text(x) for x in info.gyro_pid)} "
           f"SN {' '.join(sn_text(x) for x in info.gyro_sn)}")
     print(f"  parameters: {_enum_name(ParamSource, info.param_source)} (block v{info.param_block_version}, "
           f"generation {info.param_generation}); stream {_enum_name(StreamState, info.stream_state)}")
@@ -234,7 +235,7 @@ def run_monitor(a) -> int:
                           f"{_axes(U.mps2_to_mg(acc.mean(axis=0)) / 1000, '{:+9.5f}')} | "
                           f"{_axes(U.mps2_to_mg(acc.std(axis=0)), '{:6.3f}')} | "
                           f"{_axes(U.rad_s_to_dps(gyr.mean(axis=0)), '{:+8.3f}')} | "
-                          f"{float(U.accel_temp_counts_to_c(b.accel_temp_counts[-1])):5.1f} | "
+                          f"{float(U.accel_temp_counts_to_c(b.accel_temp_counts[-1], range_g=b.accel_range_g[-1])):5.1f} | "
                           f"rej {st.frames_rejected} lost {st.samples_missing}"
                           + (f" bad-samples {bad}" if bad else "") + faults, flush=True)
             finally:

@@ -157,7 +157,8 @@ def run(a) -> int:
 
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=_speed(a, 20.0), seed=a.sim_seed, target=a.target, clock=a.sim_clock)
+        bench = VirtualBench(speed=_speed(a, 20.0), seed=a.sim_seed, target=a.target, clock=a.sim_clock,
+                             parts=a.sim_parts)
     with bench if a.sim else nullcontext() as vb:
         if vb is not None:
             vb.set_truth(accel=SIM_ACCEL_TRUTH, gyro=SIM_GYRO_TRUTH)
@@ -222,7 +223,8 @@ def run_warmup_cmd(a) -> int:
     if sim:
         from imubench.device.sim import VirtualBench
         # a warm-up lasts tens of minutes of device time: the virtual part runs it faster
-        bench = VirtualBench(speed=_speed(a, 100.0), seed=a.sim_seed, target=a.target, clock=a.sim_clock, truth="random")
+        bench = VirtualBench(speed=_speed(a, 100.0), seed=a.sim_seed, target=a.target, clock=a.sim_clock, truth="random",
+                             parts=a.sim_parts)
     with bench if sim else nullcontext() as vb:
         if vb is not None:
             tau = None if a.tau is None else [a.tau] * 4

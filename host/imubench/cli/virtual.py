@@ -15,6 +15,7 @@ import time
 from imubench.cli.common import (
     CommandError,
     UsageError,
+    add_sim_parts,
     add_target,
     baud,
     existing_file,
@@ -42,6 +43,7 @@ def register(sub) -> None:
     p.add_argument("--flash", type=new_file, metavar="FILE",
                    help="parameter flash file, kept between runs (default: a temporary file, removed at exit)")
     p.add_argument("--pty", action="store_true", help="expose the link on a pseudo-terminal")
+    add_sim_parts(p, "--parts", "--sim-parts")
     p.add_argument("--tcp", type=int, default=None, metavar="PORT",
                    help="expose the link on TCP 127.0.0.1:PORT (0 = a free port; the default without --pty)")
     p.add_argument("--control", type=int, default=0, metavar="PORT", help="control channel port (0 = a free port)")
@@ -129,7 +131,7 @@ def run_sim(a) -> int:
         raise UsageError("--boot0 is a setting of the STM32 boards", "give --target f103 or --target f4")
     with VirtualBench(speed=a.speed, seed=a.seed, truth=a.truth, flash=a.flash, pty=a.pty,
                       baud=a.baud, tcp=tcp, control_port=a.control, target=a.target, boot0=a.boot0,
-                      thermal=a.thermal_lag, clock=a.clock) as bench, _ctrl_c_stops():
+                      thermal=a.thermal_lag, clock=a.clock, parts=a.sim_parts) as bench, _ctrl_c_stops():
         return _serve_sim(a, bench)
     return 0
 

@@ -18,6 +18,7 @@ import tty
 
 import numpy as np
 
+from imubench.parts_gen import PARTS
 from imubench.units import G0_MPS2
 from imubench.wire import frame as P
 from imubench.wire import params as PR
@@ -39,6 +40,8 @@ from imubench.wire.protocol_gen import (
     StreamMode,
     StreamState,
 )
+
+ACCEL, GYRO = PARTS["adxl355"], PARTS["adxrs450"]   # the fake board's parts (protocol/parts.toml)
 
 ACCEL_NOISE_G_RTHZ = 22.5e-6
 GYRO_NOISE_DPS_RTHZ = 0.015
@@ -227,7 +230,8 @@ class FakeDevice:
         return Info(
             request_id=rid, protocol_version=P.PROTOCOL_VERSION, board=Board.UNKNOWN, fw_version=FW_VERSION,
             clock_source=ClockSource.NONE, fw_build="python-fake", mcu_uid=tuple(range(0xF0, 0xFC)),
-            sensors_present=0b1111, accel_range_g=self.range_g, accel_ids=(0xAD, 0x1D, 0xED, 0x01),
+            sensors_present=0b1111, accel_range_g=self.range_g, parts=(ACCEL.id,) + (GYRO.id,) * 3,
+            accel_ids=(0xAD, 0x1D, 0xED, 0x01),
             gyro_pid=(0x5201,) * 3, gyro_sn=(0x1000001, 0x1000002, 0x1000003),
             stream_state={None: StreamState.STOPPED, StreamMode.RAW: StreamState.RAW,
                           StreamMode.CALIBRATED: StreamState.CALIBRATED}[self.streaming],
@@ -244,7 +248,7 @@ class FakeDevice:
             return [self._info(rid)], Error.OK, 0
         if t == T.START_STREAM:
             if m.rate_hz not in P.gen.STREAM_RATES_HZ or m.mode not in (0, 1) \
-                    or m.accel_range_g not in (0, 2, 4, 8):
+                    or m.accel_range_g not in (0, *(r.full_scale for r in ACCEL.ranges)):
                 return [], Error.BAD_ARGUMENT, 0
             maxb = 16 if m.mode == 0 else 8
             if m.batch > maxb:
@@ -317,7 +321,7 @@ class FakeDevice:
     def _send_batch(self, n: int) -> None:
         period_us = 1_000_000 // self.rate_hz
         g = self.gravity_board / np.linalg.norm(self.gravity_board)
-        lsb = {2: 256000, 4: 128000, 8: 64000}[self.range_g]
+        lsb = ACCEL.lsb_per_unit(self.range_g)
         a_sig = ACCEL_NOISE_G_RTHZ * np.sqrt(self.rate_hz)
         w_sig = GYRO_NOISE_DPS_RTHZ * np.sqrt(self.rate_hz)
         accel_g = g + self.rng.normal(0.0, a_sig, (n, 3))
@@ -329,7 +333,7 @@ class FakeDevice:
             counts = np.clip(np.round(accel_g * lsb), -(1 << 19), (1 << 19) - 1).astype(np.int64)
             recs = dict(accel_x_counts=counts[:, 0], accel_y_counts=counts[:, 1], accel_z_counts=counts[:, 2],
                         status=np.zeros(n, np.uint8),
-                        gyro_counts=np.clip(np.round(rate_dps * 80), -32768, 32767).astype(np.int16))
+                        gyro_counts=np.clip(np.round(rate_dps * GYRO.lsb_per_unit()), -32768, 32767).astype(np.int16))
             msg = RawBatch(header=hdr)
         else:
             acc = PR.correct(PR.accel(self.active), accel_g * G0_MPS2)

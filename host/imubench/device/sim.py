@@ -45,8 +45,8 @@ from typing import Any
 from imubench.device import clock as clocks
 from imubench.device.sim_drivers import (ClimateDriver, ControlChannel, FaultDriver, MotionDriver, TimeDriver,
                                          TruthDriver)
-from imubench.device.sim_resource import (CLOCKS, LIVE, TARGETS, TMP_PREFIX, SimError, SimProcess,  # noqa: F401
-                                          arm_command, build_sim)
+from imubench.device.sim_resource import (CLOCKS, LIVE, SIM_PART_SLOTS, TARGETS, TMP_PREFIX,  # noqa: F401
+                                          SimError, SimProcess, arm_command, build_sim, sim_parts_spec)
 from imubench.device.sim_strategy import BenchStrategy
 
 __all__ = ["CLOCKS", "SimError", "TARGETS", "VirtualBench", "arm_command", "build_sim", "repo_root"]
@@ -75,7 +75,7 @@ _LAYER_OF = {
     **{n: "resource" for n in ("binary", "running", "pid", "port_url", "pty", "tcp_port", "control_address", "log",
                                "info", "proc", "flash", "log_path", "_tmpdir", "target", "boot0", "elf", "speed",
                                "seed", "truth", "thermal", "pty_enabled", "baud", "uid", "startup_timeout",
-                               "clock_name")},
+                               "clock_name", "parts")},
     "control": "channel",
     **{n: "time" for n in ("status", "now", "wait", "wait_idle", "set_speed")},
     **{n: "motion" for n in ("set_orientation", "rotate", "set_rate", "path")},
@@ -109,6 +109,8 @@ class VirtualBench:
               sensor's die lags the chamber with its own time constant and warms by its own
               self-heating (set_thermal; docs/simulator.md). Off (the default) every die is
               at the chamber's temperature
+    parts     the board's sensor parts (protocol/parts.toml), e.g. "accel=adxl359,gyro_z=adxrs453"
+              or {"accel": "adxl359"}; slots not named keep the ADXL355 and ADXRS450s
 
     The layers: .resource (SimProcess), .channel (ControlChannel), .time, .motion, .climate,
     .truth_driver, .faults (the drivers) and .strategy (BenchStrategy); every name of theirs in
@@ -118,10 +120,11 @@ class VirtualBench:
     def __init__(self, speed: float | None = None, seed: int = 1, truth: str = "default", flash=None, pty: bool = False,
                  baud: int = 2000000, *, tcp: bool | int = True, control_port: int = 0, uid: str | None = None,
                  binary=None, startup_timeout: float = 15.0, start: bool = True, target: str = "host",
-                 boot0: bool = False, elf=None, thermal: bool = False, clock: str | None = None):
+                 boot0: bool = False, elf=None, thermal: bool = False, clock: str | None = None,
+                 parts: str | dict | None = None):
         self.resource = SimProcess(speed, seed, truth, flash, pty, baud, tcp=tcp, control_port=control_port,
                                    uid=uid, binary=binary, startup_timeout=startup_timeout, target=target,
-                                   boot0=boot0, elf=elf, thermal=thermal, clock=clock)
+                                   boot0=boot0, elf=elf, thermal=thermal, clock=clock, parts=parts)
         self.clock = clocks.LockstepClock(self) if self.resource.clock_name == "lockstep" else clocks.WALL
         self.channel = ControlChannel(self.resource)
         self.time = TimeDriver(self.channel, self.resource, self.clock)

@@ -21,8 +21,10 @@ from typing import Any, Sequence
 from imubench.device import artifacts
 from imubench.device.tmpdirs import owned_tmpdir
 from imubench.errors import ImubenchError
+from imubench.parts_gen import PARTS
 
-__all__ = ["CLOCKS", "SimError", "SimProcess", "TARGETS", "arm_command", "build_sim", "LIVE"]
+__all__ = ["CLOCKS", "SimError", "SimProcess", "TARGETS", "arm_command", "build_sim", "LIVE", "SIM_PART_SLOTS",
+           "sim_parts_spec"]
 
 # What runs the firmware: "host" = the core and drivers built for Linux (imubench-sim);
 # "f103" / "f4" = the exact STM32 image under the ARM emulator (imubench.device.arm), against
@@ -66,6 +68,34 @@ def build_sim() -> Path:
         raise SimError(str(e)) from e
 
 
+SIM_PART_SLOTS = {"accel": ("accel",), "gyro": ("gyro_x", "gyro_y", "gyro_z"),
+                  "gyro_x": ("gyro_x",), "gyro_y": ("gyro_y",), "gyro_z": ("gyro_z",)}
+
+
+def sim_parts_spec(parts: str | dict | None) -> str:
+    """The virtual board's parts (protocol/parts.toml) as the simulator's --parts text, e.g.
+    "accel=adxl359,gyro_z=adxrs453" (or a dict {"accel": "adxl359"}); slots accel, gyro (all
+    three), gyro_x, gyro_y, gyro_z; slots not named keep the ADXL355 and ADXRS450s. "" for the
+    default board. ValueError, one line naming the slots and parts known, for anything else."""
+    if not parts:
+        return ""
+    items = parts.items() if isinstance(parts, dict) else (
+        tuple(x.split("=", 1)) if "=" in x else (x, "") for x in str(parts).replace(" ", "").split(",") if x)
+    out = []
+    for slot, name in items:
+        slot, name = str(slot).lower(), str(name).lower()
+        if slot not in SIM_PART_SLOTS:
+            raise ValueError(f"--sim-parts: {slot!r} is no slot (slots: {', '.join(SIM_PART_SLOTS)}; "
+                             "e.g. accel=adxl359,gyro_z=adxrs453)")
+        kind = "accel_triad" if slot == "accel" else "gyro_axis"
+        known = sorted(p.name.lower() for p in PARTS.values() if p.kind == kind)
+        if name not in known:
+            raise ValueError(f"--sim-parts: {slot}={name or '?'}: the {'accelerometer' if slot == 'accel' else 'gyro'} "
+                             f"parts are {', '.join(known)}")
+        out.append(f"{slot}={name}")
+    return ",".join(out)
+
+
 class SimProcess:
     """One simulator process: its settings (imubench.device.sim.VirtualBench lists them), the
     process, its start-up facts and its log. spawn() starts it and reads its start-up line;
@@ -77,7 +107,7 @@ class SimProcess:
                  tcp: bool | int = True, control_port: int = 0, uid: str | None = None,
                  binary: str | os.PathLike | None = None, startup_timeout: float = 15.0, target: str = "host",
                  boot0: bool = False, elf: Sequence[str | os.PathLike] | None = None, thermal: bool = False,
-                 clock: str | None = None):
+                 clock: str | None = None, parts: str | dict | None = None):
         if target not in TARGETS:
             raise ValueError(f"target must be one of {', '.join(TARGETS)}")
         # BOOT0 high: the ROM bootloader serves stm32flash on the pty, which grants no time
@@ -93,6 +123,7 @@ class SimProcess:
             raise ValueError("truth must be 'default' or 'random'")
         if not pty and tcp is False:
             raise ValueError("give pty=True or tcp")
+        self.parts = sim_parts_spec(parts)   # checked here: a bad name is one line, not a dead process
         self.clock_name = clock
         self.target = target
         self.boot0 = bool(boot0)            # BOOT0 high: the ROM bootloader (stm32flash on the pty)
@@ -182,6 +213,8 @@ class SimProcess:
             args += ["--tcp", str(tcp_port)]
         if self.uid:
             args += ["--uid", self.uid]
+        if self.parts:
+            args += ["--parts", self.parts]
         if self.target == "host":
             args += ["--orphan-cleanup", self._tmpdir]      # a SIGKILLed host's folder goes with the sim
         return args

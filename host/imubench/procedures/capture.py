@@ -218,7 +218,7 @@ class PoseCapture:
         iv = detect_static(acc, self.cfg.rate_hz, noise_sigma=self.noise,
                            min_duration_s=min(1.0, 0.5 * len(acc) / self.cfg.rate_hz))
         sigma = (max(iv, key=lambda i: i.n).sigma_mean if iv else acc.std(axis=0) / np.sqrt(len(acc)))
-        temp = float(np.mean(U.accel_temp_counts_to_c(b.accel_temp_counts)))
+        temp = float(np.mean(U.accel_temp_counts_to_c(b.accel_temp_counts, range_g=b.accel_range_g)))
         return PoseRecord(name=name, direction=np.asarray(direction, float).tolist(), mean_mps2=mean.tolist(),
                           sigma_mean_mps2=np.asarray(sigma, float).tolist(), n=len(acc),
                           start_index=int(b.sample_index[0]), stop_index=int(b.sample_index[-1]) + 1,

@@ -49,7 +49,7 @@ from imubench.results.record import CalibrationRecord, device_ident, jsonable, n
 from imubench.results.sessionfile import SESSION_SCHEMA, SessionFileError, load_state
 from imubench.wire import params as PR
 from imubench.wire.decoder import SampleBlock
-from imubench.wire.ids import SENSOR_BAD_BITS, SENSOR_NAMES, board_name, uid_text
+from imubench.wire.ids import SENSOR_BAD_BITS, SENSOR_NAMES, board_name, part_names, parts_text, uid_text
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
 
@@ -172,7 +172,7 @@ class Session:
             problems.append(f"{rejected} corrupted frames on the link (cable, baud rate, ground)")
         if b.status.any() or problems:
             raise SessionAborted("refusing to calibrate on faulted data: " + "; ".join(problems))
-        return {"board": board_name(info.board), "uid": uid_text(info.mcu_uid)}
+        return {"board": board_name(info.board), "uid": uid_text(info.mcu_uid), "parts": part_names(info)}
 
     # ------------------------------------------------------------- streaming
     def _next_block(self, timeout: float = 10.0) -> SampleBlock:
@@ -282,7 +282,8 @@ class Session:
     def run(self, plan: list[tuple[str, np.ndarray]], history=None, verify_plan=None) -> dict:
         self.run_started = now_utc()
         self._first_index = self._last_index = None
-        self.check_health()
+        health = self.check_health()
+        self.ui.say(f"device {health['board']} {health['uid']}: {parts_text(health['parts'])}")
         self._start_stream()
         try:
             self.ui.present_plan(list(plan), self.cfg.method)

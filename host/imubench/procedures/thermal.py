@@ -190,7 +190,7 @@ def _mean_sigma(x: np.ndarray):
 
 
 def _temps(b):
-    return (float(U.accel_temp_counts_to_c(b.accel_temp_counts).mean()),
+    return (float(U.accel_temp_counts_to_c(b.accel_temp_counts, range_g=b.accel_range_g).mean()),
             U.gyro_temp_counts_to_c(b.gyro_temp_counts).mean(axis=0))
 
 
@@ -307,7 +307,7 @@ def measure_drift(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 200
             a = b.accel_mps2.astype(np.float64)
             acc.append(np.r_[a.mean(axis=0), np.linalg.norm(a, axis=1).mean()])
             gyr.append(b.rate_rad_s.astype(np.float64).mean(axis=0))
-            tc.append(float(U.accel_temp_counts_to_c(b.accel_temp_counts).mean()))
+            tc.append(float(U.accel_temp_counts_to_c(b.accel_temp_counts, range_g=b.accel_range_g).mean()))
     finally:
         dev.stop_stream()
     acc, gyr = np.array(acc), np.array(gyr)

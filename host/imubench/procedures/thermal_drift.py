@@ -56,7 +56,7 @@ def residual_drift(vb, dev, span_c, self_heat_c=(0.0,), sweep: DriftSweep | None
             while True:
                 b = dev.read(n_samples=10 * n)
                 m = len(b.t_us) // n * n
-                temps = np.column_stack([U.accel_temp_counts_to_c(b.accel_temp_counts[:m]),
+                temps = np.column_stack([U.accel_temp_counts_to_c(b.accel_temp_counts[:m], range_g=b.accel_range_g[:m]),
                                          U.gyro_temp_counts_to_c(b.gyro_temp_counts[:m])])
                 block = np.column_stack([temps, b.accel_mps2[:m].astype(np.float64), b.rate_rad_s[:m].astype(np.float64)])
                 chunks = block.reshape(-1, n, block.shape[1]).mean(axis=1)

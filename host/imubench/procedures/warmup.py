@@ -168,7 +168,7 @@ class _State:
             return 0
         t = b.t_us[ok].astype(np.float64) * 1e-6
         a, g = b.si()
-        temps = np.column_stack([U.accel_temp_counts_to_c(b.accel_temp_counts[ok]),
+        temps = np.column_stack([U.accel_temp_counts_to_c(b.accel_temp_counts[ok], range_g=b.accel_range_g[ok]),
                                  U.gyro_temp_counts_to_c(b.gyro_temp_counts[ok])])
         if self.t0 is None:
             self.t0 = float(t[0])
@@ -315,7 +315,7 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         dev.start_stream(rate_hz=cfg.rate_hz, calibrated=False)
         if cfg.span_c is not None and hooks.cool is None:
             first = dev.read(n_samples=max(10, cfg.rate_hz // 2))
-            now_c = np.r_[U.accel_temp_counts_to_c(first.accel_temp_counts).mean(),
+            now_c = np.r_[U.accel_temp_counts_to_c(first.accel_temp_counts, range_g=first.accel_range_g).mean(),
                           U.gyro_temp_counts_to_c(first.gyro_temp_counts).mean(axis=0)]
             if np.max(now_c) > cfg.span_c[0] + 2.0:
                 raise WarmupError(f"the sensors are at {_fmt(now_c)} °C already, above the span's lower end "
@@ -541,8 +541,8 @@ def write_warmup(dev, old: Params, fits: dict, t_ref: dict, b: Binned, cfg: Warm
         restore(dev, old)
         raise WarmupError(f"could not check the written terms ({e}): the previous parameters were restored") from e
     ra, rg = raw.si()
-    t_raw = np.r_[U.accel_temp_counts_to_c(raw.accel_temp_counts).mean(), U.gyro_temp_counts_to_c(raw.gyro_temp_counts).mean(axis=0)]
-    t_cal = np.r_[U.accel_temp_counts_to_c(cal.accel_temp_counts).mean(), U.gyro_temp_counts_to_c(cal.gyro_temp_counts).mean(axis=0)]
+    t_raw = np.r_[U.accel_temp_counts_to_c(raw.accel_temp_counts, range_g=raw.accel_range_g).mean(), U.gyro_temp_counts_to_c(raw.gyro_temp_counts).mean(axis=0)]
+    t_cal = np.r_[U.accel_temp_counts_to_c(cal.accel_temp_counts, range_g=cal.accel_range_g).mean(), U.gyro_temp_counts_to_c(cal.gyro_temp_counts).mean(axis=0)]
     ea, eg = expected_calibrated(new, ra.mean(axis=0), rg.mean(axis=0), t_raw)
     ca, cg = cal.si()
     da, dg = ca.mean(axis=0) - ea, cg.mean(axis=0) - eg

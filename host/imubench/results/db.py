@@ -51,7 +51,7 @@ from sqlalchemy.pool import NullPool
 from imubench.errors import ImubenchError
 from imubench.files import make_dir
 
-SCHEMA_VERSION = 2          # of the database (the tables below; MIGRATIONS reach it)
+SCHEMA_VERSION = 3          # of the database (the tables below; MIGRATIONS reach it)
 ENV_DB = "IMUBENCH_DB"      # the environment variable naming the database (path or URL)
 PG_LOCK_KEY = 0x494D5542    # "IMUB": the advisory lock a PostgreSQL migration holds
 
@@ -67,6 +67,7 @@ devices = Table(
     Column("id", Integer, primary_key=True),
     Column("mcu_uid", Text, nullable=False, unique=True),     # lower-case hex
     Column("board", Text),
+    Column("parts", Text),                                    # JSON: the part in each slot (protocol/parts.toml)
     Column("accel_ids", Text),                                # JSON, as of the latest run
     Column("gyro_pid", Text),                                 # JSON
     Column("gyro_sn", Text),                                  # JSON
@@ -420,4 +421,11 @@ def _migrate_1_to_2(conn: Connection) -> None:
                              "FROM runs")
 
 
-MIGRATIONS = {1: _migrate_1_to_2}       # from version k to k + 1
+def _migrate_2_to_3(conn: Connection) -> None:
+    """Schema 2 -> 3: a device row says which part sits in each slot (accelerometer, gyro
+    X/Y/Z: info.parts, protocol/parts.toml); NULL for devices last seen before parts were
+    reported (their boards carried ADXL355 and ADXRS450s)."""
+    conn.exec_driver_sql("ALTER TABLE devices ADD COLUMN parts TEXT")
+
+
+MIGRATIONS = {1: _migrate_1_to_2, 2: _migrate_2_to_3}       # from version k to k + 1

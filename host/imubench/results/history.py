@@ -192,7 +192,7 @@ class History:
             "capture_sha256": capture.get("sha256"), "capture_uri": capture.get("uri"),
             "failed_stage": failure.get("stage"), "failure": failure.get("reason"),
         }
-        device_row = {"board": dev.get("board"), "accel_ids": _dumps(dev.get("accel_ids")),
+        device_row = {"board": dev.get("board"), "parts": _dumps(dev.get("parts")), "accel_ids": _dumps(dev.get("accel_ids")),
                       "gyro_pid": _dumps(dev.get("gyro_pid")), "gyro_sn": _dumps(sn)}
         with self._write() as db:
             device_id = None
@@ -211,7 +211,7 @@ class History:
                                      + (", of the same session: its session.json changed since" if same_session
                                         and result.get("session_started") else "") + "): not stored")
                 if started >= last_seen:     # the newest run describes the device as it is now
-                    db.execute(text("UPDATE devices SET board = :board, accel_ids = :accel_ids, gyro_pid = :gyro_pid, "
+                    db.execute(text("UPDATE devices SET board = :board, parts = :parts, accel_ids = :accel_ids, gyro_pid = :gyro_pid, "
                                     "gyro_sn = :gyro_sn, last_seen = :s WHERE id = :d"),
                                {**device_row, "s": started, "d": device_id})
                 if started < first_seen:
@@ -237,15 +237,16 @@ class History:
     def devices(self) -> list[dict]:
         """Every known device, most recently calibrated first."""
         with self._read() as db:
-            rows = db.execute(text("SELECT id, mcu_uid, board, accel_ids, gyro_pid, gyro_sn, first_seen, last_seen "
-                                   "FROM devices ORDER BY last_seen DESC, mcu_uid")).all()
+            rows = db.execute(text("SELECT id, mcu_uid, board, parts, accel_ids, gyro_pid, gyro_sn, first_seen, "
+                                   "last_seen FROM devices ORDER BY last_seen DESC, mcu_uid")).all()
             out = []
-            for (dev_id, uid, board, ids, pid, sn, first, last) in rows:
+            for (dev_id, uid, board, parts, ids, pid, sn, first, last) in rows:
                 n = db.execute(text("SELECT COUNT(*) FROM runs WHERE device_id = :d"), {"d": dev_id}).scalar()
                 latest = db.execute(text("SELECT started, method, gyro_method, passed, written, verified FROM runs "
                                          "WHERE device_id = :d ORDER BY started DESC, id DESC LIMIT 1"),
                                     {"d": dev_id}).first()
-                d = {"mcu_uid": uid.upper(), "board": board, "accel_ids": _loads(ids), "gyro_pid": _loads(pid),
+                d = {"mcu_uid": uid.upper(), "board": board, "parts": _loads(parts), "accel_ids": _loads(ids),
+                     "gyro_pid": _loads(pid),
                      "gyro_sn": _loads(sn), "first_seen": first, "last_seen": last, "runs": n, "last_run": None}
                 if latest:
                     d["last_run"] = {"started": latest[0], "method": latest[1], "gyro_method": latest[2],

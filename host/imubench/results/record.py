@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench.calib import TriadFit
-from imubench.wire.ids import board_name, uid_text
+from imubench.wire.ids import device_identity
 
 RECORD_SCHEMA = 2           # of the result record a calibration session produces (1: before the production line)
 RECORD_SCHEMAS = (1, 2)     # records this imubench stores
@@ -54,10 +54,9 @@ def fit_dict(fit: TriadFit | None, unit: str) -> dict | None:
 
 
 def device_ident(info) -> dict:
-    """The record's device section from a device's info (wire.protocol_gen.DeviceInfo)."""
-    return {"mcu_uid": uid_text(info.mcu_uid), "board": board_name(info.board),
-            "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
-            "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)}
+    """The record's device section from a device's info (wire.protocol_gen.DeviceInfo): the
+    identity wire.ids.device_identity gives everywhere, the parts of each slot included."""
+    return device_identity(info)
 
 
 # ------------------------------------------------------------------ the record

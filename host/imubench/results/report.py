@@ -94,7 +94,8 @@ def _device_section(state: dict, result: dict | None) -> str:
     dev = (result or {}).get("device") or {}
     rows = []
     for label, key in (("MCU UID", "mcu_uid"), ("board", "board"), ("firmware", "fw_version"),
-                       ("firmware build", "fw_build"), ("accelerometer IDs", "accel_ids"),
+                       ("firmware build", "fw_build"), ("parts (accel, gyro X, Y, Z)", "parts"),
+                       ("accelerometer IDs", "accel_ids"),
                        ("gyro part IDs", "gyro_pid"), ("gyro serial numbers", "gyro_sn")):
         if key in dev:
             v = _id_text(key, dev[key])

@@ -122,7 +122,7 @@ _STATE = {
     "complete": "bool",
     "result": ("opt", {
         "device": {"mcu_uid": "str", "board": "str", "fw_version": "str", "fw_build": "str",
-                   "accel_ids": ("list", "int"), "gyro_pid": ("list", "int"), "gyro_sn": ("list", "int")},
+                   "parts": ("list", "str", 4), "accel_ids": ("list", "int"), "gyro_pid": ("list", "int"), "gyro_sn": ("list", "int")},
         "started": "str", "session_started": "str", "finished": "str", "method": "str",
         "gyro_method": ("opt", "str"), "note": "str", "passed": "bool", "written": "bool", "verified": "bool",
         "accel_rms_after_mg": _NUM_OR_NULL, "tolerances": {k: "num" for k in (

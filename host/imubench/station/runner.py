@@ -47,7 +47,7 @@ class Station:
     """
 
     def __init__(self, state: StationState | None = None, workdir: str | Path = ".", db=None,
-                 sim_speed: float = 20.0, sim_seed: int = 1, person: dict | None = None, history: bool = True,
+                 sim_speed: float = 20.0, sim_seed: int = 1, sim_parts: str = "", person: dict | None = None, history: bool = True,
                  allow_sim: bool = True, ports: PortPolicy | None = None, sim_thermal: dict | None = None,
                  warmup: dict | None = None):
         self.ports = ports or PortPolicy()
@@ -58,6 +58,7 @@ class Station:
         self.history = history
         self.sim_speed = sim_speed
         self.sim_seed = sim_seed
+        self.sim_parts = sim_parts       # the virtual board's parts (imubench.device.sim.sim_parts_spec)
         self.person_kw = dict(person or {})
         self.sim_thermal = dict(sim_thermal or {})
         self.warmup_settings = dict(warmup or {})      # WarmupConfig fields besides the page's (tests: short runs)
@@ -293,7 +294,7 @@ class Station:
             if key == SIM_KEY:
                 from imubench.device.sim import VirtualBench
                 if self._bench is None or not self._bench.running:
-                    self._bench = VirtualBench(speed=self.sim_speed, seed=self.sim_seed, truth="random")
+                    self._bench = VirtualBench(speed=self.sim_speed, seed=self.sim_seed, truth="random", parts=self.sim_parts)
                 hooks = W.sim_warmup_hooks(self._bench, cold_c=lo, warm_c=hi, say=ui.say,
                                            tau_s=self.sim_thermal.get("tau_s"),
                                            self_heat_c=self.sim_thermal.get("self_heat_c"))
@@ -312,10 +313,11 @@ class Station:
             self.state.update(key, lambda b: b.warmup["config"].update(                 # the page's rate colours
                 stop_rate_c_per_min=cfg.stop_rate_c_per_min, stop_window_s=cfg.stop_window_s))
             with Device.open(url, timeout=5.0) as dev:
-                from imubench.wire.ids import board_name, uid_text
+                from imubench.wire.ids import board_name, part_names, uid_text
                 info = dev.info()
                 self.state.update(key, lambda b: setattr(b, "device", {"board": board_name(info.board),
-                                                                       "uid": uid_text(info.mcu_uid), "url": url}))
+                                                                       "uid": uid_text(info.mcu_uid), "url": url,
+                                                                       "parts": part_names(info)}))
                 result = W.run_warmup(dev, d, cfg, hooks, on_progress=on_progress, stop=stop)
             summary = _warmup_summary(result, d, stopped=stop.is_set(), closing=self._closing)
             failed = result.get("status") == "failed"
@@ -347,7 +349,7 @@ class Station:
         from imubench.device.sim import VirtualBench
         from imubench.procedures.virtual import SimPerson
         if self._bench is None or not self._bench.running:
-            self._bench = VirtualBench(speed=self.sim_speed, seed=self.sim_seed, truth="random")
+            self._bench = VirtualBench(speed=self.sim_speed, seed=self.sim_seed, truth="random", parts=self.sim_parts)
         person = SimPerson(self._bench, forward=ui, **{"seed": self.sim_seed, **self.person_kw})
         self.persons[key] = person
         return self._bench.port_url, person
@@ -366,10 +368,11 @@ class Station:
                 ui.say("warning: six-position needs a square fixture (a machined cube against a square); held by "
                        "hand its faces are degrees off square and the fit fails: use multi")
             with Device.open(url, timeout=5.0) as dev:
-                from imubench.wire.ids import board_name, uid_text
+                from imubench.wire.ids import board_name, part_names, uid_text
                 info = dev.info()
                 self.state.update(key, lambda b: setattr(b, "device", {"board": board_name(info.board),
-                                                                       "uid": uid_text(info.mcu_uid), "url": url}))
+                                                                       "uid": uid_text(info.mcu_uid), "url": url,
+                                                                       "parts": part_names(info)}))
                 result, sess = run_session(dev, sess_dir, cfg, presenter, resume=resume)
             self._finish(key, result, sess_dir)
         except SessionStopped as e:

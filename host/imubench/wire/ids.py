@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import re
 
+from imubench.parts_gen import PART_BY_ID
 from imubench.wire.protocol_gen import Board, SampleStatus
 
 #: the four sensors in the protocol's order (Info.sensors_present bit i, fault events' sensor i)
-SENSOR_NAMES = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
+SENSOR_NAMES = ("accelerometer", "gyro X", "gyro Y", "gyro Z")
 #: each sensor's bad-sample bit in SampleStatus, in that order
 SENSOR_BAD_BITS = (SampleStatus.ACCEL_BAD, SampleStatus.GYRO_X_BAD, SampleStatus.GYRO_Y_BAD, SampleStatus.GYRO_Z_BAD)
 
@@ -60,10 +61,33 @@ def parse_id(text: str) -> str:
     return s
 
 
+SLOT_NAMES = ("accel", "gyro_x", "gyro_y", "gyro_z")
+
+
+def part_name(part_id: int) -> str:
+    """The name of a part id of info.parts (protocol/parts.toml); 0 = none in that slot; an id
+    this imubench does not know (a newer firmware) is named by its number."""
+    if int(part_id) == 0:
+        return "none"
+    p = PART_BY_ID.get(int(part_id))
+    return p.name if p else f"part {int(part_id)}"
+
+
+def part_names(info) -> list[str]:
+    """The part in each slot (accelerometer, gyro X, Y, Z) as the device identified them."""
+    return [part_name(x) for x in getattr(info, "parts", (0, 0, 0, 0))]
+
+
+def parts_text(parts) -> str:
+    """One line for people: 'accel ADXL359, gyro_x ADXRS450, gyro_y ADXRS450, gyro_z ADXRS453'."""
+    return ", ".join(f"{s} {p}" for s, p in zip(SLOT_NAMES, parts))
+
+
 def device_identity(info) -> dict:
     """The identity of a device from its Info message, in the one format: what every result
     file records so that a result can be matched to its device (results.report refuses a
     part from another device)."""
     return {"mcu_uid": uid_text(info.mcu_uid), "board": board_name(info.board),
             "fw_version": ".".join(map(str, info.fw_version)), "fw_build": info.fw_build,
+            "parts": part_names(info),
             "accel_ids": list(info.accel_ids), "gyro_pid": list(info.gyro_pid), "gyro_sn": list(info.gyro_sn)}

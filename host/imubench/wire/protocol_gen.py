@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 MAX_PAYLOAD = 256
 SAVE_UNCHANGED_FLAG = 0x80000000  # save_params ack value: the block was already stored
 HEADER_SIZE = 8
@@ -101,6 +101,15 @@ class FaultKind(enum.IntEnum):
 class ParamsWhich(enum.IntEnum):
     ACTIVE = 0
     STORED = 1
+
+
+class Part(enum.IntEnum):
+    """Sensor part in a slot (protocol/parts.toml); info.parts."""
+    NONE = 0
+    ADXL355 = 1
+    ADXL359 = 2
+    ADXRS450 = 3
+    ADXRS453 = 4
 
 
 class SampleStatus(enum.IntFlag):
@@ -524,6 +533,7 @@ class Info:
     mcu_uid: tuple = (0,) * 12
     sensors_present: int = 0
     accel_range_g: int = 0  # [g]
+    parts: tuple = (0,) * 4
     accel_ids: tuple = (0,) * 4
     gyro_pid: tuple = (0,) * 3
     gyro_sn: tuple = (0,) * 3
@@ -535,12 +545,12 @@ class Info:
     param_generation: int = 0
     baud: int = 0  # [bit/s]
     uptime_ms: int = 0  # [ms]
-    FORMAT = "<HBB3BB16s12BBB4B3H3IBBHHHIII"
-    SIZE = 80
-    NVALUES = 40
+    FORMAT = "<HBB3BB16s12BBB4B4B3H3IBBHHHIII"
+    SIZE = 84
+    NVALUES = 44
 
     def values(self) -> tuple:
-        return (self.request_id, self.protocol_version, self.board, *self.fw_version, self.clock_source, self.fw_build.encode('utf-8'), *self.mcu_uid, self.sensors_present, self.accel_range_g, *self.accel_ids, *self.gyro_pid, *self.gyro_sn, self.stream_state, self.param_source, self.stream_rate_hz, self.max_rate_hz, self.param_block_version, self.param_generation, self.baud, self.uptime_ms)
+        return (self.request_id, self.protocol_version, self.board, *self.fw_version, self.clock_source, self.fw_build.encode('utf-8'), *self.mcu_uid, self.sensors_present, self.accel_range_g, *self.parts, *self.accel_ids, *self.gyro_pid, *self.gyro_sn, self.stream_state, self.param_source, self.stream_rate_hz, self.max_rate_hz, self.param_block_version, self.param_generation, self.baud, self.uptime_ms)
 
     @classmethod
     def from_values(cls, v, i: int = 0) -> "Info":
@@ -553,6 +563,7 @@ class Info:
         mcu_uid = tuple(v[i:i + 12]); i += 12
         sensors_present = v[i]; i += 1
         accel_range_g = v[i]; i += 1
+        parts = tuple(v[i:i + 4]); i += 4
         accel_ids = tuple(v[i:i + 4]); i += 4
         gyro_pid = tuple(v[i:i + 3]); i += 3
         gyro_sn = tuple(v[i:i + 3]); i += 3
@@ -564,7 +575,7 @@ class Info:
         param_generation = v[i]; i += 1
         baud = v[i]; i += 1
         uptime_ms = v[i]; i += 1
-        return cls(request_id=request_id, protocol_version=protocol_version, board=board, fw_version=fw_version, clock_source=clock_source, fw_build=fw_build, mcu_uid=mcu_uid, sensors_present=sensors_present, accel_range_g=accel_range_g, accel_ids=accel_ids, gyro_pid=gyro_pid, gyro_sn=gyro_sn, stream_state=stream_state, param_source=param_source, stream_rate_hz=stream_rate_hz, max_rate_hz=max_rate_hz, param_block_version=param_block_version, param_generation=param_generation, baud=baud, uptime_ms=uptime_ms)
+        return cls(request_id=request_id, protocol_version=protocol_version, board=board, fw_version=fw_version, clock_source=clock_source, fw_build=fw_build, mcu_uid=mcu_uid, sensors_present=sensors_present, accel_range_g=accel_range_g, parts=parts, accel_ids=accel_ids, gyro_pid=gyro_pid, gyro_sn=gyro_sn, stream_state=stream_state, param_source=param_source, stream_rate_hz=stream_rate_hz, max_rate_hz=max_rate_hz, param_block_version=param_block_version, param_generation=param_generation, baud=baud, uptime_ms=uptime_ms)
 
 Info.STRUCT = struct.Struct(Info.FORMAT)
 
@@ -762,17 +773,17 @@ MESSAGES_BY_NAME = {d.name: d for d in MESSAGES.values()}
 # the bound; 'finite': None; 'flags': mask of the allowed bits.
 VALUE_REASONS = {'enum': 'bad_enum', 'min': 'out_of_range', 'max': 'out_of_range', 'finite': 'not_finite', 'flags': 'bad_flags'}
 VALUE_RULES = {
-    0x03: ((1, 1, 'mode', 'enum', frozenset({0, 1})), (3, 1, 'accel_range_g', 'enum', frozenset({0, 2, 4, 8})), (4, 3, 'reserved', 'max', 0),),
+    0x03: ((1, 1, 'mode', 'enum', frozenset({0, 1})), (3, 1, 'accel_range_g', 'enum', frozenset({0, 2, 4, 8, 10, 20, 40})), (4, 3, 'reserved', 'max', 0),),
     0x06: ((0, 1, 'which', 'enum', frozenset({0, 1})), (1, 3, 'reserved', 'max', 0),),
     0x0B: ((1, 3, 'reserved', 'max', 0),),
     0x80: ((2, 1, 'error', 'enum', frozenset({0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13})),),
-    0x81: ((6, 1, 'clock_source', 'enum', frozenset({0, 1, 2, 3})), (20, 1, 'sensors_present', 'flags', 0x0F), (21, 1, 'accel_range_g', 'enum', frozenset({2, 4, 8})), (32, 1, 'stream_state', 'enum', frozenset({0, 1, 2})), (33, 1, 'param_source', 'enum', frozenset({0, 1, 2})),),
+    0x81: ((6, 1, 'clock_source', 'enum', frozenset({0, 1, 2, 3})), (20, 1, 'sensors_present', 'flags', 0x0F), (21, 1, 'accel_range_g', 'enum', frozenset({2, 4, 8, 10, 20, 40})), (36, 1, 'stream_state', 'enum', frozenset({0, 1, 2})), (37, 1, 'param_source', 'enum', frozenset({0, 1, 2})),),
     0x82: ((1, 1, 'which', 'enum', frozenset({0, 1})), (2, 1, 'source', 'enum', frozenset({0, 1, 2})),),
     0x83: ((1, 1, 'reserved', 'max', 0),),
     0x84: ((0, 1, 'sensor', 'enum', frozenset({0, 1, 2, 3})), (1, 1, 'kind', 'enum', frozenset({1, 2, 3, 4, 5, 6, 7})), (2, 1, 'active', 'enum', frozenset({0, 1})), (3, 1, 'reserved', 'max', 0),),
     0x85: ((1, 1, 'passed', 'flags', 0x0F), (2, 1, 'tested', 'flags', 0x0F), (9, 1, 'reserved', 'max', 0),),
-    0x90: ((1, 1, 'header.period_us', 'min', 1), (2, 1, 'header.count', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})), (13, 1, 'header.reserved2', 'max', 0),),
-    0x91: ((1, 1, 'header.period_us', 'min', 1), (2, 1, 'header.count', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8})), (13, 1, 'header.reserved2', 'max', 0),),
+    0x90: ((1, 1, 'header.period_us', 'min', 1), (2, 1, 'header.count', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8, 10, 20, 40})), (13, 1, 'header.reserved2', 'max', 0),),
+    0x91: ((1, 1, 'header.period_us', 'min', 1), (2, 1, 'header.count', 'min', 1), (3, 1, 'header.sensor_flags', 'flags', 0x7F), (6, 1, 'header.accel_range_g', 'enum', frozenset({2, 4, 8, 10, 20, 40})), (13, 1, 'header.reserved2', 'max', 0),),
 }
 RECORD_RULES = {
     'cal_sample': (('accel_mps2', 'finite', None), ('rate_rad_s', 'finite', None), ('status', 'flags', 0x0F),),

@@ -189,8 +189,31 @@ uint32_t adxl355_model_period_us(const adxl355_model_t *m)
     return 250u << c;
 }
 
+void adxl355_model_set_part(adxl355_model_t *m, const ib_part_desc_t *part)
+{
+    m->part = part;
+    for (size_t i = 0; part != NULL && i < part->n_id_regs; i++) {
+        if (part->id_regs[i].reg < 4u) {
+            m->id[part->id_regs[i].reg] = (uint8_t)part->id_regs[i].value;
+        }
+    }
+    if (part != NULL && part->part != IB_PART_ADXL355) { /* the ADXL355 keeps its representative noise */
+        for (int i = 0; i < 3; i++) {
+            m->truth.noise_n[i] = part->noise_per_rthz * SIM_G0_MPS2;
+        }
+    }
+}
+
 double adxl355_model_lsb_per_g(const adxl355_model_t *m)
 {
+    if (m->part != NULL) {
+        unsigned code = m->reg[R_RANGE] & 0x03u;
+        for (size_t i = 0; i < m->part->n_ranges; i++) {
+            if (m->part->ranges[i].code == (code ? code : 1u)) {
+                return m->part->ranges[i].lsb_per_unit;
+            }
+        }
+    }
     switch (m->reg[R_RANGE] & 0x03u) {
     case 2:
         return 128000.0;
@@ -470,7 +493,9 @@ static void produce_sample(adxl355_model_t *m, const sim_world_t *w, uint64_t t_
         fifo_push(m, v | (i == 0 ? FIFO_X_FLAG : 0u));
     }
     if ((m->reg[R_POWER_CTL] & PWR_TEMP_OFF) == 0) {
-        long t = lround(1885.0 - 9.05 * dtemp);
+        const double t0 = m->part ? m->part->temp_offset_counts : 1885.0;
+        const double slope = m->part ? m->part->temp_lsb_per_c : -9.05;
+        long t = lround(t0 + slope * dtemp);
         if (t < 0) {
             t = 0;
         } else if (t > 4095) {

@@ -77,6 +77,7 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "parts_gen.h"
 #include "sim_rng.h"
 #include "sim_world.h"
 
@@ -114,6 +115,8 @@ typedef struct adxl355_model {
     adxl355_truth_t truth;
     double st_force_g[3];     /* self-test force, g (default +0.3, +0.3, +1.5) */
     uint8_t id[4];            /* DEVID_AD, DEVID_MST, PARTID, REVID as read (wrong-ID fault) */
+    const ib_part_desc_t *part; /* the part modelled (protocol/parts.toml): PARTID, sensitivity
+                                   per RANGE code, temperature intercept; NULL = ADXL355 */
     uint8_t shadow[5];        /* factory bytes at 0x50..0x54 */
     uint32_t reset_busy_us;   /* NVM reload time after a soft reset */
     adxl355_model_faults_t fault;
@@ -195,6 +198,11 @@ void adxl355_model_set_stuck_data(adxl355_model_t *m, int on);
 void adxl355_model_set_shadow_corrupt(adxl355_model_t *m, int on);
 void adxl355_model_set_ids(adxl355_model_t *m, uint8_t devid_ad, uint8_t devid_mst,
                            uint8_t partid);
+
+/* Model part `part` of the ADXL355 family (protocol/parts.toml; the ADXL359: PARTID 0xE9,
+ * +-10/20/40 g at 51200/25600/12800 LSB/g, temperature intercept 1852 LSB, noise density
+ * 80 ug/sqrt(Hz)); the register map is the ADXL355's (one regmap in Linux's adxl355_core.c). */
+void adxl355_model_set_part(adxl355_model_t *m, const ib_part_desc_t *part);
 
 /* Sensitivity of the current RANGE setting, LSB/g. */
 double adxl355_model_lsb_per_g(const adxl355_model_t *m);

@@ -341,6 +341,15 @@ void sim_adxrs450_set_missing(sim_adxrs450_t *m, int missing) { m->missing = mis
 
 void sim_adxrs450_set_pid(sim_adxrs450_t *m, uint16_t pid) { m->pid = pid; }
 
+void sim_adxrs450_set_part(sim_adxrs450_t *m, const ib_part_desc_t *part)
+{
+    if (part == NULL || part->part == IB_PART_ADXRS450) {
+        return; /* the default chip */
+    }
+    m->pid = part->id_regs[0].value;
+    m->truth.bias_instability_rad_s = part->bias_instability * DEG2RAD;
+}
+
 /* ---- registers ---- */
 
 static int reg_valid(uint32_t addr)

@@ -99,6 +99,7 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "parts_gen.h"
 #include "sim_rng.h"
 #include "sim_world.h"
 
@@ -286,6 +287,11 @@ void sim_adxrs450_set_missing(sim_adxrs450_t *m, int missing);
  * restarts. Truth, bias random walk, fault causes (persistent faults), pending parity
  * corruption and the missing flag are kept. */
 void sim_adxrs450_power_cycle(sim_adxrs450_t *m);
+
+/* Model gyro part `part` (protocol/parts.toml): its PID (the ADXRS450 keeps 0x5201, the
+ * ADXRS453 answers 0x5202) and its bias instability (ADXRS453: 16 deg/h); the protocol and
+ * register map are shared (Linux drivers/iio/gyro/adxrs450.c drives both). */
+void sim_adxrs450_set_part(sim_adxrs450_t *m, const ib_part_desc_t *part);
 
 /* Override the PID register (to test a wrong part). */
 void sim_adxrs450_set_pid(sim_adxrs450_t *m, uint16_t pid);

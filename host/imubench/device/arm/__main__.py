@@ -56,6 +56,7 @@ def _parse_args(argv: list[str] | None) -> tuple[argparse.Namespace, bytes | Non
     ap.add_argument("--baud", type=int, default=2000000)
     ap.add_argument("--pty", action="store_true")
     ap.add_argument("--no-hse", action="store_true")
+    ap.add_argument("--parts", default="", help="the board's parts, e.g. accel=adxl359,gyro_z=adxrs453")
     a = ap.parse_args(argv)
     if a.baud != 2000000:
         ap.error("the image configures its own baud rate (2000000): --baud cannot change it")
@@ -162,6 +163,10 @@ def main(argv: list[str] | None = None) -> int:
 
     lib.simlib_set_pty(1 if a.pty else 0)
     lib.simlib_set_identity_target(a.target.encode())   # the seed names a board of this target
+    err = ctypes.create_string_buffer(160)
+    if lib.simlib_set_parts(a.parts.encode(), err, len(err)) != 0:
+        print(f"imubench-arm: --parts {err.value.decode()}", file=sys.stderr)
+        return 2
     tcp = a.tcp if not a.pty or a.tcp else -1     # --pty alone: no TCP endpoint
     if lib.simlib_open(a.seed, 1 if a.truth == "random" else 0, uid, tcp, a.control, a.speed) != 0:
         print("imubench-arm: cannot open the serial endpoint / control channel", file=sys.stderr)

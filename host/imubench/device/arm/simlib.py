@@ -36,6 +36,7 @@ class PollFd(ctypes.Structure):
 
 _SIGNATURES = {
     "simlib_open": (c_int, [c_uint64, c_int, c_char_p, c_int, c_int, c_double]),
+    "simlib_set_parts": (c_int, [c_char_p, c_char_p, c_int]),
     "simlib_close": (None, []),
     "simlib_set_pty": (None, [c_int]),
     "simlib_set_identity_target": (None, [c_char_p]),

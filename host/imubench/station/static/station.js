@@ -214,7 +214,7 @@
       t.dataset.state = state;
       $(".slot", t).textContent = F.slot || b.device.slot;
       $(".uid", t).textContent = b.device.uid || "(no device ID yet)";
-      $(".uid", t).title = b.device.url || b.key;
+      $(".uid", t).title = (b.device.url || b.key) + (b.device.parts ? "\nparts: " + b.device.parts.join(", ") : "");
       $(".state", t).textContent = state === "running" ? (waiting ? "waits" : "running") : state;
       const done = b.plan.filter((c) => c.state === "done").length;
       let stage = STAGES[F.stage] || F.stage || b.phase || "";
@@ -261,7 +261,8 @@
   function renderBoard(b) {
     const el = column(b.key);
     const slot = b.device && b.device.slot ? `slot ${b.device.slot}: ` : "";
-    const dev = b.device && b.device.board ? ` — ${b.device.board} ${b.device.uid || ""}` : b.device && b.device.uid ? ` — ${b.device.uid}` : "";
+    const parts = b.device && b.device.parts ? ` (${b.device.parts.join(", ")})` : "";
+    const dev = b.device && b.device.board ? ` — ${b.device.board} ${b.device.uid || ""}${parts}` : b.device && b.device.uid ? ` — ${b.device.uid}` : "";
     $(".devname", el).textContent = slot + (b.key === "sim" ? "virtual bench" : b.device && b.device.slot ? (b.device.url || b.key) : b.key) + dev;
     const st = $(".status", el);
     st.textContent = b.status + (b.phase && b.status === "running" ? " · " + b.phase : "");
