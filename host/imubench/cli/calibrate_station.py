@@ -105,7 +105,7 @@ def _run_station(a, cfg) -> int:
                     raise UsageError(f"--sim-fault {slot}:{sensor}: there are {len(benches)} virtual boards",
                                      f"give a board from 1 to {len(benches)}")
                 _inject_sim_fault(benches[slot - 1], sensor)
-            mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed)
+            mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed, guard_wall_s=max(a.link_timeout, 1.0))
             print(f"{len(benches)} virtual devices with random truth (seeds {a.sim_seed}..{a.sim_seed + len(benches) - 1}) "
                   f"on one virtual fixture, speed {a.sim_speed:g}")
         else:

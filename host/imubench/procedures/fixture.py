@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench.calib import CalibrationError
+from imubench.device.clock import ClockError
 from imubench.device.link import Device, LinkError, LinkTimeout
 from imubench.errors import ImubenchError
 from imubench.files import open_input, write_text
@@ -252,10 +253,12 @@ class BoardSession(Session):
             self._leave_plate()
             self.link_lost = f"link lost: no data from the device for {self.link_timeout_s:g} s"
             raise BoardFailed("link", self.link_lost) from None
-        except LinkError as e:
+        except (LinkError, ImubenchError, TimeoutError, OSError) as e:
+            # any error of this board's link (a lost port, a simulator that stopped answering:
+            # its grant passed the clock's wall-clock guard) is this board's alone
             self._leave_plate()
-            self.link_lost = f"link lost: {e}"
-            raise BoardFailed("link", f"link lost: {e}") from None
+            self.link_lost = f"link lost: {_line(e)}"
+            raise BoardFailed("link", self.link_lost) from None
         bad = int(np.bitwise_or.reduce(b.status)) if len(b) else 0
         if bad:
             names = [n for bit, n in zip(SENSOR_BAD_BITS, SENSOR_NAMES) if bad & bit]
@@ -394,11 +397,12 @@ class FixtureRun:
         try:
             self._update(slot, stage="connect", message=f"opening {st.port}")
             try:
+                self._guard_clock(st.port)
                 kw = {"timeout": 5.0} | ({"baudrate": self.baudrate} if self.baudrate else {})
                 dev = Device.open(st.port, **kw)
                 info = dev.info()
-            except (OSError, LinkError, TimeoutError) as e:
-                raise BoardFailed("connect", f"no answer from the device on {st.port}: {e}") from None
+            except (OSError, LinkError, TimeoutError, ImubenchError) as e:
+                raise BoardFailed("connect", f"no answer from the device on {st.port}: {_line(e)}") from None
             info_dev = device_ident(info)
             self._update(slot, uid=info_dev["mcu_uid"], message=f"{info_dev['board']} {info_dev['mcu_uid']}")
             params_before = dev.get_params(ParamsWhich.ACTIVE).params
@@ -412,10 +416,13 @@ class FixtureRun:
                 result = sess.run(plan_for(self.cfg.method))
             except CalibrationError as e:
                 raise BoardFailed("fit", f"fit refused: {e}") from None
-            except (LinkTimeout, LinkError) as e:
-                raise BoardFailed("link", f"link lost: {e}") from None
+            except (LinkTimeout, LinkError, ClockError, TimeoutError, ConnectionError) as e:
+                raise BoardFailed("link", f"link lost: {_line(e)}") from None
             except (SessionAborted, ImubenchError) as e:   # e.g. stopped on the station page
-                raise BoardFailed(self.boards[slot].stage, str(e)) from None
+                why = _line(e)
+                if "a frozen device" in why:        # a lockstep device's grant passed its wall-clock guard
+                    raise BoardFailed("link", f"link lost: {why}") from None
+                raise BoardFailed(self.boards[slot].stage, why) from None
             self._update(slot, stage="fit", message=f"fit: |a| − g RMS {result['accel_rms_after_mg']:.3f} mg")
             result["write_requested"] = bool(self.cfg.write)
             if result["passed"] and self.cfg.write:
@@ -442,6 +449,17 @@ class FixtureRun:
         self.results[slot] = rec
         self._record(slot, rec)
 
+    def _guard_clock(self, port: str) -> None:
+        """A lockstep virtual device's grants get this board's link timeout as their wall-clock
+        guard: a frozen simulator (its process stopped, its link open) never lets its device
+        time pass, so no device-time deadline of its own could ever end the wait; with the
+        guard the board fails at link within link_timeout_s of wall time, alone (each
+        board's clock is its own), and the others' grants go on."""
+        from imubench.device.clock import for_url
+        clk = for_url(port)
+        if getattr(clk, "lockstep", False):
+            clk.guard_wall_s = min(clk.guard_wall_s, max(float(self.link_timeout_s), 1.0))
+
     def _write_and_verify(self, slot: int, sess: BoardSession, result: dict) -> None:
         """The session's write-back (procedures.writeback.write_and_verify: the previous
         parameters put back when it fails); a failure is the board's, at its stage."""
@@ -450,10 +468,10 @@ class FixtureRun:
         except VerifyFailed as e:
             self.plate.leave(slot)
             result["written"] = False
-            raise BoardFailed("verify", f"verification failed: {e}") from None
-        except (PR.InvalidParams, SessionAborted, LinkError, TimeoutError) as e:
+            raise BoardFailed("verify", f"verification failed: {_line(e)}") from None
+        except (PR.InvalidParams, SessionAborted, LinkError, TimeoutError, ImubenchError, OSError) as e:
             self.plate.leave(slot)
-            raise BoardFailed("write", f"write-back failed: {e}") from None
+            raise BoardFailed("write", f"write-back failed: {_line(e)}") from None
         result.update(written=out.written, verified=out.verified, verification=out.verification,
                       write_steps=out.steps)
 
@@ -523,6 +541,17 @@ def run_fixture(ports: list[str], directory, cfg: SessionConfig, mover, **kw) ->
 
 
 # ------------------------------------------------------------------- helpers
+def _line(e: BaseException | str) -> str:
+    """An error as one line (a simulator's error may carry its log's tail); a lockstep
+    device's grant past its wall-clock guard is said as what it is."""
+    import re
+    text = str(e).strip()
+    text = text.splitlines()[0] if text else type(e).__name__
+    return re.sub(r"no reply to (run|status) within ([0-9.]+) s",
+                  lambda m: f"the device stopped answering (no device time passed in {float(m.group(2)):.3g} s of "
+                            "wall time: a frozen device)", text)
+
+
 def capture_ref(d: Path) -> dict:
     """SHA-256 of the raw capture (the capture files in stream order, as one byte sequence),
     the files, and where they are: a file:// URI naming this station's host."""
