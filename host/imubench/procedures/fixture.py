@@ -235,8 +235,8 @@ class BoardSession(Session):
         if self.link_lost is None:
             try:
                 return super()._stop_stream()
-            except (LinkError, TimeoutError) as e:
-                self.link_lost = str(e)
+            except (LinkError, TimeoutError, ImubenchError, OSError) as e:    # any error of this board's link
+                self.link_lost = _line(e)
         cap, self.dev.link.capture = self.dev.link.capture, None
         if cap is not None:
             cap.close()
