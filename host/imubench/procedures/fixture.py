@@ -90,6 +90,7 @@ class BoardStatus:
     run_id: int | None = None
     directory: str = ""
     waiting: str | None = None      # done with a phase, waiting for the other boards: for whom, till when
+    device: dict | None = None      # its identity (results.record.device_ident: UID, serials, firmware build)
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -404,7 +405,8 @@ class FixtureRun:
             except (OSError, LinkError, TimeoutError, ImubenchError) as e:
                 raise BoardFailed("connect", f"no answer from the device on {st.port}: {_line(e)}") from None
             info_dev = device_ident(info)
-            self._update(slot, uid=info_dev["mcu_uid"], message=f"{info_dev['board']} {info_dev['mcu_uid']}")
+            self._update(slot, uid=info_dev["mcu_uid"], device=info_dev,
+                         message=f"{info_dev['board']} {info_dev['mcu_uid']}")
             params_before = dev.get_params(ParamsWhich.ACTIVE).params
             stats, rate = dev.link.decoder.stats, float(self.cfg.rate_hz)
             sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
