@@ -183,3 +183,94 @@ def test_a_frozen_board_is_dropped_from_the_plate_at_its_first_missed_deadline(t
     if stage == "plate":            # found by the plate, which dropped it from its plan at once
         assert "stopped answering the plate" in b.reason and [w for w in run.plate.waits if w["outcome"] == "lost"]
     assert 2 not in run.plate.live
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_or_sigterm_records_every_board_and_exits_130(tmp_path, sig):
+    """A station session stopped in the terminal (Ctrl-C, or SIGTERM from a service manager):
+    every board is recorded (record.json, a history row), the unfinished ones as stopped with
+    their stage, station.json is completed, the table is printed, the exit code is 130, and
+    nothing says "link lost" (issue 38, point 3)."""
+    import json
+    import subprocess
+    import sys
+
+    from imubench.results.history import History
+    d, db = tmp_path / "st", tmp_path / "h.sqlite"
+    cmd = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "3", "--sim-speed", "50",
+           "--method", "six", "--gyro", "none", "--dir", str(d), "--db", str(db), "--link-timeout", "2"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    out = []
+    try:
+        for line in p.stdout:               # stopped once a board is at its attitudes
+            out.append(line)
+            if ": poses" in line:
+                p.send_signal(sig)
+                break
+        rest, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    text = "".join(out) + rest
+    assert p.returncode == 130, (text, err)
+    assert "Traceback" not in err and "link lost" not in text + err, (text, err)
+    assert "interrupted" in err and "recorded as stopped" in err and "--resume" in err, err
+    assert "STOPPED" in text                                        # the table, with the stopped boards
+    st = json.loads((d / "station.json").read_text())
+    assert st["finished"] and st["stopped"]
+    assert ("SIGTERM" if sig == signal.SIGTERM else "Ctrl-C") in st["stopped"]
+    states = [b["state"] for b in st["boards"]]
+    assert "stopped" in states and set(states) <= {"passed", "failed", "stopped"}
+    for b in st["boards"]:
+        rec = json.loads((d / f"slot-{b['slot']}" / "record.json").read_text())
+        if b["state"] == "stopped":
+            assert rec["failure"]["stopped"] and rec["failure"]["stage"] == b["stage"] != "link"
+    with History(db, readonly=True) as h:
+        assert len(h.session_runs(st["session_id"])) == 3
+
+
+def test_a_stopped_station_session_resumes_each_board_where_it_stopped(tmp_path):
+    """Stopped at once (Ctrl-C), then `--resume DIR --sim`: the same virtual boards (seeds from
+    station.json), each continues its own capture on its own device, finished boards stay
+    finished, the session id is kept; the history holds the stopped runs and the passed ones."""
+    import json
+    import subprocess
+    import sys
+
+    from imubench.results.history import History
+    d, db = tmp_path / "st", tmp_path / "h.sqlite"
+    base = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-speed", "50", "--method", "six",
+            "--gyro", "none", "--db", str(db), "--link-timeout", "2"]
+    p = subprocess.Popen(base + ["--sim-boards", "2", "--sim-seed", "77", "--dir", str(d)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        seen = 0
+        for line in p.stdout:
+            if "captured" in line or ": poses" in line:
+                seen += 1
+            if seen >= 2:
+                p.send_signal(signal.SIGINT)
+                break
+        p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130
+    first = json.loads((d / "station.json").read_text())
+    poses_before = {b["slot"]: len(json.loads((d / f"slot-{b['slot']}" / "session.json").read_text())["poses"])
+                    for b in first["boards"] if (d / f"slot-{b['slot']}" / "session.json").is_file()}
+    r = subprocess.run(base + ["--resume", str(d)], capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, (r.stdout[-2000:], r.stderr)
+    st = json.loads((d / "station.json").read_text())
+    assert st["session_id"] == first["session_id"] and st["resumed"] and st["finished"] and not st["stopped"]
+    assert [b["state"] for b in st["boards"]] == ["passed", "passed"]
+    for b in st["boards"]:
+        assert b["device"]["mcu_uid"] == json.loads((d / f"slot-{b['slot']}" / "session.json").read_text())["device"]["mcu_uid"]
+    assert "2 of 2 boards passed" in r.stdout
+    # the captures went on (the streams before the stop are kept)
+    for slot, n in poses_before.items():
+        assert (d / f"slot-{slot}" / "capture-1.bin").is_file()
+        assert len(json.loads((d / f"slot-{slot}" / "session.json").read_text())["poses"]) >= max(n, 6)
+    with History(db, readonly=True) as h:
+        runs = h.session_runs(st["session_id"])
+    assert sum(1 for x in runs if x["passed"]) == 2

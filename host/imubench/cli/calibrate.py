@@ -301,10 +301,7 @@ def run(a) -> int:
     if a.plate_timeout is not None and not _station_session(a):
         raise UsageError("--plate-timeout goes with several boards on one fixture",
                          "give --port once per board (or --sim --sim-boards N), or drop it")
-    if a.resume and _station_session(a):
-        raise UsageError("--resume continues a one-board session; a station session with several boards is "
-                         "started afresh", "run it again with --dir NEW_DIR (each board's captures stay in DIR/slot-K)")
-    if a.resume:
+    if a.resume and not _station_session(a):
         from imubench.results.sessionfile import load_state
         load_state(a.resume)            # a damaged or foreign session.json is named before a device is opened
     cfg = SessionConfig(method=a.method or "multi", gyro=None if a.gyro == "none" else a.gyro, rate_hz=a.rate,

@@ -50,7 +50,7 @@ from imubench.device.link import Device, LinkError, LinkTimeout
 from imubench.errors import ImubenchError
 from imubench.files import open_input, write_text
 from imubench.procedures.errors import SessionAborted
-from imubench.procedures.plate import POSE_TIMEOUT_S, PLATE_TIMEOUT_S, BoardFailed, Plate  # noqa: F401 - where callers found them
+from imubench.procedures.plate import POSE_TIMEOUT_S, PLATE_TIMEOUT_S, BoardFailed, BoardStopped, Plate  # noqa: F401 - where callers found them
 from imubench.procedures.presenter import Presenter
 from imubench.procedures.schedule import Need
 from imubench.procedures.session import Session, SessionConfig, plan_for
@@ -83,7 +83,7 @@ class BoardStatus:
     port: str
     uid: str | None = None
     stage: str = "waiting"          # connect, health, rest, poses, turntable, fit, write, verify, record, done
-    state: str = "running"          # running | passed | failed
+    state: str = "running"          # running | passed | failed | stopped (Ctrl-C, SIGTERM, Stop on the page)
     message: str = ""
     progress: float = 0.0
     reason: str | None = None
@@ -140,8 +140,12 @@ class BoardPresenter(Presenter):
             self.page.say(text)
 
     def _check_page(self) -> None:
+        self.run.check_stop(self.slot)  # the whole station session stopped (Ctrl-C, SIGTERM, the page closed)
         if self.page is not None:
-            self.page.check_stop()      # stopped on the page (or the station closed): this board stops here
+            try:
+                self.page.check_stop()  # stopped on the page: this board stops here
+            except ImubenchError as e:
+                raise BoardStopped(self.run.boards[self.slot].stage, f"stopped: {_line(e)}") from None
 
     def suggest(self, name) -> None:
         """The missing attitude that helps this board's fit most: its vote at the plate."""
@@ -208,8 +212,9 @@ class BoardSession(Session):
     error) during capture stops the board, naming the sensor."""
 
     def __init__(self, device: Device, directory, config: SessionConfig, presenter: Presenter, *,
-                 board_run: "FixtureRun | None" = None, slot: int = 0, link_timeout_s: float = 10.0):
-        super().__init__(device, directory, config, presenter)
+                 board_run: "FixtureRun | None" = None, slot: int = 0, link_timeout_s: float = 10.0,
+                 resume: bool = False):
+        super().__init__(device, directory, config, presenter, resume=resume)
         self.board_run = board_run
         self.slot = slot
         self.link_timeout_s = link_timeout_s
@@ -248,6 +253,8 @@ class BoardSession(Session):
             self.board_run.plate.leave(self.slot)
 
     def _next_block(self, timeout: float = 10.0):
+        if self.board_run is not None:
+            self.board_run.check_stop(self.slot)
         try:
             b = self.dev.read(duration_s=0.05, timeout=min(timeout, self.link_timeout_s))
         except LinkTimeout:
@@ -288,6 +295,12 @@ class FixtureResult:
     def failed(self) -> list[int]:
         return [b.slot for b in self.boards if b.state != "passed"]
 
+    @property
+    def stopped(self) -> list[int]:
+        return [b.slot for b in self.boards if b.state == "stopped"]
+
+    interrupted: str | None = None      # why the whole session was stopped (Ctrl-C, SIGTERM, the page), if it was
+
 
 class FixtureRun:
     """One station session over several boards (see the module's doc)."""
@@ -296,7 +309,7 @@ class FixtureRun:
                  db=None, on_event: Callable[[dict], None] | None = None, link_timeout_s: float = 10.0,
                  baudrate: int | None = None, say=print, plots: bool = True,
                  pages: Callable[[int, str], object] | None = None, plate_timeout_s: float = PLATE_TIMEOUT_S,
-                 on_plate: Callable[[dict], None] | None = None):
+                 on_plate: Callable[[dict], None] | None = None, resume: bool = False, extra: dict | None = None):
         if not ports:
             raise ValueError("no boards: give at least one port")
         self.ports = list(ports)
@@ -317,10 +330,30 @@ class FixtureRun:
                            f"{uuid.uuid4().hex[:6]}")
         self.boards = {k + 1: BoardStatus(slot=k + 1, port=p, directory=str(self.dir / f"slot-{k + 1}"))
                        for k, p in enumerate(self.ports)}
-        self.plate = Plate(mover, list(self.boards), say=say, deadline_s=plate_timeout_s,
-                           on_wait=self._on_wait, on_move=self._on_move)
+        self.extra = dict(extra or {})  # kept in station.json (e.g. the virtual fixture's seed)
+        self.resume = resume
+        self.kept: set[int] = set()     # a resumed session: the boards that had finished (not run again)
         self.results: dict[int, dict] = {}
+        if resume:
+            self._load_station()
+        self.plate = Plate(mover, [s for s in self.boards if s not in self.kept], say=say, deadline_s=plate_timeout_s,
+                           on_wait=self._on_wait, on_move=self._on_move)
         self._lock = threading.Lock()
+        self.stop_reason: str | None = None     # the whole session was stopped: why (stop())
+
+    # ------------------------------------------------------------ stopping
+    def stop(self, reason: str = "stopped") -> None:
+        """Stop every board where it is (Ctrl-C, SIGTERM, the page closed): each stops at its
+        next block of samples or check at the plate, is recorded as stopped with its stage,
+        and the boards already finished keep their records. Any thread may call it."""
+        if self.stop_reason is None:
+            self.stop_reason = reason
+        with self.plate._cv:
+            self.plate._cv.notify_all()
+
+    def check_stop(self, slot: int) -> None:
+        if self.stop_reason is not None:
+            raise BoardStopped(self.boards[slot].stage, f"stopped: {self.stop_reason}")
 
     # ------------------------------------------------------------ state
     def _update(self, slot: int, publish: bool = True, **kw) -> None:
@@ -359,23 +392,63 @@ class FixtureRun:
         write_json_atomic(self.dir / "station.json", {
             "schema": 1, "session_id": self.session_id, "station": dataclasses.asdict(self.station),
             "config": jsonable(dataclasses.asdict(self.cfg)), "ports": self.ports, "finished": finished,
-            "boards": self.snapshot()})
+            "stopped": self.stop_reason, "resumed": self.resume, **self.extra, "boards": self.snapshot()})
+
+    def _load_station(self) -> None:
+        """A whole station session resumed: the same session id; each board that finished
+        (passed or failed, its record written) stays finished; the others continue their own
+        capture in DIR/slot-K (a board that had none starts it), each on the device it was
+        captured on (Session refuses another)."""
+        import json
+        path = self.dir / "station.json"
+        try:
+            saved = json.loads(path.read_text())
+            boards = {int(b["slot"]): b for b in saved["boards"]}
+            self.session_id = str(saved["session_id"])
+        except FileNotFoundError:
+            raise SessionAborted(f"cannot resume: {self.dir} holds no station.json (not a station session)") from None
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise SessionAborted(f"cannot resume: {path} is damaged ({type(e).__name__}: {e})") from None
+        if len(boards) != len(self.boards):
+            raise SessionAborted(f"cannot resume: {self.dir} is a station session of {len(boards)} boards; "
+                                 f"{len(self.boards)} were given")
+        for slot, b in boards.items():
+            rec_path = self.dir / f"slot-{slot}" / "record.json"
+            if b.get("state") in ("passed", "failed") and rec_path.is_file() and slot in self.boards:
+                st = self.boards[slot]
+                for k in ("uid", "stage", "state", "message", "progress", "reason", "run_id", "device"):
+                    if k in b:
+                        setattr(st, k, b[k])
+                try:
+                    self.results[slot] = json.loads(rec_path.read_text())
+                except (OSError, ValueError):
+                    continue
+                self.kept.add(slot)
 
     # ------------------------------------------------------------ run
     def run(self) -> FixtureResult:
         t0 = time.monotonic()
         self.dir.mkdir(parents=True, exist_ok=True)
-        if (self.dir / "station.json").exists():
-            raise SessionAborted(f"{self.dir} already holds a station session: give another --dir")
+        if (self.dir / "station.json").exists() and not self.resume:
+            raise SessionAborted(f"{self.dir} already holds a station session: continue it with --resume "
+                                 f"{self.dir}, or give another --dir")
         self._save_station()
+        for slot in sorted(self.kept):
+            self.say(f"slot {slot}: {self.boards[slot].state} before; kept (its record stays)")
         self.say(self.deadlines_text())
         self._on_move({"deadlines": self.deadlines_text()})
         threads = [threading.Thread(target=self._board, args=(slot,), name=f"board-{slot}", daemon=True)
-                   for slot in self.boards]
+                   for slot in self.boards if slot not in self.kept]
         for t in threads:
             t.start()
-        for t in threads:
-            t.join()
+        try:
+            for t in threads:
+                while t.is_alive():         # a join with a timeout: Ctrl-C reaches this thread
+                    t.join(0.25)
+        except KeyboardInterrupt as e:      # Ctrl-C (or SIGTERM made one): every board stops and is recorded
+            self.stop("terminated (SIGTERM)" if type(e).__name__ == "_Terminated" else "interrupted (Ctrl-C)")
+            for t in threads:
+                t.join()
         if self.plots:                  # after the boards: the plots take CPU the live streams need
             from imubench.results.calibration import plot_pose_residuals
             for slot, rec in sorted(self.results.items()):
@@ -385,8 +458,10 @@ class FixtureRun:
                     except Exception as e:  # noqa: BLE001 - a plot is not worth a board's verdict
                         self.say(f"warning: slot {slot}: no residual plot ({e})")
         self._save_station(finished=True)
-        return FixtureResult(self.session_id, self.dir, [self.boards[s] for s in sorted(self.boards)],
-                             dict(self.results), time.monotonic() - t0)
+        res = FixtureResult(self.session_id, self.dir, [self.boards[s] for s in sorted(self.boards)],
+                            dict(self.results), time.monotonic() - t0)
+        res.interrupted = self.stop_reason
+        return res
 
     def _board(self, slot: int) -> None:
         st = self.boards[slot]
@@ -409,11 +484,15 @@ class FixtureRun:
                          message=f"{info_dev['board']} {info_dev['mcu_uid']}")
             params_before = dev.get_params(ParamsWhich.ACTIVE).params
             stats, rate = dev.link.decoder.stats, float(self.cfg.rate_hz)
-            sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
-                                BoardPresenter(self, slot, discard=dev.discard_buffered,
-                                               page=self.pages(slot, st.port) if self.pages else None,
-                                               clock=lambda: stats.samples / rate),
-                                board_run=self, slot=slot, link_timeout_s=self.link_timeout_s)
+            again = self.resume and (self.dir / f"slot-{slot}" / "session.json").is_file()
+            try:
+                sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
+                                    BoardPresenter(self, slot, discard=dev.discard_buffered,
+                                                   page=self.pages(slot, st.port) if self.pages else None,
+                                                   clock=lambda: stats.samples / rate),
+                                    board_run=self, slot=slot, link_timeout_s=self.link_timeout_s, resume=again)
+            except SessionAborted as e:     # e.g. another device than its capture's: refused, this board only
+                raise BoardFailed("connect", str(e)) from None
             try:
                 result = sess.run(plan_for(self.cfg.method))
             except CalibrationError as e:
@@ -422,6 +501,8 @@ class FixtureRun:
                 raise BoardFailed("link", f"link lost: {_line(e)}") from None
             except (SessionAborted, ImubenchError) as e:   # e.g. stopped on the station page
                 why = _line(e)
+                if self.stop_reason is not None or type(e).__name__ == "SessionStopped":
+                    raise BoardStopped(self.boards[slot].stage, f"stopped: {self.stop_reason or why}") from None
                 if "a frozen device" in why:        # a lockstep device's grant passed its wall-clock guard
                     raise BoardFailed("link", f"link lost: {why}") from None
                 raise BoardFailed(self.boards[slot].stage, why) from None
@@ -433,8 +514,13 @@ class FixtureRun:
                 self.plate.leave(slot)
             result["params_after"] = PR.to_json(dev.get_params(ParamsWhich.ACTIVE).params)
             sess.finish(result)
+        except BoardStopped as e:
+            self._fail(slot, e.stage, e.reason, state="stopped")
         except BoardFailed as e:
-            self._fail(slot, e.stage, e.reason)
+            if self.stop_reason is not None and e.stage == "link":     # the stop cut its link, not a fault
+                self._fail(slot, self.boards[slot].stage, f"stopped: {self.stop_reason}", state="stopped")
+            else:
+                self._fail(slot, e.stage, e.reason)
         except Exception as e:  # noqa: BLE001 - a bug on one board must not stop the others; it is named
             self._fail(slot, self.boards[slot].stage, f"{type(e).__name__}: {e}")
             (self.dir / f"slot-{slot}").mkdir(parents=True, exist_ok=True)
@@ -447,7 +533,18 @@ class FixtureRun:
                     dev.close()
             except Exception:  # noqa: BLE001
                 link_stats = None
-        rec = self._record_for(slot, started, result, info_dev, params_before, link_stats)
+        try:
+            rec = self._record_for(slot, started, result, info_dev, params_before, link_stats)
+        except Exception as e:  # noqa: BLE001 - every board gets a record, even when building it failed
+            st = self.boards[slot]
+            if st.state == "running":
+                self._update(slot, state="failed", reason=f"{type(e).__name__}: {e}")
+            rec = {"device": info_dev, "started": started, "passed": False, "session_id": self.session_id,
+                   "station": {"id": self.station.station_id, "slot": slot, "port": st.port},
+                   "failure": {"stage": st.stage, "reason": st.reason or f"{type(e).__name__}: {e}",
+                               "stopped": st.state == "stopped"}, "measurements": []}
+            (self.dir / f"slot-{slot}").mkdir(parents=True, exist_ok=True)
+            write_text(self.dir / f"slot-{slot}" / "error.txt", traceback.format_exc())
         self.results[slot] = rec
         self._record(slot, rec)
 
@@ -467,8 +564,13 @@ class FixtureRun:
         parameters put back when it fails); a failure is the board's, at its stage."""
         try:
             out = sess.write_and_verify()
+        except BoardStopped:
+            self.plate.leave(slot)
+            raise
         except VerifyFailed as e:
             self.plate.leave(slot)
+            if self.stop_reason is not None:
+                raise BoardStopped("verify", f"stopped: {self.stop_reason}; the previous parameters were put back") from None
             result["written"] = False
             raise BoardFailed("verify", f"verification failed: {_line(e)}") from None
         except (PR.InvalidParams, SessionAborted, LinkError, TimeoutError, ImubenchError, OSError) as e:
@@ -477,11 +579,11 @@ class FixtureRun:
         result.update(written=out.written, verified=out.verified, verification=out.verification,
                       write_steps=out.steps)
 
-    def _fail(self, slot: int, stage: str, reason: str) -> None:
+    def _fail(self, slot: int, stage: str, reason: str, state: str = "failed") -> None:
         self.plate.leave(slot)
-        self._update(slot, state="failed", stage=stage or "connect", reason=reason, message=f"FAILED: {reason}")
+        self._update(slot, state=state, stage=stage or "connect", reason=reason, message=f"{state.upper()}: {reason}")
         if self.on_event is None:       # a listener shows the failure with the board's other events
-            self.say(f"slot {slot} ({self.boards[slot].port}) FAILED at {stage}: {reason}")
+            self.say(f"slot {slot} ({self.boards[slot].port}) {state.upper()} at {stage}: {reason}")
 
     def _record_for(self, slot: int, started: str, result: dict | None, ident: dict, params_before, link_stats) -> dict:
         st = self.boards[slot]
@@ -496,7 +598,7 @@ class FixtureRun:
                             "frames_rejected": int(link_stats.frames_rejected),
                             "samples_overflow": int(getattr(link_stats, "samples_overflow", 0))}
         from imubench.results.export import measurements_of
-        if result is not None and st.state != "failed":
+        if result is not None and st.state not in ("failed", "stopped"):
             rec = {**result, **base}
             rec["measurements"] = measurements_of(rec)
             ok, why = verdict(rec, self.cfg.write)
@@ -513,12 +615,17 @@ class FixtureRun:
         rec = CalibrationRecord(
             device=ident, started=started, method=self.cfg.method, gyro_method=self.cfg.gyro, note=self.cfg.note,
             written=bool(result and result.get("written")), capture_dir=str((self.dir / f"slot-{slot}").resolve()),
-            failure={"stage": st.stage, "reason": st.reason or "failed"},
+            failure={"stage": st.stage, "reason": st.reason or "failed", "stopped": st.state == "stopped"},
             **fitted, sections={**base, "params_after": (result or {}).get("params_after")}).to_json()
         rec["measurements"] = measurements_of(rec)
         return rec
 
     def _record(self, slot: int, rec: dict) -> None:
+        try:                            # on disk first: the database may be slow, shared or gone
+            (self.dir / f"slot-{slot}").mkdir(parents=True, exist_ok=True)
+            write_json_atomic(self.dir / f"slot-{slot}" / "record.json", jsonable(rec))
+        except OSError as e:
+            self.say(f"warning: slot {slot}: record.json not written ({e})")
         if self.db is None:
             return
         from imubench.results.history import History

@@ -19,6 +19,11 @@ class BoardFailed(Exception):
         self.stage, self.reason = stage, reason
 
 
+class BoardStopped(BoardFailed):
+    """The board was stopped (Ctrl-C, SIGTERM, Stop on the page): recorded as stopped, with
+    the stage it was at."""
+
+
 # ---------------------------------------------------------------- the plate
 #: how long a board waits at the plate for what it needs, in device time (the board's own
 #: samples), by default: the other boards' attitudes, write-backs and verifications included
