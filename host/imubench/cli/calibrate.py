@@ -247,7 +247,19 @@ def _check_history(db) -> None:
     path that cannot be written is named now, not after a session whose record it would lose."""
     from imubench.results.db import describe
     from imubench.results.history import History, default_target
+    import os
     target = db or default_target()
+    path = None if "://" in str(target) else Path(target)
+    if path is not None and not path.exists():
+        # a new SQLite file: made by the first record, not now (a command refused later, e.g. a
+        # usage error, leaves no empty database behind); here only whether it can be made
+        parent = path.parent if str(path.parent) else Path(".")
+        probe = next((q for q in [parent, *parent.parents] if q.exists()), None)
+        if probe is None or not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+            raise CommandError(f"history database: {describe(target)}: cannot create it ({probe or parent} "
+                               "is not a writable directory)",
+                               "fix --db (or IMUBENCH_DB); nothing was captured")
+        return
     try:
         with History(target, timeout_s=5.0):
             pass
