@@ -100,7 +100,8 @@ def register(sub) -> None:
                         "numbers, seeds --sim-seed, --sim-seed + 1, ...): one station session")
     p.add_argument("--sim-fault", type=_sim_fault, action="append", default=[], metavar="K:SENSOR",
                    help="with --sim: virtual board K's SENSOR (accel, gyro_x, gyro_y, gyro_z) is faulted from the start "
-                        "(a gyro reports its fault bits, the accelerometer is missing), to see a failing board")
+                        "(a gyro reports its fault bits; the accelerometer goes missing: its data stop updating, which the "
+                        "device reports as 'accel stale'), to see a failing board")
     p.add_argument("--station-file", type=_station_file, metavar="FILE",
                    help="a TOML file describing this station: station, operator, fixture, db and ports = [URL, ...] "
                         "(the boards on its fixture); options given on the command line win (docs/production.md)")
