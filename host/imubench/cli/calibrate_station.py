@@ -131,7 +131,7 @@ def _run_station(a, cfg) -> int:
                 _inject_sim_fault(benches[slot - 1], sensor)
             mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed, guard_wall_s=max(a.link_timeout, 1.0))
             print(f"{len(benches)} virtual devices with random truth (seeds {a.sim_seed}..{a.sim_seed + len(benches) - 1}) "
-                  f"on one virtual fixture, speed {a.sim_speed:g}")
+                  f"on one virtual fixture, speed {a.sim_speed:g}" + _speed_note(a))
         else:
             from imubench.cli.terminal import HumanPresenter
             mover = HumanPresenter()
@@ -273,6 +273,15 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
     if "error" in box:
         raise box["error"]
     return box["res"]
+
+
+def _speed_note(a) -> str:
+    """An ARM image runs under the emulator far below the speed asked for: say so (issue 38)."""
+    if getattr(a, "target", "host") == "host":
+        return ""
+    return (f" at most: the {a.target.upper()} images run instruction by instruction under the emulator (Unicorn), "
+            "far slower on this machine (about speed 1 or less per board); the lockstep clock keeps every deadline in "
+            "device time, so only the wall time grows")
 
 
 def _extra(a) -> dict:
