@@ -107,14 +107,15 @@ class Faults:
                 pass
 
 
-def _station(tmp_path, n: int, plan: dict[int, tuple[str, str]], seed0: int = 500):
+def _station(tmp_path, n: int, plan: dict[int, tuple[str, str]], seed0: int = 500, target: str = "host",
+             cfg: SessionConfig | None = None):
     benches = []
     faults = None
     try:
         for k in range(n):
-            benches.append(VirtualBench(speed=0, seed=seed0 + k, truth="random"))
+            benches.append(VirtualBench(speed=0, seed=seed0 + k, truth="random", target=target))
         faults = Faults(benches, plan)
-        run = FixtureRun([vb.port_url for vb in benches], tmp_path / "station", _cfg(),
+        run = FixtureRun([vb.port_url for vb in benches], tmp_path / "station", cfg or _cfg(),
                          PlatePresenter(benches, quiet=True, guard_wall_s=LINK_TIMEOUT_S),
                          station=Station("S-faults"), on_event=faults, link_timeout_s=LINK_TIMEOUT_S,
                          say=lambda s: None, plots=False, plate_timeout_s=120.0)
@@ -274,3 +275,17 @@ def test_a_stopped_station_session_resumes_each_board_where_it_stopped(tmp_path)
     with History(db, readonly=True) as h:
         runs = h.session_runs(st["session_id"])
     assert sum(1 for x in runs if x["passed"]) == 2
+
+
+def test_a_frozen_board_on_the_f103_image(tmp_path):
+    """The same on the exact F103 image under the emulator: two boards, slot 2 frozen while it
+    waits at the plate after its first attitude; slot 1 passes, slot 2 fails at its own stage
+    within its guard (the emulated board's grants are as guarded as the host build's)."""
+    cfg = SessionConfig(method="six", gyro=None, rate_hz=100, rest_s=1.0, settle_s=0.2, hold_s=0.5,
+                        write=False, pose_timeout_s=30.0)
+    plan = {2: ("freeze", "plate")}
+    run, res, faults, wall = _station(tmp_path, 2, plan, seed0=560, target="f103", cfg=cfg)
+    _check(run, res, faults, plan)
+    b = res.boards[1]
+    assert b.state == "failed" and "frozen" in b.reason, (b.stage, b.reason)
+    assert res.boards[0].state == "passed"
