@@ -493,6 +493,8 @@ class FixtureRun:
                                     board_run=self, slot=slot, link_timeout_s=self.link_timeout_s, resume=again)
             except SessionAborted as e:     # e.g. another device than its capture's: refused, this board only
                 raise BoardFailed("connect", str(e)) from None
+            except (LinkError, ImubenchError, TimeoutError, OSError) as e:     # it stopped answering already
+                raise BoardFailed("connect", f"no answer from the device on {st.port}: {_line(e)}") from None
             try:
                 result = sess.run(plan_for(self.cfg.method))
             except CalibrationError as e:
