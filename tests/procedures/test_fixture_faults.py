@@ -186,7 +186,7 @@ def test_a_frozen_board_is_dropped_from_the_plate_at_its_first_missed_deadline(t
     assert 2 not in run.plate.live
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
 def test_ctrl_c_or_sigterm_records_every_board_and_exits_130(tmp_path, sig):
     """A station session stopped in the terminal (Ctrl-C, or SIGTERM from a service manager):
     every board is recorded (record.json, a history row), the unfinished ones as stopped with
@@ -219,7 +219,7 @@ def test_ctrl_c_or_sigterm_records_every_board_and_exits_130(tmp_path, sig):
     assert "STOPPED" in text                                        # the table, with the stopped boards
     st = json.loads((d / "station.json").read_text())
     assert st["finished"] and st["stopped"]
-    assert ("SIGTERM" if sig == signal.SIGTERM else "Ctrl-C") in st["stopped"]
+    assert {signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP"}.get(sig, "Ctrl-C") in st["stopped"]
     states = [b["state"] for b in st["boards"]]
     assert "stopped" in states and set(states) <= {"passed", "failed", "stopped"}
     for b in st["boards"]:

@@ -163,8 +163,11 @@ def _run_station(a, cfg) -> int:
                 res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
                                   link_timeout_s=a.link_timeout, baudrate=a.baud, plate_timeout_s=plate_timeout,
                                   resume=bool(a.resume), extra=_extra(a))
-    print()
-    print(_station_table(res))
+    try:
+        print()
+        print(_station_table(res))
+    except OSError:                     # the terminal is gone (SIGHUP): the records and station.json hold it
+        pass
     if res.interrupted is None and res.stopped:
         res.interrupted = "stopped on the page"
     if res.interrupted:                 # Ctrl-C, SIGTERM or the page: every board recorded, exit 130
@@ -184,12 +187,13 @@ def _run_station(a, cfg) -> int:
 
 
 class _Terminated(KeyboardInterrupt):
-    """SIGTERM, taken as Ctrl-C: the station session stops and records every board."""
+    """SIGTERM or SIGHUP (the terminal or the SSH link to the host lost), taken as Ctrl-C: the
+    station session stops and records every board."""
 
 
 def _sigterm_stops():
-    """While the station session runs, SIGTERM stops it as Ctrl-C does (every board recorded,
-    station.json completed, exit 130); only in the main thread (where signals arrive)."""
+    """While the station session runs, SIGTERM and SIGHUP stop it as Ctrl-C does (every board
+    recorded, station.json completed, exit 130); only in the main thread (where signals arrive)."""
     import contextlib
     import signal
     import threading
@@ -201,12 +205,14 @@ def _sigterm_stops():
             return
 
         def on_term(signum, frame):
-            raise _Terminated()
-        old = signal.signal(signal.SIGTERM, on_term)
+            raise _Terminated(signum)
+        sigs = [signal.SIGTERM] + ([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])
+        old = {sg: signal.signal(sg, on_term) for sg in sigs}
         try:
             yield
         finally:
-            signal.signal(signal.SIGTERM, old)
+            for sg, h in old.items():
+                signal.signal(sg, h)
     return cm()
 
 
@@ -262,10 +268,10 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
     try:
         try:
             serve_page(page, a, until=ended, start=worker.start)
-        except KeyboardInterrupt as e:      # SIGTERM (serve_page takes Ctrl-C itself)
+        except KeyboardInterrupt as e:      # SIGTERM, SIGHUP (serve_page takes Ctrl-C itself)
             terminated.append(e)
-        if not box.get("done"):             # Ctrl-C or SIGTERM before the end: every board stops, recorded
-            fx.stop("terminated (SIGTERM)" if terminated else "interrupted (Ctrl-C)")
+        if not box.get("done"):             # stopped before the end: every board stops, recorded
+            fx.stop(_stop_words(terminated[0]) if terminated else "interrupted (Ctrl-C)")
     finally:
         page.close()                    # a session still running stops where it is
         if worker.ident is not None:     # started (the page could be served)
@@ -273,6 +279,13 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
     if "error" in box:
         raise box["error"]
     return box["res"]
+
+
+def _stop_words(e: BaseException) -> str:
+    import signal
+    if isinstance(e, _Terminated) and e.args and e.args[0] == getattr(signal, "SIGHUP", None):
+        return "the terminal hung up (SIGHUP: the link to the host was lost)"
+    return "terminated (SIGTERM)" if isinstance(e, _Terminated) else "interrupted (Ctrl-C)"
 
 
 def _speed_note(a) -> str:

@@ -446,7 +446,7 @@ class FixtureRun:
                 while t.is_alive():         # a join with a timeout: Ctrl-C reaches this thread
                     t.join(0.25)
         except KeyboardInterrupt as e:      # Ctrl-C (or SIGTERM made one): every board stops and is recorded
-            self.stop("terminated (SIGTERM)" if type(e).__name__ == "_Terminated" else "interrupted (Ctrl-C)")
+            self.stop(_stop_words(e))
             for t in threads:
                 t.join()
         if self.plots:                  # after the boards: the plots take CPU the live streams need
@@ -652,6 +652,16 @@ def run_fixture(ports: list[str], directory, cfg: SessionConfig, mover, **kw) ->
 
 
 # ------------------------------------------------------------------- helpers
+def _stop_words(e: BaseException) -> str:
+    """Why a KeyboardInterrupt stopped the session: Ctrl-C, or a signal the command made one."""
+    import signal
+    if type(e).__name__ != "_Terminated":
+        return "interrupted (Ctrl-C)"
+    if e.args and e.args[0] == getattr(signal, "SIGHUP", None):
+        return "the terminal hung up (SIGHUP: the link to the host was lost)"
+    return "terminated (SIGTERM)"
+
+
 def _line(e: BaseException | str) -> str:
     """An error as one line (a simulator's error may carry its log's tail); a lockstep
     device's grant past its wall-clock guard is said as what it is."""
