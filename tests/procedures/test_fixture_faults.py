@@ -186,9 +186,10 @@ def test_a_frozen_board_is_dropped_from_the_plate_at_its_first_missed_deadline(t
     assert 2 not in run.plate.live
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
-def test_ctrl_c_or_sigterm_records_every_board_and_exits_130(tmp_path, sig):
-    """A station session stopped in the terminal (Ctrl-C, or SIGTERM from a service manager):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["SIGINT", "SIGTERM", "SIGHUP"])
+def test_ctrl_c_sigterm_or_sighup_records_every_board_and_exits_130(tmp_path, sig):
+    """A station session stopped in the terminal (Ctrl-C; SIGTERM from a service manager; SIGHUP, the
+    terminal or the SSH link to the host lost):
     every board is recorded (record.json, a history row), the unfinished ones as stopped with
     their stage, station.json is completed, the table is printed, the exit code is 130, and
     nothing says "link lost" (issue 38, point 3)."""
