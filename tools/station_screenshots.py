@@ -66,9 +66,9 @@ def main() -> int:
             page.goto(url)
             page.wait_for_function("() => document.querySelectorAll('.tile').length === 16", polling=50)
             # freeze the chosen board once it has two attitudes and waits at the plate
-            page.wait_for_function(f"() => {{ const t = [...document.querySelectorAll('.tile')][{a.frozen - 1}]; "
-                                   "return /· [2-9]\\d* captured/.test(t.querySelector('.stage').textContent); }}",
-                                   polling=200)
+            page.wait_for_function("(k) => { const t = document.querySelectorAll('.tile')[k]; return !!t && "
+                                   "/· ([2-9]|\\d\\d+) captured/.test(t.querySelector('.stage').textContent); }",
+                                   arg=a.frozen - 1, polling=200)
             sims = [c for c in children(proc.pid) if "sim" in Path(f"/proc/{c}/cmdline").read_text(errors="replace")]
             frozen_pid = sims[a.frozen - 1]
             os.kill(frozen_pid, signal.SIGSTOP)
