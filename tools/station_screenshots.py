@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -50,6 +51,7 @@ def main() -> int:
            "--http-port", "0", "--dir", str(work / "st"), "--db", str(work / "h.sqlite")]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=work)
     frozen_pid = None
+    tail: list[str] = []                    # its output after the page's address, read as it comes
     try:
         url = None
         for line in proc.stdout:
@@ -58,6 +60,9 @@ def main() -> int:
             if m:
                 url = m.group(1)
                 break
+        # the rest of its output is read as it comes (a full pipe would stall the session)
+        reader = threading.Thread(target=lambda: tail.extend(proc.stdout), daemon=True)
+        reader.start()
         with sync_playwright() as p:
             b = p.chromium.launch(executable_path="/usr/bin/chromium", headless=True,
                                   args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
@@ -98,10 +103,12 @@ def main() -> int:
                 pass
         proc.send_signal(signal.SIGINT)
         try:
-            out, err = proc.communicate(timeout=120)
+            proc.wait(timeout=120)
         except subprocess.TimeoutExpired:
             proc.kill()
-            out, err = proc.communicate()
+        err = proc.stderr.read()
+        time.sleep(0.5)
+        out = "".join(tail)
         print(out[-3000:])
         print(err[-2000:], file=sys.stderr)
     return 0
