@@ -143,10 +143,14 @@ class PlatePresenter(SimPresenter):
 
 
 def _no_answer(e: BaseException, guard_s: float) -> str:
+    import re
     text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-    return (f"its virtual device stopped answering the plate (no reply within {guard_s:g} s of wall time: "
-            f"a frozen simulator) ({text})" if "no reply" in text or "timed out" in text
-            else f"the plate could not move its virtual device ({text})")
+    m = re.search(r"no reply to (\w+)", text)
+    if m or "timed out" in text:
+        what = f" to {m.group(1)}" if m else ""
+        return (f"its virtual device stopped answering the plate (no reply{what} within {guard_s:g} s of wall "
+                "time: a frozen simulator)")
+    return f"the plate could not move its virtual device ({text})"
 
 
 #: tremor: legs of this length, each turning by a random angle of this RMS about a random
