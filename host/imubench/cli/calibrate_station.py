@@ -71,8 +71,11 @@ def _run_station(a, cfg) -> int:
     if a.resume:                        # a whole station session continued: each board where it stopped
         import json
         if not (Path(a.resume) / "station.json").is_file():
-            raise UsageError(f"{a.resume} is a one-board session, not a station session",
-                             f"resume it alone: imubench calibrate --resume {shlex.quote(str(a.resume))} --port URL")
+            if (Path(a.resume) / "session.json").is_file():
+                raise UsageError(f"{a.resume} is a one-board session, not a station session",
+                                 f"resume it alone: imubench calibrate --resume {shlex.quote(str(a.resume))} --port URL")
+            raise UsageError(f"{a.resume} holds no station session (no station.json)",
+                             "give the directory a station session was started in (its --dir)")
         try:
             saved = json.loads((Path(a.resume) / "station.json").read_text())
             n_saved = len(saved["ports"])
