@@ -44,6 +44,13 @@ STAGES = ("connect", "rest", "poses", "plate", "write", "verify")     # plate: w
 FAULTS = ("kill", "freeze", "slow", "garbage")
 
 
+def _sigint_default() -> None:
+    """In the child: SIGINT to its default (a test run started in the background by a
+    non-interactive shell ignores SIGINT, and the child would inherit that: Python then
+    installs no Ctrl-C handler, and the SIGINT these tests send would be ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _cfg() -> SessionConfig:
     return SessionConfig(method="six", gyro=None, rate_hz=100, rest_s=1.0, settle_s=0.2, hold_s=0.5,
                          verify_poses=2, pose_timeout_s=30.0)
@@ -201,7 +208,8 @@ def test_ctrl_c_sigterm_or_sighup_records_every_board_and_exits_130(tmp_path, si
     d, db = tmp_path / "st", tmp_path / "h.sqlite"
     cmd = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "3", "--sim-speed", "50",
            "--method", "six", "--gyro", "none", "--dir", str(d), "--db", str(db), "--link-timeout", "2"]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=_sigint_default)
     out = []
     try:
         for line in p.stdout:               # stopped once a board is at its attitudes
@@ -244,7 +252,8 @@ def test_a_stopped_station_session_resumes_each_board_where_it_stopped(tmp_path)
     base = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-speed", "50", "--method", "six",
             "--gyro", "none", "--db", str(db), "--link-timeout", "2"]
     p = subprocess.Popen(base + ["--sim-boards", "2", "--sim-seed", "77", "--dir", str(d)],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=_sigint_default)
     try:
         seen = 0
         for line in p.stdout:

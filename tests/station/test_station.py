@@ -280,7 +280,10 @@ def test_ctrl_c_stops_every_board_of_a_station_session_on_the_page(tmp_path):
     import sys
     p = subprocess.Popen([sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "2", "--sim-speed", "2",
                           "--ui", "web", "--http-port", "0", "--dir", str(tmp_path / "st"),
-                          "--db", str(tmp_path / "h.sqlite")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                          "--db", str(tmp_path / "h.sqlite")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         # SIGINT to its default in the child: a run started in the background by a
+                         # non-interactive shell ignores it, and the child would too
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     seen = []
     try:
         for line in p.stdout:
