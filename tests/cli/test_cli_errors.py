@@ -295,3 +295,17 @@ def test_ctrl_c_ends_a_live_view_normally(tmp_path):
     assert code == 0 and "Traceback" not in err and "done:" in out
     _, raw, _, stats = decode_bytes(rec.read_bytes())
     assert raw is not None and len(raw) > 0 and stats.frames_rejected == 0
+
+
+def test_a_refused_command_leaves_no_empty_history_database(tmp_path, capsys):
+    """A usage error refused after the history was checked created an empty database (issue 38):
+    a new SQLite file is now made by the first record; only whether it can be made is checked."""
+    from imubench.cli import main as imubench
+    db = tmp_path / "new" / "h.sqlite"
+    assert imubench(["calibrate", "--redo", "+X up", "--db", str(db)]) == 2
+    assert "--redo goes with --resume" in capsys.readouterr().err
+    assert not db.exists() and not db.parent.exists()
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    assert imubench(["calibrate", "--sim", "--db", str(blocked / "h.sqlite")]) == 1
+    assert "cannot create it" in capsys.readouterr().err

@@ -176,3 +176,18 @@ def test_a_long_record_reads_everything_off():
 def test_duration_text():
     from imubench.analysis.allan import duration_text
     assert duration_text(17) == "17 s" and duration_text(600) == "10 min" and duration_text(7200) == "2 h"
+
+
+def test_a_recording_analyses_the_duration_asked_for(tmp_path, capsys):
+    """`allan --duration` on a device that runs ahead of the host (the real-time virtual
+    device at speed 20): the stream runs on while it is stopped, and the
+    analysis took that too (issue 38: 2.19 h for --duration 2h); now exactly what was asked."""
+    import json
+
+    from imubench.cli import main as imubench
+    from imubench.device.sim import VirtualBench
+    with VirtualBench(speed=20, seed=5, clock="realtime") as vb:
+        assert imubench(["allan", "--port", vb.port_url, "--duration", "5s", "--rate", "100",
+                         "--out", str(tmp_path / "o")]) == 0
+    res = json.loads((tmp_path / "o" / "allan.json").read_text())
+    assert res["duration_s"] == pytest.approx(5.0) and res["samples"] == 500

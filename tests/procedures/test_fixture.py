@@ -233,7 +233,7 @@ def test_cli_station_session_on_virtual_devices(tmp_path, capsys):
 
 @pytest.mark.parametrize("args, words", [
     (["--sim-boards", "2"], "--sim-boards goes with --sim"),
-    (["--port", "socket://127.0.0.1:1", "--port", "socket://127.0.0.1:2", "--resume", "."], "--resume continues a one-board"),
+    (["--port", "socket://127.0.0.1:1", "--port", "socket://127.0.0.1:2", "--resume", "."], "holds no station session"),
     (["--sim", "--sim-boards", "2", "--port", "socket://127.0.0.1:1"], "exclude each other"),
     (["--port", "socket://127.0.0.1:1", "--port", "socket://127.0.0.1:1"], "given twice"),
     (["--sim", "--sim-boards", "0"], "give 1 to 64"),

@@ -450,3 +450,36 @@ def test_a_new_stream_never_reuses_a_capture_file(tmp_path):
         assert (tmp_path / "capture-2.bin").is_file() and (tmp_path / "capture-1.bin").read_bytes() == b"old"
     finally:
         s.dev.link.capture.close()
+
+
+def test_a_resumed_session_belongs_to_its_board(tmp_path, capsys):
+    """session.json names the device it was captured on (UID, gyro serial numbers, firmware
+    build); resuming it on another board is refused in one line naming both, before anything
+    is captured; on its own board it continues (issue 38)."""
+    from imubench.cli import main as imubench
+    with VirtualBench(speed=0, seed=41, truth="random") as vb, VirtualBench(speed=0, seed=42, truth="random") as other:
+        with Device.open(vb.port_url, timeout=5.0) as dev:
+            s = Session(dev, tmp_path / "r", SessionConfig(write=False), _CrashingPresenter(vb, after=2))
+            with pytest.raises(_Crash):
+                s.run(plan_for("six"))
+            mine = s.device
+        state = json.loads((tmp_path / "r" / "session.json").read_text())
+        assert state["device"] == mine and mine["mcu_uid"] and mine["gyro_sn"] and mine["fw_build"]
+        with Device.open(other.port_url, timeout=5.0) as dev:
+            with pytest.raises(SessionAborted) as e:
+                Session(dev, tmp_path / "r", SessionConfig(write=False), SimPresenter(other, quiet=True), resume=True)
+        why = str(e.value)
+        assert "\n" not in why and mine["mcu_uid"] in why and "MCU UID differs" in why
+        with Device.open(other.port_url, timeout=5.0) as dev:
+            assert Session(dev, tmp_path / "x", SessionConfig(), SimPresenter(other, quiet=True)).device["mcu_uid"] in why
+        before = (tmp_path / "r" / "session.json").read_bytes()
+        # the command: --resume with another board's port is one line, exit 2 ... or 1, no traceback
+        rc = imubench(["calibrate", "--resume", str(tmp_path / "r"), "--port", other.port_url, "--db", str(tmp_path / "h.sqlite")])
+        out = capsys.readouterr()
+        assert rc != 0 and "Traceback" not in out.err and "cannot resume" in out.err and mine["mcu_uid"] in out.err
+        assert (tmp_path / "r" / "session.json").read_bytes() == before              # nothing changed
+        # on its own board it goes on
+        with Device.open(vb.port_url, timeout=5.0) as dev:
+            s2 = Session(dev, tmp_path / "r", SessionConfig(write=False), SimPresenter(vb, quiet=True), resume=True)
+            result = s2.run(plan_for("six"))
+    assert len(result["poses"]) == 6 and result["device"]["mcu_uid"] == mine["mcu_uid"]

@@ -379,3 +379,21 @@ def test_warmup_on_the_f103_image_writes_terms_the_image_applies(tmp_path):
     assert d["status"] == "done" and d["config"]["target"] == "f103" and d["device"]["board"] != "SIM"
     assert d["write"]["verified"] and d["write"]["check"]["ok"]
     assert any(a["order"] >= 1 for a in d["fit"]["gyro"]["axes"])      # a temperature dependence was written
+
+
+def test_the_progress_line_comes_every_fit_every_s_of_device_time(tmp_path, monkeypatch):
+    """'every 20 s' means every 20 s of device time, within a read: the line came only when a
+    10 s bin completed, 26 to 51 s apart (issue 38)."""
+    import threading
+    said = []
+    real = W.format_progress
+    monkeypatch.setattr(W, "format_progress", lambda p: said.append(p["elapsed_s"]) or real(p))
+    cfg = W.WarmupConfig(rate_hz=50, bin_s=10.0, stop_window_s=60.0, stop_rate_c_per_min=0.01, fit_every_s=20.0)
+    stop = threading.Event()
+    with VirtualBench(speed=0, seed=8, truth="random") as vb, vb.device() as dev:
+        W.run_warmup(dev, tmp_path / "w", cfg, W.sim_warmup_hooks(vb, 5.0, 45.0, tau_s=200.0),
+                     on_progress=lambda p: p["elapsed_s"] > 125 and stop.set(), stop=stop)
+    assert len(said) >= 5, said
+    later = np.array(said[1:])          # the first with the first bin, then on every 20 s of device time
+    assert np.all(np.abs(later - 20.0 * np.round(later / 20.0)) <= 0.5), np.round(said, 2)
+    assert np.all(np.abs(np.diff(later) - 20.0) <= 0.5), np.round(said, 2)

@@ -140,6 +140,9 @@ def test_eight_boards_on_the_page_end_to_end(tmp_path, browser):
         page.set_default_timeout(240_000)
         page.goto(url)
         page.wait_for_function("() => document.querySelectorAll('.tile').length === 8", polling=50)
+        # every slot this page drives is named at once, not as the claims come back (issue 38)
+        page.wait_for_function("() => document.querySelector('#role').textContent === 'you drive slots 1–8'", polling=50,
+                               timeout=3000)
         page.wait_for_function("() => /move \\d+/.test(document.querySelector('#plate').textContent)", polling=100)
         page.wait_for_function("() => [...document.querySelectorAll('.tile')].every((t) => t.dataset.state !== 'running')",
                                polling=200)
@@ -152,7 +155,9 @@ def test_eight_boards_on_the_page_end_to_end(tmp_path, browser):
         assert [v.split(":")[0].split()[0] for v in verdicts] == ["PASSED"] * 2 + ["FAILED"] + ["PASSED"] * 5, verdicts
         assert "at health" in verdicts[2] and "gyro" in verdicts[2], verdicts
         assert all(re.fullmatch(r"[0-9A-F]{24}", tiles.nth(i).locator(".uid").text_content()) for i in range(8))
-        assert "verification attitude" in page.locator("#plate").text_content()
+        # the end told (issue 38): the pass count on top, the plate closed
+        assert "session over" in page.locator("#plate").text_content()
+        assert page.locator("#over").text_content().startswith("7 of 8 passed"), page.locator("#over").text_content()
         SHOTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(SHOTS / "station-overview-8.png"))
         tiles.nth(1).click()

@@ -142,7 +142,7 @@ def run(a) -> int:
     if not cap.exists() or cap.stat().st_size == 0:
         raise CommandError(f"nothing was recorded ({why})", "check the device with imubench info")
     print(f"recording ended: {why}; analysing {cap}", flush=True)
-    analyse_capture([cap], out, rate_hz=float(a.rate), exports=a.export, topic=a.imu_topic)
+    analyse_capture([cap], out, rate_hz=float(a.rate), exports=a.export, topic=a.imu_topic, duration_s=a.duration)
     if why not in ("done", "interrupted"):
         raise CommandError(f"the recording ended early ({why}); what was recorded is analysed in {out}",
                            f"record again, or analyse more files with --analyse {shlex.quote(str(cap))} FILE...")

@@ -104,7 +104,8 @@ def register(sub) -> None:
                         "numbers, seeds --sim-seed, --sim-seed + 1, ...): one station session")
     p.add_argument("--sim-fault", type=_sim_fault, action="append", default=[], metavar="K:SENSOR",
                    help="with --sim: virtual board K's SENSOR (accel, gyro_x, gyro_y, gyro_z) is faulted from the start "
-                        "(a gyro reports its fault bits, the accelerometer is missing), to see a failing board")
+                        "(a gyro reports its fault bits; the accelerometer goes missing: its data stop updating, which the "
+                        "device reports as 'accel stale'), to see a failing board")
     p.add_argument("--station-file", type=_station_file, metavar="FILE",
                    help="a TOML file describing this station: station, operator, fixture, db and ports = [URL, ...] "
                         "(the boards on its fixture); options given on the command line win (docs/production.md)")
@@ -249,7 +250,19 @@ def _check_history(db) -> None:
     path that cannot be written is named now, not after a session whose record it would lose."""
     from imubench.results.db import describe
     from imubench.results.history import History, default_target
+    import os
     target = db or default_target()
+    path = None if "://" in str(target) else Path(target)
+    if path is not None and not path.exists():
+        # a new SQLite file: made by the first record, not now (a command refused later, e.g. a
+        # usage error, leaves no empty database behind); here only whether it can be made
+        parent = path.parent if str(path.parent) else Path(".")
+        probe = next((q for q in [parent, *parent.parents] if q.exists()), None)
+        if probe is None or not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+            raise CommandError(f"history database: {describe(target)}: cannot create it ({probe or parent} "
+                               "is not a writable directory)",
+                               "fix --db (or IMUBENCH_DB); nothing was captured")
+        return
     try:
         with History(target, timeout_s=5.0):
             pass
@@ -301,10 +314,7 @@ def run(a) -> int:
     if a.plate_timeout is not None and not _station_session(a):
         raise UsageError("--plate-timeout goes with several boards on one fixture",
                          "give --port once per board (or --sim --sim-boards N), or drop it")
-    if a.resume and _station_session(a):
-        raise UsageError("--resume continues a one-board session; a station session with several boards is "
-                         "started afresh", "run it again with --dir NEW_DIR (each board's captures stay in DIR/slot-K)")
-    if a.resume:
+    if a.resume and not _station_session(a):
         from imubench.results.sessionfile import load_state
         load_state(a.resume)            # a damaged or foreign session.json is named before a device is opened
     cfg = SessionConfig(method=a.method or "multi", gyro=None if a.gyro == "none" else a.gyro, rate_hz=a.rate,

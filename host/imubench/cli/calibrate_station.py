@@ -54,7 +54,9 @@ def _inject_sim_fault(vb, sensor: str) -> None:
 def _station_session(a) -> bool:
     """Several boards on one fixture (procedures.fixture) rather than the one-board session."""
     sf = getattr(a, "station_file", None) or {}
-    return len(getattr(a, "ports", None) or []) > 1 or getattr(a, "sim_boards", 1) > 1 or bool(sf.get("ports"))
+    resume = getattr(a, "resume", None)
+    return (len(getattr(a, "ports", None) or []) > 1 or getattr(a, "sim_boards", 1) > 1 or bool(sf.get("ports"))
+            or bool(resume and (Path(resume) / "station.json").is_file()))
 
 
 def _run_station(a, cfg) -> int:
@@ -65,9 +67,33 @@ def _run_station(a, cfg) -> int:
     from imubench.procedures.virtual import PlatePresenter
     sf = a.station_file or {}
     ports = list(a.ports or sf.get("ports") or [])
-    if a.resume:
-        raise UsageError("--resume continues a one-board session; a station session with several boards is "
-                         "started afresh", "run it again with --dir NEW_DIR (each board's captures stay in DIR/slot-K)")
+    saved = None
+    if a.resume:                        # a whole station session continued: each board where it stopped
+        import json
+        if not (Path(a.resume) / "station.json").is_file():
+            if (Path(a.resume) / "session.json").is_file():
+                raise UsageError(f"{a.resume} is a one-board session, not a station session",
+                                 f"resume it alone: imubench calibrate --resume {shell_word(str(a.resume))} --port URL")
+            raise UsageError(f"{a.resume} holds no station session (no station.json)",
+                             "give the directory a station session was started in (its --dir)")
+        try:
+            saved = json.loads((Path(a.resume) / "station.json").read_text())
+            n_saved = len(saved["ports"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise CommandError(f"cannot resume: {Path(a.resume) / 'station.json'} is damaged ({e})",
+                               "the boards' captures in DIR/slot-K are intact: resume each one alone") from None
+        if a.sim:
+            sim = saved.get("sim") or {}
+            if not sim:
+                raise UsageError(f"{a.resume} ran on real boards, not virtual ones", "drop --sim (its ports are used)")
+            a.sim_boards, a.sim_seed = n_saved, int(sim.get("seed", a.sim_seed))
+        elif saved.get("sim"):
+            raise UsageError(f"{a.resume} ran on virtual devices", "add --sim (the same seeds are used)")
+        elif not ports:
+            ports = list(saved["ports"])
+        elif len(ports) != n_saved:
+            raise UsageError(f"{a.resume} is a station session of {n_saved} boards; {len(ports)} ports were given",
+                             "give one --port per slot, in slot order, or none (the saved ports are used)")
     if a.closure:
         raise UsageError("--closure goes with a one-board session", "run `imubench closure --port URL` per board")
     if a.sim and ports:
@@ -81,9 +107,10 @@ def _run_station(a, cfg) -> int:
     if db is None:
         from imubench.results.history import default_target
         db = default_target()
-    directory = Path(a.dir or f"imubench-station-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
-    if (directory / "station.json").exists():
-        raise UsageError(f"{directory} already holds a station session", "give another --dir")
+    directory = Path(a.resume or a.dir or f"imubench-station-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    if (directory / "station.json").exists() and not a.resume:
+        raise UsageError(f"{directory} already holds a station session",
+                         f"continue it with --resume {shell_word(str(directory))}, or give another --dir")
     a.on_interrupt = lambda: (f"what was captured is kept in {directory}/slot-K; boards already finished are "
                               "recorded; run the station session again for the others")
     with ExitStack() as stack:
@@ -105,9 +132,9 @@ def _run_station(a, cfg) -> int:
                     raise UsageError(f"--sim-fault {slot}:{sensor}: there are {len(benches)} virtual boards",
                                      f"give a board from 1 to {len(benches)}")
                 _inject_sim_fault(benches[slot - 1], sensor)
-            mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed)
+            mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed, guard_wall_s=max(a.link_timeout, 1.0))
             print(f"{len(benches)} virtual devices with random truth (seeds {a.sim_seed}..{a.sim_seed + len(benches) - 1}) "
-                  f"on one virtual fixture, {speed_text(a.sim_speed, a.sim_clock)}")
+                  f"on one virtual fixture, {speed_text(a.sim_speed, a.sim_clock)}" + _speed_note(a))
         else:
             from imubench.cli.terminal import HumanPresenter
             mover = HumanPresenter()
@@ -133,20 +160,37 @@ def _run_station(a, cfg) -> int:
                 if st.get("waiting") and waits.get(st["slot"]) is None:      # starts waiting for the others
                     print(f"  slot {st['slot']} {who}: {one_line(st['waiting'])}", flush=True)
                 waits[st["slot"]] = st.get("waiting")
-        if a.ui == "web":
-            res = _station_on_page(a, cfg, ports, directory, mover, station, db, on_event)
-        else:
-            res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
-                              link_timeout_s=a.link_timeout, baudrate=a.baud, plate_timeout_s=plate_timeout)
+        with _sigterm_stops():
+            if a.ui == "web":
+                res = _station_on_page(a, cfg, ports, directory, mover, station, db, on_event)
+            else:
+                res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
+                                  link_timeout_s=a.link_timeout, baudrate=a.baud, plate_timeout_s=plate_timeout,
+                                  resume=bool(a.resume), extra=_extra(a))
     if getattr(a, "export", ()):
+        try:
+            print()
+            for b in res.boards:
+                rec = res.results.get(b.slot) or {}
+                print(f"slot {b.slot} {b.uid or b.port}:")
+                write_exports(a, rec, directory / f"slot-{b.slot}", b.uid or f"slot-{b.slot}", b.state == "passed",
+                              say=lambda line: print(f"  {line}"))
+        except OSError:                 # the terminal is gone (SIGHUP): the files are written or not, said there
+            pass
+    try:
         print()
-        for b in res.boards:
-            rec = res.results.get(b.slot) or {}
-            print(f"slot {b.slot} {b.uid or b.port}:")
-            write_exports(a, rec, directory / f"slot-{b.slot}", b.uid or f"slot-{b.slot}", b.state == "passed",
-                          say=lambda line: print(f"  {line}"))
-    print()
-    print(_station_table(res))
+        print(_station_table(res))
+    except OSError:                     # the terminal is gone (SIGHUP): the records and station.json hold it
+        pass
+    if res.interrupted is None and res.stopped:
+        res.interrupted = "stopped on the page"
+    if res.interrupted:                 # Ctrl-C, SIGTERM or the page: every board recorded, exit 130
+        done = [b for b in res.boards if b.state in ("passed", "failed")]
+        a.on_interrupt = (f"{res.interrupted}: {len(res.passed)} of {len(res.boards)} boards passed; "
+                          f"{len(done)} finished board{'s' if len(done) != 1 else ''} recorded, "
+                          f"{len(res.stopped)} recorded as stopped (with their stage); continue them with "
+                          f"imubench calibrate --resume {shell_word(str(directory))}")
+        raise KeyboardInterrupt
     print(f"station session {one_line(res.session_id)}: {len(res.passed)} of {len(res.boards)} boards passed "
           f"({res.wall_s:.0f} s); `imubench history --export {shell_word(res.session_id)} --format junit` exports it")
     if res.failed:
@@ -156,6 +200,36 @@ def _run_station(a, cfg) -> int:
     return 0
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (the terminal or the SSH link to the host lost), taken as Ctrl-C: the
+    station session stops and records every board."""
+
+
+def _sigterm_stops():
+    """While the station session runs, SIGTERM and SIGHUP stop it as Ctrl-C does (every board
+    recorded, station.json completed, exit 130); only in the main thread (where signals arrive)."""
+    import contextlib
+    import signal
+    import threading
+
+    @contextlib.contextmanager
+    def cm():
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def on_term(signum, frame):
+            raise _Terminated(signum)
+        sigs = [signal.SIGTERM] + ([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])
+        old = {sg: signal.signal(sg, on_term) for sg in sigs}
+        try:
+            yield
+        finally:
+            for sg, h in old.items():
+                signal.signal(sg, h)
+    return cm()
+
+
 def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_event):
     """The station session with the station page: one column per board (live view, the pose
     cards, the stages, the verdict, parameters and report). The page stays up after the
@@ -163,7 +237,7 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
     import threading
 
     from imubench.cli.station import port_policy, serve_page
-    from imubench.procedures.fixture import run_fixture
+    from imubench.procedures.fixture import FixtureRun
     from imubench.station.runner import Station as Page
     page = Page(workdir=directory, db=db, allow_sim=False, history=False, ports=port_policy(a))
     page.state.mode = "session"
@@ -176,15 +250,18 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
         page.board_event(st["port"], st)
 
     uis = {port: page.adopt(port, options, k + 1) for k, port in enumerate(ports)}   # the columns in slot order
+    fx = FixtureRun(ports, directory, cfg, mover, station=station, db=db, on_event=both,
+                    link_timeout_s=a.link_timeout, baudrate=a.baud, pages=lambda slot, port: uis[port],
+                    on_plate=page.plate_event, plate_timeout_s=a.plate_timeout, resume=bool(a.resume),
+                    extra=_extra(a))
+
     def run() -> None:
         try:
-            box["res"] = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=both,
-                                     link_timeout_s=a.link_timeout, baudrate=a.baud,
-                                     pages=lambda slot, port: uis[port], on_plate=page.plate_event,
-                                     plate_timeout_s=a.plate_timeout)
+            box["res"] = fx.run()
             for b in box["res"].boards:   # verdicts, parameters and reports on the columns
                 page.board_result(b.port, box["res"].results.get(b.slot) or {}, directory / f"slot-{b.slot}",
                                   b.run_id)
+            page.state.set_over(_over(box["res"]))
         except BaseException as e:  # noqa: BLE001 - re-raised in the command's thread
             box["error"] = e
         finally:
@@ -201,8 +278,14 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
                       "the page stays up until Ctrl-C", flush=True)
         return False
 
+    terminated = []
     try:
-        serve_page(page, a, until=ended, start=worker.start)
+        try:
+            serve_page(page, a, until=ended, start=worker.start)
+        except KeyboardInterrupt as e:      # SIGTERM, SIGHUP (serve_page takes Ctrl-C itself)
+            terminated.append(e)
+        if not box.get("done"):             # stopped before the end: every board stops, recorded
+            fx.stop(_stop_words(terminated[0]) if terminated else "interrupted (Ctrl-C)")
     finally:
         page.close()                    # a session still running stops where it is
         if worker.ident is not None:     # started (the page could be served)
@@ -236,6 +319,37 @@ def write_exports(a, result: dict, directory: Path, name: str, ok: bool, say=pri
     return files
 
 
+def _stop_words(e: BaseException) -> str:
+    import signal
+    if isinstance(e, _Terminated) and e.args and e.args[0] == getattr(signal, "SIGHUP", None):
+        return "the terminal hung up (SIGHUP: the link to the host was lost)"
+    return "terminated (SIGTERM)" if isinstance(e, _Terminated) else "interrupted (Ctrl-C)"
+
+
+def _speed_note(a) -> str:
+    """An ARM image runs under the emulator far below the speed asked for: say so (issue 38)."""
+    if getattr(a, "target", "host") == "host":
+        return ""
+    return (f" at most: the {a.target.upper()} images run instruction by instruction under the emulator (Unicorn), "
+            "far slower (one F103 board streaming at 500 Hz ran at speed 0.27 on this project's loaded 2-core "
+            "machine, fewer with more boards); the lockstep clock keeps every deadline in device time, so only the "
+            "wall time grows")
+
+
+def _extra(a) -> dict:
+    """What station.json keeps for a resume besides the ports: the virtual fixture's seeds."""
+    return {"sim": {"seed": a.sim_seed, "boards": a.sim_boards}} if a.sim else {}
+
+
+def _over(res) -> dict:
+    """What the page says at the end of a station session: the pass count and why it ended."""
+    return {"passed": len(res.passed), "boards": len(res.boards), "stopped": len(res.stopped),
+            "failed": len([b for b in res.boards if b.state == "failed"]), "interrupted": res.interrupted,
+            "text": f"{len(res.passed)} of {len(res.boards)} passed"
+                    + (f", {len(res.stopped)} stopped" if res.stopped else "")
+                    + (f" ({res.interrupted})" if res.interrupted else "")}
+
+
 def _shown(db) -> str:
     from imubench.results.db import describe
     return describe(db)
@@ -258,6 +372,6 @@ def _station_table(res) -> str:
             detail = ", ".join(parts) + ", written and verified" if rec.get("written") else ", ".join(parts)
         else:
             detail = f"at {b.stage}: {one_line(b.reason)}"
-        lines.append(f"{b.slot:>4}  {one_line(b.uid or '(no answer)'):<24}  {'PASSED' if b.state == 'passed' else 'FAILED':<7}  "
+        lines.append(f"{b.slot:>4}  {one_line(b.uid or '(no answer)'):<24}  {b.state.upper():<7}  "
                      f"{b.run_id if b.run_id is not None else '-':>5}  {detail}")
     return "\n".join(lines)

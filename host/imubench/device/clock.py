@@ -15,7 +15,12 @@ through the clock of its link (`Link.clock`):
                     not on how busy the machine is: the same seed gives the same bytes.
 
 Timeouts given to a LockstepClock are device seconds. The wall-clock limits that remain
-(a device process that hangs) are generous guards, not timing.
+(a device process that hangs) are generous guards, not timing. A frozen device (its process
+stopped, its sockets open) never finishes a grant: its device time stands still, so no
+device-time deadline of its own can pass; the wall-clock guard of its clock is then the
+board's deadline. It is per clock (`guard_wall_s`, default GRANT_GUARD_WALL_S), so a station
+session sets each board's to that board's link timeout (procedures.fixture): a frozen board
+fails alone, at its first grant past the guard, while the others' grants go on.
 
 The link finds the clock of a virtual device by its URL: VirtualBench registers its clock
 under its port's URL (`register`), Link looks it up (`for_url`). Processes started while the
@@ -98,6 +103,7 @@ class LockstepClock:
         self.link = None                    # the Link on this device's port (its byte counts)
         self.grants = 0
         self._next_request_id = first_request_id    # ids continue across links (no repeats)
+        self.guard_wall_s = GRANT_GUARD_WALL_S      # wall s a grant may take beyond its own length
         self._lock = threading.RLock()      # one grant at a time (a presenter's thread and a reader's)
 
     # ------------------------------------------------------------ the link
@@ -124,7 +130,7 @@ class LockstepClock:
     def sync(self) -> None:
         """Take the device's time (e.g. after it was started)."""
         with self._lock:
-            self.t_us = int(self.bench.control("status")["time_us"])
+            self.t_us = int(self.bench.control("status", timeout=min(10.0, self.guard_wall_s))["time_us"])
 
     def run(self, seconds: float, stop: str | None = None, die_tolerance_c: float | None = None) -> dict:
         """Grant `seconds` of device time (with stop: until the wait_idle condition holds,
@@ -141,7 +147,7 @@ class LockstepClock:
         if die_tolerance_c is not None:
             kw["die_tolerance_c"] = float(die_tolerance_c)
         sp = float(self.bench.speed)
-        guard = GRANT_GUARD_WALL_S + (seconds / sp if sp > 0 else seconds)
+        guard = self.guard_wall_s + (seconds / sp if sp > 0 else seconds)
         r = self.bench.control("run", timeout=guard, **kw)
         self.t_us = int(r["time_us"])
         self.grants += 1

@@ -28,10 +28,12 @@ from imubench.wire.protocol_gen import MsgType
 
 
 def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=print, exports=(),
-                    topic: str = "/imu0") -> dict:
+                    topic: str = "/imu0", duration_s: float | None = None) -> dict:
     """Decode capture file(s), convert raw counts to SI, run allan() on accel and gyro,
     write allan.json, the two PNGs and each consumer's noise file of `exports`
-    (results.noise_export) to out_dir; returns the summary dict."""
+    (results.noise_export) to out_dir; returns the summary dict. duration_s: the length asked
+    for (device s): only that much is analysed (the stream runs on a little while it is being
+    stopped; what came after stays in the capture)."""
     data = b"".join(read_bytes(p, MAX_CAPTURE_BYTES, "the capture") for p in paths)
     msgs, raw, _cal, stats = decode_bytes(data)
     infos = [m.msg for m in msgs if m.type == MsgType.INFO]     # record() asks for one into the capture
@@ -42,6 +44,11 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
     if rate_hz is None:                          # from the device time stamps
         rate_hz = (len(raw) - 1) / ((raw.t_us[-1] - raw.t_us[0]) / 1e6)
         rate_hz = float(np.round(rate_hz, 1))
+    if duration_s is not None and len(raw) > int(round(duration_s * rate_hz)) >= 16:
+        keep = int(round(duration_s * rate_hz))
+        log(f"analysing the first {duration_s:g} s asked for ({keep} samples); the {len(raw) - keep} samples "
+            f"({(len(raw) - keep) / rate_hz:.1f} s) that came while the stream was stopped stay in the capture")
+        raw = raw[:keep]
     acc, gyr = raw.si()
     make_dir(out_dir)
     devices = {device_identity(i)["mcu_uid"]: device_identity(i) for i in infos}

@@ -45,11 +45,12 @@ from pathlib import Path
 import numpy as np
 
 from imubench.calib import CalibrationError
+from imubench.device.clock import ClockError
 from imubench.device.link import Device, LinkError, LinkTimeout
 from imubench.errors import ImubenchError
 from imubench.files import make_dir, open_input, write_text
 from imubench.procedures.errors import SessionAborted
-from imubench.procedures.plate import POSE_TIMEOUT_S, PLATE_TIMEOUT_S, BoardFailed, Plate  # noqa: F401 - where callers found them
+from imubench.procedures.plate import POSE_TIMEOUT_S, PLATE_TIMEOUT_S, BoardFailed, BoardStopped, Plate  # noqa: F401 - where callers found them
 from imubench.procedures.presenter import Presenter
 from imubench.procedures.schedule import Need
 from imubench.procedures.session import Session, SessionConfig, plan_for
@@ -82,13 +83,14 @@ class BoardStatus:
     port: str
     uid: str | None = None
     stage: str = "waiting"          # connect, health, rest, poses, turntable, fit, write, verify, record, done
-    state: str = "running"          # running | passed | failed
+    state: str = "running"          # running | passed | failed | stopped (Ctrl-C, SIGTERM, Stop on the page)
     message: str = ""
     progress: float = 0.0
     reason: str | None = None
     run_id: int | None = None
     directory: str = ""
     waiting: str | None = None      # done with a phase, waiting for the other boards: for whom, till when
+    device: dict | None = None      # its identity (results.record.device_ident: UID, serials, firmware build)
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -138,8 +140,12 @@ class BoardPresenter(Presenter):
             self.page.say(text)
 
     def _check_page(self) -> None:
+        self.run.check_stop(self.slot)  # the whole station session stopped (Ctrl-C, SIGTERM, the page closed)
         if self.page is not None:
-            self.page.check_stop()      # stopped on the page (or the station closed): this board stops here
+            try:
+                self.page.check_stop()  # stopped on the page: this board stops here
+            except ImubenchError as e:
+                raise BoardStopped(self.run.boards[self.slot].stage, f"stopped: {_line(e)}") from None
 
     def suggest(self, name) -> None:
         """The missing attitude that helps this board's fit most: its vote at the plate."""
@@ -206,8 +212,9 @@ class BoardSession(Session):
     error) during capture stops the board, naming the sensor."""
 
     def __init__(self, device: Device, directory, config: SessionConfig, presenter: Presenter, *,
-                 board_run: "FixtureRun | None" = None, slot: int = 0, link_timeout_s: float = 10.0):
-        super().__init__(device, directory, config, presenter)
+                 board_run: "FixtureRun | None" = None, slot: int = 0, link_timeout_s: float = 10.0,
+                 resume: bool = False):
+        super().__init__(device, directory, config, presenter, resume=resume)
         self.board_run = board_run
         self.slot = slot
         self.link_timeout_s = link_timeout_s
@@ -234,8 +241,8 @@ class BoardSession(Session):
         if self.link_lost is None:
             try:
                 return super()._stop_stream()
-            except (LinkError, TimeoutError) as e:
-                self.link_lost = str(e)
+            except (LinkError, TimeoutError, ImubenchError, OSError) as e:    # any error of this board's link
+                self.link_lost = _line(e)
         cap, self.dev.link.capture = self.dev.link.capture, None
         if cap is not None:
             cap.close()
@@ -246,16 +253,20 @@ class BoardSession(Session):
             self.board_run.plate.leave(self.slot)
 
     def _next_block(self, timeout: float = 10.0):
+        if self.board_run is not None:
+            self.board_run.check_stop(self.slot)
         try:
             b = self.dev.read(duration_s=0.05, timeout=min(timeout, self.link_timeout_s))
         except LinkTimeout:
             self._leave_plate()
             self.link_lost = f"link lost: no data from the device for {self.link_timeout_s:g} s"
             raise BoardFailed("link", self.link_lost) from None
-        except LinkError as e:
+        except (LinkError, ImubenchError, TimeoutError, OSError) as e:
+            # any error of this board's link (a lost port, a simulator that stopped answering:
+            # its grant passed the clock's wall-clock guard) is this board's alone
             self._leave_plate()
-            self.link_lost = f"link lost: {e}"
-            raise BoardFailed("link", f"link lost: {e}") from None
+            self.link_lost = f"link lost: {_line(e)}"
+            raise BoardFailed("link", self.link_lost) from None
         bad = int(np.bitwise_or.reduce(b.status)) if len(b) else 0
         if bad:
             names = [n for bit, n in zip(SENSOR_BAD_BITS, SENSOR_NAMES) if bad & bit]
@@ -284,6 +295,12 @@ class FixtureResult:
     def failed(self) -> list[int]:
         return [b.slot for b in self.boards if b.state != "passed"]
 
+    @property
+    def stopped(self) -> list[int]:
+        return [b.slot for b in self.boards if b.state == "stopped"]
+
+    interrupted: str | None = None      # why the whole session was stopped (Ctrl-C, SIGTERM, the page), if it was
+
 
 class FixtureRun:
     """One station session over several boards (see the module's doc)."""
@@ -292,7 +309,7 @@ class FixtureRun:
                  db=None, on_event: Callable[[dict], None] | None = None, link_timeout_s: float = 10.0,
                  baudrate: int | None = None, say=print, plots: bool = True,
                  pages: Callable[[int, str], object] | None = None, plate_timeout_s: float = PLATE_TIMEOUT_S,
-                 on_plate: Callable[[dict], None] | None = None):
+                 on_plate: Callable[[dict], None] | None = None, resume: bool = False, extra: dict | None = None):
         if not ports:
             raise ValueError("no boards: give at least one port")
         self.ports = list(ports)
@@ -313,10 +330,30 @@ class FixtureRun:
                            f"{uuid.uuid4().hex[:6]}")
         self.boards = {k + 1: BoardStatus(slot=k + 1, port=p, directory=str(self.dir / f"slot-{k + 1}"))
                        for k, p in enumerate(self.ports)}
-        self.plate = Plate(mover, list(self.boards), say=say, deadline_s=plate_timeout_s,
-                           on_wait=self._on_wait, on_move=self._on_move)
+        self.extra = dict(extra or {})  # kept in station.json (e.g. the virtual fixture's seed)
+        self.resume = resume
+        self.kept: set[int] = set()     # a resumed session: the boards that had finished (not run again)
         self.results: dict[int, dict] = {}
+        if resume:
+            self._load_station()
+        self.plate = Plate(mover, [s for s in self.boards if s not in self.kept], say=say, deadline_s=plate_timeout_s,
+                           on_wait=self._on_wait, on_move=self._on_move)
         self._lock = threading.Lock()
+        self.stop_reason: str | None = None     # the whole session was stopped: why (stop())
+
+    # ------------------------------------------------------------ stopping
+    def stop(self, reason: str = "stopped") -> None:
+        """Stop every board where it is (Ctrl-C, SIGTERM, the page closed): each stops at its
+        next block of samples or check at the plate, is recorded as stopped with its stage,
+        and the boards already finished keep their records. Any thread may call it."""
+        if self.stop_reason is None:
+            self.stop_reason = reason
+        with self.plate._cv:
+            self.plate._cv.notify_all()
+
+    def check_stop(self, slot: int) -> None:
+        if self.stop_reason is not None:
+            raise BoardStopped(self.boards[slot].stage, f"stopped: {self.stop_reason}")
 
     # ------------------------------------------------------------ state
     def _update(self, slot: int, publish: bool = True, **kw) -> None:
@@ -355,23 +392,63 @@ class FixtureRun:
         write_json_atomic(self.dir / "station.json", {
             "schema": 1, "session_id": self.session_id, "station": dataclasses.asdict(self.station),
             "config": jsonable(dataclasses.asdict(self.cfg)), "ports": self.ports, "finished": finished,
-            "boards": self.snapshot()})
+            "stopped": self.stop_reason, "resumed": self.resume, **self.extra, "boards": self.snapshot()})
+
+    def _load_station(self) -> None:
+        """A whole station session resumed: the same session id; each board that finished
+        (passed or failed, its record written) stays finished; the others continue their own
+        capture in DIR/slot-K (a board that had none starts it), each on the device it was
+        captured on (Session refuses another)."""
+        import json
+        path = self.dir / "station.json"
+        try:
+            saved = json.loads(path.read_text())
+            boards = {int(b["slot"]): b for b in saved["boards"]}
+            self.session_id = str(saved["session_id"])
+        except FileNotFoundError:
+            raise SessionAborted(f"cannot resume: {self.dir} holds no station.json (not a station session)") from None
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise SessionAborted(f"cannot resume: {path} is damaged ({type(e).__name__}: {e})") from None
+        if len(boards) != len(self.boards):
+            raise SessionAborted(f"cannot resume: {self.dir} is a station session of {len(boards)} boards; "
+                                 f"{len(self.boards)} were given")
+        for slot, b in boards.items():
+            rec_path = self.dir / f"slot-{slot}" / "record.json"
+            if b.get("state") in ("passed", "failed") and rec_path.is_file() and slot in self.boards:
+                st = self.boards[slot]
+                for k in ("uid", "stage", "state", "message", "progress", "reason", "run_id", "device"):
+                    if k in b:
+                        setattr(st, k, b[k])
+                try:
+                    self.results[slot] = json.loads(rec_path.read_text())
+                except (OSError, ValueError):
+                    continue
+                self.kept.add(slot)
 
     # ------------------------------------------------------------ run
     def run(self) -> FixtureResult:
         t0 = time.monotonic()
         make_dir(self.dir)
-        if (self.dir / "station.json").exists():
-            raise SessionAborted(f"{self.dir} already holds a station session: give another --dir")
+        if (self.dir / "station.json").exists() and not self.resume:
+            raise SessionAborted(f"{self.dir} already holds a station session: continue it with --resume "
+                                 f"{self.dir}, or give another --dir")
         self._save_station()
+        for slot in sorted(self.kept):
+            self.say(f"slot {slot}: {self.boards[slot].state} before; kept (its record stays)")
         self.say(self.deadlines_text())
         self._on_move({"deadlines": self.deadlines_text()})
         threads = [threading.Thread(target=self._board, args=(slot,), name=f"board-{slot}", daemon=True)
-                   for slot in self.boards]
+                   for slot in self.boards if slot not in self.kept]
         for t in threads:
             t.start()
-        for t in threads:
-            t.join()
+        try:
+            for t in threads:
+                while t.is_alive():         # a join with a timeout: Ctrl-C reaches this thread
+                    t.join(0.25)
+        except KeyboardInterrupt as e:      # Ctrl-C (or SIGTERM made one): every board stops and is recorded
+            self.stop(_stop_words(e))
+            for t in threads:
+                t.join()
         if self.plots:                  # after the boards: the plots take CPU the live streams need
             from imubench.results.calibration import plot_pose_residuals
             for slot, rec in sorted(self.results.items()):
@@ -381,8 +458,10 @@ class FixtureRun:
                     except Exception as e:  # noqa: BLE001 - a plot is not worth a board's verdict
                         self.say(f"warning: slot {slot}: no residual plot ({e})")
         self._save_station(finished=True)
-        return FixtureResult(self.session_id, self.dir, [self.boards[s] for s in sorted(self.boards)],
-                             dict(self.results), time.monotonic() - t0)
+        res = FixtureResult(self.session_id, self.dir, [self.boards[s] for s in sorted(self.boards)],
+                            dict(self.results), time.monotonic() - t0)
+        res.interrupted = self.stop_reason
+        return res
 
     def _board(self, slot: int) -> None:
         st = self.boards[slot]
@@ -394,28 +473,41 @@ class FixtureRun:
         try:
             self._update(slot, stage="connect", message=f"opening {st.port}")
             try:
+                self._guard_clock(st.port)
                 kw = {"timeout": 5.0} | ({"baudrate": self.baudrate} if self.baudrate else {})
                 dev = Device.open(st.port, **kw)
                 info = dev.info()
-            except (OSError, LinkError, TimeoutError) as e:
-                raise BoardFailed("connect", f"no answer from the device on {st.port}: {e}") from None
+            except (OSError, LinkError, TimeoutError, ImubenchError) as e:
+                raise BoardFailed("connect", f"no answer from the device on {st.port}: {_line(e)}") from None
             info_dev = device_ident(info)
-            self._update(slot, uid=info_dev["mcu_uid"], message=f"{info_dev['board']} {info_dev['mcu_uid']}")
+            self._update(slot, uid=info_dev["mcu_uid"], device=info_dev,
+                         message=f"{info_dev['board']} {info_dev['mcu_uid']}")
             params_before = dev.get_params(ParamsWhich.ACTIVE).params
             stats, rate = dev.link.decoder.stats, float(self.cfg.rate_hz)
-            sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
-                                BoardPresenter(self, slot, discard=dev.discard_buffered,
-                                               page=self.pages(slot, st.port) if self.pages else None,
-                                               clock=lambda: stats.samples / rate),
-                                board_run=self, slot=slot, link_timeout_s=self.link_timeout_s)
+            again = self.resume and (self.dir / f"slot-{slot}" / "session.json").is_file()
+            try:
+                sess = BoardSession(dev, self.dir / f"slot-{slot}", dataclasses.replace(self.cfg),
+                                    BoardPresenter(self, slot, discard=dev.discard_buffered,
+                                                   page=self.pages(slot, st.port) if self.pages else None,
+                                                   clock=lambda: stats.samples / rate),
+                                    board_run=self, slot=slot, link_timeout_s=self.link_timeout_s, resume=again)
+            except SessionAborted as e:     # e.g. another device than its capture's: refused, this board only
+                raise BoardFailed("connect", str(e)) from None
+            except (LinkError, ImubenchError, TimeoutError, OSError) as e:     # it stopped answering already
+                raise BoardFailed("connect", f"no answer from the device on {st.port}: {_line(e)}") from None
             try:
                 result = sess.run(plan_for(self.cfg.method))
             except CalibrationError as e:
                 raise BoardFailed("fit", f"fit refused: {e}") from None
-            except (LinkTimeout, LinkError) as e:
-                raise BoardFailed("link", f"link lost: {e}") from None
+            except (LinkTimeout, LinkError, ClockError, TimeoutError, ConnectionError) as e:
+                raise BoardFailed("link", f"link lost: {_line(e)}") from None
             except (SessionAborted, ImubenchError) as e:   # e.g. stopped on the station page
-                raise BoardFailed(self.boards[slot].stage, str(e)) from None
+                why = _line(e)
+                if self.stop_reason is not None or type(e).__name__ == "SessionStopped":
+                    raise BoardStopped(self.boards[slot].stage, f"stopped: {self.stop_reason or why}") from None
+                if "a frozen device" in why:        # a lockstep device's grant passed its wall-clock guard
+                    raise BoardFailed("link", f"link lost: {why}") from None
+                raise BoardFailed(self.boards[slot].stage, why) from None
             self._update(slot, stage="fit", message=f"fit: |a| − g RMS {result['accel_rms_after_mg']:.3f} mg")
             result["write_requested"] = bool(self.cfg.write)
             if result["passed"] and self.cfg.write:
@@ -424,8 +516,13 @@ class FixtureRun:
                 self.plate.leave(slot)
             result["params_after"] = PR.to_json(dev.get_params(ParamsWhich.ACTIVE).params)
             sess.finish(result)
+        except BoardStopped as e:
+            self._fail(slot, e.stage, e.reason, state="stopped")
         except BoardFailed as e:
-            self._fail(slot, e.stage, e.reason)
+            if self.stop_reason is not None and e.stage == "link":     # the stop cut its link, not a fault
+                self._fail(slot, self.boards[slot].stage, f"stopped: {self.stop_reason}", state="stopped")
+            else:
+                self._fail(slot, e.stage, e.reason)
         except Exception as e:  # noqa: BLE001 - a bug on one board must not stop the others; it is named
             self._fail(slot, self.boards[slot].stage, f"{type(e).__name__}: {e}")
             make_dir((self.dir / f"slot-{slot}"))
@@ -438,30 +535,57 @@ class FixtureRun:
                     dev.close()
             except Exception:  # noqa: BLE001
                 link_stats = None
-        rec = self._record_for(slot, started, result, info_dev, params_before, link_stats)
+        try:
+            rec = self._record_for(slot, started, result, info_dev, params_before, link_stats)
+        except Exception as e:  # noqa: BLE001 - every board gets a record, even when building it failed
+            st = self.boards[slot]
+            if st.state == "running":
+                self._update(slot, state="failed", reason=f"{type(e).__name__}: {e}")
+            rec = {"device": info_dev, "started": started, "passed": False, "session_id": self.session_id,
+                   "station": {"id": self.station.station_id, "slot": slot, "port": st.port},
+                   "failure": {"stage": st.stage, "reason": st.reason or f"{type(e).__name__}: {e}",
+                               "stopped": st.state == "stopped"}, "measurements": []}
+            (self.dir / f"slot-{slot}").mkdir(parents=True, exist_ok=True)
+            write_text(self.dir / f"slot-{slot}" / "error.txt", traceback.format_exc())
         self.results[slot] = rec
         self._record(slot, rec)
+
+    def _guard_clock(self, port: str) -> None:
+        """A lockstep virtual device's grants get this board's link timeout as their wall-clock
+        guard: a frozen simulator (its process stopped, its link open) never lets its device
+        time pass, so no device-time deadline of its own could ever end the wait; with the
+        guard the board fails at link within link_timeout_s of wall time, alone (each
+        board's clock is its own), and the others' grants go on."""
+        from imubench.device.clock import for_url
+        clk = for_url(port)
+        if getattr(clk, "lockstep", False):
+            clk.guard_wall_s = min(clk.guard_wall_s, max(float(self.link_timeout_s), 1.0))
 
     def _write_and_verify(self, slot: int, sess: BoardSession, result: dict) -> None:
         """The session's write-back (procedures.writeback.write_and_verify: the previous
         parameters put back when it fails); a failure is the board's, at its stage."""
         try:
             out = sess.write_and_verify()
+        except BoardStopped:
+            self.plate.leave(slot)
+            raise
         except VerifyFailed as e:
             self.plate.leave(slot)
+            if self.stop_reason is not None:
+                raise BoardStopped("verify", f"stopped: {self.stop_reason}; the previous parameters were put back") from None
             result["written"] = False
-            raise BoardFailed("verify", f"verification failed: {e}") from None
-        except (PR.InvalidParams, SessionAborted, LinkError, TimeoutError) as e:
+            raise BoardFailed("verify", f"verification failed: {_line(e)}") from None
+        except (PR.InvalidParams, SessionAborted, LinkError, TimeoutError, ImubenchError, OSError) as e:
             self.plate.leave(slot)
-            raise BoardFailed("write", f"write-back failed: {e}") from None
+            raise BoardFailed("write", f"write-back failed: {_line(e)}") from None
         result.update(written=out.written, verified=out.verified, verification=out.verification,
                       write_steps=out.steps)
 
-    def _fail(self, slot: int, stage: str, reason: str) -> None:
+    def _fail(self, slot: int, stage: str, reason: str, state: str = "failed") -> None:
         self.plate.leave(slot)
-        self._update(slot, state="failed", stage=stage or "connect", reason=reason, message=f"FAILED: {reason}")
+        self._update(slot, state=state, stage=stage or "connect", reason=reason, message=f"{state.upper()}: {reason}")
         if self.on_event is None:       # a listener shows the failure with the board's other events
-            self.say(f"slot {slot} ({self.boards[slot].port}) FAILED at {stage}: {reason}")
+            self.say(f"slot {slot} ({self.boards[slot].port}) {state.upper()} at {stage}: {reason}")
 
     def _record_for(self, slot: int, started: str, result: dict | None, ident: dict, params_before, link_stats) -> dict:
         st = self.boards[slot]
@@ -476,7 +600,7 @@ class FixtureRun:
                             "frames_rejected": int(link_stats.frames_rejected),
                             "samples_overflow": int(getattr(link_stats, "samples_overflow", 0))}
         from imubench.results.export import measurements_of
-        if result is not None and st.state != "failed":
+        if result is not None and st.state not in ("failed", "stopped"):
             rec = {**result, **base}
             rec["measurements"] = measurements_of(rec)
             ok, why = verdict(rec, self.cfg.write)
@@ -493,12 +617,17 @@ class FixtureRun:
         rec = CalibrationRecord(
             device=ident, started=started, method=self.cfg.method, gyro_method=self.cfg.gyro, note=self.cfg.note,
             written=bool(result and result.get("written")), capture_dir=str((self.dir / f"slot-{slot}").resolve()),
-            failure={"stage": st.stage, "reason": st.reason or "failed"},
+            failure={"stage": st.stage, "reason": st.reason or "failed", "stopped": st.state == "stopped"},
             **fitted, sections={**base, "params_after": (result or {}).get("params_after")}).to_json()
         rec["measurements"] = measurements_of(rec)
         return rec
 
     def _record(self, slot: int, rec: dict) -> None:
+        try:                            # on disk first: the database may be slow, shared or gone
+            (self.dir / f"slot-{slot}").mkdir(parents=True, exist_ok=True)
+            write_json_atomic(self.dir / f"slot-{slot}" / "record.json", jsonable(rec))
+        except OSError as e:
+            self.say(f"warning: slot {slot}: record.json not written ({e})")
         if self.db is None:
             return
         from imubench.results.history import History
@@ -523,6 +652,27 @@ def run_fixture(ports: list[str], directory, cfg: SessionConfig, mover, **kw) ->
 
 
 # ------------------------------------------------------------------- helpers
+def _stop_words(e: BaseException) -> str:
+    """Why a KeyboardInterrupt stopped the session: Ctrl-C, or a signal the command made one."""
+    import signal
+    if type(e).__name__ != "_Terminated":
+        return "interrupted (Ctrl-C)"
+    if e.args and e.args[0] == getattr(signal, "SIGHUP", None):
+        return "the terminal hung up (SIGHUP: the link to the host was lost)"
+    return "terminated (SIGTERM)"
+
+
+def _line(e: BaseException | str) -> str:
+    """An error as one line (a simulator's error may carry its log's tail); a lockstep
+    device's grant past its wall-clock guard is said as what it is."""
+    import re
+    text = str(e).strip()
+    text = text.splitlines()[0] if text else type(e).__name__
+    return re.sub(r"no reply to (run|status) within ([0-9.]+) s",
+                  lambda m: f"the device stopped answering (no device time passed in {float(m.group(2)):.3g} s of "
+                            "wall time: a frozen device)", text)
+
+
 def capture_ref(d: Path) -> dict:
     """SHA-256 of the raw capture (the capture files in stream order, as one byte sequence),
     the files, and where they are: a file:// URI naming this station's host."""

@@ -19,6 +19,11 @@ class BoardFailed(Exception):
         self.stage, self.reason = stage, reason
 
 
+class BoardStopped(BoardFailed):
+    """The board was stopped (Ctrl-C, SIGTERM, Stop on the page): recorded as stopped, with
+    the stage it was at."""
+
+
 # ---------------------------------------------------------------- the plate
 #: how long a board waits at the plate for what it needs, in device time (the board's own
 #: samples), by default: the other boards' attitudes, write-backs and verifications included
@@ -42,7 +47,15 @@ class Plate:
     own samples through `clock`): past it the board leaves the plate and its session fails
     with the stage and the reason (BoardFailed); the others go on. The waits are kept in
     `waits` (slot, kind, waited_s, deadline_s, outcome). No polling loop burns a core: a
-    waiting board sleeps on a condition, waking 4 times a second to look at its clock."""
+    waiting board sleeps on a condition, waking 4 times a second to look at its clock.
+
+    Each board is its own failure domain on the plate too. A mover that carries the boards
+    one by one (procedures.virtual.PlatePresenter) is told before every move which boards
+    are still on the plate (`mover.carry(slots)`) and says after it which of them it could
+    not move and why (`mover.take_lost()` -> {slot: reason}): those boards are failed and
+    dropped from the plan at once (a waiting one gets BoardFailed with its own stage and
+    that reason), and the move stands for the others. Any other error of the mover is the
+    whole plate's (a warning; the boards find out by their deadlines)."""
 
     CHECK_S = 0.25
 
@@ -59,6 +72,7 @@ class Plate:
         self.pose_moves = 0
         self.moving = False
         self.position: dict = {}                  # the plate's last move: kind, key, serves, waiting
+        self.lost: dict[int, str] = {}            # slot -> why the mover could not carry it (its fault)
         self.waits: list[dict] = []
         self.deadline_s = float(deadline_s)
         self.say = say
@@ -75,6 +89,8 @@ class Plate:
         Raises BoardFailed(stage, why) when the wait passes its deadline (device time), and
         whatever check() raises (a Stop on the page) after leaving the plate."""
         with self._cv:
+            if slot in self.lost:
+                raise BoardFailed(stage, self.lost[slot])
             if slot not in self.live:
                 return None
             self.needs[slot], self.args[slot], self.phase[slot] = need, args, need.kind
@@ -85,6 +101,9 @@ class Plate:
                 while True:
                     if t0 is not None:
                         waited = clock() - t0
+                    if slot in self.lost:
+                        self._log(slot, need, waited, "lost")
+                        raise BoardFailed(stage, self.lost[slot])
                     if slot in self.served:
                         key = self.served.pop(slot)
                         self._log(slot, need, waited, "served")
@@ -147,8 +166,12 @@ class Plate:
             up = np.asarray(args[1], float)
             self.position.update(up=[float(x) for x in up], words=pose_words(up))
         self._refresh_waits()
+        carried = sorted(self.live)
         self._cv.release()
+        lost: dict = {}
         try:
+            if hasattr(self.mover, "carry"):
+                self.mover.carry(carried)
             if move.waiting:
                 self.say(f"  plate: {_key_text(move.key)} for slot{'s' if len(move.serves) > 1 else ''} "
                          f"{_slots(move.serves)}; slot{'s' if len(move.waiting) > 1 else ''} "
@@ -162,8 +185,18 @@ class Plate:
         except Exception as e:  # noqa: BLE001 - the boards find out (no attitude comes, their deadline)
             self.say(f"warning: the plate could not make the move {_key_text(move.key)}: {e}")
         finally:
+            if hasattr(self.mover, "take_lost"):
+                try:
+                    lost = dict(self.mover.take_lost())
+                except Exception:  # noqa: BLE001 - a broken mover's report must not stop the plate
+                    lost = {}
             self._cv.acquire()
             self.moving = False
+        for s, why in lost.items():         # those boards' faults: failed here, the move stands for the rest
+            if s in self.live:
+                self.lost[s] = why
+                self.say(f"  plate: slot {s} left the plate: {why}")
+                self._drop(s)
         for s in move.serves:
             if s in self.live and s in self.needs:
                 self.served[s] = move.key

@@ -53,6 +53,27 @@ from imubench.wire.ids import SENSOR_BAD_BITS, SENSOR_NAMES, board_name, part_na
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
 
+# ---------------------------------------------------------------- the device a session belongs to
+#: what names one device: its MCU's UID, its gyros' serial numbers, the firmware it runs
+IDENTITY = (("mcu_uid", "MCU UID"), ("gyro_sn", "gyro serial numbers"), ("fw_build", "firmware build"),
+            ("board", "board"))
+
+
+def identity_differs(saved: dict, now: dict) -> str | None:
+    """The first identity field that differs between two devices (device_ident), or None."""
+    for key, words in IDENTITY:
+        if key in saved and saved.get(key) != now.get(key):
+            return words
+    return None
+
+
+def device_text(d: dict) -> str:
+    """One device in a line: board, UID, gyro serials, firmware build."""
+    sn = "/".join(str(x) for x in d.get("gyro_sn") or []) or "?"
+    return (f"{d.get('board', '?')} UID {d.get('mcu_uid', '?')} (gyro S/N {sn}, firmware {d.get('fw_version', '?')} "
+            f"build {d.get('fw_build', '?')})")
+
+
 # ---------------------------------------------------------------- the session
 class Session:
     """One calibration run in a directory (created, or resumed)."""
@@ -79,6 +100,9 @@ class Session:
         self.gsens = None                        # the gyro's g-sensitivity fit (calib.gsens), when resolved
         self.gsens_report: dict | None = None    # what the fit found of it, for the record
         self.calibration: Calibration | None = None   # the last run()'s calib.fit.Calibration
+        # the device it is captured on (UID, sensors' serial numbers, firmware build): a resumed
+        # session belongs to its board, and refuses another
+        self.device = device_ident(self.dev.info())
         if resume:
             self._load()
         else:
@@ -92,7 +116,8 @@ class Session:
         """The session file: rewritten after every attitude as a checkpoint (one line: the
         rest's samples make it ~250 KB, and indenting them through json's pure-Python encoder
         took a second of the first session), indented once a result is in it."""
-        state = {"schema": SESSION_SCHEMA, "started": self.started, "config": jsonable(asdict(self.cfg)),
+        state = {"schema": SESSION_SCHEMA, "started": self.started, "device": self.device,
+                 "config": jsonable(asdict(self.cfg)),
                  "rest": self.rest, "poses": [asdict(p) for p in self.poses], **extra}
         write_json_atomic(self.state_path, state, indent=1 if extra else None)   # a crash leaves the old or the new file
 
@@ -109,6 +134,16 @@ class Session:
             state = load_state(self.dir)
         except SessionFileError as e:
             raise SessionAborted(f"cannot resume: {e}") from None
+        saved_dev = state.get("device")
+        if isinstance(saved_dev, dict):
+            other = identity_differs(saved_dev, self.device)
+            if other:
+                raise SessionAborted(f"cannot resume: {self.dir} was captured on {device_text(saved_dev)}, but the "
+                                     f"device on this port is {device_text(self.device)} ({other} differs): connect "
+                                     "that board, or start a new session with another --dir")
+        else:
+            self.ui.say(f"warning: {self.state_path} names no device (saved by an older imubench): it cannot be "
+                        f"checked to be {device_text(self.device)}'s")
         self.started = state["started"]
         self.rest = state.get("rest")
         fields = {f.name: f for f in dataclasses.fields(PoseRecord)}

@@ -62,41 +62,95 @@ class SimPresenter(Presenter):
 
 
 class PlatePresenter(SimPresenter):
-    """The virtual fixture: one plate carrying several virtual devices. Every attitude and
-    every turn is made on all of them at once (each simulator's own rotation, so each board's
-    gyros see the motion); a bench whose simulator is gone is left out."""
+    """The virtual fixture: one plate carrying several virtual devices (benches[k] is slot
+    k + 1). Every attitude and every turn is made on all of them at once (each simulator's
+    own rotation, so each board's gyros see the motion).
+
+    Each board is its own failure domain: the plate moves only the boards still on it
+    (`carry(slots)`, told by fixture.Plate before each move), and a bench that does not
+    answer within guard_wall_s of wall time (a frozen process: its device time stands
+    still, so only the wall clock can tell), fails a command in any way, or whose process
+    is gone, is left out from then on and reported once by `take_lost()` ({slot: reason});
+    the move goes on for the others."""
 
     def __init__(self, benches: list, rate_dps: float = 90.0, tilt_deg: float = 0.0, seed: int = 0,
-                 quiet: bool = False):
+                 quiet: bool = False, guard_wall_s: float = 10.0):
         super().__init__(benches[0], rate_dps=rate_dps, tilt_deg=tilt_deg, seed=seed, quiet=quiet)
         self.benches = list(benches)
+        self.guard_wall_s = float(guard_wall_s)
+        self._carry: set[int] | None = None      # None: every bench (no plate told otherwise)
+        self._gone: dict[int, str] = {}          # slot -> why it was left out (kept)
+        self._new_lost: dict[int, str] = {}      # reported by the next take_lost()
+
+    def carry(self, slots) -> None:
+        """The boards still on the plate (1-based slots): the others are not moved."""
+        self._carry = set(slots)
+
+    def take_lost(self) -> dict[int, str]:
+        """The boards this plate could not move since the last call, with why."""
+        out, self._new_lost = self._new_lost, {}
+        return out
+
+    def _carried(self) -> list[tuple[int, object]]:
+        out = []
+        for slot, b in enumerate(self.benches, 1):
+            if slot in self._gone or (self._carry is not None and slot not in self._carry):
+                continue
+            if not b.running:
+                self._lose(slot, "its virtual device is gone (the simulator process ended)")
+                continue
+            out.append((slot, b))
+        return out
+
+    def _lose(self, slot: int, why: str) -> None:
+        self._gone[slot] = why
+        self._new_lost[slot] = why
 
     def _alive(self) -> list:
-        return [b for b in self.benches if b.running]
+        return [b for _, b in self._carried()]
 
     def _rotate_to(self, target: np.ndarray) -> None:
-        alive = self._alive()
-        if not alive:
+        g = None
+        for slot, b in self._carried():              # where the plate is: the first bench that answers
+            try:
+                g = b.control("status", timeout=self.guard_wall_s)["gravity_board"]
+                self.vb = b
+                break
+            except Exception as e:  # noqa: BLE001 - that board's fault, not the plate's
+                self._lose(slot, _no_answer(e, self.guard_wall_s))
+        if g is None:
             return
-        self.vb = alive[0]
-        turn = rotation_to(self.vb.status()["gravity_board"], target)
+        turn = rotation_to(g, target)
         if turn is None:
             return
         ax, angle = turn
-        self._each(lambda b: b.rotate(ax, rate_dps=self.rate_dps, duration_s=angle / self.rate_dps, wait=False))
-        self._each(lambda b: b.wait_idle(timeout=b._wait_timeout(angle / self.rate_dps)))
+        d = angle / self.rate_dps
+        self._each(lambda b: b.control("rotate", axis=[float(x) for x in ax], rate_dps=float(self.rate_dps),
+                                       duration_s=float(d), timeout=self.guard_wall_s))
+        self._each(lambda b: b.wait_idle(timeout=self.guard_wall_s + b._wait_timeout(d), device_limit_s=d + 30.0))
 
     def present_turn(self, axis, rate_dps, duration_s):
         self.say(f"virtual turntable: {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()} for {duration_s:g} s")
-        self._each(lambda b: b.rotate(list(axis), rate_dps=rate_dps, duration_s=duration_s, wait=False))
+        self._each(lambda b: b.control("rotate", axis=[float(x) for x in axis], rate_dps=float(rate_dps),
+                                       duration_s=float(duration_s), timeout=self.guard_wall_s))
 
     def _each(self, fn) -> None:
-        from imubench.device.sim import SimError
-        for b in self._alive():
+        for slot, b in self._carried():
             try:
                 fn(b)
-            except SimError:        # that board's simulator died: the plate carries the others
-                pass
+            except Exception as e:  # noqa: BLE001 - that board's simulator failed: the plate carries the others
+                self._lose(slot, _no_answer(e, self.guard_wall_s))
+
+
+def _no_answer(e: BaseException, guard_s: float) -> str:
+    import re
+    text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    m = re.search(r"no reply to (\w+)", text)
+    if m or "timed out" in text:
+        what = f" to {m.group(1)}" if m else ""
+        return (f"its virtual device stopped answering the plate (no reply{what} within {guard_s:g} s of wall "
+                "time: a frozen simulator)")
+    return f"the plate could not move its virtual device ({text})"
 
 
 #: tremor: legs of this length, each turning by a random angle of this RMS about a random

@@ -408,7 +408,8 @@ def _fmt(v) -> str:
 
 def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -> str:
     cfg = st.cfg
-    last_said = -math.inf
+    next_say = 0.0          # the progress line is due at every multiple of fit_every_s of device time
+    prog = None
     while True:
         # a stream that goes silent for cfg.stall_s raises LinkTimeout (the run ends "failed", fit
         # kept); the stop event is seen within a read (0.2 s)
@@ -416,6 +417,13 @@ def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -
         if stop is not None and stop.is_set():
             return "stopped (asked to)"
         if not new:
+            # the line comes on time (within a read) even between bins: it was said only when a
+            # bin completed, 26 to 51 s apart for "every 20 s" (issue 38)
+            if prog is not None and st.elapsed_s >= next_say:
+                next_say = (math.floor(st.elapsed_s / cfg.fit_every_s) + 1) * cfg.fit_every_s
+                prog = _progress(st, st.binned())
+                say(format_progress(prog))
+                rec.update(progress=prog)
             continue
         b = st.binned()
         if st.elapsed_s - st.last_fit_s >= cfg.fit_every_s and len(b) >= MIN_BINS_TO_FIT:
@@ -427,8 +435,8 @@ def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -
         prog = _progress(st, b)
         if on_progress is not None:
             on_progress(prog)
-        if st.elapsed_s - last_said >= cfg.fit_every_s:
-            last_said = st.elapsed_s
+        if st.elapsed_s >= next_say:
+            next_say = (math.floor(st.elapsed_s / cfg.fit_every_s) + 1) * cfg.fit_every_s
             say(format_progress(prog))
             rec.update(progress=prog)
         rates, full = _rates(b, cfg.stop_window_s)

@@ -110,7 +110,10 @@ _MAT3 = ("list", _VEC3, 3)
 _FIT = {"method": "str", "m": _MAT3, "sigma_m": _MAT3, "b_mps2": _VEC3, "sigma_b_mps2": _VEC3,
         "b_rad_s": _VEC3, "sigma_b_rad_s": _VEC3, "residual_rms": _NUM_OR_NULL,
         "residual_rms_mps2": _NUM_OR_NULL, "extra": ("opt", "dict")}
+_DEVICE = {"mcu_uid": "str", "board": "str", "fw_version": "str", "fw_build": "str",
+           "accel_ids": ("list", "int"), "gyro_pid": ("list", "int"), "gyro_sn": ("list", "int")}
 _STATE = {
+    "device": _DEVICE,      # the device it was captured on (a session saved before issue 38 has none)
     "config": {"method": "str", "gyro": ("opt", "str"), "rate_hz": "num", "hold_s": "num", "rest_s": "num",
                "settle_s": "num", "note": "str", "write": "bool", "tolerances": "dict"},
     "rest": ("opt", {"noise_mps2": ("list", "num", 3), "gyro": ("opt", ("list", ("list", "num", 3))),

@@ -436,8 +436,8 @@ class Station:
                     if not any(x["kind"] == st["stage"] for x in b.steps):
                         b.steps.append({"kind": st["stage"], "text": text, "state": "running"})
             else:
-                b.status, b.phase = ("done" if st["state"] == "passed" else "failed"), "end"
-                b.error = None if st["state"] == "passed" else f"failed at {st['stage']}: {st['reason']}"
+                b.status, b.phase = {"passed": "done", "stopped": "stopped"}.get(st["state"], "failed"), "end"
+                b.error = None if st["state"] == "passed" else f"{st['state']} at {st['stage']}: {st['reason']}"
                 _close_steps(b, "done" if st["state"] == "passed" else "failed")
                 for c in b.plan:                 # nothing is being captured any more
                     if c["state"] == "capturing":
@@ -461,14 +461,15 @@ class Station:
         if not record.get("passed"):
             fail = record.get("failure") or {}
             if fail:
-                summary["status"], summary["verdict"] = "fail", f"at {fail.get('stage')}: {fail.get('reason')}"
+                summary["status"] = "stopped" if fail.get("stopped") else "fail"
+                summary["verdict"] = f"at {fail.get('stage')}: {fail.get('reason')}"
             elif summary["status"] == "pass":
                 summary["status"] = "fail"
                 summary["verdict"] = self.state.boards[key].error or "did not pass its limits"
 
         def f(b):
             b.result = summary
-            b.status = "done" if summary["status"] == "pass" else "failed"
+            b.status = {"pass": "done", "stopped": "stopped"}.get(summary["status"], "failed")
             b.phase = "end"
         self.state.update(key, f)
 

@@ -64,6 +64,7 @@ class StationState:
         self.streams: dict[str | None, int] = {}   # open event streams per identity (None: no identity)
         self._watchers: list = []             # called (under the lock) at every change: async streams wake
         self.plate: dict = {}                 # a station session's plate: its last move, the deadlines
+        self.over: dict | None = None         # a station session's end: pass count, stopped, why
 
     def on_change(self, fn) -> None:
         """Call fn() at every change (from whichever thread makes it; keep it short)."""
@@ -223,7 +224,14 @@ class StationState:
                 d["owned"] = b.owner is not None and (self._present(b.owner) or now - b.owner_seen < OWNER_GRACE_S)
                 boards.append(copy.deepcopy(d))
             return {"version": self.version, "mode": self.mode, "sim": self.sim_available, "boards": boards,
-                    "plate": copy.deepcopy(self.plate)}
+                    "plate": copy.deepcopy(self.plate), "over": copy.deepcopy(self.over)}
+
+    def set_over(self, over: dict) -> None:
+        """A station session is over: its pass count (and why it stopped); the plate is closed."""
+        with self._lock:
+            self.over = dict(over)
+            self.plate.update(move=None, closed=True)
+            self._bump()
 
     def set_plate(self, **kw) -> None:
         """A station session's plate: what it presents now (fixture.Plate's move), the deadlines."""

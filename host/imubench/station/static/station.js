@@ -102,6 +102,7 @@
   // ------------------------------------------------------------------ events
   // server-sent events read with fetch (an EventSource cannot send the session header)
   let stream = null;
+  let gone = false;                     // the event stream broke: the station (its server) may be gone
   async function reconnect() {
     if (stream) stream.abort();
     const ctl = stream = new AbortController();
@@ -111,6 +112,7 @@
         signal: ctl.signal });
       if (!r.ok) { wait = 3000; const j = await r.json().catch(() => ({})); throw new Error(j.error || r.statusText); }
       $("#conn").textContent = "live";
+      if (gone) { gone = false; if (last) render(last); }
       const reader = r.body.pipeThrough(new TextDecoderStream()).getReader();
       let buf = "";
       for (;;) {
@@ -131,6 +133,8 @@
     if (ctl !== stream) return;
     window.__streamErrors += 1;
     if ($("#conn").textContent === "live") $("#conn").textContent = "reconnecting…";
+    // the station is gone (Ctrl-C, closed): nothing runs any more as far as this page can know
+    if (!gone) { gone = true; if (last) render(last); }
     setTimeout(() => { if (ctl === stream) reconnect(); }, wait);
   }
 
@@ -150,14 +154,28 @@
     renderOverview(snap);
     loadPictures();
     const watching = snap.boards.filter((b) => b.owned && !b.yours);
-    const slots = mine.every((b) => b.device && b.device.slot) && mine.length > 1;
-    $("#role").textContent = mine.length ? "you drive " + (slots ? "slots " + mine.map((b) => b.device.slot).join(", ")
-      : mine.map((b) => b.key).join(", "))
+    // the boards this page drives or is claiming (a session's claims go one at a time): the
+    // full list from the first second, not as the claims come back
+    const driving = snap.boards.filter((b) => b.yours || (!b.owned && claiming[b.key]));
+    const slots = driving.every((b) => b.device && b.device.slot) && driving.length > 1;
+    $("#role").textContent = driving.length ? "you drive " + (slots ? "slots " + ranges(driving.map((b) => b.device.slot))
+      : driving.map((b) => b.key).join(", "))
       : watching.length ? "read-only: watching" : "";
     $("#role").className = "pill " + (mine.length ? "done" : watching.length ? "readonly" : "");
     const busy = mine.some((b) => b.status === "running");
     $("#setup").hidden = !(snap.mode === "idle" && !busy);
     $("#use-sim").parentElement.hidden = !snap.sim;
+  }
+
+  function ranges(nums) {               // [1,2,3,5,7,8] -> "1–3, 5, 7–8"
+    const n = [...nums].sort((a, b) => a - b), out = [];
+    for (let i = 0; i < n.length; i++) {
+      let j = i;
+      while (j + 1 < n.length && n[j + 1] === n[j] + 1) j++;
+      out.push(j > i ? `${n[i]}–${n[j]}` : `${n[i]}`);
+      i = j;
+    }
+    return out.join(", ");
   }
 
   // ------------------------------------------------------------------ a station session's overview
@@ -185,10 +203,20 @@
     $("#overview").hidden = !fixture;
     $("#boards").classList.toggle("overview-on", fixture);
     if (!fixture) return;
-    const P = snap.plate || {}, M = P.move;
+    const P = snap.plate || {}, O = snap.over;
+    const closed = !!(P.closed || O) || gone;
+    const M = closed ? null : P.move;
     const kindWords = { pose: "attitude", verify: "verification attitude", turn: "turn" };
+    $("#plate").classList.toggle("closed", closed);
     $(".plate-now", $("#plate")).innerHTML = M ? `${kindWords[M.kind] || M.kind} <b>${esc(M.key)}</b>` +
-      (M.words ? ` (${esc(M.words)})` : "") + ` <small>move ${M.move}</small>` : "not moved yet";
+      (M.words ? ` (${esc(M.words)})` : "") + ` <small>move ${M.move}</small>`
+      : O ? "session over: the plate is free" : gone ? "no news: the station is gone" : "not moved yet";
+    // the end: the pass count (and why it ended early), once the session is over
+    const ov = $("#over");
+    ov.hidden = !O && !gone;
+    ov.className = "over " + (O ? (O.passed === O.boards ? "passed" : "failed") : "gone");
+    ov.textContent = O ? `${O.text}` + (O.failed ? `; ${O.failed} failed` : "")
+      : gone ? "the station is gone (stopped, or its command ended): the boards below show their last known state" : "";
     $(".plate-for", $("#plate")).textContent = M ? `for slot${M.serves.length > 1 ? "s" : ""} ${M.serves.join(", ")}` +
       (M.waiting.length ? `; slot${M.waiting.length > 1 ? "s" : ""} ${M.waiting.join(", ")} wait` : "") : "";
     $(".plate-deadlines", $("#plate")).textContent = P.deadlines || "";
@@ -207,8 +235,10 @@
         tiles[b.key] = t;
       }
       const F = b.fixture || {};
-      const state = b.result ? (b.result.status === "pass" ? "passed" : "failed") : F.state === "passed" ? "passed"
-        : F.state === "failed" || b.status === "failed" ? "failed" : "running";
+      let state = b.result ? ({ pass: "passed", stopped: "stopped" }[b.result.status] || "failed")
+        : F.state === "passed" || F.state === "stopped" ? F.state
+        : F.state === "failed" || b.status === "failed" ? "failed" : b.status === "stopped" ? "stopped" : "running";
+      if (gone && state === "running") state = "stopped";        // the station is gone: nothing runs here any more
       const waiting = state === "running" && !!F.waiting;
       t.className = "tile " + state + (waiting ? " waiting" : "") + (selected === b.key ? " selected" : "");
       t.dataset.state = state;
@@ -228,6 +258,8 @@
       if (state === "passed") v = "PASSED" + (b.result ? ": " + b.result.verdict : "");
       else if (state === "failed") v = "FAILED " + (b.result && b.result.verdict ? b.result.verdict
         : F.reason ? `at ${F.stage}: ${F.reason}` : b.error || "");
+      else if (state === "stopped") v = "STOPPED " + (b.result && b.result.verdict ? b.result.verdict
+        : F.reason ? `at ${F.stage}: ${F.reason}` : gone ? "(the station is gone; its last stage is shown)" : "");
       else if (waiting) v = F.waiting;
       else if (F.stage === "poses" && b.live && b.live.state) {      // what the board sees now
         const L = b.live;
@@ -265,7 +297,7 @@
     const dev = b.device && b.device.board ? ` — ${b.device.board} ${b.device.uid || ""}${parts}` : b.device && b.device.uid ? ` — ${b.device.uid}` : "";
     $(".devname", el).textContent = slot + (b.key === "sim" ? "virtual bench" : b.device && b.device.slot ? (b.device.url || b.key) : b.key) + dev;
     const st = $(".status", el);
-    st.textContent = b.status + (b.phase && b.status === "running" ? " · " + b.phase : "");
+    st.textContent = (gone && b.status === "running" ? "stopped (the station is gone)" : b.status) + (b.phase && b.status === "running" && !gone ? " · " + b.phase : "");
     st.className = "status pill " + b.status;
     const ow = $(".owner", el);
     ow.textContent = b.yours ? "you drive this device" : b.owned ? "read-only: driven from another page" : "";
@@ -280,7 +312,7 @@
     if (b.result) {
       v.hidden = false;
       v.className = "verdict " + b.result.status;
-      v.innerHTML = `<b>${b.result.status === "pass" ? "PASSED" : "FAILED"}</b>: ${esc(b.result.verdict)}`;
+      v.innerHTML = `<b>${b.result.status === "pass" ? "PASSED" : b.result.status === "stopped" ? "STOPPED" : "FAILED"}</b>: ${esc(b.result.verdict)}`;
     } else v.hidden = true;
 
     renderWarmup(el, b);
