@@ -127,7 +127,7 @@ class PlatePresenter(SimPresenter):
         d = angle / self.rate_dps
         self._each(lambda b: b.control("rotate", axis=[float(x) for x in ax], rate_dps=float(self.rate_dps),
                                        duration_s=float(d), timeout=self.guard_wall_s))
-        self._each(lambda b: b.wait_idle(timeout=self.guard_wall_s + b._wait_timeout(d), device_limit_s=d + 30.0))
+        self._each(lambda b: b.wait_idle(timeout=self.guard_wall_s + b.time.timeout_for(d), device_limit_s=d + 30.0))
 
     def present_turn(self, axis, rate_dps, duration_s):
         self.say(f"virtual turntable: {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()} for {duration_s:g} s")
