@@ -26,6 +26,7 @@ import csv
 import gzip
 import io
 import json
+import os
 import re
 import zipfile
 from dataclasses import dataclass, field
@@ -44,11 +45,15 @@ from imubench.files import (
     read_bytes,
     read_text,
 )
+from imubench import memory
 from imubench.recordings import FORMATS, Recording, RecordingError, from_arrays
 
-#: the most samples a recording may hold (21 columns of float64 at most: about 3 GiB); a calibration
-#: needs minutes of data, not days
-MAX_SAMPLES = 20_000_000
+#: the most samples a recording may hold under the default memory budget (imubench.memory.sample_limit:
+#: 24 h at 200 Hz is a normal input); --memory-budget sets another
+MAX_SAMPLES = memory.sample_limit()
+#: a value of an accelerometer or gyro beyond this in any unit (m/s², g, mg, rad/s, °/s, counts of a
+#: 32-bit register) is no sensor's reading: the line is named and the file refused
+ABSURD = 1e12
 #: the lines parsed at a time: text is never held whole, only this many lines of it
 CHUNK_LINES = 65536
 #: what the arrays of one .npz member may take once read (checked from its header before reading)
@@ -245,55 +250,144 @@ def _preamble_rate(lay: Layout) -> tuple[float, str] | None:
     return rate, text
 
 
-def _chunks(path: Path, start: int):
-    """Lists of at most CHUNK_LINES data lines of a text file from its line start (0-based; blank
-    lines and # or % comments skipped): the file is streamed, never held whole."""
+def _progress(total: int, desc: str, unit: str = "B"):
+    """A tqdm bar (as the rest of the tool) on stderr, shown only when the work lasts over a second
+    and stderr is a terminal: bytes (or samples) done and the time left."""
+    from tqdm import tqdm
+    return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, unit_divisor=1024 if unit == "B" else 1000,
+                delay=1.0, leave=False, disable=None, dynamic_ncols=True)
+
+
+def _position(f) -> int:
+    """The bytes of the file on disk consumed so far (of the compressed file for .gz)."""
+    try:
+        return os.lseek(f.fileno(), 0, os.SEEK_CUR)
+    except (OSError, ValueError, AttributeError):
+        return 0
+
+
+def _count_lines(path: Path, stop: int) -> int:
+    """The lines of a text file (of its decompressed text for .gz), counted in binary blocks without
+    holding them; counting stops past `stop` (a gzip bomb is not decompressed to its end)."""
+    n, last = 0, b"\n"
+    try:
+        with (_open_binary(path)) as f:
+            while n <= stop:
+                blk = f.read(1 << 22)
+                if not blk:
+                    break
+                n += blk.count(b"\n")
+                last = blk[-1:]
+    except (OSError, EOFError) as e:
+        raise RecordingError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+    return n + (last != b"\n")
+
+
+def _open_binary(path: Path):
+    if path.suffix == ".gz":
+        raw = open_input(path)
+        g = gzip.GzipFile(fileobj=raw, mode="rb")
+        g.myfileobj = raw
+        return g
+    return open_input(path)
+
+
+def _chunks(path: Path, start: int, progress=None):
+    """(lines, numbers) of at most CHUNK_LINES data lines of a text file from its line start (0-based;
+    blank lines and # or % comments skipped) and their 1-based line numbers: the file is streamed, never
+    held whole. progress: a tqdm bar advanced by the bytes of the file consumed."""
     with _open_text(path) as f:
-        chunk = []
+        chunk, numbers, done = [], [], 0
         for i, line in enumerate(_lines(f, path)):
             if i >= start and line.strip() and not _is_comment(line):
                 chunk.append(line)
+                numbers.append(i + 1)
                 if len(chunk) == CHUNK_LINES:
-                    yield chunk
-                    chunk = []
+                    yield chunk, numbers
+                    chunk, numbers = [], []
+                    if progress is not None:
+                        pos = _position(f)
+                        progress.update(max(0, pos - done))
+                        done = max(done, pos)
         if chunk:
-            yield chunk
+            yield chunk, numbers
 
 
-def _load(path: Path, delim: str | None, usecols: list[int], start: int) -> np.ndarray:
-    """The numbers of the columns usecols of a text table from its line start, parsed CHUNK_LINES
-    lines at a time into one array sized from the file's size (bounded memory: the text of one
-    chunk and the numbers read; no second copy)."""
-    out, n = None, 0
+def _bad_row(what: str, path: Path, line: int, col: str, value: float) -> RecordingError:
+    kind = "not a finite number" if not np.isfinite(value) else f"{value:.3g}, beyond any sensor's range (|x| > {ABSURD:.0e})"
+    return RecordingError(f"{path.name}: line {line}, {col}: {kind}; fix or cut the file ({what})")
+
+
+def _load_table(path: Path, delim: str | None, usecols: list[int], start: int, *, time_at: int | None = None,
+                names: list[str] | None = None, budget: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The numbers of the columns usecols of a text table from its line start, parsed CHUNK_LINES lines at
+    a time into arrays allocated once: (values, t) with t the column at position time_at of usecols
+    (float64 seconds or whatever unit the file has; None without) and values the others, as float64 when
+    the memory budget holds them so, else float32 (imubench.memory). The lines are counted first, so the
+    sample limit the budget sets is checked before anything is allocated. A value that is not finite or
+    beyond any sensor's range (ABSURD) is refused with its line. names: the columns' names, for messages."""
+    names = names or [f"column {c + 1}" for c in usecols]
+    nval = len(usecols) - (time_at is not None)
+    limit = memory.sample_limit(budget, nval, time_at is not None)
+    lines = _count_lines(path, stop=start + limit + 1)
+    rows = max(0, lines - start)
+    dtype = memory.storage_dtype(rows, budget, nval, time_at is not None)
+    if dtype is None:
+        raise RecordingError(f"{path}: more than {limit:,} samples (counted {'over' if rows > limit else ''} "
+                             f"{rows:,} lines), the limit of the memory budget of {memory.text(budget or memory.DEFAULT_BUDGET_BYTES)}; "
+                             "give a larger --memory-budget, or cut the recording")
+    vcols = [k for k in range(len(usecols)) if k != time_at]
+    vals = np.empty((rows, nval), dtype=dtype)
+    t = np.empty(rows, dtype=np.float64) if time_at is not None else None
+    n = 0
     size = path.stat().st_size
+    bar = _progress(size, f"reading {path.name}") if size > (1 << 20) else None
     try:
-        for chunk in _chunks(path, start):
+        for chunk, numbers in _chunks(path, start, bar):
             if delim not in (None, " ", "\t"):       # whitespace at line ends is format (np.loadtxt: None)
                 chunk = [ln.strip() for ln in chunk]
-            a = np.loadtxt(chunk, delimiter=None if delim in (" ", "\t", None) else delim, usecols=usecols,
-                           comments=_COMMENT, ndmin=2, dtype=np.float64)
-            if out is None:
-                per_line = max(1.0, sum(map(len, chunk)) / len(chunk))
-                rows = len(a) if len(chunk) < CHUNK_LINES or path.suffix == ".gz" else int(size / per_line * 1.02)
-                out = np.empty((min(max(rows, len(a)), MAX_SAMPLES + 1), a.shape[1]))
-            elif a.shape[1] != out.shape[1]:
-                raise ValueError(f"{a.shape[1]} columns after {n} lines of {out.shape[1]}")
-            if n + len(a) > MAX_SAMPLES:
-                raise RecordingError(f"{path}: more than the limit of {MAX_SAMPLES} samples; cut the recording "
-                                     "(a calibration needs minutes of data)")
-            if n + len(a) > len(out):
-                out = np.resize(out, (min(max(n + len(a), int(len(out) * 1.5)), MAX_SAMPLES + 1), out.shape[1]))
-            out[n:n + len(a)] = a
+            try:
+                a = np.loadtxt(chunk, delimiter=None if delim in (" ", "\t", None) else delim, usecols=usecols,
+                               comments=_COMMENT, ndmin=2, dtype=np.float64)
+            except ValueError as e:
+                raise RecordingError(_not_numbers(path, chunk, numbers, delim, usecols, e, start)) from None
+            if len(a) != len(chunk):
+                raise RecordingError(f"{path}: {len(chunk)} lines gave {len(a)} rows; check the file")
+            v = a[:, vcols]
+            bad = ~np.isfinite(v) | (np.abs(v) > ABSURD)
+            if time_at is not None:
+                bad = np.column_stack([bad, ~np.isfinite(a[:, time_at])])
+            if bad.any():
+                r, c = np.argwhere(bad)[0]
+                col = usecols[time_at] if c == nval else usecols[vcols[c]]
+                value = a[r, time_at] if c == nval else v[r, c]
+                raise _bad_row("first such value", path, numbers[r], names[usecols.index(col)], float(value))
+            if n + len(a) > rows:
+                raise RecordingError(f"{path} grew while it was read; read it when it is complete")
+            vals[n:n + len(a)] = v
+            if t is not None:
+                t[n:n + len(a)] = a[:, time_at]
             n += len(a)
-    except RecordingError:
-        raise
-    except ValueError as e:
-        raise RecordingError(f"{path}: not numbers where numbers are expected ({' '.join(str(e).split())[:160]}, "
-                             f"counted from line {start + 1}); check the delimiter and the header, or start at the "
-                             "header row with --skip-rows N (the lines before it)") from None
-    if out is None:
-        return np.empty((0, len(usecols)))
-    return out[:n]
+    finally:
+        if bar is not None:
+            bar.close()
+    return vals[:n], (t[:n] if t is not None else None)
+
+
+def _not_numbers(path: Path, chunk, numbers, delim, usecols, e, start) -> str:
+    """The line of a chunk that is not numbers, named (np.loadtxt's message counts within the chunk)."""
+    m = re.search(r"at row (\d+)", str(e))
+    k = None if not m else int(m.group(1)) - (0 if "could not convert" in str(e) else 1)
+    where = f"line {numbers[k]}" if k is not None and 0 <= k < len(numbers) else f"counted from line {start + 1}"
+    return (f"{path}: not numbers where numbers are expected ({' '.join(str(e).split())[:160]}; {where}); "
+            "check the delimiter and the header, or start at the header row with --skip-rows N (the lines before it)")
+
+
+def _load(path: Path, delim: str | None, usecols: list[int], start: int, budget: int | None = None) -> np.ndarray:
+    """All the columns usecols as one array (float64 or float32 by the budget): _load_table without a
+    time column."""
+    vals, _ = _load_table(path, delim, usecols, start, budget=budget)
+    return vals
 
 
 def detect_format(path, skip_rows: int | None = None) -> str:
@@ -447,7 +541,10 @@ def _time_seconds(raw: np.ndarray, unit: str | None, what: str, detected: list, 
                              "(or --rate HZ to ignore it)")
     if unit not in _TIME_SUFFIX:
         raise RecordingError(f"--time-unit {unit!r}: one of s, ms, us, ns")
-    return raw * _TIME_SUFFIX[unit]
+    f = _TIME_SUFFIX[unit]
+    if f != 1.0:
+        np.multiply(raw, f, out=raw)            # in place: the reader's own array, no second copy
+    return raw
 
 
 def _layout_lines(lay: Layout, rate_hz: float | None, has_time: bool, detected: list, notes: list,
@@ -527,7 +624,9 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
             options["time_column"] = mapping["t"]
     idx = [low[mapping[k].lower()] for k in KEYS]
     t_idx = low[mapping["t"].lower()] if "t" in mapping else None
-    data = _load(path, lay.delim, idx + ([t_idx] if t_idx is not None else []), lay.start)
+    names = [mapping[k] for k in KEYS] + ([mapping["t"]] if t_idx is not None else [])
+    data, t_raw = _load_table(path, lay.delim, idx + ([t_idx] if t_idx is not None else []), lay.start,
+                              time_at=6 if t_idx is not None else None, names=names, budget=opt.get("memory_budget"))
     # units: declared, or declared by the column names
     if not accel_unit:
         suf = mapping["ax"].lower().rsplit("_", 1)[-1]
@@ -548,9 +647,10 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
             unit = suf if "_" in mapping["t"] and suf in _TIME_SUFFIX else None
             if unit:
                 notes.append(f"time unit {unit} from the column name {mapping['t']}")
-        t = _time_seconds(data[:, 6], unit, f"the time column {mapping['t']!r}", detected, options)
+        t = _time_seconds(t_raw, unit, f"the time column {mapping['t']!r}", detected, options)
     return from_arrays(data[:, :3], data[:, 3:6], t_s=t, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
-                       source=str(path), fmt="csv", notes=notes, detected=detected, options=options, **_common(opt))
+                       source=str(path), fmt="csv", notes=notes, detected=detected, options=options, copy=False,
+                       **_common(opt))
 
 
 def _read_headerless(path: Path, lay: Layout, *, columns: dict | None, time_unit: str | None,
@@ -580,29 +680,35 @@ def _read_headerless(path: Path, lay: Layout, *, columns: dict | None, time_unit
     if rate_hz:
         pos.pop("t", None)
     use = [pos[k] for k in KEYS] + ([pos["t"]] if "t" in pos else [])
-    data = _load(path, lay.delim, use, lay.start)
+    data, t_raw = _load_table(path, lay.delim, use, lay.start, time_at=6 if "t" in pos else None,
+                              budget=opt.get("memory_budget"))
     au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, path.name)
     t = None
     if "t" in pos:
-        t = _time_seconds(data[:, 6], time_unit, f"{path.name}: the time column (position {pos['t'] + 1})",
+        t = _time_seconds(t_raw, time_unit, f"{path.name}: the time column (position {pos['t'] + 1})",
                           detected, options)
     return from_arrays(data[:, :3], data[:, 3:6], t_s=t, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
-                       source=str(path), fmt="csv", notes=notes, detected=detected, options=options, **_common(opt))
+                       source=str(path), fmt="csv", notes=notes, detected=detected, options=options, copy=False,
+                       **_common(opt))
 
 
 # ------------------------------------------------------------------ imu_tk
-def _imutk_file(path: Path, what: str) -> np.ndarray:
+def _imutk_file(path: Path, what: str, budget: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(t, xyz) of one of imu_tk's files: the time float64, the values float64 or float32 by the budget."""
     if not path.exists():
         raise RecordingError(f"{path}: no such file; check the path")
     _regular(path)
     try:
         lay = _layout(path)
-        d = _load(path, lay.delim, list(range(lay.ncols)), lay.start)
+        if lay.ncols != 4:
+            raise RecordingError(f"{path} ({what}): {lay.ncols} columns per line; imu_tk's files have 4 (t x y z)")
+        xyz, t = _load_table(path, lay.delim, [0, 1, 2, 3], lay.start, time_at=0, names=["t", "x", "y", "z"],
+                             budget=budget)
     except RecordingError as e:
+        if "columns per line" in str(e):
+            raise
         raise RecordingError(f"not imu_tk's layout (lines of 't x y z' numbers): {e}") from None
-    if d.shape[1] != 4:
-        raise RecordingError(f"{path} ({what}): {d.shape[1]} columns per line; imu_tk's files have 4 (t x y z)")
-    return d
+    return t, xyz
 
 
 #: the words that name imu_tk's accelerometer file, and those of its gyro file beside it (xsens_acc.mat, xsens_gyro.mat)
@@ -645,21 +751,37 @@ def read_imutk(path: Path, *, gyro_file=None, accel_unit: str | None = None, gyr
         detected.append(f"imu_tk's pair: the gyro file {gyro_file.name} beside it, by name (--gyro-file {gyro_file})")
         options["gyro_file"] = str(gyro_file)
     au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, "imu_tk's format")
-    a = _imutk_file(path, "accelerometer")
-    g = _imutk_file(Path(gyro_file), "gyro")
+    budget = opt.get("memory_budget")
+    half = None if budget is None else max(memory.MIN_BUDGET_BYTES, budget // 2)
+    ta, a = _imutk_file(path, "accelerometer", half)
+    tg, g = _imutk_file(Path(gyro_file), "gyro", half)
     notes = []
-    if len(a) != len(g) or not np.allclose(a[:, 0], g[:, 0], atol=0.25 * float(np.median(np.diff(a[:, 0])))):
+    if len(ta) < 2:
+        raise RecordingError(f"{path.name}: only {len(ta)} samples: a calibration needs minutes of data")
+    if len(ta) != len(tg) or not _same_times(ta, tg):
         # not sample-synchronous: the gyro is interpolated at the accelerometer's times
-        lo, hi = max(a[0, 0], g[0, 0]), min(a[-1, 0], g[-1, 0])
-        a = a[(a[:, 0] >= lo) & (a[:, 0] <= hi)]
-        if len(a) < 3:
+        lo, hi = max(ta[0], tg[0]), min(ta[-1], tg[-1])
+        keep = (ta >= lo) & (ta <= hi)
+        ta, a = ta[keep], a[keep]
+        if len(ta) < 3:
             raise RecordingError(f"{path.name} and {Path(gyro_file).name} do not overlap in time")
-        g = np.column_stack([a[:, 0]] + [np.interp(a[:, 0], g[:, 0], g[:, j]) for j in (1, 2, 3)])
+        g = np.column_stack([np.interp(ta, tg, g[:, j]) for j in range(3)]).astype(g.dtype, copy=False)
         notes.append("the gyro file's times differ from the accelerometer's: the gyro was interpolated "
                      "(linearly) at the accelerometer's times over their common span")
-    return from_arrays(a[:, 1:], g[:, 1:], t_s=a[:, 0], rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
+    del tg
+    return from_arrays(a, g, t_s=ta, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
                        source=f"{path} + {gyro_file}", fmt="imutk", notes=notes, detected=detected, options=options,
-                       **_common(opt))
+                       copy=False, **_common(opt))
+
+
+def _same_times(ta: np.ndarray, tg: np.ndarray) -> bool:
+    """True when two files' time stamps agree sample by sample within a quarter of the median step
+    (compared a block at a time: no temporaries the size of the recording)."""
+    atol = 0.25 * float(np.median(np.diff(ta[: 1_000_001])))
+    for i in range(0, len(ta), 1 << 20):
+        if not np.allclose(ta[i:i + (1 << 20)], tg[i:i + (1 << 20)], atol=atol):
+            return False
+    return True
 
 
 # ------------------------------------------------------------------ imucal
@@ -681,8 +803,8 @@ def read_imucal(path: Path, *, rate_hz: float | None = None, accel_unit: str | N
     breaks = []
     notes = []
     if low[0] == "part":
-        names = [r[0] for chunk in _chunks(path, lay.start) for r in csv.reader(chunk, delimiter=delim)]
-        data = _load(path, delim, idx, lay.start)
+        names = [r[0] for chunk, _ in _chunks(path, lay.start) for r in csv.reader(chunk, delimiter=delim)]
+        data = _load(path, delim, idx, lay.start, budget=opt.get("memory_budget"))
         parts = []
         start = 0
         for i in range(1, len(names) + 1):
@@ -695,7 +817,7 @@ def read_imucal(path: Path, *, rate_hz: float | None = None, accel_unit: str | N
         notes.append(f"{len(parts)} parts named in the file ({', '.join(p[0] for p in parts)}): each cut is a "
                      "break; the parts are not used to find the poses, only to compare with")
     else:
-        data = _load(path, delim, idx, lay.start)
+        data = _load(path, delim, idx, lay.start, budget=opt.get("memory_budget"))
     return from_arrays(data[:, :3], data[:, 3:], rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
                        source=str(path), fmt="imucal", breaks=breaks, notes=notes, parts=parts, **_common(opt))
 
