@@ -64,10 +64,13 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
     return res
 
 
-def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=print) -> dict:
+def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=print,
+                      memory_budget: int | None = None) -> dict:
     """The Allan analysis of a recording of any IMU read by imubench.recordings (the formats
     `calibrate --from` reads, with the same unit and timing checks), written like
-    analyse_capture's, plus each consumer's noise file of `exports` (results.noise_export)."""
+    analyse_capture's, plus each consumer's noise file of `exports` (results.noise_export).
+    The recording's arrays are never copied whole: the deviation is computed an axis at a time,
+    in memory or in chunks as the memory budget (imubench.memory) allows."""
     from imubench.procedures.recording_checks import check_accel_unit, check_gyro_unit
     from imubench.recordings import RecordingError
     from imubench.results.noise_export import write_noise
@@ -79,20 +82,25 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
     if n < 64:
         raise RecordingError(f"{n} samples: far too few for an Allan analysis (record a still IMU for hours)")
     chunk = max(1, int(10 * rec.fs_hz))
-    norms = np.array([np.linalg.norm(rec.accel[i:i + chunk].mean(axis=0)) for i in range(0, n - chunk + 1, chunk)]
-                     or [np.linalg.norm(rec.accel.mean(axis=0))])
+    norms = np.array([np.linalg.norm(rec.accel[i:i + chunk].mean(axis=0, dtype=np.float64))
+                      for i in range(0, n - chunk + 1, chunk)]
+                     or [np.linalg.norm(rec.accel.mean(axis=0, dtype=np.float64))])
     check_accel_unit(rec, norms)                       # refuses only |a| far from 1 g
-    warn = check_gyro_unit(rec, np.median(rec.gyro, axis=0), fg)
+    warn = check_gyro_unit(rec, np.array([np.median(rec.gyro[:, j]) for j in range(3)], dtype=np.float64), fg)
     if warn:
         log(f"warning: {warn}")
     for b, why in rec.breaks:
         log(f"warning: break at sample {b}: {why}; the analysis joins the pieces")
-    acc, gyr = rec.accel * fa, rec.gyro * fg
+    held = rec.accel.nbytes + rec.gyro.nbytes + (0 if rec.t_s is None else rec.t_s.nbytes)
     out_dir.mkdir(parents=True, exist_ok=True)
     name = rec.device or Path(rec.source.split(" + ")[0]).stem
     res = {"source": [rec.source], "device": {"name": name}, "samples": n, "rate_hz": float(rec.fs_hz),
            "duration_s": n / rec.fs_hz, "format": rec.fmt, "units": rec.unit_text(),
-           "timing": list(getattr(rec, "notes", [])), "accel": allan(acc, rec.fs_hz), "gyro": allan(gyr, rec.fs_hz)}
+           "timing": list(getattr(rec, "notes", [])),
+           "accel": allan(rec.accel, rec.fs_hz, fa, memory_budget, held),
+           "gyro": allan(rec.gyro, rec.fs_hz, fg, memory_budget, held)}
+    res["method"] = res["gyro"]["method"]
+    res["storage"] = f"{rec.accel.dtype.name} values ({(rec.accel.nbytes + rec.gyro.nbytes) / n:.0f} B a sample)"
     res["accel_usual"] = {a: usual_units(res["accel"][a], "accel") for a in AXES}
     res["gyro_usual"] = {a: usual_units(res["gyro"][a], "gyro") for a in AXES}
     files = {}
@@ -108,6 +116,7 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
         log(line)
     for kind, f in files.items():
         log(f"{kind}: {f}")
+    log(f"memory: {res['storage']}; Allan deviation by {res['method']}")
     log(f"wrote {out_dir / 'allan.json'}, {out_dir / 'allan_accel.png'}, {out_dir / 'allan_gyro.png'}")
     return res
 

@@ -292,25 +292,62 @@ def _open_binary(path: Path):
     return open_input(path)
 
 
+#: characters of text read at a time (split into lines by str.split: no Python work per line)
+BLOCK_CHARS = 1 << 22
+#: a blank line, or one of whitespace only, in a block with a newline added at both ends
+_BLANK = re.compile(r"\n[ \t\r\f\v]*\n")
+
+
 def _chunks(path: Path, start: int, progress=None):
-    """(lines, numbers) of at most CHUNK_LINES data lines of a text file from its line start (0-based;
-    blank lines and # or % comments skipped) and their 1-based line numbers: the file is streamed, never
-    held whole. progress: a tqdm bar advanced by the bytes of the file consumed."""
+    """(lines, numbers) of the data lines of a text file from its line start (0-based; blank lines and
+    # or % comments skipped), about BLOCK_CHARS of text at a time, and their 1-based line numbers (a
+    range when no line of the block was skipped, and then no line holds a comment): the file is
+    streamed, never held whole, and split into lines by str.split, not line by line in Python. A line longer than MAX_LINE_CHARS is refused
+    (a binary file). progress: a tqdm bar advanced by the bytes of the file consumed."""
     with _open_text(path) as f:
-        chunk, numbers, done = [], [], 0
-        for i, line in enumerate(_lines(f, path)):
-            if i >= start and line.strip() and not _is_comment(line):
-                chunk.append(line)
-                numbers.append(i + 1)
-                if len(chunk) == CHUNK_LINES:
-                    yield chunk, numbers
-                    chunk, numbers = [], []
-                    if progress is not None:
-                        pos = _position(f)
-                        progress.update(max(0, pos - done))
-                        done = max(done, pos)
-        if chunk:
-            yield chunk, numbers
+        it = _lines(f, path)
+        for _ in range(start):
+            if next(it, None) is None:
+                return
+        lineno, rest, done = start, "", 0
+        try:
+            while True:
+                blk = f.read(BLOCK_CHARS)
+                if not blk:
+                    text = rest
+                    rest = ""
+                else:
+                    text = rest + blk
+                    cut = text.rfind("\n")
+                    if cut < 0:
+                        if len(text) > MAX_LINE_CHARS:
+                            raise RecordingError(f"{path}: line {lineno + 1} is longer than the limit of "
+                                                 f"{MAX_LINE_CHARS} characters; is it a text file of this format?")
+                        rest = text
+                        continue
+                    text, rest = text[:cut], text[cut + 1:]
+                if text:
+                    lines = text.split("\n")
+                    if max(map(len, lines)) > MAX_LINE_CHARS:
+                        k = next(i for i, ln in enumerate(lines) if len(ln) > MAX_LINE_CHARS)
+                        raise RecordingError(f"{path}: line {lineno + k + 1} is longer than the limit of "
+                                             f"{MAX_LINE_CHARS} characters; is it a text file of this format?")
+                    if "#" in text or "%" in text or _BLANK.search("\n" + text + "\n"):
+                        keep = [(i, ln) for i, ln in enumerate(lines) if ln.strip() and not _is_comment(ln)]
+                        chunk, numbers = [ln for _, ln in keep], [lineno + i + 1 for i, _ in keep]
+                    else:
+                        chunk, numbers = lines, range(lineno + 1, lineno + len(lines) + 1)
+                    lineno += len(lines)
+                    if chunk:
+                        yield chunk, numbers
+                if progress is not None:
+                    pos = _position(f)
+                    progress.update(max(0, pos - done))
+                    done = max(done, pos)
+                if not blk:
+                    return
+        except (OSError, EOFError, UnicodeDecodeError) as e:
+            raise RecordingError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
 
 
 def _bad_row(what: str, path: Path, line: int, col: str, value: float) -> RecordingError:
@@ -344,11 +381,9 @@ def _load_table(path: Path, delim: str | None, usecols: list[int], start: int, *
     bar = _progress(size, f"reading {path.name}") if size > (1 << 20) else None
     try:
         for chunk, numbers in _chunks(path, start, bar):
-            if delim not in (None, " ", "\t"):       # whitespace at line ends is format (np.loadtxt: None)
-                chunk = [ln.strip() for ln in chunk]
-            try:
+            try:                                   # comments: numpy's C parser only without any (see _chunks)
                 a = np.loadtxt(chunk, delimiter=None if delim in (" ", "\t", None) else delim, usecols=usecols,
-                               comments=_COMMENT, ndmin=2, dtype=np.float64)
+                               comments=None if isinstance(numbers, range) else _COMMENT, ndmin=2, dtype=np.float64)
             except ValueError as e:
                 raise RecordingError(_not_numbers(path, chunk, numbers, delim, usecols, e, start)) from None
             if len(a) != len(chunk):
@@ -375,11 +410,18 @@ def _load_table(path: Path, delim: str | None, usecols: list[int], start: int, *
 
 
 def _not_numbers(path: Path, chunk, numbers, delim, usecols, e, start) -> str:
-    """The line of a chunk that is not numbers, named (np.loadtxt's message counts within the chunk)."""
-    m = re.search(r"at row (\d+)", str(e))
-    k = None if not m else int(m.group(1)) - (0 if "could not convert" in str(e) else 1)
-    where = f"line {numbers[k]}" if k is not None and 0 <= k < len(numbers) else f"counted from line {start + 1}"
-    return (f"{path}: not numbers where numbers are expected ({' '.join(str(e).split())[:160]}; {where}); "
+    """The first line of a chunk that is not numbers, named (parsed again one line at a time: only
+    after a failure)."""
+    where = f"counted from line {start + 1}"
+    for ln, no in zip(chunk, numbers):
+        try:
+            np.loadtxt([ln], delimiter=None if delim in (" ", "\t", None) else delim, usecols=usecols,
+                       comments=_COMMENT, ndmin=2, dtype=np.float64)
+        except ValueError as e1:
+            e, where = e1, f"line {no}"
+            break
+    msg = re.sub(r" at row \d+", "", " ".join(str(e).split()))[:160]
+    return (f"{path}: not numbers where numbers are expected ({msg}; {where}); "
             "check the delimiter and the header, or start at the header row with --skip-rows N (the lines before it)")
 
 
