@@ -961,6 +961,29 @@ def read_capture(path: Path, **opt) -> Recording:
 INSTALL_ROSBAGS = "pip install 'imubench[rosbag]' (the rosbags library)"
 
 
+def _imu_offsets(raw: bytes, ros1: bool) -> tuple[int, int, int] | None:
+    """(stamp, angular_velocity, linear_acceleration) byte offsets of a serialized sensor_msgs/Imu whose
+    frame_id is as long as this message's: ROS 1 (Header seq, stamp, frame_id; no alignment) or ROS 2
+    CDR little-endian (a 4-byte encapsulation header; stamp, frame_id; the doubles aligned to 8 from
+    after the encapsulation header). None when the layout is not one of those two."""
+    import struct
+    try:
+        if ros1:
+            (flen,) = struct.unpack_from("<I", raw, 12)
+            base = 16 + flen
+            stamp = 4
+        else:
+            if raw[:2] != b"\x00\x01":               # CDR_LE
+                return None
+            (flen,) = struct.unpack_from("<I", raw, 4 + 8)
+            base = 4 + ((12 + flen + 7) // 8) * 8
+            stamp = 4
+        av, la = base + 32 + 72, base + 32 + 72 + 24 + 72
+        return (stamp, av, la) if la + 24 + 72 == len(raw) else None
+    except struct.error:
+        return None
+
+
 def read_rosbag(path: Path, *, topic: str | None = None, **opt) -> Recording:
     try:
         from rosbags.highlevel import AnyReader
@@ -985,23 +1008,97 @@ def read_rosbag(path: Path, *, topic: str | None = None, **opt) -> Recording:
         conns = [c for c in imu if c.topic == topic]
         if not conns:
             raise RecordingError(f"{path.name} has no sensor_msgs/Imu topic {topic!r} (it has {', '.join(topics)})")
-        t, a, g, recv = [], [], [], []
-        for c, ts, raw in reader.messages(connections=conns):
-            m = reader.deserialize(raw, c.msgtype)
-            t.append(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec)
-            recv.append(ts * 1e-9)
-            la, av = m.linear_acceleration, m.angular_velocity
-            a.append((la.x, la.y, la.z))
-            g.append((av.x, av.y, av.z))
+        t, recv, a, g, k = _rosbag_messages(reader, conns, path, opt.get("memory_budget"))
     finally:
         reader.close()
-    notes = [f"topic {topic}: {len(t)} sensor_msgs/Imu messages (m/s², rad/s by the message definition, REP 103)"]
-    t = np.asarray(t)
-    if len(t) and not np.any(np.diff(t) > 0):
-        t = np.asarray(recv)
+    notes = [f"topic {topic}: {k} sensor_msgs/Imu messages (m/s², rad/s by the message definition, REP 103)"]
+    if k and not _advances(t):
+        t = recv
         notes.append("the messages' header stamps are not set: the bag's receive times are used")
-    return from_arrays(np.asarray(a), np.asarray(g), t_s=t, source=str(path), fmt="rosbag", notes=notes,
-                       device=opt.get("device"))
+    else:
+        del recv
+    return from_arrays(a, g, t_s=t, source=str(path), fmt="rosbag", notes=notes, device=opt.get("device"),
+                       copy=False)
+
+
+def _advances(t: np.ndarray) -> bool:
+    """True when any time stamp is later than the one before (a block at a time)."""
+    return any(np.any(np.diff(t[i:i + (1 << 20) + 1]) > 0) for i in range(0, max(len(t) - 1, 0), 1 << 20))
+
+
+def _rosbag_messages(reader, conns, path: Path, budget: int | None):
+    """(header stamps s, receive times s, accel, gyro, count) of the messages of conns, into arrays
+    allocated once from the bag's message count (the budget's sample limit checked first; float64 or
+    float32 values by the budget). Each message is read at the offsets of its layout (_imu_offsets,
+    checked against the full deserializer on the first message of each connection and whenever the
+    layout changes), else deserialized; a tqdm bar counts the messages on reads over a second."""
+    import struct
+    total = sum(int(getattr(c, "msgcount", 0) or 0) for c in conns)
+    limit = memory.sample_limit(budget, 6, True)
+    if total > limit:
+        raise RecordingError(f"{path}: {total:,} messages on the topic, more than the limit of {limit:,} samples "
+                             f"of the memory budget of {memory.text(budget or memory.DEFAULT_BUDGET_BYTES)}; give a "
+                             "larger --memory-budget, or cut the bag")
+    dtype = memory.storage_dtype(total, budget, 6, True) or np.float32
+    size = max(total, 1)
+    t = np.empty(size)
+    recv = np.empty(size)
+    a = np.empty((size, 3), dtype=dtype)
+    g = np.empty((size, 3), dtype=dtype)
+    known: dict = {}
+    k = 0
+    bar = _progress(total, f"reading {path.name}", unit="msg") if total > 100_000 else None
+    unpack = struct.unpack_from
+    try:
+        for c, ts, raw in reader.messages(connections=conns):
+            if k == len(t):
+                if total:
+                    raise RecordingError(f"{path}: more messages than the bag's index counts ({total}); damaged?")
+                t, recv = np.resize(t, 2 * k), np.resize(recv, 2 * k)
+                a, g = np.resize(a, (2 * k, 3)), np.resize(g, (2 * k, 3))
+            key = (c.id, len(raw))
+            off = known.get(key, False)
+            if off is False:
+                off = _imu_offsets(raw, not getattr(reader, "is2", True))
+                off = off if off is not None and _offsets_agree(reader, c, raw, off) else None
+                known[key] = off
+            if off is not None:
+                sec, nsec = unpack("<iI", raw, off[0]) if len(raw) else (0, 0)
+                t[k] = sec + 1e-9 * nsec
+                g[k] = unpack("<3d", raw, off[1])
+                a[k] = unpack("<3d", raw, off[2])
+            else:
+                m = reader.deserialize(raw, c.msgtype)
+                t[k] = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
+                la, av = m.linear_acceleration, m.angular_velocity
+                a[k] = (la.x, la.y, la.z)
+                g[k] = (av.x, av.y, av.z)
+            recv[k] = ts * 1e-9
+            k += 1
+            if bar is not None and not k % 65536:
+                bar.update(65536)
+    except RecordingError:
+        raise
+    except Exception as e:  # noqa: BLE001 - rosbags raises its own classes for a damaged bag
+        raise RecordingError(f"{path}: damaged after {k} messages ({type(e).__name__}: {e})") from None
+    finally:
+        if bar is not None:
+            bar.close()
+    return t[:k], recv[:k], a[:k], g[:k], k
+
+
+def _offsets_agree(reader, c, raw: bytes, off) -> bool:
+    """True when the values read at off are those the full deserializer gives for this message."""
+    import struct
+    try:
+        m = reader.deserialize(raw, c.msgtype)
+    except Exception:  # noqa: BLE001
+        return False
+    la, av = m.linear_acceleration, m.angular_velocity
+    sec, nsec = struct.unpack_from("<iI", raw, off[0])
+    return (struct.unpack_from("<3d", raw, off[1]) == (av.x, av.y, av.z)
+            and struct.unpack_from("<3d", raw, off[2]) == (la.x, la.y, la.z)
+            and (sec, nsec) == (m.header.stamp.sec, m.header.stamp.nanosec))
 
 
 def load_profile(path) -> dict:
