@@ -909,27 +909,94 @@ def _check_npz(path: Path) -> None:
         raise RecordingError(f"{path}: not a .npz file ({e})") from None
 
 
+def _npz_members(path: Path) -> dict:
+    """{name: (member, shape, dtype, fortran)} of a .npz's .npy members, from their headers."""
+    fmt = np.lib.format
+    out = {}
+    with open_input(path) as fh, zipfile.ZipFile(fh) as zf:
+        for info in zf.infolist():
+            if info.filename.endswith(".npy"):
+                with zf.open(info) as m:
+                    version = fmt.read_magic(m)
+                    shape, fortran, dtype = (fmt.read_array_header_1_0 if version == (1, 0)
+                                             else fmt.read_array_header_2_0)(m, max_header_size=10000)
+                out[info.filename[:-4]] = (info.filename, shape, dtype, fortran)
+    return out
+
+
+def _npz_blocks(path: Path, member, step: int = 1 << 20):
+    """(start, rows) of a .npz member (C order) a block of `step` rows at a time, read from the zip
+    stream: the member is never held whole."""
+    fmt = np.lib.format
+    name, shape, dtype, _ = member
+    row = int(np.prod(shape[1:], dtype=np.int64)) if len(shape) > 1 else 1
+    with open_input(path) as fh, zipfile.ZipFile(fh) as zf, zf.open(name) as m:
+        version = fmt.read_magic(m)
+        (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(m, max_header_size=10000)
+        n = shape[0] if shape else 1
+        for i in range(0, n, step):
+            k = min(step, n - i)
+            buf = m.read(k * row * dtype.itemsize)
+            if len(buf) != k * row * dtype.itemsize:
+                raise RecordingError(f"{path}: member {name} ends early: damaged")
+            yield i, np.frombuffer(buf, dtype=dtype).reshape((k,) + tuple(shape[1:]))
+
+
 def read_npz(path: Path, **opt) -> Recording:
     _check_npz(path)
     try:
-        z = np.load(path)
-    except (ValueError, OSError) as e:
+        members = _npz_members(path)
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
         raise RecordingError(f"{path}: not a .npz file ({e})") from None
     need = ("accel_mps2", "rate_rad_s")
-    if not all(k in z for k in need):
-        raise RecordingError(f"{path.name} holds {', '.join(z.files)}; imubench's npz (imubench decode --npz) "
+    if not all(k in members for k in need):
+        raise RecordingError(f"{path.name} holds {', '.join(members)}; imubench's npz (imubench decode --npz) "
                              f"has {', '.join(need)} and t_us")
-    breaks = []
-    notes = []
-    t = z["t_us"] * 1e-6 if "t_us" in z else None
-    if "sample_index" in z:
-        si = np.asarray(z["sample_index"], np.int64)
-        for k in np.flatnonzero(np.diff(si) > 1):
-            breaks.append((int(k + 1), f"{int(si[k + 1] - si[k] - 1)} samples lost on the link before sample {k + 1}"))
-    if "status" in z and np.any(z["status"]):
-        notes.append(f"{int(np.count_nonzero(z['status']))} samples flagged bad by the device (status bits)")
-    rec = from_arrays(z["accel_mps2"], z["rate_rad_s"], t_s=t, rate_hz=opt.get("rate_hz"), source=str(path),
-                      fmt="npz", notes=notes, device=opt.get("device"))
+    n = members["accel_mps2"][1][0] if members["accel_mps2"][1] else 0
+    for k in ("accel_mps2", "rate_rad_s", "t_us", "sample_index", "status"):
+        if k in members and (members[k][3] or not members[k][1] or members[k][1][0] != n):
+            raise RecordingError(f"{path}: member {k} has shape {members[k][1]} (Fortran order: {members[k][3]}); "
+                                 f"expected {n} rows in C order as imubench decode --npz writes them")
+    budget = opt.get("memory_budget")
+    limit = memory.sample_limit(budget, 6, "t_us" in members)
+    if n > limit:
+        raise RecordingError(f"{path}: {n:,} samples, more than the limit of {limit:,} of the memory budget of "
+                             f"{memory.text(budget or memory.DEFAULT_BUDGET_BYTES)}; give a larger --memory-budget")
+    dtype = memory.storage_dtype(n, budget, 6, "t_us" in members) or np.float32
+    arrays = {}
+    try:
+        for k in need:
+            out = np.empty(members[k][1], dtype=dtype)
+            for i, blk in _npz_blocks(path, members[k]):
+                out[i:i + len(blk)] = blk
+            arrays[k] = out
+        t = None
+        if "t_us" in members:
+            t = np.empty(n)
+            for i, blk in _npz_blocks(path, members["t_us"]):
+                np.multiply(blk, 1e-6, out=t[i:i + len(blk)])
+        breaks, notes = [], []
+        if "sample_index" in members:
+            last = None
+            for i, blk in _npz_blocks(path, members["sample_index"]):
+                si = np.asarray(blk, np.int64)
+                if last is not None:
+                    si = np.concatenate([[last], si])
+                    i -= 1
+                for k in np.flatnonzero(np.diff(si) > 1):
+                    breaks.append((int(i + k + 1), f"{int(si[k + 1] - si[k] - 1)} samples lost on the link before "
+                                                   f"sample {i + k + 1}"))
+                last = int(si[-1]) if len(si) else last
+        if "status" in members:
+            bad = sum(int(np.count_nonzero(blk)) for _, blk in _npz_blocks(path, members["status"]))
+            if bad:
+                notes.append(f"{bad} samples flagged bad by the device (status bits)")
+    except RecordingError:
+        raise
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, TypeError) as e:
+        raise RecordingError(f"{path}: not a .npz file ({e})") from None
+    rec = from_arrays(arrays["accel_mps2"], arrays["rate_rad_s"], t_s=t, rate_hz=opt.get("rate_hz"), source=str(path),
+                      fmt="npz", notes=notes, device=opt.get("device"), copy=False)
     rec.breaks = sorted(rec.breaks + [b for b in breaks if b[0] not in {x[0] for x in rec.breaks}])
     return rec
 
