@@ -35,14 +35,12 @@ from pathlib import Path
 import numpy as np
 
 from imubench.files import (
-    MAX_CAPTURE_BYTES,
     MAX_JSON_BYTES,
     MAX_LINE_CHARS,
     FileRefused,
     MiB,
     bounded_lines,
     open_input,
-    read_bytes,
     read_text,
 )
 from imubench import memory
@@ -1001,25 +999,86 @@ def read_npz(path: Path, **opt) -> Recording:
     return rec
 
 
+class _Growing:
+    """Samples appended block by block into arrays allocated once from an estimate of the count (grown
+    by half when it was short), values float64 or float32 as the budget holds them, the sample limit
+    checked at every allocation."""
+
+    def __init__(self, path: Path, budget: int | None):
+        self.path, self.budget, self.n = path, budget, 0
+        self.acc = self.gyr = self.t_us = self.index = None
+
+    def _alloc(self, rows: int) -> None:
+        limit = memory.sample_limit(self.budget, 6, True)
+        if rows > limit:
+            raise RecordingError(f"{self.path}: about {rows:,} samples, more than the limit of {limit:,} of the memory "
+                                 f"budget of {memory.text(self.budget or memory.DEFAULT_BUDGET_BYTES)}; give a larger "
+                                 "--memory-budget, or cut the capture")
+        dtype = self.acc.dtype if self.acc is not None else (memory.storage_dtype(rows, self.budget, 6, True)
+                                                            or np.float32)
+        new = [np.empty((rows, 3), dtype), np.empty((rows, 3), dtype), np.empty(rows, np.int64), np.empty(rows, np.int64)]
+        if self.acc is not None:
+            for dst, src in zip(new, (self.acc, self.gyr, self.t_us, self.index)):
+                dst[:self.n] = src[:self.n]
+        self.acc, self.gyr, self.t_us, self.index = new
+
+    def append(self, block, estimate: int) -> None:
+        m = len(block)
+        if self.acc is None:
+            self._alloc(max(estimate, m))
+        elif self.n + m > len(self.acc):
+            self._alloc(max(self.n + m, int(len(self.acc) * 1.5)))
+        acc, gyr = block.si()
+        sl = slice(self.n, self.n + m)
+        self.acc[sl], self.gyr[sl], self.t_us[sl], self.index[sl] = acc, gyr, block.t_us, block.sample_index
+        self.n += m
+
+
 def read_capture(path: Path, **opt) -> Recording:
-    from imubench.wire.decoder import decode_bytes
+    """A session's capture-N.bin, fed to the stream decoder a megabyte at a time; the samples of each
+    megabyte converted (nominal scaling) into arrays sized from the file's length: the file and the
+    decoded frames are never held whole."""
+    from imubench.wire.decoder import StreamDecoder
+    size = path.stat().st_size
+    dec = StreamDecoder()
+    got = {False: _Growing(path, opt.get("memory_budget")), True: _Growing(path, opt.get("memory_budget"))}
+    step, done = 1 << 20, 0
+    bar = _progress(size, f"reading {path.name}") if size > (8 << 20) else None
     try:
-        data = read_bytes(path, MAX_CAPTURE_BYTES, "the capture")
+        with open_input(path) as f:
+            while True:
+                data = f.read(step)
+                if not data:
+                    break
+                done += len(data)
+                dec.feed(data)
+                for cal in (False, True):
+                    b = dec.take_samples(cal)
+                    if b is not None and len(b):
+                        got[cal].append(b, int((got[cal].n + len(b)) * size / done * 1.02) + 16)
+                if bar is not None:
+                    bar.update(len(data))
     except FileRefused as e:
         raise RecordingError(str(e)) from None
-    _, raw, cal, st = decode_bytes(data)
-    block = raw if raw is not None else cal
-    if block is None or len(block) < 3:
+    finally:
+        if bar is not None:
+            bar.close()
+    st = dec.stats
+    g = got[False] if got[False].n else got[True]
+    if g.n < 3:
         raise RecordingError(f"{path.name}: no samples decoded (frames ok {st.frames_ok}, rejected "
                              f"{st.frames_rejected}); is it a capture-N.bin of an imubench session?")
-    acc, gyr = block.si()
-    notes = [f"{'raw' if raw is not None else 'calibrated'} samples of an imubench device, nominal scaling"]
+    n = g.n
+    notes = [f"{'raw' if g is got[False] else 'calibrated'} samples of an imubench device, nominal scaling"]
     breaks = []
-    si = np.asarray(block.sample_index, np.int64)
+    si = g.index[:n]
     for k in np.flatnonzero(np.diff(si) > 1):
         breaks.append((int(k + 1), f"{int(si[k + 1] - si[k] - 1)} samples lost on the link before sample {k + 1}"))
-    rec = from_arrays(acc, gyr, t_s=block.t_us * 1e-6, source=str(path), fmt="capture", notes=notes,
-                      device=opt.get("device"))
+    t = g.t_us[:n].astype(np.float64)
+    t *= 1e-6
+    g.t_us = g.index = None
+    rec = from_arrays(g.acc[:n], g.gyr[:n], t_s=t, source=str(path), fmt="capture", notes=notes,
+                      device=opt.get("device"), copy=False)
     rec.breaks = sorted(rec.breaks + [b for b in breaks if b[0] not in {x[0] for x in rec.breaks}])
     return rec
 
