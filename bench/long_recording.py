@@ -15,6 +15,10 @@ Each recording is made here, with numpy, as a CSV of a resting IMU (`t_s,ax,ay,a
     .venv/bin/python bench/long_recording.py                      # 1, 2, 8, 24 h CSV and a 24 h bag
     .venv/bin/python bench/long_recording.py --hours 1 2 --no-bag # quicker
     .venv/bin/python bench/long_recording.py --keep /tmp/long     # keep (and reuse) the files
+    .venv/bin/python bench/long_recording.py --table-from run.log # publish the JSON line of an earlier run
+
+Prints the markdown table docs/noise.md states and publishes it (bench/publish.py; --no-publish to leave
+the docs alone).
 
 Targets (issue 41): 24 h at 200 Hz in < 1 GB peak and < 2 min; 8 h within 1.5x of read + allantools.
 Human-readable lines first; the last line of stdout is one JSON object.
@@ -33,6 +37,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "bench"))
+from publish import add_arguments, publish  # noqa: E402
+
 RATE_HZ = 200.0
 #: the simulated IMU (SI): white noise density and rate random walk of each sensor
 ACC_N = 100e-6 * 9.80665        # 100 µg/√Hz in m/s²/√Hz
@@ -42,56 +49,60 @@ GYR_K = np.radians(1e-4)        # rad/s·√Hz
 BLOCK = 200_000
 
 
-def write_csv(path: Path, hours: float, seed: int = 1) -> int:
-    """A still recording of `hours` at 200 Hz as CSV (accel in g, gyro in °/s); its sample count."""
+def still_blocks(hours: float, seed: int = 1):
+    """(t_s, accel_g, gyro_dps) of a resting IMU at 200 Hz, BLOCK samples at a time (seeded)."""
     n = int(round(hours * 3600 * RATE_HZ))
     rng = np.random.default_rng(seed)
     dt = 1.0 / RATE_HZ
     walk = np.zeros(6)
-    g0 = 9.80665
+    for i in range(0, n, BLOCK):
+        m = min(BLOCK, n - i)
+        white = rng.normal(0, 1, (m, 6)) * np.r_[[ACC_N] * 3, [GYR_N] * 3] / np.sqrt(dt)
+        steps = rng.normal(0, 1, (m, 6)) * np.r_[[ACC_K] * 3, [GYR_K] * 3] * np.sqrt(dt)
+        rw = walk + np.cumsum(steps, axis=0)
+        walk = rw[-1]
+        v = white + rw
+        yield (np.arange(m) + i) * dt, v[:, :3] / G0 + [0.0, 0.0, 1.0], np.degrees(v[:, 3:])
+
+
+G0 = 9.80665
+
+
+def write_csv(path: Path, hours: float, seed: int = 1) -> int:
+    """A still recording of `hours` at 200 Hz as CSV (accel in g, gyro in °/s); its sample count."""
+    n = 0
     with open(path, "w") as f:
         f.write("t_s,ax,ay,az,gx,gy,gz\n")
-        for i in range(0, n, BLOCK):
-            m = min(BLOCK, n - i)
-            white = rng.normal(0, 1, (m, 6)) * np.r_[[ACC_N] * 3, [GYR_N] * 3] / np.sqrt(dt)
-            steps = rng.normal(0, 1, (m, 6)) * np.r_[[ACC_K] * 3, [GYR_K] * 3] * np.sqrt(dt)
-            rw = walk + np.cumsum(steps, axis=0)
-            walk = rw[-1]
-            v = white + rw
-            acc_g = v[:, :3] / g0 + [0.0, 0.0, 1.0]
-            gyr_dps = np.degrees(v[:, 3:])
-            blk = np.column_stack([(np.arange(m) + i) * dt, acc_g, gyr_dps])
-            np.savetxt(f, blk, delimiter=",", fmt=["%.3f"] + ["%.7f"] * 6)
+        for t, acc_g, gyr_dps in still_blocks(hours, seed):
+            np.savetxt(f, np.column_stack([t, acc_g, gyr_dps]), delimiter=",", fmt=["%.3f"] + ["%.7f"] * 6)
+            n += len(t)
     return n
 
 
-def write_bag(path: Path, csv_path: Path) -> int:
-    """The CSV's samples as a ROS 2 bag (.mcap) of sensor_msgs/Imu on /imu0 (m/s², rad/s)."""
+def write_bag(path: Path, hours: float, seed: int = 1) -> int:
+    """The same still signal as write_csv's (unrounded, in m/s² and rad/s) as a ROS 2 bag (MCAP) of
+    sensor_msgs/Imu on /imu0, stamped from 2023-11-14: each message packed as CDR here (rosbags'
+    own serializer takes ~25 µs a message; a day has 17 M of them) and written with rosbags' Writer."""
+    import struct
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
     ts = get_typestore(Stores.ROS2_HUMBLE)
-    Imu, Header, Time = ts.types["sensor_msgs/msg/Imu"], ts.types["std_msgs/msg/Header"], ts.types[
-        "builtin_interfaces/msg/Time"]
-    Q, V = ts.types["geometry_msgs/msg/Quaternion"], ts.types["geometry_msgs/msg/Vector3"]
-    cov = np.zeros(9)
+    imu_t = "sensor_msgs/msg/Imu"
+    # CDR little-endian: stamp, frame_id "imu" (length 4 with its NUL: the doubles start at 16, aligned)
+    pack = struct.Struct("<4siII4s4d9d3d9d3d9d").pack
+    zero9 = (0.0,) * 9
+    t0_ns = 1_700_000_000 * 10 ** 9
     n = 0
     with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
-        conn = w.add_connection("/imu0", Imu.__msgtype__, typestore=ts)
-        with open(csv_path) as f:
-            f.readline()
-            while True:
-                lines = [ln for _, ln in zip(range(BLOCK), f)]
-                if not lines:
-                    break
-                d = np.loadtxt(lines, delimiter=",", ndmin=2)
-                for row in d:
-                    t_ns = int(round(row[0] * 1e9)) + 1_700_000_000_000_000_000
-                    a = row[1:4] * 9.80665
-                    g = np.radians(row[4:7])
-                    msg = Imu(Header(Time(t_ns // 1_000_000_000, t_ns % 1_000_000_000), "imu"), Q(0.0, 0.0, 0.0, 1.0),
-                              cov, V(*g), cov, V(*a), cov)
-                    w.write(conn, t_ns, ts.serialize_cdr(msg, Imu.__msgtype__))
-                    n += 1
+        conn = w.add_connection("/imu0", imu_t, typestore=ts)
+        write = w.write
+        for t, acc_g, gyr_dps in still_blocks(hours, seed):
+            stamps = t0_ns + np.round(t * 1e9).astype(np.int64)
+            acc, gyr = (acc_g * G0).tolist(), np.radians(gyr_dps).tolist()
+            for ns, a, g in zip(stamps.tolist(), acc, gyr):
+                write(conn, ns, pack(b"\x00\x01\x00\x00", ns // 10 ** 9, ns % 10 ** 9, 4, b"imu\x00",
+                                     0.0, 0.0, 0.0, 1.0, *zero9, *g, *zero9, *a, *zero9))
+            n += len(t)
     return n
 
 
@@ -103,7 +114,8 @@ buf = io.StringIO()
 with contextlib.redirect_stdout(buf):
     rc = main(["allan", "--from", sys.argv[1], "--out", sys.argv[2]] + sys.argv[4:])
 wall = time.perf_counter() - t
-rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+ru = resource.getrusage(resource.RUSAGE_SELF)
+rss, cpu = ru.ru_maxrss * 1024, ru.ru_utime + ru.ru_stime
 res = json.load(open(sys.argv[2] + "/allan.json"))
 peer = None
 if sys.argv[3] == "peer":
@@ -112,12 +124,15 @@ if sys.argv[3] == "peer":
     r = read(sys.argv[1], accel_unit="g", gyro_unit="dps")
     acc = r.accel_mps2().astype(np.float64); gyr = r.gyro_rad_s().astype(np.float64)
     del r
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     for x in (acc, gyr):
         for k in range(3):
             allantools.oadev(x[:, k].copy(), rate=res["rate_hz"], data_type="freq", taus="octave")
-    peer = time.perf_counter() - t1
-print(json.dumps({"rc": rc, "wall_s": wall, "peak_rss_bytes": rss, "samples": res["samples"], "peer_s": peer,
+    peer, peer_cpu = time.perf_counter() - t1, time.process_time() - c1
+else:
+    peer_cpu = None
+print(json.dumps({"rc": rc, "wall_s": wall, "cpu_s": cpu, "peak_rss_bytes": rss, "samples": res["samples"],
+                  "peer_s": peer, "peer_cpu_s": peer_cpu,
                   "N_gyro_x": res["gyro"]["x"]["N"], "N_accel_x": res["accel"]["x"]["N"],
                   "method": res.get("method"), "tail": buf.getvalue().splitlines()[-3:]}))
 """
@@ -125,10 +140,10 @@ print(json.dumps({"rc": rc, "wall_s": wall, "peak_rss_bytes": rss, "samples": re
 CHILD_READ = r"""
 import json, resource, sys, time
 from imubench.recordings import read
-t = time.perf_counter()
+t, c = time.perf_counter(), time.process_time()
 kw = {} if sys.argv[1].endswith((".mcap", ".bag")) or "bag" in sys.argv[1] else {"accel_unit": "g", "gyro_unit": "dps"}
 r = read(sys.argv[1], **kw)
-print(json.dumps({"read_s": time.perf_counter() - t, "n": len(r),
+print(json.dumps({"read_s": time.perf_counter() - t, "read_cpu_s": time.process_time() - c, "n": len(r),
                   "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
 """
 
@@ -143,12 +158,23 @@ def child(code: str, *args: str) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--hours", type=float, nargs="+", default=[1, 2, 8, 24])
+    ap.add_argument("--hours", type=float, nargs="*", default=[1, 2, 8, 24], help="CSV lengths (none: only the bag)")
     ap.add_argument("--bag-hours", type=float, default=24.0, help="length of the ROS 2 bag (0: none)")
     ap.add_argument("--no-bag", action="store_true")
     ap.add_argument("--keep", type=Path, help="directory to keep (and reuse) the recordings in")
     ap.add_argument("--no-peer", action="store_true", help="skip allantools on the same arrays")
+    ap.add_argument("--table-from", type=Path, nargs="+", metavar="LOG",
+                    help="publish the table of earlier runs' output (the last JSON line of each) instead of measuring")
+    add_arguments(ap)
     a = ap.parse_args(argv)
+    if a.table_from:
+        rows = [row for log in a.table_from for row in
+                json.loads([ln for ln in log.read_text().splitlines() if ln.startswith('{"rate_hz"')][-1])["rows"]]
+        md = table(rows)
+        print(md)
+        publish("long_recording", md, {"measured by": "earlier runs: " + ", ".join(p.name for p in a.table_from)},
+                enabled=not a.no_publish)
+        return 0
     work = a.keep or Path(tempfile.mkdtemp(prefix="imubench-long-"))
     work.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -166,7 +192,7 @@ def main(argv=None) -> int:
             src = work / f"still-{hours:g}h-bag"
             if not src.exists():
                 t = time.perf_counter()
-                write_bag(src, csv_path)
+                write_bag(src, hours)
                 print(f"made {src} in {time.perf_counter() - t:.0f} s", flush=True)
             extra = []
         out = work / f"out-{kind}-{hours:g}h"
@@ -174,17 +200,38 @@ def main(argv=None) -> int:
         rd = child(CHILD_READ, str(src))
         size = sum(p.stat().st_size for p in ([src] if src.is_file() else src.rglob("*")) if p.is_file())
         row = {"hours": hours, "kind": kind, "file_bytes": size, **r, "read_s": rd["read_s"],
+               "read_cpu_s": rd.get("read_cpu_s"), "load_avg_1min": os.getloadavg()[0],
                "read_peak_rss_bytes": rd["peak_rss_bytes"], "bytes_per_sample": r["peak_rss_bytes"] / r["samples"]}
         if r["peer_s"] is not None:
             row["ratio_to_read_plus_peer"] = r["wall_s"] / (rd["read_s"] + r["peer_s"])
+            row["cpu_ratio_to_read_plus_peer"] = r["cpu_s"] / (rd["read_cpu_s"] + r["peer_cpu_s"])
         rows.append(row)
         print(f"{hours:>4g} h {kind:<4} {r['samples']:>10} samples {size / 1e6:7.0f} MB: allan --from "
               f"{r['wall_s']:6.1f} s, peak {r['peak_rss_bytes'] / 1e6:6.0f} MB ({row['bytes_per_sample']:5.1f} B/sample)"
               f"; read alone {rd['read_s']:5.1f} s"
               + (f"; allantools.oadev on the 6 arrays {r['peer_s']:5.1f} s; ratio {row['ratio_to_read_plus_peer']:.2f}"
                  if r["peer_s"] is not None else ""), flush=True)
+    md = table(rows)
+    print(md)
+    publish("long_recording", md, {}, enabled=not a.no_publish)
     print(json.dumps({"rate_hz": RATE_HZ, "rows": rows}))
     return 0
+
+
+def table(rows: list[dict]) -> str:
+    """The markdown table of the rows: allan --from beside read alone and allantools on the same arrays."""
+    out = ["| recording at 200 Hz | samples | file | `allan --from` wall | peak RSS | per sample | method "
+           "| read alone | allantools.oadev, 6 axes | wall / (read + allantools) |",
+           "|---|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
+    for r in rows:
+        method = ("chunked sums" if str(r.get("method") or "").startswith("chunked") else
+                  "allantools in memory" if r.get("method") else "?")
+        peer = f"{r['peer_s']:.1f} s" if r.get("peer_s") is not None else "not run"
+        ratio = f"{r['ratio_to_read_plus_peer']:.2f}" if "ratio_to_read_plus_peer" in r else ""
+        out.append(f"| {r['hours']:g} h {'CSV' if r['kind'] == 'csv' else 'ROS 2 bag (MCAP)'} | {r['samples']:,} "
+                   f"| {r['file_bytes'] / 1e6:.0f} MB | {r['wall_s']:.1f} s | {r['peak_rss_bytes'] / 1e6:.0f} MB "
+                   f"| {r['bytes_per_sample']:.0f} B | {method} | {r['read_s']:.1f} s | {peer} | {ratio} |")
+    return "\n".join(out)
 
 
 if __name__ == "__main__":
