@@ -80,6 +80,19 @@ def test_sample_limit_is_checked_before_reading(tmp_path):
     assert memory.sample_limit() > 24 * 3600 * 200
 
 
+def test_calibrate_limit_counts_what_its_analysis_takes(tmp_path, capsys):
+    """calibrate --from takes ~200 B a sample after the read: its limit under a 200 MB budget is
+    250,000 samples, said before anything is read into memory; allan --from's is 1.25 M."""
+    f = tmp_path / "many.csv.gz"
+    with gzip.open(f, "wt") as g:
+        g.write("".join(f"{i / 200:.3f},0,0,1,0,0,0\n" for i in range(260_000)))
+    assert imubench(["calibrate", "--from", str(f), "--accel-unit", "g", "--gyro-unit", "dps", "--memory-budget",
+                     "200M", "--dir", str(tmp_path / "c")]) == 1
+    err = capsys.readouterr().err
+    assert "more than 250,000 samples" in err and "200 B a sample" in err and "--memory-budget" in err
+    assert memory.sample_limit(200_000_000) == 1_250_000
+
+
 @pytest.mark.parametrize("value, said", [("1e308", "1e+308, beyond any sensor's range"),
                                          ("nan", "not a finite number"), ("-inf", "not a finite number")])
 def test_absurd_or_non_finite_value_names_its_line(tmp_path, capsys, value, said):

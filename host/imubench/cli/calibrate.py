@@ -542,6 +542,10 @@ def read_recording_args(a):
              "accel_offset": a.accel_offset, "gyro_offset": a.gyro_offset, "sensor": a.sensor,
              "gyro_range_dps": getattr(a, "gyro_range", None), "memory_budget": getattr(a, "memory_budget", None)}
     opts.update({k: v for k, v in given.items() if v is not None})
+    if getattr(a, "cmd", "") == "calibrate":        # its analysis takes more a sample than the read: a lower limit
+        from imubench import memory
+        opts["memory_budget"] = memory.Budget(opts.get("memory_budget") or memory.DEFAULT_BUDGET_BYTES,
+                                              memory.CALIBRATE_BYTES_PER_SAMPLE)
     if opts.get("topic") and (fmt or "") not in ("", "rosbag"):
         raise UsageError("--topic is for ROS bags", "drop it, or give --format rosbag")
     rec = read(path, fmt, **opts)

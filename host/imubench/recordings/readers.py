@@ -369,7 +369,7 @@ def _load_table(path: Path, delim: str | None, usecols: list[int], start: int, *
     dtype = memory.storage_dtype(rows, budget, nval, time_at is not None)
     if dtype is None:
         raise RecordingError(f"{path}: more than {limit:,} samples (counted {'over' if rows > limit else ''} "
-                             f"{rows:,} lines), the limit of the memory budget of {memory.text(budget or memory.DEFAULT_BUDGET_BYTES)}; "
+                             f"{rows:,} lines), the limit of the memory budget of {memory.budget_text(budget)}; "
                              "give a larger --memory-budget, or cut the recording")
     vcols = [k for k in range(len(usecols)) if k != time_at]
     vals = np.empty((rows, nval), dtype=dtype)
@@ -959,7 +959,7 @@ def read_npz(path: Path, **opt) -> Recording:
     limit = memory.sample_limit(budget, 6, "t_us" in members)
     if n > limit:
         raise RecordingError(f"{path}: {n:,} samples, more than the limit of {limit:,} of the memory budget of "
-                             f"{memory.text(budget or memory.DEFAULT_BUDGET_BYTES)}; give a larger --memory-budget")
+                             f"{memory.budget_text(budget)}; give a larger --memory-budget")
     dtype = memory.storage_dtype(n, budget, 6, "t_us" in members) or np.float32
     arrays = {}
     try:
@@ -1012,7 +1012,7 @@ class _Growing:
         limit = memory.sample_limit(self.budget, 6, True)
         if rows > limit:
             raise RecordingError(f"{self.path}: about {rows:,} samples, more than the limit of {limit:,} of the memory "
-                                 f"budget of {memory.text(self.budget or memory.DEFAULT_BUDGET_BYTES)}; give a larger "
+                                 f"budget of {memory.budget_text(self.budget)}; give a larger "
                                  "--memory-budget, or cut the capture")
         dtype = self.acc.dtype if self.acc is not None else (memory.storage_dtype(rows, self.budget, 6, True)
                                                             or np.float32)
@@ -1163,7 +1163,7 @@ def _rosbag_messages(reader, conns, path: Path, budget: int | None):
     limit = memory.sample_limit(budget, 6, True)
     if total > limit:
         raise RecordingError(f"{path}: {total:,} messages on the topic, more than the limit of {limit:,} samples "
-                             f"of the memory budget of {memory.text(budget or memory.DEFAULT_BUDGET_BYTES)}; give a "
+                             f"of the memory budget of {memory.budget_text(budget)}; give a "
                              "larger --memory-budget, or cut the bag")
     dtype = memory.storage_dtype(total, budget, 6, True) or np.float32
     size = max(total, 1)
