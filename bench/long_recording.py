@@ -220,17 +220,21 @@ def main(argv=None) -> int:
 
 def table(rows: list[dict]) -> str:
     """The markdown table of the rows: allan --from beside read alone and allantools on the same arrays."""
-    out = ["| recording at 200 Hz | samples | file | `allan --from` wall | peak RSS | per sample | method "
-           "| read alone | allantools.oadev, 6 axes | wall / (read + allantools) |",
-           "|---|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
+    out = ["| recording at 200 Hz | samples | file | `allan --from` wall (CPU) | peak RSS | per sample | method "
+           "| read alone | allantools.oadev, 6 axes | wall / (read + allantools) | load |",
+           "|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
     for r in rows:
         method = ("chunked sums" if str(r.get("method") or "").startswith("chunked") else
                   "allantools in memory" if r.get("method") else "?")
         peer = f"{r['peer_s']:.1f} s" if r.get("peer_s") is not None else "not run"
         ratio = f"{r['ratio_to_read_plus_peer']:.2f}" if "ratio_to_read_plus_peer" in r else ""
+        if r.get("cpu_ratio_to_read_plus_peer") is not None:
+            ratio += f" (CPU {r['cpu_ratio_to_read_plus_peer']:.2f})"
+        cpu = f" ({r['cpu_s']:.1f} s)" if r.get("cpu_s") is not None else ""
+        load = f"{r['load_avg_1min']:.0f}" if r.get("load_avg_1min") is not None else "16–21"
         out.append(f"| {r['hours']:g} h {'CSV' if r['kind'] == 'csv' else 'ROS 2 bag (MCAP)'} | {r['samples']:,} "
-                   f"| {r['file_bytes'] / 1e6:.0f} MB | {r['wall_s']:.1f} s | {r['peak_rss_bytes'] / 1e6:.0f} MB "
-                   f"| {r['bytes_per_sample']:.0f} B | {method} | {r['read_s']:.1f} s | {peer} | {ratio} |")
+                   f"| {r['file_bytes'] / 1e6:.0f} MB | {r['wall_s']:.1f} s{cpu} | {r['peak_rss_bytes'] / 1e6:.0f} MB "
+                   f"| {r['bytes_per_sample']:.0f} B | {method} | {r['read_s']:.1f} s | {peer} | {ratio} | {load} |")
     return "\n".join(out)
 
 
