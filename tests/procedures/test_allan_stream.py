@@ -117,3 +117,17 @@ def test_memory_budget_option_rejects_nonsense(tmp_path, capsys):
         assert imubench(["allan", "--from", str(f), "--memory-budget", bad]) == 2
         err = capsys.readouterr().err
         assert "--memory-budget" in err and "Traceback" not in err
+
+
+def test_a_constant_axis_is_said_not_an_internal_error(tmp_path, capsys):
+    """A gyro column that never varies (stuck output, a constant written by a logger) has no Allan
+    deviation: one line naming the sensor and the axis."""
+    rng = np.random.default_rng(2)
+    f = tmp_path / "stuck.csv"
+    rows = [f"{i / 100:.2f},{rng.normal(0, 1e-3):.6f},{rng.normal(0, 1e-3):.6f},{1 + rng.normal(0, 1e-3):.6f},"
+            f"0.1,0.2,0.3" for i in range(2000)]
+    f.write_text("t_s,ax,ay,az,gx,gy,gz\n" + "\n".join(rows) + "\n")
+    assert imubench(["allan", "--from", str(f), "--accel-unit", "g", "--gyro-unit", "dps",
+                     "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    assert "the gyro's axis x: its samples do not vary" in err and "internal error" not in err

@@ -158,6 +158,9 @@ def _readoffs(taus, devs, ns, n: int, fs_hz: float) -> dict:
     keep = (devs > 0) & (ns >= 1)
     taus, devs, ns = np.asarray(taus)[keep], np.asarray(devs)[keep], np.asarray(ns)[keep]
     if len(taus) < 3:
+        if not np.any(np.asarray(devs) > 0):
+            raise ValueError("its samples do not vary (every one the same value): there is no noise to analyse; "
+                             "is the column a constant, or the sensor's output stuck?")
         raise ValueError(f"too few samples for an Allan analysis ({n})")
     lt, ld = np.log10(taus), np.log10(devs)
     seg = np.diff(ld) / np.diff(lt)                          # slope of segment i -> i+1
@@ -266,7 +269,12 @@ def allan(rates: np.ndarray, fs_hz: float, factor: float = 1.0, memory_budget: i
     n = int(r.shape[0])
     held = r.nbytes if held_bytes is None else int(held_bytes)
     chunked = not memory.allan_in_memory(n, held, memory_budget)
-    out = {AXES[k]: allan_axis(r[:, k], fs_hz, factor, chunked) for k in range(r.shape[1])}
+    out = {}
+    for k in range(r.shape[1]):
+        try:
+            out[AXES[k]] = allan_axis(r[:, k], fs_hz, factor, chunked)
+        except ValueError as e:
+            raise ValueError(f"axis {AXES[k]}: {e}") from None
     out.update(fs_hz=float(fs_hz), n=n, duration_s=n / float(fs_hz),
                method=("chunked sums over the phase, one float64 column (the memory budget of "
                        f"{memory.text(memory_budget or memory.DEFAULT_BUDGET_BYTES)} holds no in-memory copy)"

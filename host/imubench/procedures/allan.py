@@ -97,8 +97,8 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
     res = {"source": [rec.source], "device": {"name": name}, "samples": n, "rate_hz": float(rec.fs_hz),
            "duration_s": n / rec.fs_hz, "format": rec.fmt, "units": rec.unit_text(),
            "timing": list(getattr(rec, "notes", [])),
-           "accel": allan(rec.accel, rec.fs_hz, fa, memory_budget, held),
-           "gyro": allan(rec.gyro, rec.fs_hz, fg, memory_budget, held)}
+           "accel": _allan_of(rec.accel, "accelerometer", rec.fs_hz, fa, memory_budget, held),
+           "gyro": _allan_of(rec.gyro, "gyro", rec.fs_hz, fg, memory_budget, held)}
     res["method"] = res["gyro"]["method"]
     res["storage"] = f"{rec.accel.dtype.name} values ({(rec.accel.nbytes + rec.gyro.nbytes) / n:.0f} B a sample)"
     res["accel_usual"] = {a: usual_units(res["accel"][a], "accel") for a in AXES}
@@ -119,6 +119,22 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
     log(f"memory: {res['storage']}; Allan deviation by {res['method']}")
     log(f"wrote {out_dir / 'allan.json'}, {out_dir / 'allan_accel.png'}, {out_dir / 'allan_gyro.png'}")
     return res
+
+
+def _allan_of(values, what: str, fs_hz: float, factor: float, memory_budget, held: int) -> dict:
+    """allan() of a recording's sensor; what the analysis cannot do with the data (a constant axis)
+    is the recording's fault, said in one line."""
+    from imubench.recordings import RecordingError
+    for k, axis in enumerate(AXES[:values.shape[1]]):
+        col = values[:, k]
+        if col.min() == col.max():
+            raise RecordingError(f"the {what}'s axis {axis}: its samples do not vary (every one {float(col[0]):g} in "
+                                 "the file's unit): there is no noise to analyse; is the column a constant, or the "
+                                 "sensor's output stuck?")
+    try:
+        return allan(values, fs_hz, factor, memory_budget, held)
+    except ValueError as e:
+        raise RecordingError(f"the {what}'s {e}") from None
 
 
 def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int = DEFAULT_BAUD,
