@@ -84,13 +84,14 @@ lint: system-deps
 	cppcheck --enable=warning,style,performance,portability --error-exitcode=1 --inline-suppr --quiet \
 	    -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim -Ifirmware/boards/sim/models $(CPPCHECK_DIRS)
 
-# Both cores (pytest-xdist): a module's tests stay on one worker (--dist loadscope), so module-
-# and session-scoped fixtures (a virtual bench, a database server) are set up once per worker;
+# Both cores (pytest-xdist): tests spread one by one (--dist loadgroup), except a module whose
+# tests share a module-scoped fixture (a virtual bench, a built wheel, a browser, a database
+# server): tests/conftest.py keeps it on one worker, so the fixture is set up once;
 # the 30 slowest tests are listed at the end, to see where the time goes.
 PYTEST_WORKERS ?= 2
 test: system-deps venv c-tests sim firmware
 	$(VENV)/bin/ruff check --no-cache host bench tests
-	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadscope --durations=30
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadgroup --durations=30
 
 demo: system-deps venv sim
 	$(PY) -m imubench demo
@@ -100,11 +101,26 @@ clean:
 
 # The release: the sdist, then the platform wheel built from it (setup.py compiles the virtual
 # device, the models library and the STM32 images into the package), both into dist/.
-# README.md, Install, says how to install either.
-dist: system-deps venv
+# README.md, Install, says how to install either. It needs only what the build needs: the
+# compilers (DIST_PKGS) and PyPA's `build` in a small environment of its own (DIST_VENV;
+# `build` installs setuptools and wheel in its isolated build environment), not the test
+# environment, Chromium or PostgreSQL. The wheel is reproducible (setup.py: SOURCE_DATE_EPOCH
+# = the last commit's time): its SHA-256, printed here, is the one a build from the tree or
+# pip's build from the sdist gives.
+DIST_PKGS := gcc make libc6-dev gcc-arm-none-eabi libnewlib-arm-none-eabi git
+DIST_VENV := $(BUILD)/dist-venv
+
+$(DIST_VENV)/.stamp:
+	@$(PYTHON) -m venv $(DIST_VENV)
+	@$(DIST_VENV)/bin/python -m pip install -q --disable-pip-version-check "build>=1.0"
+	@touch $@
+
+dist: $(DIST_VENV)/.stamp
+	@bash tools/ensure-system-deps.sh $(DIST_PKGS)
 	@rm -rf dist
-	$(PY) -m build --outdir dist .
+	$(DIST_VENV)/bin/python -m build --outdir dist .
 	@ls -l dist
+	@sha256sum dist/*.whl
 
 include firmware/arm.mk
 

@@ -15,7 +15,14 @@ build_info.json (package version, source revision). imubench.device.artifacts fi
 The source revision is `git describe --always --dirty` of the checkout; an sdist records it in
 its REVISION file, so a wheel built from the sdist says the same. The images embed it as their
 build id. -ffile-prefix-map maps the source directory away, so a wheel built from the checkout
-and one built from its sdist carry the same bytes.
+and one built from its sdist carry the same files.
+
+The wheel itself is byte for byte the same too (reproducible-builds.org, "SOURCE_DATE_EPOCH
+specification", 2017): unless the environment sets SOURCE_DATE_EPOCH, it is set here to the
+time of the last commit (`git log -1 --format=%ct`; an sdist records it in its
+SOURCE_DATE_EPOCH file), and the wheel writer (bdist_wheel) stamps every zip entry with it and
+writes the entries in sorted order. So `make dist`'s wheel, the one pip builds from the sdist
+and one built from the tree have one SHA-256.
 
 Building a wheel without gcc, make or the ARM compiler stops with an error: a wheel is never
 silently without its virtual device or its images. An editable install (`pip install -e .`)
@@ -45,6 +52,7 @@ except ImportError:                       # setuptools < 70.1: the wheel package
 
 ROOT = Path(__file__).resolve().parent
 REVISION_FILE = "REVISION"
+EPOCH_FILE = "SOURCE_DATE_EPOCH"
 IMAGES = ("f103", "f4", "qemu-f1", "qemu-f4")
 IMAGE_EXTS = ("elf", "bin", "hex", "map")
 # tool -> Debian package that has it
@@ -71,6 +79,27 @@ def source_revision() -> str:
     if f.is_file():
         return f.read_text().strip() or "unknown"
     return "unknown"
+
+
+def source_date_epoch() -> str | None:
+    """The commit time of the checkout (seconds since 1970), else the one an sdist carries."""
+    if (ROOT / ".git").exists():
+        try:
+            r = subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%ct"],
+                               capture_output=True, text=True, timeout=30)
+            if r.returncode == 0 and r.stdout.strip().isdigit():
+                return r.stdout.strip()
+        except OSError:
+            pass
+    f = ROOT / EPOCH_FILE
+    if f.is_file() and f.read_text().strip().isdigit():
+        return f.read_text().strip()
+    return None
+
+
+if not os.environ.get("SOURCE_DATE_EPOCH") and source_date_epoch():
+    # read by bdist_wheel's zip writer when it writes the wheel (in this process)
+    os.environ["SOURCE_DATE_EPOCH"] = source_date_epoch()
 
 
 def _first_line(cmd: list[str]) -> str:
@@ -164,6 +193,12 @@ class SdistWithRevision(sdist):
         if target.exists():
             target.unlink()                    # a hard link to the tree's file: never write through it
         target.write_text(source_revision() + "\n")
+        epoch = Path(base_dir) / EPOCH_FILE
+        if epoch.exists():
+            epoch.unlink()
+        stamp = os.environ.get("SOURCE_DATE_EPOCH") or source_date_epoch()
+        if stamp:
+            epoch.write_text(stamp + "\n")
 
 
 class PlatformDistribution(Distribution):

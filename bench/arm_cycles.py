@@ -106,7 +106,7 @@ def _pct(x: float) -> str:
 def table(rows: list[dict], x86: dict | None) -> str:
     """The markdown table README.md and docs/firmware.md state."""
     out = ("| image | stream | core | drivers | board | lib | total instr/sample | CPU load (target) | "
-           "SPI bus time/sample (bytes) | x86 core instr/sample | emulator speed |\n" + "|---" * 11 + "|\n")
+           "SPI bus time/sample (bytes) | x86 core instr/sample | emulator speed (device s per wall-clock s) |\n" + "|---" * 11 + "|\n")
     for r in rows:
         ips = r["instr_per_sample"]
         key = (r["target"], r["rate_hz"], r["mode"] == "calibrated")

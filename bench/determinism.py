@@ -66,6 +66,14 @@ def _one(case: str, out: Path) -> None:
         dev.stop_stream()
 
 
+def _arm_build_ids(cases: list[str]) -> str:
+    """The build id the ARM images were made from (build/arm/build_id.txt), or ""."""
+    if not cases:
+        return ""
+    f = Path(__file__).resolve().parents[1] / "build" / "arm" / "build_id.txt"
+    return f.read_text().strip() if f.is_file() else "unknown"
+
+
 def run(case: str, mode: str) -> tuple[str, float, str]:
     """(SHA-256 of every .bin the case wrote, in path order; wall s; error or "")."""
     d = Path(tempfile.mkdtemp(prefix=f"imubench-det-{case}-"))
@@ -118,9 +126,12 @@ def main() -> int:
         cells = [f"`{h[:16]}`" if h else f"failed: {err[:80]}" for h, _, err in res]
         rows.append(f"| {case} | " + " | ".join(cells) + f" | {'yes' if same else '**no**'} | "
                     + " / ".join(f"{w:.0f}" for _, w, _ in res) + " |")
+    ids = _arm_build_ids([c for c in cases if c in ("f103", "f4")])
     md = ("| case | SHA-256 of the capture (first 16 hex), idle | beside 2 busy processes | one core "
           "(`taskset -c 0`) | identical | wall time, wall clock (s): idle / busy / one core |\n"
-          "|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
+          "|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n"
+          + (f"\nARM images of build `{ids}` (git describe; their info reply carries it, so another "
+             "build gives other bytes). The host build's id is fixed (`sim-0.1.0`).\n" if ids else ""))
     print("\n" + md, end="")
     publish("determinism", md, {"cases": ",".join(cases)}, enabled=not a.no_publish)
     return 0

@@ -48,27 +48,48 @@ def rss_mb(pid: int) -> float:
     return kb / 1024
 
 
-class Client:
-    def __init__(self, url: str):
-        self.url = url
-        self.opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
-        self.cookie_jar = self.opener.handlers
+class Addresses:
+    """The station's addresses with a one-time secret, as it prints them: the first at start,
+    the next each time a browser has traded one (issue 36)."""
 
-    def call(self, path, data=None, raw=None):
+    def __init__(self, proc):
+        self.proc = proc
+
+    def next(self) -> str:
+        while True:
+            line = self.proc.stdout.readline()
+            if not line:
+                raise RuntimeError("the station ended before printing its address")
+            m = re.search(r"(http://127\.0\.0\.1:\d+/)#token=([\w-]+)", line)
+            if m:
+                return m.group(0)
+
+
+class Client:
+    """A page: it trades a secret the station printed for a session (open()), sent in a header."""
+
+    def __init__(self, url: str):
+        self.url = url.split("#", 1)[0]
+        self.session = ""
+        self.opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
+
+    def open(self, addresses: "Addresses") -> int:
+        code, body = self.call("api/session", {}, headers={"X-Imubench-Launch": addresses.next().split("#token=")[1]})
+        if code == 200:
+            self.session = body["session"]
+        return code
+
+    def call(self, path, data=None, raw=None, headers=None):
         body = raw if raw is not None else None if data is None else json.dumps(data).encode()
         req = urllib.request.Request(self.url + path, data=body, headers={
-            "Content-Type": "application/json", "Origin": self.url.rstrip("/")})
+            "Content-Type": "application/json", "Origin": self.url.rstrip("/"),
+            **({"X-Imubench-Session": self.session} if self.session else {}), **(headers or {})})
         try:
             with self.opener.open(req, timeout=60) as r:
                 return r.status, json.loads(r.read() or b"null")
         except urllib.error.HTTPError as e:
             return e.code, json.loads(e.read() or b"null")
 
-    def cookie(self) -> str:
-        for h in self.opener.handlers:
-            if isinstance(h, urllib.request.HTTPCookieProcessor):
-                return "; ".join(f"{c.name}={c.value}" for c in h.cookiejar)
-        return ""
 
 
 def send_raw(port: int, head: str, body_chunks=()) -> int:
@@ -88,10 +109,10 @@ def send_raw(port: int, head: str, body_chunks=()) -> int:
         s.close()
 
 
-def open_stream(port: int, cookie: str = "") -> tuple[socket.socket, int]:
+def open_stream(port: int, session: str = "") -> tuple[socket.socket, int]:
     s = socket.create_connection(("127.0.0.1", port), timeout=30)
     s.sendall((f"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
-               + (f"Cookie: {cookie}\r\n" if cookie else "") + "\r\n").encode())
+               + (f"X-Imubench-Session: {session}\r\n" if session else "") + "\r\n").encode())
     head = s.recv(65536)
     return s, int(head.split()[1])
 
@@ -143,11 +164,14 @@ def run(tmp: str, publishing: bool = False) -> int:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     out = {}
     try:
-        line = proc.stdout.readline()
-        url = re.search(r"(http://127\.0\.0\.1:\d+/)", line).group(1)
+        addresses = Addresses(proc)
+        first = addresses.next()
+        url = first.split("#", 1)[0]
         port = int(url.rsplit(":", 1)[1].strip("/"))
         op = Client(url)
-        assert op.call("api/hello", {})[0] == 200
+        code, body = op.call("api/session", {}, headers={"X-Imubench-Launch": first.split("#token=")[1]})
+        assert code == 200, body
+        op.session = body["session"]
         assert op.call("api/claim", {"key": DEVICE})[1]["yours"]
         state = lambda: op.call("api/state")[1]       # noqa: E731
         start_once(op, state)                         # warm: imports of the session code
@@ -156,16 +180,16 @@ def run(tmp: str, publishing: bool = False) -> int:
         refused = {}
         others = [Client(url) for _ in range(4)]
         for c in others:
-            c.call("api/hello", {})
+            c.open(addresses)
         for k in range(200):
             key = f"socket://127.0.0.1:{1024 + k}?" + "x" * 200
             code, _ = others[k % 4].call("api/claim", {"key": key[:256]})
             refused[code] = refused.get(code, 0) + 1
         for _ in range(100):
-            code, _ = Client(url).call("api/hello", {})
+            code = Client(url).open(addresses)
             refused[code] = refused.get(code, 0) + 1
         post = (f"POST /api/claim HTTP/1.1\nHost: 127.0.0.1:{port}\nOrigin: http://127.0.0.1:{port}\n"
-                "Content-Type: application/json\n")
+                f"X-Imubench-Session: {op.session}\nContent-Type: application/json\n")
         for _ in range(20):
             code = send_raw(port, post + f"Content-Length: {50 << 20}\n")
             refused[code] = refused.get(code, 0) + 1
@@ -192,15 +216,18 @@ def run(tmp: str, publishing: bool = False) -> int:
               f"after the flood (answers by HTTP status: {out['answers']})")
         print(f"{'streams opened':>15} {'served':>7} {'start median s':>15} {'start worst s':>14}  device kept")
         out["start"] = []
-        own, _ = open_stream(port, op.cookie())        # the operator's page is open
+        own, _ = open_stream(port, op.session)         # the operator's page is open
         for n in (0, 20, 60, 200):
             socks = []
-            for _ in range(n):
-                s, code = open_stream(port)
+            watchers = [Client(url) for _ in range(-(-n // 8))]     # 8 tabs a browser
+            for w in watchers:
+                w.open(addresses)
+            for k in range(n):
+                s, code = open_stream(port, watchers[k // 8].session)
                 (socks.append(s) if code == 200 else s.close())
             times = [start_once(op, state) for _ in range(5)]
             thief = Client(url)
-            thief.call("api/hello", {})
+            thief.open(addresses)
             kept = thief.call("api/claim", {"key": DEVICE})[1]["yours"] is False
             row = {"streams": n, "served": len(socks), "median_s": statistics.median(times), "worst_s": max(times),
                    "kept": kept}

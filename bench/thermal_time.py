@@ -240,8 +240,8 @@ def _verdict(runs: dict, suffix: str) -> tuple[bool, str]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seed", type=int, default=7, help="the virtual part (random truth and thermal constants)")
-    ap.add_argument("--speed", type=float, default=300.0,
-                    help="ceiling of device time per wall time (the virtual device runs in lockstep)")
+    ap.add_argument("--speed", type=float, default=0.0,
+                    help="ceiling of device time per wall time (0: none; the virtual device runs in lockstep)")
     ap.add_argument("--span", default="5,45", help="LO,HI in °C (default 5,45)")
     ap.add_argument("--random-walk", choices=("on", "off", "both"), default="both",
                     help="the part's bias drift (gyro bias instability and random walks): as drawn (on), off "

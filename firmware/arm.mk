@@ -4,7 +4,7 @@
 #   make arm-<image>       one image: arm-f103, arm-f4, arm-qemu-f1, arm-qemu-f4
 #
 # Images, each in build/arm/<image>/imubench.{elf,bin,hex,map}:
-#   f103     STM32F103C8/RB hardware: 72 MHz (HSE 8 MHz x9), USART1 TX by DMA, C8 flash layout
+#   f103     STM32F103CB hardware (runs on a C8/RB too): 72 MHz (HSE 8 MHz x9), USART1 TX by DMA
 #   f4       STM32F405/407 hardware: 168 MHz (HSE 8 MHz), FPU, USART1 TX by DMA
 #   qemu-f1  the F1 board code for qemu-system-arm -M stm32vldiscovery (8 KiB RAM, 24 MHz,
 #            polled TX, 128 KiB flash layout)

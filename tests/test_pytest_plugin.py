@@ -20,7 +20,7 @@ def test_fixture_starts_the_virtual_device_by_default(pytester, monkeypatch):
 
 def test_fixture_uses_the_given_port(pytester, monkeypatch):
     monkeypatch.delenv("IMUBENCH_PORT", raising=False)
-    with VirtualBench(speed=20, seed=9) as vb:
+    with VirtualBench(speed=0, seed=9) as vb:
         USER_PORT = vb.port_url
         pytester.makepyfile(USER_TEST + f"""
 def test_it_is_the_given_device(imubench_port):

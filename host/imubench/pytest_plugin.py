@@ -20,9 +20,9 @@ def pytest_addoption(parser):
     g = parser.getgroup("imubench")
     g.addoption("--imubench-port", default=None,
                 help="pyserial URL of the device under test (default: $IMUBENCH_PORT, else the virtual device)")
-    g.addoption("--imubench-sim-speed", type=float, default=20.0,
-                help="speed factor of the virtual device when one is started (default 20; in lockstep a "
-                     "ceiling)")
+    g.addoption("--imubench-sim-speed", type=float, default=None,
+                help="speed factor of the virtual device when one is started: on the lockstep clock a "
+                     "ceiling (default none), on the real-time clock the pace (default 20)")
     g.addoption("--imubench-sim-clock", choices=("lockstep", "realtime"), default=None,
                 help="clock of the virtual device: lockstep (the default; deterministic, nothing dropped) or "
                      "realtime (against the wall clock, as a real board)")

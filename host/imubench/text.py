@@ -69,7 +69,53 @@ def token(text, default: str = "imu") -> str:
     return _NOT_TOKEN.sub("_", str(text)) or default
 
 
+def shell_word(text) -> str:
+    """text as one word a POSIX shell (bash, zsh, ksh) reads back as text, shown safely on a
+    terminal: shlex.quote when it is printable; else ANSI-C quoting ($'...') with every
+    control character, bidi override or line separator written as an escape the shell decodes."""
+    import shlex
+    s = str(text)
+    if not _UNSAFE_ONE_LINE.search(s):
+        return shlex.quote(s)
+    body = s.replace("\\", "\\\\").replace("'", "\\'")
+    return "$'" + _UNSAFE_ONE_LINE.sub(_escape, body) + "'"
+
+
 def xml_text(text) -> str:
     """str(text) without the characters XML 1.0 cannot hold (most C0 controls, U+FFFE, U+FFFF,
     lone surrogates), so that any serialiser's output stays well-formed."""
     return _XML_INVALID.sub("", str(text))
+
+
+class SafeTerminal:
+    """A terminal stream (sys.stdout, sys.stderr) whose every write passes through printable:
+    the last guard, behind the one_line/printable calls of each command, so that no text from
+    a user, a file or a device that a message forgot to escape rewrites the operator's
+    terminal. Installed only when the stream is a terminal (guard_terminal); a pipe or a file
+    gets the bytes a command writes (a CSV's CR LF stays)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        self._stream.write(printable(text))
+        return len(text)
+
+    def writelines(self, lines) -> None:
+        for line in lines:
+            self.write(line)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+def guard_terminal(sys_module) -> None:
+    """sys.stdout and sys.stderr wrapped in SafeTerminal where they are terminals."""
+    for name in ("stdout", "stderr"):
+        stream = getattr(sys_module, name, None)
+        try:
+            tty = stream is not None and not isinstance(stream, SafeTerminal) and stream.isatty()
+        except (AttributeError, ValueError, OSError):
+            tty = False
+        if tty:
+            setattr(sys_module, name, SafeTerminal(stream))

@@ -27,13 +27,13 @@ from imubench.calib.accel import (
 from imubench.calib.static import (
     NotEnoughStatic,
     StaticIntervals,
-    StillnessDetector,
     detect_static,
     interval_stats,
     moving_variance,
     require_static,
     rest_noise,
 )
+from imubench.calib.stillness import StillnessDetector
 from imubench.units import G0_MPS2 as G0
 from scipy.signal import lfilter
 

@@ -168,3 +168,18 @@ def test_ids_one_format_in_info_and_history(tmp_path):
         r = run("history", "--db", str(db), query)
         assert r.returncode == 0, (query, r.stderr)
         assert f"device {uid}" in r.stdout and " ".join(sns) in r.stdout
+
+
+def test_monitor_duration_is_device_time_on_a_lockstep_virtual_device(tmp_path):
+    """--duration counts the device's seconds (the link's clock): a frozen-between-waits
+    virtual device gives exactly that much data however slow the machine is (issue 33)."""
+    from imubench.device.sim import VirtualBench
+    rec = tmp_path / "mon.bin"
+    with VirtualBench(speed=0, seed=4) as vb:
+        r = run("monitor", "--port", vb.port_url, "--rate", "500", "--duration", "3", "--interval", "1",
+                "--record", str(rec))
+    assert r.returncode == 0, r.stderr
+    times = [float(ln.split()[0]) for ln in r.stdout.splitlines() if "|" in ln and "rej" in ln]
+    assert times == [1.0, 2.0, 3.0], r.stdout
+    n = json.loads(run("decode", str(rec), "--json").stdout)["raw"]["samples"]
+    assert 1500 <= n <= 1500 + 64, n          # 3 s at 500 Hz, plus at most the batch in flight

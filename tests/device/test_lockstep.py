@@ -142,6 +142,38 @@ def test_same_seed_same_session_idle_and_beside_two_busy_processes(tmp_path):
     assert idle[1] == busy[1]                         # every number of the session
 
 
+def _command_captures(tmp: Path, name: str, args: list[str], busy: int = 0) -> str:
+    """`imubench ARGS` with DIR (its output folder) in a fresh directory, beside `busy` CPU-bound
+    processes: the SHA-256 of every .bin it wrote, by path."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(busy)]
+    d = tmp / name
+    try:
+        r = subprocess.run([sys.executable, "-m", "imubench", *[str(d) + a[3:] if a.startswith("DIR") else a for a in args]],
+                           capture_output=True, text=True, timeout=600, cwd=tmp)
+        assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait()
+    files = sorted(d.rglob("*.bin"))
+    assert files
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.relative_to(d).as_posix().encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()
+
+
+@pytest.mark.parametrize("case", ["station", "warmup"])
+def test_a_station_and_a_warmup_give_the_same_bytes_idle_and_busy(case, tmp_path):
+    """The other two cases of issue 33's table (docs/simulator.md, bench/determinism.py), smaller:
+    four boards on one virtual fixture, and a warm-up of a part with short time constants."""
+    args = {"station": ["calibrate", "--sim", "--sim-seed", "5", "--sim-boards", "4", "--method", "six",
+                        "--gyro", "bias", "--hold", "0.5", "--dir", "DIR", "--db", "DIR.db"],
+            "warmup": ["thermal", "--sim", "--warmup", "--sim-seed", "7", "--tau", "30", "--out", "DIR"]}[case]
+    idle = _command_captures(tmp_path, "idle", args)
+    assert idle == _command_captures(tmp_path, "busy", args, busy=2)
+
+
 def _arm_session(target: str, path: Path, busy: int = 0) -> str:
     """A short session on the ARM image in lockstep (info, a stream, a turn while streaming),
     beside `busy` CPU-bound processes: the SHA-256 of the link's capture."""

@@ -1,6 +1,7 @@
-"""Flashing proven with a real client: the STM32 ROM bootloader (AN3155) under the ARM emulator
-(imubench.device.arm.bootloader), Debian's stm32flash unchanged through `imubench flash
---probe serial`, a reflash that keeps the calibration, and what goes wrong at a bench.
+"""Flashing proven with real clients: the STM32 ROM bootloader (AN3155) under the ARM emulator
+(imubench.device.arm.bootloader), Debian's stm32flash unchanged (through `imubench flash
+--probe serial` and on its own) and the stm32loader package's library, a reflash that keeps the
+calibration, and what goes wrong at a bench.
 
 The reflash test calibrates a board running one image ("previous") and reflashes it with the
 current build. By default the previous image is the current build with another build id
@@ -48,7 +49,7 @@ def _stm32flash() -> None:
 # ------------------------------------------------------------- the protocol engine
 def _rom(tmp_path, name="f103"):
     t = ARM[name]
-    code = FlashFile(str(tmp_path / f"{name}.code"), t.param_base - t.flash_base)
+    code = FlashFile(str(tmp_path / f"{name}.code"), t.code_file_size)
     params = FlashFile(str(tmp_path / f"{name}.bin"), t.param_size)
     return RomBootloader(t, code, params, bytes(range(12)))
 
@@ -89,11 +90,141 @@ def test_bootloader_answers_as_the_chip(tmp_path, name, pid, version, erase):
     assert rom.code.mem[:16] == b"\xff" * 16
     assert _cmd(rom, 0x31, _addr(t.flash_base), bytes([15]) + data + bytes([cs])) == bytes([ACK, ACK, ACK])
     assert _cmd(rom, 0x11, _addr(t.flash_base), bytes([15, 0xF0])) == bytes([ACK, ACK, ACK]) + data
-    assert _cmd(rom, 0x11, _addr(0x60000000), bytes([3, 0xFC])) == bytes([ACK, ACK, NACK])   # nothing there
+    assert _cmd(rom, 0x11, _addr(0x60000000)) == bytes([ACK, NACK])     # nothing there: NACK after the address
     assert _cmd(rom, 0x11, _addr(t.uid_addr), bytes([11, 0xF4]))[3:] == bytes(range(12))
     # Go into flash leaves the bootloader
     assert _cmd(rom, 0x21, _addr(t.flash_base)) == bytes([ACK, ACK])
     assert rom.action == ("go", t.flash_base)
+
+
+def _block(data: bytes) -> bytes:
+    """Write Memory's N-1, the data and their XOR."""
+    cs = len(data) - 1
+    for v in data:
+        cs ^= v
+    return bytes([len(data) - 1]) + data + bytes([cs])
+
+
+def _synced(tmp_path, name):
+    rom = _rom(tmp_path, name)
+    rom.feed(b"\x7f")
+    assert rom.take_output() == bytes([ACK])
+    return rom
+
+
+@pytest.mark.parametrize("name", ["f103", "f4"])
+def test_flash_is_contiguous_across_the_parameter_pages(tmp_path, name):
+    """A read, a write and an erase across the border between code and parameter pages
+    (0x0800F800 on the F103, 0x080C0000 on the F4) act on both sides, as on the chip."""
+    rom = _synced(tmp_path, name)
+    t = ARM[name]
+    data = bytes(range(256))
+    border = t.param_base
+    assert _cmd(rom, 0x31, _addr(border - 128), _block(data)) == bytes([ACK, ACK, ACK])
+    assert rom.code.mem[border - 128 - t.flash_base:border - t.flash_base] == data[:128]
+    assert rom.params.mem[:128] == data[128:]
+    assert _cmd(rom, 0x11, _addr(border - 128), bytes([255, 0])) == bytes([ACK, ACK, ACK]) + data
+    # the erase of the last code page/sector and the first parameter one
+    first = rom._unit_of(border)
+    if name == "f103":
+        assert _cmd(rom, 0x43, bytes([1, first - 1, first, 1 ^ (first - 1) ^ first])) == bytes([ACK, ACK])
+    else:
+        body = bytes([0, 1, 0, first - 1, 0, first])
+        cs = 0
+        for v in body:
+            cs ^= v
+        assert _cmd(rom, 0x44, body + bytes([cs])) == bytes([ACK, ACK])
+    assert _cmd(rom, 0x11, _addr(border - 128), bytes([255, 0]))[3:] == b"\xff" * 256
+    # the F103CB's flash goes on above its parameter pages, up to 0x0801FFFF (128 KiB)
+    end = t.flash_base + t.flash_size
+    assert _cmd(rom, 0x31, _addr(end - 256), _block(data)) == bytes([ACK, ACK, ACK])
+    assert _cmd(rom, 0x11, _addr(end - 256), bytes([255, 0]))[3:] == data
+    assert _cmd(rom, 0x11, _addr(end - 16), bytes([31, 0xE0])) == bytes([ACK, ACK, NACK])   # runs past the end
+    assert _cmd(rom, 0x11, _addr(end)) == bytes([ACK, NACK])
+
+
+@pytest.mark.parametrize("name,fsize,kib", [("f103", 0x1FFFF7E0, 128), ("f4", 0x1FFF7A22, 1024)])
+def test_system_memory_reads_at_any_length_and_alignment(tmp_path, name, fsize, kib):
+    """The flash-size register and the unique ID read the same whatever the length and the
+    start of the read that covers them (stm32loader reads 256 B at 0x1FFF7A00 on an F4)."""
+    rom = _synced(tmp_path, name)
+    t = ARM[name]
+    uid = bytes(range(12))
+    for start in range(fsize - 37, fsize + 1, 3):
+        for n in (2, 16, 64, 256):
+            if start + n < fsize + 2:
+                continue
+            got = _cmd(rom, 0x11, _addr(start), bytes([n - 1, (n - 1) ^ 0xFF]))
+            sysmem_end = 0x1FFFF800 if name == "f103" else 0x1FFF8000
+            if start + n > sysmem_end:
+                assert got == bytes([ACK, ACK, NACK])
+                continue
+            assert got[:3] == bytes([ACK, ACK, ACK]) and len(got) == 3 + n, (hex(start), n)
+            mem = got[3:]
+            assert int.from_bytes(mem[fsize - start:fsize - start + 2], "little") == kib
+            if start <= t.uid_addr and t.uid_addr + 12 <= start + n:
+                assert mem[t.uid_addr - start:t.uid_addr - start + 12] == uid
+    got = _cmd(rom, 0x11, _addr(t.uid_addr & ~0xFF), bytes([255, 0]))
+    assert got[:3] == bytes([ACK, ACK, ACK]) and len(got) == 259
+
+
+@pytest.mark.parametrize("name", ["f103", "f4"])
+def test_address_checks_come_right_after_the_address(tmp_path, name):
+    """AN3155 3.4/3.6: an address that is not valid is NACKed right after the address and its
+    checksum, before the length or the data."""
+    rom = _synced(tmp_path, name)
+    t = ARM[name]
+    for bad in (0x00000000, 0x40000000, t.flash_base + t.flash_size, t.ram_base + t.ram_size):
+        assert _cmd(rom, 0x11, _addr(bad)) == bytes([ACK, NACK]), hex(bad)
+        assert _cmd(rom, 0x31, _addr(bad)) == bytes([ACK, NACK]), hex(bad)
+    assert _cmd(rom, 0x31, _addr(t.ram_base)) == bytes([ACK, NACK])             # the bootloader's own RAM
+    assert _cmd(rom, 0x31, _addr(t.uid_addr)) == bytes([ACK, NACK])             # system memory: read only
+    assert _cmd(rom, 0x11, _addr(t.uid_addr)) == bytes([ACK, ACK])              # ... but readable
+    rom.feed(bytes([11, 11 ^ 0xFF]))
+    assert rom.take_output() == bytes([ACK]) + bytes(range(12))
+    assert _cmd(rom, 0x31, _addr(t.flash_base + 2), _block(b"abcd")) == bytes([ACK, ACK, NACK])  # unaligned
+
+
+def test_option_byte_writes_set_protection_and_reset_f103(tmp_path):
+    """Write Memory to the option bytes (AN3155 3.6): programmed, then the chip resets; the
+    write protection and read protection they hold take effect."""
+    rom = _synced(tmp_path, "f103")
+    ob = 0x1FFFF800
+    assert _cmd(rom, 0x11, _addr(ob), bytes([15, 0xF0]))[3:] == bytes([0xA5, 0x5A] + [0xFF, 0x00] * 7)
+    new = bytes([0xA5, 0x5A, 0xFF, 0x00, 0x12, 0xED, 0xFF, 0x00, 0xFE, 0x01, 0xFF, 0x00, 0xFF, 0x00, 0x7F, 0x80])
+    assert _cmd(rom, 0x31, _addr(ob), _block(new)) == bytes([ACK, ACK, ACK])
+    assert rom.action == ("reset",)
+    rom.reset()
+    rom.feed(b"\x7f")
+    rom.take_output()
+    assert _cmd(rom, 0x11, _addr(ob), bytes([15, 0xF0]))[3:] == new
+    assert rom.wrp == {0, 124}                                   # WRP0 bit 0: pages 0-3, WRP3 bit 7: 124-127
+    assert _cmd(rom, 0x43, bytes([0, 1, 1])) == bytes([ACK, NACK])
+    assert _cmd(rom, 0x43, bytes([0, 4, 4])) == bytes([ACK, ACK])
+    # RDP not 0xA5: read protection on after the reset
+    assert _cmd(rom, 0x31, _addr(ob), _block(bytes([0x00, 0xFF]) + b"\xff" * 14)) == bytes([ACK, ACK, ACK])
+    rom.reset()
+    rom.feed(b"\x7f")
+    rom.take_output()
+    assert rom.rdp and _cmd(rom, 0x11) == bytes([NACK])
+
+
+def test_option_byte_writes_f4(tmp_path):
+    rom = _synced(tmp_path, "f4")
+    ob = 0x1FFFC000
+    cur = _cmd(rom, 0x11, _addr(ob), bytes([15, 0xF0]))[3:]
+    assert cur[:2] == bytes([0xED, 0xAA]) and cur[8:10] == bytes([0xFF, 0x0F])
+    new = bytearray(cur)
+    new[8:10] = bytes([0xFF, 0x03])                              # nWRP: sectors 10 and 11 protected
+    assert _cmd(rom, 0x31, _addr(ob), _block(bytes(new))) == bytes([ACK, ACK, ACK])
+    assert rom.action == ("reset",)
+    rom.reset()
+    rom.feed(b"\x7f")
+    rom.take_output()
+    assert rom.wrp == {10, 11} and not rom.rdp
+    assert _cmd(rom, 0x11, _addr(ob), bytes([15, 0xF0]))[3:] == bytes(new)
+    t = ARM["f4"]
+    assert _cmd(rom, 0x31, _addr(t.param_base), _block(b"abcd")) == bytes([ACK, ACK, NACK])   # protected
 
 
 def test_erase_geometry_and_the_global_erase_f103(tmp_path):
@@ -104,7 +235,8 @@ def test_erase_geometry_and_the_global_erase_f103(tmp_path):
     # Erase pages 0 and 63 (a parameter page: the bootloader erases what it is told)
     assert _cmd(rom, 0x43, bytes([1, 0, 5, 1 ^ 0 ^ 5])) == bytes([ACK, ACK])
     assert rom.erased_units == [0, 5]
-    assert _cmd(rom, 0x43, bytes([0, 64, 64])) == bytes([ACK, NACK])          # no page 64 on a C8
+    assert _cmd(rom, 0x43, bytes([0, 127, 127])) == bytes([ACK, ACK])         # page 127: the CB's last
+    assert _cmd(rom, 0x43, bytes([0, 128, 128])) == bytes([ACK, NACK])        # no page 128 on a CB
     assert _cmd(rom, 0x43, b"\xff\x00") == bytes([ACK, ACK])                   # global erase
     assert rom.params.mem[:4] == b"\xff" * 4                                   # ... wipes the calibration
 
@@ -128,6 +260,7 @@ def test_readout_and_write_protection(tmp_path):
     rom.feed(b"\x7f")
     rom.take_output()
     t = ARM["f103"]
+    assert _cmd(rom, 0x63, bytes([0, 32, 32])) == bytes([ACK, NACK])          # sector 32: pages 128-131, none
     assert _cmd(rom, 0x63, bytes([0, 0, 0])) == bytes([ACK, ACK])             # protect pages 0-3
     assert rom.action == ("reset",)
     rom.reset()
@@ -320,6 +453,149 @@ def test_a_reflash_keeps_a_block_the_previous_layout_stored(name, tmp_path, caps
             assert _pack(got) == _pack(p) and (got.gyro_t_min_c, got.gyro_t_max_c) == (-40, 85)
             assert not any(got.accel_bias_tc2_mps2_per_c2 + got.gyro_bias_tc3_rad_s_per_c3)
 
+
+# ------------------------------------------- two clients, across the parameter pages
+def _boot0(name, tmp_path, seed=5):
+    return VirtualBench(speed=0, seed=seed, target=name, flash=tmp_path / "flash.bin", pty=True, tcp=False,
+                        boot0=True)
+
+
+def _stores(tmp_path, name, addr: int, n: int) -> bytes:
+    """[addr, addr+n) of the board's flash, from its two files (code and parameter pages)."""
+    t = ARM[name]
+    code = Path(str(tmp_path / "flash.bin") + ".code").read_bytes()
+    params = (tmp_path / "flash.bin").read_bytes()
+    whole = code[:t.param_base - t.flash_base] + params + code[t.param_base - t.flash_base:]
+    assert len(whole) == t.flash_size
+    return whole[addr - t.flash_base:addr - t.flash_base + n]
+
+
+def _sf(*args) -> subprocess.CompletedProcess:
+    return subprocess.run(["stm32flash", "-m", "8n1", *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("name", ["f103", "f4"])
+def test_stm32flash_across_the_parameter_pages(name, tmp_path):
+    """Debian's stm32flash, unchanged: writes, verifies, reads back and erases 8 KiB across the
+    border between code and parameter pages; on the F103 it reads the whole flash (-r, its own
+    help's example) and computes its CRC (-C) up to 0x08020000, the CB's 128 KiB. A .bin
+    written without -S erases only the file's pages (docs/firmware.md: not a mass erase)."""
+    _stm32flash()
+    t = ARM[name]
+    start, n = t.param_base - 4096, 8192
+    data = np.random.default_rng(3).integers(0, 256, n, dtype=np.uint8).tobytes()
+    src = tmp_path / "across.bin"
+    src.write_bytes(data)
+    back = tmp_path / "back.bin"
+    with _boot0(name, tmp_path) as vb:
+        r = _sf("-w", str(src), "-v", "-S", f"0x{start:08X}:{n}", vb.pty)
+        assert r.returncode == 0, r.stdout + r.stderr + vb.log
+        assert "Wrote and verified address" in r.stdout
+        assert _stores(tmp_path, name, start, n) == data
+        assert set(_erased(vb.log)) & PARAM_UNITS[name]         # the erase took the parameter page too
+        r = _sf("-r", str(back), "-S", f"0x{start:08X}:{n}", vb.pty)
+        assert r.returncode == 0 and back.read_bytes() == data, r.stdout + r.stderr
+        units = [(a, s) for a, s in _units(name) if a < start + n and start < a + s]   # erase-only: whole units
+        e0, e1 = units[0][0], units[-1][0] + units[-1][1]
+        log_at = len(vb.log)
+        r = _sf("-o", "-S", f"0x{e0:08X}:{e1 - e0}", vb.pty)
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert _erased(vb.log[log_at:]) == {i for i, u in enumerate(_units(name)) if u in units}
+        assert _stores(tmp_path, name, e0, e1 - e0) == b"\xff" * (e1 - e0)
+        if name == "f103":
+            whole = tmp_path / "whole.bin"
+            r = _sf("-r", str(whole), vb.pty)
+            assert r.returncode == 0, r.stdout + r.stderr
+            assert whole.read_bytes() == _stores(tmp_path, name, t.flash_base, t.flash_size)
+            assert len(whole.read_bytes()) == 128 * 1024
+            r = _sf("-C", vb.pty)
+            assert r.returncode == 0, r.stdout + r.stderr
+            crc = _stm32_crc(_stores(tmp_path, name, t.flash_base, t.flash_size))
+            assert f"CRC(0x08000000-0x08020000) = 0x{crc:08x}" in r.stdout, r.stdout
+            # a .bin without -S: stm32flash 0.7 erases the pages the file covers, not the flash
+            params = (tmp_path / "flash.bin").read_bytes()
+            small = tmp_path / "small.bin"
+            small.write_bytes(bytes(range(256)) * 12)           # 3 KiB: pages 0-2
+            log_at = len(vb.log)
+            r = _sf("-w", str(small), vb.pty)
+            assert r.returncode == 0, r.stdout + r.stderr
+            assert _erased(vb.log[log_at:]) == {0, 1, 2}
+            assert "mass erase" not in vb.log[log_at:]
+            assert (tmp_path / "flash.bin").read_bytes() == params
+
+
+@pytest.mark.parametrize("name", ["f103", "f4"])
+def test_stm32loader_library_across_the_parameter_pages(name, tmp_path):
+    """The stm32loader package's library (Stm32Bootloader over its SerialConnection on the
+    emulator's pty). Its command line starts by resetting the chip into the bootloader with
+    RTS/DTR, which a pseudo-terminal does not carry (pyserial's modem-line ioctls fail on a
+    pty), so the test sends the 0x7F synchronisation itself and then drives the library as its
+    main does: Get, Get Version, Get ID, the flash size and UID it reads from system memory,
+    page/sector erase, write, read and verify across the parameter pages, global erase."""
+    from stm32loader.bootloader import Stm32Bootloader
+    from stm32loader.uart import SerialConnection
+    t = ARM[name]
+    family = "F1" if name == "f103" else "F4"
+    start, n = t.param_base - 4096, 8192
+    data = np.random.default_rng(4).integers(0, 256, n, dtype=np.uint8).tobytes()
+    with _boot0(name, tmp_path, seed=6) as vb:
+        conn = SerialConnection(vb.pty, 115200, "N")      # a pty refuses PARENB (8E1), as with stm32flash -m 8n1
+        conn.connect()
+        try:
+            bl = Stm32Bootloader(conn, device_family=family, verbosity=0, show_progress=False)
+            bl.write(bl.Command.SYNCHRONIZE)
+            assert conn.read()[0] == bl.Reply.ACK
+            assert bl.get() == (0x22 if name == "f103" else 0x31)
+            assert bl.get_version() == (0x22 if name == "f103" else 0x31)
+            assert bl.get_id() == (0x410 if name == "f103" else 0x413)
+            if name == "f103":
+                size_kib, uid_read = bl.get_flash_size(), bytes(bl.get_uid())
+            else:
+                size_kib, uid_read = bl.get_flash_size_and_uid()
+                uid_read = bytes(uid_read)
+            assert size_kib == t.flash_kib
+            assert len(uid_read) == 12 and uid_read == bytes(bl.read_memory(t.uid_addr, 12))
+            assert uid_read == bytes.fromhex(vb.info["uid"])       # the board's own ID
+            units = [i for i, (a, s) in enumerate(_units(name)) if a < start + n and start < a + s]
+            assert set(units) & PARAM_UNITS[name]
+            if name == "f103":
+                bl.erase_memory(units)
+            else:
+                bl.extended_erase_memory(units)
+            bl.write_memory_data(start, data)
+            got = bytes(bl.read_memory_data(start, n))
+            bl.verify_data(got, data)
+            assert got == data and _stores(tmp_path, name, start, n) == data
+            bl.erase_memory() if name == "f103" else bl.extended_erase_memory()   # global / mass erase
+            assert _stores(tmp_path, name, t.flash_base, t.flash_size) == b"\xff" * t.flash_size
+        finally:
+            conn.disconnect()
+
+
+def _stm32_crc(data: bytes) -> int:
+    """The STM32 CRC unit's CRC-32 (polynomial 0x04C11DB7, initial 0xFFFFFFFF, 32-bit words
+    fed MSB first, RM0008 20.3; stm32flash computes the same): CRC-32/MPEG-2 over each
+    little-endian word's bytes reversed."""
+    table = []
+    for i in range(256):
+        c = i << 24
+        for _ in range(8):
+            c = ((c << 1) ^ 0x04C11DB7) if c & 0x80000000 else c << 1
+        table.append(c & 0xFFFFFFFF)
+    crc = 0xFFFFFFFF
+    for i in range(0, len(data), 4):
+        for b in data[i:i + 4][::-1]:
+            crc = ((crc << 8) & 0xFFFFFFFF) ^ table[(crc >> 24) ^ b]
+    return crc
+
+
+def _units(name):
+    from imubench.device.arm.bootloader import CHIP
+    a, out = ARM[name].flash_base, []
+    for size in CHIP[name]["units"]:
+        out.append((a, size))
+        a += size
+    return out
 
 # ------------------------------------------------------------- what goes wrong at a bench
 def test_bench_faults_power_cut_wrong_chip_not_a_bootloader(tmp_path, capsys):

@@ -552,3 +552,50 @@ def test_slow_link_drops_whole_batches(sim_bin):
         dt_s = (s1["time_us"] - s0["time_us"]) / 1e6
         assert sent / dt_s == pytest.approx(11520, rel=0.1)
         assert len(blk) == 2000
+
+
+def test_the_bench_is_a_resource_its_drivers_and_a_strategy(sim_bin):
+    """Issue 35: the resource (the process and where it is), the drivers (the control channel and
+    one per concern) and the strategy (the states) each work through their own small interface;
+    VirtualBench answers the names it always had from them."""
+    import inspect
+
+    from imubench.device.sim import _LAYER_OF
+    from imubench.device.sim_drivers import (ClimateDriver, ControlChannel, FaultDriver, MotionDriver, TimeDriver,
+                                             TruthDriver)
+    from imubench.device.sim_resource import SimProcess
+    from imubench.device.sim_strategy import BenchStrategy
+    for cls in (SimProcess, ControlChannel, TimeDriver, MotionDriver, ClimateDriver, TruthDriver, FaultDriver,
+                BenchStrategy):
+        public = [n for n, _ in inspect.getmembers(cls) if not n.startswith("_")]
+        assert len(public) <= 16, (cls.__name__, public)
+    vb = VirtualBench(speed=0, seed=3, binary=sim_bin, start=False)
+    try:
+        assert vb.strategy.state == "off" and not vb.running
+        vb.strategy.transition("running")
+        assert vb.strategy.state == "running" and vb.resource.running and vb.pid == vb.resource.pid
+        for name, layer in _LAYER_OF.items():             # every old name comes from its layer
+            assert hasattr(getattr(vb, layer), name), (name, layer)
+        # a driver needs the channel only: a second channel on the same resource drives the same bench
+        truth = TruthDriver(ControlChannel(vb.resource))
+        assert truth.get_truth() == vb.get_truth() == vb.truth_driver.get_truth()
+        vb.motion.set_orientation(gravity=[1, 0, 0])
+        assert np.allclose(vb.status()["gravity_board"], [1, 0, 0])
+        t0 = vb.time.now()
+        vb.motion.rotate("z", 90.0, 0.5)                  # waits on the time driver
+        assert vb.now() - t0 >= 0.5
+        vb.strategy.transition("off")
+        assert vb.strategy.state == "off" and vb.pid is None
+        with pytest.raises(SimError, match="not running"):
+            vb.motion.set_rate([0, 0, 0])
+        vb.strategy.transition("running")                 # the same flash file, a new process
+        assert vb.status()["ok"]
+        with pytest.raises(AttributeError, match="no attribute 'spin'"):
+            vb.spin()
+        tmp = vb.resource._tmpdir
+        vb.strategy.transition("gone")
+        assert vb.strategy.state == "gone" and not os.path.exists(tmp)
+        with pytest.raises(SimError, match="was closed"):
+            vb.strategy.transition("running")
+    finally:
+        vb.close()

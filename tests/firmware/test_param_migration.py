@@ -129,7 +129,7 @@ def _gsens_session(tmp_path, target: str):
     from imubench.calib.geometry import rotation_to
     from imubench.procedures.session import Session, SessionConfig, SimPresenter, plan_for
     from imubench.wire.protocol_gen import ParamsWhich as W
-    with VirtualBench(speed=20 if target == "host" else 0, seed=31, truth="random", target=target) as vb:
+    with VirtualBench(speed=0, seed=31, truth="random", target=target) as vb:
         vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         with Device.open(vb.port_url, timeout=5.0) as dev:
             method = "multi" if host else "six"

@@ -103,8 +103,10 @@ def test_virtual_device_readoffs_within_10_percent_of_truth(vb, tmp_path):
 
 def test_main_allan_short_and_truncated_capture(vb, tmp_path, capsys):
     out = tmp_path / "short"
-    assert imubench(["allan", "--port", vb.port_url, "--duration", "10m", "--out", str(out), "--progress", "1"]) == 0
-    for f in ("capture.bin", "allan.json", "allan_accel.png", "allan_gyro.png"):
+    assert imubench(["allan", "--port", vb.port_url, "--duration", "10m", "--out", str(out), "--progress", "1",
+                     "--export", "kalibr,vins-fusion"]) == 0
+    for f in ("capture.bin", "allan.json", "allan_accel.png", "allan_gyro.png", "kalibr-imu.yaml",
+              "vins-fusion-imu.yaml", "exports-noise.txt"):
         assert (out / f).stat().st_size > 0, f
     text = capsys.readouterr().out
     assert "samples" in text and "ARW N [°/√h]" in text and "µg/√Hz" in text
@@ -118,8 +120,9 @@ def test_main_allan_short_and_truncated_capture(vb, tmp_path, capsys):
     crashed = tmp_path / "crashed.bin"
     crashed.write_bytes(cut)
     out2 = tmp_path / "after-crash"
-    assert imubench(["allan", "--analyse", str(crashed), "--out", str(out2)]) == 0
+    assert imubench(["allan", "--analyse", str(crashed), "--out", str(out2), "--export", "openvins"]) == 0
     res = json.loads((out2 / "allan.json").read_text())
+    assert set(res["exports"]) == {"openvins"} and (out2 / "openvins-kalibr_imu_chain.yaml").is_file()
     full = json.loads((out / "allan.json").read_text())
     # the capture names its device (the recording asks for its info into the file), so does
     # the analysis of a crashed capture

@@ -125,7 +125,7 @@ def test_a_constant_axis_is_said_not_an_internal_error(tmp_path, capsys):
     rng = np.random.default_rng(2)
     f = tmp_path / "stuck.csv"
     rows = [f"{i / 100:.2f},{rng.normal(0, 1e-3):.6f},{rng.normal(0, 1e-3):.6f},{1 + rng.normal(0, 1e-3):.6f},"
-            f"0.1,0.2,0.3" for i in range(2000)]
+            f"0.1,0.2,0.3" for i in range(8000)]
     f.write_text("t_s,ax,ay,az,gx,gy,gz\n" + "\n".join(rows) + "\n")
     assert imubench(["allan", "--from", str(f), "--accel-unit", "g", "--gyro-unit", "dps",
                      "--out", str(tmp_path / "o")]) == 1

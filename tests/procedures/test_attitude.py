@@ -107,7 +107,7 @@ def test_kalman_speed():
 @pytest.fixture(scope="module")
 def bench():
     from imubench.device.sim import VirtualBench
-    with VirtualBench(speed=20, seed=1) as b:   # default truth: ideal parts, datasheet noise
+    with VirtualBench(speed=0, seed=1) as b:   # default truth: ideal parts, datasheet noise
         yield b
 
 

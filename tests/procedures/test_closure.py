@@ -194,7 +194,7 @@ def test_closure_refuses_lost_samples_calibrated_data_and_still_recordings():
 
 # ------------------------------------------------------------------ the simulator's paths
 def test_sim_path_moves_the_board_and_comes_back():
-    with VirtualBench(speed=20, seed=5) as vb:
+    with VirtualBench(speed=0, seed=5) as vb:
         legs = [{"duration_s": 1.0, "move_m": [0.4, 0, 0]}, {"duration_s": 1.0, "axis": "z", "turn_deg": 90},
                 {"duration_s": 1.0, "move_m": [-0.4, 0, 0.1]}, {"duration_s": 0.5, "move_m": [0, 0, -0.1]}]
         r = vb.path(legs, wait=False)
@@ -226,7 +226,7 @@ def calibrated_run(tmp_path_factory):
     calibrated by a real session (multi-position + turntable, frames aligned), then the
     closure check on the box path."""
     out = tmp_path_factory.mktemp("closure")
-    with VirtualBench(speed=20, seed=31, truth="random") as vb:
+    with VirtualBench(speed=0, seed=31, truth="random") as vb:
         vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         with vb.device(timeout=5.0) as dev:
             params = CL.calibrate_virtual(vb, dev, out / "session", seed=31, say=lambda s: None)
@@ -293,7 +293,7 @@ def test_closure_files_and_reanalysis(calibrated_run, capsys):
 
 
 def test_closure_refuses_factory_parameters(tmp_path, capsys):
-    with VirtualBench(speed=20, seed=6) as vb:
+    with VirtualBench(speed=0, seed=6) as vb:
         rc = imubench(["closure", "--port", vb.port_url, "--out", str(tmp_path / "c")])
     assert rc == 1
     assert "factory default" in capsys.readouterr().err
@@ -311,7 +311,7 @@ def test_truth_is_drawn_in_the_navigation_frame(tmp_path):
     """The board need not start level at yaw 0 (after `calibrate --closure` it starts in the
     last verification attitude): the driven path must be drawn in the integration's frame,
     where the measured track lies on it, not in the simulator's world frame."""
-    with VirtualBench(speed=20, seed=8) as vb:       # ideal parts: nominal scaling is the truth
+    with VirtualBench(speed=0, seed=8) as vb:       # ideal parts: nominal scaling is the truth
         vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         vb.set_orientation(roll_deg=15, pitch_deg=-60, yaw_deg=130)
         with vb.device(timeout=5.0) as dev:

@@ -25,7 +25,7 @@ from imubench.wire import params as PR
 from imubench.wire.protocol_gen import ParamsWhich
 
 
-def _benches(n: int, seed0: int, speed: float = 20) -> list[VirtualBench]:
+def _benches(n: int, seed0: int, speed: float = 0) -> list[VirtualBench]:
     out = []
     try:
         for k in range(n):
@@ -202,8 +202,19 @@ def test_the_plate_moves_once_when_every_live_board_asked_and_stops_waiting_for_
 def test_cli_station_session_on_virtual_devices(tmp_path, capsys):
     db = tmp_path / "line.sqlite"
     assert imubench(["calibrate", "--sim", "--sim-boards", "2", "--sim-seed", "41", "--dir", str(tmp_path / "st"),
-                     "--db", str(db), "--station", "S9", "--operator", "bo", "--fixture", "plate-1"]) == 0
+                     "--db", str(db), "--station", "S9", "--operator", "bo", "--fixture", "plate-1",
+                     "--export", "px4,kalibr", "--export", "imucal", "--px4-acc-id", "1310988",
+                     "--px4-gyro-id", "2163722"]) == 0
     out = capsys.readouterr().out
+    # every board's result in the files its consumers read (issue 34): one set per slot, named by its UID
+    for slot in (1, 2):
+        d = tmp_path / "st" / f"slot-{slot}"
+        (px4,) = d.glob("calibration-*.px4.params")
+        rows = {ln.split("\t")[2]: ln.split("\t")[3] for ln in px4.read_text().splitlines() if not ln.startswith("#")}
+        assert rows["CAL_ACC0_ID"] == "1310988" and rows["CAL_GYRO0_ID"] == "2163722"
+        assert len(list(d.glob("calibration-*.kalibr-imu.yaml"))) == 1 and len(list(d.glob("calibration-*.imucal.json"))) == 1
+        assert (d / "exports-calibration.txt").is_file()
+    assert "NOT USABLE" not in out
     table = [ln for ln in out.splitlines() if ln.strip()[:1].isdigit() and "PASSED" in ln]
     assert len(table) == 2 and all("written and verified" in ln for ln in table)
     assert "2 of 2 boards passed" in out
@@ -213,6 +224,11 @@ def test_cli_station_session_on_virtual_devices(tmp_path, capsys):
     import xml.etree.ElementTree as ET
     root = ET.parse(tmp_path / "s.xml").getroot()
     assert len(root.findall("testsuite")) == 2 and root.get("failures") == "0" and int(root.get("tests")) >= 10
+    # both formats at once (the registry's option syntax): one file each in the directory
+    assert imubench(["history", "--db", str(db), "--export", sid, "--format", "json,junit",
+                     "--out", str(tmp_path / "both")]) == 0
+    assert sorted(p.name for p in (tmp_path / "both").iterdir()) == sorted(
+        [f"session-{sid}.json", f"session-{sid}.junit.xml"])
 
 
 @pytest.mark.parametrize("args, words", [
@@ -256,8 +272,11 @@ def test_cli_station_file(tmp_path, capsys):
 def test_a_one_board_session_records_the_production_fields_too(tmp_path, capsys):
     db = tmp_path / "one.sqlite"
     assert imubench(["calibrate", "--sim", "--sim-seed", "61", "--dir", str(tmp_path / "s"), "--db", str(db),
-                     "--station", "S5", "--operator", "di", "--fixture", "cube-2"]) == 0
-    capsys.readouterr()
+                     "--station", "S5", "--operator", "di", "--fixture", "cube-2",
+                     "--export", "params,px4", "--export", "ardupilot"]) == 0
+    out = capsys.readouterr().out
+    assert "px4: NOT USABLE AS IS, no CAL_ACC0_ID / CAL_GYRO0_ID" in out       # no ids given: said, with how
+    assert "listener sensor_accel" in out
     with History(db, readonly=True) as h:
         (dev,) = h.devices()
         (run,) = h.runs(dev["mcu_uid"])
@@ -268,6 +287,15 @@ def test_a_one_board_session_records_the_production_fields_too(tmp_path, capsys)
     assert run["capture_sha256"] == hashlib.sha256(cap.read_bytes()).hexdigest()
     assert run["capture_uri"].endswith(str(cap.resolve()))
     assert {m["name"] for m in run["measurements"]} >= {"accel_norm_rms_mg", "params_written"}
+    # the live session's files (issue 34): our parameter file is the block written to the device
+    uid = dev["mcu_uid"]
+    params = json.loads((tmp_path / "s" / f"calibration-{uid}.params.json").read_text())
+    assert params == run["params_after"]
+    ap = (tmp_path / "s" / f"calibration-{uid}.ardupilot.param").read_text()
+    vals = {ln.split(",")[0]: float(ln.split(",")[1]) for ln in ap.splitlines() if ln and not ln.startswith("#")}
+    m = np.array(run["params_after"]["accel_m"]).reshape(3, 3)
+    np.testing.assert_allclose([vals[f"INS_ACCSCAL_{a}"] for a in "XYZ"], 1.0 / np.diag(m), rtol=1e-7)
+    assert "INS_ACC_ID" in ap and "# Holds: " in ap
 
 
 def test_a_board_still_needing_an_attitude_is_served_before_another_boards_verification():
@@ -313,5 +341,54 @@ def test_a_refused_fit_fails_that_board_only(tmp_path, monkeypatch):
         for vb in benches:
             vb.close()
     assert [(b.state, b.stage) for b in res.boards] == [("passed", "done"), ("failed", "fit")]
-    assert res.boards[1].reason == "fit refused: the poses do not constrain the scale of Y (test)"
+    # the acceptance rules (calib.fit) name the model refused and why, in one line
+    assert res.boards[1].reason.startswith("fit refused: no accelerometer model is both resolved by the rests")
+    assert "six-position, full matrix and biases: the poses do not constrain the scale of Y (test)" in res.boards[1].reason
     assert untouched and res.results[2]["written"] is False
+
+
+def test_a_station_name_with_escapes_reaches_the_terminal_escaped(tmp_path, capsys):
+    """issue 36: a --station value with ESC and BEL was printed raw by the multi-board summary
+    (an ESC ] 0 ; ... BEL retitles the terminal, ESC [ 2 J clears it)."""
+    good = tmp_path / "station.toml"
+    good.write_text(f'db = "{tmp_path / "l.sqlite"}"\nports = ["socket://127.0.0.1:1", "socket://127.0.0.1:2"]\n')
+    evil = "S\x1b]0;owned\x07\x1b[2J\r\u202eX"
+    assert imubench(["calibrate", "--station-file", str(good), "--station", evil, "--dir", str(tmp_path / "st")]) == 1
+    cap = capsys.readouterr()
+    for stream in (cap.out, cap.err):
+        assert not any(c in stream for c in "\x1b\x07\r\u202e"), repr(stream[:300])
+    assert "station S\\x1b]0;owned\\x07\\x1b[2J\\r\\u202eX, session directory" in cap.out
+    assert "--export $'S\\x1b]0;owned" in cap.out
+
+
+def test_a_terminal_gets_no_control_characters_whatever_a_command_forgets(monkeypatch):
+    """The last guard (text.SafeTerminal): on a terminal every write is made printable; a
+    pipe or a file is left alone (a CSV's CR LF)."""
+    import io
+    import sys as _sys
+
+    from imubench.text import SafeTerminal, guard_terminal
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+    tty, pipe = Tty(), io.StringIO()
+    monkeypatch.setattr(_sys, "stdout", tty)
+    monkeypatch.setattr(_sys, "stderr", pipe)
+    guard_terminal(_sys)
+    assert isinstance(_sys.stdout, SafeTerminal) and _sys.stderr is pipe
+    print("name \x1b[31mred\x07\ttab", "a,b\r", sep="\n")
+    _sys.stderr.write("a,b\r\n")
+    assert tty.getvalue() == "name \\x1b[31mred\\x07\ttab\na,b\\r\n" and pipe.getvalue() == "a,b\r\n"
+    guard_terminal(_sys)                        # not wrapped twice
+    assert _sys.stdout._stream is tty
+
+
+def test_a_printed_command_reads_back_as_the_same_text_in_bash():
+    import subprocess
+
+    from imubench.text import shell_word
+    for s in ("S9-20261128T074142Z-dcab08", "a b", "S\x1b]0;o\x07\x1b[2J\r\u202eX'q\\z\n"):
+        w = shell_word(s)
+        assert not any(c in w for c in "\x1b\x07\r\n\u202e")
+        assert subprocess.run(["bash", "-c", "printf %s " + w], capture_output=True).stdout == s.encode()

@@ -334,7 +334,7 @@ def test_cli_end_to_end(session, tmp_path):
     p = write_csv(tmp_path / "board7.csv", ua / G0, np.degrees(ug), FS)
     db = tmp_path / "h.sqlite"
     r = _cli(["--from", str(p), "--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "turns", "--dir", "out",
-              "--db", str(db), "--device", "board 7", "--export", "imutk", "--export", "imucal", "--export",
+              "--db", str(db), "--device", "board 7", "--export", "imutk,imucal", "--export",
               "ardupilot", "--export", "params", "--tolerance-mg", "2"], tmp_path)
     out = r.stdout
     assert r.returncode == 0, r.stdout + r.stderr
@@ -352,8 +352,11 @@ def test_cli_end_to_end(session, tmp_path):
     d = tmp_path / "out"
     for f in ("session.json", "residuals.png", "segmentation.png", "report.html", "calibration-board_7_acc.calib",
               "calibration-board_7_gyro.calib", "calibration-board_7.imucal.json",
-              "calibration-board_7.ardupilot.param", "calibration-board_7.params.json"):
+              "calibration-board_7.ardupilot.param", "calibration-board_7.params.json", "exports-calibration.txt"):
         assert (d / f).is_file(), f
+    index = (d / "exports-calibration.txt").read_text()          # imu_tk's and our JSON take no comments
+    assert "imutk: calibration-board_7_acc.calib, calibration-board_7_gyro.calib" in index
+    assert "params: calibration-board_7.params.json" in index and "cannot hold: the gyro g-sensitivity" in index
     html = (d / "report.html").read_text()
     assert "<h3>Recording</h3>" in html and "known-angle turns" in html and "data:image/png;base64" in html
     with sqlite3.connect(db) as con:

@@ -227,7 +227,7 @@ def test_eight_real_boards_with_the_defaults_two_faulted(tmp_path):
     benches = []
     try:
         for k in range(8):
-            benches.append(VirtualBench(speed=10, seed=700 + k, truth="random"))
+            benches.append(VirtualBench(speed=0, seed=700 + k, truth="random"))
         benches[2].inject("gyro_fault_bits", sensor="gyro_y", bits=0x10, persistent=True)
         cut = threading.Event()
 

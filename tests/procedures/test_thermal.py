@@ -74,7 +74,7 @@ def test_apply_tempcos_validates():
 
 
 def test_sweep_on_virtual_device_cuts_drift_10x():
-    with VirtualBench(speed=20, seed=4) as vb, vb.device() as dev:
+    with VirtualBench(speed=0, seed=4) as vb, vb.device() as dev:
         vb.set_truth(accel={"bias_tc": ACC_BTC.tolist(), "scale_tc": ACC_STC.tolist(), "rw_k": [0.0] * 3},
                      gyro=[{"bias_tempco_rad_s_per_c": float(b), "scale_tempco_per_c": float(s), **GYRO_NO_DRIFT}
                            for b, s in zip(GYR_BTC, GYR_STC)])
@@ -114,7 +114,7 @@ def test_settling_waits_for_the_ramp():
     slower than the timeout allows fails naming the temperature reached and the rate."""
     ramp = 2.0                                               # °C/s
     settle = TH.Settling(rate_c_per_min=0.1, window_s=2.0, timeout_s=120.0)
-    with VirtualBench(speed=20, seed=6) as vb, vb.device() as dev:
+    with VirtualBench(speed=0, seed=6) as vb, vb.device() as dev:
         hooks = TH.sim_hooks(vb, ramp_c_per_s=ramp)
         set_t, ramp_end = hooks.set_temperature, {}
 
@@ -153,7 +153,7 @@ def test_settling_waits_for_the_ramp():
 
 def test_write_params_checks_after_reboot_and_restores_on_mismatch(monkeypatch):
     fit = ATH.ThermalFit(25.0, ACC_BTC, 0 * ACC_BTC, ACC_STC, 0 * ACC_STC, GYR_BTC, 0 * GYR_BTC, GYR_STC, 0 * GYR_STC)
-    with VirtualBench(speed=20, seed=7) as vb, vb.device() as dev:
+    with VirtualBench(speed=0, seed=7) as vb, vb.device() as dev:
         old = PR.identity()
         old.accel_b_mps2 = (0.01, -0.02, 0.03)
         dev.set_params(old)
@@ -201,7 +201,7 @@ def test_interrupted_sweep_keeps_the_points_measured(tmp_path):
     """thermal.json is rewritten as each point is measured: a chamber failing before the
     third temperature leaves the first two on disk, with the error."""
     out = tmp_path / "t"
-    with VirtualBench(speed=20, seed=8) as vb, vb.device() as dev:
+    with VirtualBench(speed=0, seed=8) as vb, vb.device() as dev:
         hooks = TH.sim_hooks(vb, ramp_c_per_s=5.0)
         set_t, calls, on_disk = hooks.set_temperature, [], []
 

@@ -189,7 +189,7 @@ def test_warmup_mistakes_give_one_line(tmp_path, args, words):
 
 def test_warmup_cli_on_the_virtual_part_recovers_the_truth(tmp_path):
     out = tmp_path / "w"
-    p = _cli("--warmup", "--sim", "--sim-seed", str(SEED), "--sim-speed", "20", "--tau", "30",
+    p = _cli("--warmup", "--sim", "--sim-seed", str(SEED), "--tau", "30",
              "--export", "px4,ardupilot", "--write", "--out", str(out))
     stdout, stderr = finish(p, 240)
     assert p.returncode == 0, stdout + stderr
@@ -209,7 +209,7 @@ def test_warmup_cli_on_the_virtual_part_recovers_the_truth(tmp_path):
     c2 = [a["coef"][2] if a["order"] >= 2 else 0.0 for a in d["fit"]["gyro"]["axes"]]
     assert np.allclose(w["params"]["gyro_bias_tc2_rad_s_per_c2"], c2, rtol=1e-6, atol=1e-12)
     assert w["params"]["accel_scale_tc_per_c"][2] == 0.0                 # the one face: its slope is in c1
-    with VirtualBench(speed=20, seed=SEED, truth="random") as vb:    # the same part: its truth from the seed
+    with VirtualBench(speed=0, seed=SEED, truth="random") as vb:    # the same part: its truth from the seed
         truth = vb.get_truth()
     worst = 0.0
     for triad in ("accel", "gyro"):
@@ -232,7 +232,7 @@ def test_warmup_cli_on_the_virtual_part_recovers_the_truth(tmp_path):
 
 def test_ctrl_c_keeps_the_fit_of_what_came(tmp_path):
     out = tmp_path / "w"
-    p = _cli("--warmup", "--sim", "--sim-seed", "4", "--sim-speed", "20", "--tau", "60", "--out", str(out))
+    p = _cli("--warmup", "--sim", "--sim-seed", "4", "--tau", "60", "--out", str(out))
     lines: list[str] = []
     wait_for_line(p, r"orders accel \d/\d/\d", lines, timeout_s=120)        # a fit exists
     p.send_signal(signal.SIGINT)
@@ -251,7 +251,7 @@ def test_two_faces_of_a_cube_separate_the_accel_scale_term(tmp_path):
     written with --port --write, the device holds the scale term."""
     cfg = W.WarmupConfig(rate_hz=100, bin_s=2.0, stop_window_s=20.0, stop_rate_c_per_min=0.5, fit_every_s=1e9)
     dirs = []
-    with VirtualBench(speed=30, seed=6, truth="random") as vb, vb.device() as dev:
+    with VirtualBench(speed=0, seed=6, truth="random") as vb, vb.device() as dev:
         # no bias random walk here: the coefficients' σ do not hold it (the curve's σ does), and this
         # test is about what the faces separate
         vb.set_truth(accel={"scale_tc": [0.0, 0.0, 1.5e-4], "rw_k": [0.0] * 3})
@@ -294,7 +294,7 @@ def test_lost_link_and_stop_event_keep_the_fit(tmp_path):
     cfg = W.WarmupConfig(rate_hz=100, bin_s=2.0, stop_window_s=20.0, stop_rate_c_per_min=0.5, fit_every_s=10.0,
                          stall_s=3.0)
     import threading
-    with VirtualBench(speed=20, seed=8, truth="random") as vb, vb.device() as dev:
+    with VirtualBench(speed=0, seed=8, truth="random") as vb, vb.device() as dev:
         stop = threading.Event()
         d = W.run_warmup(dev, tmp_path / "stop", cfg, W.sim_warmup_hooks(vb, 5.0, 45.0, tau_s=60.0),
                          on_progress=lambda p: p["fit"] is not None and p["elapsed_s"] > 30 and stop.set(), stop=stop)
@@ -318,7 +318,7 @@ def test_stops_when_the_span_is_covered_by_every_sensor(tmp_path):
     sensor's samples have reached 30 °C (judged by the samples, not by bin means that lag a fast
     rise), long before the temperatures would stop rising; the written span is inside the data."""
     cfg = W.WarmupConfig(span_c=(5.0, 30.0), rate_hz=100, bin_s=2.0, stop_window_s=20.0, fit_every_s=10.0)
-    with VirtualBench(speed=20, seed=9, truth="random") as vb, vb.device() as dev:
+    with VirtualBench(speed=0, seed=9, truth="random") as vb, vb.device() as dev:
         d = W.run_warmup(dev, tmp_path / "s", cfg, W.sim_warmup_hooks(vb, 5.0, 45.0, tau_s=40.0))
     assert d["status"] == "done" and "covered by every sensor" in d["stop_reason"], d["stop_reason"]
     lo = [s[0] for s in d["progress"]["span_c"]]
@@ -329,7 +329,7 @@ def test_stops_when_the_span_is_covered_by_every_sensor(tmp_path):
 def test_a_board_not_cooled_is_refused_for_a_span_from_cold(tmp_path):
     """The real-bench path (a prompt, no virtual fridge): the board is at room temperature but the
     span starts at 5 °C: one line says where the sensors are and what to do; thermal.json says so."""
-    with VirtualBench(speed=20, seed=2) as vb:
+    with VirtualBench(speed=0, seed=2) as vb:
         r = subprocess.run([sys.executable, "-m", "imubench", "thermal", "--warmup", "--span", "5,45", "--port",
                             vb.port_url, "--out", str(tmp_path / "w")], capture_output=True, text=True, input="\n",
                            timeout=120)

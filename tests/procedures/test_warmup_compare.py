@@ -30,7 +30,7 @@ from imubench.procedures.thermal_drift import DriftSweep, residual_drift
 from imubench.wire.protocol_gen import ParamsWhich
 
 PART_SEED = 23
-SPEED = 150
+SPEED = 0                                      # lockstep: no ceiling
 SPAN = (5.0, 45.0)
 TAU_S = [36.0, 48.0, 30.0, 42.0]               # ADXL355, gyro X, Y, Z: tens of seconds, for speed
 SELF_HEAT_C = [1.0, 3.0, 2.0, 4.0]

@@ -4,9 +4,10 @@ every virtual-device feature used from there with the checkout out of reach: ano
 directory, no PYTHONPATH, and a PATH that holds the environment's bin/ alone (no make, no
 compiler, no git: nothing is compiled at run time).
 
-The sdist is built into a wheel as well (what `python -m build` and `make dist` do), and that
-wheel, the one installed, must carry the same files with the same bytes as the wheel built
-straight from the tree.
+The sdist is built into a wheel as well, by pip (what `pip install imubench-0.1.0.tar.gz` does),
+and that wheel, the one installed, must be the same file, SHA-256 for SHA-256, as the wheel
+`python -m build` (the frontend of `make dist`) builds straight from the tree: setup.py sets
+SOURCE_DATE_EPOCH to the last commit's time, in the tree and in the sdist.
 
 One wheel build, one sdist build and one environment serve the whole module (fixtures of
 module scope); virtual sessions run at high speed factors. Figures (wheel size, install time,
@@ -47,27 +48,28 @@ def _check(r, what: str) -> None:
 @pytest.fixture(scope="module")
 def dists(tmp_path_factory):
     """(wheel built from the tree, sdist, wheel built from that sdist). The two wheels build at
-    the same time: the sdist's in its own unpacked directory, as `python -m build` does it."""
+    the same time: the tree's by `python -m build` (make dist's frontend), the sdist's by pip
+    (`pip wheel`, as `pip install` of the sdist builds it), each in its isolated environment."""
     base = tmp_path_factory.mktemp("dist")
+    env = {k: v for k, v in os.environ.items() if k != "SOURCE_DATE_EPOCH"}   # setup.py's own
     t0 = time.monotonic()
     r = subprocess.run(_build_cmd(["--sdist"], base / "sdist", ROOT), capture_output=True, text=True,
-                       timeout=BUILD_TIMEOUT)
+                       timeout=BUILD_TIMEOUT, env=env)
     _check(r, "python -m build --sdist")
     sdist, = (base / "sdist").glob("*.tar.gz")
-    with tarfile.open(sdist) as t:
-        t.extractall(base / "unpacked", **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
-    unpacked, = (base / "unpacked").iterdir()
     t1 = time.monotonic()
-    procs = {what: subprocess.Popen(_build_cmd(["--wheel"], base / what, src), stdout=subprocess.PIPE,
-                                    stderr=subprocess.PIPE, text=True)
-             for what, src in (("tree", ROOT), ("from-sdist", unpacked))}
+    cmds = {"tree": _build_cmd(["--wheel"], base / "tree", ROOT),
+            "from-sdist": [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-cache-dir",
+                           "--wheel-dir", str(base / "from-sdist"), str(sdist)]}
+    procs = {what: subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+             for what, cmd in cmds.items()}
     for what, p in procs.items():
         try:
             out, err = p.communicate(timeout=BUILD_TIMEOUT)
         except subprocess.TimeoutExpired:
             p.kill()
             out, err = p.communicate()
-        _check(subprocess.CompletedProcess(p.args, p.returncode, out, err), f"python -m build --wheel ({what})")
+        _check(subprocess.CompletedProcess(p.args, p.returncode, out, err), f"{' '.join(p.args[1:4])} ({what})")
     t2 = time.monotonic()
     tree_whl, = (base / "tree").glob("*.whl")
     sdist_whl, = (base / "from-sdist").glob("*.whl")
@@ -144,18 +146,41 @@ def test_wheel_is_a_platform_wheel_with_the_compiled_parts(dists):
     assert info["revision"] != "unknown" and info["revision"].startswith(manifest["fw_build"][:7])
 
 
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
 def test_sdist_builds_the_same_wheel(dists):
+    """The same wheel, byte for byte: from the tree (python -m build) and from the sdist (pip)."""
     tree_whl, sdist, sdist_whl = dists
     a, b = _files(tree_whl), _files(sdist_whl)
     assert sorted(a) == sorted(b)
     differ = sorted(n for n in a if a[n] != b[n])
     assert differ == [], f"files that differ between the wheel from the tree and from the sdist: {differ}"
+    commit_s = int(subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%ct"], capture_output=True,
+                                  text=True, check=True).stdout)
+    stamp = time.gmtime(commit_s)[:5]
+    with zipfile.ZipFile(tree_whl) as za, zipfile.ZipFile(sdist_whl) as zb:
+        assert [i.filename for i in za.infolist()] == [i.filename for i in zb.infolist()]    # the same order
+        for i in za.infolist():                              # every entry stamped with the last commit's time
+            assert i.date_time[:5] == stamp and i.date_time[5] in (commit_s % 60, commit_s % 60 & ~1), i
+    assert _sha256(tree_whl) == _sha256(sdist_whl)
     src = _files(sdist)
     top = sdist.name[:-len(".tar.gz")]
     for rel in ("Makefile", "firmware/arm.mk", "setup.py", "REVISION", "firmware/core/core.c",
                 "tools/ensure-system-deps.sh", "host/imubench/device/artifacts.py"):
         assert f"{top}/{rel}" in src, rel
     assert not any("/_data/" in n or n.endswith((".o", ".elf", ".so")) for n in src), "compiled files in the sdist"
+    assert f"{top}/SOURCE_DATE_EPOCH" in src
+
+
+def test_readme_states_the_wheels_size(dists):
+    """Every size README gives the wheel is this build's, to 5 %."""
+    size_mb = dists[0].stat().st_size / 1e6
+    said = re.findall(r"[Tt]he wheel (?:\(`make dist`\) )?is ([\d.]+) MB", (ROOT / "README.md").read_text())
+    assert len(said) >= 2, said
+    for s in said:
+        assert abs(float(s) - size_mb) <= 0.05 * size_mb, f"README says the wheel is {s} MB; it is {size_mb:.2f} MB"
 
 
 def test_wheel_build_without_the_arm_compiler_fails_loudly(tmp_path):
@@ -285,6 +310,16 @@ def test_users_own_project_uses_the_fixtures(env):
     (proj / "test_myboard.py").write_text(USER_TEST)
     r = run(env, "pytest", "-q", "-p", "no:cacheprovider", cwd=proj, check=False, timeout=300)
     assert r.returncode == 0 and "2 passed" in r.stdout, r.stdout[-3000:] + r.stderr[-2000:]
+
+
+def test_help_speaks_to_a_wheel_user(env):
+    """No checkout words for a wheel user: the packaged image, nothing to build."""
+    flash, qemu = (run(env, "imubench", cmd, "--help").stdout for cmd in ("flash", "qemu"))
+    for out in (flash, qemu):
+        assert "make firmware" not in out and "build/arm" not in out, out
+    text = " ".join(flash.split())
+    assert "image that came with this installed package" in text and "_data/firmware/<board>/imubench.elf" in text
+    assert "nothing is built" in " ".join(qemu.split())
 
 
 def test_flash_dry_run_names_the_packaged_image(env):

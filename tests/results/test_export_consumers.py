@@ -270,6 +270,11 @@ def test_px4_file_with_ids_is_used_by_the_sensor_it_names(tmp_path, truth):
     diag_only = (ua - acc.b) / np.diag(acc.m)
     np.testing.assert_allclose(got, diag_only, atol=1e-6)
     assert np.max(np.abs(got - acc.correct(ua))) > 0          # the cross-axis terms it cannot hold
+    # the gyro: offsets only (Gyroscope::Correct has no scale): the loss the file states bounds the measured one
+    _, ug, _, w = _samples(acc, gyr)
+    err_dps = np.degrees(np.linalg.norm(ug - [p[f"CAL_GYRO0_{a}OFF"] for a in "XYZ"] - w, axis=1))
+    assert np.all(err_dps <= PF.gyro_scale_loss_dps(gyr.m, 1.0) * np.degrees(np.linalg.norm(w, axis=1)) + 1e-9)
+    assert f"{PF.gyro_scale_loss_dps(gyr.m, 300.0):.2f} deg/s at 300 deg/s" in f.read_text()
     np.testing.assert_array_equal(_px4_correct(p, 999, ua), ua)     # another sensor: slot not used
 
 
@@ -308,6 +313,93 @@ def test_calibrate_from_takes_the_px4_ids_and_says_when_they_are_missing(tmp_pat
     assert r.returncode == 2 and "not a PX4 device id" in r.stderr
 
 
+# ------------------------------------------------------------------ 7. ArduPilot
+def _mavparm(text: str) -> dict:
+    """pymavlink mavparm.MAVParmDict.load: '#' lines and blank lines skipped, a line split on ',' or
+    white space into NAME VALUE (a third field ignored), anything else a bad line."""
+    out = {}
+    for ln in text.splitlines():
+        ln = ln.strip()
+        if not ln or ln[0] == "#":
+            continue
+        f = ln.replace(",", " ").split()
+        assert len(f) >= 2, ln                             # a line of ours it would reject: none
+        out[f[0]] = float(f[1])
+    return out
+
+
+def test_ardupilot_file_as_ardupilot_applies_it_with_its_stated_loss(tmp_path, truth):
+    acc, gyr = truth
+    f, = PF.write("ardupilot", tmp_path / "cal", accel=acc, gyro=gyr, accel_factor=1.0, gyro_factor=1.0,
+                  accel_unit="mps2", gyro_unit="rad_s", scaled=True)
+    text = f.read_text()
+    p = _mavparm(text)
+    assert set(p) == {f"INS_{k}_{a}" for k in ("ACCOFFS", "ACCSCAL", "GYROFFS") for a in "XYZ"}
+    ua, ug, _, w = _samples(acc, gyr)
+    # AP_InertialSensor_Backend::_rotate_and_correct_accel: (raw - offset) * scale; gyro: raw - offset
+    got_a = (ua - [p[f"INS_ACCOFFS_{a}"] for a in "XYZ"]) * [p[f"INS_ACCSCAL_{a}"] for a in "XYZ"]
+    np.testing.assert_allclose(got_a, (ua - acc.b) / np.diag(acc.m), atol=1e-6)
+    got_g = ug - [p[f"INS_GYROFFS_{a}"] for a in "XYZ"]
+    # the gyro's scale and cross-axis terms are dropped: the loss the file states bounds the measured one
+    err_dps = np.degrees(np.linalg.norm(got_g - w, axis=1))
+    rate_dps = np.degrees(np.linalg.norm(w, axis=1))
+    bound = PF.gyro_scale_loss_dps(gyr.m, 1.0) * rate_dps
+    assert np.all(err_dps <= bound + 1e-9) and np.max(err_dps / bound) > 0.5      # a bound, and a tight one
+    line = next(ln for ln in text.splitlines() if "no gyro scale" in ln)
+    assert f"{PF.gyro_scale_loss_dps(gyr.m, 300.0):.2f} deg/s at 300 deg/s" in line
+    head = " ".join(ln for ln in text.splitlines() if ln.startswith("#"))
+    assert "INS_ACC_ID" in head and "INS_GYR_ID" in head and "register_accel" in head
+    assert "3D Accel calibration needed" in head
+
+
+def test_ardupilot_thermal_file_says_enable_then_reboot(tmp_path):
+    texts = _thermal_texts("imubench")
+    text = texts["ardupilot"]
+    p = _mavparm(text)
+    assert p["INS_TCAL1_ENABLE"] == 1
+    names = [ln.split(",")[0] for ln in text.splitlines() if ln and not ln.startswith("#")]
+    assert names[0] == "INS_TCAL1_ENABLE"                    # first, so that a partial load enables it
+    head = " ".join(ln for ln in text.splitlines() if ln.startswith("#"))
+    assert "INS_TCAL1_ENABLE = 1" in head and "reboot" in head and "load it again" in head
+
+
+# ------------------------------------------------------------------ the consumers' own code, installed (pyproject [test])
+def test_ardupilot_files_through_pymavlinks_own_loader(tmp_path, truth):
+    """pymavlink mavparm.MAVParmDict.load (what MAVProxy's `param load` runs): every line of ours it
+    reads is a parameter, none is 'Invalid line', and the values are the ones we wrote."""
+    from pymavlink import mavparm
+    acc, gyr = truth
+    f, = PF.write("ardupilot", tmp_path / "cal", accel=acc, gyro=gyr, accel_factor=1.0, gyro_factor=1.0,
+                  accel_unit="mps2", gyro_unit="rad_s", scaled=True, comment="board\nINS_ACCSCAL_X,5")
+    texts = {"cal": f.read_text(), "thermal": _thermal_texts("warm\nINS_TCAL1_ENABLE,0")["ardupilot"]}
+    for key, text in texts.items():
+        path = tmp_path / f"{key}.param"
+        path.write_text(text)
+        p = mavparm.MAVParmDict()
+        assert p.load(str(path)) is True
+        assert dict(p) == _mavparm(text), key                    # exactly our rows, nothing from a comment
+    p = mavparm.MAVParmDict()
+    p.load(str(tmp_path / "cal.param"))
+    got = (np.asarray(_samples(acc, gyr)[0]) - [p[f"INS_ACCOFFS_{a}"] for a in "XYZ"]) * [p[f"INS_ACCSCAL_{a}"]
+                                                                                       for a in "XYZ"]
+    np.testing.assert_allclose(got, (_samples(acc, gyr)[0] - acc.b) / np.diag(acc.m), atol=1e-6)
+
+
+def test_imucal_file_through_imucals_own_loader_and_calibrate(tmp_path, truth):
+    """imucal (PyPI) loads our file with its own load_calibration_info and its calibrate() gives
+    our correction: accelerometer in m/s², gyro in deg/s (its units), g-sensitivity included."""
+    from imucal.management import load_calibration_info
+    acc, gyr = truth
+    g = np.radians(np.diag([0.03, -0.02, 0.04]))                  # rad/s per g
+    f, = PF.write("imucal", tmp_path / "cal", accel=acc, gyro=gyr, accel_factor=1.0, gyro_factor=1.0,
+                  accel_unit="mps2", gyro_unit="rad_s", scaled=True, gsens=g, comment='a "name"\n}{')
+    cal = load_calibration_info(f)
+    ua, ug, f_true, w_true = _samples(acc, gyr, gsens=g)
+    a_cal, g_cal = cal.calibrate(ua, ug, acc_unit=cal.from_acc_unit, gyr_unit=cal.from_gyr_unit)
+    np.testing.assert_allclose(a_cal, f_true, atol=1e-9)
+    np.testing.assert_allclose(g_cal, np.degrees(w_true), atol=1e-7)
+
+
 # ------------------------------------------------------------------ 8. names through every export
 NAMES = ["board\nCBRK_IO_SAFETY,22027\n1\t1\tCBRK_IO_SAFETY\t22027\t6",
          "a\rSM: [1,0,0,0,1,0,0,0,1]\r\nbias: [9,9,9]",
@@ -324,7 +416,7 @@ def _not_comments(text: str) -> list[str]:
 def _calibration_texts(comment: str, truth) -> dict:
     acc, gyr = truth
     g = np.radians(np.diag([0.03, -0.02, 0.04]))
-    return {"ardupilot": PF.ardupilot_text(acc.m, acc.b, gyr.b, comment),
+    return {"ardupilot": PF.ardupilot_text(acc.m, acc.b, gyr.b, comment, gyr.m),
             "kalibr": PF.kalibr_intrinsics_text(acc.m, gyr.m, g, comment),
             "px4": PF.px4_text(acc.m, acc.b, gyr.m, gyr.b, g, comment),
             "px4-ids": PF.px4_text(acc.m, acc.b, gyr.m, gyr.b, g, comment, acc_id=1, gyro_id=2),

@@ -113,9 +113,75 @@ def test_growing_outputs_refuse_links_and_fifos(tmp_path):
         open_growing(tmp_path / "angles.csv", append=False, binary=False)
     with open_growing(tmp_path / "capture-2.bin") as fh:
         fh.write(b"ab")
-    with open_growing(tmp_path / "capture-2.bin") as fh:
-        fh.write(b"cd")
-    assert (tmp_path / "capture-2.bin").read_bytes() == b"abcd" and victim.read_text() == VICTIM
+    with pytest.raises(FileRefused, match="capture-2.bin exists already; a capture is never appended to"):
+        open_growing(tmp_path / "capture-2.bin")                   # issue 36: never appended to
+    assert (tmp_path / "capture-2.bin").read_bytes() == b"ab" and victim.read_text() == VICTIM
+
+
+def test_outputs_follow_no_link_at_any_component_nor_a_hard_link(tmp_path):
+    """issue 36 item 4: a planted `slot-1 -> ../victimdir` sent a whole session into another
+    folder and replaced its files; a hard-linked capture-1.bin grew its victim from 24 B to
+    913 KB (only the last component was checked, link counts never)."""
+    from imubench.files import FileRefused, atomic_output, make_dir, open_growing, write_text
+    victim = _victim(tmp_path)
+    vdir = tmp_path / "victimdir"
+    vdir.mkdir()
+    (vdir / "session.json").write_text(VICTIM)
+    out = tmp_path / "station"
+    out.mkdir()
+    (out / "slot-1").symlink_to("../victimdir")                      # a folder link in the output
+    for write in (lambda: make_dir(out / "slot-1"), lambda: make_dir(out / "slot-1" / "deeper"),
+                  lambda: write_text(out / "slot-1" / "session.json", "{}"),
+                  lambda: open_growing(out / "slot-1" / "capture-1.bin")):
+        with pytest.raises(FileRefused, match=r"station/slot-1 is a symbolic link \(to ../victimdir\); imubench writes "
+                                              "only into real folders"):
+            write()
+    assert os.listdir(vdir) == ["session.json"] and (vdir / "session.json").read_text() == VICTIM
+    # higher up the path too: the folder the session goes in is reached through a link
+    (tmp_path / "via").symlink_to(out)
+    with pytest.raises(FileRefused, match="via is a symbolic link"):
+        make_dir(tmp_path / "via" / "slot-2")
+    # a hard link at a capture's or a log's name: refused, the other file unchanged
+    (out / "capture-1.bin").hardlink_to(victim)
+    with pytest.raises(FileRefused, match="capture-1.bin exists already"):
+        open_growing(out / "capture-1.bin")
+    (out / "angles.csv").hardlink_to(victim)
+    with pytest.raises(FileRefused, match="angles.csv has 3 links .a hard link to another file."):
+        open_growing(out / "angles.csv", append=False, binary=False)
+    assert victim.read_text() == VICTIM
+    # a file on the way where a folder should be; a folder that does not exist for a file
+    (out / "plain").write_text("x")
+    with pytest.raises(FileRefused, match="plain is a regular file, not a folder"):
+        make_dir(out / "plain" / "sub")
+    with pytest.raises(FileRefused, match="nowhere does not exist"):
+        write_text(out / "nowhere" / "x.json", "{}")
+    # the system's own links at the top (root's, in /: /bin -> usr/bin here, /tmp and /var on
+    # macOS) are no one else's to plant: followed
+    from imubench.files import open_dir
+    system = [n for n in os.listdir("/") if os.path.islink("/" + n) and os.path.isdir("/" + n)
+              and os.lstat("/" + n).st_uid == 0]
+    for n in system:
+        fd = open_dir("/" + n, create=False)
+        try:
+            assert os.path.samestat(os.fstat(fd), os.stat("/" + n))
+        finally:
+            os.close(fd)
+    # what is real is written as before; a relative path from the working folder too
+    make_dir(out / "slot-3" / "a")
+    write_text(out / "slot-3" / "a" / "s.json", "{}")
+    with atomic_output(out / "slot-3" / "a" / "s.json") as fh:
+        fh.write("[]")
+    assert (out / "slot-3" / "a" / "s.json").read_text() == "[]"
+    assert not [p for p in (out / "slot-3" / "a").iterdir() if p.name.endswith(".tmp")]
+    cwd = os.getcwd()
+    try:
+        os.chdir(out)
+        make_dir("rel/deep")
+        with open_growing("rel/deep/capture-9.bin") as fh:
+            fh.write(b"x")
+    finally:
+        os.chdir(cwd)
+    assert (out / "rel" / "deep" / "capture-9.bin").read_bytes() == b"x"
 
 
 # ------------------------------------------------------------------ inputs

@@ -105,8 +105,10 @@ def test_allan_from_refuses_a_unit_the_data_contradict_and_stray_options(still, 
                tmp_path)
     assert r.returncode == 1 and "declared accelerometer unit (g) is implausible" in r.stderr
     assert "Traceback" not in r.stderr
-    r = _allan(["--export", "kalibr", "--duration", "1m"], tmp_path)
-    assert r.returncode == 2 and "--export goes with --from FILE" in r.stderr
+    r = _allan(["--topic", "/imu", "--duration", "1m"], tmp_path)
+    assert r.returncode == 2 and "--topic goes with --from FILE" in r.stderr
+    r = _allan(["--export", "kalibr,nope", "--duration", "1m"], tmp_path)      # --export goes with a device too
+    assert r.returncode == 2 and "unknown format 'nope'; one of kalibr, openvins, vins-fusion, imu-utils" in r.stderr
 
 
 # ------------------------------------------------------------------ the calibration in Kalibr's, PX4's, imu_calib's files

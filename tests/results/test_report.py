@@ -25,7 +25,7 @@ NOTE = 'bench A <script>alert("x")</script> & co'
 @pytest.fixture(scope="module")
 def session_dir(tmp_path_factory):
     d = tmp_path_factory.mktemp("sess") / "s"
-    with VirtualBench(speed=20, seed=5, truth="random") as vb:
+    with VirtualBench(speed=0, seed=5, truth="random") as vb:
         vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
         with Device.open(vb.port_url, timeout=5.0) as dev:
             cfg = SessionConfig(method="six", gyro="bias", write=False, hold_s=1.0, rest_s=2.0, note=NOTE)

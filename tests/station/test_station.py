@@ -123,11 +123,13 @@ def test_station_server_answers_bad_requests_in_one_line(tmp_path):
     server = Server(Station(workdir=tmp_path, allow_sim=False)).start()
     origin = server.url.rstrip("/")
     opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
+    session = {}
     try:
-        def call(path, data=None):
-            # as the page does it: its Origin, JSON, the identity cookie the server set
+        def call(path, data=None, headers=None):
+            # as the page does it: its Origin, JSON, the session it traded the launch secret for
             req = urllib.request.Request(server.url + path, data=None if data is None else json.dumps(data).encode(),
-                                         headers={"Content-Type": "application/json", "Origin": origin})
+                                         headers={"Content-Type": "application/json", "Origin": origin, **session,
+                                                  **(headers or {})})
             try:
                 with opener.open(req, timeout=10) as r:
                     return r.status, r.read().decode()
@@ -136,18 +138,21 @@ def test_station_server_answers_bad_requests_in_one_line(tmp_path):
         code, page = call("")
         assert code == 200 and "/static/station.js" in page and "http" not in page.split("<body>")[1].split("://")[0]
         code, js = call("static/station.js")
-        assert code == 200 and "EventSource" in js
+        assert code == 200 and "/api/events" in js and "X-Imubench-Session" in js
+        code, body = call("pose.svg?up=1,0,0")
+        assert code == 403 and "no session of this station" in json.loads(body)["error"]
+        code, body = call("api/session", {}, {"X-Imubench-Launch": server.launch_url.split("#token=")[1]})
+        assert code == 200                                            # the page's first request: its session
+        session["X-Imubench-Session"] = json.loads(body)["session"]
         assert call("pose.svg?up=0,0,0")[0] == 400
         code, svg = call("pose.svg?up=1,0,0")
         assert code == 200 and svg.startswith("<svg")
-        code, body = call("api/start", {"port": "socket://127.0.0.1:1"})
-        assert code == 403 and "no identity on the station" in json.loads(body)["error"]
-        assert call("api/hello", {})[0] == 200                        # the page's first request: its cookie
         code, body = call("api/claim", {"key": "socket://127.0.0.1:1"})
         assert code == 200 and json.loads(body) == {"key": "socket://127.0.0.1:1", "yours": True}
         code, body = call("api/start", {"port": "socket://127.0.0.1:1", "gyro": "spin"})
         assert code == 400 and json.loads(body)["error"].startswith("gyro must be one of")
         assert call("report/none/report.html")[0] == 404
+        assert call("export/none/calibration-x.px4.params")[0] == 404
         code, svg = call("turn.svg?axis=0,0,1&angle=360")          # a known-angle turn by hand
         assert code == 200 and "+360°" in svg
         assert call("turn.svg?axis=0,0,1&angle=full")[0] == 400
@@ -173,6 +178,15 @@ def test_known_angle_turns_by_hand_on_the_station_page(tmp_path):
     steps = [x for x in b.steps if x["kind"] == "turn-pose"]
     assert len(steps) == 3 and all(x["state"] == "done" for x in steps) and "lie still" in steps[0]["text"]
     assert any(r[0] == "gyro Mxx − 1" for r in b.result["parameters"]), b.result["parameters"]
+    # a download per board of every calibration format of the export registry (issue 34)
+    from imubench.results import exports as X
+    ex = {e["kind"]: e for e in b.result["exports"]}
+    assert set(ex) == set(X.names("calibration")) | {"index"}
+    for e in b.result["exports"]:
+        assert e["url"] == f"/export/sim/{e['name']}" and st.export_path("sim", e["name"]).is_file()
+    assert st.export_path("sim", "../session.json") is None and st.export_path("other", ex["px4"]["name"]) is None
+    assert "# Holds: " in st.export_path("sim", ex["kalibr"]["name"]).read_text()
+    assert "not usable" in ex["px4"]["label"] and "NOT USABLE AS IS" in st.export_path("sim", ex["px4"]["name"]).read_text()
 
 
 def test_any_order_with_a_hint_no_timeout_and_adaptive_stop(tmp_path):

@@ -11,6 +11,7 @@ from pathlib import Path
 
 
 from procio import finish, wait_for_line
+from stationpage import FIRST_URL, NEXT_URL, base_of, get_json, headers_of, report_url, session_of
 from imubench.station.runner import SIM_KEY, Station
 from imubench.station.server import Server
 
@@ -23,7 +24,7 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
     try:
         page = browser.new_page(viewport={"width": 1280, "height": 1400})
         page.set_default_timeout(90_000)
-        page.goto(server.url)
+        page.goto(server.launch_url)
         page.locator("#setup").wait_for()          # shown once the state has arrived (after the load event)
         # a six-position choice warns that it needs a square fixture
         page.select_option("#method", "six")
@@ -45,12 +46,13 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
 
         # a second page sees the same device, read-only: no stop, no resume, refused if it tries
         watcher = browser.new_page()
-        watcher.goto(server.url)
+        watcher.goto(server.new_launch_url())
         wcol = watcher.locator(f'.board-col[data-key="{SIM_KEY}"]')
         wcol.locator(".owner", has_text="read-only").wait_for()
         assert not wcol.locator("button.stop").is_visible()
         refused = watcher.request.post(server.url + "api/stop", data={"key": SIM_KEY},
-                                       headers={"Origin": server.url.rstrip("/")})   # its own cookie
+                                       headers=headers_of(watcher))                  # its own session
+        assert session_of(watcher) != session_of(page)
         assert refused.status == 409 and "another page" in refused.json()["error"]
         assert col.locator(".owner", has_text="you drive").is_visible()
         page.bring_to_front()              # a page in the background gets no animation frames
@@ -96,9 +98,20 @@ def test_a_whole_session_on_the_station_page(tmp_path, browser):
         assert col.locator(".params tr").count() >= 12
         assert col.locator(".step[data-kind=write].done").count() == 1
         assert col.locator(".step[data-kind=verify].done").count() == 1
-        href = col.locator("a.report-link").get_attribute("href")
-        rep = page.request.get(server.url.rstrip("/") + href)
-        assert rep.status == 200 and "IMU calibration report" in rep.text()
+        with page.context.expect_page() as opened:          # the link opens the report in a new tab
+            col.locator("a.report-link").click()
+        tab = opened.value
+        tab.wait_for_url("**/report/**")                    # about:blank first, then the ticket's address
+        tab.wait_for_load_state()
+        assert "/report/" in tab.url and "?ticket=" in tab.url and "IMU calibration report" in tab.content()
+        assert page.request.get(tab.url).status == 403                     # a ticket opens once
+        # an export downloads through a ticket of its own (a download sends no session header)
+        links = col.locator("a.export-link")
+        assert links.count() >= 5, col.inner_html()
+        with page.expect_download() as got:
+            links.first.click()
+        name = links.first.get_attribute("download")
+        assert got.value.suggested_filename == name and Path(got.value.path()).stat().st_size > 100
         # the watcher saw the end too, and neither page's event stream ever broke
         watcher.bring_to_front()
         wcol.locator(".verdict", has_text="PASSED").wait_for()
@@ -120,7 +133,6 @@ def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
     at the health check while the others are calibrated; the page that opens first drives every
     board (one token), a second page only watches; every finished column has its verdict,
     parameters and a report that opens; the command prints the per-board table after Ctrl-C."""
-    import json
     import signal
     import subprocess
     import sys
@@ -131,7 +143,7 @@ def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     lines = []
     try:
-        url = wait_for_line(proc, r"station page: (http://127\.0\.0\.1:\d+/)", lines).group(1)
+        url = wait_for_line(proc, FIRST_URL, lines).group(1)
         page = browser.new_page(viewport={"width": 1500, "height": 1300})
         page.set_default_timeout(120_000)
         page.goto(url)
@@ -166,18 +178,17 @@ def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
             assert col.locator(".steps .step.running").count() == 0
             assert col.locator(".steps .step[data-kind=verify]").count() == 1
             assert col.locator(".params tr").count() >= 12          # accelerometer M and b at least
-            href = col.locator("a.report-link").get_attribute("href")
-            with urllib.request.urlopen(url.rstrip("/") + href, timeout=30) as r:
+            with urllib.request.urlopen(report_url(page, col.locator("a.report-link")), timeout=30) as r:
                 assert r.status == 200 and b"imubench" in r.read()
         assert cols.nth(1).locator(".card.done").count() == 0
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "station-three-boards.png"), full_page=True)
         # a second page watches every board read-only
         other = browser.new_page(viewport={"width": 1200, "height": 900})
-        other.goto(url)
+        other.goto(wait_for_line(proc, NEXT_URL, lines).group(1))
         other.wait_for_function("() => document.querySelectorAll('.board-col.readonly').length === 3", polling=50)
         assert "read-only" in other.locator("#role").text_content()
-        st = json.loads(urllib.request.urlopen(url + "api/state", timeout=10).read())
+        st = get_json(base_of(url) + "api/state", session_of(other))
         assert [b["status"] for b in st["boards"]] == ["done", "failed", "done"]
     finally:
         proc.send_signal(signal.SIGINT)

@@ -24,6 +24,7 @@ from pathlib import Path
 
 
 from procio import finish, wait_for_line
+from stationpage import FIRST_URL, report_url
 from imubench.station.runner import Station
 from imubench.station.server import Server
 
@@ -88,7 +89,7 @@ def test_sixteen_boards_fit_one_1366x768_screen(tmp_path, browser):
     server = Server(station).start()
     try:
         page = browser.new_page(viewport=SCREEN)
-        page.goto(server.url)
+        page.goto(server.launch_url)
         page.wait_for_function("() => document.querySelectorAll('.tile').length === 16", polling=50)
         m = page.evaluate(FITS)
         assert m["last"] <= SCREEN["height"] and m["bottom"] <= SCREEN["height"] + 30, m   # no scrolling for a tile
@@ -134,7 +135,7 @@ def test_eight_boards_on_the_page_end_to_end(tmp_path, browser):
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     lines = []
     try:
-        url = wait_for_line(proc, r"station page: (http://127\.0\.0\.1:\d+/)", lines).group(1)
+        url = wait_for_line(proc, FIRST_URL, lines).group(1)
         page = browser.new_page(viewport=SCREEN)
         page.set_default_timeout(240_000)
         page.goto(url)
@@ -157,8 +158,7 @@ def test_eight_boards_on_the_page_end_to_end(tmp_path, browser):
         tiles.nth(1).click()
         col = page.locator(".board-col:not(.closed)")
         col.wait_for(state="visible")
-        href = col.locator("a.report-link").get_attribute("href")
-        with urllib.request.urlopen(url.rstrip("/") + href, timeout=30) as r:
+        with urllib.request.urlopen(report_url(page, col.locator("a.report-link")), timeout=30) as r:
             assert r.status == 200 and b"imubench" in r.read()
         assert col.locator(".verdict").text_content().startswith("PASSED")
         col.screenshot(path=str(SHOTS / "station-board-column.png"))

@@ -22,6 +22,7 @@ from pathlib import Path
 
 
 from imubench.station.runner import SIM_KEY, Station
+from stationpage import headers_of, session_of
 from imubench.station.server import Server
 
 ARTIFACTS = Path(__file__).resolve().parents[2] / "build" / "test-artifacts"
@@ -41,7 +42,7 @@ def test_warmup_step_on_the_station_page(tmp_path, browser):
     try:
         page = browser.new_page(viewport={"width": 1280, "height": 1000})
         page.set_default_timeout(120_000)
-        page.goto(server.url)
+        page.goto(server.launch_url)
         page.locator("#setup").wait_for()
         page.check("#use-sim")
         page.fill("#warm-lo", "5")
@@ -77,10 +78,10 @@ def test_warmup_step_on_the_station_page(tmp_path, browser):
 
         # another page watches: it cannot stop the warm-up
         watcher = browser.new_page()
-        watcher.goto(server.url)
+        watcher.goto(server.new_launch_url())
         watcher.locator(f'.board-col[data-key="{SIM_KEY}"] .owner', has_text="read-only").wait_for()
         assert not watcher.locator(".warm-stop").is_visible()
-        refused = watcher.request.post(server.url + "api/stop", data={"key": SIM_KEY}, headers={"Origin": origin})
+        refused = watcher.request.post(server.url + "api/stop", data={"key": SIM_KEY}, headers=headers_of(watcher))
         assert refused.status == 409 and "another page" in refused.json()["error"]
         watcher.close()
         page.bring_to_front()
@@ -101,14 +102,18 @@ def test_warmup_step_on_the_station_page(tmp_path, browser):
         page.screenshot(path=str(ARTIFACTS / "station-warmup-done.png"), full_page=True)
 
         # the new request keeps the page's rules
-        r = page.request.post(server.url + "api/warmup", data={"port": SIM_KEY})       # no Origin
+        mine = {"X-Imubench-Session": session_of(page)}
+        r = page.request.post(server.url + "api/warmup", data={"port": SIM_KEY}, headers=mine)       # no Origin
         assert r.status == 403
-        r = page.request.post(server.url + "api/warmup", data={"port": SIM_KEY, "face": "up"}, headers={"Origin": origin})
+        r = page.request.post(server.url + "api/warmup", data={"port": SIM_KEY}, headers={"Origin": origin})
+        assert r.status == 403 and "no session" in r.json()["error"]                                  # no session
+        r = page.request.post(server.url + "api/warmup", data={"port": SIM_KEY, "face": "up"}, headers={"Origin": origin, **mine})
         assert r.status == 400 and "face must be one of" in r.json()["error"]
         r = page.request.post(server.url + "api/warmup", data={"port": SIM_KEY, "span_lo_c": 30, "span_hi_c": 20},
-                              headers={"Origin": origin})
+                              headers={"Origin": origin, **mine})
         assert r.status == 400 and "too narrow" in r.json()["error"]
-        r = page.request.post(server.url + "api/warmup", data={"port": SIM_KEY, "span_lo_c": "5"}, headers={"Origin": origin})
+        r = page.request.post(server.url + "api/warmup", data={"port": SIM_KEY, "span_lo_c": "5"},
+                              headers={"Origin": origin, **mine})
         assert r.status == 400 and "span_lo_c must be a number" in r.json()["error"]
 
         # a second warm-up from the column's own step, stopped on the page: the fit of what came is kept

@@ -50,8 +50,20 @@ MAX_TAU_FRACTION = 8.0
 AXES = ("x", "y", "z")
 
 
+def require_allantools():
+    """allantools, or a one-line error saying how to install it (the allan extra); called
+    before a recording starts too, so that hours of samples never wait on a missing package."""
+    try:
+        import allantools
+    except ImportError:
+        from imubench.errors import ImubenchError
+        raise ImubenchError("the Allan analysis needs allantools, the allan extra: "
+                            "pip install 'imubench[allan]' (or pip install allantools)") from None
+    return allantools
+
+
 def _edf_and_ci(taus, devs, slopes_pt, n_freq, fs_hz):
-    import allantools
+    allantools = require_allantools()
     edfs, lo, hi = [], [], []
     for tau, dev, s in zip(taus, devs, slopes_pt):
         # noise type from the local slope: ADEV ∝ τ^s  <=>  S_y ∝ f^α with α = −2s − 1
@@ -137,7 +149,7 @@ def oadev_chunked(y: np.ndarray, fs_hz: float, factor: float = 1.0, block: int =
 
 def oadev_in_memory(y: np.ndarray, fs_hz: float, factor: float = 1.0):
     """(taus, adev, n) from allantools.oadev on a float64 copy of factor·y (octave τ)."""
-    import allantools
+    allantools = require_allantools()
     x = np.asarray(y, dtype=np.float64)
     if factor != 1.0:
         x = x * factor

@@ -7,6 +7,8 @@ Units are free — m/s² or raw counts — as long as g is given in the same uni
 ±2 g counts); M is dimensionless either way and b comes back in the unit of the input.
 
     six_position(means, sigmas)              12 parameters, the faces must be square to gravity
+                                             (calib.six_position; its shared least squares in
+                                             calib.accel_lsq)
     multi_position(means, sigmas, init)      9 parameters, any attitudes, |a| = g
     POSE_PLAN, match_plan(means)             the 26 attitudes and which of them were covered
     check_observability(means, method)       raises NotObservable with the reason
@@ -33,6 +35,21 @@ from imubench.calib.poseplan import (  # noqa: F401 - POSE_PLAN, PlannedPose, ma
     match_plan,
     pose_table,
 )
+from imubench.calib.accel_lsq import (  # noqa: F401 - lower_triangular_form, deletion_chi2: where callers found them
+    _check_g,
+    _chi2_factor,
+    _sigmas,
+    deletion_chi2,
+    lower_triangular_form,
+)
+from imubench.calib.six_position import (  # noqa: F401 - where callers found them
+    FACE_TOL_DEG,
+    FACES,
+    _check_faces,
+    _face_report,
+    identify_faces,
+    six_position,
+)
 from imubench.units import G0_MPS2
 
 __all__ = [
@@ -41,8 +58,6 @@ __all__ = [
     "multi_params_to_mb",
 ]
 
-FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
-FACE_TOL_DEG = 30.0          # a pose counts as a face when its mean is this close to an axis
 DISTINCT_DEG = 10.0          # two poses closer than this are the same attitude
 UPDOWN_COS = 0.5          # an axis "pointed up": within 60° of vertical (corners count)
 MIN_ATTITUDES = 9
@@ -52,213 +67,6 @@ DOP_MAX = 25.0
 MULTI_PARAM_NAMES = ("b_x", "b_y", "b_z", "s_x", "s_y", "s_z", "a_yx", "a_zx", "a_zy")
 # (row, column) of M that each angle sits in: M = diag(s)·(I + A), A strictly lower triangular
 _ANGLE_POS = ((1, 0), (2, 0), (2, 1))
-
-
-# --------------------------------------------------------------------------------------------
-# shared helpers
-# --------------------------------------------------------------------------------------------
-
-def _check_g(u: np.ndarray, g: float) -> None:
-    if not (g > 0 and math.isfinite(g)):
-        raise ValueError(f"g must be positive, got {g}")
-    ratio = float(np.median(np.linalg.norm(u, axis=1))) / g
-    if not 0.5 <= ratio <= 1.5:
-        raise CalibrationError(
-            f"the pose means have a median magnitude of {ratio:.4g} × g (g = {g:g}): the means "
-            f"and g must be in the same unit — m/s² with g = {G0_MPS2}, or raw counts with "
-            f"g = LSB per g (256000 at ±2 g, 128000 at ±4 g, 64000 at ±8 g)")
-
-
-def _sigmas(sigmas, m: int) -> np.ndarray | None:
-    if sigmas is None:
-        return None
-    s = np.asarray(sigmas, dtype=np.float64)
-    if s.ndim == 1 and s.shape[0] == m:
-        s = np.repeat(s[:, None], 3, axis=1)
-    s = np.broadcast_to(s, (m, 3)).astype(np.float64)
-    if not np.all(np.isfinite(s)) or np.any(s <= 0):
-        raise ValueError("sigmas must be finite and > 0 (pass None for unknown noise)")
-    return s
-
-
-def _chi2_factor(chi2: float, dof: int, weighted: bool, mode: str) -> float:
-    """Factor applied to the covariance (JᵀWJ)⁻¹.
-
-    weighted (measured sigmas): "inflate" (default) multiplies by max(1, χ²/dof): the sigmas of
-    the means are measured, so the covariance is never shrunk below what they imply, and it is
-    inflated when the residuals show unmodelled error (tilted faces, motion, drift). "always"
-    multiplies by χ²/dof (scipy curve_fit's default), "never" by 1. Unweighted: always by
-    χ²/dof (the residuals are the only estimate of the noise)."""
-    if dof <= 0:
-        return 1.0 if weighted else float("nan")
-    red = chi2 / dof
-    if not weighted:
-        return red
-    if mode == "inflate":
-        return max(1.0, red)
-    if mode == "always":
-        return red
-    if mode == "never":
-        return 1.0
-    raise ValueError(f"chi2_scaling must be 'inflate', 'always' or 'never', not {mode!r}")
-
-
-def lower_triangular_form(m) -> tuple[np.ndarray, np.ndarray]:
-    """M = L·Q with L lower triangular (positive diagonal) and Q orthogonal: L is M expressed
-    in the frame whose x axis is the sensor's X sensitive axis and whose y axis lies in the
-    plane of the sensor's X and Y axes — the frame of multi_position. |M⁻¹·(u − b)| does not
-    depend on Q, so L is all of M that |a| = g can observe."""
-    m = np.asarray(m, dtype=np.float64)
-    q, r = np.linalg.qr(m.T)              # mᵀ = q·r  →  m = rᵀ·qᵀ
-    d = np.sign(np.diag(r))
-    d[d == 0] = 1.0
-    L = r.T * d                            # rᵀ·D
-    Q = (q * d).T                          # D·qᵀ
-    return L, Q
-
-
-def deletion_chi2(Aw: np.ndarray, rw: np.ndarray, k: int) -> np.ndarray:
-    """Per pose (k consecutive whitened rows each): by how much χ² drops when that pose is left
-    out of the (linearised) fit, q_i = e_iᵀ (I − H_ii)⁻¹ e_i, H the hat matrix of the whitened
-    design Aw, e_i the pose's whitened residuals. q_i is the squared Mahalanobis distance of the
-    pose from what the other poses predict for it: χ² with k dof when the model holds and the
-    sigmas are right (Cook & Weisberg, Residuals and Influence in Regression, 1982). Infinite
-    where the other poses cannot predict the pose (H_ii singular: it alone fixes a parameter)."""
-    q, _ = np.linalg.qr(Aw)
-    H = q @ q.T
-    m = len(rw) // k
-    out = np.empty(m)
-    for i in range(m):
-        sl = slice(k * i, k * i + k)
-        A = np.eye(k) - H[sl, sl]
-        e = rw[sl]
-        if np.linalg.cond(A) > 1e10:
-            out[i] = math.inf
-        else:
-            out[i] = float(e @ np.linalg.solve(A, e))
-    return out
-
-
-# --------------------------------------------------------------------------------------------
-# six-position
-# --------------------------------------------------------------------------------------------
-
-def identify_faces(means, max_angle_deg: float = FACE_TOL_DEG) -> tuple[list[str | None], np.ndarray]:
-    """Face of each pose: which board axis is vertical and its sign ("+Z" = Z up, reading +g),
-    and the angle (deg) between the mean and that axis. None where the angle exceeds
-    max_angle_deg (not a face pose)."""
-    d = _units(means)
-    j = np.argmax(np.abs(d), axis=1)
-    comp = d[np.arange(len(d)), j]
-    ang = np.degrees(np.arccos(np.clip(np.abs(comp), -1, 1)))
-    faces = [(("+" if c > 0 else "-") + AXES[a]) if t <= max_angle_deg else None
-             for a, c, t in zip(j, comp, ang)]
-    return faces, ang
-
-
-def _face_report(faces: list[str | None]) -> tuple[list[str], list[str]]:
-    missing = [f for f in FACES if f not in faces]
-    repeated = []
-    for f in FACES:
-        idx = [i + 1 for i, x in enumerate(faces) if x == f]
-        if len(idx) > 1:
-            repeated.append(f"{f} (poses {', '.join(map(str, idx[:-1]))} and {idx[-1]})")
-    return missing, repeated
-
-
-def _check_faces(faces, angles, skip_non_faces: bool) -> None:
-    bad = [i for i, f in enumerate(faces) if f is None]
-    if bad and not skip_non_faces:
-        lst = ", ".join(f"pose {i + 1} ({angles[i]:.0f}°)" for i in bad)
-        raise CalibrationError(
-            f"six-position needs every pose on a face (one axis vertical, within "
-            f"{FACE_TOL_DEG:.0f}°); these are not: {lst}. Use multi_position for tilted poses, or "
-            f"pass skip_non_faces=True to ignore them.")
-    missing, repeated = _face_report(faces)
-    if missing:
-        msg = f"missing faces: {', '.join(missing)}"
-        if repeated:
-            msg += f"; repeated: {'; '.join(repeated)}"
-        msg += (". Six-position needs each of the six faces up at least once (+X = X axis up, "
-                "reading +g); poses are numbered from 1.")
-        raise NotObservable(msg)
-
-
-def six_position(means, sigmas=None, g: float = G0_MPS2, *, skip_non_faces: bool = False,
-                 chi2_scaling: str = "inflate", covs=None) -> TriadFit:
-    """Six-position calibration: every pose lies on a face, so its true specific force is ±g on
-    one board axis; weighted linear least squares on the stacked z = A·β, β = (M row-major, b).
-
-    means (m, 3), m ≥ 6, each face at least once (repeats add redundancy); sigmas (m, 3) the
-    1-sigma uncertainty of each mean (weights 1/σ²), or None (unit weights, noise from the
-    residuals). Raises NotObservable naming missing (and repeated) faces. The covariance is
-    (AᵀWA)⁻¹ × max(1, χ²/dof) (see _chi2_factor): the spread of (M, b) from the noise of the
-    means, inflated when the residuals exceed that noise — it does not cover a tilt of the
-    faces that the residuals cannot see (docs/calibration.md). covs (m, 3, 3): a further
-    covariance of each mean (a rest's own motion, calib.rests) added to diag(sigmas²); each
-    pose's three rows are then whitened by the Cholesky factor of the sum (needs sigmas)."""
-    u = np.asarray(means, dtype=np.float64)
-    faces, angles = identify_faces(u)
-    _check_faces(faces, angles, skip_non_faces)
-    use = np.array([f is not None for f in faces])
-    u_all = u
-    u = u[use]
-    _check_g(u, g)
-    m = len(u)
-    sig = _sigmas(sigmas, len(u_all))
-    sig = sig[use] if sig is not None else None
-    if covs is not None and sig is None:
-        raise ValueError("covs needs sigmas (the noise of the means they add to)")
-    cv = None if covs is None else np.asarray(covs, dtype=np.float64).reshape(len(u_all), 3, 3)[use]
-
-    f_true = np.zeros((m, 3))
-    for i, f in enumerate([f for f in faces if f is not None]):
-        f_true[i, AXES.index(f[1])] = g if f[0] == "+" else -g
-
-    # z = A·β: rows (pose i, axis a): u_ia = Σ_c M_ac f_ic + b_a
-    A = np.zeros((3 * m, 12))
-    for i in range(m):
-        for a in range(3):
-            A[3 * i + a, 3 * a:3 * a + 3] = f_true[i]
-            A[3 * i + a, 9 + a] = 1.0
-    z = u.ravel()
-    if cv is None:
-        w = 1.0 / (sig.ravel() if sig is not None else np.ones(3 * m))
-        Wh = np.diag(w)
-    else:                         # block whitening: L_i⁻¹ with L_i·L_iᵀ = diag(σ_i²) + C_i
-        Wh = np.zeros((3 * m, 3 * m))
-        for i in range(m):
-            L = np.linalg.cholesky(np.diag(sig[i] ** 2) + cv[i])
-            Wh[3 * i:3 * i + 3, 3 * i:3 * i + 3] = np.linalg.inv(L)
-    Aw = Wh @ A
-    zw = Wh @ z
-    beta, *_ = np.linalg.lstsq(Aw, zw, rcond=None)
-    res = z - A @ beta
-    chi2 = float(np.sum((Wh @ res) ** 2))
-    dof = 3 * m - 12
-    N = Aw.T @ Aw
-    cov = np.linalg.inv(N) * _chi2_factor(chi2, dof, sig is not None, chi2_scaling)
-
-    M = beta[:9].reshape(3, 3)
-    b = beta[9:]
-    resid = res.reshape(m, 3)
-    extra = {
-        "faces": [f for f in faces if f is not None],
-        "used_poses": [int(i) for i in np.nonzero(use)[0]],
-        "skipped_poses": [int(i) for i in np.nonzero(~use)[0]],
-        "face_angle_deg": angles[use],
-        "chi2": chi2,
-        "chi2_red": chi2 / dof if dof > 0 else float("nan"),
-        "chi2_scaling": chi2_scaling if sig is not None else "always (unweighted)",
-        "deletion_chi2": deletion_chi2(Aw, Wh @ res, 3),
-        # misfit as an angle: the rms residual over g; a large value means the faces were not
-        # square to gravity (or the board moved)
-        "residual_angle_deg": math.degrees(float(np.sqrt(np.mean(res ** 2))) / g),
-        "g": g,
-    }
-    return TriadFit(method="six_position", m=M, b=b, cov=cov,
-                    residual_rms=float(np.sqrt(np.mean(res ** 2))), residuals=resid, dof=dof,
-                    estimated=np.ones(12, dtype=bool), extra=extra)
 
 
 # --------------------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize, special   # χ² and F survival functions: scipy.stats costs far more to import
 
 from imubench.calib import CalibrationError, TriadFit
 from imubench.calib import accel as CA
@@ -137,9 +137,9 @@ def _outlier_p(q: np.ndarray, chi2: float, dof: int, k: int) -> np.ndarray:
             continue                  # the others cannot predict it (it alone fixes a parameter)
         c_rest, d_rest = chi2 - qi, dof - k
         if d_rest >= 1 and c_rest / d_rest > 1.0:
-            p[i] = float(stats.f.sf((qi / k) / (c_rest / d_rest), k, d_rest))
+            p[i] = float(special.fdtrc(k, d_rest, (qi / k) / (c_rest / d_rest)))
         else:
-            p[i] = float(stats.chi2.sf(qi, k))
+            p[i] = float(special.chdtrc(k, qi))
     return p
 
 
@@ -243,7 +243,7 @@ def _try(kind: str, u, sig, covs, g: float, init, excess_limit: float) -> dict:
         out.update(status="refused", reason=(
             f"as many parameters as rests ({len(active)}): nothing is left to check the fit with"))
         return out
-    p_fit = float(stats.chi2.sf(chi2, dof))
+    p_fit = float(special.chdtrc(dof, chi2))
     fit_txt = f"χ²/dof = {chi2 / dof:.3g} for {dof} dof"
     if method == "six":
         res = np.asarray(fit.residuals).ravel()
@@ -349,11 +349,12 @@ def fit_accel(means, sigmas, covs=None, method: str = "auto", g: float = 9.80665
     rests = _rest_uses(u, sig, cv, motions_text, last, g)
     if last["status"] != "kept":
         lines = "; ".join(f"{c['model']}: {c['reason']}" for c in cands if not c["kind"].startswith(("multi8", "multi7")))
+        other = ("--method six with the board square on a table for each face" if method != "six" else
+                 "each face square to gravity (a machined cube against a square); held by hand, --method multi")
         raise FitRefused(
             f"no accelerometer model is both resolved by the rests and better than no calibration, so nothing is "
             f"calibrated ({lines}). Next: record more rests, each held still, spread over faces, edges and "
-            f"corners (12–26 attitudes, every axis up and down), or --method six with the board square on a "
-            f"table for each face", report, rests)
+            f"corners (12–26 attitudes, every axis up and down), or {other}", report, rests)
     held = last["held"]
     mg = 1e3 / g
     n_left = len(last["left_out"])

@@ -59,10 +59,10 @@ class GSensFit:
     @property
     def p_zero(self) -> float:
         """p-value of G = 0 (all nine entries jointly, χ² with 9 dof from G's covariance)."""
-        from scipy import stats
+        from scipy import special
         c = self.cov[:9, :9]
         v = self.g.ravel()
-        return float(stats.chi2.sf(float(v @ np.linalg.solve(c, v)), 9))
+        return float(special.chdtrc(9, float(v @ np.linalg.solve(c, v))))
 
     @property
     def significant(self) -> bool:

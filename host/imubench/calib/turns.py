@@ -25,7 +25,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import integrate, stats
+from scipy import integrate, special   # χ² survival function: scipy.stats costs far more to import
 
 from imubench.calib import CalibrationError, NotObservable, TriadFit
 
@@ -356,7 +356,7 @@ def combine_fits(a: TriadFit, b: TriadFit, p_min: float = 1e-3) -> Combined:
     m = C @ (ia @ a.m.ravel() + ib @ b.m.ravel())
     dlt = a.m.ravel() - b.m.ravel()
     chi2 = float(dlt @ np.linalg.solve(ca + cb, dlt))
-    p = float(stats.chi2.sf(chi2, 9))
+    p = float(special.chdtrc(9, chi2))
     consistent = p >= p_min
     notes = []
     if not consistent:

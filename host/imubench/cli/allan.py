@@ -5,8 +5,10 @@ import argparse
 import re
 import shlex
 import signal
+import stat
 from pathlib import Path
 
+from imubench.results import exports as X
 from imubench.cli.common import (
     CommandError,
     UsageError,
@@ -16,6 +18,7 @@ from imubench.cli.common import (
     positive_float,
     stream_rate,
 )
+from imubench.files import make_dir
 
 
 def parse_duration(s: str) -> float:
@@ -73,15 +76,12 @@ def register(sub) -> None:
     g.add_argument("--profile", type=existing_file, metavar="TOML", help="a CSV layout file (as calibrate --from)")
     g.add_argument("--topic", metavar="TOPIC", help="ROS bag: the sensor_msgs/Imu topic")
     g.add_argument("--device", metavar="NAME", help="a name for the IMU")
-    g.add_argument("--export", action="append", default=[], choices=NOISE_WRITERS, metavar="|".join(NOISE_WRITERS),
-                   help="also write the noise figures as Kalibr's imu.yaml, OpenVINS' kalibr_imu_chain.yaml, "
-                        "VINS-Fusion's IMU keys or imu_utils' output (repeatable; docs/noise.md)")
+    X.add_option(p, "noise")
     g.add_argument("--imu-topic", metavar="TOPIC", default="/imu0", help="the rostopic written into the exports")
     p.set_defaults(run=run)
 
 
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
-NOISE_WRITERS = ("kalibr", "openvins", "vins-fusion", "imu-utils")
 
 
 def _run_from_file(a) -> int:
@@ -98,14 +98,16 @@ def _run_from_file(a) -> int:
 
 
 def run(a) -> int:
+    from imubench.analysis.allan import require_allantools
     from imubench.procedures.allan import analyse_capture, record
+    require_allantools()                      # before hours of recording, not after
     if a.from_file is not None:
         return _run_from_file(a)
     file_only = [k for k in ("format", "gyro_file", "accel_unit", "gyro_unit", "accel_scale", "gyro_scale", "columns",
                              "time_column", "time_unit", "profile", "topic", "device", "skip_rows", "accel_offset",
                              "gyro_offset", "sensor", "gyro_range", "memory_budget") if getattr(a, k) is not None]
-    if file_only or a.export:
-        raise UsageError(f"--{(file_only or ['export'])[0].replace('_', '-')} goes with --from FILE",
+    if file_only:
+        raise UsageError(f"--{file_only[0].replace('_', '-')} goes with --from FILE",
                          "give the recording with --from, or drop it")
     if a.rate is None:
         a.rate = 100
@@ -115,14 +117,17 @@ def run(a) -> int:
         raise UsageError(f"--rate {a.rate:g}: {e}", "the device streams at the protocol's rates") from None
     out = a.out
     if a.analyse:
-        analyse_capture(a.analyse, out)
+        analyse_capture(a.analyse, out, exports=a.export, topic=a.imu_topic)
         return 0
     if a.duration is None:
         raise UsageError("--duration is required to record", "give e.g. --duration 2h, or --analyse FILE")
-    out.mkdir(parents=True, exist_ok=True)
+    make_dir(out)
     cap = out / "capture.bin"
     if cap.exists() and cap.stat().st_size:
         raise CommandError(f"{cap} exists", f"analyse it with --analyse {shlex.quote(str(cap))}, or choose another --out")
+    st = cap.lstat() if cap.is_symlink() or cap.exists() else None
+    if st is not None and stat.S_ISREG(st.st_mode) and st.st_size == 0 and st.st_nlink == 1:
+        cap.unlink()                # left empty by a start whose port did not open: a capture is a new file
     stop = {"now": False}
     old = None
     try:
@@ -137,7 +142,7 @@ def run(a) -> int:
     if not cap.exists() or cap.stat().st_size == 0:
         raise CommandError(f"nothing was recorded ({why})", "check the device with imubench info")
     print(f"recording ended: {why}; analysing {cap}", flush=True)
-    analyse_capture([cap], out, rate_hz=float(a.rate))
+    analyse_capture([cap], out, rate_hz=float(a.rate), exports=a.export, topic=a.imu_topic)
     if why not in ("done", "interrupted"):
         raise CommandError(f"the recording ended early ({why}); what was recorded is analysed in {out}",
                            f"record again, or analyse more files with --analyse {shlex.quote(str(cap))} FILE...")

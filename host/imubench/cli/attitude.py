@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import sys
-import time
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -40,7 +39,7 @@ def register(sub) -> None:
                    help="draw the angles to this PNG and write their numbers beside it (PNG with .json): "
                         "what imubench report --attitude embeds")
     p.add_argument("--print-hz", type=positive_float, default=4.0, help="live lines per second")
-    add_sim(p, "run on a virtual device with ideal parts (its calibrated output is exact)")
+    add_sim(p, "run on a virtual device with ideal parts (its calibrated output is exact)", lockstep_speed=20.0)
     p.add_argument("--steps", action="store_true",
                    help="with --sim: step the virtual turntable -20..+20 deg about X and Y and measure each "
                         "filter's settling time and static error")
@@ -113,7 +112,7 @@ def _live(a, dev, device: dict) -> int:
         if capture is not None:
             dev.link.capture = capture
         print("   t (s)  " + "  ".join(f"{f.name:>10} roll/pitch (deg)" for f in filters), flush=True)
-        next_print = time.monotonic()
+        next_print = 0.0                  # device seconds: the same lines on any machine
         try:
             for block, t, res in live(dev, filters, a.rate, a.duration):
                 n_total += len(block)
@@ -126,9 +125,8 @@ def _live(a, dev, device: dict) -> int:
                     for name, (r_, p_) in zip(ang_all, [(ar, ap_)] + list(res)):
                         ang_all[name][0].append(np.asarray(r_))
                         ang_all[name][1].append(np.asarray(p_))
-                now = time.monotonic()
-                if now >= next_print:
-                    next_print = now + 1.0 / a.print_hz
+                if t_s >= next_print:
+                    next_print = t_s + 1.0 / a.print_hz
                     print(f"{t_s:8.2f}  " + "  ".join(f"{f.name:>10} {r[0][-1]:+8.3f} {r[1][-1]:+8.3f}"
                                                      for f, r in zip(filters, res)), flush=True)
         except KeyboardInterrupt:

@@ -17,6 +17,8 @@ from imubench.cli.common import (
     existing_file,
     out_dir,
     positive_float,
+    resolve_sim_speed,
+    speed_text,
     stream_rate,
 )
 from imubench.cli.calibrate_station import (
@@ -27,8 +29,11 @@ from imubench.cli.calibrate_station import (
     _run_station,
     _sim_fault,
     _station_session,
+    write_exports,
 )
+from imubench.calib.fit import gyro_method_names
 from imubench.cli.station import add_web
+from imubench.results import exports as X
 from imubench.results.record import verdict
 from imubench.text import one_line, printable
 
@@ -36,11 +41,11 @@ METHODS = ("multi", "six")
 CAPTURES = ("adaptive", "plan")
 SIX_WARNING = ("warning: --method six needs a square fixture (a machined cube against a square): held by hand the "
                "faces are degrees off square and the fit fails; --method multi needs none")
-GYRO_METHODS = ("turntable", "rotation", "turns", "bias", "auto", "none")
-# imubench.recordings.FORMATS and imubench.results.paramfiles.WRITERS, named here so that building
-# the parser loads neither (tests/procedures/test_from_file.py checks they agree)
+GYRO_METHODS = gyro_method_names()          # calib.fit.GYRO_METHODS: the one list of gyro methods
+# imubench.recordings.FORMATS, named here so that building the parser does not load it
+# (tests/procedures/test_from_file.py checks they agree); the export formats are the registry's
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
-WRITERS = ("params", "imutk", "imucal", "ardupilot", "kalibr", "px4", "imu-calib")
+WRITERS = X.names("calibration")
 
 
 def rate_hz(s: str) -> float:
@@ -94,7 +99,6 @@ def register(sub) -> None:
     p.add_argument("--closure", action="store_true",
                    help="after a verified write-back, run the closure check (imubench closure) into DIR/closure: "
                         "the virtual bench drives a closed path, or you carry the board around one")
-    p.set_defaults(sim_speed=None)      # None: SIM_SPEED, capped for many boards (_station_sim_speed)
     p.add_argument("--sim-boards", type=_board_count, default=1, metavar="N",
                    help="with --sim: N virtual devices on one virtual fixture (each its own random truth and serial "
                         "numbers, seeds --sim-seed, --sim-seed + 1, ...): one station session")
@@ -168,6 +172,13 @@ def _station_file(s: str) -> dict:
 
 def _add_from_file(p) -> None:
     """--from FILE and what reading a recording needs (imubench.procedures.from_file)."""
+    e = p.add_argument_group("the result in other tools' files (a session, every board of a station, or --from)")
+    X.add_option(e, "calibration")
+    e.add_argument("--px4-acc-id", type=px4_device_id, metavar="ID",
+                   help="--export px4: the PX4 device id of the accelerometer (`listener sensor_accel`, or CAL_ACC0_ID "
+                        "of the vehicle's current parameters); PX4 ignores a calibration slot without it")
+    e.add_argument("--px4-gyro-id", type=px4_device_id, metavar="ID",
+                   help="--export px4: the PX4 device id of the gyro (`listener sensor_gyro`, or CAL_GYRO0_ID)")
     g = p.add_argument_group("calibrate from a recording (any 6-axis IMU; docs/calibration.md, From files)")
     g.add_argument("--from", dest="from_file", metavar="FILE",
                    help="calibrate from a recording instead of a device: the same analysis, report and history")
@@ -202,15 +213,6 @@ def _add_from_file(p) -> None:
                         "it, clipping is found in the data: samples held at the extreme of the values)")
     g.add_argument("--annotation", type=existing_file, metavar="JSON",
                    help="imucal's section list, to compare the segmentation with")
-    g.add_argument("--export", action="append", default=[], choices=WRITERS, metavar="|".join(WRITERS),
-                   help="also write the result as our parameter file, imu_tk's .calib, imucal's JSON, ArduPilot's "
-                        "parameters, Kalibr's IMU intrinsics, PX4's CAL_ACC0/CAL_GYRO0 parameters or ROS imu_calib's "
-                        "YAML (repeatable)")
-    g.add_argument("--px4-acc-id", type=px4_device_id, metavar="ID",
-                   help="--export px4: the PX4 device id of the accelerometer (`listener sensor_accel`, or CAL_ACC0_ID "
-                        "of the vehicle's current parameters); PX4 ignores a calibration slot without it")
-    g.add_argument("--px4-gyro-id", type=px4_device_id, metavar="ID",
-                   help="--export px4: the PX4 device id of the gyro (`listener sensor_gyro`, or CAL_GYRO0_ID)")
     g.add_argument("--tolerance-mg", type=positive_float, metavar="MG",
                    help="pass when the RMS of |a| − g over the still intervals after calibration is at most this "
                         "(default: the device's, 1 mg)")
@@ -274,17 +276,15 @@ def _check_history(db) -> None:
 
 
 def run(a) -> int:
-    if getattr(a, "sim_speed", None) is None:
-        a.sim_speed_given = False
-        a.sim_speed = SIM_SPEED
-    else:
-        a.sim_speed_given = True
+    resolve_sim_speed(a)              # `imubench demo` parses with calibrate's own parser
+    if a.sim and getattr(a, "ui", None) == "web" and not a.sim_speed_given and not a.sim_speed:
+        a.sim_speed = SIM_SPEED       # the station page: a ceiling a person can follow
     if a.db and Path(a.db).is_dir():
         raise UsageError(f"--db {a.db} is a directory", f"give the database file, e.g. {Path(a.db) / 'history.sqlite'}")
     _check_history(a.db or (a.station_file or {}).get("db"))
     if a.from_file is not None:
         return _run_from_file(a)
-    stray = [k for k in _FILE_ONLY if getattr(a, k, None) is not None] + (["export"] if a.export else [])
+    stray = [k for k in _FILE_ONLY if getattr(a, k, None) is not None]
     if stray:
         raise UsageError(f"--{stray[0].replace('_', '-')} goes with --from FILE",
                          "drop it to calibrate a device, or give the recording with --from")
@@ -333,6 +333,9 @@ def run(a) -> int:
                               f"imubench calibrate --resume {shlex.quote(str(directory))}" + (" --sim" if a.sim else "")
                               if (directory / "session.json").exists() else "nothing was captured")
     if a.ui == "web":
+        if a.export:
+            print("note: --ui web: the page offers every export format of a calibration that passed as a download "
+                  f"(the files go to {directory}/exports); --export writes them from the terminal session")
         if a.redo or a.closure:
             raise UsageError(f"{'--redo' if a.redo else '--closure'} is a terminal option",
                              "run it without --ui web (the page resumes a session with its Resume button)")
@@ -349,7 +352,7 @@ def run(a) -> int:
                 _inject_sim_fault(vb, sensor)
             url = vb.port_url
             ui = SimPresenter(vb, tilt_deg=a.sim_tilt, seed=a.sim_seed)
-            print(f"virtual device with random truth (seed {a.sim_seed}) on {url}")
+            print(f"virtual device with random truth (seed {a.sim_seed}) on {url}, {speed_text(a.sim_speed, a.sim_clock)}")
         else:
             from imubench.cli.terminal import HumanPresenter
             url, ui = a.port, HumanPresenter()
@@ -367,6 +370,7 @@ def run(a) -> int:
                 sess.finish(result)
     _record_history(result, a.db or (getattr(a, "station_file", None) or {}).get("db"), sess.state_path)
     ok, _ = verdict(result, cfg.write)
+    write_exports(a, result, sess.dir, (result.get("device") or {}).get("mcu_uid") or "device", ok)
     print("\ncalibration " + ("PASSED" if ok else "FAILED"))
     if not ok and result.get("gyro_refused"):
         raise CommandError(f"accelerometer calibrated; gyro not: {result['gyro_refused']}; nothing was written "
@@ -510,7 +514,7 @@ def px4_device_id(s: str) -> int:
 # ------------------------------------------------------------------ from a file
 _FILE_ONLY = ("format", "gyro_file", "accel_unit", "gyro_unit", "accel_scale", "gyro_scale", "columns", "time_column",
               "time_unit", "profile", "topic", "device", "gyro_range", "annotation", "tolerance_mg", "skip_rows",
-              "accel_offset", "gyro_offset", "sensor", "px4_acc_id", "px4_gyro_id")
+              "accel_offset", "gyro_offset", "sensor")
 
 
 def _columns(text: str) -> dict:
@@ -585,7 +589,7 @@ def _run_from_file(a) -> int:
     cfg = FileConfig(method=a.method or "auto", gyro=None if a.gyro == "none" else a.gyro, turn_deg=a.turn_angle,
                      angle_sigma_deg=a.turn_sigma, axis_sigma_deg=a.turn_axis_sigma,
                      gyro_range_dps=a.gyro_range, note=a.note, device=a.device or rec.device,
-                     writers=tuple(dict.fromkeys(a.export)), px4_acc_id=a.px4_acc_id, px4_gyro_id=a.px4_gyro_id,
+                     writers=tuple(a.export), px4_acc_id=a.px4_acc_id, px4_gyro_id=a.px4_gyro_id,
                      annotation=annotation, tolerances=tol,
                      tolerance_from_imu=a.tolerance_mg is None, command="imubench " + shlex.join(sys.argv[1:]))
     directory = Path(a.dir or f"imubench-file-{Path(a.from_file).stem}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")

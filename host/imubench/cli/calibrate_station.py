@@ -3,10 +3,10 @@ verdict per board, on the terminal or the station page; and the virtual boards' 
 from __future__ import annotations
 
 import datetime as _dt
-import shlex
 from pathlib import Path
 
-from imubench.cli.common import CommandError, UsageError
+from imubench.cli.common import CommandError, UsageError, speed_text
+from imubench.text import one_line, shell_word
 
 SIM_SPEED = 20.0
 #: a station session's plate deadline (fixture.Plate) when --plate-timeout is not given: the
@@ -107,13 +107,14 @@ def _run_station(a, cfg) -> int:
                 _inject_sim_fault(benches[slot - 1], sensor)
             mover = PlatePresenter(benches, tilt_deg=a.sim_tilt, seed=a.sim_seed)
             print(f"{len(benches)} virtual devices with random truth (seeds {a.sim_seed}..{a.sim_seed + len(benches) - 1}) "
-                  f"on one virtual fixture, speed {a.sim_speed:g}")
+                  f"on one virtual fixture, {speed_text(a.sim_speed, a.sim_clock)}")
         else:
             from imubench.cli.terminal import HumanPresenter
             mover = HumanPresenter()
             mover.say(f"{len(ports)} boards on the fixture: every instruction is for the whole plate")
-        print(f"station {station.station_id}, session directory {directory} (DIR/slot-K per board); "
-              f"records go to {_shown(db)}")
+        # the station name, the folder and the database come from the user or a file: one line each
+        print(f"station {one_line(station.station_id)}, session directory {one_line(directory)} (DIR/slot-K per "
+              f"board); records go to {one_line(_shown(db))}")
         plate_timeout = a.plate_timeout = (a.plate_timeout if a.plate_timeout is not None else
                                            PLATE_TIMEOUT_VIRTUAL_S if a.sim else PLATE_TIMEOUT_HAND_S)
         last: dict[int, tuple] = {}
@@ -124,26 +125,33 @@ def _run_station(a, cfg) -> int:
         def on_event(st: dict) -> None:         # one line per board and stage (called from the boards' threads)
             key = (st["stage"], st["state"])
             with lock:
-                who = st["uid"] or st["port"]
+                who = one_line(st["uid"] or st["port"])
                 if last.get(st["slot"]) != key:
                     last[st["slot"]] = key
                     print(f"  slot {st['slot']} {who}: {st['state'] if st['state'] != 'running' else st['stage']}"
-                          + (f" ({st['reason']})" if st["reason"] else ""), flush=True)
+                          + (f" ({one_line(st['reason'])})" if st["reason"] else ""), flush=True)
                 if st.get("waiting") and waits.get(st["slot"]) is None:      # starts waiting for the others
-                    print(f"  slot {st['slot']} {who}: {st['waiting']}", flush=True)
+                    print(f"  slot {st['slot']} {who}: {one_line(st['waiting'])}", flush=True)
                 waits[st["slot"]] = st.get("waiting")
         if a.ui == "web":
             res = _station_on_page(a, cfg, ports, directory, mover, station, db, on_event)
         else:
             res = run_fixture(ports, directory, cfg, mover, station=station, db=db, on_event=on_event,
                               link_timeout_s=a.link_timeout, baudrate=a.baud, plate_timeout_s=plate_timeout)
+    if getattr(a, "export", ()):
+        print()
+        for b in res.boards:
+            rec = res.results.get(b.slot) or {}
+            print(f"slot {b.slot} {b.uid or b.port}:")
+            write_exports(a, rec, directory / f"slot-{b.slot}", b.uid or f"slot-{b.slot}", b.state == "passed",
+                          say=lambda line: print(f"  {line}"))
     print()
     print(_station_table(res))
-    print(f"station session {res.session_id}: {len(res.passed)} of {len(res.boards)} boards passed "
-          f"({res.wall_s:.0f} s); `imubench history --export {shlex.quote(str(res.session_id))} --format junit` exports it")
+    print(f"station session {one_line(res.session_id)}: {len(res.passed)} of {len(res.boards)} boards passed "
+          f"({res.wall_s:.0f} s); `imubench history --export {shell_word(res.session_id)} --format junit` exports it")
     if res.failed:
         raise CommandError(f"{len(res.failed)} of {len(res.boards)} boards failed: "
-                           + "; ".join(f"slot {b.slot} at {b.stage}" for b in res.boards if b.state != "passed"),
+                           + "; ".join(f"slot {b.slot} at {one_line(b.stage)}" for b in res.boards if b.state != "passed"),
                            "see the table above; the boards that passed are written and recorded")
     return 0
 
@@ -204,6 +212,30 @@ def _station_on_page(a, cfg, ports, directory: Path, mover, station, db, on_even
     return box["res"]
 
 
+def write_exports(a, result: dict, directory: Path, name: str, ok: bool, say=print) -> dict:
+    """The --export files of a session's (or one station board's) result into directory, as
+    calibration-NAME.* (procedures.export_files.write_calibration); none for a result that did not pass
+    (a file a tool would load must hold a calibration that passed). Says each file, and when the
+    PX4 file lacks its ids."""
+    kinds = tuple(getattr(a, "export", ()) or ())
+    if not kinds:
+        return {}
+    if not ok or not (result.get("accel") or {}).get("m"):
+        say(f"exports ({', '.join(kinds)}) not written: the calibration did not pass")
+        return {}
+    comment = f"imubench calibration of {name}, {result.get('finished') or ''}".strip(", ")
+    from imubench.procedures.export_files import write_calibration
+    files = write_calibration(kinds, directory, result, name=name, comment=comment, px4_acc_id=a.px4_acc_id,
+                                px4_gyro_id=a.px4_gyro_id)
+    for kind, paths in files.items():
+        say(f"{kind}: {one_line(', '.join(paths))}")
+    from imubench.results.paramfiles import PX4_ID_HOW, px4_missing_ids
+    missing = px4_missing_ids(a.px4_acc_id, a.px4_gyro_id, result.get("gyro") is not None)
+    if files.get("px4") and missing:
+        say(f"px4: NOT USABLE AS IS, no {' / '.join(missing)} (PX4 ignores the slot): {PX4_ID_HOW}")
+    return files
+
+
 def _shown(db) -> str:
     from imubench.results.db import describe
     return describe(db)
@@ -225,7 +257,7 @@ def _station_table(res) -> str:
                 parts.append("worst verification " + measurement_text(worst).split(" (")[0])
             detail = ", ".join(parts) + ", written and verified" if rec.get("written") else ", ".join(parts)
         else:
-            detail = f"at {b.stage}: {b.reason}"
-        lines.append(f"{b.slot:>4}  {b.uid or '(no answer)':<24}  {'PASSED' if b.state == 'passed' else 'FAILED':<7}  "
+            detail = f"at {b.stage}: {one_line(b.reason)}"
+        lines.append(f"{b.slot:>4}  {one_line(b.uid or '(no answer)'):<24}  {'PASSED' if b.state == 'passed' else 'FAILED':<7}  "
                      f"{b.run_id if b.run_id is not None else '-':>5}  {detail}")
     return "\n".join(lines)

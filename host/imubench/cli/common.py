@@ -95,20 +95,62 @@ def add_port(p: argparse.ArgumentParser, many: bool = False) -> None:
     p.add_argument("--baud", type=baud, default=DEFAULT_BAUD, help="baud rate of a real UART")
 
 
-def add_sim(p: argparse.ArgumentParser, what: str, speed: float = 20.0) -> None:
-    """--sim, --sim-seed, --sim-speed: run on a virtual device started (and removed) by the command."""
+def add_sim(p: argparse.ArgumentParser, what: str, speed: float | None = 20.0, lockstep_speed: float = 0.0) -> None:
+    """--sim, --sim-seed, --sim-speed, --sim-clock: run on a virtual device started (and removed)
+    by the command. --sim-speed when not given (resolve_sim_speed): `lockstep_speed` on the
+    lockstep clock (0: no ceiling, the device runs as fast as the host takes it), `speed` on the
+    real-time clock (None: the command chooses)."""
     p.add_argument("--sim", action="store_true", help=what)
     p.add_argument("--sim-seed", type=int, default=1, metavar="N", help="random seed of the virtual device's truth")
-    p.add_argument("--sim-speed", type=positive_float, default=speed, metavar="X",
-                   help="virtual device time per wall-clock time (1 = real time); with --sim-clock lockstep "
-                        "a ceiling")
+    ceiling = "none" if not lockstep_speed else f"{lockstep_speed:g}"
+    pace = "" if speed is None else f" (default {speed:g})"
+    p.add_argument("--sim-speed", type=non_negative_float, default=None, metavar="X",
+                   help=f"virtual device time per wall-clock time (1 = real time). On the lockstep clock a "
+                        f"ceiling (0 = none; default {ceiling}); on the real-time clock the pace{pace}")
+    p.set_defaults(sim_speed_defaults=(lockstep_speed, speed))
     p.add_argument("--sim-clock", choices=("lockstep", "realtime"), default=None,
-                   help="lockstep (the default of --target host): the virtual device's time moves only as "
-                        "the host takes what it sends, nothing is dropped and the same seed gives the same "
-                        "session on any machine; realtime (the default of the ARM targets, which have no "
-                        "lockstep yet): it runs against the wall clock and drops what a slow host does not "
-                        "read, as a real board does (docs/simulator.md)")
+                   help="lockstep (the default): the virtual device's time moves only as the host takes what "
+                        "it sends, nothing is dropped and the same seed gives the same session on any machine, "
+                        "the host build and the ARM images alike; realtime: it runs against the wall clock and "
+                        "drops what a slow host does not read, as a real board does (docs/simulator.md)")
     add_target(p)
+
+
+def resolve_sim_speed(a: argparse.Namespace) -> None:
+    """Fill in --sim-speed when it was not given (add_sim) and note whether it was
+    (a.sim_speed_given); refuse 0 on the real-time clock. Safe to call twice."""
+    if not hasattr(a, "sim_speed_defaults") or getattr(a, "_sim_speed_resolved", False):
+        return
+    a._sim_speed_resolved = True
+    lockstep_default, realtime_default = a.sim_speed_defaults
+    realtime = getattr(a, "sim_clock", None) == "realtime"
+    a.sim_speed_given = a.sim_speed is not None
+    if a.sim_speed is None:
+        a.sim_speed = realtime_default if realtime else lockstep_default
+    elif realtime and a.sim_speed == 0:
+        raise UsageError("--sim-speed 0 (no ceiling) needs the lockstep clock",
+                         "give a pace for --sim-clock realtime, e.g. --sim-speed 20")
+
+
+def speed_text(speed: float, clock: str | None) -> str:
+    """How a virtual device's --sim-speed reads in a header line."""
+    if clock == "realtime":
+        return f"speed {speed:g} (real-time clock)"
+    return "lockstep clock, no speed ceiling" if not speed else f"lockstep clock, speed ceiling {speed:g}"
+
+
+def image_help(what: str = "<board>") -> tuple[str, str, str]:
+    """(what `flash` does with the STM32 images, the default image's path, what --no-build does),
+    worded for the user's install: a wheel carries its images (nothing is built), a checkout
+    builds them with `make firmware`."""
+    from imubench.device import artifacts
+    if artifacts.installed():
+        d = artifacts.DATA / "firmware" / what
+        return ("Flash the STM32 firmware image that came with this installed package",
+                f"{d}/imubench.elf|.bin|.hex",
+                "accepted for scripts; nothing is built (the package's images were built with it)")
+    return ("Build (make firmware) and flash the STM32 firmware", f"build/arm/{what}/imubench.elf|.bin|.hex",
+            "do not run `make firmware` first")
 
 
 def add_target(p: argparse.ArgumentParser) -> None:

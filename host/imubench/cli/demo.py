@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
+from imubench.files import make_dir
 
 
 def register(sub) -> None:
@@ -41,7 +42,7 @@ def run(a) -> int:
         work = Path(tempfile.mkdtemp(prefix="imubench-demo-"))
     elif work.exists() and (not work.is_dir() or any(work.iterdir())):
         raise UsageError(f"{work} exists and is not an empty directory", "give a new or empty --dir")
-    work.mkdir(parents=True, exist_ok=True)
+    make_dir(work)
     print("imubench demo: a guided calibration session on the virtual device (random truth errors;")
     print(f"               the virtual bench presents the attitudes and turns the table). Files in {work}\n")
     # `imubench calibrate ...` through calibrate's own parser (not cli.main's: main imports this module)

@@ -4,21 +4,21 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from imubench.cli.common import existing_file
+from imubench.cli.common import existing_file, image_help
 
 
 def register(sub) -> None:
     from imubench.device.flash import PROBE_ORDER, TARGET_CFG
+    source, default, no_build = image_help()
     p = sub.add_parser("flash", help="write the firmware to a board (openocd, st-flash, stm32flash)",
-                       description="Build (make firmware) and flash the STM32 firmware onto a board, then "
-                                   "verify it (docs/firmware.md, Flashing).")
+                       description=f"{source} onto a board, then verify it (docs/firmware.md, Flashing).")
     p.add_argument("--board", choices=sorted(TARGET_CFG), required=True, help="which board")
     p.add_argument("--probe", choices=PROBE_ORDER,
                    help="programmer (default: the first of openocd, st-flash, stm32flash found)")
     p.add_argument("--port", metavar="DEV", help="serial device for --probe serial (e.g. /dev/ttyUSB0)")
     p.add_argument("--image", type=existing_file, metavar="FILE",
-                   help="image to flash (default: build/arm/<board>/imubench.elf|.bin|.hex)")
-    p.add_argument("--no-build", action="store_true", help="do not run `make firmware` first")
+                   help=f"image to flash (default: {default})")
+    p.add_argument("--no-build", action="store_true", help=no_build)
     p.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
     p.set_defaults(run=run)
 
@@ -51,7 +51,9 @@ def run(a) -> int:
             build_firmware()
         p = plan(a.board, probe, image, a.port, Path(tmp))
         if not p.image.exists():
-            raise FlashError(f"no image {p.image}" + ("" if a.image else "; run `make firmware`"), 2)
+            from imubench.device import artifacts
+            hint = "" if a.image or artifacts.installed() else "; run `make firmware`"
+            raise FlashError(f"no image {p.image}{hint}", 2)
         tag = check_image_board(a.board, p.image)       # before anything is erased
         if probe == "serial":
             check_port(a.port)

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from imubench.cli.common import UsageError
-from imubench.text import printable
+from imubench.text import one_line, printable
 
 
 def _db_target(s: str):
@@ -58,8 +58,10 @@ def register(sub) -> None:
                                                        "record: --format json or junit")
     q.add_argument("--upgrade", action="store_true", help="upgrade the database's tables to this imubench's schema "
                                                           "(versioned migrations; a newer database is refused)")
-    p.add_argument("--format", choices=("json", "junit"), default="json", help="with --export: JSON or JUnit XML")
-    p.add_argument("--out", metavar="FILE", type=Path, help="with --export: write to FILE instead of printing")
+    from imubench.results import exports as X
+    X.add_option(p, "session", flag="--format", dest="format", what="with --export: the session as")
+    p.add_argument("--out", metavar="FILE|DIR", type=Path, help="with --export: write to FILE instead of printing; "
+                                                               "with several --format, the directory they go to")
     p.add_argument("--since", metavar="DATE", type=_since, help="with --yield, --failed, --sessions: runs started from DATE "
                                                    "(YYYY-MM-DD, UTC)")
     p.add_argument("--station", metavar="ID", help="with --yield, --failed, --sessions: one station only")
@@ -78,9 +80,9 @@ def run(a) -> int:
                          "the whole database", "drop DEVICE, or the option")
     if (a.since or a.station) and not (a.yield_by or a.failed or a.sessions):
         raise UsageError("--since and --station go with --yield, --failed or --sessions")
-    if (a.out or a.format != "json") and not a.export:
+    if (a.out or a.format) and not a.export:
         raise UsageError("--format and --out go with --export SESSION")
-    if a.out is not None and a.out.is_dir():
+    if a.out is not None and a.out.is_dir() and len(a.format or ()) < 2:
         raise UsageError(f"--out {a.out} is a directory", "give a file name, e.g. session.xml")
     target = a.db if a.db is not None else default_target()
     shown = H.DB.describe(target)
@@ -121,14 +123,27 @@ def run(a) -> int:
             return 0
         if a.export:
             from imubench.results.export import junit_xml, session_json
+            from imubench.results import exports as X
+            from imubench.results.atomic import write_text_atomic
+            formats = a.format or ("json",)
+            if len(formats) > 1 and (a.out is None or (a.out.exists() and not a.out.is_dir())):
+                raise UsageError(f"--format {','.join(formats)}: several files need --out DIR",
+                                 "give the directory they go to, or one format")
             runs = h.session_runs(a.export)
-            text = junit_xml(runs) if a.format == "junit" else session_json(runs) + "\n"
-            if a.out:
-                from imubench.results.atomic import write_text_atomic
-                write_text_atomic(a.out, text)
-                print(f"session {runs[0]['session_id']} ({len(runs)} boards) written to {a.out} as {a.format}")
-            else:
-                print(text, end="")
+            sid = str(runs[0]["session_id"])
+            for fmt in formats:
+                text = junit_xml(runs) if fmt == "junit" else session_json(runs) + "\n"
+                if len(formats) > 1:
+                    target = a.out / X.file_names("session", fmt, "".join(c if c.isalnum() or c in "-_" else "_"
+                                                                          for c in sid))[0]
+                    a.out.mkdir(parents=True, exist_ok=True)
+                else:
+                    target = a.out
+                if target is not None:
+                    write_text_atomic(target, text)
+                    print(f"session {one_line(sid)} ({len(runs)} boards) written to {one_line(target)} as {fmt}")
+                else:
+                    print(text, end="")
             return 0
         if a.device is None:
             devs = h.devices()

@@ -14,7 +14,6 @@ import argparse
 import signal
 import sys
 
-from imubench import __version__
 from imubench.cli import (
     allan,
     attitude,
@@ -29,18 +28,22 @@ from imubench.cli import (
     thermal,
     virtual,
 )
-from imubench.cli.common import EXIT_INTERRUPTED, Parser, debug_enabled, explain
-from imubench.text import one_line
+from imubench.cli.common import EXIT_INTERRUPTED, Parser, debug_enabled, explain, resolve_sim_speed
+from imubench.text import guard_terminal, one_line
 
 # the order of `imubench --help`: a session first, then what follows it, then the tools
 MODULES = (calibrate, station, history, report, closure, allan, attitude, thermal, stream, virtual, flash, demo)
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from imubench.device.artifacts import installed
+    where = ("README.md lists the commands; docs/ has the methods (both in the sdist, imubench-<version>.tar.gz, "
+             "and the source repository: the docs/NAME.md the help texts name)." if installed() else
+             "README.md lists the commands; docs/ has the methods.")
     ap = Parser(prog="imubench",
                 description="Hardware-in-the-loop bench for calibrating MEMS IMUs (ADXL355 + ADXRS450 on an STM32).\n"
                             "Every command that talks to a device takes --port URL (default: $IMUBENCH_PORT).\n"
-                            "README.md lists the commands; docs/ has the methods.")
+                            + where)
     ap.add_argument("--version", action=_Version, nargs=0,
                     help="the package version, the source revision and the firmware images' versions")
     ap.add_argument("--debug", action="store_true",
@@ -63,12 +66,14 @@ class _Version(argparse.Action):
         try:
             text = version_text()
         except Exception as e:  # noqa: BLE001 - a damaged install still says its version
+            from imubench import __version__
             text = f"imubench {__version__} (compiled parts unreadable: {e})"
         print(text, flush=True)
         parser.exit(0)
 
 
 def main(argv=None) -> int:
+    guard_terminal(sys)              # no escape sequence from a name or a file acts on a terminal
     try:
         args = build_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as e:          # --help, --version (0) or a usage error (2, one line printed)
@@ -78,6 +83,7 @@ def main(argv=None) -> int:
         return EXIT_INTERRUPTED
     prefix = f"imubench {args.cmd}: error: "
     try:
+        resolve_sim_speed(args)
         return int(args.run(args) or 0)
     except KeyboardInterrupt:
         if debug_enabled(args):

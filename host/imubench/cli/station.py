@@ -86,22 +86,27 @@ def register(sub) -> None:
     p.add_argument("--dir", type=out_dir, metavar="DIR", default=Path("."),
                    help="where the session directories are made")
     p.add_argument("--db", metavar="PATH", help="history database (default: in the user data directory)")
-    add_sim(p, "offer the virtual bench on the page (a simulated person presents the attitudes)")
+    add_sim(p, "offer the virtual bench on the page (a simulated person presents the attitudes)", lockstep_speed=20.0)
     p.set_defaults(run=run)
 
 
 def serve_forever(server, open_browser: bool, until=None, then=lambda: None) -> None:
     """Listen, call then() (what the page is for starts once it can be served), print the
-    address, open the browser if asked, and serve until Ctrl-C (or until() returns true)."""
+    address with its one-time secret, open the browser if asked, and serve until Ctrl-C (or
+    until() returns true). Each time a browser trades the secret, the next address is printed."""
     import time
     server.start()
     try:
         then()
-        print(f"station page: {server.url}  (127.0.0.1 only; Ctrl-C stops it)", flush=True)
+        print(f"station page: {server.launch_url}", flush=True)
+        print("  (127.0.0.1 only; the secret in the address opens the page once, in one browser: the next "
+              "address is printed here; Ctrl-C stops the station)", flush=True)
+        server.on_new_url = lambda url: print(f"station page opened in a browser; to open it in another: {url}",
+                                              flush=True)
         if open_browser:
             import webbrowser
-            if not webbrowser.open(server.url):
-                print(f"could not start a browser: open {server.url} yourself", file=sys.stderr)
+            if not webbrowser.open(server.launch_url):
+                print("could not start a browser: open the address above yourself", file=sys.stderr)
         while until is None or not until():
             time.sleep(0.2)
     finally:

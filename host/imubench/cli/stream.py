@@ -5,7 +5,6 @@ import json
 import math
 import signal
 import sys
-import time
 
 import numpy as np
 
@@ -217,17 +216,21 @@ def run_monitor(a) -> int:
                   + (f", recording to {a.record}" if a.record else "") + "; Ctrl-C to stop")
             print(f"{'time':>7} {'rate':>7} | {'accel mean [g]':^29} | {'noise [mg]':^20} | "
                   f"{'gyro mean [°/s]':^26} | {'T[°C]':>5} | link")
-            t0 = time.monotonic()
+            # device time: the link's clock (the wall clock for a real board, device time for a
+            # lockstep virtual device), so --duration gives as many seconds of data on any machine
+            clock = dev.link.clock
+            t0 = clock.now()
             try:
-                while not stop["now"] and (a.duration is None or time.monotonic() - t0 < a.duration):
-                    b = dev.read(duration_s=a.interval)
+                while not stop["now"] and (a.duration is None or clock.now() - t0 < a.duration - 1e-9):
+                    b = dev.read(duration_s=a.interval if a.duration is None
+                                 else min(a.interval, a.duration - (clock.now() - t0)))
                     acc, gyr = b.si()
                     span = (b.t_us[-1] - b.t_us[0]) / 1e6 if len(b) > 1 else 0
                     rate = (len(b) - 1) / span if span else 0
                     st = dev.link.decoder.stats
                     faults = f" faults {len(dev.link.fault_events)}" if dev.link.fault_events else ""
                     bad = int(np.count_nonzero(b.status))
-                    print(f"{time.monotonic() - t0:7.1f} {rate:7.1f} | "
+                    print(f"{clock.now() - t0:7.1f} {rate:7.1f} | "
                           f"{_axes(U.mps2_to_mg(acc.mean(axis=0)) / 1000, '{:+9.5f}')} | "
                           f"{_axes(U.mps2_to_mg(acc.std(axis=0)), '{:6.3f}')} | "
                           f"{_axes(U.rad_s_to_dps(gyr.mean(axis=0)), '{:+8.3f}')} | "

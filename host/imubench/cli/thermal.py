@@ -17,8 +17,15 @@ from imubench.cli.common import (
     out_dir,
     positive_float,
 )
+from imubench.results import exports as X
 from imubench.results import thermal_export as TX
+from imubench.files import make_dir
 
+
+
+def _speed(a, realtime_default: float) -> float:
+    """--sim-speed, or on the real-time clock this command's pace when none was given."""
+    return realtime_default if a.sim_speed is None else a.sim_speed
 
 def _temps(s: str) -> list[float]:
     try:
@@ -55,7 +62,7 @@ def register(sub) -> None:
     p.add_argument("--settle-timeout", type=positive_float, default=7200.0, metavar="S",
                    help="give up waiting for a temperature after this many seconds")
     add_sim(p, "run on a virtual device with temperature coefficients in its truth; its bench drives "
-               "temperature, orientation and turntable (--sim-speed: default 20; 100 with --warmup)", speed=None)
+               "temperature, orientation and turntable (on the real-time clock --sim-speed 20, 100 with --warmup)", speed=None)
     p.add_argument("--ramp", type=non_negative_float, default=None, metavar="C_PER_S",
                    help="with --sim: the virtual chamber's ramp in °C/s (default 0.5; 0 = at once)")
     w = p.add_argument_group("warm-up method (no chamber: the board warms from cold while it lies still; "
@@ -67,8 +74,7 @@ def register(sub) -> None:
                    help="stop when every sensor has covered LO..HI °C (default: when the temperatures stop rising)")
     w.add_argument("--face", type=_face, default="+z", metavar="±X|±Y|±Z",
                    help="the board face that points up during the warm-up")
-    w.add_argument("--export", type=_exports, default=None, metavar="px4,ardupilot",
-                   help="also write autopilot parameter files (" + ", ".join(TX.KINDS) + ") beside thermal.json")
+    X.add_option(w, "thermal", what="also write (beside thermal.json)")
     w.add_argument("--stop-rate", type=positive_float, default=None, metavar="C_PER_MIN",
                    help="the temperatures have stopped rising when every |dT/dt| is below this (default 0.05; --sim 0.3)")
     w.add_argument("--stop-window", type=positive_float, default=None, metavar="S",
@@ -101,14 +107,6 @@ def _face(s: str) -> str:
     if f not in POSES:
         raise argparse.ArgumentTypeError(f"{s!r}: one of +x, -x, +y, -y, +z, -z (the face pointing up)")
     return f
-
-
-def _exports(s: str) -> tuple[str, ...]:
-    kinds = tuple(dict.fromkeys(x.strip().lower() for x in s.split(",") if x.strip()))
-    bad = [k for k in kinds if k not in TX.KINDS]
-    if bad or not kinds:
-        raise argparse.ArgumentTypeError(f"{s!r}: one or more of {', '.join(TX.KINDS)}, comma separated")
-    return kinds
 
 
 def run(a) -> int:
@@ -159,7 +157,7 @@ def run(a) -> int:
 
     if a.sim:
         from imubench.device.sim import VirtualBench
-        bench = VirtualBench(speed=a.sim_speed or 20.0, seed=a.sim_seed, target=a.target, clock=a.sim_clock)
+        bench = VirtualBench(speed=_speed(a, 20.0), seed=a.sim_seed, target=a.target, clock=a.sim_clock)
     with bench if a.sim else nullcontext() as vb:
         if vb is not None:
             vb.set_truth(accel=SIM_ACCEL_TRUTH, gyro=SIM_GYRO_TRUTH)
@@ -224,7 +222,7 @@ def run_warmup_cmd(a) -> int:
     if sim:
         from imubench.device.sim import VirtualBench
         # a warm-up lasts tens of minutes of device time: the virtual part runs it faster
-        bench = VirtualBench(speed=a.sim_speed or 100.0, seed=a.sim_seed, target=a.target, clock=a.sim_clock, truth="random")
+        bench = VirtualBench(speed=_speed(a, 100.0), seed=a.sim_seed, target=a.target, clock=a.sim_clock, truth="random")
     with bench if sim else nullcontext() as vb:
         if vb is not None:
             tau = None if a.tau is None else [a.tau] * 4
@@ -274,7 +272,7 @@ def _fit_warmups(a, out: Path, say) -> int:
     fj = fit_json(fits, t_ref)
     say(f"{len(runs)} warm-ups on faces {', '.join((r.get('config') or {}).get('face', '?') for r in runs)}")
     say(format_fit(fj))
-    out.mkdir(parents=True, exist_ok=True)
+    make_dir(out)
     data = {"schema": 1, "kind": "imubench thermal warmups", "created": now_utc(),
             "sources": [str(x) for x in a.fit_warmups], "faces": [(r.get("config") or {}).get("face") for r in runs],
             "device": runs[0].get("device"), "t_ref_c": t_ref, "fit": fj, "exports": {}}

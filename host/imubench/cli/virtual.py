@@ -18,6 +18,7 @@ from imubench.cli.common import (
     add_target,
     baud,
     existing_file,
+    image_help,
     new_file,
     non_negative_float,
 )
@@ -63,7 +64,7 @@ def register(sub) -> None:
     p.add_argument("--board", choices=sorted(BOARDS), default="f103", help="which image")
     p.add_argument("--params", type=existing_file, metavar="PAGE",
                    help="parameter page to preload into slot 0 (imubench param-page writes one)")
-    p.add_argument("--no-build", action="store_true", help="do not run `make firmware` first")
+    p.add_argument("--no-build", action="store_true", help=image_help()[2])
     p.set_defaults(run=run_qemu)
 
     p = sub.add_parser("fake", help="run the Python fake device on a pseudo-terminal",

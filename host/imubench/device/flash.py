@@ -20,9 +20,9 @@ given). Probes and the exact commands run:
               stm32flash <port>                        reads the bootloader's product ID
               stm32flash -S 0x08000000:<n> -w <hex|bin> -v -g 0x08000000 <port>
             -S with the image's length makes stm32flash erase only the pages/sectors the image
-            covers (page by page); without it stm32flash 0.7 erases the WHOLE flash (mass
-            erase, the parameter pages too) whenever it cannot tell the image's extent (a
-            .bin, or stdin). On a pseudo-terminal (the emulated board, /dev/pts/N) "-m 8n1" is
+            covers (page by page), whatever the file's kind; without it stm32flash 0.7 erases
+            the pages a .bin covers too, but sends a global erase (the parameter pages too)
+            for an image on stdin or one as large as the flash (docs/firmware.md). On a pseudo-terminal (the emulated board, /dev/pts/N) "-m 8n1" is
             added: Linux ptys clear PARENB, and stm32flash refuses a port that does not keep
             the 8E1 it set; a real USB-serial adapter gets stm32flash's 8E1.
 

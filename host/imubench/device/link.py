@@ -132,6 +132,13 @@ class DeviceError(RuntimeError):
         self.detail = detail
 
 
+def ports_matching(regex: str) -> list[str]:
+    """The serial ports whose description matches regex, as pyserial's hwgrep:// sees them
+    (serial.tools.list_ports.grep); re.error when regex is not a regular expression."""
+    from serial.tools import list_ports
+    return [p.device for p in list_ports.grep(regex)]
+
+
 def resolve_port(url: str | None) -> str:
     url = url or os.environ.get(PORT_ENV)
     if not url:

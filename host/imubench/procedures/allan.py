@@ -19,7 +19,7 @@ from imubench.device.link import (
     LinkTimeout,
 )
 from imubench.errors import NotACapture
-from imubench.files import MAX_CAPTURE_BYTES, open_growing, read_bytes
+from imubench.files import MAX_CAPTURE_BYTES, make_dir, open_growing, read_bytes
 from imubench.results.allan import format_readoffs, plot_allan
 from imubench.results.atomic import write_json_atomic
 from imubench.wire.decoder import decode_bytes
@@ -27,9 +27,11 @@ from imubench.wire.ids import device_identity, uid_text
 from imubench.wire.protocol_gen import MsgType
 
 
-def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=print) -> dict:
+def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=print, exports=(),
+                    topic: str = "/imu0") -> dict:
     """Decode capture file(s), convert raw counts to SI, run allan() on accel and gyro,
-    write allan.json and the two PNGs to out_dir; returns the summary dict."""
+    write allan.json, the two PNGs and each consumer's noise file of `exports`
+    (results.noise_export) to out_dir; returns the summary dict."""
     data = b"".join(read_bytes(p, MAX_CAPTURE_BYTES, "the capture") for p in paths)
     msgs, raw, _cal, stats = decode_bytes(data)
     infos = [m.msg for m in msgs if m.type == MsgType.INFO]     # record() asks for one into the capture
@@ -41,7 +43,7 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
         rate_hz = (len(raw) - 1) / ((raw.t_us[-1] - raw.t_us[0]) / 1e6)
         rate_hz = float(np.round(rate_hz, 1))
     acc, gyr = raw.si()
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dir(out_dir)
     devices = {device_identity(i)["mcu_uid"]: device_identity(i) for i in infos}
     if len(devices) > 1:
         raise NotACapture(f"{', '.join(map(str, paths))} hold recordings of {len(devices)} devices "
@@ -55,13 +57,64 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
             "the analysis joins the pieces (fine for a few, biased for many)")
     res["accel_usual"] = {a: usual_units(res["accel"][a], "accel") for a in AXES}
     res["gyro_usual"] = {a: usual_units(res["gyro"][a], "gyro") for a in AXES}
+    if exports:
+        from imubench.results.noise_export import write_noise_files
+        name = (res["device"] or {}).get("mcu_uid") or "imubench"
+        res["exports"] = write_noise_files(exports, out_dir, res, topic=topic, name=name)
     write_json_atomic(out_dir / "allan.json", res)
     plot_allan(res["accel"], out_dir / "allan_accel.png", "Accelerometer (ADXL355)", "m/s²", "accel")
     plot_allan(res["gyro"], out_dir / "allan_gyro.png", "Gyroscope (ADXRS450)", "rad/s", "gyro")
     for line in format_readoffs(res):
         log(line)
+    for kind, f in (res.get("exports") or {}).items():
+        log(f"{kind}: {f}")
     log(f"wrote {out_dir / 'allan.json'}, {out_dir / 'allan_accel.png'}, {out_dir / 'allan_gyro.png'}")
     return res
+
+
+MIN_STILL_S = 60.0          # the shortest still stretch a noise figure is read from (τ up to 6 s)
+STILL_WINDOW_S = 0.5        # the segmentation of `calibrate --from` (procedures.from_file.FileConfig)
+STILL_MIN_S = 1.0
+
+
+def still_stretch(acc_mps2, gyro_rad_s, fs_hz: float) -> dict:
+    """The longest still stretch of a recording, found as `calibrate --from` finds its rests:
+    calib.static.detect_static on the accelerometer (same window, same automatic threshold),
+    then calib.turns.split_by_rotation where only the gyro turned. Returns {'start', 'stop'
+    (sample indices, stop exclusive), 't_start_s', 'duration_s', 'fraction' (of the recording),
+    'stretches' (how many were found), 'whole' (True when it is the whole recording), 'note'}.
+    Raises RecordingError when no stretch of MIN_STILL_S is still, with the stretches found:
+    an Allan figure of a moving IMU is its motion, not its noise."""
+    from imubench.calib.static import detect_static
+    from imubench.calib.turns import split_by_rotation
+    from imubench.recordings import RecordingError
+    a = np.asarray(acc_mps2, float)
+    n = len(a)
+    ivs = detect_static(a, fs_hz, window_s=STILL_WINDOW_S, min_duration_s=STILL_MIN_S)
+    pieces = split_by_rotation(a, gyro_rad_s, fs_hz, list(ivs), min_duration_s=STILL_MIN_S)
+    total_s = n / fs_hz
+    if not pieces:
+        raise RecordingError(f"the recording ({total_s:.1f} s) is never still: the Allan figures of a moving IMU "
+                             "measure its motion, not its noise. Record the IMU at rest on a firm surface (hours "
+                             "for the bias terms) and give that file")
+    best = max(pieces, key=lambda i: i.n)
+    dur = best.n / fs_hz
+    durs = sorted((p.n / fs_hz for p in pieces), reverse=True)
+    listed = ", ".join(f"{d:.1f}" for d in durs[:8]) + (f", … ({len(durs) - 8} more)" if len(durs) > 8 else "")
+    if dur < MIN_STILL_S:
+        raise RecordingError(f"the recording ({total_s:.1f} s) is not still long enough for noise figures: its "
+                             f"longest still stretch is {dur:.1f} s of {len(pieces)} found ({listed} s; the "
+                             f"segmentation of calibrate --from), at least {MIN_STILL_S:.0f} s needed. The Allan "
+                             "figures of a moving IMU measure its motion, not its noise: record the IMU at rest on "
+                             "a firm surface (hours for the bias terms) and give that file")
+    whole = best.start == 0 and best.stop == n
+    note = "" if whole else (
+        f"the recording is not still throughout: {len(pieces)} still stretch{'es' if len(pieces) != 1 else ''} "
+        f"({listed} s) between motion; the longest, {best.t_start_s:.1f}–{best.t_start_s + dur:.1f} s "
+        f"({100 * best.n / n:.0f} % of {total_s:.1f} s), is analysed")
+    return {"start": int(best.start), "stop": int(best.stop), "t_start_s": float(best.t_start_s),
+            "duration_s": float(dur), "fraction": best.n / n, "stretches": len(pieces), "whole": whole,
+            "note": note}
 
 
 def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=print,
@@ -69,11 +122,11 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
     """The Allan analysis of a recording of any IMU read by imubench.recordings (the formats
     `calibrate --from` reads, with the same unit and timing checks), written like
     analyse_capture's, plus each consumer's noise file of `exports` (results.noise_export).
-    The recording's arrays are never copied whole: the deviation is computed an axis at a time,
-    in memory or in chunks as the memory budget (imubench.memory) allows."""
+    The deviation is computed an axis at a time from the recording's own arrays, in memory or
+    in chunks as the memory budget (imubench.memory) allows."""
     from imubench.procedures.recording_checks import check_accel_unit, check_gyro_unit
     from imubench.recordings import RecordingError
-    from imubench.results.noise_export import write_noise
+    from imubench.results.noise_export import write_noise_files
     fa, fg = rec.accel_factor(), rec.gyro_factor()
     if fa is None or fg is None:
         raise RecordingError("the Allan figures are in SI: give the raw counts' nominal scale (--accel-scale "
@@ -81,33 +134,36 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
     n = len(rec)
     if n < 64:
         raise RecordingError(f"{n} samples: far too few for an Allan analysis (record a still IMU for hours)")
+    acc, gyr = rec.accel * fa, rec.gyro * fg
+    still = still_stretch(acc, gyr, float(rec.fs_hz))     # found relative to the noise: any declared unit
+    del acc, gyr                                       # the Allan deviation works from rec's own arrays
+    s0, s1 = still["start"], still["stop"]
     chunk = max(1, int(10 * rec.fs_hz))
     norms = np.array([np.linalg.norm(rec.accel[i:i + chunk].mean(axis=0, dtype=np.float64))
-                      for i in range(0, n - chunk + 1, chunk)]
-                     or [np.linalg.norm(rec.accel.mean(axis=0, dtype=np.float64))])
+                      for i in range(s0, s1 - chunk + 1, chunk)]
+                     or [np.linalg.norm(rec.accel[s0:s1].mean(axis=0, dtype=np.float64))])
     check_accel_unit(rec, norms)                       # refuses only |a| far from 1 g
-    warn = check_gyro_unit(rec, np.array([np.median(rec.gyro[:, j]) for j in range(3)], dtype=np.float64), fg)
+    warn = check_gyro_unit(rec, np.array([np.median(rec.gyro[s0:s1, j]) for j in range(3)], dtype=np.float64), fg)
     if warn:
         log(f"warning: {warn}")
+    if still["note"]:
+        log(f"note: {still['note']}")
     for b, why in rec.breaks:
-        log(f"warning: break at sample {b}: {why}; the analysis joins the pieces")
+        if s0 < b < s1:
+            log(f"warning: break at sample {b}: {why}; the analysis joins the pieces")
     held = rec.accel.nbytes + rec.gyro.nbytes + (0 if rec.t_s is None else rec.t_s.nbytes)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dir(out_dir)
     name = rec.device or Path(rec.source.split(" + ")[0]).stem
-    res = {"source": [rec.source], "device": {"name": name}, "samples": n, "rate_hz": float(rec.fs_hz),
-           "duration_s": n / rec.fs_hz, "format": rec.fmt, "units": rec.unit_text(),
-           "timing": list(getattr(rec, "notes", [])),
-           "accel": _allan_of(rec.accel, "accelerometer", rec.fs_hz, fa, memory_budget, held),
-           "gyro": _allan_of(rec.gyro, "gyro", rec.fs_hz, fg, memory_budget, held)}
+    res = {"source": [rec.source], "device": {"name": name}, "samples": s1 - s0, "rate_hz": float(rec.fs_hz),
+           "duration_s": (s1 - s0) / rec.fs_hz, "format": rec.fmt, "units": rec.unit_text(),
+           "timing": list(getattr(rec, "notes", [])), "still": still,
+           "accel": _allan_of(rec.accel[s0:s1], "accelerometer", rec.fs_hz, fa, memory_budget, held),
+           "gyro": _allan_of(rec.gyro[s0:s1], "gyro", rec.fs_hz, fg, memory_budget, held)}
     res["method"] = res["gyro"]["method"]
     res["storage"] = f"{rec.accel.dtype.name} values ({(rec.accel.nbytes + rec.gyro.nbytes) / n:.0f} B a sample)"
     res["accel_usual"] = {a: usual_units(res["accel"][a], "accel") for a in AXES}
     res["gyro_usual"] = {a: usual_units(res["gyro"][a], "gyro") for a in AXES}
-    files = {}
-    for kind in dict.fromkeys(exports):
-        ext = {"kalibr": "kalibr-imu.yaml", "openvins": "openvins-kalibr_imu_chain.yaml",
-               "vins-fusion": "vins-fusion-imu.yaml", "imu-utils": "imu_utils.yaml"}[kind]
-        files[kind] = str(write_noise(kind, out_dir / ext, res, topic=topic, name=name))
+    files = write_noise_files(exports, out_dir, res, topic=topic, name=name)
     res["exports"] = files
     write_json_atomic(out_dir / "allan.json", res)
     plot_allan(res["accel"], out_dir / "allan_accel.png", f"Accelerometer ({name})", "m/s²", "accel")

@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 from imubench import units as U
-from imubench.calib.static import StillnessDetector, detect_static
+from imubench.calib.static import detect_static
+from imubench.calib.stillness import StillnessDetector
 from imubench.procedures.config import PoseRecord, SessionConfig
 from imubench.procedures.errors import SessionAborted
 from imubench.procedures.poses import (

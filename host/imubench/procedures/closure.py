@@ -19,7 +19,7 @@ import numpy as np
 from imubench import units as U
 from imubench.analysis.closure import closure_from_block
 from imubench.analysis.strapdown import ClosureError, euler_matrix, yaw_between
-from imubench.files import MAX_CAPTURE_BYTES, read_bytes, read_text
+from imubench.files import MAX_CAPTURE_BYTES, make_dir, read_bytes, read_text
 from imubench.results.atomic import write_json_atomic
 from imubench.results.closure import plot_closure, result_json
 from imubench.wire import params as PR
@@ -159,7 +159,7 @@ def run_closure(dev, out_dir: Path, params: Params, vb=None, path: str = "box", 
     parameters first) and analyse it. With a VirtualBench vb its bench drives PATHS[path] and
     the truth (path, and how far the bench's own path closes) is recorded too; without one the
     user carries the board (human_finished). Returns the closure_from_block result."""
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dir(out_dir)
     info = dev.info()
     meta = {"schema": 1, "started": _dt.datetime.now().isoformat(timespec="seconds"),
             "path": path if vb is not None else "by hand", "rest_s": rest_s, "g_mps2": g_mps2,

@@ -17,7 +17,7 @@ class Tolerances:
 @dataclass
 class SessionConfig:
     method: str = "six"              # "six" | "multi"
-    gyro: str | None = "bias"        # "bias" | "turntable" | "rotation" | None
+    gyro: str | None = "bias"        # a live method of calib.fit.GYRO_METHODS, or None
     rate_hz: int = 500
     rest_s: float = 5.0              # still at the start: noise and gyro bias
     settle_s: float = 0.5            # still this long before a pose is captured

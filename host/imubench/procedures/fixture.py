@@ -47,7 +47,7 @@ import numpy as np
 from imubench.calib import CalibrationError
 from imubench.device.link import Device, LinkError, LinkTimeout
 from imubench.errors import ImubenchError
-from imubench.files import open_input, write_text
+from imubench.files import make_dir, open_input, write_text
 from imubench.procedures.errors import SessionAborted
 from imubench.procedures.plate import POSE_TIMEOUT_S, PLATE_TIMEOUT_S, BoardFailed, Plate  # noqa: F401 - where callers found them
 from imubench.procedures.presenter import Presenter
@@ -360,7 +360,7 @@ class FixtureRun:
     # ------------------------------------------------------------ run
     def run(self) -> FixtureResult:
         t0 = time.monotonic()
-        self.dir.mkdir(parents=True, exist_ok=True)
+        make_dir(self.dir)
         if (self.dir / "station.json").exists():
             raise SessionAborted(f"{self.dir} already holds a station session: give another --dir")
         self._save_station()
@@ -428,7 +428,7 @@ class FixtureRun:
             self._fail(slot, e.stage, e.reason)
         except Exception as e:  # noqa: BLE001 - a bug on one board must not stop the others; it is named
             self._fail(slot, self.boards[slot].stage, f"{type(e).__name__}: {e}")
-            (self.dir / f"slot-{slot}").mkdir(parents=True, exist_ok=True)
+            make_dir((self.dir / f"slot-{slot}"))
             write_text(self.dir / f"slot-{slot}" / "error.txt", traceback.format_exc())
         finally:
             self.plate.leave(slot)

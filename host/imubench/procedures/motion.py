@@ -7,7 +7,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-from imubench.calib import TriadFit
 from imubench.calib.turns import TURN_DEG
 from imubench.procedures.config import SessionConfig
 from imubench.procedures.errors import SessionAborted
@@ -88,7 +87,7 @@ class MotionCapture:
                 return None
 
     def _wait_still(self, timeout_s: float) -> None:
-        from imubench.calib.static import StillnessDetector
+        from imubench.calib.stillness import StillnessDetector
         det = StillnessDetector(self.cfg.rate_hz, np.asarray(self.rest["noise_mps2"]), window_s=self.cfg.settle_s)
         waited = 0
         while waited < timeout_s * self.cfg.rate_hz:
@@ -106,8 +105,8 @@ class MotionCapture:
         """--gyro turns: for X, Y and Z up in turn, the board lies still, is turned by hand one
         full turn on the table about the vertical, and lies still again. Returns per turn the
         samples (accel m/s², gyro rad/s) from the rest before to the rest after; the turns are
-        found in them by calib.turns.detect_turns and fitted in known_turns_fit."""
-        from imubench.calib.static import StillnessDetector
+        found in them by calib.turns.detect_turns and fitted in calib.fit.known_turns_fit."""
+        from imubench.calib.stillness import StillnessDetector
         fs = self.cfg.rate_hz
         noise = np.asarray(self.rest["noise_mps2"])
         bias = np.mean(np.asarray(self.rest["gyro"]), axis=0) if self.rest.get("gyro") is not None else np.zeros(3)
@@ -151,24 +150,3 @@ class MotionCapture:
             out.append(blk.si())
             self.ui.say(f"  turn about {name} captured ({len(blk) / fs:.1f} s from rest to rest)")
         return out
-
-    def known_turns_fit(self, accel: TriadFit, runs, bias: TriadFit) -> TriadFit:
-        """Gyro M from the turns of capture_known_turns (calib.turns)."""
-        from imubench.calib.static import detect_static
-        from imubench.calib.turns import detect_turns, known_angle_turns, split_by_rotation
-        fs = self.cfg.rate_hz
-        turns, missing = [], []
-        for k, (acc, gyr) in enumerate(runs):
-            iv = detect_static(acc, fs, noise_sigma=np.asarray(self.rest["noise_mps2"]),
-                               min_duration_s=min(1.0, 0.5 * self.cfg.hold_s))
-            iv = split_by_rotation(acc, gyr, fs, iv, min_duration_s=min(1.0, 0.5 * self.cfg.hold_s))
-            if len(iv) < 2:
-                missing.append(f"turn {'XYZ'[k]}: {len(iv)} rest(s) found around it, 2 needed")
-                continue
-            up = accel.correct(np.array([i.mean for i in iv]))
-            found = detect_turns(gyr, fs, iv, up, turn_deg=TURN_DEG)
-            turns += found
-            if not any(t.usable for t in found):
-                missing.append(f"turn {'XYZ'[k]}: no whole turn between two rests of the same attitude")
-        return known_angle_turns(turns, bias, noise_density_rad_s_rthz=bias.extra["noise_density_rad_s_rthz"],
-                                 refused=missing)

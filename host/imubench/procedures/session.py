@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
-from imubench.calib import CalibrationError, TriadFit
-from imubench.calib.gsens import with_zero_force_bias, zero_force_bias
+from imubench.calib import TriadFit
+from imubench.calib.fit import Calibration, Evidence, RotationEvidence, fit, gyro_method_names
 from imubench.calib.geometry import rotation_to  # noqa: F401 - where callers found it
 from imubench.device.link import Device
-from imubench.files import MAX_CAPTURE_BYTES, open_growing, read_bytes
+from imubench.files import MAX_CAPTURE_BYTES, make_dir, open_growing, read_bytes
 from imubench.procedures.capture import PoseCapture
 from imubench.procedures.config import PoseRecord, SessionConfig, Tolerances  # noqa: F401 - where callers found them
 from imubench.procedures.errors import SessionAborted
@@ -77,20 +77,24 @@ class Session:
         self.accel_fit: TriadFit | None = None   # the fits of the last run()
         self.gyro_fit: TriadFit | None = None
         self.gsens = None                        # the gyro's g-sensitivity fit (calib.gsens), when resolved
-        self.gsens_report: dict | None = None    # what _gsens found, for the record
+        self.gsens_report: dict | None = None    # what the fit found of it, for the record
+        self.calibration: Calibration | None = None   # the last run()'s calib.fit.Calibration
         if resume:
             self._load()
         else:
-            self.dir.mkdir(parents=True, exist_ok=True)
+            make_dir(self.dir)
             if self.state_path.exists():
                 raise SessionAborted(f"{self.dir} already holds a session: use --resume {shlex.quote(str(self.dir))}, or another --dir")
             self.save()
 
     # ------------------------------------------------------------ persistence
     def save(self, **extra) -> None:
+        """The session file: rewritten after every attitude as a checkpoint (one line: the
+        rest's samples make it ~250 KB, and indenting them through json's pure-Python encoder
+        took a second of the first session), indented once a result is in it."""
         state = {"schema": SESSION_SCHEMA, "started": self.started, "config": jsonable(asdict(self.cfg)),
                  "rest": self.rest, "poses": [asdict(p) for p in self.poses], **extra}
-        write_json_atomic(self.state_path, state)     # a crash leaves the old or the new file
+        write_json_atomic(self.state_path, state, indent=1 if extra else None)   # a crash leaves the old or the new file
 
     def finish(self, result: dict) -> None:
         """Save the result of a run that went to its end (fit, write-back, verification, and
@@ -224,7 +228,7 @@ class Session:
         b = SampleBlock.concat(got)
         acc, gyr = b.si()
         self.rest = {"noise_mps2": rest_noise(acc, self.cfg.rate_hz).tolist(),
-                     "gyro": gyr.tolist() if self.cfg.gyro in ("bias", "rotation", "turntable", "turns") else None,
+                     "gyro": gyr.tolist() if self.cfg.gyro in gyro_method_names(live=True) else None,
                      "start_index": int(b.sample_index[0]), "stop_index": int(b.sample_index[-1]) + 1}
         self.save()
         return self.rest
@@ -260,6 +264,8 @@ class Session:
     def _start_stream(self) -> None:
         """A new continuous stream, captured to its own file as it arrives."""
         self.stream_no = 1 + max([p.stream for p in self.poses] + [self.stream_no])
+        while (self.dir / f"capture-{self.stream_no}.bin").exists():
+            self.stream_no += 1     # a resumed session stopped before a pose: its stream keeps its file
         old = self.dev.link.capture
         self.dev.link.capture = open_growing(self.dir / f"capture-{self.stream_no}.bin")
         if old is not None:
@@ -274,8 +280,6 @@ class Session:
 
     # ------------------------------------------------------------------- run
     def run(self, plan: list[tuple[str, np.ndarray]], history=None, verify_plan=None) -> dict:
-        from imubench.calib import accel as CA
-        from imubench.calib import gyro as CG
         self.run_started = now_utc()
         self._first_index = self._last_index = None
         self.check_health()
@@ -326,43 +330,22 @@ class Session:
 
         means, sigmas = self._fit_inputs()
         self.ui.step("fit", f"fitting {self.cfg.method}-position to {len(means)} attitudes", "running")
-        if self.cfg.method == "six":
-            accel = CA.six_position(means, sigmas)
-        else:
-            faces = [i for i, p in enumerate(self.poses) if sum(abs(np.array(p.direction)) > 0.9) == 1]
-            init = None
-            if len(faces) >= 6:
-                try:
-                    init = CA.six_position(means[faces], sigmas[faces])
-                except CalibrationError:
-                    init = None
-            CA.check_observability(means, "multi_position")
-            accel = CA.multi_position(means, sigmas, init=init)
-        gyro = None
         rest_gyr = np.asarray(self.rest["gyro"]) if self.rest.get("gyro") is not None else None
-        self.gsens = self._gsens(accel, rest_gyr) if self.cfg.gyro else None
-        gyro_refused = None
-        try:
-            if self.cfg.gyro == "bias":
-                gyro = CG.gyro_bias(rest_gyr, self.cfg.rate_hz)
-            elif self.cfg.gyro == "turntable":
-                gyro = self._turntable_fit(accel, segments, CG.gyro_bias(rest_gyr, self.cfg.rate_hz), self.gsens)
-            elif self.cfg.gyro == "rotation":
-                gyro = self._rotation_fit(accel, CG.gyro_bias(rest_gyr, self.cfg.rate_hz), self.gsens)
-            elif self.cfg.gyro == "turns":
-                gyro = MotionCapture(self.cfg, self.rest, self.ui, self._next_block).known_turns_fit(
-                    accel, turn_runs, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
-        except CalibrationError as e:
-            # a refused gyro never discards the accelerometer: kept, reported and recorded with
-            # the gyro's bias at rest; nothing is written (run_session) since M would be lost
-            gyro_refused = str(e)
-            gyro = CG.gyro_bias(rest_gyr, self.cfg.rate_hz)
-            self.ui.say(f"gyro not calibrated: {gyro_refused}")
-        if gyro is not None and self.gsens is not None:   # b + G·f: the bias at zero specific force
-            gyro = with_zero_force_bias(gyro, self.gsens)
-        frame_note = None
-        if self.cfg.method == "multi" and self.cfg.gyro == "turntable":
-            accel, frame_note = self._align_frames(accel, gyro, CG.gyro_bias(rest_gyr, self.cfg.rate_hz))
+        needs_stream = self.cfg.gyro == "rotation" or (self.cfg.method == "multi" and self.cfg.gyro == "turntable")
+        ev = Evidence(means_mps2=means, sigmas_mps2=sigmas, rate_hz=self.cfg.rate_hz,
+                      gyro_means_rad_s=np.array([p.gyro_mean_rad_s for p in self.poses]),
+                      rest_gyro_rad_s=rest_gyr, turntable_segments=segments, turn_runs=turn_runs,
+                      turn_noise_mps2=np.asarray(self.rest["noise_mps2"]),
+                      turn_min_still_s=min(1.0, 0.5 * self.cfg.hold_s),
+                      rotation=self._rotation_evidence() if needs_stream else None)
+        cal = fit(ev, method=self.cfg.method, gyro=self.cfg.gyro,
+                  excess_limit_mps2=self.cfg.tolerances.accel_rms_mg * 1e-3 * U.G0_MPS2,
+                  align_frames=self.cfg.method == "multi")
+        for line in cal.said:
+            self.ui.say(line)
+        accel, gyro, gyro_refused, frame_note = cal.accel, cal.gyro, cal.gyro_refused, cal.frame_note
+        self.calibration = cal
+        self.gsens, self.gsens_report = cal.gsens, cal.gsens_report
         self.accel_fit, self.gyro_fit = accel, gyro
         result = self._result(accel, gyro)
         result["gsens"] = self.gsens_report
@@ -384,85 +367,30 @@ class Session:
         self.save(result=result)
         return result
 
-    def _align_frames(self, accel: TriadFit, gyro: TriadFit, bias: TriadFit) -> tuple[TriadFit, str | None]:
-        """Multi-position + turntable: rotate the accelerometer's fit into the gyro (board)
-        frame, the rotation measured by the gyros between the poses (calib.frames). Returns
-        the fit and, when that is impossible, the fit unchanged and the reason."""
-        from imubench.calib.frames import align_accel_to_gyro
-        try:
-            in_accel_frame = self._rotation_fit(accel, bias)
-            aligned = align_accel_to_gyro(accel, gyro, in_accel_frame)
-        except (CalibrationError, OSError) as e:
-            return accel, (f"accelerometer left in its own frame (not aligned to the gyros): {e}; "
-                           "strapdown use of both will see that rotation")
-        phi = np.degrees(aligned.extra["alignment_rad"])
-        self.ui.say(f"accelerometer frame aligned to the gyro turntable axes: rotation "
-                    f"{np.round(phi, 3).tolist()} ° (about board x, y, z)")
-        return aligned, None
-
-    def _gsens(self, accel: TriadFit, rest_gyr):
-        """The gyro's g-sensitivity from the poses' gyro means against their calibrated specific
-        force (calib.gsens), or None when the poses cannot separate it. The ADXRS450 has one
-        (0.03 °/s/g typical), so it is always part of the model when it can be fitted: b is then
-        the bias at zero specific force and G goes to the device; p_zero says whether this
-        session alone resolves it. Reported in self.gsens_report."""
-        from imubench.calib.gsens import DPS, fit_gsens
-        means = np.array([p.gyro_mean_rad_s for p in self.poses])
-        f = accel.correct(np.array([p.mean_mps2 for p in self.poses])) / U.G0_MPS2
-        try:
-            gs = fit_gsens(means, np.ones_like(means), f, sigma_from_scatter=True)
-        except CalibrationError as e:
-            self.gsens_report = {"applied": False, "why_not": str(e)}
-            return None
-        self.gsens_report = {"applied": True, "resolved": bool(gs.significant), "g_dps_per_g": (gs.g * DPS).tolist(),
-                             "sigma_dps_per_g": (gs.sigma_g * DPS).tolist(), "p_zero": gs.p_zero,
-                             "b_rad_s": gs.b.tolist()}
-        self.ui.say(gs.summary())
-        return gs
-
-    def _rotation_fit(self, accel: TriadFit, bias: TriadFit, gsens=None) -> TriadFit:
-        """Gyro M from the motions between consecutive poses of one stream (on disk); with a
-        g-sensitivity the gyro is integrated less G·f(t) (f the calibrated specific force)."""
-        from imubench.calib import gyro as CG
+    def _rotation_evidence(self) -> RotationEvidence:
+        """The poses' continuous stream (capture-<n>.bin) for the rotation method: every sample
+        between the poses, or why it cannot serve (gaps, several streams, unreadable)."""
         from imubench.wire.decoder import decode_bytes
         by_stream: dict[int, list[PoseRecord]] = {}
         for p in self.poses:
             by_stream.setdefault(p.stream, []).append(p)
-        gyro_all, intervals, dirs = [], [], []
-        offset = 0
-        for k, poses in sorted(by_stream.items()):
-            _, raw, _, st = decode_bytes(read_bytes(self.dir / f"capture-{k}.bin", MAX_CAPTURE_BYTES, "the capture"))
+        for k in sorted(by_stream):
+            try:
+                _, raw, _, st = decode_bytes(read_bytes(self.dir / f"capture-{k}.bin", MAX_CAPTURE_BYTES, "the capture"))
+            except OSError as e:
+                return RotationEvidence(problem=str(e))
             if raw is None or st.samples_missing:
-                raise CalibrationError(f"stream {k} has gaps ({st.samples_missing} samples lost): "
-                                       "the rotation method needs every sample between poses")
-            idx0 = int(raw.sample_index[0])
-            acc, gyr = raw.si()
-            if gsens is not None:
-                gyr = gyr - (accel.correct(acc) / U.G0_MPS2) @ gsens.g.T
-            poses = sorted(poses, key=lambda p: p.start_index)
-            for p in poses:
-                intervals.append((offset + p.start_index - idx0, offset + p.stop_index - idx0))
-                x = accel.correct(np.array([p.mean_mps2]))[0]
-                dirs.append(x / np.linalg.norm(x))
-            gyro_all.append(gyr)
-            offset += len(gyr)
+                return RotationEvidence(problem=f"stream {k} has gaps ({st.samples_missing} samples lost): "
+                                                "the rotation method needs every sample between poses")
         if len(by_stream) > 1:
-            raise CalibrationError("the rotation method needs all poses in one continuous stream; "
-                                   "this session was resumed — use --gyro bias or turntable, or start a new session")
-        if gsens is not None:
-            bias = zero_force_bias(gsens, bias)
-        return CG.rotation_method(np.concatenate(gyro_all), self.cfg.rate_hz, intervals, np.array(dirs), bias)
-
-    def _turntable_fit(self, accel: TriadFit, segments: list, bias: TriadFit, gsens=None) -> TriadFit:
-        """Gyro M from the turntable segments with b fixed to the rest's bias; with a
-        g-sensitivity each segment's reading is taken less G·f (f its calibrated specific force)
-        and b is the bias at zero specific force."""
-        from imubench.calib import gyro as CG
-        if gsens is None:
-            return CG.turntable([s[:3] for s in segments], bias=bias)
-        segs = [(r, ax, w, None, accel.correct(np.asarray(a_mps2)[None])[0] / U.G0_MPS2)
-                for r, ax, w, _, a_mps2 in segments]
-        return CG.turntable(segs, bias=zero_force_bias(gsens, bias), gsens=gsens)
+            return RotationEvidence(problem="the rotation method needs all poses in one continuous stream; this "
+                                            "session was resumed — use --gyro bias or turntable, or start a new session")
+        idx0 = int(raw.sample_index[0])
+        acc, gyr = raw.si()
+        poses = sorted(next(iter(by_stream.values())), key=lambda p: p.start_index)
+        return RotationEvidence(accel_mps2=acc, gyro_rad_s=gyr,
+                                intervals=[(p.start_index - idx0, p.stop_index - idx0) for p in poses],
+                                rest_means_mps2=np.array([p.mean_mps2 for p in poses]))
 
     def _result(self, accel: TriadFit, gyro: TriadFit | None) -> dict:
         means = np.array([p.mean_mps2 for p in self.poses])
@@ -484,7 +412,7 @@ class Session:
 
     def verify(self, plan: list[tuple[str, np.ndarray]]) -> list[dict]:
         """The device's own calibrated output in a few attitudes: | |a| - g | per pose."""
-        from imubench.calib.static import StillnessDetector
+        from imubench.calib.stillness import StillnessDetector
         fs = self.cfg.rate_hz
         hold_n = int(self.cfg.hold_s * fs)
         out = []

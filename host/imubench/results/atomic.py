@@ -17,9 +17,10 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
     return write_text(path, text)
 
 
-def write_json_atomic(path: str | os.PathLike, obj) -> Path:
-    """json.dumps(obj, indent=1) written with write_text_atomic."""
-    return write_text_atomic(path, json.dumps(obj, indent=1))
+def write_json_atomic(path: str | os.PathLike, obj, indent: int | None = 1) -> Path:
+    """json.dumps(obj, indent=indent) written with write_text_atomic (indent=None: one line,
+    by json's C encoder, about 4x faster than its pure-Python indenting one)."""
+    return write_text_atomic(path, json.dumps(obj, indent=indent))
 
 
 def save_figure(fig, path: str | os.PathLike, **kw) -> Path:

@@ -19,6 +19,7 @@ import numpy as np
 from imubench import units as U
 from imubench.results.atomic import save_figure
 from imubench.results.numbers import pm
+from imubench.files import make_dir
 
 ACCEL_TOL_KEY = "accel_rms_mg"      # RMS of |a| − g over the poses after calibration
 VERIFY_TOL_KEY = "verify_mg"        # each verification pose: | |a| − g | of the device's output
@@ -168,7 +169,7 @@ def plot_pose_residuals(result: dict, path) -> Path:
     title = (f"Accelerometer |a| − g per pose: {_method(result)} fit\n"
              f"device {_uid(result)}" + (f", {when} UTC" if when else "") + (f"; {status}" if status else ""))
     fig.suptitle(title, fontsize=11)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_dir(path.parent)
     # the title also as PNG text, so that what the picture says can be checked without eyes
     save_figure(fig, path, format="png", metadata={"Title": title.replace("\n", " ")})
     return path

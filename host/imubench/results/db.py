@@ -49,6 +49,7 @@ from sqlalchemy.exc import DBAPIError, OperationalError, SQLAlchemyError
 from sqlalchemy.pool import NullPool
 
 from imubench.errors import ImubenchError
+from imubench.files import make_dir
 
 SCHEMA_VERSION = 2          # of the database (the tables below; MIGRATIONS reach it)
 ENV_DB = "IMUBENCH_DB"      # the environment variable naming the database (path or URL)
@@ -251,7 +252,7 @@ def make_engine(target, *, readonly: bool = False, timeout_s: float = 10.0) -> E
     else:
         if path.exists() and not path.is_file():
             raise DatabaseError(f"{path} is not a file")
-        path.parent.mkdir(parents=True, exist_ok=True)
+        make_dir(path.parent)
         dsn, uri = str(path), False
 
     def creator():

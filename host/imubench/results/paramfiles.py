@@ -50,10 +50,11 @@ from pathlib import Path
 import numpy as np
 
 from imubench.results.atomic import write_json_atomic, write_text_atomic
+from imubench.results.exports import names
 from imubench.text import comment as comment_line
 from imubench.units import G0_MPS2
 
-WRITERS = ("params", "imutk", "imucal", "ardupilot", "kalibr", "px4", "imu-calib")
+WRITERS = names("calibration")                                        # the export registry's (results.exports)
 SI_WRITERS = ("params", "ardupilot", "kalibr", "px4", "imu-calib")     # need a declared nominal scale
 
 
@@ -104,7 +105,23 @@ def imucal_dict(acc_m_raw, acc_b_raw, gyr_m_raw_per_dps, gyr_b_raw, from_acc_uni
             "b_g": np.asarray(gyr_b_raw, float).tolist(), "cal_type": "Ferraris", "_format_version": "2.0.0"}
 
 
-def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> str:
+AP_ID_HOW = ("ArduPilot counts INS_ACCOFFS/INS_ACCSCAL as this sensor's calibration only when the INS_ACC_ID it has "
+             "stored equals the id of the accelerometer it detects (AP_InertialSensor::register_accel sets "
+             "_accel_id_ok; a mismatch or none stored fails accel_calibrated_ok_all, pre-arm '3D Accel "
+             "calibration needed'; INS_GYR_ID likewise for the gyro). This file does not set "
+             "them: load it into the vehicle whose INS_ACC_ID / INS_GYR_ID already name this sensor (check with "
+             "`param show INS_ACC_ID` in MAVProxy or the Full Parameter List), and record in the board's axes")
+
+
+def gyro_scale_loss_dps(gyro_m, rate_dps: float) -> float:
+    """The largest rate error (°/s) a firmware without gyro scale and cross-axis terms makes at
+    rate_dps: corrected = raw − offset = M_g·ω, so the error is (M_g − I)·ω, at most the largest
+    singular value of M_g − I times the rate."""
+    g = np.asarray(gyro_m, float)
+    return float(np.linalg.norm(g - np.eye(3), 2)) * rate_dps
+
+
+def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "", gyro_m=None) -> str:
     m = np.asarray(acc_m, float)
     scale = 1.0 / np.diag(m)
     off = np.asarray(acc_b_mps2, float)
@@ -116,7 +133,16 @@ def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> s
              "# ArduPilot: corrected = INS_ACCSCAL * (raw - INS_ACCOFFS), per axis, m/s² (AP_InertialSensor)",
              f"# ArduPilot has no cross-axis terms: dropped off-diagonal of M up to {worst:.2e} "
              f"(≈ {err_mg:.2f} mg at 1 g); frame: the axes of the recording (ArduPilot applies these after "
-             "rotating the sensor into the autopilot board's axes, before AHRS_ORIENTATION: record in those axes)"]
+             "rotating the sensor into the autopilot board's axes, before AHRS_ORIENTATION: record in those axes)",
+             *[comment_line(part) for part in _wrap(f"Before loading: {AP_ID_HOW}.")]]
+    if gyro_b_rad_s is not None and gyro_m is not None:
+        g = np.asarray(gyro_m, float)
+        lines += [comment_line(
+            "ArduPilot has no gyro scale and no gyro cross-axis terms (corrected = raw - INS_GYROFFS): dropped "
+            f"M_g diagonal {', '.join(f'{v:.6f}' for v in np.diag(g))}, off-diagonal up to "
+            f"{float(np.max(np.abs(g - np.diag(np.diag(g))))):.2e}; the rate error this leaves is up to "
+            f"{gyro_scale_loss_dps(g, 100.0):.2f} deg/s at 100 deg/s and {gyro_scale_loss_dps(g, 300.0):.2f} deg/s "
+            "at 300 deg/s")]
     for i, ax in enumerate("XYZ"):
         lines.append(f"INS_ACCOFFS_{ax},{off[i]:.9g}")
     for i, ax in enumerate("XYZ"):
@@ -126,6 +152,12 @@ def ardupilot_text(acc_m, acc_b_mps2, gyro_b_rad_s=None, comment: str = "") -> s
         for i, ax in enumerate("XYZ"):
             lines.append(f"INS_GYROFFS_{ax},{float(gyro_b_rad_s[i]):.9g}")
     return "\n".join(lines) + "\n"
+
+
+def _wrap(text: str, width: int = 110) -> list[str]:
+    """A long comment as several lines (each becomes its own comment line)."""
+    import textwrap
+    return textwrap.wrap(text, width, break_long_words=False, break_on_hyphens=False) or [""]
 
 
 def _yaml_matrix(m, indent: str) -> str:
@@ -206,6 +238,8 @@ def px4_text(acc_m, acc_b_mps2, gyro_m=None, gyro_b_rad_s=None, gsens=None, comm
         g = np.asarray(gyro_m, float)
         rows.append(f"# and the gyro's scale and cross-axis terms (M_g diagonal {', '.join(f'{v:.6f}' for v in np.diag(g))}"
                     f", off-diagonal up to {float(np.max(np.abs(g - np.diag(np.diag(g))))):.2e}: PX4 has no gyro scale)")
+        rows.append(f"#   the rate error this leaves: up to {gyro_scale_loss_dps(g, 100.0):.2f} deg/s at 100 deg/s, "
+                    f"{gyro_scale_loss_dps(g, 300.0):.2f} deg/s at 300 deg/s")
     if gsens is not None:
         rows.append("# and the gyro g-sensitivity G (PX4 has none): its bias is the one at zero specific force")
     rows += ["# Onboard parameters for Vehicle 1", "#", "# Vehicle-Id Component-Id Name Value Type"]
@@ -236,34 +270,40 @@ def imu_calib_text(acc_m, acc_b_mps2, comment: str = "") -> str:
 def write(kind: str, prefix: Path, *, accel, gyro=None, accel_factor: float, gyro_factor: float | None,
           accel_unit: str, gyro_unit: str, scaled: bool, params=None, comment: str = "",
           gsens=None, px4_acc_id: int | None = None, px4_gyro_id: int | None = None) -> list[Path]:
-    """Write one layout; prefix is the path without extension. accel, gyro: TriadFit in SI (or
-    None); accel_factor / gyro_factor: SI per unit of the recording; scaled: whether the
-    recording's unit had a declared nominal scale (ours and ArduPilot's need one); params:
-    the parameter block for 'params'. Returns the files written."""
+    """Write one layout; prefix is the path without extension (the file names are the export
+    registry's, results.exports). accel, gyro: TriadFit in SI (or None); accel_factor /
+    gyro_factor: SI per unit of the recording; scaled: whether the recording's unit had a declared
+    nominal scale (ours and ArduPilot's need one); params: the parameter block for 'params'. Each
+    file is stamped with what it holds, cannot hold and leaves to do (exports.stamp). Returns the
+    files written."""
+    from imubench.results import exports as X
     prefix = Path(prefix)
     if kind not in WRITERS:
         raise ValueError(f"unknown writer {kind!r}; one of {', '.join(WRITERS)}")
+    fmt = X.get("calibration", kind)
+    paths = [prefix.parent / n for n in X.file_names("calibration", kind, prefix.name)]
+
+    def put(path: Path, text: str) -> Path:
+        return write_text_atomic(path, X.stamp(text, fmt))
     if kind == "params":
         from imubench.wire import params as PR
-        return [write_json_atomic(prefix.with_suffix(".params.json"), PR.to_json(params))]
+        return [write_json_atomic(paths[0], PR.to_json(params))]
     if kind == "ardupilot":
-        return [write_text_atomic(prefix.with_suffix(".ardupilot.param"),
-                                  ardupilot_text(accel.m, accel.b, None if gyro is None else gyro.b, comment))]
+        return [put(paths[0], ardupilot_text(accel.m, accel.b, None if gyro is None else gyro.b, comment,
+                                             None if gyro is None else gyro.m))]
     if kind == "kalibr":
-        return [write_text_atomic(prefix.with_suffix(".kalibr-imu.yaml"), kalibr_intrinsics_text(
-            accel.m, np.eye(3) if gyro is None else gyro.m, gsens, comment))]
+        return [put(paths[0], kalibr_intrinsics_text(accel.m, np.eye(3) if gyro is None else gyro.m, gsens, comment))]
     if kind == "px4":
-        return [write_text_atomic(prefix.with_suffix(".px4.params"), px4_text(
-            accel.m, accel.b, None if gyro is None else gyro.m, None if gyro is None else gyro.b, gsens, comment,
-            px4_acc_id, px4_gyro_id))]
+        return [put(paths[0], px4_text(accel.m, accel.b, None if gyro is None else gyro.m,
+                                       None if gyro is None else gyro.b, gsens, comment, px4_acc_id, px4_gyro_id))]
     if kind == "imu-calib":
-        return [write_text_atomic(prefix.with_suffix(".imu_calib.yaml"), imu_calib_text(accel.m, accel.b, comment))]
+        return [put(paths[0], imu_calib_text(accel.m, accel.b, comment))]
     am, ab = raw_model(accel.m, accel.b, accel_factor)
     if kind == "imutk":
-        out = [write_text_atomic(Path(f"{prefix}_acc.calib"), imutk_text(am, ab))]
+        out = [write_text_atomic(paths[0], imutk_text(am, ab))]
         if gyro is not None and gyro_factor:
             gm, gb = raw_model(gyro.m, gyro.b, gyro_factor)
-            out.append(write_text_atomic(Path(f"{prefix}_gyro.calib"), imutk_text(gm, gb)))
+            out.append(write_text_atomic(paths[1], imutk_text(gm, gb)))
         return out
     # imucal: gyro out in deg/s
     if gyro is not None and gyro_factor:
@@ -275,6 +315,4 @@ def write(kind: str, prefix: Path, *, accel, gyro=None, accel_factor: float, gyr
     d = imucal_dict(am, ab, gm, gb, units.get(accel_unit, accel_unit), units.get(gyro_unit, gyro_unit), comment)
     if gsens is not None and gyro_factor:   # imucal's K_ga: raw gyro units per (m/s²) of calibrated acceleration
         d["K_ga"] = (np.asarray(gsens, float) / 9.80665 / gyro_factor).tolist()
-    path = prefix.with_suffix(".imucal.json")
-    write_text_atomic(path, json.dumps(d, indent=4) + "\n")
-    return [path]
+    return [put(paths[0], json.dumps(d, indent=4) + "\n")]

@@ -56,6 +56,7 @@ from imubench.results.report_parts import (
     _thermal_section,
 )
 from imubench.results.sessionfile import load_state
+from imubench.files import make_dir
 
 G0 = U.G0_MPS2
 RAD2DEG = 180.0 / math.pi
@@ -492,5 +493,5 @@ two significant digits of the uncertainty</p>
 <span class="mono">{esc(session_dir.resolve())}</span></footer>
 </body></html>
 """
-    out_path.parent.mkdir(parents=True, exist_ok=True)
+    make_dir(out_path.parent)
     return write_text_atomic(out_path, doc)

@@ -12,6 +12,7 @@ from imubench.analysis.thermal import AXES, TempPoint, ThermalFit
 from imubench.results.atomic import save_figure, write_json_atomic
 from imubench.results.numbers import pm
 from imubench.results.record import now_utc
+from imubench.files import make_dir
 
 THERMAL_SCHEMA = 1
 
@@ -73,7 +74,7 @@ class ThermalRecord:
     def __init__(self, directory, config: dict):
         self.dir = Path(directory)
         self.path = self.dir / self.NAME
-        self.dir.mkdir(parents=True, exist_ok=True)
+        make_dir(self.dir)
         if self.path.exists():
             raise FileExistsError(f"{self.path} exists: choose another --out directory")
         self.data = {"schema": THERMAL_SCHEMA, "kind": "imubench thermal", "status": "running",

@@ -36,12 +36,13 @@ import numpy as np
 
 from imubench.analysis.thermal_poly import AxisFit, shift_poly
 from imubench.results.atomic import write_text_atomic
+from imubench.results.exports import names
 from imubench.text import comment as comment_line
 
-KINDS = ("px4", "ardupilot")
+KINDS = names("thermal")          # the export registry's (results.exports)
 AP_TREF_C = 35.0          # ArduPilot's TEMP_REFERENCE
 AP_SCALE = 1e6            # ArduPilot's SCALE_FACTOR
-SUFFIX = {"px4": ".px4-thermal.params", "ardupilot": ".ardupilot-thermal.param"}
+
 
 
 def _coef(a: AxisFit) -> np.ndarray:
@@ -76,11 +77,12 @@ def px4_text(fits: dict, t_ref: dict, gyro_temp: str, comment: str = "") -> str:
             "# X0 = 0: the offset at TREF stays in CAL_ACC0_xOFF / CAL_GYRO0_xOFF (imubench calibrate --export px4).",
             "# TC_A0_ID / TC_G0_ID: replace 0 with the PX4 device id of the sensor (CAL_ACC0_ID / CAL_GYRO0_ID).",
             "# TC_A0: against the ADXL355 temperature. TC_G0: PX4 has one temperature per gyro sensor; ours are three",
-            f"# ADXRS450s: these coefficients are fitted against {gyro_temp}, the temperature the driver must report.",
+            comment_line(f"ADXRS450s: these coefficients are fitted against {gyro_temp}, the temperature the driver "
+                         "must report."),
             "# PX4 holds: a bias polynomial of order <= 3 per axis about TREF, clamped to TMIN..TMAX, one per sensor;",
             f"# ours: orders accel {_orders(fits['accel'])}, gyro {_orders(fits['gyro'])} (x/y/z).",
             "# PX4 cannot hold: scale temperature terms, a temperature per gyro axis."]
-    rows += [f"# {d}" for d in _dropped(fits)]
+    rows += [comment_line(d) for d in _dropped(fits)]
     rows += ["# Onboard parameters for Vehicle 1", "#", "# Vehicle-Id Component-Id Name Value Type"]
     vals = [("TC_A_ENABLE", 1, 6), ("TC_G_ENABLE", 1, 6)]
     for pre, triad in (("TC_A0", "accel"), ("TC_G0", "gyro")):
@@ -101,11 +103,16 @@ def ardupilot_text(fits: dict, t_ref: dict, imu_temp: str, comment: str = "") ->
              "# p(d) = (c1 + (c2 + c3*d)*d)*d * 1e-6, c_k = INS_TCAL1_ACCk_* / INS_TCAL1_GYRk_*; m/s^2 and rad/s;",
              "# applied before INS_ACCOFFS/INS_ACCSCAL (INS_GYROFFS). Our polynomial re-expanded about 35 degC;",
              "# CALTEMP = our t_ref (the temperature our offsets belong to).",
-             f"# ArduPilot has one temperature per IMU for accelerometer and gyro: these are fitted against {imu_temp}.",
+             comment_line(f"ArduPilot has one temperature per IMU for accelerometer and gyro: these are fitted "
+                          f"against {imu_temp}."),
              "# ArduPilot holds: a bias polynomial of order <= 3 per axis about 35 degC without its constant term,",
              f"# clamped to one TMIN..TMAX per IMU; ours: orders accel {_orders(fits['accel'])}, gyro {_orders(fits['gyro'])}.",
-             "# ArduPilot cannot hold: scale temperature terms, a temperature per gyro axis, a constant term."]
-    lines += [f"# {d}" for d in _dropped(fits)]
+             "# ArduPilot cannot hold: scale temperature terms, a temperature per gyro axis, a constant term.",
+             "# LOAD IN TWO STEPS: the INS_TCAL1_* parameters exist only once INS_TCAL1_ENABLE = 1 and the board has",
+             "# rebooted (AP_Param enable flag). Load this file, reboot the autopilot, then load it again: the first",
+             "# load sets INS_TCAL1_ENABLE and the second the coefficients (until then they are refused as unknown).",
+             "# INS_ACC_ID / INS_GYR_ID on the vehicle must name this IMU (the calibration of another is not used)."]
+    lines += [comment_line(d) for d in _dropped(fits)]
     lo = max(_span(fits["accel"])[0], _span(fits["gyro"])[0])
     hi = min(_span(fits["accel"])[1], _span(fits["gyro"])[1])
     lines += ["INS_TCAL1_ENABLE,1", f"INS_TCAL1_TMIN,{lo:.2f}", f"INS_TCAL1_TMAX,{hi:.2f}"]
@@ -122,12 +129,15 @@ def write_exports(out_dir, fits_by_kind: dict, t_ref: dict, kinds, comment: str 
                   prefix: str = "warmup") -> dict:
     """Write the asked files into out_dir: fits_by_kind[kind] = (fits, temperature words) with the
     gyro fitted against the temperature that firmware uses. Returns {kind: [path]}."""
+    from imubench.results import exports as X
     out = {}
     for kind in kinds:
         fits, temp = fits_by_kind[kind]
-        path = Path(out_dir) / f"{prefix}{SUFFIX[kind]}"
+        path = Path(out_dir) / X.file_names("thermal", kind, prefix)[0]
         text = px4_text(fits, t_ref, temp, comment) if kind == "px4" else ardupilot_text(fits, t_ref, temp, comment)
-        out[kind] = [write_text_atomic(path, text)]
+        out[kind] = [write_text_atomic(path, X.stamp(text, X.get("thermal", kind)))]
+    if out:
+        X.write_index(out_dir, "thermal", out, comment or "warm-up temperature calibration")
     return out
 
 

@@ -14,6 +14,7 @@ from imubench.results.atomic import save_figure, write_json_atomic
 from imubench.results.numbers import pm
 from imubench.results.record import now_utc
 from imubench.results.thermal import _js
+from imubench.files import make_dir
 
 WARMUP_SCHEMA = 1
 KIND = "imubench thermal warmup"
@@ -88,7 +89,7 @@ class WarmupRecord:
     def __init__(self, directory, config: dict):
         self.dir = Path(directory)
         self.path = self.dir / self.NAME
-        self.dir.mkdir(parents=True, exist_ok=True)
+        make_dir(self.dir)
         if self.path.exists():
             raise FileExistsError(f"{self.path} exists: choose another --out directory")
         self.data = {"schema": WARMUP_SCHEMA, "kind": KIND, "status": "running", "stage": "start", "error": None,

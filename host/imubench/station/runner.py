@@ -10,6 +10,7 @@ import threading
 import time
 from pathlib import Path
 
+from imubench.calib.fit import gyro_method_names
 from imubench.errors import ImubenchError
 from imubench.station.presenter import SessionStopped, WebPresenter
 from imubench.station.security import PortPolicy, StationError, bool_field, int_field, number_field, text_field
@@ -17,7 +18,7 @@ from imubench.station.state import Refused, StationState
 
 SIM_KEY = "sim"
 METHODS = ("multi", "six")
-GYRO_METHODS = ("bias", "turntable", "rotation", "turns", "none")
+GYRO_METHODS = gyro_method_names(live=True)   # calib.fit.GYRO_METHODS: those a session on a device can use
 CAPTURES = ("adaptive", "plan")
 OPTIONS = ("port", "method", "gyro", "capture", "write", "note", "rate_hz")
 NOTE_CHARS = 500
@@ -468,6 +469,15 @@ class Station:
             b.phase = "end"
         self.state.update(key, f)
 
+    def export_path(self, safe_key: str, name: str) -> Path | None:
+        """One of a board's export files by its name (only the names its summary lists)."""
+        for b in self.state.boards.values():
+            if _safe(b.key) == safe_key and b.result:
+                for e in b.result.get("exports") or []:
+                    if e.get("name") == name and e.get("path"):
+                        return Path(e["path"])
+        return None
+
     def report_path(self, safe_key: str) -> Path | None:
         for b in self.state.boards.values():
             if _safe(b.key) == safe_key and b.result and b.result.get("report_path"):
@@ -487,7 +497,8 @@ def _summary(key: str, result: dict, d: Path, recorded: str | None) -> dict:
     status, words = calibration_verdict(result)
     report = build_report(d) if (Path(d) / "session.json").is_file() else None
     params = [r for r in parameter_rows(result) if r[1] != "not estimated"]
-    return {"status": status, "verdict": words, "parameters": params,
+    exports = _board_exports(key, result, d) if status == "pass" else []
+    return {"exports": exports, "status": status, "verdict": words, "parameters": params,
             "accel_rms_after_mg": result.get("accel_rms_after_mg"), "bench_time_s": result.get("bench_time_s"),
             "attitudes": len(result.get("poses") or []), "passed": bool(result.get("passed")),
             "written": bool(result.get("written")), "verified": bool(result.get("verified")),
@@ -548,6 +559,29 @@ def _warmup_summary(result: dict, d: Path, stopped: bool, closing: bool = False)
     return {"verdict": verdict, "stopped": stopped, "status": status, "written": verified, "fit": fit,
             "notes": notes, "stop_reason": why, "dir": str(d), "thermal_json": str(Path(d) / "thermal.json"),
             "exports": r.get("exports") or {}}
+
+
+def _board_exports(key: str, result: dict, d: Path) -> list[dict]:
+    """Every calibration format of the export registry for one board that passed, in
+    d/exports (a download each on its column: /export/KEY/FILE); [] when they cannot be made."""
+    from imubench.procedures.export_files import write_calibration
+    from imubench.results import exports as X
+    uid = (result.get("device") or {}).get("mcu_uid") or _safe(key)
+    try:
+        files = write_calibration(X.names("calibration"), Path(d) / "exports", result, name=uid,
+                                    comment=f"imubench calibration of {uid}, {result.get('finished') or ''}")
+    except (ValueError, OSError, KeyError) as e:
+        return [{"kind": "error", "name": _one_line(e), "url": None}]
+    # the page has no PX4 device ids: its px4 file says it is not usable as is, and so does its link
+    label = {"px4": "px4 (not usable without CAL_*_ID: see the file)"}
+    out = [{"kind": kind, "label": label.get(kind, kind) if len(paths) == 1 else f"{kind} {'accel' if k == 0 else 'gyro'}",
+            "consumer": X.get("calibration", kind).consumer, "name": Path(p).name, "path": str(p),
+            "url": f"/export/{_safe(key)}/{Path(p).name}"}
+           for kind, paths in files.items() for k, p in enumerate(paths)]
+    idx = Path(d) / "exports" / "exports-calibration.txt"
+    out.append({"kind": "index", "label": "what each file is for", "consumer": "", "name": idx.name,
+                "path": str(idx), "url": f"/export/{_safe(key)}/{idx.name}"})
+    return out
 
 
 def _safe(key: str) -> str:

@@ -101,8 +101,9 @@ class StationState:
 
     # ----------------------------------------------------------------- who
     def new_client(self) -> str:
-        """An identity for a browser (the server's cookie; never taken from a request). At
-        most MAX_CLIENTS: the longest unseen one that owns nothing and has no page open goes."""
+        """A page's session (issued only for a launch secret, security.Launch; sent back in a
+        header, never taken from a body, a URL or a cookie). At most MAX_CLIENTS: the longest
+        unseen one that owns nothing and has no page open goes."""
         with self._lock:
             if len(self.clients) >= MAX_CLIENTS:
                 idle = [t for t in self.clients if not self.streams.get(t) and not self._owns_any(t)]

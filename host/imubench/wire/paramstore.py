@@ -62,7 +62,7 @@ class Layout:
 
 
 LAYOUTS: dict[str, Layout] = {
-    # STM32F103C8 image (64 KiB map, also fine on an RB): the last two 1 KiB pages
+    # STM32F103CB image (pages 62-63 of its 128 KiB; the image also runs on a C8): 1 KiB pages
     "f103": Layout((0x0800F800, 0x0800FC00), 1024, 2),
     # QEMU stm32vldiscovery (128 KiB) and a 128 KiB F103RB layout
     "qemu-f1": Layout((0x0801F800, 0x0801FC00), 1024, 2),

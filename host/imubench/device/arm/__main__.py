@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     lib.simlib_set_lockstep(1 if a.clock == "lockstep" else 0)
 
-    from .bootloader import BootloaderServer, FlashFile, RomBootloader, code_path
+    from .bootloader import BootloaderServer, FlashFile, RomBootloader, code_path, open_code
     from .image import flash_segments, match_elf
     from .machine import Machine
     from .serve import Server
@@ -180,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.boot0 and not os.path.exists(code_file):
         # the board comes with the first image in its code pages (factory-programmed)
         try:
-            code = FlashFile(code_file, target.param_base - target.flash_base)
+            code = open_code(flash, target)
             for addr, data in flash_segments(str(elf), target):
                 code.write(addr - target.flash_base, data)
         except (OSError, ValueError) as e:
@@ -223,10 +223,10 @@ def main(argv: list[str] | None = None) -> int:
         while not should_stop():
             if machine is None:
                 if rom is None:
-                    rom = RomBootloader(target, FlashFile(code_file, target.param_base - target.flash_base),
+                    rom = RomBootloader(target, open_code(flash, target),
                                         FlashFile(flash, target.param_size), bytes(uidb), lib, _log)
                 else:
-                    rom.code = FlashFile(code_file, target.param_base - target.flash_base)
+                    rom.code = open_code(flash, target)
                     rom.params = FlashFile(flash, target.param_size)
                     rom.reset()
                 _log(f"[imubench-arm {a.target}] ROM bootloader (BOOT0 high): waiting for 0x7F")

@@ -2,9 +2,17 @@
 in the STM32 bootloader", rev. 14) and AN2606 ("STM32 microcontroller system memory boot
 mode") describe it, answering as the emulated chip's bootloader does:
 
-  chip   product ID  bootloader  erase command             flash geometry
-  F103   0x410       v2.2        Erase 0x43 (1-byte)       1 KiB pages (medium density)
-  F4     0x413       v3.1        Extended Erase 0x44       sectors 4x16, 64, 7x128 KiB
+  chip          product ID  bootloader  erase command         flash geometry
+  F103 (CB)     0x410       v2.2        Erase 0x43 (1-byte)   128 KiB, 1 KiB pages 0-127
+  F4 (F405/7)   0x413       v3.1        Extended Erase 0x44   1 MiB, sectors 4x16, 64, 7x128 KiB
+
+Memory the bootloader reads and writes (AN2606 "Bootloader memory management" for these
+parts; RM0008 30.1-30.2, RM0090 3.1, 39.1-39.2): the whole flash as one contiguous range (the
+parameter pages are ordinary flash: a read, write or erase may cross their border), RAM above
+the bootloader's own, system memory with the flash-size register and the unique ID in it
+(F1 0x1FFFF000-0x1FFFF7FF, F4 0x1FFF0000-0x1FFF7FFF with the OTP area 0x1FFF7800-0x1FFF7A0F),
+read at any length and alignment that stays inside it, and the option bytes (F1 0x1FFFF800,
+16 bytes; F4 0x1FFFC000, 16 bytes). The ROM's own code is not modelled: its bytes read as 0x00.
 
 Protocol (AN3155 2-3): after reset the bootloader waits for 0x7F (it measures the baud rate
 on it) and answers ACK (0x79); bytes before it are ignored. A command is its code and its
@@ -13,6 +21,13 @@ XOR; data blocks carry N-1 and the XOR of N-1 and the data. Commands:
   Get 0x00, Get Version & Read Protection Status 0x01, Get ID 0x02, Read Memory 0x11,
   Go 0x21, Write Memory 0x31, Erase 0x43 (F1) / Extended Erase 0x44 (F4),
   Write Protect 0x63, Write Unprotect 0x73, Readout Protect 0x82, Readout Unprotect 0x92.
+Address checks at the step AN3155 names: Read Memory and Write Memory NACK an address that is
+not in readable (writable) memory right after the address and its checksum, Go one that is not
+a jump target; the length (Read) or the data (Write) are then NACKed only for their checksum,
+for running past the end of the memory the address is in, or (Write) for an address that is
+not 4-byte aligned or a page that is write protected. Write Memory to the option bytes is
+allowed: the bootloader programs them and the chip resets (AN3155 3.6), read and write
+protection take their new values from them.
 Protection as the chip: with readout protection active Read Memory, Write Memory, Go and
 Erase are NACKed; Readout Unprotect mass-erases the flash (the parameter pages too), clears
 the protection and resets; Write Protect / Unprotect change the write-protection option
@@ -41,27 +56,33 @@ RESET_STUB = bytes([0x01, 0x49, 0x02, 0x4A, 0x0A, 0x60, 0xFE, 0xE7, 0x0C, 0xED, 
 CHIP = {
     # product ID, bootloader version, commands (Get's list), RAM the bootloader keeps, units
     "f103": dict(pid=0x410, version=0x22, erase=0x43, ram_reserved=0x200,
-                 units=[1 * KIB] * 64, wrp_pages=4, option_base=0x1FFFF800,
-                 sysmem=(0x1FFFF000, 0x1FFFF800)),
+                 units=[1 * KIB] * 128, wrp_pages=4, option_base=0x1FFFF800,
+                 sysmem=(0x1FFFF000, 0x1FFFF800), otp=None),
     "f4": dict(pid=0x413, version=0x31, erase=0x44, ram_reserved=0x3000,
                units=[16 * KIB] * 4 + [64 * KIB] + [128 * KIB] * 7, wrp_pages=1, option_base=0x1FFFC000,
-               sysmem=(0x1FFF0000, 0x1FFF7800)),
+               sysmem=(0x1FFF0000, 0x1FFF8000), otp=(0x1FFF7800, 0x1FFF7A10)),
 }
 
 
 class FlashFile:
     """Bytes of flash persisted in a file (write-through), created erased (0xFF)."""
 
-    def __init__(self, path: str, size: int):
+    def __init__(self, path: str, size: int, grow_from: int = 0):
+        """grow_from: a file of that many bytes is taken and extended with erased bytes (the
+        F103's code file from before the board had 128 KiB: the code pages below the parameter
+        pages only)."""
         self.path = path
         self.size = size
         self.mem = bytearray(b"\xff" * size)
         if os.path.exists(path) and os.path.getsize(path) > 0:
             n = os.path.getsize(path)
-            if n != size:
+            if n != size and not (grow_from and n == grow_from):
                 raise ValueError(f"{path} has {n} bytes, expected {size}: a flash file of another target?")
             with open(path, "rb") as f:
-                self.mem[:] = f.read()
+                self.mem[:n] = f.read()
+            if n != size:
+                with open(path, "ab") as f:
+                    f.write(self.mem[n:])
         else:
             with open(path, "wb") as f:
                 f.write(self.mem)
@@ -74,9 +95,16 @@ class FlashFile:
 
 
 def code_path(flash_path: str) -> str:
-    """The code pages of a virtual board (0x08000000 up to the parameter pages) live next to its
-    parameter flash file: FILE.code."""
+    """The code pages of a virtual board (every flash page that is not a parameter page: from
+    0x08000000 up to the parameter pages, then any above them) live next to its parameter flash
+    file: FILE.code."""
     return flash_path + ".code"
+
+
+def open_code(flash_path: str, target) -> FlashFile:
+    """The code file of a board (a shorter one from an earlier memory map grows, erased)."""
+    return FlashFile(code_path(flash_path), target.code_file_size,
+                     grow_from=target.param_base - target.flash_base)
 
 
 class RomBootloader:
@@ -95,6 +123,7 @@ class RomBootloader:
         self.ram = bytearray(target.ram_size)
         self.rdp = False
         self.wrp: set[int] = set()       # write-protected pages/sectors
+        self.ob_user = b"\xff\xff\xff" if target.name == "f103" else b"\xed"   # USER (F1: + Data0/1)
         self.busy_s = 0.0                # device time spent programming/erasing
         self.erased_units: list[int] = []  # every page/sector erased (in order), for the tests
         self.flash_ops = 0
@@ -131,34 +160,60 @@ class RomBootloader:
             a += size
         return out
 
-    def _region(self, addr: int, n: int):
-        """(store, offset) for a flash/RAM/system range, None when not readable/writable as one."""
+    def _flash_pieces(self, addr: int, n: int) -> list[tuple[FlashFile, int, int]]:
+        """[addr, addr+n) in flash as (store, offset, length) pieces: the code file below the
+        parameter pages, the parameter file, the code file again above them."""
         t = self.t
-        if t.flash_base <= addr and addr + n <= t.param_base:
-            return self.code, addr - t.flash_base
-        if t.param_base <= addr and addr + n <= t.param_base + t.param_size:
-            return self.params, addr - t.param_base
-        if t.ram_base <= addr and addr + n <= t.ram_base + t.ram_size:
-            return "ram", addr - t.ram_base
+        p_end = t.param_base + t.param_size
+        spans = [(t.flash_base, t.param_base, self.code, 0), (t.param_base, p_end, self.params, 0),
+                 (p_end, t.flash_base + t.flash_size, self.code, t.param_base - t.flash_base)]
+        out = []
+        for lo, hi, store, base in spans:
+            a, b = max(lo, addr), min(hi, addr + n)
+            if a < b:
+                out.append((store, base + a - lo, b - a))
+        return out
+
+    def _areas(self):
+        """(start, end, kind) of every range the bootloader reads: flash, RAM, system memory,
+        option bytes (AN2606's memory map of the part)."""
+        t, c = self.t, self.chip
+        return [(t.flash_base, t.flash_base + t.flash_size, "flash"),
+                (t.ram_base, t.ram_base + t.ram_size, "ram"),
+                (c["sysmem"][0], c["sysmem"][1], "system"),
+                (c["option_base"], c["option_base"] + 16, "option")]
+
+    def _area(self, addr: int) -> tuple[int, int, str] | None:
+        for a in self._areas():
+            if a[0] <= addr < a[1]:
+                return a
         return None
 
+    def _system_memory(self) -> bytes:
+        """System memory as read: the ROM's code (not modelled) as zeros, the F4's OTP area
+        erased (0xFF), the flash-size register and the unique ID in their places."""
+        t, c = self.t, self.chip
+        lo, hi = c["sysmem"]
+        mem = bytearray(hi - lo)
+        if c["otp"]:
+            mem[c["otp"][0] - lo:c["otp"][1] - lo] = b"\xff" * (c["otp"][1] - c["otp"][0])
+        mem[t.uid_addr - lo:t.uid_addr - lo + 12] = self.uid
+        mem[t.fsize_addr - lo:t.fsize_addr - lo + 2] = t.flash_kib.to_bytes(2, "little")
+        return bytes(mem)
+
     def _read(self, addr: int, n: int) -> bytes | None:
-        r = self._region(addr, n)
-        if r is not None:
-            store, off = r
-            return bytes(self.ram[off:off + n]) if store == "ram" else bytes(store.mem[off:off + n])
-        t = self.t
-        if t.uid_addr <= addr and addr + n <= t.uid_addr + 12:
-            return self.uid[addr - t.uid_addr:addr - t.uid_addr + n]
-        if t.fsize_addr <= addr and addr + n <= t.fsize_addr + 2:
-            return t.flash_kib.to_bytes(2, "little")[addr - t.fsize_addr:addr - t.fsize_addr + n]
-        ob = self.chip["option_base"]
-        if ob <= addr and addr + n <= ob + 16:
-            return bytes(self._option_bytes()[addr - ob:addr - ob + n])
-        lo, hi = self.chip["sysmem"]
-        if lo <= addr and addr + n <= hi:
-            return b"\x00" * n              # the ROM's own code is not modelled: reads as zeros
-        return None
+        """n bytes from addr, None when [addr, addr+n) is not inside one readable area."""
+        a = self._area(addr)
+        if a is None or addr + n > a[1]:
+            return None
+        lo, _, kind = a
+        if kind == "flash":
+            return b"".join(bytes(st.mem[off:off + k]) for st, off, k in self._flash_pieces(addr, n))
+        if kind == "ram":
+            return bytes(self.ram[addr - lo:addr - lo + n])
+        if kind == "system":
+            return self._system_memory()[addr - lo:addr - lo + n]
+        return bytes(self._option_bytes()[addr - lo:addr - lo + n])
 
     def _option_bytes(self) -> bytearray:
         if self.t.name == "f103":           # RDP, USER, Data0, Data1, WRP0..3 with complements
@@ -166,7 +221,7 @@ class RomBootloader:
             wrp = 0xFFFFFFFF
             for s in self.wrp:
                 wrp &= ~(1 << (s // 4))
-            vals = [rdp, 0xFF, 0xFF, 0xFF] + [(wrp >> (8 * i)) & 0xFF for i in range(4)]
+            vals = [rdp, *self.ob_user] + [(wrp >> (8 * i)) & 0xFF for i in range(4)]
             out = bytearray()
             for v in vals:
                 out += bytes([v, v ^ 0xFF])
@@ -174,7 +229,7 @@ class RomBootloader:
         nwrp = 0x0FFF
         for s in self.wrp:
             nwrp &= ~(1 << s)
-        return bytearray([0xED, 0x00 if self.rdp else 0xAA, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
+        return bytearray([self.ob_user[0], 0x00 if self.rdp else 0xAA, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
                           nwrp & 0xFF, nwrp >> 8, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00])
 
     def _unit_of(self, addr: int) -> int:
@@ -194,16 +249,10 @@ class RomBootloader:
 
     def _fill(self, addr: int, data: bytes) -> None:
         """Write bytes over [addr, addr+len) in whichever store(s) hold them."""
-        t = self.t
-        while data:
-            if addr < t.param_base:
-                n = min(len(data), t.param_base - addr)
-                self.code.write(addr - t.flash_base, data[:n])
-            else:
-                n = min(len(data), t.param_base + t.param_size - addr)
-                self.params.write(addr - t.param_base, data[:n])
-            addr += n
-            data = data[n:]
+        i = 0
+        for store, off, k in self._flash_pieces(addr, len(data)):
+            store.write(off, data[i:i + k])
+            i += k
 
     def _erase_unit(self, unit: int) -> bool:
         """Erase one page/sector; False: a power cut fell into it (half erased, power off)."""
@@ -230,9 +279,7 @@ class RomBootloader:
         cut = self._op_cut()
         if cut:
             data = data[:len(data) // 2]
-        r = self._region(addr, len(data))
-        store, off = r
-        old = bytes(store.mem[off:off + len(data)])
+        old = self._read(addr, len(data))
         if self.t.name == "f103":
             new = bytearray(old)
             for i in range(0, len(data) - 1, 2):
@@ -246,7 +293,7 @@ class RomBootloader:
         else:
             new = bytes(o & d for o, d in zip(old, data))
             self.busy_s += self.t.program_s * (len(data) // 4)
-        store.write(off, bytes(new))
+        self._fill(addr, bytes(new))
         if cut:
             self.log(f"bootloader: power cut during the write at 0x{addr:08X} (half written)")
             self.action = ("power_cut",)
@@ -301,9 +348,10 @@ class RomBootloader:
             return None
         return int.from_bytes(b[:4], "big")
 
-    def _open_address(self):
+    def _open_address(self, valid):
         """The start of Read and Write Memory: NACK under readout protection, else ACK, the
-        address with its checksum and ACK; the address, or None when refused."""
+        address with its checksum, and ACK when valid(address) holds (NACK right there when not,
+        AN3155 3.4/3.6); the address, or None when refused."""
         if self.rdp:
             self.out.append(NACK)
             return None
@@ -311,11 +359,20 @@ class RomBootloader:
         addr = yield from self._address()
         if addr is None:
             return None
+        if not valid(addr):
+            self.out.append(NACK)
+            return None
         self.out.append(ACK)
         return addr
 
+    def _writable(self, addr: int) -> bool:
+        a = self._area(addr)
+        if a is None or a[2] == "system":
+            return False
+        return not (a[2] == "ram" and addr - self.t.ram_base < self.chip["ram_reserved"])
+
     def _read_mem(self):
-        addr = yield from self._open_address()
+        addr = yield from self._open_address(lambda a: self._area(a) is not None)
         if addr is None:
             return
         nb = yield 2
@@ -325,13 +382,14 @@ class RomBootloader:
         n = nb[0] + 1
         data = self._read(addr, n)
         if data is None:
+            self.log(f"bootloader: Read Memory 0x{addr:08X}+{n}: runs past the end of its memory")
             self.out.append(NACK)
             return
         self.out.append(ACK)
         self.out += data
 
     def _write_mem(self):
-        addr = yield from self._open_address()
+        addr = yield from self._open_address(self._writable)
         if addr is None:
             return
         nb = yield 1
@@ -341,24 +399,53 @@ class RomBootloader:
         x = nb[0]
         for v in data:
             x ^= v
-        r = self._region(addr, n)
-        if x != cs or r is None or (r[0] != "ram" and addr % 4):
+        lo, hi, kind = self._area(addr)
+        if x != cs or addr + n > hi or (kind == "flash" and addr % 4):
             self.out.append(NACK)
             return
-        if r[0] == "ram":
-            if addr - self.t.ram_base < self.chip["ram_reserved"]:
-                self.out.append(NACK)       # the bootloader's own RAM
-                return
-            self.ram[r[1]:r[1] + n] = data
+        if kind == "ram":
+            self.ram[addr - lo:addr - lo + n] = data
             self.out.append(ACK)
             return
-        for a in (addr, addr + n - 1):
-            if self._wrp_unit(self._unit_of(a)) in self.wrp:
-                self.out.append(NACK)
-                return
+        if kind == "option":
+            self._write_option_bytes(addr - lo, data)
+            self.out.append(ACK)
+            self.action = ("reset",)        # AN3155 3.6: the option bytes are written, then a system reset
+            return
+        units = range(self._unit_of(addr), self._unit_of(addr + n - 1) + 1)
+        if any(self._wrp_unit(u) in self.wrp for u in units):
+            self.out.append(NACK)
+            return
         ok = self._program(addr, data)
         if self.action is None:
             self.out.append(ACK if ok else NACK)
+
+    def _write_option_bytes(self, off: int, data: bytes) -> None:
+        """Write Memory into the option bytes: the bootloader erases them all and programs the
+        bytes given (AN3155 3.6); what is not given stays erased (0xFF). Read protection and
+        write protection follow the new values (F1: RDP 0xA5 = unprotected, WRPn bit 0 = 4
+        pages protected, RM0008 4.7.1/4.7.2 / PM0075 2.5; F4: RDP 0xAA = level 0, nWRP bit 0 =
+        sector protected, RM0090 3.6/3.7.1). Complement bytes (F1) are the chip's own."""
+        ob = bytearray(b"\xff" * 16)
+        ob[off:off + len(data)] = data
+        step = self.chip["wrp_pages"]
+        self.wrp = set()
+        if self.t.name == "f103":
+            self.rdp = ob[0] != 0xA5
+            self.ob_user = bytes([ob[2], ob[4], ob[6]])
+            wrp = ob[8] | ob[10] << 8 | ob[12] << 16 | ob[14] << 24
+            for bit in range(len(self.chip["units"]) // step):
+                if not wrp >> bit & 1:
+                    self.wrp.add(bit * step)
+        else:
+            self.rdp = ob[1] != 0xAA
+            self.ob_user = bytes([ob[0]])
+            nwrp = ob[8] | ob[9] << 8
+            for sector in range(len(self.chip["units"])):
+                if not nwrp >> sector & 1:
+                    self.wrp.add(sector)
+        self.log("bootloader: option bytes written (read protection "
+                 f"{'on' if self.rdp else 'off'}, write protected {sorted(self.wrp) or 'none'}): system reset")
 
     def _erase(self):
         """F1 Erase (0x43): N then N+1 page numbers and the XOR; 0xFF 0x00 = global erase."""
@@ -462,10 +549,10 @@ class RomBootloader:
         x = nb[0]
         for v in rest[:-1]:
             x ^= v
-        if x != rest[-1]:
-            self.out.append(NACK)
-            return
         step = self.chip["wrp_pages"]
+        if x != rest[-1] or any(s * step >= len(self.chip["units"]) for s in rest[:-1]):
+            self.out.append(NACK)           # a bad checksum, or a sector the part does not have
+            return
         for s in rest[:-1]:
             self.wrp.add(s * step)
         self.out.append(ACK)

@@ -160,6 +160,10 @@ class Cpu:
         code_size = t.param_base - t.flash_base
         uc.mem_map(t.flash_base, code_size, UC_PROT_READ | UC_PROT_EXEC)
         uc.mem_map(t.ram_base, t.ram_size, UC_PROT_ALL)
+        hi = t.param_base + t.param_size                 # flash above the parameter pages (F103CB: the
+        if hi < t.flash_base + t.flash_size:             # upper 64 KiB no image uses) reads erased
+            uc.mem_map(hi, t.flash_base + t.flash_size - hi, UC_PROT_READ | UC_PROT_EXEC)
+            uc.mem_write(hi, b"\xff" * (t.flash_base + t.flash_size - hi))
         # Raw ctypes callbacks (not Uc.mmio_map's wrappers): an MMIO access is the hot path
         # of the emulation (~200 per sample), every Python frame counts. The callbacks get
         # (offset, size[, value]); an exception in one is a bug in a peripheral model: it is

@@ -33,7 +33,7 @@ import time
 from ctypes import c_uint8, c_uint64
 
 from unicorn import UcError
-from unicorn.arm_const import UC_ARM_REG_PC, UC_ARM_REG_R1
+from unicorn.arm_const import UC_ARM_REG_PC
 
 from .clock import Clock
 from .core import Cpu, ElfImage
@@ -46,8 +46,9 @@ from .spi import Spi
 from .systick import SysTick
 from .targets import Target
 from .uid import UniqueId
-from .image import code_regions
 from .usart import Usart
+from .wiring import BusWiring
+from .fastforward import FastForward
 
 REGION_NAMES = ("other", "core", "drivers", "board", "lib")
 INF = float("inf")
@@ -55,7 +56,10 @@ MAX_LAG_WALL_S = 0.2
 RESET_POWER_CUT = 2
 
 
-class Machine:
+class Machine(BusWiring, FastForward):
+    """The board: its peripherals and the event loop (the bus wiring: arm/wiring.py; the
+    fast-forward hooks: arm/fastforward.py)."""
+
     def __init__(self, target: Target, elf_path: str, map_path: str | None, lib, flash_path: str,
                  seed: int = 1, hse: bool = True, log=None, t0: float = 0.0, boot0: bool = False):
         self.target = target
@@ -127,133 +131,6 @@ class Machine:
                                                                            "last_time_us")]
         self._stream_state_addr = core + members["stream_state"]
         self.power_on()
-
-    # ------------------------------------------------------------------ wiring
-    def _map(self, map_path: str | None) -> None:
-        t = self.target
-        regions = []
-        self._gates: dict[str, bool] = {}
-
-        def periph(name, obj, timed):
-            base = t.periph[name]
-            gate = self._gates
-            gate[name] = self.rcc.clock_on(name)
-
-            if timed:
-                def rd(off, size, obj=obj, name=name):
-                    if self.dead:
-                        return 0
-                    if not gate[name]:
-                        return self._clock_off(name, off, size, None)
-                    now = self.clock.now()
-                    if now >= self.next_ev:
-                        self._process(now)
-                    return obj.read(off, size, now)
-
-                def wr(off, size, value, obj=obj, name=name):
-                    if self.dead:
-                        return
-                    self.effects += 1
-                    if not gate[name]:
-                        self._clock_off(name, off, size, value)
-                        return
-                    now = self.clock.now()
-                    if now >= self.next_ev:
-                        self._process(now)
-                    obj.write(off, size, value, now)
-            else:
-                def rd(off, size, obj=obj, name=name):
-                    if self.dead:
-                        return 0
-                    if not gate[name]:
-                        return self._clock_off(name, off, size, None)
-                    return obj.read(off, size)
-
-                def wr(off, size, value, obj=obj, name=name):
-                    if self.dead:
-                        return
-                    self.effects += 1
-                    if not gate[name]:
-                        self._clock_off(name, off, size, value)
-                        return
-                    obj.write(off, size, value)
-            regions.append((base, 0x400, rd, wr))
-
-        periph("RCC", self.rcc, False)
-        periph("FLASH", self.flash, False)
-        periph("GPIOA", self.gpio["GPIOA"], False)
-        periph("GPIOB", self.gpio["GPIOB"], False)
-        if self.afio is not None:
-            periph("AFIO", self.afio, False)
-        if "PWR" in t.periph:
-            class _Pwr:
-                read = self.rcc.pwr_read
-                write = self.rcc.pwr_write
-            periph("PWR", _Pwr, False)
-        periph("SPI1", self.spi, True)
-        periph("USART1", self.usart, True)
-        periph("DMA", self.dma, True)
-
-        def scs_rd(off, size):
-            if self.dead:
-                return 0
-            now = self.now()
-            if now >= self.next_ev:
-                self._process(now)
-            if 0x10 <= off < 0x20:
-                return self.systick.read(off - 0x10, now)
-            return self.nvic.read(off, size)
-
-        def scs_wr(off, size, value):
-            if self.dead:
-                return
-            self.effects += 1
-            now = self.now()
-            if 0x10 <= off < 0x20:
-                self.systick.write(off - 0x10, value, now)
-            else:
-                self.nvic.write(off, size, value)
-        regions.append((0xE000E000, 0x1000, scs_rd, scs_wr))
-
-        def fl_rd(off, size):
-            return self.flash.read_mem(off, size)
-
-        def fl_wr(off, size, value):
-            if self.dead:
-                return
-            self.effects += 1
-            self.flash.program(off, size, value)
-        regions.append((t.param_base, t.param_size, fl_rd, fl_wr))
-
-        def uid_rd(off, size):
-            return self.uid.read(off, size)
-
-        def uid_wr(off, size, value):
-            self.unmodelled("system memory", off, size, value)
-        regions.append((t.sysmem_page, 0x400, uid_rd, uid_wr))
-
-        self.cpu.map_memory(regions)
-        if map_path is None:
-            reg = bytearray((t.param_base - t.flash_base) // 2)
-        else:
-            reg = code_regions(map_path, t)
-        self.cpu.install_counter(reg)
-        for a in self.cpu.wfi_addresses():
-            self.cpu.hook_at(a, lambda a=a: self._on_wfi(a))
-        for a in self.cpu.unmask_addresses():
-            self.cpu.hook_at(a, self._on_unmask)
-        self.cpu.hook_at(self.img.sym("ib_core_poll"), self._on_main_loop)
-        self.cpu.hook_at(self.img.sym("b_delay_us"), self._on_delay)
-        self.cpu.hook_at(self.img.sym("arm_time_us"), self._on_time_read)
-
-    def _clock_off(self, name, off, size, value):
-        key = ("clock", name)
-        if key not in self._unmodelled_seen:
-            self._unmodelled_seen.add(key)
-            self.log(f"{name}: register 0x{off:03X} accessed with its clock off (RCC): "
-                     f"{'write ignored' if value is not None else 'reads 0'}")
-        self.unmodelled_count += 1
-        return 0
 
     # --------------------------------------------------------------- services
     def log(self, msg: str) -> None:
@@ -379,88 +256,6 @@ class Machine:
         self._recompute_next()
 
     # -------------------------------------------------------------- idle hooks
-    def _on_wfi(self, addr: int) -> None:
-        self.cpu.wfi_pc = addr
-        self.cpu.on_wfi()
-
-    def _on_unmask(self) -> None:
-        """An instruction that may clear PRIMASK is about to run: if an exception waits for
-        it, stop right after (the next block boundary) so it is taken there. The periodic
-        MASKED_POLL check alone misses short unmasked windows, e.g. the board's sleep loop
-        (mask, check, WFI, unmask, mask again: 3 instructions unmasked)."""
-        if self.nvic.pending and self.nvic.next_exception(0) is not None:
-            self.stop_soon()
-
-    def _tick_due(self) -> float:
-        """Device time at which the image's main loop sees its sample tick due (inf: no
-        tick; <= now: due)."""
-        lo, raw = self._tick_lo, self.cpu.uc.mem_read(self._tick_lo, self._tick_len)
-        s = self._sym
-
-        def word(name):
-            o = s[name] - lo
-            return int.from_bytes(raw[o:o + 4], "little")
-        period = word("g_tick_period_us")
-        if period == 0:
-            return INF
-        nxt = word("g_tick_next_us")
-        ms = word("g_ms")
-        load = word("g_systick_load")
-        cpu_us = word("g_cycles_per_us") or 1
-        now = self.now()
-        val = self.systick.value(now)
-        if 15 in self.nvic.pending:
-            ms += 1
-        fw_us = (ms * 1000 + (load - val if val <= load else 0) // cpu_us) & 0xFFFFFFFF
-        due = (nxt - fw_us) & 0xFFFFFFFF
-        if due >= 0x80000000 or due == 0:
-            return now
-        return now + due * 1e-6 + 0.2e-6
-
-    def _on_main_loop(self) -> None:
-        uc = self.cpu.uc
-        ram = uc.mem_read(self._ram_lo, self._ram_len)
-        for o, n in self._ram_excl:
-            ram[o:o + n] = b"\0\0\0\0"
-        sig = (self.effects, self.exceptions)
-        idle = ram == self._prev_ram and sig == self._prev_sig
-        ic = self.clock.instructions()
-        if idle:
-            self.idle_instructions += ic - self._prev_ic   # that pass did nothing
-        self._prev_ic = ic
-        self._prev_ram, self._prev_sig = ram, sig
-        if not idle:
-            return
-        now = self.now()
-        target = min(self.next_ev, self._tick_due(), self.t_stop)
-        if target > now and target < INF:
-            self.clock.skip(target - now, "idle")
-            self.idle_jumps += 1
-            self._after_skip()
-            self.stop_soon()
-
-    def _on_delay(self) -> None:
-        us = self.cpu.uc.reg_read(UC_ARM_REG_R1)
-        self.delay = [us, None]
-
-    def _on_time_read(self) -> None:
-        d = self.delay
-        if d is None:
-            return
-        now = self.now()
-        if d[1] is None:
-            d[1] = now + (d[0] + 1) * 1e-6
-            return
-        if now >= d[1]:
-            self.delay = None
-            return
-        target = min(d[1], self.next_ev, self.t_stop)
-        if target > now:
-            self.clock.skip(target - now, "busy")
-            self._after_skip()
-            self.stop_soon()
-
-    # ------------------------------------------------------------------- reset
     def power_on(self) -> None:
         uc = self.cpu.uc
         garbage = bytes(self.rng.getrandbits(8) for _ in range(self.target.ram_size))

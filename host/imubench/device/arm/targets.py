@@ -48,6 +48,12 @@ class Target:
     cpi: float = 1.5
     sysclk_nominal_hz: float = 0.0
 
+    @property
+    def code_file_size(self) -> int:
+        """Bytes of the code file (bootloader.code_path): every flash byte outside the parameter
+        region, [flash_base, param_base) then [param_base + param_size, flash_base + flash_size)."""
+        return self.flash_size - self.param_size
+
     def sector_offset(self, snb: int) -> int | None:
         """F4: offset of sector snb in the parameter region (None: not a parameter sector)."""
         if self.name != "f4":
@@ -55,15 +61,20 @@ class Target:
         return {10: 0, 11: 128 * KIB}.get(snb)
 
 
+# The F103 board is an STM32F103CB (medium density, 128 KiB flash in 1 KiB pages, 20 KiB RAM;
+# RM0008 3.3.3, DS5319 table 2): its F_SIZE register reads 128, its ROM bootloader accepts
+# 0x08000000-0x0801FFFF (AN2606, "STM32F10xxx medium-density"; stm32flash's table for ID 0x410
+# ends there too). The image and its parameter pages use only the lower 64 KiB
+# (firmware/boards/stm32f1/f103.ld), so the same image also runs on a 64 KiB F103C8.
 F103 = Target(
     name="f103", cpu="cortex-m3", image="f103",
-    flash_base=0x08000000, flash_size=64 * KIB, ram_base=0x20000000, ram_size=20 * KIB,
+    flash_base=0x08000000, flash_size=128 * KIB, ram_base=0x20000000, ram_size=20 * KIB,
     param_base=0x0800F800, param_size=2 * KIB, erase_unit=1 * KIB,
     program_s=52.5e-6, erase_s=20e-3, flash_acr_reset=0x30,
     n_irq=68, irq_usart1=37, irq_dma_tx=14,
     periph={"AFIO": 0x40010000, "GPIOA": 0x40010800, "GPIOB": 0x40010C00, "SPI1": 0x40013000,
             "USART1": 0x40013800, "DMA": 0x40020000, "RCC": 0x40021000, "FLASH": 0x40022000},
-    sysmem_page=0x1FFFF400, uid_addr=0x1FFFF7E8, fsize_addr=0x1FFFF7E0, flash_kib=64,
+    sysmem_page=0x1FFFF400, uid_addr=0x1FFFF7E8, fsize_addr=0x1FFFF7E0, flash_kib=128,
     cs_pins=(("GPIOA", 4), ("GPIOB", 0), ("GPIOB", 1), ("GPIOB", 10)),
     sysclk_nominal_hz=72e6,
 )

@@ -1,7 +1,11 @@
 // imubench station page: renders the station's state (server-sent events from /api/events)
 // one column per device; the page that owns a device drives it, any other page watches.
-// Who this browser is: an HttpOnly, SameSite=Strict cookie the server issues (POST /api/hello);
-// the page never sees it. The browser sends it, and this page's Origin, with every request.
+// Who this page is: the station prints its address with a one-time secret (#token=..., a
+// fragment no server ever receives); the page trades it for a session (POST /api/session),
+// keeps that in sessionStorage (this scheme, host and port only: no page of another local
+// server can read it) and sends it in X-Imubench-Session with every request. No cookie: a
+// browser would send 127.0.0.1's cookies to every port. Pictures come as data: URLs and a
+// report through a single-use ticket, since an <img> or a new tab cannot carry the header.
 "use strict";
 (function () {
   const cols = {};                 // device key -> column element
@@ -14,13 +18,81 @@
   const esc = (s) => String(s == null ? "" : s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
   const fmt = (x, d) => (x == null || !isFinite(x) ? "–" : Number(x).toFixed(d));
 
+  const SESSION_KEY = "imubench-station-session";
+  let session = sessionStorage.getItem(SESSION_KEY);
+  const withSession = (h) => Object.assign({ "X-Imubench-Session": session || "" }, h || {});
+
   async function post(path, body) {
-    const r = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
-      credentials: "same-origin" });
+    const r = await fetch(path, { method: "POST", headers: withSession({ "Content-Type": "application/json" }),
+      body: JSON.stringify(body), credentials: "omit", cache: "no-store" });
     const j = await r.json().catch(() => ({}));
     if (!r.ok) throw new Error(j.error || r.statusText);
     return j;
   }
+
+  async function getJSON(path) {
+    const r = await fetch(path, { headers: withSession(), credentials: "omit", cache: "no-store" });
+    const j = await r.json().catch(() => ({}));
+    if (!r.ok) throw new Error(j.error || r.statusText);
+    return j;
+  }
+
+  // the secret in the address, traded once for this tab's session (a reload keeps the session)
+  async function openSession() {
+    const m = /^#(?:.*&)?token=([A-Za-z0-9_-]{1,100})/.exec(location.hash);
+    if (m) {
+      history.replaceState(null, "", location.pathname + location.search);   // out of the address bar at once
+      const r = await fetch("/api/session", { method: "POST", credentials: "omit", cache: "no-store",
+        headers: { "Content-Type": "application/json", "X-Imubench-Launch": m[1] }, body: "{}" });
+      const j = await r.json().catch(() => ({}));
+      if (!r.ok) { if (!session) throw new Error(j.error || r.statusText); return; }
+      session = j.session;
+      sessionStorage.setItem(SESSION_KEY, session);
+    }
+    if (!session) throw new Error("open the address the station printed in its terminal: the secret in it opens this page");
+  }
+
+  // pictures drawn by the station: fetched with the session, shown as data: URLs (cached)
+  const pictures = new Map();
+  function loadPictures(root) {
+    for (const img of (root || document).querySelectorAll("img[data-src]")) {
+      const url = img.dataset.src;
+      if (img.dataset.shown === url) continue;
+      img.dataset.shown = url;
+      if (!pictures.has(url)) {
+        pictures.set(url, fetch(url, { headers: withSession(), credentials: "omit" })
+          .then((r) => (r.ok ? r.text() : Promise.reject(new Error(r.statusText))))
+          .then((svg) => "data:image/svg+xml;charset=utf-8," + encodeURIComponent(svg))
+          .catch((e) => { pictures.delete(url); throw e; }));
+      }
+      pictures.get(url).then((src) => { if (img.dataset.src === url) img.src = src; }).catch(() => { img.dataset.shown = ""; });
+    }
+  }
+
+  // a report opens in a new tab through a single-use ticket (a tab sends no header)
+  document.addEventListener("click", async (ev) => {
+    const a = ev.target.closest && ev.target.closest("a.report-link");
+    if (!a) return;
+    ev.preventDefault();
+    const tab = window.open("about:blank", "_blank");
+    try {
+      const j = await post("/api/ticket", { path: a.dataset.report });
+      if (tab) { tab.opener = null; tab.location = j.url; } else window.location.assign(j.url);
+    } catch (e) { if (tab) tab.close(); a.title = e.message; }
+  });
+
+  // an export file downloads through a single-use ticket too (a download sends no header)
+  document.addEventListener("click", async (ev) => {
+    const a = ev.target.closest && ev.target.closest("a.export-link");
+    if (!a || !a.dataset.export) return;
+    ev.preventDefault();
+    try {
+      const j = await post("/api/ticket", { path: a.dataset.export });
+      const dl = document.createElement("a");
+      dl.href = j.url; dl.download = a.getAttribute("download") || ""; dl.rel = "noopener";
+      document.body.appendChild(dl); dl.click(); dl.remove();
+    } catch (e) { a.title = e.message; }
+  });
 
   async function claim(key) {
     const j = await post("/api/claim", { key: key });
@@ -28,18 +100,38 @@
   }
 
   // ------------------------------------------------------------------ events
-  let es = null;
-  function reconnect() {
-    if (es) es.close();
-    es = new EventSource("/api/events");          // same origin: the identity cookie goes with it
-    es.onopen = () => { $("#conn").textContent = "live"; };
-    es.onerror = () => {
-      window.__streamErrors += 1;
-      $("#conn").textContent = "reconnecting…";
-      // refused (e.g. too many pages open): EventSource gives up; try again a little later
-      if (es.readyState === EventSource.CLOSED) setTimeout(reconnect, 3000);
-    };
-    es.onmessage = (ev) => { last = JSON.parse(ev.data); render(last); };
+  // server-sent events read with fetch (an EventSource cannot send the session header)
+  let stream = null;
+  async function reconnect() {
+    if (stream) stream.abort();
+    const ctl = stream = new AbortController();
+    let wait = 1000;
+    try {
+      const r = await fetch("/api/events", { headers: withSession(), credentials: "omit", cache: "no-store",
+        signal: ctl.signal });
+      if (!r.ok) { wait = 3000; const j = await r.json().catch(() => ({})); throw new Error(j.error || r.statusText); }
+      $("#conn").textContent = "live";
+      const reader = r.body.pipeThrough(new TextDecoderStream()).getReader();
+      let buf = "";
+      for (;;) {
+        const { value, done } = await reader.read();
+        if (done) break;
+        buf += value;
+        let i;
+        while ((i = buf.indexOf("\n\n")) >= 0) {
+          const data = buf.slice(0, i).split("\n").filter((l) => l.startsWith("data: ")).map((l) => l.slice(6)).join("\n");
+          buf = buf.slice(i + 2);
+          if (data) { last = JSON.parse(data); render(last); }
+        }
+      }
+    } catch (e) {
+      if (ctl.signal.aborted) return;
+      $("#conn").textContent = "reconnecting… " + (e.message || "");
+    }
+    if (ctl !== stream) return;
+    window.__streamErrors += 1;
+    if ($("#conn").textContent === "live") $("#conn").textContent = "reconnecting…";
+    setTimeout(() => { if (ctl === stream) reconnect(); }, wait);
   }
 
   const claiming = {};
@@ -56,6 +148,7 @@
       renderBoard(b);
     }
     renderOverview(snap);
+    loadPictures();
     const watching = snap.boards.filter((b) => b.owned && !b.yours);
     const slots = mine.every((b) => b.device && b.device.slot) && mine.length > 1;
     $("#role").textContent = mine.length ? "you drive " + (slots ? "slots " + mine.map((b) => b.device.slot).join(", ")
@@ -201,8 +294,12 @@
       $(".result h3", el).textContent = b.result.parameters.length ? "Parameters ± 1σ" : "Nothing was fitted";
       $(".report-line", el).innerHTML = `${b.result.attitudes} attitudes` +
         (b.result.bench_time_s != null ? `, bench time ${fmt(b.result.bench_time_s, 0)} s` : "") + "; " +
-        (b.result.report ? `<a class="report-link" href="${esc(b.result.report)}" target="_blank">the HTML report</a>` : "no report (nothing was fitted)") +
-        (b.result.history ? `; ${esc(b.result.history)}` : "") + `<br><small>session directory ${esc(b.result.session_dir)}</small>`;
+        (b.result.report ? `<a class="report-link" href="#" data-report="${esc(b.result.report)}">the HTML report</a>` : "no report (nothing was fitted)") +
+        (b.result.history ? `; ${esc(b.result.history)}` : "") +
+        ((b.result.exports || []).length ? `<br><small>for other tools: ` + b.result.exports.map((e) => e.url
+          ? `<a class="export-link" href="#" data-export="${esc(e.url)}" download="${esc(e.name)}" title="${esc(e.name)}${e.consumer ? " for " + esc(e.consumer) : ""}">${esc(e.label || e.name)}</a>`
+          : esc(e.name)).join(", ") + `</small>` : "") +
+        `<br><small>session directory ${esc(b.result.session_dir)}</small>`;
     } else res.hidden = true;
     $(".log", el).textContent = b.log.join("\n");
   }
@@ -249,9 +346,9 @@
       ? "<tr><td>the parameters' σ appear once 12 attitudes are captured</td></tr>" : "";
     $(".steps", el).innerHTML = b.steps.map((s) => `<div class="step ${esc(s.state)}" data-kind="${esc(s.kind)}">${esc(s.text)}</div>`).join("");
     $(".turns", el).innerHTML = b.turns.map((t, i) => t.by_hand
-      ? `<div class="step ${esc(t.state)}"><img alt="turn by hand" src="/turn.svg?axis=${t.axis.join(",")}&angle=${t.angle_deg}"> turn ${i + 1}${t.total ? " of " + t.total : ""}: ` +
+      ? `<div class="step ${esc(t.state)}"><img alt="turn by hand" data-src="/turn.svg?axis=${t.axis.join(",")}&angle=${t.angle_deg}"> turn ${i + 1}${t.total ? " of " + t.total : ""}: ` +
         `by hand, one full turn (${fmt(t.angle_deg, 0)}°) on the table about the vertical (${"XYZ"[t.axis.map(Math.abs).indexOf(Math.max(...t.axis.map(Math.abs)))]} pointing up), then let it lie still</div>`
-      : `<div class="step ${esc(t.state)}"><img alt="turn" src="/turn.svg?axis=${t.axis.join(",")}&rate=${t.rate_dps}"> turn ${i + 1}${t.total ? " of " + t.total : ""}: ` +
+      : `<div class="step ${esc(t.state)}"><img alt="turn" data-src="/turn.svg?axis=${t.axis.join(",")}&rate=${t.rate_dps}"> turn ${i + 1}${t.total ? " of " + t.total : ""}: ` +
         `${fmt(t.rate_dps, 0)} °/s about board [${t.axis.map((x) => fmt(x, 0)).join(", ")}] for ${fmt(t.duration_s, 1)} s</div>`).join("");
   }
 
@@ -361,7 +458,7 @@
         card = document.createElement("div");
         card.className = "card";
         card.dataset.name = c.name;
-        card.innerHTML = `<span class="seq"></span><img alt="${esc(c.name)}" src="/pose.svg?up=${c.direction.join(",")}">` +
+        card.innerHTML = `<span class="seq"></span><img alt="${esc(c.name)}" data-src="/pose.svg?up=${c.direction.join(",")}">` +
           `<div class="name">${esc(c.name)}</div><div class="words">${esc(c.words)}</div>` +
           `<div class="state"></div><div class="bar"><div class="bar-fill"></div></div><div class="detail"></div>`;
         box.appendChild(card);
@@ -412,8 +509,9 @@
     } catch (e) { $("#setup-error").textContent = e.message; }
   };
 
-  // the state at once (what any page may see); the live updates once this browser has its
-  // identity (the cookie), so that they say which devices it drives
-  fetch("/api/state").then((r) => r.json()).then((s) => { if (!last) { last = s; render(s); } }).catch(() => {});
-  post("/api/hello", {}).catch((e) => { $("#conn").textContent = "refused: " + e.message; }).finally(reconnect);
+  // the session first (the secret in the address), then the state and its live updates
+  openSession().then(() => {
+    getJSON("/api/state").then((s) => { if (!last) { last = s; render(s); } }).catch(() => {});
+    reconnect();
+  }).catch((e) => { $("#conn").textContent = "no session: " + e.message; });
 })();
