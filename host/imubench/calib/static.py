@@ -170,6 +170,12 @@ def moving_variance(a: np.ndarray, w: int, centred: bool = True) -> np.ndarray:
     return out
 
 
+#: an interval longer than this (samples) has its autocorrelation summed over segments of this length
+#: (lags up to a quarter of it): the FFT of a day at 200 Hz would take gigabytes, and Sokal's window
+#: stops far below 2^18 lags for any still IMU
+TAU_SEGMENT = 1 << 21
+
+
 def _tau_int(x: np.ndarray) -> np.ndarray:
     """Integrated autocorrelation time per column (1 for white noise), Sokal's automatic
     window (the sum of autocorrelations stops at the smallest lag M ≥ 5·τ(M)). Floored at 1."""
@@ -177,12 +183,15 @@ def _tau_int(x: np.ndarray) -> np.ndarray:
     if n < 16:
         return np.ones(c)
     mean = x.mean(axis=0)
-    nfft = 1 << int(math.ceil(math.log2(2 * n)))
+    seg = min(n, TAU_SEGMENT)                  # a long interval: the autocorrelation summed over segments
+    nfft = 1 << int(math.ceil(math.log2(2 * seg)))
     out = np.ones(c)
     for j in range(c):                         # a column at a time: the FFT's arrays for one axis only
-        f = np.fft.rfft(x[:, j] - mean[j], n=nfft)
-        acf = np.fft.irfft(f * np.conj(f), n=nfft)[: n // 4 + 1]
-        del f
+        acf = 0.0
+        for i in range(0, n - seg + 1, seg):
+            f = np.fft.rfft(x[i:i + seg, j] - mean[j], n=nfft)
+            acf = acf + np.fft.irfft(f * np.conj(f), n=nfft)[: seg // 4 + 1]
+            del f
         if acf[0] <= 0:
             continue
         rho = acf / acf[0]
