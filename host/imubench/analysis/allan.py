@@ -19,11 +19,22 @@ How the lines are fitted (see docs/noise.md):
     mean of log(√(ADEV² − N²/τ)·√(3/τ)) over it: the white part, known from the −1/2 fit, is
     removed so the points near the crossover do not bias K upwards.
 
+How the deviation is computed (imubench.memory decides, by the memory budget): allantools.oadev on a
+float64 copy of each axis when that fits, else oadev_chunked, the same estimator (NIST SP 1065, Riley,
+"Handbook of Frequency Stability Analysis", 2008, eq. 11) from the same phase (the mean-free cumulative
+sum, as allantools' frequency2phase) with each τ's sum of squared second differences taken a block at a
+time: one float64 column of the recording's length, whatever its length. The two agree to rounding
+(1e-12 relative; tests/procedures/test_allan_stream.py).
+
 The recording is imubench.procedures.allan, the plot and the printed table imubench.results.allan.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from imubench import memory
 
 from imubench.units import G0_MPS2 as G0
 
@@ -85,21 +96,90 @@ def _free_slope(logtau, logy, w):
     return float(coef[0])
 
 
-def allan_axis(x: np.ndarray, fs_hz: float) -> dict:
-    """Allan analysis of one axis (1-D rate samples in SI at fs_hz)."""
+#: samples of a block in the chunked sums
+BLOCK = 1 << 20
+
+
+def oadev_chunked(y: np.ndarray, fs_hz: float, factor: float = 1.0, block: int = BLOCK):
+    """(taus, adev, n) of the overlapping Allan deviation of the rates factor·y at octave τ (1, 2, 4 ...
+    samples), as allantools.oadev(factor·y, rate=fs_hz, data_type="freq", taus="octave") gives them,
+    holding one float64 column (the phase) and blocks of `block` samples: y may be float32, or a
+    strided column of the recording. The phase is the cumulative sum of the mean-free rates (a block at
+    a time, carried: the same sums as one cumulative sum) times the step; σ²(mτ₀) = Σ (x[i+2m] − 2x[i+m]
+    + x[i])² / (2 (N−2m) (mτ₀)²) summed a block at a time."""
+    y = np.asarray(y).reshape(-1)
+    n = len(y)
+    if n < 3:
+        raise ValueError(f"too few samples for an Allan analysis ({n})")
+    dt = 1.0 / float(fs_hz)
+
+    def rates(i, j):
+        r = y[i:j].astype(np.float64)
+        return r * factor if factor != 1.0 else r
+    mean = math.fsum(float(np.sum(rates(i, i + block))) for i in range(0, n, block)) / n
+    x = np.empty(n + 1)
+    x[0] = 0.0
+    carry = 0.0
+    for i in range(0, n, block):
+        j = min(n, i + block)
+        r = rates(i, j)
+        r -= mean
+        r[0] += carry
+        np.cumsum(r, out=x[i + 1:j + 1])
+        carry = float(x[j])
+    x[1:] *= dt
+    N = n + 1
+    taus, devs, ns = [], [], []
+    for k in range(int(math.floor(math.log2(N))) + 1):
+        m = 2 ** k
+        count = N - 2 * m
+        if m >= N or count <= 1:
+            continue
+        parts = []
+        for i in range(0, count, block):
+            j = min(count, i + block)
+            v = x[i + 2 * m:j + 2 * m] - 2 * x[i + m:j + m]
+            v += x[i:j]
+            parts.append(float(np.dot(v, v)))
+        taus.append(m * dt)
+        devs.append(math.sqrt(math.fsum(parts) / (2.0 * count)) / m * fs_hz)
+        ns.append(count)
+    return np.array(taus), np.array(devs), np.array(ns, dtype=float)
+
+
+def oadev_in_memory(y: np.ndarray, fs_hz: float, factor: float = 1.0):
+    """(taus, adev, n) from allantools.oadev on a float64 copy of factor·y (octave τ)."""
     allantools = require_allantools()
-    x = np.asarray(x, dtype=np.float64)
+    x = np.asarray(y, dtype=np.float64)
+    if factor != 1.0:
+        x = x * factor
     taus, devs, _errs, ns = allantools.oadev(x, rate=fs_hz, data_type="freq", taus="octave")
+    return np.asarray(taus), np.asarray(devs), np.asarray(ns)
+
+
+def allan_axis(x: np.ndarray, fs_hz: float, factor: float = 1.0, chunked: bool = False) -> dict:
+    """Allan analysis of one axis (1-D rate samples at fs_hz, in SI once multiplied by factor):
+    allantools in memory, or chunked sums (oadev_chunked) when chunked."""
+    n = len(x)
+    taus, devs, ns = (oadev_chunked if chunked else oadev_in_memory)(x, fs_hz, factor)
+    return _readoffs(taus, devs, ns, n, fs_hz)
+
+
+def _readoffs(taus, devs, ns, n: int, fs_hz: float) -> dict:
+    """The read-offs N, B, K of an Allan curve of n samples (see the module's doc)."""
     keep = (devs > 0) & (ns >= 1)
     taus, devs, ns = np.asarray(taus)[keep], np.asarray(devs)[keep], np.asarray(ns)[keep]
     if len(taus) < 3:
-        raise ValueError(f"too few samples for an Allan analysis ({len(x)})")
+        if not np.any(np.asarray(devs) > 0):
+            raise ValueError("its samples do not vary (every one the same value): there is no noise to analyse; "
+                             "is the column a constant, or the sensor's output stuck?")
+        raise ValueError(f"too few samples for an Allan analysis ({n})")
     lt, ld = np.log10(taus), np.log10(devs)
     seg = np.diff(ld) / np.diff(lt)                          # slope of segment i -> i+1
     pt = np.empty_like(ld)                                   # slope at each point
     pt[0], pt[-1] = seg[0], seg[-1]
     pt[1:-1] = 0.5 * (seg[:-1] + seg[1:])
-    edf, lo, hi = _edf_and_ci(taus, devs, pt, len(x), fs_hz)
+    edf, lo, hi = _edf_and_ci(taus, devs, pt, n, fs_hz)
     w = 2.0 * edf * np.log(10.0) ** 2                        # 1/var(log10 ADEV) ≈ 2·edf·ln(10)²
     i_min = int(np.argmin(devs))
 
@@ -124,7 +204,7 @@ def allan_axis(x: np.ndarray, fs_hz: float) -> dict:
     rw = {"ok": False, "K": None}
     # the longest τ are estimated from too few independent windows (their edf estimate is
     # unreliable too): the +1/2 fit uses τ <= T/MAX_TAU_FRACTION only
-    last = int(np.searchsorted(taus, len(x) / fs_hz / MAX_TAU_FRACTION, side="right")) - 1
+    last = int(np.searchsorted(taus, n / fs_hz / MAX_TAU_FRACTION, side="right")) - 1
     for j in range(i_min + 1, last - 1):
         s = _free_slope(lt[j:last + 1], ld[j:last + 1], w[j:last + 1])
         if abs(s - 0.5) <= SLOPE_TOL:
@@ -142,7 +222,7 @@ def allan_axis(x: np.ndarray, fs_hz: float) -> dict:
                   "free_slope": s}
             break
 
-    duration_s = len(x) / fs_hz
+    duration_s = n / fs_hz
     last = max(last, 0)
     # ---- read-offs the record cannot support are withheld, with the reason
     if not white["ok"]:
@@ -184,16 +264,33 @@ def duration_text(seconds: float) -> str:
     return f"{seconds / 3600:.3g} h"
 
 
-def allan(rates: np.ndarray, fs_hz: float) -> dict:
+def allan(rates: np.ndarray, fs_hz: float, factor: float = 1.0, memory_budget: int | None = None,
+          held_bytes: int | None = None) -> dict:
     """Overlapping Allan deviation (octave τ, 68 % edf confidence intervals) and read-offs
-    of each axis of `rates` ((n, 3) in SI: m/s² or rad/s). Returns {"x": {...}, "y": ..., "z": ...,
-    "fs_hz": .., "n": .., "duration_s": ..}; each axis: taus, adev, ci_lo, ci_hi, N, B, B_tau, K
-    (K None when the recording shows no +1/2 region) and the fit details."""
-    r = np.asarray(rates, dtype=np.float64)
+    of each axis of `rates` ((n, 3), in SI once multiplied by factor: m/s² or rad/s; float64 or
+    float32, never copied whole). Returns {"x": {...}, "y": ..., "z": ..., "fs_hz": .., "n": ..,
+    "duration_s": .., "method": ..}; each axis: taus, adev, ci_lo, ci_hi, N, B, B_tau, K (K None when
+    the recording shows no +1/2 region) and the fit details. The method is allantools in memory when a
+    float64 axis and its temporaries fit the memory budget (imubench.memory, default 1 GB) beside
+    held_bytes (what the caller holds: the recording; default rates' own size), else chunked sums."""
+    r = np.asarray(rates)
+    if r.dtype not in (np.float32, np.float64):
+        r = r.astype(np.float64)
     if r.ndim == 1:
         r = r[:, None]
-    out = {AXES[k]: allan_axis(r[:, k], fs_hz) for k in range(r.shape[1])}
-    out.update(fs_hz=float(fs_hz), n=int(r.shape[0]), duration_s=r.shape[0] / float(fs_hz))
+    n = int(r.shape[0])
+    held = r.nbytes if held_bytes is None else int(held_bytes)
+    chunked = not memory.allan_in_memory(n, held, memory_budget)
+    out = {}
+    for k in range(r.shape[1]):
+        try:
+            out[AXES[k]] = allan_axis(r[:, k], fs_hz, factor, chunked)
+        except ValueError as e:
+            raise ValueError(f"axis {AXES[k]}: {e}") from None
+    out.update(fs_hz=float(fs_hz), n=n, duration_s=n / float(fs_hz),
+               method=("chunked sums over the phase, one float64 column (the memory budget of "
+                       f"{memory.text(memory_budget or memory.DEFAULT_BUDGET_BYTES)} holds no in-memory copy)"
+                       if chunked else "allantools.oadev in memory"))
     return out
 
 

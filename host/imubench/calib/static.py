@@ -69,7 +69,10 @@ def _as_samples(acc) -> np.ndarray:
 def _scale_of(a: np.ndarray) -> float:
     """Typical magnitude of the data (median |a|; for an accelerometer at rest, g in the data's
     unit). Falls back to the largest absolute value for data near zero."""
-    s = float(np.median(np.linalg.norm(a, axis=1))) if len(a) else 0.0
+    norms = np.empty(len(a))                 # a block at a time: no (n, 3) temporary
+    for i in range(0, len(a), VAR_BLOCK_ROWS):
+        norms[i:i + VAR_BLOCK_ROWS] = np.linalg.norm(a[i:i + VAR_BLOCK_ROWS], axis=1)
+    s = float(np.median(norms, overwrite_input=True)) if len(a) else 0.0
     if not s > 0:
         s = float(np.max(np.abs(a))) if a.size else 0.0
     return s if s > 0 else 1.0
@@ -83,9 +86,13 @@ def noise_floor(acc) -> np.ndarray:
     floor = REL_SIGMA_FLOOR * _scale_of(a)
     out = np.full(3, floor)
     for j in range(3):
-        u = np.unique(a[:, j])
-        if len(u) > 1:
-            lsb = float(np.min(np.diff(u)))
+        u = np.sort(a[:, j])                 # the smallest step between distinct values (as of np.unique),
+        steps = [d[d > 0] for d in (np.diff(u[i:i + VAR_BLOCK_ROWS + 1])   # a block at a time
+                                    for i in range(0, max(len(u) - 1, 0), VAR_BLOCK_ROWS))]
+        steps = [float(d.min()) for d in steps if d.size]
+        del u
+        if steps:
+            lsb = min(steps)
             # only a real quantisation step counts (float data have tiny spurious steps)
             if lsb > floor:
                 out[j] = max(out[j], lsb / math.sqrt(12.0))
@@ -112,29 +119,61 @@ def _window_sums(y: np.ndarray, w: int) -> np.ndarray:
     return (suf + nxt).reshape(nb * w, c)[:nwin]
 
 
+#: window starts computed at a time by moving_variance (rounded to a multiple of the window): its
+#: temporaries are a few arrays of this many rows, not of the recording's length
+VAR_BLOCK_ROWS = 1 << 16
+
+
+def _variance_blocks(a: np.ndarray, w: int, centred: bool = True):
+    """(start, variances) of moving_variance a block of window starts at a time. Each block starts at a
+    multiple of w, where _window_sums restarts its prefix sums, so its sums are those of the whole
+    recording at once, bit for bit."""
+    a = np.asarray(a)
+    n, c = a.shape
+    ref = np.array([np.median(a[:, j]) for j in range(c)], dtype=np.float64) if n else np.zeros(c)
+    h = w // 2 if centred else 0
+    L = n + 2 * h
+    nwin = L - w + 1
+    step = w * max(1, VAR_BLOCK_ROWS // w)
+    for s in range(0, max(nwin, 0), step):
+        e = min(nwin, s + step)
+        p0, p1 = s, e + w - 1                    # rows of the padded recording the windows s..e-1 cover
+        dp = np.zeros((p1 - p0, c))
+        lo, hi = max(p0, h), min(p1, h + n)
+        if hi > lo:
+            np.subtract(a[lo - h:hi - h], ref, out=dp[lo - p0:hi - p0])
+        s1 = _window_sums(dp, w)[:e - s]
+        s2 = _window_sums(dp * dp, w)[:e - s]
+        if centred:
+            ones = np.zeros((p1 - p0, 1))
+            ones[lo - p0:hi - p0] = 1.0
+            cnt = _window_sums(ones, w)[:e - s]
+        else:
+            cnt = np.full((e - s, 1), float(w))
+        mean = s1 / cnt
+        var = (s2 - cnt * mean * mean) / np.maximum(cnt - 1.0, 1.0)
+        yield s, np.clip(var, 0.0, None)
+
+
 def moving_variance(a: np.ndarray, w: int, centred: bool = True) -> np.ndarray:
     """Per-axis variance (ddof=1) over a window of w samples. centred: a window centred on each
     sample, truncated at the ends of the recording; otherwise trailing windows (the sample and
-    the w-1 before it), only where complete: output length len(a) - w + 1."""
-    a = np.asarray(a, dtype=np.float64)
-    ref = np.median(a, axis=0) if len(a) else np.zeros(a.shape[1])
-    d = a - ref
-    if centred:
-        h = w // 2
-        pad = np.zeros((h, a.shape[1]))
-        dp = np.vstack([pad, d, pad])
-        ones = np.zeros((len(dp), 1))
-        ones[h:h + len(a)] = 1.0
-        s1 = _window_sums(dp, w)
-        s2 = _window_sums(dp * dp, w)
-        cnt = _window_sums(ones, w)
-    else:
-        s1 = _window_sums(d, w)
-        s2 = _window_sums(d * d, w)
-        cnt = np.full((len(s1), 1), float(w))
-    mean = s1 / cnt
-    var = (s2 - cnt * mean * mean) / np.maximum(cnt - 1.0, 1.0)
-    return np.clip(var, 0.0, None)
+    the w-1 before it), only where complete: output length len(a) - w + 1. Computed a block of
+    VAR_BLOCK_ROWS at a time (_variance_blocks): the output and a few block-sized temporaries."""
+    a = np.asarray(a)
+    if a.dtype not in (np.float32, np.float64):
+        a = a.astype(np.float64)
+    n = max(len(a) + 2 * (w // 2 if centred else 0) - w + 1, 0)     # len(a) (+1 for an even centred window)
+    out = np.empty((n, a.shape[1]))
+    for s, v in _variance_blocks(a, w, centred):
+        out[s:s + len(v)] = v
+    return out
+
+
+#: an interval longer than this (samples) has its autocorrelation summed over segments of this length
+#: (lags up to a quarter of it): the FFT of a day at 200 Hz would take gigabytes, and Sokal's window
+#: stops far below 2^18 lags for any still IMU
+TAU_SEGMENT = 1 << 21
 
 
 def _tau_int(x: np.ndarray) -> np.ndarray:
@@ -143,15 +182,19 @@ def _tau_int(x: np.ndarray) -> np.ndarray:
     n, c = x.shape
     if n < 16:
         return np.ones(c)
-    d = x - x.mean(axis=0)
-    nfft = 1 << int(math.ceil(math.log2(2 * n)))
-    f = np.fft.rfft(d, n=nfft, axis=0)
-    acf = np.fft.irfft(f * np.conj(f), n=nfft, axis=0)[: n // 4 + 1]
+    mean = x.mean(axis=0)
+    seg = min(n, TAU_SEGMENT)                  # a long interval: the autocorrelation summed over segments
+    nfft = 1 << int(math.ceil(math.log2(2 * seg)))
     out = np.ones(c)
-    for j in range(c):
-        if acf[0, j] <= 0:
+    for j in range(c):                         # a column at a time: the FFT's arrays for one axis only
+        acf = 0.0
+        for i in range(0, n - seg + 1, seg):
+            f = np.fft.rfft(x[i:i + seg, j] - mean[j], n=nfft)
+            acf = acf + np.fft.irfft(f * np.conj(f), n=nfft)[: seg // 4 + 1]
+            del f
+        if acf[0] <= 0:
             continue
-        rho = acf[:, j] / acf[0, j]
+        rho = acf / acf[0]
         tau = 2.0 * np.cumsum(rho) - 1.0          # tau(M) = 1 + 2 Σ_{k=1..M} rho_k
         m = np.arange(len(rho))
         ok = np.nonzero(m >= 5.0 * tau)[0]
@@ -207,7 +250,10 @@ def rest_noise(acc, fs_hz: float, window_s: float = 0.5, quantile: float = 0.1) 
         return a.std(axis=0, ddof=1) if len(a) > 1 else np.zeros(3)
     nu = w - 1
     blocks = a[: nw * w].reshape(nw, w, 3)
-    v = blocks.var(axis=1, ddof=1)                       # (nw, 3)
+    v = np.empty((nw, 3))                                # (nw, 3), a few thousand windows at a time
+    step = max(1, VAR_BLOCK_ROWS // w)
+    for i in range(0, nw, step):
+        v[i:i + step] = blocks[i:i + step].var(axis=1, ddof=1)
     q = float(np.clip(quantile, 0.01, 0.5))
     s0 = np.quantile(np.sqrt(v), q, axis=0) / math.sqrt(2.0 * special.gammaincinv(nu / 2.0, q) / nu)
     cut = 2.0 * special.gammaincinv(nu / 2.0, 0.999) / nu   # χ²_ν's 0.999 quantile / ν, in units of sigma²
@@ -346,8 +392,9 @@ def detect_static(acc, fs_hz: float, noise_sigma=None, window_s: float = 0.5,
     if n < 2:
         return StaticIntervals([], k=float(k or K_GRID[0]), **common)
 
-    var = moving_variance(a, w, centred=True)
-    ratio = np.max(var / sigma**2, axis=1)
+    ratio = np.empty(n + 2 * h - w + 1)     # the largest variance / rest variance of the axes, a block at a time
+    for s0, var in _variance_blocks(a, w, centred=True):
+        ratio[s0:s0 + len(var)] = np.max(var / sigma**2, axis=1)
 
     if k is not None:
         kept, short = _intervals_for_k(ratio, float(k), n, h, min_n)

@@ -93,7 +93,7 @@ def _run_from_file(a) -> int:
     rec = read_recording_args(a)
     for n in rec.notes:
         print(f"  {n}")
-    analyse_recording(rec, a.out, exports=a.export, topic=a.imu_topic)
+    analyse_recording(rec, a.out, exports=a.export, topic=a.imu_topic, memory_budget=a.memory_budget)
     return 0
 
 
@@ -105,7 +105,7 @@ def run(a) -> int:
         return _run_from_file(a)
     file_only = [k for k in ("format", "gyro_file", "accel_unit", "gyro_unit", "accel_scale", "gyro_scale", "columns",
                              "time_column", "time_unit", "profile", "topic", "device", "skip_rows", "accel_offset",
-                             "gyro_offset", "sensor", "gyro_range") if getattr(a, k) is not None]
+                             "gyro_offset", "sensor", "gyro_range", "memory_budget") if getattr(a, k) is not None]
     if file_only:
         raise UsageError(f"--{file_only[0].replace('_', '-')} goes with --from FILE",
                          "give the recording with --from, or drop it")

@@ -232,6 +232,20 @@ def add_reader_options(g) -> None:
                    help="the IMU chip, for the nominal scale of its raw counts from its data sheet (MPU-6050, MPU-9150, "
                         "MPU-9250, ICM-20602, ICM-20948, BMI160, LSM6DSO, LSM6DS3, LSM6DSL, ADXL355, ADXRS450); the "
                         "gyro's full-scale setting with --gyro-range")
+    g.add_argument("--memory-budget", type=memory_budget, metavar="SIZE", default=None,
+                   help="the memory the reading and the analysis keep within: 1G (the default), 800M, 4GB...; a "
+                        "recording larger than the budget holds in float64 is held as float32 and analysed in "
+                        "chunks, one past its sample limit refused before anything is read into memory")
+
+
+def memory_budget(s: str) -> int:
+    """--memory-budget: a size (1G, 800M, 512MiB)."""
+    import argparse
+    from imubench.memory import parse_budget
+    try:
+        return parse_budget(s)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _count(s: str) -> int:
@@ -540,8 +554,12 @@ def read_recording_args(a):
              "time_unit": a.time_unit, "topic": a.topic, "gyro_file": a.gyro_file, "device": a.device,
              "columns": _columns(a.columns) if a.columns else None, "skip_rows": a.skip_rows,
              "accel_offset": a.accel_offset, "gyro_offset": a.gyro_offset, "sensor": a.sensor,
-             "gyro_range_dps": getattr(a, "gyro_range", None)}
+             "gyro_range_dps": getattr(a, "gyro_range", None), "memory_budget": getattr(a, "memory_budget", None)}
     opts.update({k: v for k, v in given.items() if v is not None})
+    if getattr(a, "cmd", "") == "calibrate":        # its analysis takes more a sample than the read: a lower limit
+        from imubench import memory
+        opts["memory_budget"] = memory.Budget(opts.get("memory_budget") or memory.DEFAULT_BUDGET_BYTES,
+                                              memory.CALIBRATE_BYTES_PER_SAMPLE)
     if opts.get("topic") and (fmt or "") not in ("", "rosbag"):
         raise UsageError("--topic is for ROS bags", "drop it, or give --format rosbag")
     rec = read(path, fmt, **opts)

@@ -124,10 +124,13 @@ def still_stretch(acc_mps2, gyro_rad_s, fs_hz: float) -> dict:
             "note": note}
 
 
-def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=print) -> dict:
+def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=print,
+                      memory_budget: int | None = None) -> dict:
     """The Allan analysis of a recording of any IMU read by imubench.recordings (the formats
     `calibrate --from` reads, with the same unit and timing checks), written like
-    analyse_capture's, plus each consumer's noise file of `exports` (results.noise_export)."""
+    analyse_capture's, plus each consumer's noise file of `exports` (results.noise_export).
+    The deviation is computed an axis at a time from the recording's own arrays, in memory or
+    in chunks as the memory budget (imubench.memory) allows."""
     from imubench.procedures.recording_checks import check_accel_unit, check_gyro_unit
     from imubench.recordings import RecordingError
     from imubench.results.noise_export import write_noise_files
@@ -140,12 +143,14 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
         raise RecordingError(f"{n} samples: far too few for an Allan analysis (record a still IMU for hours)")
     acc, gyr = rec.accel * fa, rec.gyro * fg
     still = still_stretch(acc, gyr, float(rec.fs_hz))     # found relative to the noise: any declared unit
+    del acc, gyr                                       # the Allan deviation works from rec's own arrays
     s0, s1 = still["start"], still["stop"]
     chunk = max(1, int(10 * rec.fs_hz))
-    norms = np.array([np.linalg.norm(rec.accel[i:i + chunk].mean(axis=0)) for i in range(s0, s1 - chunk + 1, chunk)]
-                     or [np.linalg.norm(rec.accel[s0:s1].mean(axis=0))])
+    norms = np.array([np.linalg.norm(rec.accel[i:i + chunk].mean(axis=0, dtype=np.float64))
+                      for i in range(s0, s1 - chunk + 1, chunk)]
+                     or [np.linalg.norm(rec.accel[s0:s1].mean(axis=0, dtype=np.float64))])
     check_accel_unit(rec, norms)                       # refuses only |a| far from 1 g
-    warn = check_gyro_unit(rec, np.median(rec.gyro[s0:s1], axis=0), fg)
+    warn = check_gyro_unit(rec, np.array([np.median(rec.gyro[s0:s1, j]) for j in range(3)], dtype=np.float64), fg)
     if warn:
         log(f"warning: {warn}")
     if still["note"]:
@@ -153,13 +158,16 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
     for b, why in rec.breaks:
         if s0 < b < s1:
             log(f"warning: break at sample {b}: {why}; the analysis joins the pieces")
-    acc, gyr = acc[s0:s1], gyr[s0:s1]
+    held = rec.accel.nbytes + rec.gyro.nbytes + (0 if rec.t_s is None else rec.t_s.nbytes)
     make_dir(out_dir)
     name = rec.device or Path(rec.source.split(" + ")[0]).stem
     res = {"source": [rec.source], "device": {"name": name}, "samples": s1 - s0, "rate_hz": float(rec.fs_hz),
            "duration_s": (s1 - s0) / rec.fs_hz, "format": rec.fmt, "units": rec.unit_text(),
            "timing": list(getattr(rec, "notes", [])), "still": still,
-           "accel": allan(acc, rec.fs_hz), "gyro": allan(gyr, rec.fs_hz)}
+           "accel": _allan_of(rec.accel[s0:s1], "accelerometer", rec.fs_hz, fa, memory_budget, held),
+           "gyro": _allan_of(rec.gyro[s0:s1], "gyro", rec.fs_hz, fg, memory_budget, held)}
+    res["method"] = res["gyro"]["method"]
+    res["storage"] = f"{rec.accel.dtype.name} values ({(rec.accel.nbytes + rec.gyro.nbytes) / n:.0f} B a sample)"
     res["accel_usual"] = {a: usual_units(res["accel"][a], "accel") for a in AXES}
     res["gyro_usual"] = {a: usual_units(res["gyro"][a], "gyro") for a in AXES}
     files = write_noise_files(exports, out_dir, res, topic=topic, name=name)
@@ -171,8 +179,25 @@ def analyse_recording(rec, out_dir: Path, exports=(), topic: str = "/imu0", log=
         log(line)
     for kind, f in files.items():
         log(f"{kind}: {f}")
+    log(f"memory: {res['storage']}; Allan deviation by {res['method']}")
     log(f"wrote {out_dir / 'allan.json'}, {out_dir / 'allan_accel.png'}, {out_dir / 'allan_gyro.png'}")
     return res
+
+
+def _allan_of(values, what: str, fs_hz: float, factor: float, memory_budget, held: int) -> dict:
+    """allan() of a recording's sensor; what the analysis cannot do with the data (a constant axis)
+    is the recording's fault, said in one line."""
+    from imubench.recordings import RecordingError
+    for k, axis in enumerate(AXES[:values.shape[1]]):
+        col = values[:, k]
+        if col.min() == col.max():
+            raise RecordingError(f"the {what}'s axis {axis}: its samples do not vary (every one {float(col[0]):g} in "
+                                 "the file's unit): there is no noise to analyse; is the column a constant, or the "
+                                 "sensor's output stuck?")
+    try:
+        return allan(values, fs_hz, factor, memory_budget, held)
+    except ValueError as e:
+        raise RecordingError(f"the {what}'s {e}") from None
 
 
 def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int = DEFAULT_BAUD,

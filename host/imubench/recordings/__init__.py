@@ -148,31 +148,46 @@ class Recording:
 
 
 # ------------------------------------------------------------------ timing
-def _nominal_step(dt: np.ndarray) -> float:
+def _diffs(t: np.ndarray):
+    """(start, steps) of the time steps t[k+1] − t[k], a block at a time (steps[j] is step start + j)."""
+    for i in range(0, len(t) - 1, BLOCK):
+        yield i, np.diff(t[i:i + BLOCK + 1])
+
+
+def _nominal_step(t: np.ndarray, buf: np.ndarray | None = None) -> float:
     """The clock's nominal step: the median over the recording of the mean step of GAP_WINDOW
     consecutive steps (a jittery clock's long and short steps average out; a few gaps do not
-    move the median)."""
-    w = min(GAP_WINDOW, len(dt))
-    c = np.concatenate([[0.0], np.cumsum(dt)])
-    return float(np.median((c[w:] - c[:-w]) / w))
+    move the median). From the time stamps a block at a time into one working array (buf, reused
+    when given)."""
+    n = len(t) - 1
+    w = min(GAP_WINDOW, n)
+    m = n - w + 1
+    out = buf[:m] if buf is not None and len(buf) >= m else np.empty(m)
+    for i in range(0, m, BLOCK):
+        j = min(m, i + BLOCK)
+        np.subtract(t[i + w:j + w], t[i:j], out=out[i:j])
+    out /= w
+    return float(np.median(out, overwrite_input=True))
 
 
-def _gaps(t: np.ndarray, dt: np.ndarray, step: float, gap_factor: float) -> tuple[list, int]:
+def _gaps(t: np.ndarray, long: np.ndarray, step: float) -> tuple[list, int]:
     """(gaps [(k, missing)], long steps that are jitter): a step k longer than gap_factor × step is
     a gap only when the clock's phase (t − i·step) after it stays ahead of its phase before it by
     half a step or more, compared as medians over GAP_WINDOW samples each side (up to the next long
     step): samples are missing. A long step the next ones make up for (a logging PC's late stamp,
-    then an early one) is jitter, and the samples on both sides are continuous."""
-    long = np.flatnonzero(dt > gap_factor * step)
+    then an early one) is jitter, and the samples on both sides are continuous. long: the indices of
+    the steps longer than gap_factor × step."""
     if not long.size:
         return [], 0
-    phase = t - t[0] - np.arange(len(t)) * step
+
+    def phase(lo, hi):
+        return t[lo:hi] - t[0] - np.arange(lo, hi) * step
     out = []
-    bounds = np.concatenate([[-1], long, [len(dt)]])
+    bounds = np.concatenate([[-1], long, [len(t) - 1]])
     for j, k in enumerate(long):
         lo = max(bounds[j] + 1, k - GAP_WINDOW + 1)
         hi = min(bounds[j + 2] + 1, k + 1 + GAP_WINDOW)
-        shift = float(np.median(phase[k + 1:hi]) - np.median(phase[lo:k + 1]))
+        shift = float(np.median(phase(k + 1, hi)) - np.median(phase(lo, k + 1)))
         missing = int(round(shift / step))
         if missing >= 1:
             out.append((int(k), missing))
@@ -194,22 +209,28 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
     then integrate over the time stamps the file has. timing says all of it (counts, jitter,
     what was done)."""
     t = np.asarray(t_s, dtype=np.float64).reshape(-1)
-    a = np.asarray(accel, dtype=np.float64)
-    g = np.asarray(gyro, dtype=np.float64)
+    a, g = _floats(accel), _floats(gyro)
     if len(t) < 3:
         raise RecordingError(f"only {len(t)} samples: a calibration needs minutes of data")
-    if not np.all(np.isfinite(t)):
-        k = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise RecordingError(f"timestamp of sample {k} is not a number; fix the file")
-    dt = np.diff(t)
-    back = np.flatnonzero(dt < 0)
-    if back.size:
-        k = int(back[0])
+    for i in range(0, len(t), BLOCK):
+        fin = np.isfinite(t[i:i + BLOCK])
+        if not fin.all():
+            k = i + int(np.flatnonzero(~fin)[0])
+            raise RecordingError(f"timestamp of sample {k} is not a number; fix the file")
+    back, first_back, dups = 0, None, []
+    for i, d in _diffs(t):
+        neg = np.flatnonzero(d < 0)
+        if neg.size:
+            back += neg.size
+            first_back = first_back if first_back is not None else i + int(neg[0])
+        dups.append(np.flatnonzero(d == 0) + i + 1)
+    if back:
+        k = first_back
         raise RecordingError(
             f"timestamps go backwards at sample {k + 1} (t = {t[k]:.6f} s, then {t[k + 1]:.6f} s; "
-            f"{back.size} time(s) in all): the file is not in time order (merged or restarted logs?); "
+            f"{back} time(s) in all): the file is not in time order (merged or restarted logs?); "
             "sort it by time or cut it at the restart")
-    dup = np.flatnonzero(dt == 0) + 1
+    dup = np.concatenate(dups) if dups else np.empty(0, np.int64)
     timing: dict = {"n_read": len(t), "duplicates": int(dup.size)}
     if dup.size:
         keep = np.ones(len(t), bool)
@@ -217,27 +238,45 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
         same = int(sum(np.array_equal(a[i], a[i - 1]) and np.array_equal(g[i], g[i - 1]) for i in dup))
         timing["duplicates_identical"] = same
         t, a, g = t[keep], a[keep], g[keep]
-        dt = np.diff(t)
-    if len(dt) < 2 or not float(np.median(dt)) > 0:
+        del keep
+    del dup, dups
+    if len(t) < 3:
         raise RecordingError("the timestamps do not advance (median step 0); check the time column and its unit")
-    step = _nominal_step(dt)
-    found, jitter_long = _gaps(t, dt, step, gap_factor)
+    buf = np.diff(t)                                   # the one working array of the recording's length
+    median_dt = float(np.median(buf, overwrite_input=True))
+    if not median_dt > 0:
+        raise RecordingError("the timestamps do not advance (median step 0); check the time column and its unit")
+    step = _nominal_step(t, buf)
+    del buf
+    long = np.concatenate([np.flatnonzero(d > gap_factor * step) + i for i, d in _diffs(t)])
+    found, jitter_long = _gaps(t, long, step)
+    del long
     gaps = np.array([k for k, _ in found], dtype=np.int64)
-    inside = np.ones(len(dt), bool)
-    inside[gaps] = False
-    mean = float(np.mean(dt[inside])) if inside.any() else step
+    # the steps outside the gaps: count, sum, min, max, then the spread about their mean (two passes)
+    total, count, lo, hi = [], 0, np.inf, -np.inf
+    for i, d in _diffs(t):
+        d = _outside(d, i, gaps)
+        if d.size:
+            total.append(float(np.sum(d)))
+            count += d.size
+            lo, hi = min(lo, float(d.min())), max(hi, float(d.max()))
+    mean = math.fsum(total) / count if count else step
+    if not count:
+        lo = hi = mean
+    sq = math.fsum(float(np.sum((_outside(d, i, gaps) - mean) ** 2)) for i, d in _diffs(t))
+    std = math.sqrt(sq / count) if count else 0.0
     fs = 1.0 / mean
-    steps = dt[inside] if inside.any() else np.array([mean])
-    dev = np.abs(steps - mean) / mean
-    timing.update({"median_dt_s": float(np.median(dt)), "mean_dt_s": mean, "fs_hz": fs,
-                   "jitter_rel": float(np.std(steps) / mean), "jitter_s": float(np.std(steps)),
-                   "min_dt_s": float(steps.min()), "max_dt_s": float(steps.max()),
-                   "max_step_dev_rel": float(dev.max()), "long_steps_jitter": jitter_long,
-                   "gaps": [{"index": int(k + 1), "t_s": float(t[k]), "duration_s": float(dt[k]),
+    dev_max = max(abs(hi - mean), abs(mean - lo)) / mean
+    dt_at = {int(k): float(t[k + 1] - t[k]) for k, _ in found}
+    timing.update({"median_dt_s": median_dt, "mean_dt_s": mean, "fs_hz": fs,
+                   "jitter_rel": float(std / mean), "jitter_s": float(std),
+                   "min_dt_s": float(lo), "max_dt_s": float(hi),
+                   "max_step_dev_rel": float(dev_max), "long_steps_jitter": jitter_long,
+                   "gaps": [{"index": int(k + 1), "t_s": float(t[k]), "duration_s": dt_at[k],
                              "missing": m} for k, m in found]})
-    breaks = [(int(k + 1), f"gap of {dt[k]:.3f} s ({m} samples missing) at t = {t[k]:.3f} s") for k, m in found]
+    breaks = [(int(k + 1), f"gap of {dt_at[k]:.3f} s ({m} samples missing) at t = {t[k]:.3f} s") for k, m in found]
     timing["resampled"] = False
-    if resample and dev.max() > JITTER_RESAMPLE:
+    if resample and dev_max > JITTER_RESAMPLE:
         pieces = np.split(np.arange(len(t)), gaps + 1)
         ts, As, Gs, nb = [], [], [], []
         n0 = 0
@@ -245,8 +284,8 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
             tp = t[p]
             grid = tp[0] + np.arange(int(math.floor((tp[-1] - tp[0]) / mean + 1e-9)) + 1) * mean
             ts.append(grid)
-            As.append(np.column_stack([np.interp(grid, tp, a[p, j]) for j in range(3)]))
-            Gs.append(np.column_stack([np.interp(grid, tp, g[p, j]) for j in range(3)]))
+            As.append(np.column_stack([np.interp(grid, tp, a[p, j]) for j in range(3)]).astype(a.dtype, copy=False))
+            Gs.append(np.column_stack([np.interp(grid, tp, g[p, j]) for j in range(3)]).astype(g.dtype, copy=False))
             if n0:
                 nb.append(n0)
             n0 += len(grid)
@@ -255,6 +294,12 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
         timing["resampled"] = True
     timing["n_used"] = len(t)
     return t, a, g, fs, breaks, timing
+
+
+def _outside(d: np.ndarray, start: int, gaps: np.ndarray) -> np.ndarray:
+    """The steps of a block (step start + j) that are not gaps."""
+    inside = gaps[(gaps >= start) & (gaps < start + len(d))]
+    return np.delete(d, inside - start) if inside.size else d
 
 
 def timing_lines(rec: Recording) -> list[str]:
@@ -297,29 +342,38 @@ def unsigned_offset(x) -> tuple[int, int] | None:
     integer in [0, 2^n), the largest 2^(n−1) or more (which no signed n-bit value is) and every
     axis's median within 60 % of 2^(n−1) of it (a signed reading's zero: a MEMS axis at rest
     reads within ±1 g of 0, and its full scale is at least ±2 g); else None."""
-    v = np.asarray(x, dtype=np.float64)
-    if not v.size or v.min() < 0 or v.max() < 2 ** (UNSIGNED_BITS[0] - 1) or not np.array_equal(v, np.round(v)):
+    v = _floats(x)
+    if not v.size or v.min() < 0 or v.max() < 2 ** (UNSIGNED_BITS[0] - 1):
+        return None
+    if not all(np.array_equal(b, np.round(b)) for b in (v[i:i + BLOCK] for i in range(0, len(v), BLOCK))):
         return None
     n = next((b for b in UNSIGNED_BITS if v.max() < 2 ** b), None)
     if n is None or v.max() < 2 ** (n - 1):
         return None
     half = 2 ** (n - 1)
-    return (half, n) if np.all(np.abs(np.median(v, axis=0) - half) <= 0.6 * half) else None
+    med = _medians(v)
+    return (half, n) if np.all(np.abs(med - half) <= 0.6 * half) else None
 
 
-def _offset(v: np.ndarray, declared, unit: str, what: str, flag: str, detected: list, options: dict) -> np.ndarray:
+def _medians(v: np.ndarray) -> np.ndarray:
+    """The median of each column (one column copied at a time)."""
+    return np.array([np.median(v[:, j]) for j in range(v.shape[1])]) if v.ndim == 2 else np.median(v, axis=0)
+
+
+def _offset(v: np.ndarray, declared, unit: str, what: str, flag: str, detected: list, options: dict,
+            copy: bool = True) -> np.ndarray:
     """v less its offset: declared (--accel-offset / --gyro-offset, 0 for none), else 2^(n−1) when
     the values are unsigned counts (unsigned_offset), said in one line; unsigned counts under a
     physical unit are refused (the unit is wrong, and a scale cannot stand in for an offset)."""
     if declared is not None:
         if not math.isfinite(declared):
             raise RecordingError(f"--{flag}-offset must be a number of counts, got {declared}")
-        return v - declared if declared else v
+        return _minus(v, declared, copy) if declared else v
     found = unsigned_offset(v)
     if found is None:
         return v
     half, n = found
-    med = ", ".join(f"{m:.0f}" for m in np.median(v, axis=0))
+    med = ", ".join(f"{m:.0f}" for m in _medians(v))
     seen = f"every value an integer in 0..{2 ** n - 1}, axis medians {med}"
     if unit != "counts":
         raise RecordingError(f"the {what} holds unsigned {n}-bit counts centred on {half} ({seen}), not {unit}: "
@@ -328,7 +382,15 @@ def _offset(v: np.ndarray, declared, unit: str, what: str, flag: str, detected: 
     detected.append(f"{what}: unsigned {n}-bit counts centred on {half} ({seen}): {half} subtracted "
                     f"(--{flag}-offset {half}; --{flag}-offset 0 keeps the values as they are)")
     options[f"{flag}_offset"] = half
-    return v - half
+    return _minus(v, half, copy)
+
+
+def _minus(v: np.ndarray, offset: float, copy: bool) -> np.ndarray:
+    """v − offset, in place when v is the caller's to give away (copy False)."""
+    if copy:
+        return v - offset
+    v -= offset
+    return v
 
 
 #: read() options and the command-line options that give them (imubench calibrate/allan --from)
@@ -363,33 +425,67 @@ def command_line(rec: Recording, command: str = "calibrate") -> str:
                                                        [rec.source.split(" + ")[0], *command_options(rec)]])
 
 
+#: a value beyond this in any unit (m/s², g, mg, rad/s, °/s, counts of a 32-bit register) is no
+#: sensor's reading
+ABSURD = 1e12
+#: samples looked at a time by the checks (no temporaries the size of the recording)
+BLOCK = 1 << 20
+
+
+def _floats(x) -> np.ndarray:
+    """x as a float array: float32 and float64 kept as they are, anything else float64."""
+    a = np.asarray(x)
+    return a if a.dtype in (np.float32, np.float64) else a.astype(np.float64)
+
+
+def _check_values(a: np.ndarray, g: np.ndarray) -> None:
+    """Refuse samples holding a missing, non-finite or absurd value, naming the first (a block at a time)."""
+    count, first = 0, None
+    for i in range(0, len(a), BLOCK):
+        with np.errstate(invalid="ignore"):
+            bad = ~(np.isfinite(a[i:i + BLOCK]).all(axis=1) & np.isfinite(g[i:i + BLOCK]).all(axis=1))
+        if bad.any():
+            count += int(bad.sum())
+            first = first if first is not None else i + int(np.flatnonzero(bad)[0])
+    if count:
+        raise RecordingError(f"{count} samples hold a missing or non-numeric value (first at sample {first}); "
+                             "fix or cut the file")
+    for i in range(0, len(a), BLOCK):
+        big = (np.abs(a[i:i + BLOCK]) > ABSURD).any(axis=1) | (np.abs(g[i:i + BLOCK]) > ABSURD).any(axis=1)
+        if big.any():
+            k = i + int(np.flatnonzero(big)[0])
+            v = max(np.abs(a[k]).max(), np.abs(g[k]).max())
+            raise RecordingError(f"sample {k} holds {v:.3g}, beyond any sensor's range (|x| > {ABSURD:.0e}); "
+                                 "fix or cut the file")
+
+
 def from_arrays(accel, gyro, *, t_s=None, rate_hz: float | None = None, accel_unit_name: str = "mps2",
                 gyro_unit_name: str = "rad_s", accel_counts_per_g: float | None = None,
                 gyro_counts_per_dps: float | None = None, source: str = "arrays", fmt: str = "arrays",
                 breaks=(), notes=(), parts=None, device: str | None = None, accel_offset: float | None = None,
-                gyro_offset: float | None = None, detected=(), options: dict | None = None) -> Recording:
+                gyro_offset: float | None = None, detected=(), options: dict | None = None,
+                copy: bool = True) -> Recording:
     """A Recording from arrays: time from t_s (seconds; checked by check_timing) or from
     rate_hz (uniform samples). accel_offset, gyro_offset: counts subtracted (None: 2^(n−1) when
     the values are unsigned counts, see unsigned_offset; 0: none). detected, options: what the
-    reader settled (one line each) and the options that read the file again the same way."""
-    a = np.asarray(accel, dtype=np.float64)
-    g = np.asarray(gyro, dtype=np.float64)
+    reader settled (one line each) and the options that read the file again the same way. The arrays
+    keep their floating type (float32 from a reader under a small memory budget, imubench.memory);
+    copy=False: they are the caller's to give away (a reader's own), and an offset is subtracted in
+    place."""
+    a, g = _floats(accel), _floats(gyro)
     if a.ndim != 2 or a.shape[1] != 3 or g.shape != a.shape:
         raise RecordingError(f"accelerometer and gyro must be (n, 3) arrays of the same length, got "
                              f"{a.shape} and {g.shape}")
-    bad = ~(np.isfinite(a).all(axis=1) & np.isfinite(g).all(axis=1))
     notes = list(notes)
     au, gu = accel_unit(accel_unit_name), gyro_unit(gyro_unit_name)
     for name, v in (("--accel-scale", accel_counts_per_g), ("--gyro-scale", gyro_counts_per_dps)):
         if v is not None and not (math.isfinite(v) and v > 0):
             raise RecordingError(f"{name} must be a positive number of counts per unit, got {v}")
     brk = list(breaks)
-    if bad.any():
-        raise RecordingError(f"{int(bad.sum())} samples hold a missing or non-numeric value (first at sample "
-                             f"{int(np.flatnonzero(bad)[0])}); fix or cut the file")
+    _check_values(a, g)
     detected, options = list(detected), dict(options or {})
-    a = _offset(a, accel_offset, au, "accelerometer", "accel", detected, options)
-    g = _offset(g, gyro_offset, gu, "gyro", "gyro", detected, options)
+    a = _offset(a, accel_offset, au, "accelerometer", "accel", detected, options, copy)
+    g = _offset(g, gyro_offset, gu, "gyro", "gyro", detected, options, copy)
     timing: dict = {}
     t = None
     if t_s is not None:

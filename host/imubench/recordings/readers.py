@@ -26,6 +26,7 @@ import csv
 import gzip
 import io
 import json
+import os
 import re
 import zipfile
 from dataclasses import dataclass, field
@@ -34,21 +35,23 @@ from pathlib import Path
 import numpy as np
 
 from imubench.files import (
-    MAX_CAPTURE_BYTES,
     MAX_JSON_BYTES,
     MAX_LINE_CHARS,
     FileRefused,
     MiB,
     bounded_lines,
     open_input,
-    read_bytes,
     read_text,
 )
+from imubench import memory
 from imubench.recordings import FORMATS, Recording, RecordingError, from_arrays
 
-#: the most samples a recording may hold (21 columns of float64 at most: about 3 GiB); a calibration
-#: needs minutes of data, not days
-MAX_SAMPLES = 20_000_000
+#: the most samples a recording may hold under the default memory budget (imubench.memory.sample_limit:
+#: 24 h at 200 Hz is a normal input); --memory-budget sets another
+MAX_SAMPLES = memory.sample_limit()
+#: a value of an accelerometer or gyro beyond this in any unit (m/s², g, mg, rad/s, °/s, counts of a
+#: 32-bit register) is no sensor's reading: the line is named and the file refused
+ABSURD = 1e12
 #: the lines parsed at a time: text is never held whole, only this many lines of it
 CHUNK_LINES = 65536
 #: what the arrays of one .npz member may take once read (checked from its header before reading)
@@ -245,55 +248,186 @@ def _preamble_rate(lay: Layout) -> tuple[float, str] | None:
     return rate, text
 
 
-def _chunks(path: Path, start: int):
-    """Lists of at most CHUNK_LINES data lines of a text file from its line start (0-based; blank
-    lines and # or % comments skipped): the file is streamed, never held whole."""
-    with _open_text(path) as f:
-        chunk = []
-        for i, line in enumerate(_lines(f, path)):
-            if i >= start and line.strip() and not _is_comment(line):
-                chunk.append(line)
-                if len(chunk) == CHUNK_LINES:
-                    yield chunk
-                    chunk = []
-        if chunk:
-            yield chunk
+def _progress(total: int, desc: str, unit: str = "B"):
+    """A tqdm bar (as the rest of the tool) on stderr, shown only when the work lasts over a second
+    and stderr is a terminal: bytes (or samples) done and the time left."""
+    from tqdm import tqdm
+    return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, unit_divisor=1024 if unit == "B" else 1000,
+                delay=1.0, leave=False, disable=None, dynamic_ncols=True)
 
 
-def _load(path: Path, delim: str | None, usecols: list[int], start: int) -> np.ndarray:
-    """The numbers of the columns usecols of a text table from its line start, parsed CHUNK_LINES
-    lines at a time into one array sized from the file's size (bounded memory: the text of one
-    chunk and the numbers read; no second copy)."""
-    out, n = None, 0
-    size = path.stat().st_size
+def _position(f) -> int:
+    """The bytes of the file on disk consumed so far (of the compressed file for .gz)."""
     try:
-        for chunk in _chunks(path, start):
-            if delim not in (None, " ", "\t"):       # whitespace at line ends is format (np.loadtxt: None)
-                chunk = [ln.strip() for ln in chunk]
-            a = np.loadtxt(chunk, delimiter=None if delim in (" ", "\t", None) else delim, usecols=usecols,
-                           comments=_COMMENT, ndmin=2, dtype=np.float64)
-            if out is None:
-                per_line = max(1.0, sum(map(len, chunk)) / len(chunk))
-                rows = len(a) if len(chunk) < CHUNK_LINES or path.suffix == ".gz" else int(size / per_line * 1.02)
-                out = np.empty((min(max(rows, len(a)), MAX_SAMPLES + 1), a.shape[1]))
-            elif a.shape[1] != out.shape[1]:
-                raise ValueError(f"{a.shape[1]} columns after {n} lines of {out.shape[1]}")
-            if n + len(a) > MAX_SAMPLES:
-                raise RecordingError(f"{path}: more than the limit of {MAX_SAMPLES} samples; cut the recording "
-                                     "(a calibration needs minutes of data)")
-            if n + len(a) > len(out):
-                out = np.resize(out, (min(max(n + len(a), int(len(out) * 1.5)), MAX_SAMPLES + 1), out.shape[1]))
-            out[n:n + len(a)] = a
+        return os.lseek(f.fileno(), 0, os.SEEK_CUR)
+    except (OSError, ValueError, AttributeError):
+        return 0
+
+
+def _count_lines(path: Path, stop: int) -> int:
+    """The lines of a text file (of its decompressed text for .gz), counted in binary blocks without
+    holding them; counting stops past `stop` (a gzip bomb is not decompressed to its end)."""
+    n, last = 0, b"\n"
+    try:
+        with (_open_binary(path)) as f:
+            while n <= stop:
+                blk = f.read(1 << 22)
+                if not blk:
+                    break
+                n += blk.count(b"\n")
+                last = blk[-1:]
+    except (OSError, EOFError) as e:
+        raise RecordingError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+    return n + (last != b"\n")
+
+
+def _open_binary(path: Path):
+    if path.suffix == ".gz":
+        raw = open_input(path)
+        g = gzip.GzipFile(fileobj=raw, mode="rb")
+        g.myfileobj = raw
+        return g
+    return open_input(path)
+
+
+#: characters of text read at a time (split into lines by str.split: no Python work per line)
+BLOCK_CHARS = 1 << 22
+#: a blank line, or one of whitespace only, in a block with a newline added at both ends
+_BLANK = re.compile(r"\n[ \t\r\f\v]*\n")
+
+
+def _chunks(path: Path, start: int, progress=None):
+    """(lines, numbers) of the data lines of a text file from its line start (0-based; blank lines and
+    # or % comments skipped), about BLOCK_CHARS of text at a time, and their 1-based line numbers (a
+    range when no line of the block was skipped, and then no line holds a comment): the file is
+    streamed, never held whole, and split into lines by str.split, not line by line in Python. A line longer than MAX_LINE_CHARS is refused
+    (a binary file). progress: a tqdm bar advanced by the bytes of the file consumed."""
+    with _open_text(path) as f:
+        it = _lines(f, path)
+        for _ in range(start):
+            if next(it, None) is None:
+                return
+        lineno, rest, done = start, "", 0
+        try:
+            while True:
+                blk = f.read(BLOCK_CHARS)
+                if not blk:
+                    text = rest
+                    rest = ""
+                else:
+                    text = rest + blk
+                    cut = text.rfind("\n")
+                    if cut < 0:
+                        if len(text) > MAX_LINE_CHARS:
+                            raise RecordingError(f"{path}: line {lineno + 1} is longer than the limit of "
+                                                 f"{MAX_LINE_CHARS} characters; is it a text file of this format?")
+                        rest = text
+                        continue
+                    text, rest = text[:cut], text[cut + 1:]
+                if text:
+                    lines = text.split("\n")
+                    if max(map(len, lines)) > MAX_LINE_CHARS:
+                        k = next(i for i, ln in enumerate(lines) if len(ln) > MAX_LINE_CHARS)
+                        raise RecordingError(f"{path}: line {lineno + k + 1} is longer than the limit of "
+                                             f"{MAX_LINE_CHARS} characters; is it a text file of this format?")
+                    if "#" in text or "%" in text or _BLANK.search("\n" + text + "\n"):
+                        keep = [(i, ln) for i, ln in enumerate(lines) if ln.strip() and not _is_comment(ln)]
+                        chunk, numbers = [ln for _, ln in keep], [lineno + i + 1 for i, _ in keep]
+                    else:
+                        chunk, numbers = lines, range(lineno + 1, lineno + len(lines) + 1)
+                    lineno += len(lines)
+                    if chunk:
+                        yield chunk, numbers
+                if progress is not None:
+                    pos = _position(f)
+                    progress.update(max(0, pos - done))
+                    done = max(done, pos)
+                if not blk:
+                    return
+        except (OSError, EOFError, UnicodeDecodeError) as e:
+            raise RecordingError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+
+
+def _bad_row(what: str, path: Path, line: int, col: str, value: float) -> RecordingError:
+    kind = "not a finite number" if not np.isfinite(value) else f"{value:.3g}, beyond any sensor's range (|x| > {ABSURD:.0e})"
+    return RecordingError(f"{path.name}: line {line}, {col}: {kind}; fix or cut the file ({what})")
+
+
+def _load_table(path: Path, delim: str | None, usecols: list[int], start: int, *, time_at: int | None = None,
+                names: list[str] | None = None, budget: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The numbers of the columns usecols of a text table from its line start, parsed CHUNK_LINES lines at
+    a time into arrays allocated once: (values, t) with t the column at position time_at of usecols
+    (float64 seconds or whatever unit the file has; None without) and values the others, as float64 when
+    the memory budget holds them so, else float32 (imubench.memory). The lines are counted first, so the
+    sample limit the budget sets is checked before anything is allocated. A value that is not finite or
+    beyond any sensor's range (ABSURD) is refused with its line. names: the columns' names, for messages."""
+    names = names or [f"column {c + 1}" for c in usecols]
+    nval = len(usecols) - (time_at is not None)
+    limit = memory.sample_limit(budget, nval, time_at is not None)
+    lines = _count_lines(path, stop=start + limit + 1)
+    rows = max(0, lines - start)
+    dtype = memory.storage_dtype(rows, budget, nval, time_at is not None)
+    if dtype is None:
+        raise RecordingError(f"{path}: more than {limit:,} samples (counted {'over' if rows > limit else ''} "
+                             f"{rows:,} lines), the limit of the memory budget of {memory.budget_text(budget)}; "
+                             "give a larger --memory-budget, or cut the recording")
+    vcols = [k for k in range(len(usecols)) if k != time_at]
+    vals = np.empty((rows, nval), dtype=dtype)
+    t = np.empty(rows, dtype=np.float64) if time_at is not None else None
+    n = 0
+    size = path.stat().st_size
+    bar = _progress(size, f"reading {path.name}") if size > (1 << 20) else None
+    try:
+        for chunk, numbers in _chunks(path, start, bar):
+            try:                                   # comments: numpy's C parser only without any (see _chunks)
+                a = np.loadtxt(chunk, delimiter=None if delim in (" ", "\t", None) else delim, usecols=usecols,
+                               comments=None if isinstance(numbers, range) else _COMMENT, ndmin=2, dtype=np.float64)
+            except ValueError as e:
+                raise RecordingError(_not_numbers(path, chunk, numbers, delim, usecols, e, start)) from None
+            if len(a) != len(chunk):
+                raise RecordingError(f"{path}: {len(chunk)} lines gave {len(a)} rows; check the file")
+            v = a[:, vcols]
+            bad = ~np.isfinite(v) | (np.abs(v) > ABSURD)
+            if time_at is not None:
+                bad = np.column_stack([bad, ~np.isfinite(a[:, time_at])])
+            if bad.any():
+                r, c = np.argwhere(bad)[0]
+                col = usecols[time_at] if c == nval else usecols[vcols[c]]
+                value = a[r, time_at] if c == nval else v[r, c]
+                raise _bad_row("first such value", path, numbers[r], names[usecols.index(col)], float(value))
+            if n + len(a) > rows:
+                raise RecordingError(f"{path} grew while it was read; read it when it is complete")
+            vals[n:n + len(a)] = v
+            if t is not None:
+                t[n:n + len(a)] = a[:, time_at]
             n += len(a)
-    except RecordingError:
-        raise
-    except ValueError as e:
-        raise RecordingError(f"{path}: not numbers where numbers are expected ({' '.join(str(e).split())[:160]}, "
-                             f"counted from line {start + 1}); check the delimiter and the header, or start at the "
-                             "header row with --skip-rows N (the lines before it)") from None
-    if out is None:
-        return np.empty((0, len(usecols)))
-    return out[:n]
+    finally:
+        if bar is not None:
+            bar.close()
+    return vals[:n], (t[:n] if t is not None else None)
+
+
+def _not_numbers(path: Path, chunk, numbers, delim, usecols, e, start) -> str:
+    """The first line of a chunk that is not numbers, named (parsed again one line at a time: only
+    after a failure)."""
+    where = f"counted from line {start + 1}"
+    for ln, no in zip(chunk, numbers):
+        try:
+            np.loadtxt([ln], delimiter=None if delim in (" ", "\t", None) else delim, usecols=usecols,
+                       comments=_COMMENT, ndmin=2, dtype=np.float64)
+        except ValueError as e1:
+            e, where = e1, f"line {no}"
+            break
+    msg = re.sub(r" at row \d+", "", " ".join(str(e).split()))[:160]
+    return (f"{path}: not numbers where numbers are expected ({msg}; {where}); "
+            "check the delimiter and the header, or start at the header row with --skip-rows N (the lines before it)")
+
+
+def _load(path: Path, delim: str | None, usecols: list[int], start: int, budget: int | None = None) -> np.ndarray:
+    """All the columns usecols as one array (float64 or float32 by the budget): _load_table without a
+    time column."""
+    vals, _ = _load_table(path, delim, usecols, start, budget=budget)
+    return vals
 
 
 def detect_format(path, skip_rows: int | None = None) -> str:
@@ -447,7 +581,10 @@ def _time_seconds(raw: np.ndarray, unit: str | None, what: str, detected: list, 
                              "(or --rate HZ to ignore it)")
     if unit not in _TIME_SUFFIX:
         raise RecordingError(f"--time-unit {unit!r}: one of s, ms, us, ns")
-    return raw * _TIME_SUFFIX[unit]
+    f = _TIME_SUFFIX[unit]
+    if f != 1.0:
+        np.multiply(raw, f, out=raw)            # in place: the reader's own array, no second copy
+    return raw
 
 
 def _layout_lines(lay: Layout, rate_hz: float | None, has_time: bool, detected: list, notes: list,
@@ -527,7 +664,9 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
             options["time_column"] = mapping["t"]
     idx = [low[mapping[k].lower()] for k in KEYS]
     t_idx = low[mapping["t"].lower()] if "t" in mapping else None
-    data = _load(path, lay.delim, idx + ([t_idx] if t_idx is not None else []), lay.start)
+    names = [mapping[k] for k in KEYS] + ([mapping["t"]] if t_idx is not None else [])
+    data, t_raw = _load_table(path, lay.delim, idx + ([t_idx] if t_idx is not None else []), lay.start,
+                              time_at=6 if t_idx is not None else None, names=names, budget=opt.get("memory_budget"))
     # units: declared, or declared by the column names
     if not accel_unit:
         suf = mapping["ax"].lower().rsplit("_", 1)[-1]
@@ -548,9 +687,10 @@ def read_csv(path: Path, *, columns: dict | None = None, time_column: str | None
             unit = suf if "_" in mapping["t"] and suf in _TIME_SUFFIX else None
             if unit:
                 notes.append(f"time unit {unit} from the column name {mapping['t']}")
-        t = _time_seconds(data[:, 6], unit, f"the time column {mapping['t']!r}", detected, options)
+        t = _time_seconds(t_raw, unit, f"the time column {mapping['t']!r}", detected, options)
     return from_arrays(data[:, :3], data[:, 3:6], t_s=t, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
-                       source=str(path), fmt="csv", notes=notes, detected=detected, options=options, **_common(opt))
+                       source=str(path), fmt="csv", notes=notes, detected=detected, options=options, copy=False,
+                       **_common(opt))
 
 
 def _read_headerless(path: Path, lay: Layout, *, columns: dict | None, time_unit: str | None,
@@ -580,29 +720,35 @@ def _read_headerless(path: Path, lay: Layout, *, columns: dict | None, time_unit
     if rate_hz:
         pos.pop("t", None)
     use = [pos[k] for k in KEYS] + ([pos["t"]] if "t" in pos else [])
-    data = _load(path, lay.delim, use, lay.start)
+    data, t_raw = _load_table(path, lay.delim, use, lay.start, time_at=6 if "t" in pos else None,
+                              budget=opt.get("memory_budget"))
     au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, path.name)
     t = None
     if "t" in pos:
-        t = _time_seconds(data[:, 6], time_unit, f"{path.name}: the time column (position {pos['t'] + 1})",
+        t = _time_seconds(t_raw, time_unit, f"{path.name}: the time column (position {pos['t'] + 1})",
                           detected, options)
     return from_arrays(data[:, :3], data[:, 3:6], t_s=t, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
-                       source=str(path), fmt="csv", notes=notes, detected=detected, options=options, **_common(opt))
+                       source=str(path), fmt="csv", notes=notes, detected=detected, options=options, copy=False,
+                       **_common(opt))
 
 
 # ------------------------------------------------------------------ imu_tk
-def _imutk_file(path: Path, what: str) -> np.ndarray:
+def _imutk_file(path: Path, what: str, budget: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(t, xyz) of one of imu_tk's files: the time float64, the values float64 or float32 by the budget."""
     if not path.exists():
         raise RecordingError(f"{path}: no such file; check the path")
     _regular(path)
     try:
         lay = _layout(path)
-        d = _load(path, lay.delim, list(range(lay.ncols)), lay.start)
+        if lay.ncols != 4:
+            raise RecordingError(f"{path} ({what}): {lay.ncols} columns per line; imu_tk's files have 4 (t x y z)")
+        xyz, t = _load_table(path, lay.delim, [0, 1, 2, 3], lay.start, time_at=0, names=["t", "x", "y", "z"],
+                             budget=budget)
     except RecordingError as e:
+        if "columns per line" in str(e):
+            raise
         raise RecordingError(f"not imu_tk's layout (lines of 't x y z' numbers): {e}") from None
-    if d.shape[1] != 4:
-        raise RecordingError(f"{path} ({what}): {d.shape[1]} columns per line; imu_tk's files have 4 (t x y z)")
-    return d
+    return t, xyz
 
 
 #: the words that name imu_tk's accelerometer file, and those of its gyro file beside it (xsens_acc.mat, xsens_gyro.mat)
@@ -645,21 +791,37 @@ def read_imutk(path: Path, *, gyro_file=None, accel_unit: str | None = None, gyr
         detected.append(f"imu_tk's pair: the gyro file {gyro_file.name} beside it, by name (--gyro-file {gyro_file})")
         options["gyro_file"] = str(gyro_file)
     au, gu = _need_units({"accel_unit": accel_unit, "gyro_unit": gyro_unit}, "imu_tk's format")
-    a = _imutk_file(path, "accelerometer")
-    g = _imutk_file(Path(gyro_file), "gyro")
+    budget = opt.get("memory_budget")
+    half = None if budget is None else max(memory.MIN_BUDGET_BYTES, budget // 2)
+    ta, a = _imutk_file(path, "accelerometer", half)
+    tg, g = _imutk_file(Path(gyro_file), "gyro", half)
     notes = []
-    if len(a) != len(g) or not np.allclose(a[:, 0], g[:, 0], atol=0.25 * float(np.median(np.diff(a[:, 0])))):
+    if len(ta) < 2:
+        raise RecordingError(f"{path.name}: only {len(ta)} samples: a calibration needs minutes of data")
+    if len(ta) != len(tg) or not _same_times(ta, tg):
         # not sample-synchronous: the gyro is interpolated at the accelerometer's times
-        lo, hi = max(a[0, 0], g[0, 0]), min(a[-1, 0], g[-1, 0])
-        a = a[(a[:, 0] >= lo) & (a[:, 0] <= hi)]
-        if len(a) < 3:
+        lo, hi = max(ta[0], tg[0]), min(ta[-1], tg[-1])
+        keep = (ta >= lo) & (ta <= hi)
+        ta, a = ta[keep], a[keep]
+        if len(ta) < 3:
             raise RecordingError(f"{path.name} and {Path(gyro_file).name} do not overlap in time")
-        g = np.column_stack([a[:, 0]] + [np.interp(a[:, 0], g[:, 0], g[:, j]) for j in (1, 2, 3)])
+        g = np.column_stack([np.interp(ta, tg, g[:, j]) for j in range(3)]).astype(g.dtype, copy=False)
         notes.append("the gyro file's times differ from the accelerometer's: the gyro was interpolated "
                      "(linearly) at the accelerometer's times over their common span")
-    return from_arrays(a[:, 1:], g[:, 1:], t_s=a[:, 0], rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
+    del tg
+    return from_arrays(a, g, t_s=ta, rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
                        source=f"{path} + {gyro_file}", fmt="imutk", notes=notes, detected=detected, options=options,
-                       **_common(opt))
+                       copy=False, **_common(opt))
+
+
+def _same_times(ta: np.ndarray, tg: np.ndarray) -> bool:
+    """True when two files' time stamps agree sample by sample within a quarter of the median step
+    (compared a block at a time: no temporaries the size of the recording)."""
+    atol = 0.25 * float(np.median(np.diff(ta[: 1_000_001])))
+    for i in range(0, len(ta), 1 << 20):
+        if not np.allclose(ta[i:i + (1 << 20)], tg[i:i + (1 << 20)], atol=atol):
+            return False
+    return True
 
 
 # ------------------------------------------------------------------ imucal
@@ -681,8 +843,8 @@ def read_imucal(path: Path, *, rate_hz: float | None = None, accel_unit: str | N
     breaks = []
     notes = []
     if low[0] == "part":
-        names = [r[0] for chunk in _chunks(path, lay.start) for r in csv.reader(chunk, delimiter=delim)]
-        data = _load(path, delim, idx, lay.start)
+        names = [r[0] for chunk, _ in _chunks(path, lay.start) for r in csv.reader(chunk, delimiter=delim)]
+        data = _load(path, delim, idx, lay.start, budget=opt.get("memory_budget"))
         parts = []
         start = 0
         for i in range(1, len(names) + 1):
@@ -695,7 +857,7 @@ def read_imucal(path: Path, *, rate_hz: float | None = None, accel_unit: str | N
         notes.append(f"{len(parts)} parts named in the file ({', '.join(p[0] for p in parts)}): each cut is a "
                      "break; the parts are not used to find the poses, only to compare with")
     else:
-        data = _load(path, delim, idx, lay.start)
+        data = _load(path, delim, idx, lay.start, budget=opt.get("memory_budget"))
     return from_arrays(data[:, :3], data[:, 3:], rate_hz=rate_hz, accel_unit_name=au, gyro_unit_name=gu,
                        source=str(path), fmt="imucal", breaks=breaks, notes=notes, parts=parts, **_common(opt))
 
@@ -745,56 +907,207 @@ def _check_npz(path: Path) -> None:
         raise RecordingError(f"{path}: not a .npz file ({e})") from None
 
 
+def _npz_members(path: Path) -> dict:
+    """{name: (member, shape, dtype, fortran)} of a .npz's .npy members, from their headers."""
+    fmt = np.lib.format
+    out = {}
+    with open_input(path) as fh, zipfile.ZipFile(fh) as zf:
+        for info in zf.infolist():
+            if info.filename.endswith(".npy"):
+                with zf.open(info) as m:
+                    version = fmt.read_magic(m)
+                    shape, fortran, dtype = (fmt.read_array_header_1_0 if version == (1, 0)
+                                             else fmt.read_array_header_2_0)(m, max_header_size=10000)
+                out[info.filename[:-4]] = (info.filename, shape, dtype, fortran)
+    return out
+
+
+def _npz_blocks(path: Path, member, step: int = 1 << 20):
+    """(start, rows) of a .npz member (C order) a block of `step` rows at a time, read from the zip
+    stream: the member is never held whole."""
+    fmt = np.lib.format
+    name, shape, dtype, _ = member
+    row = int(np.prod(shape[1:], dtype=np.int64)) if len(shape) > 1 else 1
+    with open_input(path) as fh, zipfile.ZipFile(fh) as zf, zf.open(name) as m:
+        version = fmt.read_magic(m)
+        (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(m, max_header_size=10000)
+        n = shape[0] if shape else 1
+        for i in range(0, n, step):
+            k = min(step, n - i)
+            buf = m.read(k * row * dtype.itemsize)
+            if len(buf) != k * row * dtype.itemsize:
+                raise RecordingError(f"{path}: member {name} ends early: damaged")
+            yield i, np.frombuffer(buf, dtype=dtype).reshape((k,) + tuple(shape[1:]))
+
+
 def read_npz(path: Path, **opt) -> Recording:
     _check_npz(path)
     try:
-        z = np.load(path)
-    except (ValueError, OSError) as e:
+        members = _npz_members(path)
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
         raise RecordingError(f"{path}: not a .npz file ({e})") from None
     need = ("accel_mps2", "rate_rad_s")
-    if not all(k in z for k in need):
-        raise RecordingError(f"{path.name} holds {', '.join(z.files)}; imubench's npz (imubench decode --npz) "
+    if not all(k in members for k in need):
+        raise RecordingError(f"{path.name} holds {', '.join(members)}; imubench's npz (imubench decode --npz) "
                              f"has {', '.join(need)} and t_us")
-    breaks = []
-    notes = []
-    t = z["t_us"] * 1e-6 if "t_us" in z else None
-    if "sample_index" in z:
-        si = np.asarray(z["sample_index"], np.int64)
-        for k in np.flatnonzero(np.diff(si) > 1):
-            breaks.append((int(k + 1), f"{int(si[k + 1] - si[k] - 1)} samples lost on the link before sample {k + 1}"))
-    if "status" in z and np.any(z["status"]):
-        notes.append(f"{int(np.count_nonzero(z['status']))} samples flagged bad by the device (status bits)")
-    rec = from_arrays(z["accel_mps2"], z["rate_rad_s"], t_s=t, rate_hz=opt.get("rate_hz"), source=str(path),
-                      fmt="npz", notes=notes, device=opt.get("device"))
+    n = members["accel_mps2"][1][0] if members["accel_mps2"][1] else 0
+    for k in ("accel_mps2", "rate_rad_s", "t_us", "sample_index", "status"):
+        if k in members and (members[k][3] or not members[k][1] or members[k][1][0] != n):
+            raise RecordingError(f"{path}: member {k} has shape {members[k][1]} (Fortran order: {members[k][3]}); "
+                                 f"expected {n} rows in C order as imubench decode --npz writes them")
+    budget = opt.get("memory_budget")
+    limit = memory.sample_limit(budget, 6, "t_us" in members)
+    if n > limit:
+        raise RecordingError(f"{path}: {n:,} samples, more than the limit of {limit:,} of the memory budget of "
+                             f"{memory.budget_text(budget)}; give a larger --memory-budget")
+    dtype = memory.storage_dtype(n, budget, 6, "t_us" in members) or np.float32
+    arrays = {}
+    try:
+        for k in need:
+            out = np.empty(members[k][1], dtype=dtype)
+            for i, blk in _npz_blocks(path, members[k]):
+                out[i:i + len(blk)] = blk
+            arrays[k] = out
+        t = None
+        if "t_us" in members:
+            t = np.empty(n)
+            for i, blk in _npz_blocks(path, members["t_us"]):
+                np.multiply(blk, 1e-6, out=t[i:i + len(blk)])
+        breaks, notes = [], []
+        if "sample_index" in members:
+            last = None
+            for i, blk in _npz_blocks(path, members["sample_index"]):
+                si = np.asarray(blk, np.int64)
+                if last is not None:
+                    si = np.concatenate([[last], si])
+                    i -= 1
+                for k in np.flatnonzero(np.diff(si) > 1):
+                    breaks.append((int(i + k + 1), f"{int(si[k + 1] - si[k] - 1)} samples lost on the link before "
+                                                   f"sample {i + k + 1}"))
+                last = int(si[-1]) if len(si) else last
+        if "status" in members:
+            bad = sum(int(np.count_nonzero(blk)) for _, blk in _npz_blocks(path, members["status"]))
+            if bad:
+                notes.append(f"{bad} samples flagged bad by the device (status bits)")
+    except RecordingError:
+        raise
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, TypeError) as e:
+        raise RecordingError(f"{path}: not a .npz file ({e})") from None
+    rec = from_arrays(arrays["accel_mps2"], arrays["rate_rad_s"], t_s=t, rate_hz=opt.get("rate_hz"), source=str(path),
+                      fmt="npz", notes=notes, device=opt.get("device"), copy=False)
     rec.breaks = sorted(rec.breaks + [b for b in breaks if b[0] not in {x[0] for x in rec.breaks}])
     return rec
 
 
+class _Growing:
+    """Samples appended block by block into arrays allocated once from an estimate of the count (grown
+    by half when it was short), values float64 or float32 as the budget holds them, the sample limit
+    checked at every allocation."""
+
+    def __init__(self, path: Path, budget: int | None):
+        self.path, self.budget, self.n = path, budget, 0
+        self.acc = self.gyr = self.t_us = self.index = None
+
+    def _alloc(self, rows: int) -> None:
+        limit = memory.sample_limit(self.budget, 6, True)
+        if rows > limit:
+            raise RecordingError(f"{self.path}: about {rows:,} samples, more than the limit of {limit:,} of the memory "
+                                 f"budget of {memory.budget_text(self.budget)}; give a larger "
+                                 "--memory-budget, or cut the capture")
+        dtype = self.acc.dtype if self.acc is not None else (memory.storage_dtype(rows, self.budget, 6, True)
+                                                            or np.float32)
+        new = [np.empty((rows, 3), dtype), np.empty((rows, 3), dtype), np.empty(rows, np.int64), np.empty(rows, np.int64)]
+        if self.acc is not None:
+            for dst, src in zip(new, (self.acc, self.gyr, self.t_us, self.index)):
+                dst[:self.n] = src[:self.n]
+        self.acc, self.gyr, self.t_us, self.index = new
+
+    def append(self, block, estimate: int) -> None:
+        m = len(block)
+        if self.acc is None:
+            self._alloc(max(estimate, m))
+        elif self.n + m > len(self.acc):
+            self._alloc(max(self.n + m, int(len(self.acc) * 1.5)))
+        acc, gyr = block.si()
+        sl = slice(self.n, self.n + m)
+        self.acc[sl], self.gyr[sl], self.t_us[sl], self.index[sl] = acc, gyr, block.t_us, block.sample_index
+        self.n += m
+
+
 def read_capture(path: Path, **opt) -> Recording:
-    from imubench.wire.decoder import decode_bytes
+    """A session's capture-N.bin, fed to the stream decoder a megabyte at a time; the samples of each
+    megabyte converted (nominal scaling) into arrays sized from the file's length: the file and the
+    decoded frames are never held whole."""
+    from imubench.wire.decoder import StreamDecoder
+    size = path.stat().st_size
+    dec = StreamDecoder()
+    got = {False: _Growing(path, opt.get("memory_budget")), True: _Growing(path, opt.get("memory_budget"))}
+    step, done = 1 << 20, 0
+    bar = _progress(size, f"reading {path.name}") if size > (8 << 20) else None
     try:
-        data = read_bytes(path, MAX_CAPTURE_BYTES, "the capture")
+        with open_input(path) as f:
+            while True:
+                data = f.read(step)
+                if not data:
+                    break
+                done += len(data)
+                dec.feed(data)
+                for cal in (False, True):
+                    b = dec.take_samples(cal)
+                    if b is not None and len(b):
+                        got[cal].append(b, int((got[cal].n + len(b)) * size / done * 1.02) + 16)
+                if bar is not None:
+                    bar.update(len(data))
     except FileRefused as e:
         raise RecordingError(str(e)) from None
-    _, raw, cal, st = decode_bytes(data)
-    block = raw if raw is not None else cal
-    if block is None or len(block) < 3:
+    finally:
+        if bar is not None:
+            bar.close()
+    st = dec.stats
+    g = got[False] if got[False].n else got[True]
+    if g.n < 3:
         raise RecordingError(f"{path.name}: no samples decoded (frames ok {st.frames_ok}, rejected "
                              f"{st.frames_rejected}); is it a capture-N.bin of an imubench session?")
-    acc, gyr = block.si()
-    notes = [f"{'raw' if raw is not None else 'calibrated'} samples of an imubench device, nominal scaling"]
+    n = g.n
+    notes = [f"{'raw' if g is got[False] else 'calibrated'} samples of an imubench device, nominal scaling"]
     breaks = []
-    si = np.asarray(block.sample_index, np.int64)
+    si = g.index[:n]
     for k in np.flatnonzero(np.diff(si) > 1):
         breaks.append((int(k + 1), f"{int(si[k + 1] - si[k] - 1)} samples lost on the link before sample {k + 1}"))
-    rec = from_arrays(acc, gyr, t_s=block.t_us * 1e-6, source=str(path), fmt="capture", notes=notes,
-                      device=opt.get("device"))
+    t = g.t_us[:n].astype(np.float64)
+    t *= 1e-6
+    g.t_us = g.index = None
+    rec = from_arrays(g.acc[:n], g.gyr[:n], t_s=t, source=str(path), fmt="capture", notes=notes,
+                      device=opt.get("device"), copy=False)
     rec.breaks = sorted(rec.breaks + [b for b in breaks if b[0] not in {x[0] for x in rec.breaks}])
     return rec
 
 
 # ------------------------------------------------------------------ ROS bags
 INSTALL_ROSBAGS = "pip install 'imubench[rosbag]' (the rosbags library)"
+
+
+def _imu_offsets(raw: bytes, ros1: bool) -> tuple[int, int, int] | None:
+    """(stamp, angular_velocity, linear_acceleration) byte offsets of a serialized sensor_msgs/Imu whose
+    frame_id is as long as this message's: ROS 1 (Header seq, stamp, frame_id; no alignment) or ROS 2
+    CDR little-endian (a 4-byte encapsulation header; stamp, frame_id; the doubles aligned to 8 from
+    after the encapsulation header). None when the layout is not one of those two."""
+    import struct
+    try:
+        if ros1:
+            (flen,) = struct.unpack_from("<I", raw, 12)
+            base = 16 + flen
+            stamp = 4
+        else:
+            if raw[:2] != b"\x00\x01":               # CDR_LE
+                return None
+            (flen,) = struct.unpack_from("<I", raw, 4 + 8)
+            base = 4 + ((12 + flen + 7) // 8) * 8
+            stamp = 4
+        av, la = base + 32 + 72, base + 32 + 72 + 24 + 72
+        return (stamp, av, la) if la + 24 + 72 == len(raw) else None
+    except struct.error:
+        return None
 
 
 def read_rosbag(path: Path, *, topic: str | None = None, **opt) -> Recording:
@@ -821,23 +1134,97 @@ def read_rosbag(path: Path, *, topic: str | None = None, **opt) -> Recording:
         conns = [c for c in imu if c.topic == topic]
         if not conns:
             raise RecordingError(f"{path.name} has no sensor_msgs/Imu topic {topic!r} (it has {', '.join(topics)})")
-        t, a, g, recv = [], [], [], []
-        for c, ts, raw in reader.messages(connections=conns):
-            m = reader.deserialize(raw, c.msgtype)
-            t.append(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec)
-            recv.append(ts * 1e-9)
-            la, av = m.linear_acceleration, m.angular_velocity
-            a.append((la.x, la.y, la.z))
-            g.append((av.x, av.y, av.z))
+        t, recv, a, g, k = _rosbag_messages(reader, conns, path, opt.get("memory_budget"))
     finally:
         reader.close()
-    notes = [f"topic {topic}: {len(t)} sensor_msgs/Imu messages (m/s², rad/s by the message definition, REP 103)"]
-    t = np.asarray(t)
-    if len(t) and not np.any(np.diff(t) > 0):
-        t = np.asarray(recv)
+    notes = [f"topic {topic}: {k} sensor_msgs/Imu messages (m/s², rad/s by the message definition, REP 103)"]
+    if k and not _advances(t):
+        t = recv
         notes.append("the messages' header stamps are not set: the bag's receive times are used")
-    return from_arrays(np.asarray(a), np.asarray(g), t_s=t, source=str(path), fmt="rosbag", notes=notes,
-                       device=opt.get("device"))
+    else:
+        del recv
+    return from_arrays(a, g, t_s=t, source=str(path), fmt="rosbag", notes=notes, device=opt.get("device"),
+                       copy=False)
+
+
+def _advances(t: np.ndarray) -> bool:
+    """True when any time stamp is later than the one before (a block at a time)."""
+    return any(np.any(np.diff(t[i:i + (1 << 20) + 1]) > 0) for i in range(0, max(len(t) - 1, 0), 1 << 20))
+
+
+def _rosbag_messages(reader, conns, path: Path, budget: int | None):
+    """(header stamps s, receive times s, accel, gyro, count) of the messages of conns, into arrays
+    allocated once from the bag's message count (the budget's sample limit checked first; float64 or
+    float32 values by the budget). Each message is read at the offsets of its layout (_imu_offsets,
+    checked against the full deserializer on the first message of each connection and whenever the
+    layout changes), else deserialized; a tqdm bar counts the messages on reads over a second."""
+    import struct
+    total = sum(int(getattr(c, "msgcount", 0) or 0) for c in conns)
+    limit = memory.sample_limit(budget, 6, True)
+    if total > limit:
+        raise RecordingError(f"{path}: {total:,} messages on the topic, more than the limit of {limit:,} samples "
+                             f"of the memory budget of {memory.budget_text(budget)}; give a "
+                             "larger --memory-budget, or cut the bag")
+    dtype = memory.storage_dtype(total, budget, 6, True) or np.float32
+    size = max(total, 1)
+    t = np.empty(size)
+    recv = np.empty(size)
+    a = np.empty((size, 3), dtype=dtype)
+    g = np.empty((size, 3), dtype=dtype)
+    known: dict = {}
+    k = 0
+    bar = _progress(total, f"reading {path.name}", unit="msg") if total > 100_000 else None
+    unpack = struct.unpack_from
+    try:
+        for c, ts, raw in reader.messages(connections=conns):
+            if k == len(t):
+                if total:
+                    raise RecordingError(f"{path}: more messages than the bag's index counts ({total}); damaged?")
+                t, recv = np.resize(t, 2 * k), np.resize(recv, 2 * k)
+                a, g = np.resize(a, (2 * k, 3)), np.resize(g, (2 * k, 3))
+            key = (c.id, len(raw))
+            off = known.get(key, False)
+            if off is False:
+                off = _imu_offsets(raw, not getattr(reader, "is2", True))
+                off = off if off is not None and _offsets_agree(reader, c, raw, off) else None
+                known[key] = off
+            if off is not None:
+                sec, nsec = unpack("<iI", raw, off[0]) if len(raw) else (0, 0)
+                t[k] = sec + 1e-9 * nsec
+                g[k] = unpack("<3d", raw, off[1])
+                a[k] = unpack("<3d", raw, off[2])
+            else:
+                m = reader.deserialize(raw, c.msgtype)
+                t[k] = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
+                la, av = m.linear_acceleration, m.angular_velocity
+                a[k] = (la.x, la.y, la.z)
+                g[k] = (av.x, av.y, av.z)
+            recv[k] = ts * 1e-9
+            k += 1
+            if bar is not None and not k % 65536:
+                bar.update(65536)
+    except RecordingError:
+        raise
+    except Exception as e:  # noqa: BLE001 - rosbags raises its own classes for a damaged bag
+        raise RecordingError(f"{path}: damaged after {k} messages ({type(e).__name__}: {e})") from None
+    finally:
+        if bar is not None:
+            bar.close()
+    return t[:k], recv[:k], a[:k], g[:k], k
+
+
+def _offsets_agree(reader, c, raw: bytes, off) -> bool:
+    """True when the values read at off are those the full deserializer gives for this message."""
+    import struct
+    try:
+        m = reader.deserialize(raw, c.msgtype)
+    except Exception:  # noqa: BLE001
+        return False
+    la, av = m.linear_acceleration, m.angular_velocity
+    sec, nsec = struct.unpack_from("<iI", raw, off[0])
+    return (struct.unpack_from("<3d", raw, off[1]) == (av.x, av.y, av.z)
+            and struct.unpack_from("<3d", raw, off[2]) == (la.x, la.y, la.z)
+            and (sec, nsec) == (m.header.stamp.sec, m.header.stamp.nanosec))
 
 
 def load_profile(path) -> dict:

@@ -34,16 +34,16 @@ def plot_segmentation(rec, result: dict, path, *, accel_factor: float, gyro_fact
 
     path = Path(path)
     fs = rec.fs_hz
-    t = np.arange(len(rec)) / fs
-    acc_g = np.linalg.norm(rec.accel * accel_factor, axis=1) / U.G0_MPS2
-    gyr = np.degrees(rec.gyro * gyro_factor)
-    step = max(1, len(t) // 20000)
+    step = max(1, len(rec) // 20000)      # decimated before anything is computed: ~20,000 points a curve
+    t = np.arange(0, len(rec), step) / fs
+    acc_g = np.linalg.norm(rec.accel[::step] * accel_factor, axis=1) / U.G0_MPS2
+    gyr = np.degrees(rec.gyro[::step] * gyro_factor)
     fig = Figure(figsize=(13, 6.5), dpi=100, layout="constrained")
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
-    ax1.plot(t[::step], acc_g[::step], lw=0.6, color="k")
+    ax1.plot(t, acc_g, lw=0.6, color="k")
     for k, c in zip(range(3), ("#1f77b4", "#2ca02c", "#d62728")):
-        ax2.plot(t[::step], gyr[::step, k], lw=0.6, color=c, label="xyz"[k])
+        ax2.plot(t, gyr[:, k], lw=0.6, color=c, label="xyz"[k])
     rests = result.get("rests")
     if rests is not None:                 # coloured by use, labelled by index and face
         for r in rests:

@@ -1,0 +1,133 @@
+"""Long recordings in bounded memory (issue 41, issue 36 item 5): the chunked Allan deviation against
+allantools in memory, the streamed path forced by a small memory budget against the in-memory one,
+and hostile text (1e308, nan, more rows than the budget holds) refused in one line naming the row."""
+from __future__ import annotations
+
+import gzip
+import json
+
+import numpy as np
+import pytest
+from imubench import memory
+from imubench.analysis.allan import oadev_chunked, oadev_in_memory
+from imubench.cli import main as imubench
+from imubench.procedures.allan import analyse_recording
+from imubench.recordings import RecordingError, read
+
+FS_HZ = 200.0
+
+
+def test_chunked_oadev_is_allantools_to_rounding():
+    """Blocks far smaller than the data (carries across 40 blocks), float32 input and a unit factor."""
+    rng = np.random.default_rng(3)
+    y = (1.0 + rng.normal(0, 1e-3, 40_001) + np.cumsum(rng.normal(0, 1e-5, 40_001))).astype(np.float32)
+    t1, d1, n1 = oadev_in_memory(y, FS_HZ, 9.80665)
+    t2, d2, n2 = oadev_chunked(y, FS_HZ, 9.80665, block=1000)
+    assert np.array_equal(t1, t2) and np.array_equal(n1, n2) and len(t1) == 15
+    np.testing.assert_allclose(d2, d1, rtol=1e-12, atol=0)
+
+
+def _counts_csv(path, n: int, seed: int = 5) -> None:
+    """A still IMU's raw counts (integers: float32 holds them exactly) with a time column in s."""
+    rng = np.random.default_rng(seed)
+    acc = np.round(rng.normal(0, 40, (n, 3)) + [0, 0, 16384] + np.cumsum(rng.normal(0, 0.3, (n, 3)), axis=0))
+    gyr = np.round(rng.normal(0, 8, (n, 3)) + np.cumsum(rng.normal(0, 0.05, (n, 3)), axis=0))
+    with open(path, "w") as f:
+        f.write("t_s,ax,ay,az,gx,gy,gz\n")
+        np.savetxt(f, np.column_stack([np.arange(n) / FS_HZ, acc, gyr]), delimiter=",",
+                   fmt=["%.3f"] + ["%d"] * 6)
+
+
+def test_small_budget_streams_and_agrees_with_the_in_memory_path(tmp_path, monkeypatch):
+    """A budget just above what the process itself takes forces float32 storage and the chunked sums:
+    the read-offs and every point of the curve agree with the default path within 1e-9 (the plots,
+    which only draw the curve, are left out for time)."""
+    monkeypatch.setattr("imubench.procedures.allan.plot_allan", lambda *a, **k: None)
+    f = tmp_path / "still.csv"
+    n = 40_000
+    _counts_csv(f, n)
+    opts = dict(accel_unit="counts", gyro_unit="counts", accel_counts_per_g=16384.0, gyro_counts_per_dps=131.0)
+    small = memory.BASE_BYTES + 2_000_000          # float64 storage needs 2.56 MB, float32 1.6 MB
+    ref = read(f, **opts)
+    low = read(f, memory_budget=small, **opts)
+    assert ref.accel.dtype == np.float64 and low.accel.dtype == np.float32 and len(low) == n
+    r1 = analyse_recording(ref, tmp_path / "ref", log=lambda s: None)
+    r2 = analyse_recording(low, tmp_path / "low", log=lambda s: None, memory_budget=small)
+    assert r1["method"] == "allantools.oadev in memory" and r2["method"].startswith("chunked sums")
+    assert "float32" in r2["storage"]
+    for kind in ("accel", "gyro"):
+        for ax in "xyz":
+            a, b = r1[kind][ax], r2[kind][ax]
+            np.testing.assert_allclose(b["adev"], a["adev"], rtol=1e-9, atol=0)
+            for key in ("N", "B", "K"):
+                assert (a[key] is None) == (b[key] is None), (kind, ax, key)
+                if a[key] is not None:
+                    assert b[key] == pytest.approx(a[key], rel=1e-9, abs=0), (kind, ax, key)
+    saved = json.loads((tmp_path / "low" / "allan.json").read_text())
+    assert saved["method"].startswith("chunked sums") and saved["samples"] == n
+
+
+def test_sample_limit_is_checked_before_reading(tmp_path):
+    """More rows than the budget holds, in a small .csv.gz: refused from the count of its lines (which
+    stops past the limit), naming the limit and the option that raises it; the default holds 24 h."""
+    f = tmp_path / "many.csv.gz"
+    with gzip.open(f, "wt") as g:
+        g.write("t_s,ax,ay,az,gx,gy,gz\n")
+        g.write("".join(f"{i / 200:.3f},0,0,1,0,0,0\n" for i in range(300_000)))
+    budget = memory.BASE_BYTES + 4_000_000                 # 100,000 samples of float32 + time + work
+    with pytest.raises(RecordingError, match=r"more than 100,000 samples.*--memory-budget"):
+        read(f, accel_unit="g", gyro_unit="dps", memory_budget=budget)
+    assert memory.sample_limit() > 24 * 3600 * 200
+
+
+def test_calibrate_limit_counts_what_its_analysis_takes(tmp_path, capsys):
+    """calibrate --from takes ~200 B a sample after the read: its limit under a 200 MB budget is
+    250,000 samples, said before anything is read into memory; allan --from's is 1.25 M."""
+    f = tmp_path / "many.csv.gz"
+    with gzip.open(f, "wt") as g:
+        g.write("".join(f"{i / 200:.3f},0,0,1,0,0,0\n" for i in range(260_000)))
+    assert imubench(["calibrate", "--from", str(f), "--accel-unit", "g", "--gyro-unit", "dps", "--memory-budget",
+                     "200M", "--dir", str(tmp_path / "c")]) == 1
+    err = capsys.readouterr().err
+    assert "more than 250,000 samples" in err and "200 B a sample" in err and "--memory-budget" in err
+    assert memory.sample_limit(200_000_000) == 1_250_000
+
+
+@pytest.mark.parametrize("value, said", [("1e308", "1e+308, beyond any sensor's range"),
+                                         ("nan", "not a finite number"), ("-inf", "not a finite number")])
+def test_absurd_or_non_finite_value_names_its_line(tmp_path, capsys, value, said):
+    f = tmp_path / "bad.csv"
+    rows = [f"{i / 200:.3f},0.01,0.02,1.0,0.1,0.2,0.3" for i in range(50)]
+    rows[40] = f"0.200,0.01,{value},1.0,0.1,0.2,0.3"
+    f.write_text("t_s,ax,ay,az,gx,gy,gz\n" + "\n".join(rows) + "\n")
+    assert imubench(["allan", "--from", str(f), "--accel-unit", "g", "--gyro-unit", "dps",
+                     "--out", str(tmp_path / "o")]) != 0
+    err = capsys.readouterr().err
+    assert f"line 42, ay: {said}" in err and "internal error" not in err and "Traceback" not in err
+    assert imubench(["calibrate", "--from", str(f), "--accel-unit", "g", "--gyro-unit", "dps",
+                     "--dir", str(tmp_path / "c")]) != 0
+    err = capsys.readouterr().err
+    assert f"line 42, ay: {said}" in err and "internal error" not in err
+
+
+def test_memory_budget_option_rejects_nonsense(tmp_path, capsys):
+    f = tmp_path / "x.csv"
+    f.write_text("t_s,ax,ay,az,gx,gy,gz\n")
+    for bad in ("lots", "10M"):
+        assert imubench(["allan", "--from", str(f), "--memory-budget", bad]) == 2
+        err = capsys.readouterr().err
+        assert "--memory-budget" in err and "Traceback" not in err
+
+
+def test_a_constant_axis_is_said_not_an_internal_error(tmp_path, capsys):
+    """A gyro column that never varies (stuck output, a constant written by a logger) has no Allan
+    deviation: one line naming the sensor and the axis."""
+    rng = np.random.default_rng(2)
+    f = tmp_path / "stuck.csv"
+    rows = [f"{i / 100:.2f},{rng.normal(0, 1e-3):.6f},{rng.normal(0, 1e-3):.6f},{1 + rng.normal(0, 1e-3):.6f},"
+            f"0.1,0.2,0.3" for i in range(8000)]
+    f.write_text("t_s,ax,ay,az,gx,gy,gz\n" + "\n".join(rows) + "\n")
+    assert imubench(["allan", "--from", str(f), "--accel-unit", "g", "--gyro-unit", "dps",
+                     "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    assert "the gyro's axis x: its samples do not vary" in err and "internal error" not in err
