@@ -150,7 +150,7 @@ def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
         page.wait_for_function("() => document.querySelectorAll('.board-col').length === 3", polling=50)
         assert page.locator("main#boards.multi").count() == 1
         # the first page drives all three boards
-        page.wait_for_function("() => /you drive .*,.*,/.test(document.querySelector('#role').textContent)", polling=50)
+        page.wait_for_function("() => /you drive slots 1–3/.test(document.querySelector('#role').textContent)", polling=50)
         # while the plate moves: cards turn done on the healthy boards, in the plan's order
         page.wait_for_function("() => document.querySelectorAll('.board-col .card.done').length >= 6", polling=50)
         # the whole session: every column ends with a verdict
