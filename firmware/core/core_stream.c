@@ -213,7 +213,10 @@ static void cal_prepare(ib_core_t *c)
 {
     float ta[3], tg[3];
     const ib_part_desc_t *pa = c->accel.part ? c->accel.part : ib_part_by_id(IB_PART_ADXL355);
-    float lsb = (float)ib_adxl355_part_lsb_per_g(pa, ibc_range_code(c, c->accel_range_g));
+    /* the range on pa itself: with no accelerometer found (its part NULL) the stream still
+     * carries finite numbers, on the ADXL355's scale, flagged missing */
+    const ib_part_range_t *rg = ib_part_range(pa, c->accel_range_g);
+    float lsb = (float)ib_adxl355_part_lsb_per_g(pa, rg ? rg->code : pa->ranges[0].code);
     float t_acc = pa->temp_ref_c + ((float)c->accel_temp_counts - pa->temp_offset_counts) / pa->temp_lsb_per_c;
     for (int k = 0; k < 3; k++) {
         const ib_part_desc_t *pg = c->gyro[k].part ? c->gyro[k].part : ib_part_by_id(IB_PART_ADXRS450);

@@ -7,6 +7,7 @@ the device runs against the wall clock and drops what a host that does not read 
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import subprocess
@@ -115,20 +116,34 @@ def _normalised(obj):
     return obj
 
 
-def _calibrate(tmp: Path, name: str, busy: int = 0) -> tuple[str, dict]:
-    """`imubench calibrate --sim --sim-seed 5` (lockstep) in a fresh directory, beside `busy`
-    CPU-bound processes: (SHA-256 of the capture, session.json without wall times and paths)."""
+@contextlib.contextmanager
+def _beside(busy: int):
+    """`busy` CPU-bound processes running for the length of the block."""
     hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(busy)]
     try:
-        d = tmp / name
-        r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-seed", "5",
-                            "--sim-speed", "1000", "--dir", str(d), "--db", str(tmp / f"{name}.db")],
-                           capture_output=True, text=True, timeout=600)
-        assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+        yield
     finally:
         for h in hogs:
             h.kill()
             h.wait()
+
+
+def _command(tmp: Path, name: str, args: list[str], busy: int = 0) -> Path:
+    """`imubench ARGS`, every argument starting with DIR rooted at tmp/name, beside `busy`
+    CPU-bound processes; the folder it wrote."""
+    d = tmp / name
+    with _beside(busy):
+        r = subprocess.run([sys.executable, "-m", "imubench", *[str(d) + a[3:] if a.startswith("DIR") else a for a in args]],
+                           capture_output=True, text=True, timeout=600, cwd=tmp)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    return d
+
+
+def _calibrate(tmp: Path, name: str, busy: int = 0) -> tuple[str, dict]:
+    """`imubench calibrate --sim --sim-seed 5` (lockstep) in a fresh directory, beside `busy`
+    CPU-bound processes: (SHA-256 of the capture, session.json without wall times and paths)."""
+    d = _command(tmp, name, ["calibrate", "--sim", "--sim-seed", "5", "--sim-speed", "1000", "--dir", "DIR",
+                             "--db", "DIR.db"], busy)
     caps = sorted(d.glob("capture-*.bin"))
     assert caps
     digest = hashlib.sha256(b"".join(c.read_bytes() for c in caps)).hexdigest()
@@ -143,18 +158,8 @@ def test_same_seed_same_session_idle_and_beside_two_busy_processes(tmp_path):
 
 
 def _command_captures(tmp: Path, name: str, args: list[str], busy: int = 0) -> str:
-    """`imubench ARGS` with DIR (its output folder) in a fresh directory, beside `busy` CPU-bound
-    processes: the SHA-256 of every .bin it wrote, by path."""
-    hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(busy)]
-    d = tmp / name
-    try:
-        r = subprocess.run([sys.executable, "-m", "imubench", *[str(d) + a[3:] if a.startswith("DIR") else a for a in args]],
-                           capture_output=True, text=True, timeout=600, cwd=tmp)
-        assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    finally:
-        for h in hogs:
-            h.kill()
-            h.wait()
+    """_command, then the SHA-256 of every .bin it wrote, by path."""
+    d = _command(tmp, name, args, busy)
     files = sorted(d.rglob("*.bin"))
     assert files
     h = hashlib.sha256()
@@ -177,21 +182,15 @@ def test_a_station_and_a_warmup_give_the_same_bytes_idle_and_busy(case, tmp_path
 def _arm_session(target: str, path: Path, busy: int = 0) -> str:
     """A short session on the ARM image in lockstep (info, a stream, a turn while streaming),
     beside `busy` CPU-bound processes: the SHA-256 of the link's capture."""
-    hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(busy)]
-    try:
-        with VirtualBench(speed=0, seed=3, target=target) as vb, open(path, "wb") as cap, \
-                Device.open(vb.port_url, capture=cap, timeout=5.0) as dev:
-            assert vb.info["clock"] == "lockstep"
-            dev.info()
-            dev.start_stream(1000)
-            dev.read(n_samples=300)
-            vb.rotate("z", rate_dps=90, duration_s=0.3)
-            dev.read(duration_s=0.2)
-            dev.stop_stream()
-    finally:
-        for h in hogs:
-            h.kill()
-            h.wait()
+    with _beside(busy), VirtualBench(speed=0, seed=3, target=target) as vb, open(path, "wb") as cap, \
+            Device.open(vb.port_url, capture=cap, timeout=5.0) as dev:
+        assert vb.info["clock"] == "lockstep"
+        dev.info()
+        dev.start_stream(1000)
+        dev.read(n_samples=300)
+        vb.rotate("z", rate_dps=90, duration_s=0.3)
+        dev.read(duration_s=0.2)
+        dev.stop_stream()
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
