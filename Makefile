@@ -84,14 +84,13 @@ lint: system-deps
 	cppcheck --enable=warning,style,performance,portability --error-exitcode=1 --inline-suppr --quiet \
 	    -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim -Ifirmware/boards/sim/models $(CPPCHECK_DIRS)
 
-# Both cores (pytest-xdist): tests spread one by one (--dist loadgroup), except a module whose
-# tests share a module-scoped fixture (a virtual bench, a built wheel, a browser, a database
-# server): tests/conftest.py keeps it on one worker, so the fixture is set up once;
+# Both cores (pytest-xdist): a module's tests stay on one worker (--dist loadscope), so module-
+# and session-scoped fixtures (a virtual bench, a database server) are set up once per worker;
 # the 30 slowest tests are listed at the end, to see where the time goes.
 PYTEST_WORKERS ?= 2
 test: system-deps venv c-tests sim firmware
 	$(VENV)/bin/ruff check --no-cache host bench tests
-	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadgroup --durations=30
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadscope --durations=30
 
 demo: system-deps venv sim
 	$(PY) -m imubench demo

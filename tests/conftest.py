@@ -61,25 +61,3 @@ def browser():
             yield b
         finally:
             b.close()
-
-
-def pytest_configure(config):
-    # pytest-xdist registers it; without xdist (-p no:xdist) the mark would be unknown
-    config.addinivalue_line("markers", "xdist_group(name): tests that run on one pytest-xdist worker")
-
-
-def pytest_collection_modifyitems(config, items):
-    """Spread the tests over the workers one by one (`make test` runs pytest-xdist with --dist
-    loadgroup), except a module whose tests share a fixture set up once for the module (a
-    virtual bench, a built wheel, a browser, a database server): its tests stay together on one
-    worker, so that fixture is built once, as with --dist loadscope. One long module no longer
-    holds a worker while the other waits."""
-    for item in items:
-        info = getattr(item, "_fixtureinfo", None)
-        if info is None:
-            continue
-        shared = any(d.scope in ("module", "class", "package")
-                     or (d.scope == "session" and d.baseid.endswith(".py"))   # a module's own server
-                     for defs in info.name2fixturedefs.values() for d in defs[-1:])
-        if shared:
-            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))

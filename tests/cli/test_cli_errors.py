@@ -309,3 +309,26 @@ def test_a_refused_command_leaves_no_empty_history_database(tmp_path, capsys):
     blocked.write_text("")
     assert imubench(["calibrate", "--sim", "--db", str(blocked / "h.sqlite")]) == 1
     assert "cannot create it" in capsys.readouterr().err
+
+
+def test_ctrl_c_inside_an_import_is_an_interrupt_not_an_internal_error(monkeypatch, capsys):
+    """A Ctrl-C that lands while a compiled module initialises surfaces as ImportError
+    ("initialization failed"); it is reported as the interrupt it is, exit 130, one line."""
+    import importlib
+    cli_main = importlib.import_module("imubench.cli.main")
+    history = importlib.import_module("imubench.cli.history")
+
+    def boom(a):
+        raise ImportError("initialization failed")
+    monkeypatch.setattr(history, "run", boom)
+    real = cli_main.build_parser
+
+    def parser():
+        ap = real()
+        for action in ap._subparsers._group_actions:
+            action.choices["history"].set_defaults(run=boom)
+        return ap
+    monkeypatch.setattr(cli_main, "build_parser", parser)
+    rc = cli_main.main(["history"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 130 and len(err) == 1 and err[0].startswith("imubench history: error: interrupted"), err

@@ -34,11 +34,6 @@ import pytest
 
 from conftest import ROOT
 
-# every test here on one worker, in order (make test's --dist loadgroup): two of them run
-# setup.py in the checkout (the tree's wheel; the build without the ARM compiler), and run at
-# once the tree's wheel build lost its objects' folder in a full run
-pytestmark = pytest.mark.xdist_group("tests/repo/test_wheel.py")
-
 BUILD_TIMEOUT = 600
 
 

@@ -72,6 +72,17 @@ class _Version(argparse.Action):
         parser.exit(0)
 
 
+def _interrupted(e: BaseException) -> bool:
+    """A failure that is a Ctrl-C in disguise: a KeyboardInterrupt in its chain, or the
+    ImportError a compiled module raises when the interrupt arrives while it initialises."""
+    seen = 0
+    while e is not None and seen < 10:
+        if isinstance(e, KeyboardInterrupt) or (isinstance(e, ImportError) and str(e) == "initialization failed"):
+            return True
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return False
+
+
 def main(argv=None) -> int:
     guard_terminal(sys)              # no escape sequence from a name or a file acts on a terminal
     try:
@@ -100,6 +111,11 @@ def main(argv=None) -> int:
     except Exception as e:  # noqa: BLE001 - the one place every failure is explained
         if debug_enabled(args):
             raise
+        if _interrupted(e):          # Ctrl-C that landed inside an import of a compiled module
+            hint = getattr(args, "on_interrupt", None)
+            hint = hint() if callable(hint) else hint
+            _say(prefix + "interrupted" + (f"; {hint}" if hint else ""))
+            return EXIT_INTERRUPTED
         line, code = explain(e, args.cmd)
         _say(prefix + line)
         return code
