@@ -25,6 +25,7 @@ import subprocess
 import sys
 import tarfile
 import time
+import urllib.error
 import urllib.request
 import venv
 import zipfile
@@ -277,13 +278,22 @@ def test_sim_f4_and_info(env):
 def test_station_serves_its_page(env):
     p, first = _start(env, "imubench", "station", "--sim", "--dir", str(env["work"] / "station"))
     try:
-        m = re.search(r"(http://127\.0\.0\.1:\d+/)", first)
+        m = re.search(r"(http://127\.0\.0\.1:\d+/)#token=([\w-]+)", first)
         assert m, first
-        page = urllib.request.urlopen(m.group(1), timeout=10).read().decode()
+        base, secret = m.group(1), m.group(2)
+        page = urllib.request.urlopen(base, timeout=10).read().decode()
         assert "<title>imubench station</title>" in page and 'src="/static/station.js"' in page
-        js = urllib.request.urlopen(m.group(1) + "static/station.js", timeout=10).read().decode()
+        js = urllib.request.urlopen(base + "static/station.js", timeout=10).read().decode()
         assert "imubench station page" in js
-        state = json.loads(urllib.request.urlopen(m.group(1) + "api/state", timeout=10).read())
+        with pytest.raises(urllib.error.HTTPError) as refused:      # no session: refused before any work
+            urllib.request.urlopen(base + "api/state", timeout=10)
+        assert refused.value.code == 403
+        # the printed secret, traded for a session as the page does (issue 36)
+        req = urllib.request.Request(base + "api/session", data=b"{}", headers={
+            "Content-Type": "application/json", "Origin": base.rstrip("/"), "X-Imubench-Launch": secret})
+        session = json.loads(urllib.request.urlopen(req, timeout=10).read())["session"]
+        req = urllib.request.Request(base + "api/state", headers={"X-Imubench-Session": session})
+        state = json.loads(urllib.request.urlopen(req, timeout=10).read())
         assert state["sim"] is True          # --sim: the virtual bench is offered on the page
     finally:
         _stop(p)
@@ -318,7 +328,9 @@ def test_help_speaks_to_a_wheel_user(env):
     for out in (flash, qemu):
         assert "make firmware" not in out and "build/arm" not in out, out
     text = " ".join(flash.split())
-    assert "image that came with this installed package" in text and "_data/firmware/<board>/imubench.elf" in text
+    # the default path is as long as the venv's: argparse wraps it anywhere, even inside "_data"
+    assert "image that came with this installed package" in text
+    assert "_data/firmware/<board>/imubench.elf" in "".join(flash.split())
     assert "nothing is built" in " ".join(qemu.split())
 
 
