@@ -437,18 +437,21 @@ class FixtureRun:
             self.say(f"slot {slot}: {self.boards[slot].state} before; kept (its record stays)")
         self.say(self.deadlines_text())
         self._on_move({"deadlines": self.deadlines_text()})
-        threads = [threading.Thread(target=self._board, args=(slot,), name=f"board-{slot}", daemon=True)
-                   for slot in self.boards if slot not in self.kept]
-        for t in threads:
-            t.start()
+        # Each board's thread sets its event as its very last step, and this thread waits on the
+        # events, never on Thread.join: in CPython 3.11 a signal (Ctrl-C, SIGTERM made one) that
+        # interrupts join(timeout) marks a running thread as finished (gh-90882), and the session
+        # then ended while a board was still writing its history row.
+        done = {slot: threading.Event() for slot in self.boards if slot not in self.kept}
+        for slot, ev in done.items():
+            threading.Thread(target=self._board_then, args=(slot, ev), name=f"board-{slot}", daemon=True).start()
         try:
-            for t in threads:
-                while t.is_alive():         # a join with a timeout: Ctrl-C reaches this thread
-                    t.join(0.25)
+            for ev in done.values():
+                while not ev.wait(0.25):    # a wait with a timeout: Ctrl-C reaches this thread
+                    pass
         except KeyboardInterrupt as e:      # Ctrl-C (or SIGTERM made one): every board stops and is recorded
             self.stop(_stop_words(e))
-            for t in threads:
-                t.join()
+            for ev in done.values():
+                ev.wait()
         if self.plots:                  # after the boards: the plots take CPU the live streams need
             from imubench.results.calibration import plot_pose_residuals
             for slot, rec in sorted(self.results.items()):
@@ -462,6 +465,12 @@ class FixtureRun:
                             dict(self.results), time.monotonic() - t0)
         res.interrupted = self.stop_reason
         return res
+
+    def _board_then(self, slot: int, done: threading.Event) -> None:
+        try:
+            self._board(slot)
+        finally:
+            done.set()
 
     def _board(self, slot: int) -> None:
         st = self.boards[slot]
