@@ -79,6 +79,8 @@ class Plate:
         self.on_wait = on_wait
         self.on_move = on_move
         self._wait_text: dict[int, str | None] = {}
+        self._since: dict[int, tuple] = {}         # slot -> (t0, clock) of its current wait
+        self.late: dict[int, tuple[str, float]] = {}  # slot -> (why, waited_s): past its deadline, found by the plate
         self._cv = threading.Condition()
 
     # ------------------------------------------------------------ asking
@@ -95,12 +97,18 @@ class Plate:
                 return None
             self.needs[slot], self.args[slot], self.phase[slot] = need, args, need.kind
             t0 = clock() if clock is not None else None
+            if t0 is not None:
+                self._since[slot] = (t0, clock)
             waited = 0.0
             self._refresh_waits()
             try:
                 while True:
                     if t0 is not None:
                         waited = clock() - t0
+                    if slot in self.late:          # the plate found it past its deadline before a move
+                        why, waited = self.late.pop(slot)
+                        self._log(slot, need, waited, "deadline")
+                        raise BoardFailed(stage, why)
                     if slot in self.lost:
                         self._log(slot, need, waited, "lost")
                         raise BoardFailed(stage, self.lost[slot])
@@ -112,6 +120,8 @@ class Plate:
                         self._log(slot, need, waited, "left")
                         return None
                     if not self.moving and set(self.needs) >= self.live:
+                        if self._expire():      # a waiting board is past its deadline: it leaves first
+                            continue
                         self._move()
                         continue
                     if check is not None:
@@ -130,7 +140,24 @@ class Plate:
             finally:
                 self.needs.pop(slot, None)
                 self.args.pop(slot, None)
+                self._since.pop(slot, None)
                 self._set_wait(slot, None)
+
+    def _expire(self) -> bool:
+        """Before a move (lock held): every waiting board past its deadline, on its own clock,
+        leaves the plate now and is told why when it wakes. The board making the move is
+        not the only one whose deadline counts: under load, a waiting board may not wake
+        between two moves, and each move costs device time."""
+        expired = False
+        for s, (t0, clock) in list(self._since.items()):
+            if s not in self.needs or s in self.late:
+                continue
+            waited = clock() - t0
+            if waited > self.deadline_s:
+                self.late[s] = (self._why_late(s, self.needs[s], waited), waited)
+                self._drop(s)
+                expired = True
+        return expired
 
     def leave(self, slot: int) -> None:
         with self._cv:
