@@ -35,8 +35,7 @@ def _since(s: str) -> str:
 
 
 def register(sub) -> None:
-    from imubench.results.db import ENV_DB
-    from imubench.results.history import default_path
+    from imubench.results.where import ENV_DB, default_path
     p = sub.add_parser("history", help="calibration history: devices, drift, yield, failures, export",
                        description="Calibration history: the known devices, or one device's runs and how its "
                                    "bias and scale drifted between calibrations; for a production line the "

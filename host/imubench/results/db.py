@@ -50,9 +50,9 @@ from sqlalchemy.pool import NullPool
 
 from imubench.errors import ImubenchError
 from imubench.files import make_dir
+from imubench.results.where import ENV_DB  # noqa: F401 - re-exported: the variable naming the database
 
 SCHEMA_VERSION = 3          # of the database (the tables below; MIGRATIONS reach it)
-ENV_DB = "IMUBENCH_DB"      # the environment variable naming the database (path or URL)
 PG_LOCK_KEY = 0x494D5542    # "IMUB": the advisory lock a PostgreSQL migration holds
 
 metadata = MetaData()

@@ -39,6 +39,7 @@ from imubench.analysis.drift import drift, run_summary
 from imubench.results import db as DB
 from imubench.results.export import measurements_of
 from imubench.results.record import _parse_time, jsonable, validate_result
+from imubench.results.where import default_path  # noqa: F401 - re-exported
 from imubench.wire.ids import parse_id
 
 SCHEMA_VERSION = DB.SCHEMA_VERSION   # of the database (results.db: the tables and their migrations)
@@ -59,11 +60,6 @@ class AmbiguousDevice(HistoryError, LookupError):
         self.query = query
         self.matches = matches
         super().__init__(f"{query!r} matches {len(matches)} devices: {', '.join(matches)} — give more of the MCU UID")
-
-
-def default_path() -> Path:
-    import platformdirs
-    return Path(platformdirs.user_data_dir("imubench")) / "history.sqlite"
 
 
 def default_target() -> str | Path:
