@@ -89,7 +89,7 @@ typedef struct ib_accel_ops {
     void (*read)(void *ctx, uint32_t max_sets, ib_accel_read_t *out);
     /* The sample from what the chain brought back (rc != 0: one of its transfers failed). */
     void (*finish)(void *ctx, int rc, uint8_t temps, ib_accel_read_t *out);
-    /* The part's self-test: the response per axis, counts (info of self_test_result). */
+    /* The part's self-test: the response per axis, counts (self_test_result.accel_delta_counts). */
     int (*self_test)(void *ctx, int32_t delta_counts[3]);
     uint8_t status_fifo_overrun; /* the status bit of a FIFO overrun (fault ACCEL_FIFO_OVERRUN) */
     uint8_t base_part;           /* enum ib_part whose scale a slot reports with no part found */

@@ -5,6 +5,9 @@
 #include "adxl355.h"
 #include "sensor.h"
 
+/* the driver's codes pass through the ops unchanged where sensor.h gives them a meaning */
+_Static_assert(IB_ADXL355_OK == IB_SENSOR_OK && IB_ADXL355_ERR_BUS == IB_SENSOR_ERR_BUS, "adxl355 codes");
+
 /* The whole FIFO in one chain: 160 Hz takes 25 sets a tick. */
 #define CHAIN_FIFO_SETS (IB_ADXL355_FIFO_SIZE / 3u)
 enum { STEP_HDR = 0, STEP_FIFO = 1 };

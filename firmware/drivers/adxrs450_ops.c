@@ -3,6 +3,9 @@
 #include "adxrs450.h"
 #include "sensor.h"
 
+/* the driver's codes pass through the ops unchanged where sensor.h gives them a meaning */
+_Static_assert(IB_ADXRS450_OK == IB_SENSOR_OK && IB_ADXRS450_ERR_BUS == IB_SENSOR_ERR_BUS, "adxrs450 codes");
+
 typedef struct {
     ib_adxrs450_t dev;
     uint8_t rx[2][4]; /* the chain's replies: the rate (or the pending rate), the temperature */
