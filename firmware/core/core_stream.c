@@ -361,9 +361,11 @@ static void job_begin(ib_core_t *c, uint8_t temps)
 /* Turn what the chain brought back into the sample: each sensor's driver reads its buffers. */
 void ibc_sample_finish(ib_core_t *c)
 {
-    sample_in_t in;
-    memset(&in, 0, sizeof in);
+    sample_in_t in; /* each driver's finish writes its reading whole (no memset: once a sample) */
     c->job_done = 0;
+    in.a.err = IB_SENSOR_OK; /* (sample_commit reads a reading only of a sensor present) */
+    in.a.sets = 0;
+    in.a.status = 0;
     if (c->present & 1u) {
         c->accel.ops->finish(c->accel.ctx, c->job_rc[0], c->job_temps, &in.a);
         if (in.a.temp_ok) {

@@ -87,7 +87,8 @@ typedef struct ib_accel_ops {
     int (*read_temp)(void *ctx, uint16_t *counts);
     /* The blocking read of one sample period (boards without bus->start): at least max_sets. */
     void (*read)(void *ctx, uint32_t max_sets, ib_accel_read_t *out);
-    /* The sample from what the chain brought back (rc != 0: one of its transfers failed). */
+    /* The sample from what the chain brought back (rc != 0: one of its transfers failed);
+     * writes every field of out (the core does not clear it first). */
     void (*finish)(void *ctx, int rc, uint8_t temps, ib_accel_read_t *out);
     /* The part's self-test: the response per axis, counts (self_test_result.accel_delta_counts). */
     int (*self_test)(void *ctx, int32_t delta_counts[3]);
@@ -119,7 +120,7 @@ typedef struct ib_gyro_ops {
     int (*start)(void *ctx, int pipelined);
     int (*read_temp)(void *ctx, int16_t *counts);
     void (*read)(void *ctx, ib_gyro_read_t *out);
-    void (*finish)(void *ctx, int rc, uint8_t temps, ib_gyro_read_t *out);
+    void (*finish)(void *ctx, int rc, uint8_t temps, ib_gyro_read_t *out); /* writes all of out */
     /* The part's self-test; detail: the fault bits it raised (self_test_result.gyro_chk_faults) */
     int (*self_test)(void *ctx, uint8_t *detail);
     uint8_t base_part;

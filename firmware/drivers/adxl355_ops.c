@@ -121,11 +121,17 @@ static void chain_done(void *ctx, const ib_xfer_t *x)
     a->fifo_n = (uint8_t)ib_adxl355_fifo_entries(&a->dev, &a->hdr_rx[1], CHAIN_FIFO_SETS);
 }
 
+/* Every field of out is written (the core does not clear it: once a sample). */
 static void finish(void *ctx, int rc, uint8_t temps, ib_accel_read_t *out)
 {
     accel_inst_t *a = ctx;
+    out->err = rc != 0 ? IB_SENSOR_ERR_BUS : IB_SENSOR_OK;
+    out->sets = 0;
+    out->sum[0] = out->sum[1] = out->sum[2] = 0;
+    out->status = 0;
+    out->temp_ok = 0;
+    out->temp_counts = 0;
     if (rc != 0) {
-        out->err = IB_SENSOR_ERR_BUS;
         return;
     }
     out->status = a->dev.last_status;

@@ -80,12 +80,17 @@ static uint8_t plan(void *ctx, uint8_t temps, ib_xfer_t *out)
     return 2u;
 }
 
+/* Every field of out is written (the core does not clear it: once a sample). */
 static void finish(void *ctx, int rc, uint8_t temps, ib_gyro_read_t *out)
 {
     gyro_inst_t *g = ctx;
+    out->temp_ok = 0;
+    out->temp_counts = 0;
     if (rc != 0) {
         ib_adxrs450_note_bus_error(&g->dev);
         out->err = IB_SENSOR_ERR_BUS;
+        out->rate_counts = 0;
+        out->faults = out->status_bad = out->good = 0;
         return;
     }
     ib_adxrs450_sample_t s;

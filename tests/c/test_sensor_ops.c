@@ -123,9 +123,11 @@ static void acc_read(void *ctx, uint32_t max_sets, ib_accel_read_t *out)
     (void)max_sets;
     acc_fill(out);
 }
+/* finish writes every field of out (sensor.h: the core does not clear it) */
 static void acc_finish(void *ctx, int rc, uint8_t temps, ib_accel_read_t *out)
 {
     fake_t *f = ctx;
+    memset(out, 0, sizeof *out);
     f->n_finish++;
     if (rc != 0) {
         out->err = IB_SENSOR_ERR_BUS;
@@ -150,6 +152,7 @@ static void g_read(void *ctx, ib_gyro_read_t *out)
 static void g_finish(void *ctx, int rc, uint8_t temps, ib_gyro_read_t *out)
 {
     fake_t *f = ctx;
+    memset(out, 0, sizeof *out);
     f->n_finish++;
     if (rc != 0) {
         out->err = IB_SENSOR_ERR_BUS;
