@@ -70,9 +70,6 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b)
     c->last_time_us = ibc_now_us(c);
     ib_frame_rx_init(&c->rx);
     c->job_list_temps = 0xFFu;
-    c->job_hdr_tx[0] = ib_adxl355_read_cmd(IB_ADXL355_REG_STATUS);
-    ib_adxrs450_rate_cmd_bytes(c->job_gyro_tx);
-    ib_adxrs450_temp_cmd_bytes(c->job_tem_tx);
     b->set_tick_hz(b->ctx, 0);
     ibc_sensors_init(c);
     ibc_load_params(c);
@@ -88,10 +85,7 @@ void ib_core_init(ib_core_t *c, const ib_board_t *b)
     ibc_send_unsolicited(c, IB_MSG_INFO, n);
     for (uint8_t s = 0; s < 4; s++) {
         if (!(c->present & (1u << s))) {
-            uint32_t detail = s == 0 ? ((uint32_t)c->accel.devid_ad << 16 | (uint32_t)c->accel.devid_mst << 8 |
-                                        c->accel.partid)
-                                     : c->gyro[s - 1].pid;
-            ibc_emit_fault(c, s, IB_FAULT_KIND_MISSING, 1, detail);
+            ibc_emit_fault(c, s, IB_FAULT_KIND_MISSING, 1, ibc_missing_detail(c, s));
             c->fault_state[s] = IB_FAULT_KIND_MISSING;
         }
     }

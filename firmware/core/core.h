@@ -2,19 +2,18 @@
  * core.h - the firmware core: boot, sample pipeline, command handling, parameters.
  *
  * Portable C11, no register access: it talks to the hardware only through the ib_board_t
- * it is given (board.h), to the sensors only through the drivers, to flash only through
- * the parameter store. The same code runs on the STM32 boards and in the simulator.
+ * it is given (board.h), to the sensors only through their ops tables (sensor.h: the core
+ * names no part), to flash only through the parameter store. The same code runs on the STM32 boards and in the simulator.
  */
 #ifndef IB_CORE_H
 #define IB_CORE_H
 
 #include <stdint.h>
 
-#include "adxl355.h"
-#include "adxrs450.h"
 #include "board.h"
 #include "frame.h"
 #include "protocol_gen.h"
+#include "sensor.h"
 
 /* What the correction needs beyond the active parameter block: M^-1, computed once when a
  * block is accepted. The bias, its temperature polynomial, the scale term, t_ref and the span
@@ -23,22 +22,12 @@ typedef struct {
     float m_inv[3][3];
 } ib_triad_corr_t;
 
-/* One transfer of the sample chain (core_stream.c, job_next). */
-typedef struct {
-    const uint8_t *tx;
-    uint8_t *rx;
-    uint8_t len;     /* bytes (the FIFO pop's comes from the header it follows) */
-    uint8_t cs;      /* IB_CS_* */
-    uint8_t sensor;  /* enum ib_sensor: a failed transfer skips the sensor's other steps */
-    uint8_t kind;    /* JOB_PLAIN, JOB_HDR (ADXL355 header: count the FIFO), JOB_FIFO */
-} ib_job_step_t;
-
 typedef struct ib_core {
     const ib_board_t *board;
 
-    /* sensors */
-    ib_adxl355_t accel;
-    ib_adxrs450_t gyro[3];
+    /* sensors: generic, each its driver's ops and context (sensor.h), chosen at boot */
+    ib_accel_t accel;
+    ib_gyro_t gyro[IB_GYRO_SLOTS];
     uint8_t present;              /* bit per sensor (enum ib_sensor) */
     uint8_t accel_range_g;
     int32_t accel_last[3];        /* last good accelerometer value (repeated when stale) */
@@ -101,16 +90,12 @@ typedef struct ib_core {
     volatile uint8_t job_busy;    /* a chain is running */
     volatile uint8_t job_done;    /* a finished chain waits for sample_finish */
     int8_t job_rc[4];             /* per sensor: 0, or <0 when a transfer failed */
-    uint8_t job_fifo_n;           /* FIFO entries popped */
     uint8_t job_temps;            /* this chain also reads the temperatures (batch start) */
-    uint8_t job_hdr_tx[5], job_hdr_rx[5]; /* ADXL355 STATUS, FIFO_ENTRIES, TEMP2, TEMP1 */
-    uint8_t job_fifo_rx[1u + 3u * IB_ADXL355_FIFO_SIZE]; /* the whole FIFO at most */
-    uint8_t job_gyro_tx[4], job_tem_tx[4]; /* ADXRS450 sensor-data / read TEM commands */
-    uint8_t job_gyro_rx[3][2][4];
-    /* the chain's transfers for the sensors present, listed when the kind of chain changes
-     * (a batch start's reads the temperatures too: twice a batch); job_cur is the running one */
-    ib_job_step_t job_list[8];
-    const ib_job_step_t *job_cur, *job_end;
+    /* the chain's transfers for the sensors present (each driver's ops plan its own, into its
+     * own buffers), listed when the kind of chain changes (a batch start's reads the
+     * temperatures too: twice a batch); job_cur is the running one */
+    ib_xfer_t job_list[4u * IB_XFER_MAX];
+    const ib_xfer_t *job_cur, *job_end;
     uint8_t job_list_temps;       /* the kind listed: 0, 1, or 0xFF none yet */
 
     ib_msg_stats_t stats;

@@ -18,17 +18,13 @@ void ibc_info_fill(ib_core_t *c, ib_msg_info_t *m, uint16_t rid)
     memcpy(m->mcu_uid, b->uid, sizeof m->mcu_uid);
     m->sensors_present = c->present;
     m->accel_range_g = c->accel_range_g;
-    m->parts[0] = c->accel.part && (c->present & 1u) ? c->accel.part->part : IB_PART_NONE;
+    const ib_part_desc_t *pa = c->accel.ops->part(c->accel.ctx);
+    m->parts[0] = pa && (c->present & 1u) ? pa->part : IB_PART_NONE;
+    c->accel.ops->ids(c->accel.ctx, m->accel_ids);
     for (int k = 0; k < 3; k++) {
-        m->parts[1 + k] = c->gyro[k].part && (c->present & (2u << k)) ? c->gyro[k].part->part : IB_PART_NONE;
-    }
-    m->accel_ids[0] = c->accel.devid_ad;
-    m->accel_ids[1] = c->accel.devid_mst;
-    m->accel_ids[2] = c->accel.partid;
-    m->accel_ids[3] = c->accel.revid;
-    for (int k = 0; k < 3; k++) {
-        m->gyro_pid[k] = c->gyro[k].pid;
-        m->gyro_sn[k] = c->gyro[k].serial;
+        const ib_part_desc_t *pg = c->gyro[k].ops->part(c->gyro[k].ctx);
+        m->parts[1 + k] = pg && (c->present & (2u << k)) ? pg->part : IB_PART_NONE;
+        c->gyro[k].ops->ids(c->gyro[k].ctx, &m->gyro_pid[k], &m->gyro_sn[k]);
     }
     m->stream_state = c->stream_state;
     m->param_source = c->param_source;
@@ -86,7 +82,7 @@ static uint8_t do_start_stream(ib_core_t *c, const ib_msg_start_stream_t *m, uin
         listed |= rates[i] == m->rate_hz;
     }
     uint32_t avg = 0;
-    int odr = listed ? ibc_odr_for_rate(m->rate_hz, &avg) : -1;
+    int odr = listed ? ibc_odr_for_rate(c, m->rate_hz, &avg) : -1;
     uint8_t maxb = m->mode == IB_STREAM_MODE_CALIBRATED ? IB_MSG_CAL_BATCH_MAX_RECORDS : IB_MSG_RAW_BATCH_MAX_RECORDS;
     if (odr < 0 || m->rate_hz > 4000u || m->mode > IB_STREAM_MODE_CALIBRATED || m->batch > maxb ||
         (m->accel_range_g != 0u && (c->present & 1u) && ibc_range_code(c, m->accel_range_g) == 0u)) {
@@ -98,25 +94,15 @@ static uint8_t do_start_stream(ib_core_t *c, const ib_msg_start_stream_t *m, uin
     if (m->accel_range_g) {
         c->accel_range_g = m->accel_range_g;
     }
-    if (c->present & 1u) {
-        ib_adxl355_config_t cfg = {ibc_range_code(c, c->accel_range_g), (uint8_t)odr, 0u};
-        if (ib_adxl355_configure(&c->accel, &cfg) != IB_ADXL355_OK) {
-            c->stats.spi_errors++;
-        }
-        int32_t sink[8][3];
-        size_t n = 0, left = ACCEL_FIFO_MAX_SETS;
-        do { /* start with an empty FIFO */
-            if (ib_adxl355_read_fifo(&c->accel, sink, 8u, &n) != IB_ADXL355_OK) {
-                break;
-            }
-            left = left > n ? left - n : 0;
-        } while (n == 8u && left);
+    /* the accelerometer in range and ODR, its FIFO empty */
+    if ((c->present & 1u) && c->accel.ops->start(c->accel.ctx, ibc_range_code(c, c->accel_range_g), (uint8_t)odr,
+                                                 ACCEL_FIFO_MAX_SETS) != IB_SENSOR_OK) {
+        c->stats.spi_errors++;
     }
-    if (c->board->spi->start) { /* pipelined rate reads: the first frame's ibc_reply must be a rate */
-        for (int k = 0; k < 3; k++) {
-            if ((c->present & (1u << (1 + k))) && ib_adxrs450_prime_rate(&c->gyro[k]) == IB_ADXRS450_ERR_BUS) {
-                c->stats.spi_errors++;
-            }
+    const int pipelined = c->board->spi->start != NULL; /* the DMA chain's reads */
+    for (int k = 0; k < 3; k++) {
+        if ((c->present & (1u << (1 + k))) && c->gyro[k].ops->start(c->gyro[k].ctx, pipelined) == IB_SENSOR_ERR_BUS) {
+            c->stats.spi_errors++;
         }
     }
     c->rate_hz = m->rate_hz;
@@ -138,12 +124,7 @@ static uint8_t do_self_test(ib_core_t *c, ib_msg_self_test_result_t *r)
     memset(r, 0, sizeof *r);
     if (c->present & 1u) {
         r->tested |= 1u;
-        ib_adxl355_selftest_t st;
-        int e = ib_adxl355_self_test(&c->accel, &st);
-        for (int k = 0; k < 3; k++) {
-            r->accel_delta_counts[k] = st.delta_counts[k];
-        }
-        if (e == IB_ADXL355_OK) {
+        if (c->accel.ops->self_test(c->accel.ctx, r->accel_delta_counts) == IB_SENSOR_OK) {
             r->passed |= 1u;
         }
     }
@@ -152,10 +133,7 @@ static uint8_t do_self_test(ib_core_t *c, ib_msg_self_test_result_t *r)
             continue;
         }
         r->tested |= (uint8_t)(1u << (1 + k));
-        /* the CHK sequence is part of the start-up: run it again */
-        ib_adxrs450_err_t e = ib_adxrs450_init(&c->gyro[k], c->board->spi, (uint8_t)(IB_CS_GYRO_X + k));
-        r->gyro_chk_faults[k] = c->gyro[k].chk_faults;
-        if (e == IB_ADXRS450_OK) {
+        if (c->gyro[k].ops->self_test(c->gyro[k].ctx, &r->gyro_chk_faults[k]) == IB_SENSOR_OK) {
             r->passed |= (uint8_t)(1u << (1 + k));
         }
     }

@@ -1,5 +1,6 @@
 /* core_priv.h - what the core's files share (core.c: link and boot; core_params.c: parameters
- * and flash; core_stream.c: sensors, sampling and batching; core_cmd.c: commands). Not an
+ * and flash; core_sensors.c: the generic sensors; core_stream.c: sampling and batching;
+ * core_cmd.c: commands). Not an
  * interface: only firmware/core/core*.c include it. */
 #ifndef IB_CORE_PRIV_H
 #define IB_CORE_PRIV_H
@@ -36,10 +37,14 @@ void ibc_identity_params(ib_params_t *p);
 void ibc_set_factory(ib_core_t *c);
 int ibc_read_stored(const ib_flash_if_t *fl, ib_params_t *p, ib_ps_info_t *info);
 void ibc_load_params(ib_core_t *c);
-/* core_stream.c */
-uint8_t ibc_range_code(const ib_core_t *c, uint8_t g);
+/* core_sensors.c */
 void ibc_sensors_init(ib_core_t *c);
-int ibc_odr_for_rate(uint32_t rate_hz, uint32_t *avg);
+const ib_part_desc_t *ibc_accel_part(const ib_core_t *c);
+const ib_part_desc_t *ibc_gyro_part(const ib_core_t *c, int k);
+uint32_t ibc_missing_detail(const ib_core_t *c, uint8_t sensor);
+uint8_t ibc_range_code(const ib_core_t *c, uint8_t g);
+int ibc_odr_for_rate(const ib_core_t *c, uint32_t rate_hz, uint32_t *avg);
+/* core_stream.c */
 void ibc_emit_fault(ib_core_t *c, uint8_t sensor, uint8_t kind, uint8_t active, uint32_t detail);
 void ibc_sample_finish(ib_core_t *c);
 void ibc_stream_stop(ib_core_t *c);

@@ -1,48 +1,6 @@
-/* core_stream.c - the sensors, sampling (synchronous and DMA chain) and batching. */
+/* core_stream.c - sampling (synchronous and DMA chain) and batching, through the generic
+ * sensors of sensor.h. */
 #include "core_priv.h"
-
-/* ----------------------------------------------------------------- sensors */
-
-/* The register code of full scale g on the accelerometer's part (protocol/parts.toml); 0: none. */
-uint8_t ibc_range_code(const ib_core_t *c, uint8_t g)
-{
-    const ib_part_range_t *r = ib_part_range(c->accel.part, g);
-    return r ? r->code : 0u;
-}
-
-void ibc_sensors_init(ib_core_t *c)
-{
-    const ib_spi_bus_t *bus = c->board->spi;
-    c->present = 0;
-    ib_adxl355_config_t cfg = {1u, 2u, 0u}; /* code 1: every part's lowest range */
-    if (ib_adxl355_init(&c->accel, bus, IB_CS_ACCEL, &cfg) == IB_ADXL355_OK) {
-        c->present |= 1u << IB_SENSOR_ACCEL;
-        c->accel_range_g = (uint8_t)c->accel.part->default_full_scale;
-    }
-    for (int k = 0; k < 3; k++) {
-        if (ib_adxrs450_init(&c->gyro[k], bus, (uint8_t)(IB_CS_GYRO_X + k)) == IB_ADXRS450_OK) {
-            c->present |= (uint8_t)(1u << (IB_SENSOR_GYRO_X + k));
-        }
-    }
-}
-
-/* The ODR code for a stream rate: the lowest ODR (4000 Hz / 2^k) of which the stream period
- * is a whole multiple of at most ACCEL_FIFO_MAX_SETS samples (averaged per tick). -1: none. */
-int ibc_odr_for_rate(uint32_t rate_hz, uint32_t *avg)
-{
-    if (rate_hz == 0u || 1000000u % rate_hz != 0u) {
-        return -1;
-    }
-    uint32_t period = 1000000u / rate_hz;
-    for (int k = IB_ADXL355_ODR_CODE_MAX; k >= 0; k--) {
-        uint32_t odr_period = ib_adxl355_odr_period_us((uint8_t)k);
-        if (odr_period <= period && period % odr_period == 0u && period / odr_period <= ACCEL_FIFO_MAX_SETS) {
-            *avg = period / odr_period;
-            return k;
-        }
-    }
-    return -1;
-}
 
 /* ------------------------------------------------------------------ stream */
 
@@ -62,7 +20,7 @@ static void report_faults(ib_core_t *c)
         kind[0] = IB_FAULT_KIND_MISSING;
     } else if (c->batch_spi_error & 1u) {
         kind[0] = IB_FAULT_KIND_SPI_ERROR;
-    } else if (c->batch_hdr.accel_status & 0x04u) {
+    } else if (c->batch_hdr.accel_status & c->accel.ops->status_fifo_overrun) {
         kind[0] = IB_FAULT_KIND_ACCEL_FIFO_OVERRUN;
     } else if (c->batch_hdr.sensor_flags & IB_BATCH_FLAGS_ACCEL_STALE) {
         kind[0] = IB_FAULT_KIND_ACCEL_STALE;
@@ -113,10 +71,11 @@ static void batch_begin(ib_core_t *c, uint32_t t_us, int read_temps)
     memset(c->batch_gyro_st_bad, 0, sizeof c->batch_gyro_st_bad);
     /* temperatures once per batch */
     if (read_temps && (c->present & 1u)) {
-        uint8_t t[2];
-        if (ib_adxl355_read_regs(&c->accel, 0x06, t, 2) == IB_ADXL355_OK) {
-            c->accel_temp_counts = (uint16_t)(((t[0] & 0x0Fu) << 8) | t[1]);
-        } else {
+        uint16_t t;
+        int e = c->accel.ops->read_temp(c->accel.ctx, &t);
+        if (e == IB_SENSOR_OK) {
+            c->accel_temp_counts = t;
+        } else if (e == IB_SENSOR_ERR_BUS) {
             c->batch_spi_error |= 1u;
             c->stats.spi_errors++;
         }
@@ -124,10 +83,10 @@ static void batch_begin(ib_core_t *c, uint32_t t_us, int read_temps)
     for (int k = 0; k < 3 && read_temps; k++) {
         if (c->present & (1u << (1 + k))) {
             int16_t raw10;
-            ib_adxrs450_err_t e = ib_adxrs450_read_temp(&c->gyro[k], &raw10);
-            if (e == IB_ADXRS450_OK) {
+            int e = c->gyro[k].ops->read_temp(c->gyro[k].ctx, &raw10);
+            if (e == IB_SENSOR_OK) {
                 c->gyro_temp_raw10[k] = raw10;
-            } else if (e == IB_ADXRS450_ERR_BUS) {
+            } else if (e == IB_SENSOR_ERR_BUS) {
                 c->batch_spi_error |= (uint8_t)(1u << (1 + k));
                 c->stats.spi_errors++;
             }
@@ -171,12 +130,8 @@ static void batch_send(ib_core_t *c)
 
 /* What one sample read brought back, from the synchronous reads or the DMA chain. */
 typedef struct {
-    int accel_err;             /* IB_ADXL355_OK or the error */
-    size_t total;              /* FIFO sets read */
-    int32_t sum[3];            /* their sum */
-    uint8_t st_or;             /* STATUS bits seen */
-    ib_adxrs450_err_t gyro_err[3];
-    ib_adxrs450_sample_t g[3];
+    ib_accel_read_t a;
+    ib_gyro_read_t g[IB_GYRO_SLOTS];
 } sample_in_t;
 
 /* Read one sample of every sensor with the blocking bus calls (boards without bus->start). */
@@ -184,25 +139,11 @@ static void read_sync(ib_core_t *c, sample_in_t *in)
 {
     memset(in, 0, sizeof *in);
     if (c->present & 1u) {
-        /* every set the FIFO collected since the last tick, in chunks of 8 (small stack) */
-        int32_t sets[8][3];
-        size_t n = 0;
-        int err = IB_ADXL355_OK;
-        do {
-            err = ib_adxl355_read_fifo(&c->accel, sets, 8u, &n);
-            in->st_or |= c->accel.last_status;
-            for (size_t i = 0; err == IB_ADXL355_OK && i < n; i++) {
-                in->sum[0] += sets[i][0];
-                in->sum[1] += sets[i][1];
-                in->sum[2] += sets[i][2];
-            }
-            in->total += n;
-        } while (err == IB_ADXL355_OK && n == 8u && in->total < ACCEL_FIFO_MAX_SETS + 8u);
-        in->accel_err = err;
+        c->accel.ops->read(c->accel.ctx, ACCEL_FIFO_MAX_SETS, &in->a);
     }
     for (int k = 0; k < 3; k++) {
         if (c->present & (1u << (1 + k))) {
-            in->gyro_err[k] = ib_adxrs450_read_rate(&c->gyro[k], &in->g[k]);
+            c->gyro[k].ops->read(c->gyro[k].ctx, &in->g[k]);
         }
     }
 }
@@ -212,14 +153,14 @@ static void read_sync(ib_core_t *c, sample_in_t *in)
 static void cal_prepare(ib_core_t *c)
 {
     float ta[3], tg[3];
-    const ib_part_desc_t *pa = c->accel.part ? c->accel.part : ib_part_by_id(IB_PART_ADXL355);
-    /* the range on pa itself: with no accelerometer found (its part NULL) the stream still
-     * carries finite numbers, on the ADXL355's scale, flagged missing */
+    /* with no part found, the slot driver's base part: the stream still carries finite
+     * numbers, on that part's scale, flagged missing */
+    const ib_part_desc_t *pa = ibc_accel_part(c);
     const ib_part_range_t *rg = ib_part_range(pa, c->accel_range_g);
-    float lsb = (float)ib_adxl355_part_lsb_per_g(pa, rg ? rg->code : pa->ranges[0].code);
+    float lsb = rg ? rg->lsb_per_unit : pa->ranges[0].lsb_per_unit;
     float t_acc = pa->temp_ref_c + ((float)c->accel_temp_counts - pa->temp_offset_counts) / pa->temp_lsb_per_c;
     for (int k = 0; k < 3; k++) {
-        const ib_part_desc_t *pg = c->gyro[k].part ? c->gyro[k].part : ib_part_by_id(IB_PART_ADXRS450);
+        const ib_part_desc_t *pg = ibc_gyro_part(c, k);
         ta[k] = t_acc;
         c->gyro_rad_per_count[k] = RAD_PER_DEG / pg->ranges[0].lsb_per_unit;
         tg[k] = pg->temp_ref_c + ((float)c->gyro_temp_raw10[k] - pg->temp_offset_counts) / pg->temp_lsb_per_c;
@@ -236,24 +177,24 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
     uint8_t status = 0;
     int32_t acc[3] = {c->accel_last[0], c->accel_last[1], c->accel_last[2]};
     if (c->present & 1u) {
-        if (in->accel_err != IB_ADXL355_OK) {
+        if (in->a.err != IB_SENSOR_OK) {
             c->batch_spi_error |= 1u;
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SPI_ERROR;
             c->stats.spi_errors++;
             status |= IB_SAMPLE_STATUS_ACCEL_BAD;
-        } else if (in->total == 0) {
+        } else if (in->a.sets == 0) {
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_ACCEL_STALE;
             status |= IB_SAMPLE_STATUS_ACCEL_BAD;
         } else {
-            const int32_t n_sets = (int32_t)in->total, h = n_sets / 2; /* 32-bit: no libgcc divide */
+            const int32_t n_sets = (int32_t)in->a.sets, h = n_sets / 2; /* 32-bit: no libgcc divide */
             for (int k = 0; k < 3; k++) {
                 /* rounded mean, symmetric about zero */
-                int32_t sum = in->sum[k];
+                int32_t sum = in->a.sum[k];
                 acc[k] = n_sets == 1 ? sum : sum >= 0 ? (sum + h) / n_sets : -((-sum + h) / n_sets);
                 c->accel_last[k] = acc[k];
             }
         }
-        c->batch_hdr.accel_status |= in->st_or;
+        c->batch_hdr.accel_status |= in->a.status;
     } else {
         status |= IB_SAMPLE_STATUS_ACCEL_BAD;
     }
@@ -264,8 +205,8 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
             status |= bad;
             continue;
         }
-        const ib_adxrs450_sample_t *s = &in->g[k];
-        if (in->gyro_err[k] == IB_ADXRS450_ERR_BUS) {
+        const ib_gyro_read_t *s = &in->g[k];
+        if (s->err == IB_SENSOR_ERR_BUS) {
             c->batch_spi_error |= (uint8_t)(1u << (1 + k));
             c->batch_hdr.sensor_flags |= IB_BATCH_FLAGS_SPI_ERROR;
             c->stats.spi_errors++;
@@ -273,9 +214,9 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
             continue;
         }
         rate[k] = s->rate_counts;
-        c->batch_hdr.gyro_faults[k] |= (uint8_t)(s->faults | (s->parity_error ? 1u : 0u));
-        if (s->st != 1u) {
-            c->batch_gyro_st_bad[k] = (uint8_t)(s->st | 0x80u);
+        c->batch_hdr.gyro_faults[k] |= s->faults;
+        if (s->status_bad) {
+            c->batch_gyro_st_bad[k] = s->status_bad;
         }
         if (!s->good) {
             status |= bad;
@@ -320,78 +261,72 @@ static void sample_commit(ib_core_t *c, const sample_in_t *in)
 }
 
 /* ---- the sample read as a chain of DMA transfers (bus->start) ----
- * Steps: 0 ADXL355 STATUS, FIFO_ENTRIES, TEMP2, TEMP1 in one burst; 1 pop the FIFO (the
- * whole sets the header counted, at most JOB_FIFO_SETS); 2 + 2k: gyro k's frame, whose ibc_reply
- * is the rate latched by the previous sample's frame (the pipelined read of adxrs450.h: one
- * frame per gyro instead of two, the rate one sample period old); at the start of a batch
- * that frame sends "read TEM" instead and step 3 + 2k the sensor-data command, whose ibc_reply is
- * the temperature. The steps that apply (sensors present) are listed at each batch start
- * (job_plan), so a step's work in the interrupt is to take the next entry. Each step is
- * started from the previous one's completion interrupt (job_next); the main loop is free
- * meanwhile and finishes the sample (ibc_sample_finish) when job_done is set. */
-#define JOB_FIFO_SETS (IB_ADXL355_FIFO_SIZE / 3u) /* the whole FIFO: 160 Hz takes 25 sets a tick */
+ * Each sensor present adds its transfers (its ops' chain.plan, into its driver's buffers: an
+ * accelerometer's status burst and FIFO pop, a gyro's pipelined frame, more at a batch's
+ * start, which reads the temperatures too; firmware/drivers, the ops files). They are listed
+ * when the kind of chain changes (job_plan), so a step's work in the interrupt is to take the
+ * next entry. Each step is started from the previous one's completion interrupt (job_next);
+ * a step with len 0 asks its driver for the length just before (chain.len: the FIFO pop's
+ * comes from the header before it), a step tagged IB_XFER_NOTIFY tells its driver it ended
+ * (chain.done). The main loop is free meanwhile and finishes the sample (ibc_sample_finish:
+ * each driver's finish) when job_done is set. */
 #define JOB_WAIT_US 5000u
-enum { JOB_PLAIN = 0, JOB_HDR = 1, JOB_FIFO = 2 };
 
 static void job_next(void *arg, int rc);
 
-static void job_add(ib_job_step_t **s, const uint8_t *tx, uint8_t *rx, uint8_t len, uint8_t cs, uint8_t sensor,
-                    uint8_t kind)
+/* The chain ops and context of sensor s (enum ib_sensor). */
+static const ib_chain_ops_t *job_ops(const ib_core_t *c, uint8_t s, void **ctx)
 {
-    ib_job_step_t *e = (*s)++;
-    e->tx = tx;
-    e->rx = rx;
-    e->len = len;
-    e->cs = cs;
-    e->sensor = sensor;
-    e->kind = kind;
+    if (s == IB_SENSOR_ACCEL) {
+        *ctx = c->accel.ctx;
+        return &c->accel.ops->chain;
+    }
+    *ctx = c->gyro[s - 1u].ctx;
+    return &c->gyro[s - 1u].ops->chain;
 }
 
 /* List the transfers of a chain for the sensors present (temps: a batch start's). */
 static void job_plan(ib_core_t *c, uint8_t temps)
 {
-    ib_job_step_t *s = c->job_list;
-    if (c->present & 1u) {
-        job_add(&s, c->job_hdr_tx, c->job_hdr_rx, temps ? (uint8_t)sizeof c->job_hdr_tx : 3u, IB_CS_ACCEL, 0u,
-                JOB_HDR);
-        job_add(&s, ib_adxl355_fifo_read_tx, c->job_fifo_rx, 0u, IB_CS_ACCEL, 0u, JOB_FIFO);
-    }
-    for (uint8_t k = 0; k < 3u; k++) {
-        if (!(c->present & (1u << (1u + k)))) {
+    static const uint8_t cs[4] = {IB_CS_ACCEL, IB_CS_GYRO_X, IB_CS_GYRO_Y, IB_CS_GYRO_Z};
+    ib_xfer_t *x = c->job_list;
+    for (uint8_t s = 0; s < 4u; s++) {
+        if (!(c->present & (1u << s))) {
             continue;
         }
-        uint8_t cs = (uint8_t)(IB_CS_GYRO_X + k);
-        job_add(&s, temps ? c->job_tem_tx : c->job_gyro_tx, c->job_gyro_rx[k][0], 4u, cs, (uint8_t)(1u + k),
-                JOB_PLAIN);
-        if (temps) {
-            job_add(&s, c->job_gyro_tx, c->job_gyro_rx[k][1], 4u, cs, (uint8_t)(1u + k), JOB_PLAIN);
+        void *ctx;
+        uint8_t n = job_ops(c, s, &ctx)->plan(ctx, temps, x);
+        for (uint8_t i = 0; i < n; i++, x++) {
+            x->cs = cs[s];
+            x->sensor = s;
         }
     }
-    c->job_end = s;
+    c->job_end = x;
     c->job_list_temps = temps;
 }
 
-/* Start the first transfer at or after s that applies (its sensor has not failed; the FIFO
- * pop only when the header counted entries); the chain is over when none is left. */
-static void job_run(ib_core_t *c, const ib_job_step_t *s)
+/* Start the first transfer at or after x that applies (its sensor has not failed, its length
+ * not 0); the chain is over when none is left. */
+static void job_run(ib_core_t *c, const ib_xfer_t *x)
 {
     const ib_spi_bus_t *b = c->board->spi;
-    for (; s < c->job_end; s++) {
-        if (c->job_rc[s->sensor]) {
+    for (; x < c->job_end; x++) {
+        if (c->job_rc[x->sensor]) {
             continue;
         }
-        size_t len = s->len;
-        if (s->kind == JOB_FIFO) {
-            if (c->job_fifo_n == 0u) {
+        size_t len = x->len;
+        if (len == 0u) {
+            void *ctx;
+            len = job_ops(c, x->sensor, &ctx)->len(ctx, x);
+            if (len == 0u) {
                 continue;
             }
-            len = 1u + 3u * (size_t)c->job_fifo_n;
         }
-        c->job_cur = s;
-        if (b->start(b->ctx, s->cs, s->tx, s->rx, len, job_next, c) == 0) {
+        c->job_cur = x;
+        if (b->start(b->ctx, x->cs, x->tx, x->rx, len, job_next, c) == 0) {
             return;
         }
-        c->job_rc[s->sensor] = -1;
+        c->job_rc[x->sensor] = -1;
     }
     c->job_busy = 0;
     c->job_done = 1;
@@ -401,20 +336,20 @@ static void job_run(ib_core_t *c, const ib_job_step_t *s)
 static void job_next(void *arg, int rc)
 {
     ib_core_t *c = (ib_core_t *)arg;
-    const ib_job_step_t *s = c->job_cur;
+    const ib_xfer_t *x = c->job_cur;
     if (rc < 0) {
-        c->job_rc[s->sensor] = -1;
-    } else if (s->kind == JOB_HDR) {
-        c->job_fifo_n = (uint8_t)ib_adxl355_fifo_entries(&c->accel, &c->job_hdr_rx[1], JOB_FIFO_SETS);
+        c->job_rc[x->sensor] = -1;
+    } else if (x->tag & IB_XFER_NOTIFY) {
+        void *ctx;
+        job_ops(c, x->sensor, &ctx)->done(ctx, x);
     }
-    job_run(c, s + 1);
+    job_run(c, x + 1);
 }
 
 static void job_begin(ib_core_t *c, uint8_t temps)
 {
     memset(c->job_rc, 0, sizeof c->job_rc);
     c->job_temps = temps;
-    c->job_fifo_n = 0;
     c->job_done = 0;
     c->job_busy = 1;
     if (c->job_list_temps != temps) {
@@ -423,61 +358,29 @@ static void job_begin(ib_core_t *c, uint8_t temps)
     job_run(c, c->job_list);
 }
 
-/* Turn what the chain brought back into the sample. */
+/* Turn what the chain brought back into the sample: each sensor's driver reads its buffers. */
 void ibc_sample_finish(ib_core_t *c)
 {
-    sample_in_t in; /* every field sample_commit reads is set below (no memset: once a sample) */
-    in.accel_err = IB_ADXL355_OK;
-    in.total = 0;
-    in.sum[0] = in.sum[1] = in.sum[2] = 0;
-    in.st_or = 0;
+    sample_in_t in; /* each driver's finish writes its reading whole (no memset: once a sample) */
     c->job_done = 0;
+    in.a.err = IB_SENSOR_OK; /* (sample_commit reads a reading only of a sensor present) */
+    in.a.sets = 0;
+    in.a.status = 0;
     if (c->present & 1u) {
-        if (c->job_rc[0] != 0) {
-            in.accel_err = IB_ADXL355_ERR_BUS;
-        } else {
-            in.st_or = c->accel.last_status;
-            if (c->job_temps) {
-                c->accel_temp_counts = (uint16_t)(((c->job_hdr_rx[3] & 0x0Fu) << 8) | c->job_hdr_rx[4]);
-                c->batch_hdr.accel_temp_counts = c->accel_temp_counts;
-            }
-            if (c->job_fifo_n) {
-                int32_t sets[8][3]; /* in chunks of 8 sets (small stack) */
-                ib_adxl355_fifo_parse_t p;
-                ib_adxl355_fifo_parse_init(&p);
-                size_t total = 0;
-                for (size_t e0 = 0; e0 < c->job_fifo_n && !p.empty; e0 += 24u) {
-                    size_t n = c->job_fifo_n - e0 < 24u ? c->job_fifo_n - e0 : 24u;
-                    p.sets = 0;
-                    ib_adxl355_fifo_parse(&c->accel, &p, &c->job_fifo_rx[1u + 3u * e0], n, sets, 8u);
-                    for (size_t i = 0; i < p.sets; i++) {
-                        in.sum[0] += sets[i][0];
-                        in.sum[1] += sets[i][1];
-                        in.sum[2] += sets[i][2];
-                    }
-                    total += p.sets;
-                }
-                ib_adxl355_fifo_parse_end(&c->accel, &p);
-                p.sets = total;
-                in.total = p.sets;
-            }
+        c->accel.ops->finish(c->accel.ctx, c->job_rc[0], c->job_temps, &in.a);
+        if (in.a.temp_ok) {
+            c->accel_temp_counts = in.a.temp_counts;
+            c->batch_hdr.accel_temp_counts = c->accel_temp_counts;
         }
     }
     for (int k = 0; k < 3; k++) {
         if (!(c->present & (1u << (1 + k)))) {
             continue;
         }
-        if (c->job_rc[1 + k] != 0) {
-            ib_adxrs450_note_bus_error(&c->gyro[k]);
-            in.gyro_err[k] = IB_ADXRS450_ERR_BUS;
-            continue;
-        }
-        in.gyro_err[k] = ib_adxrs450_rate_from_reply(&c->gyro[k], ib_adxrs450_word(c->job_gyro_rx[k][0]), &in.g[k]);
-        int16_t raw10;
-        if (c->job_temps &&
-            ib_adxrs450_temp_from_reply(&c->gyro[k], ib_adxrs450_word(c->job_gyro_rx[k][1]), &raw10) == IB_ADXRS450_OK) {
-            c->gyro_temp_raw10[k] = raw10;
-            c->batch_hdr.gyro_temp_counts[k] = raw10;
+        c->gyro[k].ops->finish(c->gyro[k].ctx, c->job_rc[1 + k], c->job_temps, &in.g[k]);
+        if (in.g[k].temp_ok) {
+            c->gyro_temp_raw10[k] = in.g[k].temp_counts;
+            c->batch_hdr.gyro_temp_counts[k] = in.g[k].temp_counts;
         }
     }
     sample_commit(c, &in);
