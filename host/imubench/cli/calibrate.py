@@ -31,13 +31,13 @@ from imubench.cli.calibrate_station import (
     _station_session,
     write_exports,
 )
-from imubench.calib.fit import gyro_method_names
+from imubench.calib.fit import accel_method_names, gyro_method_names
 from imubench.cli.station import add_web
 from imubench.results import exports as X
 from imubench.results.record import verdict
 from imubench.text import one_line, printable
 
-METHODS = ("multi", "six")
+METHODS = accel_method_names(live=True)     # calib.fit.ACCEL_METHOD_LIST: the accelerometer methods of a session
 CAPTURES = ("adaptive", "plan")
 SIX_WARNING = ("warning: --method six needs a square fixture (a machined cube against a square): held by hand the "
                "faces are degrees off square and the fit fails; --method multi needs none")

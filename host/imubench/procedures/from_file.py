@@ -12,7 +12,9 @@ session's result (procedures.session): the same DIR/session.json, residual plot,
 (results.report) and history record, plus the recording's own section (timing, segmentation,
 turns) and the result in other tools' layouts (results.paramfiles).
 
-Nothing here reads the file's bytes (imubench.recordings does) or fits (imubench.calib does).
+Nothing here reads the file's bytes (imubench.recordings does) or fits: the fit, the gyro's
+found in the recording included, is calib.fit's, the one front door a session's is too; this
+module gathers the recording's rests and stream for it and presents what it returns.
 """
 from __future__ import annotations
 
@@ -24,10 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
-from imubench.calib import TriadFit
-from imubench.calib.fit import Evidence, fit, gyro_method_names
-from imubench.procedures.file_gyro import CLIP_MIN_DPS, FileGyro  # noqa: F401 - CLIP_MIN_DPS: where callers found it
-from imubench.procedures.recording_checks import (check_accel_unit, check_gyro_unit, compare_annotation, face_of)
+from imubench.calib import TriadFit, face_of
+from imubench.calib.fit import (Evidence, Note, RecordingEvidence, accel_model_words, fit,
+                                gyro_method_names)
+from imubench.procedures.recording_checks import check_accel_unit, check_gyro_unit, compare_annotation
 from imubench.procedures.session import Tolerances
 from imubench.recordings import Recording, RecordingError, command_line, command_options, timing_lines
 from imubench.results.atomic import write_json_atomic
@@ -75,7 +77,7 @@ def device_id(name: str) -> str:
 
 
 # ------------------------------------------------------------------ the analysis
-class FileAnalysis(FileGyro):
+class FileAnalysis:
     """The analysis of one recording (no files written): run() fills accel, gyro, result."""
 
     def __init__(self, rec: Recording, cfg: FileConfig, say=print):
@@ -87,7 +89,6 @@ class FileAnalysis(FileGyro):
         self.turns: list = []
         self.method = cfg.method        # "auto" becomes "six" or "multi" in run()
         self.fg = rec.gyro_factor()
-        self._bias: TriadFit | None = None
         self.gyro_refused: str | None = None
         self.gsens: dict | None = None
         self.fa: float | None = None
@@ -175,43 +176,75 @@ class FileAnalysis(FileGyro):
         self.say(f"still intervals: {len(keep)} found by the data (window {cfg.window_s:g} s, k = {ivs.k:g} × the "
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
                                             for f, i in zip(self.faces, keep)))
-        picked: dict = {}
-
-        def chosen(choice) -> None:         # the rests the accelerometer's fit used: the gyro's and the tables'
-            used = self._accel_chosen(choice)
-            picked.update(keep=[keep[k] for k in used], means=means[used], sigmas=sigmas[used])
-            self.intervals, self.faces = picked["keep"], [self.faces[k] for k in used]
-
-        def gyro_fitter(cal):
-            chosen(cal.accel_choice)
-            try:
-                return self._gyro(rec, cfg, fs, picked["keep"], acc, picked["means"], cal.accel)
-            finally:
-                cal.gyro_bias = self._bias
         from imubench.calib.fit import FitRefused
+        ev = self._evidence(means, sigmas, acc)
+        ev.recording = self._recording_evidence(keep, acc)
         try:
-            cal = fit(self._evidence(means, sigmas, acc), method=cfg.method,
-                      gyro=cfg.gyro if self.gyro_refused is None else None,
-                      excess_limit_mps2=self._excess_limit(means, sigmas), gsens=False, gyro_fitter=gyro_fitter)
+            cal = fit(ev, method=cfg.method, gyro=cfg.gyro if self.gyro_refused is None else None,
+                      excess_limit_mps2=self._excess_limit(means, sigmas), gsens=False)
         except FitRefused as e:             # how the rests were seen stays for the evidence of the refusal
             self._records(e.rests)
             self.accel_candidates = e.candidates
             raise
-        if not picked:                      # no gyro asked for: the accelerometer's choice, told here
-            chosen(cal.accel_choice)
         self.calibration = cal
-        means, sigmas = picked["means"], picked["sigmas"]
+        used = self._accel_chosen(cal.accel_choice)      # the rests the accelerometer's fit used: the gyro's too
+        self.intervals, self.faces = [keep[k] for k in used], [self.faces[k] for k in used]
+        means, sigmas = means[used], sigmas[used]
+        self._present(cal)
         if cal.gyro_refused is not None:    # a refusal keeps the accelerometer's result
             self.gyro_refused, self.gyro = cal.gyro_refused, cal.gyro
         elif cfg.gyro and self.gyro_refused is None:
             self.gyro = cal.gyro
-        if self.gyro_refused:
+        elif self.gyro_refused:             # refused before the fit (the declared gyro unit)
             self.say(f"gyro not calibrated: {self.gyro_refused}")
         if self.fg is None:         # raw gyro counts that no turn scaled: nothing of the gyro can be said in °/s
             raise RecordingError("the gyro is in counts without a nominal scale and no known-angle turn in the "
                                  "recording scales it: give --gyro-scale COUNTS_PER_DPS (the data sheet's), or "
                                  "--sensor NAME with --gyro-range DPS (its full-scale setting)")
         return self._result(means, sigmas)
+
+    def _present(self, cal) -> None:
+        """What the fit found of the gyro, kept for the result and said in order (its notes among
+        the result's notes; the gyro's full scale found in the data among the recording's detected)."""
+        from imubench.results.record import fit_dict
+        for line in cal.said:
+            if isinstance(line, Note):
+                self._note(str(line))
+            else:
+                self.say(line)
+        if cal.gyro_scale is not None:
+            self.fg = cal.gyro_scale
+        self.turns = cal.turns
+        self.gyro_parts = ({"fits": {k: fit_dict(v, "rad_s") for k, v in cal.gyro_parts["fits"].items()},
+                            "refused": cal.gyro_parts["refused"]} if cal.gyro_parts else {})
+        self.gsens = cal.gsens_report
+        self.clipping["gyro"] = list(cal.gyro_clipping)
+        if cal.detected is not None:
+            line, dps = cal.detected
+            self.rec.detected.append(line)
+            self.rec.options["gyro_range_dps"] = dps
+
+    def _recording_evidence(self, rests: list, acc: np.ndarray | None = None) -> RecordingEvidence:
+        """The recording's one stream as calib.fit takes it for the gyro (its rests: `rests`)."""
+        rec, cfg = self.rec, self.cfg
+        return RecordingEvidence(
+            gyro=rec.gyro, gyro_scale=rec.gyro_factor(), accel_mps2=rec.accel * self.fa if acc is None else acc,
+            rests=list(rests), rate_hz=rec.fs_hz, breaks=tuple(b for b, _ in rec.breaks), parts=rec.parts,
+            turn_deg=cfg.turn_deg, angle_sigma_deg=cfg.angle_sigma_deg, axis_sigma_deg=cfg.axis_sigma_deg,
+            gyro_range_dps=cfg.gyro_range_dps, range_known="gyro_range_dps" in rec.options)
+
+    def _clipped_motions(self, rests) -> None:
+        """The gyro's clipping between the rests as the fit finds it (calib.fit.gyro_clipping), for
+        the evidence of a refusal before the gyro was fitted: kept and noted."""
+        from imubench.calib.fit import gyro_clipping
+        clip = gyro_clipping(self._recording_evidence(rests), rests)
+        self.clipping["gyro"] = clip.rows
+        if clip.detected is not None:
+            self.rec.detected.append(clip.detected[0])
+            self.rec.options["gyro_range_dps"] = clip.detected[1]
+        for line in clip.said:
+            if isinstance(line, Note):
+                self._note(str(line))
 
     def _rests_at_full_scale(self, ivs) -> set[int]:
         """The rests where the accelerometer sat at its full scale (calib.clipping, from the data):
@@ -269,13 +302,13 @@ class FileAnalysis(FileGyro):
         self._records(choice.rests)
         self.accel_choice = choice
         self.accel_candidates = choice.candidates
-        self.method = "six" if choice.fit.method == "six_position" else "multi"
-        short = {"multi_position": "multi-position |a| = g", "six_position": "six-position"}
+        self.method = self.calibration.method
+        short = accel_model_words(choice.fit.method)
         first = choice.candidates[0]
         if first["status"] == "kept":
-            self.say(f"method: {short[choice.fit.method]} (the rests resolve its parameters and it fits them)")
+            self.say(f"method: {short} (the rests resolve its parameters and it fits them)")
         else:
-            self.say(f"method: {short[choice.fit.method]} (the {first['model'].split(',')[0]} fit cannot be used: "
+            self.say(f"method: {short} (the {first['model'].split(',')[0]} fit cannot be used: "
                      f"{first['reason']})")
         self.say(f"accelerometer model: {choice.summary}")
         self.accel = choice.fit

@@ -10,14 +10,14 @@ import threading
 import time
 from pathlib import Path
 
-from imubench.calib.fit import gyro_method_names
+from imubench.calib.fit import accel_method_names, gyro_method_names
 from imubench.errors import ImubenchError
 from imubench.station.presenter import SessionStopped, WebPresenter
 from imubench.station.security import PortPolicy, StationError, bool_field, int_field, number_field, text_field
 from imubench.station.state import Refused, StationState
 
 SIM_KEY = "sim"
-METHODS = ("multi", "six")
+METHODS = accel_method_names(live=True)     # calib.fit.ACCEL_METHOD_LIST: the accelerometer methods of a session
 GYRO_METHODS = gyro_method_names(live=True)   # calib.fit.GYRO_METHODS: those a session on a device can use
 CAPTURES = ("adaptive", "plan")
 OPTIONS = ("port", "method", "gyro", "capture", "write", "note", "rate_hz")
