@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from imubench.calib.fit import accel_method_names, gyro_method_names
+from imubench.wire.board_parts import any_board_c
 from imubench.errors import ImubenchError
 from imubench.station.presenter import SessionStopped, WebPresenter
 from imubench.station.security import PortPolicy, StationError, bool_field, int_field, number_field, text_field
@@ -25,7 +26,10 @@ NOTE_CHARS = 500
 WARMUP_OPTIONS = ("port", "span_lo_c", "span_hi_c", "face", "write", "rate_hz")
 FACES = ("+z", "-z", "+x", "-x", "+y", "-y")
 WARMUP_SPAN_C = (5.0, 45.0)          # the span a warm-up asks for unless the page says otherwise
-WARMUP_LIMITS_C = (-40.0, 85.0)      # the sensors' operating range (ADXL355, ADXRS450 data sheets)
+# the span a warm-up may ask for before its board has said which parts it has: the range every part of the
+# parts table works in (protocol/parts.toml, their data sheets); the warm-up then checks the span against
+# the parts its device reported (procedures.warmup.run_warmup), naming the part that cannot reach it
+WARMUP_LIMITS_C = any_board_c()
 PROGRESS_MIN_INTERVAL_S = 0.2        # a warm-up's progress reaches the pages at most five times a second
 __all__ = ["Station", "StationError", "SIM_KEY"]
 
