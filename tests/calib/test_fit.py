@@ -40,6 +40,17 @@ def test_every_caller_takes_its_gyro_methods_from_the_one_list():
         gyro_method("spin")
 
 
+def test_what_a_session_captures_is_the_strategys_to_say():
+    from imubench.calib.fit import data_needed
+    assert data_needed("multi", "rotation") == {"rest", "stream"}
+    assert data_needed("six", "turntable") == {"rest", "turntable"}
+    assert data_needed("multi", "turntable") == {"rest", "turntable", "stream"}    # the frames aligned on it
+    assert data_needed("multi", "turns") == {"rest", "turns"} and data_needed("six", "bias") == {"rest"}
+    assert data_needed("multi", None) == data_needed("multi", "none") == frozenset()
+    src = (Path(imubench.station.__file__).parents[1] / "procedures" / "session.py").read_text()
+    assert 'cfg.gyro == "' not in src            # the session asks the strategy, it keeps no list of its own
+
+
 def test_the_accelerometer_methods_and_the_reports_words_come_from_the_same_lists():
     from imubench.cli.calibrate import METHODS as cli_accel
     from imubench.results.calibration import _method

@@ -36,7 +36,7 @@ from imubench.calib.recording_gyro import clipped_motions as gyro_clipping
 __all__ = ["GyroMethod", "GYRO_METHODS", "gyro_method_names", "gyro_method", "AccelMethod", "ACCEL_METHOD_LIST",
            "ACCEL_METHODS", "accel_method_names", "accel_method_words", "accel_model_words",
            "FIT_TEXTS", "fit_text",
-           "RotationEvidence", "RecordingEvidence", "Evidence", "Calibration", "Note", "fit", "fit_gyro_method",
+           "data_needed", "aligns_frames", "RotationEvidence", "RecordingEvidence", "Evidence", "Calibration", "Note", "fit", "fit_gyro_method",
            "gyro_clipping"]
 
 
@@ -53,25 +53,29 @@ def __getattr__(name: str):
 @dataclass(frozen=True)
 class GyroMethod:
     """One gyro method: its name (as typed), whether a live session can gather its data,
-    whether a recording can, one line on what it needs, and the fits it gives: the name a
-    TriadFit of it carries (TriadFit.method) and how a report names that fit."""
+    whether a recording can, one line on what it needs, the fits it gives (the name a TriadFit
+    of it carries, TriadFit.method, and how a report names that fit), and what a live session
+    captures for it (data_needed: "rest" the gyro at rest, "turntable" the turntable's segments,
+    "turns" the known-angle turns, "stream" the continuous stream between the poses)."""
     name: str
     live: bool
     recording: bool
     text: str
     fits: tuple[tuple[str, str], ...] = ()
+    needs: tuple[str, ...] = ()
 
 
 GYRO_METHODS: tuple[GyroMethod, ...] = (
     GyroMethod("turntable", True, False, "scale and misalignment from turns at known rates on a turntable",
-               (("turntable", "turntable (known rates about each axis, both ways)"),)),
+               (("turntable", "turntable (known rates about each axis, both ways)"),), ("rest", "turntable")),
     GyroMethod("rotation", True, True, "scale and misalignment from the rotations between the attitudes",
-               (("rotation", "rotation method (gyro integrated between attitudes)"),)),
+               (("rotation", "rotation method (gyro integrated between attitudes)"),), ("rest", "stream")),
     GyroMethod("turns", True, True, "scale and misalignment from known-angle turns by hand (one full turn "
                                     "about X, Y and Z pointing up)",
-               (("turns", "known-angle turns (Ferraris: hand turns of a known angle about the vertical)"),)),
+               (("turns", "known-angle turns (Ferraris: hand turns of a known angle about the vertical)"),),
+               ("rest", "turns")),
     GyroMethod("bias", True, True, "the bias at rest only",
-               (("bias", "bias at rest (scale and misalignment not estimated)"),)),
+               (("bias", "bias at rest (scale and misalignment not estimated)"),), ("rest",)),
     GyroMethod("auto", False, True, "known-angle turns and/or the rotation method, whatever a recording holds",
                (("turns+rotation", "known-angle turns and the rotation method, combined (inverse-covariance)"),)),
     GyroMethod("none", True, True, "no gyro calibration"),
@@ -131,6 +135,23 @@ def gyro_method_names(*, live: bool | None = None, recording: bool | None = None
     recording (recording=True) can use when asked."""
     return tuple(m.name for m in GYRO_METHODS
                  if (live is None or m.live == live) and (recording is None or m.recording == recording))
+
+
+def data_needed(method: str, gyro: str | None) -> frozenset[str]:
+    """What a live session captures for a fit by these methods (GyroMethod.needs): the gyro's
+    own data, and the continuous stream when a multi-position fit with the turntable is rotated
+    into the gyro frame (align_frames: the rotation between the rests is measured on it)."""
+    gm = gyro_method(gyro)
+    needs = set(gm.needs) if gm is not None else set()
+    if aligns_frames(method, gyro):
+        needs.add("stream")
+    return frozenset(needs)
+
+
+def aligns_frames(method: str, gyro: str | None) -> bool:
+    """Whether fit() rotates the accelerometer's fit into the gyro frame by default: the
+    multi-position model (which leaves the triad's rotation free) with the turntable's axes."""
+    return method == "multi" and gyro == "turntable"
 
 
 def gyro_method(name: str | None) -> GyroMethod | None:
@@ -217,12 +238,12 @@ class Calibration:
 
 # ------------------------------------------------------------------ the strategy
 def fit(ev: Evidence, *, method: str, gyro: str | None, excess_limit_mps2: float,
-        align_frames: bool = False, gsens: bool = True, g: float = U.G0_MPS2) -> Calibration:
+        align_frames: bool | None = None, gsens: bool = True, g: float = U.G0_MPS2) -> Calibration:
     """The fit of one board's data (see the module). method: "multi", "six" or "auto" (the
     accelerometer models tried, calib.acceptance.ORDER); gyro: a name of GYRO_METHODS or None;
     excess_limit_mps2: the scatter beyond the noise a linear calibration of this class of sensor
     leaves (the pass tolerance). align_frames: with the turntable, rotate the accelerometer's
-    fit into the gyro frame (calib.frames). gsens: fit the g-sensitivity from the rests' gyro
+    fit into the gyro frame (calib.frames); None: when aligns_frames(method, gyro). gsens: fit the g-sensitivity from the rests' gyro
     means (a recording's gyro fits its own from its rests, calib.recording_gyro). Raises
     FitRefused (a CalibrationError) when no accelerometer model is kept."""
     from imubench.calib.acceptance import fit_accel
@@ -230,6 +251,8 @@ def fit(ev: Evidence, *, method: str, gyro: str | None, excess_limit_mps2: float
     if method not in ACCEL_METHODS:
         raise ValueError(f"method must be one of {', '.join(ACCEL_METHODS)}, not {method!r}")
     gm = gyro_method(gyro)
+    if align_frames is None:
+        align_frames = aligns_frames(method, gyro)
     means = np.asarray(ev.means_mps2, dtype=np.float64)
     sigmas = np.asarray(ev.sigmas_mps2, dtype=np.float64)
     choice = fit_accel(means, sigmas, ev.covs, method, g, excess_limit=excess_limit_mps2,

@@ -10,7 +10,7 @@ import threading
 import time
 from pathlib import Path
 
-from imubench.calib.fit import accel_method_names, gyro_method_names
+from imubench.calib.fit import accel_method_names, data_needed, gyro_method_names
 from imubench.wire.board_parts import any_board_c
 from imubench.errors import ImubenchError
 from imubench.station.presenter import SessionStopped, WebPresenter
@@ -26,10 +26,8 @@ NOTE_CHARS = 500
 WARMUP_OPTIONS = ("port", "span_lo_c", "span_hi_c", "face", "write", "rate_hz")
 FACES = ("+z", "-z", "+x", "-x", "+y", "-y")
 WARMUP_SPAN_C = (5.0, 45.0)          # the span a warm-up asks for unless the page says otherwise
-# the span a warm-up may ask for before its board has said which parts it has: the range every part of the
-# parts table works in (protocol/parts.toml, their data sheets); the warm-up then checks the span against
-# the parts its device reported (procedures.warmup.run_warmup), naming the part that cannot reach it
-WARMUP_LIMITS_C = any_board_c()
+# a warm-up's span before its board said which parts it has: what every part of the table works in
+WARMUP_LIMITS_C = any_board_c()     # (then run_warmup checks it against the parts the device reported)
 PROGRESS_MIN_INTERVAL_S = 0.2        # a warm-up's progress reaches the pages at most five times a second
 __all__ = ["Station", "StationError", "SIM_KEY"]
 
@@ -367,7 +365,7 @@ class Station:
             cfg = SessionConfig(method=o["method"], gyro=None if o["gyro"] == "none" else o["gyro"],
                                 rate_hz=o["rate_hz"], write=o["write"], note=o["note"],
                                 adaptive=o["capture"] == "adaptive", pose_timeout_s=None)
-            ui.turns_total = 6 * len(cfg.turntable_rates_dps) if cfg.gyro == "turntable" else 0
+            ui.turns_total = 6 * len(cfg.turntable_rates_dps) if "turntable" in data_needed(cfg.method, cfg.gyro) else 0
             if o["method"] == "six":
                 ui.say("warning: six-position needs a square fixture (a machined cube against a square); held by "
                        "hand its faces are degrees off square and the fit fails: use multi")
