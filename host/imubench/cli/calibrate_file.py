@@ -171,7 +171,8 @@ def read_recording_args(a):
 
 def _run_from_file(a) -> int:
     """imubench calibrate --from FILE: read, analyse, write the session directory, record."""
-    from imubench.procedures.from_file import FileConfig, calibrate_recording
+    from imubench.procedures.from_file import FileConfig
+    from imubench.procedures.from_file_write import calibrate_recording
     from imubench.procedures.session import Tolerances
     from imubench.recordings import RecordingError
     from imubench.recordings.readers import read_annotation

@@ -5,8 +5,6 @@ failing this board alone).
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import dataclasses
 import socket
 from collections.abc import Callable
@@ -22,9 +20,6 @@ from imubench.procedures.presenter import Presenter
 from imubench.procedures.schedule import Need
 from imubench.procedures.session import Session, SessionConfig
 from imubench.wire.ids import SENSOR_BAD_BITS, SENSOR_NAMES
-
-if TYPE_CHECKING:
-    from imubench.procedures.fixture import FixtureRun
 
 
 @dataclass
@@ -68,9 +63,10 @@ class BoardPresenter(Presenter):
     the session's live view, pose cards, fit and steps go there too; the plate stays the one
     that moves: a board asks it for any of the attitudes it still misses (present_todo), and
     the plate presents what most boards need (procedures.schedule). `clock()` is the board's
-    device time in seconds (its samples so far): the plate's deadlines are counted on it."""
+    device time in seconds (its samples so far): the plate's deadlines are counted on it. `run`:
+    the station session (procedures.fixture.FixtureRun) the board belongs to."""
 
-    def __init__(self, run: "FixtureRun", slot: int, discard=lambda: None, page=None,
+    def __init__(self, run, slot: int, discard=lambda: None, page=None,
                  clock: Callable[[], float] | None = None):
         self.run, self.slot = run, slot
         self.discard = discard          # drop what the board sent while it waited for the plate
@@ -174,10 +170,11 @@ class BoardPresenter(Presenter):
 class BoardSession(Session):
     """The ordinary session with the stages published and two production rules: no data for
     link_timeout_s is a lost link, and a sample flagged bad (a sensor fault, parity or SPI
-    error) during capture stops the board, naming the sensor."""
+    error) during capture stops the board, naming the sensor. board_run: the station session
+    (procedures.fixture.FixtureRun) its stages are published to, or None."""
 
     def __init__(self, device: Device, directory, config: SessionConfig, presenter: Presenter, *,
-                 board_run: "FixtureRun | None" = None, slot: int = 0, link_timeout_s: float = 10.0,
+                 board_run=None, slot: int = 0, link_timeout_s: float = 10.0,
                  resume: bool = False):
         super().__init__(device, directory, config, presenter, resume=resume)
         self.board_run = board_run

@@ -2,17 +2,14 @@
 control channel of the simulation library served around the protocol engine (bootloader.py)."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from .bootloader import RomBootloader
 
 class BootloaderServer:
     """The process while the board is in its ROM bootloader: bytes from the serial endpoint
     (pty or TCP) to the protocol engine and back, the control channel served (power_cut,
     quit, status). Device time follows the wall clock (x speed) plus the flash busy time."""
 
-    def __init__(self, rom: RomBootloader, lib, speed: float, t0: float, log):
+    def __init__(self, rom, lib, speed: float, t0: float, log):
+        """rom: the protocol engine (bootloader.RomBootloader, which names this class again)."""
         self.rom = rom
         self.lib = lib
         self.speed = speed if speed > 0 else 1.0
