@@ -3,6 +3,8 @@ temperature steps and the operating range every text and check about the board t
 generated parts table, never from a copy."""
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from imubench.parts_gen import PARTS
@@ -36,3 +38,14 @@ def test_the_constants_are_the_tables():
     assert mixed.limiting_part(-41.0).name == "ADXL359"
     assert any_board_c() == (-40.0, 105.0)
     assert coarsest_temp_step_c() == max(1 / abs(p.temp_lsb_per_c) for p in PARTS.values())
+
+
+def test_the_attitude_filter_is_tuned_to_the_boards_parts():
+    """The Kalman tilt filter's noise figures are the parts' (analysis.tilt.part_noise): an ADXL359
+    board's accelerometer noise is its 80 µg/√Hz, the default board's the ADXL355's from the table."""
+    from imubench.analysis import tilt as T
+    g0 = 9.80665
+    (k,) = T.make_filters("kalman", parts=BoardParts.of(["ADXL359", "ADXRS450", "ADXRS450", "ADXRS453"]))
+    assert k.kw["accel_noise_n"] == pytest.approx(PARTS["adxl359"].noise_per_rthz * g0)
+    assert k.kw["gyro_noise_n"] == pytest.approx(PARTS["adxrs453"].noise_per_rthz * math.pi / 180)
+    assert T.KalmanTilt().kw["accel_noise_n"] == pytest.approx(PARTS["adxl355"].noise_per_rthz * g0)
