@@ -19,7 +19,6 @@ wall-clock column); the device time each case covers is the same in every mode b
 from __future__ import annotations
 
 import argparse
-import hashlib
 import os
 import shutil
 import subprocess
@@ -31,6 +30,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "host"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from publish import add_arguments, publish  # noqa: E402
+
+from imubench.files import tree_digest  # noqa: E402
 
 CASES = ("host", "f103", "f4", "station", "warmup")
 MODES = ("idle", "2 busy", "1 core")
@@ -90,11 +91,8 @@ def run(case: str, mode: str) -> tuple[str, float, str]:
         wall = time.monotonic() - t0
         if r.returncode != 0:
             return "", wall, (r.stderr.strip().splitlines() or r.stdout.strip().splitlines() or ["?"])[-1]
-        h = hashlib.sha256()
-        files = sorted((d / "s").rglob("*.bin"))
-        for f in files:
-            h.update(f.relative_to(d / "s").as_posix().encode() + b"\0" + f.read_bytes())
-        return (h.hexdigest() if files else ""), wall, "" if files else "no capture written"
+        digest, _ = tree_digest(d / "s")         # imubench.files: the hash tests/device/test_lockstep.py takes
+        return digest or "", wall, "" if digest else "no capture written"
     finally:
         for p in hogs:
             p.kill()

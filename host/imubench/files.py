@@ -209,13 +209,7 @@ def atomic_output(path: str | os.PathLike, binary: bool = False, encoding: str =
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0),
                      0o666 & ~_UMASK, dir_fd=dfd)
         try:
-            if hasattr(os, "fchmod"):
-                os.fchmod(fd, 0o666 & ~_UMASK)
-            with (os.fdopen(fd, "wb") if binary else
-                  os.fdopen(fd, "w", encoding=encoding, newline=newline)) as fh:
-                yield fh
-                fh.flush()
-                os.fsync(fh.fileno())
+            yield from _synced(fd, binary, encoding, newline)
             _check_at(dfd, path)        # a link planted while we wrote is refused too
             os.replace(tmp, path.name, src_dir_fd=dfd, dst_dir_fd=dfd)
         except BaseException:
@@ -224,6 +218,18 @@ def atomic_output(path: str | os.PathLike, binary: bool = False, encoding: str =
             raise
     finally:
         os.close(dfd)
+
+
+def _synced(fd: int, binary: bool, encoding: str, newline):
+    """The body both atomic writers share: the temporary file fd given the usual permissions
+    (0666 less the umask), yielded as a file object, and flushed to the disk when the block ends
+    (closed in any case; an exception from the block passes through)."""
+    if hasattr(os, "fchmod"):
+        os.fchmod(fd, 0o666 & ~_UMASK)
+    with (os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding=encoding, newline=newline)) as fh:
+        yield fh
+        fh.flush()
+        os.fsync(fh.fileno())
 
 
 def _check_at(dfd: int, path: Path) -> None:
@@ -244,13 +250,7 @@ def _atomic_output_portable(path: Path, binary: bool, encoding: str, newline):
     _check_components(directory)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
     try:
-        if hasattr(os, "fchmod"):
-            os.fchmod(fd, 0o666 & ~_UMASK)
-        with (os.fdopen(fd, "wb") if binary else
-              os.fdopen(fd, "w", encoding=encoding, newline=newline)) as fh:
-            yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
+        yield from _synced(fd, binary, encoding, newline)
         check_output(path)
         os.replace(tmp, path)
     except BaseException:
@@ -393,3 +393,23 @@ def bounded_lines(fh, max_chars: int = MAX_LINE_CHARS, name: str = "") -> Iterat
             raise FileRefused(f"{name or 'the file'}: line {lineno} is longer than the limit of "
                               f"{max_chars} characters; is it a text file of this format?")
         yield line
+
+
+def tree_digest(directory: str | os.PathLike, pattern: str = "*.bin") -> tuple[str | None, list[Path]]:
+    """One SHA-256 over every file matching pattern under directory (recursively), in path order,
+    each as its path relative to directory, a NUL byte and its bytes (read with open_input, a
+    chunk at a time): "these runs wrote the same files, byte for byte" in one comparison (the
+    determinism checks: bench/determinism.py, tests/device/test_lockstep.py). Returns (the hex
+    digest, or None when nothing matched; the files)."""
+    import hashlib
+    d = Path(directory)
+    files = sorted(d.rglob(pattern))
+    if not files:
+        return None, []
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.relative_to(d).as_posix().encode() + b"\0")
+        with open_input(f) as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest(), files

@@ -11,7 +11,8 @@ import pytest
 import imubench.station
 
 from imu_synth import G0, handheld_session, spread_ups
-from imubench.calib.fit import (GYRO_METHODS, Calibration, Evidence, RotationEvidence, fit, gyro_method)
+from imubench.calib.fit import (ACCEL_METHOD_LIST, GYRO_METHODS, Calibration, Evidence, Note, RecordingEvidence,
+                                RotationEvidence, fit, fit_text, gyro_method)
 from imubench.calib.static import detect_static
 
 FS = 100.0
@@ -39,6 +40,36 @@ def test_every_caller_takes_its_gyro_methods_from_the_one_list():
         gyro_method("spin")
 
 
+def test_what_a_session_captures_is_the_strategys_to_say():
+    from imubench.calib.fit import data_needed
+    assert data_needed("multi", "rotation") == {"rest", "stream"}
+    assert data_needed("six", "turntable") == {"rest", "turntable"}
+    assert data_needed("multi", "turntable") == {"rest", "turntable", "stream"}    # the frames aligned on it
+    assert data_needed("multi", "turns") == {"rest", "turns"} and data_needed("six", "bias") == {"rest"}
+    assert data_needed("multi", None) == data_needed("multi", "none") == frozenset()
+    src = (Path(imubench.station.__file__).parents[1] / "procedures" / "session.py").read_text()
+    assert 'cfg.gyro == "' not in src            # the session asks the strategy, it keeps no list of its own
+
+
+def test_the_accelerometer_methods_and_the_reports_words_come_from_the_same_lists():
+    from imubench.cli.calibrate import METHODS as cli_accel
+    from imubench.results.calibration import _method
+    from imubench.station.runner import METHODS as station_accel
+    live = tuple(m.name for m in ACCEL_METHOD_LIST if m.live)
+    assert tuple(cli_accel) == live == ("multi", "six") and tuple(station_accel) == live
+    page = (Path(imubench.station.__file__).parent / "static" / "station.html").read_text()
+    select = re.search(r'<select name="method"[^>]*>(.*?)</select>', page, re.S).group(1)
+    assert sorted(re.findall(r'<option value="([^"]+)"', select)) == sorted(live)
+    # every fit a method gives has the report's words, and the record's text of a method is the list's
+    fits = [f for m in ACCEL_METHOD_LIST + GYRO_METHODS for f, _ in m.fits]
+    assert set(fits) >= {"six_position", "multi_position", "turntable", "rotation", "turns", "bias", "turns+rotation"}
+    assert all(fit_text(f) != f for f in fits) and fit_text("allan") == "allan"
+    assert fit_text("turns+rotation").startswith("known-angle turns and the rotation method")
+    assert _method({"method": "six"}) == "six-position" and _method({"method": "odd"}) == "odd"
+    src = (Path(imubench.station.__file__).parents[1] / "results" / "report.py").read_text()
+    assert "six_position\"" not in src and "FIT_METHODS" not in src     # no second copy of the texts
+
+
 def _evidence(seed=3):
     ua, ug, truth, _ = handheld_session(spread_ups(14), fs=FS, seed=seed, rest_s=3.0)
     ivs = detect_static(ua, FS)
@@ -50,7 +81,34 @@ def _evidence(seed=3):
     ev = Evidence(means_mps2=means, sigmas_mps2=sig, rate_hz=FS,
                   gyro_means_rad_s=np.array([ug[i.start:i.stop].mean(axis=0) for i in ivs]),
                   rest_gyro_rad_s=ug[longest.start:longest.stop], rotation=rot)
+    ev.recording_parts = (ua, ug, ivs)
     return ev, truth
+
+
+def _as_recording(ev: Evidence, gyro_scale=1.0) -> Evidence:
+    """The same data as one recording's stream: the gyro's rests and turns found in it by fit."""
+    ua, ug, ivs = ev.recording_parts
+    rec = RecordingEvidence(gyro=ug / gyro_scale, gyro_scale=gyro_scale, accel_mps2=ua, rests=list(ivs), rate_hz=FS)
+    return Evidence(means_mps2=ev.means_mps2, sigmas_mps2=ev.sigmas_mps2, rate_hz=FS, recording=rec)
+
+
+def test_a_recording_is_fitted_by_the_same_front_door():
+    ev, truth = _evidence()
+    cal = fit(_as_recording(ev, gyro_scale=np.radians(1.0)), method="multi", gyro="auto",
+              excess_limit_mps2=1e-3 * G0, gsens=False)
+    assert isinstance(cal, Calibration) and cal.gyro_refused is None
+    assert cal.gyro.method in ("rotation", "turns+rotation") and "rotation" in cal.gyro_parts["fits"]
+    assert np.max(np.abs(np.diag(cal.gyro.m) - np.diag(truth["gyro_m"]))) < 0.01
+    assert cal.gyro_scale == pytest.approx(np.radians(1.0))      # the recording's own unit, °/s here
+    assert cal.gyro_bias is not None and cal.gsens_report is not None and "applied" in cal.gsens_report
+    assert any(line.startswith("gyro bias from the longest still interval") for line in cal.said)
+    assert cal.notes and all(isinstance(n, str) and not isinstance(n, Note) for n in cal.notes)
+    assert [str(x) for x in cal.said if isinstance(x, Note)] == cal.notes
+    bias = fit(_as_recording(ev), method="multi", gyro="bias", excess_limit_mps2=1e-3 * G0, gsens=False)
+    assert bias.gyro.method == "bias" and not bias.gyro_parts
+    table = fit(_as_recording(ev), method="multi", gyro="turntable", excess_limit_mps2=1e-3 * G0, gsens=False)
+    assert table.gyro_refused.startswith("the turntable method needs a turntable's known rates; from a recording")
+    assert table.gyro.method == "bias" and np.allclose(table.accel.m, cal.accel.m, atol=1e-3)
 
 
 def test_one_fit_gives_the_accelerometer_and_the_gyro_of_a_recording():

@@ -20,6 +20,7 @@ import pytest
 
 from imubench.device.link import Device
 from imubench.device.sim import SimError, VirtualBench
+from imubench.files import tree_digest
 
 
 def _stall_reader(link, wall_s: float) -> threading.Thread:
@@ -159,13 +160,9 @@ def test_same_seed_same_session_idle_and_beside_two_busy_processes(tmp_path):
 
 def _command_captures(tmp: Path, name: str, args: list[str], busy: int = 0) -> str:
     """_command, then the SHA-256 of every .bin it wrote, by path."""
-    d = _command(tmp, name, args, busy)
-    files = sorted(d.rglob("*.bin"))
-    assert files
-    h = hashlib.sha256()
-    for f in files:
-        h.update(f.relative_to(d).as_posix().encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()
+    digest, _ = tree_digest(_command(tmp, name, args, busy))      # the hash bench/determinism.py takes
+    assert digest is not None, "the command wrote no .bin"
+    return digest
 
 
 @pytest.mark.parametrize("case", ["station", "warmup"])

@@ -5,6 +5,7 @@ on the lagging, curved virtual part: the recovered curves against the truth with
 the files on disk, and Ctrl-C keeping the fit."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -397,3 +398,28 @@ def test_the_progress_line_comes_every_fit_every_s_of_device_time(tmp_path, monk
     later = np.array(said[1:])          # the first with the first bin, then on every 20 s of device time
     assert np.all(np.abs(later - 20.0 * np.round(later / 20.0)) <= 0.5), np.round(said, 2)
     assert np.all(np.abs(np.diff(later) - 20.0) <= 0.5), np.round(said, 2)
+
+
+def test_a_board_with_sibling_parts_is_named_by_them_in_every_line_and_file(tmp_path):
+    """A virtual board with an ADXL359 and an ADXRS453 on Z (issue 35): the warm-up says which parts
+    it has, names them with the temperatures in its lines, in thermal.json's fit and in the PX4 file;
+    a span beyond a part's operating range is refused naming that part, before anything streams."""
+    cfg = W.WarmupConfig(span_c=(5.0, 30.0), rate_hz=100, bin_s=2.0, stop_window_s=20.0, fit_every_s=10.0,
+                         exports=("px4",))
+    said = []
+    with VirtualBench(speed=0, seed=9, truth="random", parts="accel=adxl359,gyro_z=adxrs453") as vb, \
+            vb.device() as dev:
+        hooks = W.sim_warmup_hooks(vb, 5.0, 45.0, tau_s=40.0, say=said.append)
+        oven = dataclasses.replace(hooks, reachable_c=None)     # a real oven: it could reach 110 °C
+        with pytest.raises(W.WarmupError, match=r"span 5\.\.110 °C: this board's ADXRS450 works from -40 to 105 °C"):
+            W.run_warmup(dev, tmp_path / "hot", W.WarmupConfig(span_c=(5.0, 110.0)), oven)
+        assert not (tmp_path / "hot").exists()
+        d = W.run_warmup(dev, tmp_path / "s", cfg, hooks)
+    assert d["status"] == "done", d.get("error")
+    assert "parts: accel ADXL359, gyro_x ADXRS450, gyro_y ADXRS450, gyro_z ADXRS453" in said
+    assert any("temperatures ADXL359/gyro X/Y/Z (ADXRS450/ADXRS450/ADXRS453)" in s for s in said), said
+    assert d["device"]["parts"] == ["ADXL359", "ADXRS450", "ADXRS450", "ADXRS453"]
+    assert d["fit"]["accel"]["temperature"] == "the ADXL359 temperature (all three axes)"
+    assert "ADXRS450/ADXRS450/ADXRS453" in d["fit"]["gyro"]["temperature"]
+    px4 = (tmp_path / "s" / "warmup.px4-thermal.params").read_text()
+    assert "against the ADXL359 temperature" in px4 and "ADXRS453" in px4 and "ADXL355" not in px4

@@ -41,6 +41,7 @@ BREAKS = [
     ("procedures/closure.py", "import matplotlib", "Only results draws"),
     ("cli/__init__.py", "import imubench.pytest_plugin", "Layers"),
     ("procedures/session.py", "from imubench.calib import acceptance", "One front door for a fit"),
+    ("procedures/from_file.py", "from imubench.calib.recording_gyro import Note", "One front door for a fit"),
     ("device/sim_resource.py", "from imubench.device import sim_drivers", "The virtual bench: strategy over drivers"),
     ("device/sim_drivers.py", "import subprocess", "Bench drivers talk, they start no process"),
 ]

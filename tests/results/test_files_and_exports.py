@@ -46,6 +46,50 @@ def _one_error_line(r, needle: str) -> str:
 
 
 # ------------------------------------------------------------------ outputs
+def test_tree_digest_is_one_hash_of_the_names_and_bytes_in_path_order(tmp_path):
+    """imubench.files.tree_digest, the determinism checks' one comparison: the files' relative
+    paths and bytes, in path order; another name, byte or file changes it; nothing matched: None."""
+    import hashlib
+    from imubench.files import tree_digest
+    (tmp_path / "a" / "slot-1").mkdir(parents=True)
+    (tmp_path / "a" / "slot-1" / "capture-1.bin").write_bytes(b"\x01\x02")
+    (tmp_path / "a" / "capture-1.bin").write_bytes(b"\x03")
+    (tmp_path / "a" / "notes.txt").write_text("not hashed")
+    digest, files = tree_digest(tmp_path / "a")
+    want = hashlib.sha256(b"capture-1.bin\0\x03" + b"slot-1/capture-1.bin\0\x01\x02").hexdigest()
+    assert digest == want and [f.name for f in files] == ["capture-1.bin", "capture-1.bin"]
+    (tmp_path / "a" / "capture-1.bin").write_bytes(b"\x04")
+    assert tree_digest(tmp_path / "a")[0] != want
+    assert tree_digest(tmp_path / "a", "*.none") == (None, [])
+
+
+@pytest.mark.parametrize("openat", [True, False], ids=["openat", "portable"])
+def test_both_atomic_writers_replace_whole_with_the_usual_mode_or_leave_nothing(tmp_path, monkeypatch, openat):
+    """imubench.files.atomic_output on its two paths (openat where the OS has dir_fd, the portable
+    one elsewhere), which share their write body: the content replaces the file whole with mode
+    0666 less the umask, binary or text with the newline asked for; an exception in the block
+    leaves the old content and no temporary file."""
+    from imubench import files as F
+    if openat and not F._OPENAT:
+        pytest.fail("this system has no openat (dir_fd): the openat path cannot be checked here")
+    monkeypatch.setattr(F, "_OPENAT", openat)
+    target = tmp_path / "out.txt"
+    target.write_text("old\n")
+    with F.atomic_output(target, newline="\r\n") as fh:
+        fh.write("new\n")
+    assert target.read_bytes() == b"new\r\n"
+    assert (target.stat().st_mode & 0o777) == 0o666 & ~F._UMASK
+    with F.atomic_output(tmp_path / "b.bin", binary=True) as fh:
+        fh.write(b"\x00\xff")
+    assert (tmp_path / "b.bin").read_bytes() == b"\x00\xff"
+    with pytest.raises(RuntimeError, match="half way"):
+        with F.atomic_output(target) as fh:
+            fh.write("partial")
+            raise RuntimeError("half way")
+    assert target.read_text() == "new\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.bin", "out.txt"]     # no temporary left
+
+
 def test_a_link_at_the_temporary_name_is_not_written_through(tmp_path):
     victim = _victim(tmp_path)
     out = tmp_path / "s"

@@ -175,7 +175,7 @@ def test_report_shows_thermal_points_and_drift(session_dir, thermal_json, tmp_pa
               scale=180e3 / np.pi) in doc
     assert pm(data["gyro_scale_tc_per_c"][1], data["gyro_scale_tc_sigma_per_c"][1], scale=1e6) in doc
     # the points table, with units
-    for h in ("set [°C]", "ADXL355 [°C]", "gyro X / Y / Z [°C]", "settled after [s]", "gyro at rest x [°/s]",
+    for h in ("set [°C]", "ADXL355 [°C]", "gyro X / Y / Z (ADXRS450) [°C]", "settled after [s]", "gyro at rest x [°/s]",
               "x [mg]", "Temperature points", "(ω₊ − ω₋)/2"):
         assert h in doc, h
     for p in data["points"]:

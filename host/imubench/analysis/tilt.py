@@ -30,17 +30,26 @@ import math
 import numpy as np
 
 from imubench.units import G0_MPS2
+from imubench.wire.board_parts import DEFAULT as DEFAULT_PARTS
 
 DEG = math.pi / 180.0
 
 
-# Noise of the parts (datasheet values; the simulator's default truth uses the same):
-# white noise as the Allan coefficient N (units/√Hz), bias random walk K (units·√Hz),
-# as in docs/conventions.md.
-ACCEL_NOISE_N = 22.5e-6 * G0_MPS2       # ADXL355: 22.5 µg/√Hz  -> m/s²/√Hz
+# Noise of the parts, from the parts table (protocol/parts.toml, their data sheets): white noise as
+# the Allan coefficient N (units/√Hz), bias random walk K (units·√Hz), as in docs/conventions.md.
+# The defaults are the default board's (ADXL355: 25 µg/√Hz; ADXRS450: 0.015 °/s/√Hz); part_noise
+# gives a board's own.
 
 
-GYRO_NOISE_N = 0.015 * DEG              # ADXRS450: 0.015 °/s/√Hz -> rad/s/√Hz
+def part_noise(parts=DEFAULT_PARTS) -> dict:
+    """KalmanTilt's white-noise figures for a board's parts (wire.board_parts.BoardParts):
+    accel_noise_n (m/s²/√Hz, the accelerometer's) and gyro_noise_n (rad/s/√Hz, the noisiest gyro's)."""
+    return {"accel_noise_n": parts.accel.noise_per_rthz * G0_MPS2,
+            "gyro_noise_n": max(g.noise_per_rthz for g in parts.gyros) * DEG}
+
+
+ACCEL_NOISE_N = part_noise()["accel_noise_n"]
+GYRO_NOISE_N = part_noise()["gyro_noise_n"]
 
 
 GYRO_BIAS_RW_K = 0.001 * DEG            # 0.001 °/s·√Hz -> rad/s·√Hz (bias random walk)
@@ -218,9 +227,10 @@ class Complementary(_TiltFilter):
         return y[:, 0], y[:, 1]
 
 
-def make_filters(which: str = "all", num: float = 20, tau_s: float = 0.5) -> list[_TiltFilter]:
-    """Filters by name: rc, kalman, complementary or all."""
-    table = {"rc": lambda: RCLowPass(num), "kalman": KalmanTilt,
+def make_filters(which: str = "all", num: float = 20, tau_s: float = 0.5, parts=DEFAULT_PARTS) -> list[_TiltFilter]:
+    """Filters by name: rc, kalman, complementary or all; the Kalman filter's noise is the
+    board's parts' (part_noise)."""
+    table = {"rc": lambda: RCLowPass(num), "kalman": lambda: KalmanTilt(**part_noise(parts)),
              "complementary": lambda: Complementary(tau_s)}
     names = list(table) if which == "all" else [which]
     return [table[n]() for n in names]

@@ -53,3 +53,12 @@ class TriadFit:
     def correct(self, u: np.ndarray) -> np.ndarray:
         """x = M⁻¹ (u − b) for measurements u (n, 3)."""
         return (np.asarray(u, dtype=np.float64) - self.b) @ np.linalg.inv(self.m).T
+
+
+def face_of(d: np.ndarray) -> str:
+    """The board face a specific force points (the up axis, "+X" ... "-Z"), or "other" when
+    it is more than 30° off every axis."""
+    import math
+    k = int(np.argmax(np.abs(d)))
+    ang = math.degrees(math.acos(min(1.0, abs(d[k]) / np.linalg.norm(d))))
+    return (("+" if d[k] > 0 else "-") + "XYZ"[k]) if ang <= 30.0 else "other"

@@ -11,26 +11,33 @@ result type back; what is done with them is decided here, once:
 - the gyro's g-sensitivity from the rests (calib.gsens) when it can be fitted;
 - the gyro by the method asked for, from GYRO_METHODS, the one list of gyro methods (the command
   line's choices, the station's, the session's and the recording's are all taken from it);
+- the gyro of a live session from its separate captures (the rest, the turntable's segments, the
+  known-angle turns' runs, the continuous stream between the poses); the gyro of a recording
+  (Evidence.recording) from what its one stream holds, found there (calib.recording_gyro: its
+  turns, clipped motions, rest bias, the known-angle turns and the rotation method combined);
 - a gyro refused never discards the accelerometer: the Calibration keeps the accelerometer's fit,
   the gyro's bias at rest and the reason (Calibration.gyro_refused).
 
 Nothing here touches a port, a file or a presenter: what the fit has to say is returned in
-Calibration.said, in order, for the caller to show.
+Calibration.said, in order, for the caller to show (a recording_gyro.Note among them is also
+one of the result's notes).
 """
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from imubench import units as U
 from imubench.calib import CalibrationError, TriadFit
+from imubench.calib.recording_gyro import Note, RecordingEvidence
+from imubench.calib.recording_gyro import clipped_motions as gyro_clipping
 
-__all__ = ["GyroMethod", "GYRO_METHODS", "gyro_method_names", "gyro_method", "ACCEL_METHODS",
-           "RotationEvidence", "Evidence", "Calibration", "fit", "fit_gyro_method"]
-
-
+__all__ = ["GyroMethod", "GYRO_METHODS", "gyro_method_names", "gyro_method", "AccelMethod", "ACCEL_METHOD_LIST",
+           "ACCEL_METHODS", "accel_method_names", "accel_method_words", "accel_model_words",
+           "FIT_TEXTS", "fit_text",
+           "data_needed", "aligns_frames", "RotationEvidence", "RecordingEvidence", "Evidence", "Calibration", "Note", "fit", "fit_gyro_method",
+           "gyro_clipping"]
 
 
 def __getattr__(name: str):
@@ -46,25 +53,81 @@ def __getattr__(name: str):
 @dataclass(frozen=True)
 class GyroMethod:
     """One gyro method: its name (as typed), whether a live session can gather its data,
-    whether a recording can, and one line on what it needs."""
+    whether a recording can, one line on what it needs, the fits it gives (the name a TriadFit
+    of it carries, TriadFit.method, and how a report names that fit), and what a live session
+    captures for it (data_needed: "rest" the gyro at rest, "turntable" the turntable's segments,
+    "turns" the known-angle turns, "stream" the continuous stream between the poses)."""
     name: str
     live: bool
     recording: bool
     text: str
+    fits: tuple[tuple[str, str], ...] = ()
+    needs: tuple[str, ...] = ()
 
 
 GYRO_METHODS: tuple[GyroMethod, ...] = (
-    GyroMethod("turntable", True, False, "scale and misalignment from turns at known rates on a turntable"),
-    GyroMethod("rotation", True, True, "scale and misalignment from the rotations between the attitudes"),
+    GyroMethod("turntable", True, False, "scale and misalignment from turns at known rates on a turntable",
+               (("turntable", "turntable (known rates about each axis, both ways)"),), ("rest", "turntable")),
+    GyroMethod("rotation", True, True, "scale and misalignment from the rotations between the attitudes",
+               (("rotation", "rotation method (gyro integrated between attitudes)"),), ("rest", "stream")),
     GyroMethod("turns", True, True, "scale and misalignment from known-angle turns by hand (one full turn "
-                                    "about X, Y and Z pointing up)"),
-    GyroMethod("bias", True, True, "the bias at rest only"),
-    GyroMethod("auto", False, True, "known-angle turns and/or the rotation method, whatever a recording holds"),
+                                    "about X, Y and Z pointing up)",
+               (("turns", "known-angle turns (Ferraris: hand turns of a known angle about the vertical)"),),
+               ("rest", "turns")),
+    GyroMethod("bias", True, True, "the bias at rest only",
+               (("bias", "bias at rest (scale and misalignment not estimated)"),), ("rest",)),
+    GyroMethod("auto", False, True, "known-angle turns and/or the rotation method, whatever a recording holds",
+               (("turns+rotation", "known-angle turns and the rotation method, combined (inverse-covariance)"),)),
     GyroMethod("none", True, True, "no gyro calibration"),
+)
+
+
+@dataclass(frozen=True)
+class AccelMethod:
+    """One accelerometer method: its name (as typed, --method), whether a live session can ask
+    for it, its name in words, and the model it keeps (TriadFit.method and how a report names
+    that fit; "auto" keeps whichever of the others the rests resolve, calib.acceptance.ORDER)."""
+    name: str
+    live: bool
+    words: str
+    fits: tuple[tuple[str, str], ...] = ()
+    model_words: str = ""               # the model kept, as a line of the fit says it
+
+
+ACCEL_METHOD_LIST: tuple[AccelMethod, ...] = (
+    AccelMethod("multi", True, "multi-position",
+                (("multi_position", "multi-position |a| = g (3 biases, 3 scales, 3 non-orthogonality angles)"),),
+                "multi-position |a| = g"),
+    AccelMethod("six", True, "six-position", (("six_position", "six-position least squares (full M and b)"),),
+                "six-position"),
+    AccelMethod("auto", False, "multi- or six-position, whatever the rests resolve"),
 )
 # accelerometer models a caller may ask for: "auto" (a recording: multi when the rests constrain it,
 # else six) is what calib.acceptance.ORDER tries
-ACCEL_METHODS = ("multi", "six", "auto")
+ACCEL_METHODS = tuple(m.name for m in ACCEL_METHOD_LIST)
+# how a report names each fit a method gives (TriadFit.method -> words), from the two lists above
+FIT_TEXTS: dict[str, str] = {k: v for m in ACCEL_METHOD_LIST + GYRO_METHODS for k, v in m.fits}
+
+
+def accel_method_names(*, live: bool | None = None) -> tuple[str, ...]:
+    """The names of ACCEL_METHOD_LIST, in order; only those a live session can ask for (live=True)."""
+    return tuple(m.name for m in ACCEL_METHOD_LIST if live is None or m.live == live)
+
+
+def accel_method_words(name: str | None) -> str:
+    """An accelerometer method in words ("six" -> "six-position"); an unknown name as it is."""
+    return next((m.words for m in ACCEL_METHOD_LIST if m.name == name), str(name))
+
+
+def accel_model_words(fit_method: str) -> str:
+    """The accelerometer model of a fit (TriadFit.method) in a few words, as a line says it."""
+    return next((m.model_words for m in ACCEL_METHOD_LIST if any(f == fit_method for f, _ in m.fits)), fit_method)
+
+
+def fit_text(fit_method: str) -> str:
+    """How a report names a fit by its TriadFit.method ("six_position", "turns+rotation", ...);
+    an unknown one as it is."""
+    return FIT_TEXTS.get(fit_method, fit_method)
 
 
 def gyro_method_names(*, live: bool | None = None, recording: bool | None = None) -> tuple[str, ...]:
@@ -72,6 +135,23 @@ def gyro_method_names(*, live: bool | None = None, recording: bool | None = None
     recording (recording=True) can use when asked."""
     return tuple(m.name for m in GYRO_METHODS
                  if (live is None or m.live == live) and (recording is None or m.recording == recording))
+
+
+def data_needed(method: str, gyro: str | None) -> frozenset[str]:
+    """What a live session captures for a fit by these methods (GyroMethod.needs): the gyro's
+    own data, and the continuous stream when a multi-position fit with the turntable is rotated
+    into the gyro frame (align_frames: the rotation between the rests is measured on it)."""
+    gm = gyro_method(gyro)
+    needs = set(gm.needs) if gm is not None else set()
+    if aligns_frames(method, gyro):
+        needs.add("stream")
+    return frozenset(needs)
+
+
+def aligns_frames(method: str, gyro: str | None) -> bool:
+    """Whether fit() rotates the accelerometer's fit into the gyro frame by default: the
+    multi-position model (which leaves the triad's rotation free) with the turntable's axes."""
+    return method == "multi" and gyro == "turntable"
 
 
 def gyro_method(name: str | None) -> GyroMethod | None:
@@ -105,7 +185,8 @@ class Evidence:
     the samples of a separate rest (the bias; None: the longest rest of a recording gives it
     through gyro_bias), the turntable's segments (calib.gyro.turntable), the known-angle turns'
     runs as (accel, gyro) arrays with the rest noise that finds their rests, and a continuous
-    stream for the rotation method."""
+    stream for the rotation method. A recording gives its one stream instead (recording): the
+    gyro's rests, turns and motions are then found in it."""
     means_mps2: np.ndarray
     sigmas_mps2: np.ndarray
     rate_hz: float
@@ -118,6 +199,7 @@ class Evidence:
     turn_noise_mps2: np.ndarray | None = None
     turn_min_still_s: float = 1.0
     rotation: RotationEvidence | None = None
+    recording: RecordingEvidence | None = None
 
 
 # ------------------------------------------------------------------ what comes out
@@ -136,30 +218,41 @@ class Calibration:
     gyro_bias: TriadFit | None = None         # the gyro's bias at rest: what is kept when the gyro is refused
     frame_note: str | None = None             # why the accelerometer stayed in its own frame
     said: list = field(default_factory=list)
+    # what the gyro of a recording found in it (Evidence.recording; calib.recording_gyro)
+    gyro_scale: float | None = None           # rad/s per unit of the recording's gyro (found by turns if it had none)
+    turns: list = field(default_factory=list)  # calib.turns.Turn found between the rests
+    gyro_parts: dict = field(default_factory=dict)   # {"fits": {"turns"|"rotation": TriadFit}, "refused": {...: why}}
+    gyro_clipping: list = field(default_factory=list)  # the motions where the gyro clipped, as the result keeps them
+    detected: tuple | None = None             # (line, °/s): the gyro's full scale found at its clip level
+
+    @property
+    def notes(self) -> list[str]:
+        """The lines of said that are notes (recording_gyro.Note), in order."""
+        return [str(x) for x in self.said if isinstance(x, Note)]
 
     @property
     def method(self) -> str:
-        """"six" or "multi": the accelerometer model kept."""
-        return "six" if self.accel.method == "six_position" else "multi"
+        """"six" or "multi": the accelerometer method whose model was kept."""
+        return next(m.name for m in ACCEL_METHOD_LIST if any(f == self.accel.method for f, _ in m.fits))
 
 
 # ------------------------------------------------------------------ the strategy
 def fit(ev: Evidence, *, method: str, gyro: str | None, excess_limit_mps2: float,
-        align_frames: bool = False, gsens: bool = True, g: float = U.G0_MPS2,
-        gyro_fitter: Callable | None = None) -> Calibration:
+        align_frames: bool | None = None, gsens: bool = True, g: float = U.G0_MPS2) -> Calibration:
     """The fit of one board's data (see the module). method: "multi", "six" or "auto" (the
     accelerometer models tried, calib.acceptance.ORDER); gyro: a name of GYRO_METHODS or None;
     excess_limit_mps2: the scatter beyond the noise a linear calibration of this class of sensor
     leaves (the pass tolerance). align_frames: with the turntable, rotate the accelerometer's
-    fit into the gyro frame (calib.frames). gsens: fit the g-sensitivity from the rests' gyro
-    means. gyro_fitter(calibration) -> TriadFit replaces the method's own fit, given the
-    Calibration so far (the accelerometer's fit and choice): a recording's, whose turns and bias
-    are found in its data; it sets calibration.gyro_bias to what is kept if it refuses. Raises FitRefused (a CalibrationError) when no accelerometer model is kept."""
+    fit into the gyro frame (calib.frames); None: when aligns_frames(method, gyro). gsens: fit the g-sensitivity from the rests' gyro
+    means (a recording's gyro fits its own from its rests, calib.recording_gyro). Raises
+    FitRefused (a CalibrationError) when no accelerometer model is kept."""
     from imubench.calib.acceptance import fit_accel
     from imubench.calib.gsens import with_zero_force_bias
     if method not in ACCEL_METHODS:
         raise ValueError(f"method must be one of {', '.join(ACCEL_METHODS)}, not {method!r}")
     gm = gyro_method(gyro)
+    if align_frames is None:
+        align_frames = aligns_frames(method, gyro)
     means = np.asarray(ev.means_mps2, dtype=np.float64)
     sigmas = np.asarray(ev.sigmas_mps2, dtype=np.float64)
     choice = fit_accel(means, sigmas, ev.covs, method, g, excess_limit=excess_limit_mps2,
@@ -171,11 +264,13 @@ def fit(ev: Evidence, *, method: str, gyro: str | None, excess_limit_mps2: float
     if ev.rest_gyro_rad_s is not None:
         from imubench.calib.gyro import gyro_bias
         out.gyro_bias = gyro_bias(ev.rest_gyro_rad_s, ev.rate_hz)
-    if gsens and ev.gyro_means_rad_s is not None:
+    if gsens and ev.gyro_means_rad_s is not None and ev.recording is None:
         out.gsens, out.gsens_report = _gsens(accel, means, np.asarray(ev.gyro_means_rad_s, float), g, out.said)
     try:
-        if gyro_fitter is not None:
-            gfit = gyro_fitter(out)
+        if ev.recording is not None:     # the rests the accelerometer's fit used: the gyro's too
+            from imubench.calib.recording_gyro import recording_gyro
+            used = [k for k, r in enumerate(choice.rests) if r.use != "left out"]
+            gfit = recording_gyro(gm.name, accel, ev.recording, used, means, out)
         else:
             gfit = fit_gyro_method(gm.name, accel, ev, out.gyro_bias, out.gsens, g)
     except CalibrationError as e:

@@ -94,7 +94,8 @@ def _live(a, dev, device: dict) -> int:
     from imubench.analysis.tilt import accel_tilt, make_filters
     from imubench.files import open_growing
     from imubench.procedures.attitude import live
-    filters = make_filters(a.filter, a.num, a.tau)
+    from imubench.wire.board_parts import BoardParts
+    filters = make_filters(a.filter, a.num, a.tau, BoardParts.of_info(dev.info()))   # tuned to its parts
     csv_path = a.csv or (f"{a.record}.angles.csv" if a.record else None)
     if device["factory_parameters"]:
         print("warning: this device has factory parameters: its \"calibrated\" output is the raw data at "

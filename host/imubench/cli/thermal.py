@@ -263,6 +263,7 @@ def _fit_warmups(a, out: Path, say) -> int:
     from imubench.results.atomic import write_json_atomic
     from imubench.results.record import now_utc
     from imubench.results.thermal_warmup import fit_json, format_fit
+    from imubench.wire.board_parts import BoardParts
     if a.sim:
         raise UsageError("--fit-warmups fits recorded warm-ups", "drop --sim (give --port URL --write to write the fit)")
     if a.write and not a.port:
@@ -271,7 +272,8 @@ def _fit_warmups(a, out: Path, say) -> int:
         fits, t_ref, runs = WF.fit_warmups(a.fit_warmups, t_ref_c=a.t_ref)
     except W.WarmupError as e:
         raise CommandError(str(e), "give directories written by imubench thermal --warmup") from None
-    fj = fit_json(fits, t_ref)
+    parts = BoardParts.of_device(runs[0].get("device"))      # the board's parts, as it reported them
+    fj = fit_json(fits, t_ref, parts)
     say(f"{len(runs)} warm-ups on faces {', '.join((r.get('config') or {}).get('face', '?') for r in runs)}")
     say(format_fit(fj))
     make_dir(out)
@@ -280,8 +282,8 @@ def _fit_warmups(a, out: Path, say) -> int:
             "device": runs[0].get("device"), "t_ref_c": t_ref, "fit": fj, "exports": {}}
     if a.export:
         segs = [WF.load_warmup(x)[:2] for x in a.fit_warmups]
-        files = TX.write_exports(out, W.export_fits(segs, t_ref, fits), t_ref, a.export,
-                                 comment=f"imubench warm-ups {', '.join(data['faces'])}")
+        files = TX.write_exports(out, W.export_fits(segs, t_ref, fits, parts=parts), t_ref, a.export,
+                                 comment=f"imubench warm-ups {', '.join(data['faces'])}", parts=parts)
         data["exports"] = {k: [str(p) for p in v] for k, v in files.items()}
         for k, v in files.items():
             say(f"{k}: {', '.join(str(p) for p in v)}")

@@ -149,7 +149,11 @@ def _serve_sim(a, bench) -> int:
               "there)", flush=True)
     if a.thermal_lag:
         th = bench.status()["thermal"]
-        print("thermal model on (dies: ADXL355, gyro X, Y, Z): time constants "
+        from imubench.wire.board_parts import BoardParts
+        from imubench.wire.ids import SLOT_NAMES
+        chosen = dict(x.split("=", 1) for x in (bench.parts or "").split(",") if "=" in x)   # --sim-parts
+        parts = BoardParts.of([chosen.get(s) for s in SLOT_NAMES])
+        print(f"thermal model on (dies: {parts.accel.name}, gyro X, Y, Z {parts.gyro_words}): time constants "
               + ", ".join(f"{t / 60:.1f}" for t in th["tau_s"]) + " min, self-heating "
               + ", ".join(f"{c:.1f}" for c in th["self_heat_c"]) + " °C", flush=True)
     if bench.pty and bench.pty != bench.port_url:

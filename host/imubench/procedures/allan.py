@@ -21,6 +21,7 @@ from imubench.device.link import (
 from imubench.errors import NotACapture
 from imubench.files import MAX_CAPTURE_BYTES, make_dir, open_growing, read_bytes
 from imubench.results.allan import format_readoffs, plot_allan
+from imubench.wire.board_parts import BoardParts
 from imubench.results.atomic import write_json_atomic
 from imubench.wire.decoder import decode_bytes
 from imubench.wire.ids import device_identity, uid_text
@@ -69,8 +70,9 @@ def analyse_capture(paths, out_dir: Path, rate_hz: float | None = None, log=prin
         name = (res["device"] or {}).get("mcu_uid") or "imubench"
         res["exports"] = write_noise_files(exports, out_dir, res, topic=topic, name=name)
     write_json_atomic(out_dir / "allan.json", res)
-    plot_allan(res["accel"], out_dir / "allan_accel.png", "Accelerometer (ADXL355)", "m/s²", "accel")
-    plot_allan(res["gyro"], out_dir / "allan_gyro.png", "Gyroscope (ADXRS450)", "rad/s", "gyro")
+    parts = BoardParts.of_device(res["device"])       # the parts the capture's device reported
+    plot_allan(res["accel"], out_dir / "allan_accel.png", f"Accelerometer ({parts.accel.name})", "m/s²", "accel")
+    plot_allan(res["gyro"], out_dir / "allan_gyro.png", f"Gyroscope ({parts.gyro_words})", "rad/s", "gyro")
     for line in format_readoffs(res):
         log(line)
     for kind, f in (res.get("exports") or {}).items():

@@ -21,8 +21,10 @@ from imubench.analysis.tilt import (
     RCLowPass,
     _TiltFilter,
     accel_tilt,
+    part_noise,
     settling_time,
 )
+from imubench.wire.board_parts import BoardParts
 from imubench.wire.decoder import SampleBlock
 
 
@@ -54,8 +56,10 @@ def tilt_step_experiment(bench, dev, angles: Sequence[float] = (-20, -10, 0, 10,
     "band_deg", "filters": [names]}. A step's static error is the mean over the last avg_s of
     its dwell minus the simulator's roll/pitch; its settling time counts from the motion start.
     """
-    filters = list(filters) if filters is not None else [RCLowPass(10), RCLowPass(40), KalmanTilt(),
-                                                          Complementary(0.1), Complementary(0.5)]
+    if filters is None:         # the Kalman filter tuned to the parts the device reported
+        noise = part_noise(BoardParts.of_info(dev.info()))
+        filters = [RCLowPass(10), RCLowPass(40), KalmanTilt(**noise), Complementary(0.1), Complementary(0.5)]
+    filters = list(filters)
     steps: list[StepResult] = []
     bench.set_orientation(roll_deg=0, pitch_deg=0, yaw_deg=0)
     dev.start_stream(rate_hz=rate_hz, calibrated=True)

@@ -27,13 +27,14 @@ recorded as each board finishes (the database may be shared with other stations)
 Per-board state is published as it changes: `on_event(status)` is called with a dict
 (slot, port, uid, stage, state running/passed/failed, message, progress, reason) for a
 station page or a log; `FixtureRun.snapshot()` gives all of them at once.
+
+Here the station session (FixtureRun); one board's status, presenter and session are in
+fixture_board.py, the boards' records in fixture_record.py.
 """
 from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import hashlib
-import socket
 import threading
 import time
 import traceback
@@ -42,240 +43,22 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from imubench.calib import CalibrationError
 from imubench.device.clock import ClockError
 from imubench.device.link import Device, LinkError, LinkTimeout
 from imubench.errors import ImubenchError
-from imubench.files import make_dir, open_input, write_text
+from imubench.files import make_dir, write_text
 from imubench.procedures.errors import SessionAborted
 from imubench.procedures.plate import POSE_TIMEOUT_S, PLATE_TIMEOUT_S, BoardFailed, BoardStopped, Plate  # noqa: F401 - where callers found them
-from imubench.procedures.presenter import Presenter
-from imubench.procedures.schedule import Need
-from imubench.procedures.session import Session, SessionConfig, plan_for
+from imubench.procedures.session import SessionConfig, plan_for
 from imubench.procedures.writeback import VerifyFailed
 from imubench.results.atomic import write_json_atomic
-from imubench.results.record import CalibrationRecord, device_ident, jsonable, now_utc, verdict
+from imubench.results.record import device_ident, jsonable, now_utc
 from imubench.wire import params as PR
-from imubench.wire.ids import SENSOR_BAD_BITS, SENSOR_NAMES
 from imubench.wire.protocol_gen import ParamsWhich
-
-@dataclass
-class Station:
-    """Who and where: goes into every board's record."""
-    station_id: str = ""
-    operator: str = ""
-    fixture: str = ""
-    host_version: str = ""
-
-    def __post_init__(self):
-        if not self.station_id:
-            self.station_id = socket.gethostname()
-        if not self.host_version:
-            from imubench import __version__
-            self.host_version = __version__
-
-
-@dataclass
-class BoardStatus:
-    slot: int
-    port: str
-    uid: str | None = None
-    stage: str = "waiting"          # connect, health, rest, poses, turntable, fit, write, verify, record, done
-    state: str = "running"          # running | passed | failed | stopped (Ctrl-C, SIGTERM, Stop on the page)
-    message: str = ""
-    progress: float = 0.0
-    reason: str | None = None
-    run_id: int | None = None
-    directory: str = ""
-    waiting: str | None = None      # done with a phase, waiting for the other boards: for whom, till when
-    device: dict | None = None      # its identity (results.record.device_ident: UID, serials, firmware build)
-
-    def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-
-class BoardPresenter(Presenter):
-    """One board's Presenter: instructions go to its status, moves to the shared plate. With
-    `page` (a station page's presenter for this board's column, imubench.station.presenter)
-    the session's live view, pose cards, fit and steps go there too; the plate stays the one
-    that moves: a board asks it for any of the attitudes it still misses (present_todo), and
-    the plate presents what most boards need (procedures.schedule). `clock()` is the board's
-    device time in seconds (its samples so far): the plate's deadlines are counted on it."""
-
-    def __init__(self, run: "FixtureRun", slot: int, discard=lambda: None, page=None,
-                 clock: Callable[[], float] | None = None):
-        self.run, self.slot = run, slot
-        self.discard = discard          # drop what the board sent while it waited for the plate
-        self.page = page
-        self.clock = clock
-        self.suggested = None
-        self.shown = page if page is not None else Presenter()     # where the session's views go
-
-    # what the session shows goes to the page (nothing without one); suggest is this board's vote
-    def present_plan(self, plan, method):
-        self.shown.present_plan(plan, method)
-
-    def present_rest(self, duration_s):
-        self.shown.present_rest(duration_s)
-
-    def pose_event(self, name, state, detail):
-        self.shown.pose_event(name, state, detail)
-
-    def live(self, state):
-        self.shown.live(state)
-
-    def targets(self, sigmas, targets, reached):
-        self.shown.targets(sigmas, targets, reached)
-
-    def step(self, kind, text, state):
-        if kind in ("write", "verify") and state == "running":
-            self.run._update(self.slot, stage=kind, message=text)
-        self.shown.step(kind, text, state)
-
-    def say(self, text: str) -> None:
-        self.run._update(self.slot, message=text)
-        if self.page is not None:
-            self.page.say(text)
-
-    def _check_page(self) -> None:
-        self.run.check_stop(self.slot)  # the whole station session stopped (Ctrl-C, SIGTERM, the page closed)
-        if self.page is not None:
-            try:
-                self.page.check_stop()  # stopped on the page: this board stops here
-            except ImubenchError as e:
-                raise BoardStopped(self.run.boards[self.slot].stage, f"stopped: {_line(e)}") from None
-
-    def suggest(self, name) -> None:
-        """The missing attitude that helps this board's fit most: its vote at the plate."""
-        self.suggested = name
-        if self.page is not None:
-            self.page.suggest(name)
-
-    def present_todo(self, todo, done, total):
-        """The attitudes this board still misses, in any order: the plate presents one of
-        them (the one most boards miss) when every board has asked."""
-        self._check_page()
-        self.run._update(self.slot, stage="poses", message=f"{len(done)} of {total} captured; waiting for the plate",
-                         progress=len(done) / max(total, 1))
-        need = Need("pose", tuple(n for n, _ in todo), prefer=self.suggested)
-        args = {n: (n, np.asarray(d, float)) for n, d in todo}
-        key = self.run.plate.request(self.slot, need, args, clock=self.clock, stage="poses", check=self._check_page)
-        if key is not None:
-            self.run._update(self.slot, message=f"[{len(done) + 1}/{total}] {key}")
-            if self.page is not None:
-                self.page.pose_event(key, "capturing", {"progress": 0.0})
-        # while this board waited for the others, its samples of the old attitude piled up: they
-        # are in the raw capture, but the session's wait for the new attitude starts now
-        self.discard()
-
-    def present_pose(self, name, direction, index, total):
-        """A directed attitude: one of verification (after the write-back), or of a known-angle
-        turn; every board asks for it in the same order."""
-        self._check_page()
-        st = self.run.boards[self.slot]
-        verify = st.stage in ("write", "verify")
-        stage = "verify" if verify else "poses"
-        self.run._update(self.slot, stage=stage, message=f"[{index + 1}/{total}] {name}", progress=index / max(total, 1))
-        if self.page is not None:
-            if verify:
-                self.page.present_pose(name, direction, index, total)
-            else:
-                self.page.pose_event(name, "capturing", {"progress": 0.0})
-        need = Need("verify" if verify else "turn", (name,))
-        self.run.plate.request(self.slot, need, {name: (name, np.asarray(direction, float), index, total)},
-                               clock=self.clock, stage=stage, check=self._check_page)
-        self.discard()
-
-    def present_turn(self, axis, rate_dps, duration_s):
-        self._check_page()
-        self.run._update(self.slot, stage="turntable", message=f"turn {rate_dps:+.0f} °/s about {np.round(axis, 2).tolist()}")
-        if self.page is not None:
-            self.page.present_turn(axis, rate_dps, duration_s)
-        key = (tuple(float(x) for x in np.round(np.asarray(axis, float), 6)), float(rate_dps))
-        self.run.plate.request(self.slot, Need("turn", (key,)), {key: (np.asarray(axis, float), rate_dps, duration_s)},
-                               clock=self.clock, stage="turntable", check=self._check_page)
-        self.discard()
-
-    def progress(self, label, fraction):
-        self._check_page()
-        self.run._update(self.slot, progress=float(fraction), publish=False)
-        if self.page is not None:
-            self.page.progress(label, fraction)
-
-
-# ---------------------------------------------------------------- one board's session
-class BoardSession(Session):
-    """The ordinary session with the stages published and two production rules: no data for
-    link_timeout_s is a lost link, and a sample flagged bad (a sensor fault, parity or SPI
-    error) during capture stops the board, naming the sensor."""
-
-    def __init__(self, device: Device, directory, config: SessionConfig, presenter: Presenter, *,
-                 board_run: "FixtureRun | None" = None, slot: int = 0, link_timeout_s: float = 10.0,
-                 resume: bool = False):
-        super().__init__(device, directory, config, presenter, resume=resume)
-        self.board_run = board_run
-        self.slot = slot
-        self.link_timeout_s = link_timeout_s
-        self.link_lost: str | None = None   # why the link was lost, once it was
-
-    def _stage(self, stage: str) -> None:
-        if self.board_run is not None:
-            self.board_run._update(self.slot, stage=stage)
-
-    def check_health(self) -> dict:
-        self._stage("health")
-        try:
-            return super().check_health()
-        except SessionAborted as e:
-            raise BoardFailed("health", str(e)) from None
-
-    def capture_rest(self) -> dict:
-        self._stage("rest")
-        return super().capture_rest()
-
-    def _stop_stream(self) -> None:
-        """As the session's, but after a lost link only the capture file is closed: asking a
-        silent device to stop would just wait out the retries and hide why the board failed."""
-        if self.link_lost is None:
-            try:
-                return super()._stop_stream()
-            except (LinkError, TimeoutError, ImubenchError, OSError) as e:    # any error of this board's link
-                self.link_lost = _line(e)
-        cap, self.dev.link.capture = self.dev.link.capture, None
-        if cap is not None:
-            cap.close()
-
-    def _leave_plate(self) -> None:
-        """Stop holding the plate at once (the session's clean-up may still take a while)."""
-        if self.board_run is not None:
-            self.board_run.plate.leave(self.slot)
-
-    def _next_block(self, timeout: float = 10.0):
-        if self.board_run is not None:
-            self.board_run.check_stop(self.slot)
-        try:
-            b = self.dev.read(duration_s=0.05, timeout=min(timeout, self.link_timeout_s))
-        except LinkTimeout:
-            self._leave_plate()
-            self.link_lost = f"link lost: no data from the device for {self.link_timeout_s:g} s"
-            raise BoardFailed("link", self.link_lost) from None
-        except (LinkError, ImubenchError, TimeoutError, OSError) as e:
-            # any error of this board's link (a lost port, a simulator that stopped answering:
-            # its grant passed the clock's wall-clock guard) is this board's alone
-            self._leave_plate()
-            self.link_lost = f"link lost: {_line(e)}"
-            raise BoardFailed("link", self.link_lost) from None
-        bad = int(np.bitwise_or.reduce(b.status)) if len(b) else 0
-        if bad:
-            names = [n for bit, n in zip(SENSOR_BAD_BITS, SENSOR_NAMES) if bad & bit]
-            self._leave_plate()
-            raise BoardFailed("sensor", f"{', '.join(names)} flagged bad during capture "
-                                        f"({int(np.count_nonzero(b.status))} of {len(b)} samples): a faulted sensor; "
-                                        "nothing is calibrated on faulted data")
-        self._count_block(b)
-        return b
+# one board (fixture_board) and the records (fixture_record), named here as before
+from imubench.procedures.fixture_board import BoardPresenter, BoardSession, BoardStatus, Station, _line
+from imubench.procedures.fixture_record import FixtureRecords, capture_ref  # noqa: F401 - capture_ref: named here too
 
 
 # ---------------------------------------------------------------- the station session
@@ -302,7 +85,7 @@ class FixtureResult:
     interrupted: str | None = None      # why the whole session was stopped (Ctrl-C, SIGTERM, the page), if it was
 
 
-class FixtureRun:
+class FixtureRun(FixtureRecords):
     """One station session over several boards (see the module's doc)."""
 
     def __init__(self, ports: list[str], directory, cfg: SessionConfig, mover, station: Station | None = None,
@@ -596,64 +379,6 @@ class FixtureRun:
         if self.on_event is None:       # a listener shows the failure with the board's other events
             self.say(f"slot {slot} ({self.boards[slot].port}) {state.upper()} at {stage}: {reason}")
 
-    def _record_for(self, slot: int, started: str, result: dict | None, ident: dict, params_before, link_stats) -> dict:
-        st = self.boards[slot]
-        base = {"session_id": self.session_id,
-                "station": {"id": self.station.station_id, "operator": self.station.operator,
-                            "fixture": self.station.fixture, "slot": slot, "port": st.port,
-                            "host_version": self.station.host_version},
-                "params_before": PR.to_json(params_before) if params_before is not None else None,
-                "capture": capture_ref(self.dir / f"slot-{slot}")}
-        if link_stats is not None:
-            base["link"] = {"samples_missing": int(link_stats.samples_missing),
-                            "frames_rejected": int(link_stats.frames_rejected),
-                            "samples_overflow": int(getattr(link_stats, "samples_overflow", 0))}
-        from imubench.results.export import measurements_of
-        if result is not None and st.state not in ("failed", "stopped"):
-            rec = {**result, **base}
-            rec["measurements"] = measurements_of(rec)
-            ok, why = verdict(rec, self.cfg.write)
-            if not ok:
-                rec["passed"] = False
-                self._update(slot, state="failed", stage=st.stage, reason="; ".join(why) or "did not pass",
-                             message="FAILED: " + ("; ".join(why) or "did not pass"))
-            else:
-                self._update(slot, state="passed", stage="done", progress=1.0, message="PASSED")
-            return rec
-        # failed before or during the run: what is known, the stage and the reason
-        fitted = {k: result[k] for k in ("accel", "gyro", "poses", "tolerances", "accel_rms_after_mg",
-                                         "temperature_c", "verification") if result is not None and k in result}
-        rec = CalibrationRecord(
-            device=ident, started=started, method=self.cfg.method, gyro_method=self.cfg.gyro, note=self.cfg.note,
-            written=bool(result and result.get("written")), capture_dir=str((self.dir / f"slot-{slot}").resolve()),
-            failure={"stage": st.stage, "reason": st.reason or "failed", "stopped": st.state == "stopped"},
-            **fitted, sections={**base, "params_after": (result or {}).get("params_after")}).to_json()
-        rec["measurements"] = measurements_of(rec)
-        return rec
-
-    def _record(self, slot: int, rec: dict) -> None:
-        try:                            # on disk first: the database may be slow, shared or gone
-            (self.dir / f"slot-{slot}").mkdir(parents=True, exist_ok=True)
-            write_json_atomic(self.dir / f"slot-{slot}" / "record.json", jsonable(rec))
-        except OSError as e:
-            self.say(f"warning: slot {slot}: record.json not written ({e})")
-        if self.db is None:
-            return
-        from imubench.results.history import History
-        self._update(slot, message=self.boards[slot].message, publish=False)
-        try:
-            with History(self.db) as h:
-                run_id, _ = h.record_once(rec)
-            self._update(slot, run_id=run_id)
-        except Exception as e:  # noqa: BLE001 - the record is safe on disk; say why it is not in the database
-            self.say(f"warning: slot {slot} not recorded in the history ({e}); its record is in "
-                     f"{self.dir / f'slot-{slot}' / 'record.json'}")
-        finally:
-            try:
-                write_json_atomic(self.dir / f"slot-{slot}" / "record.json", jsonable(rec))
-            except OSError:
-                pass
-
 
 def run_fixture(ports: list[str], directory, cfg: SessionConfig, mover, **kw) -> FixtureResult:
     """One station session over the boards on `ports` (see FixtureRun)."""
@@ -670,33 +395,4 @@ def _stop_words(e: BaseException) -> str:
         return "the terminal hung up (SIGHUP: the link to the host was lost)"
     return "terminated (SIGTERM)"
 
-
-def _line(e: BaseException | str) -> str:
-    """An error as one line (a simulator's error may carry its log's tail); a lockstep
-    device's grant past its wall-clock guard is said as what it is."""
-    import re
-    text = str(e).strip()
-    text = text.splitlines()[0] if text else type(e).__name__
-    return re.sub(r"no reply to (run|status) within ([0-9.]+) s",
-                  lambda m: f"the device stopped answering (no device time passed in {float(m.group(2)):.3g} s of "
-                            "wall time: a frozen device)", text)
-
-
-def capture_ref(d: Path) -> dict:
-    """SHA-256 of the raw capture (the capture files in stream order, as one byte sequence),
-    the files, and where they are: a file:// URI naming this station's host."""
-    files = sorted(d.glob("capture-*.bin"), key=lambda p: int(p.stem.split("-")[1]) if p.stem.split("-")[1].isdigit() else 0)
-    h = hashlib.sha256()
-    listed = []
-    for p in files:
-        fh = hashlib.sha256()
-        with open_input(p) as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-                fh.update(chunk)
-        listed.append({"name": p.name, "bytes": p.stat().st_size, "sha256": fh.hexdigest()})
-    host = socket.gethostname()
-    return {"sha256": h.hexdigest() if files else None,
-            "uri": f"file://{host}{(files[0] if len(files) == 1 else d).resolve()}" if files else None,
-            "files": listed}
 

@@ -12,7 +12,10 @@ session's result (procedures.session): the same DIR/session.json, residual plot,
 (results.report) and history record, plus the recording's own section (timing, segmentation,
 turns) and the result in other tools' layouts (results.paramfiles).
 
-Nothing here reads the file's bytes (imubench.recordings does) or fits (imubench.calib does).
+Nothing here reads the file's bytes (imubench.recordings does) or fits: the fit, the gyro's
+found in the recording included, is calib.fit's, the one front door a session's is too; this
+module gathers the recording's rests and stream for it and presents what it returns; what is
+written to the session directory is procedures.from_file_write's (calibrate_recording).
 """
 from __future__ import annotations
 
@@ -24,16 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
-from imubench.calib import TriadFit
-from imubench.calib.fit import Evidence, fit, gyro_method_names
-from imubench.procedures.file_gyro import CLIP_MIN_DPS, FileGyro  # noqa: F401 - CLIP_MIN_DPS: where callers found it
-from imubench.procedures.recording_checks import (check_accel_unit, check_gyro_unit, compare_annotation, face_of)
+from imubench.calib import TriadFit, face_of
+from imubench.calib.fit import (Evidence, Note, RecordingEvidence, accel_model_words, fit,
+                                gyro_method_names)
+from imubench.procedures.recording_checks import check_accel_unit, check_gyro_unit, compare_annotation
 from imubench.procedures.session import Tolerances
 from imubench.recordings import Recording, RecordingError, command_line, command_options, timing_lines
-from imubench.results.atomic import write_json_atomic
-from imubench.results.record import CalibrationRecord, jsonable, now_utc
-from imubench.results.sessionfile import SESSION_SCHEMA
-from imubench.files import make_dir
+from imubench.results.record import CalibrationRecord, now_utc
 
 GYRO_FILE_METHODS = gyro_method_names(recording=True)   # calib.fit.GYRO_METHODS, the one list
 # what a class of accelerometer reaches after a linear calibration (RMS of |a| − g over the rests),
@@ -75,7 +75,7 @@ def device_id(name: str) -> str:
 
 
 # ------------------------------------------------------------------ the analysis
-class FileAnalysis(FileGyro):
+class FileAnalysis:
     """The analysis of one recording (no files written): run() fills accel, gyro, result."""
 
     def __init__(self, rec: Recording, cfg: FileConfig, say=print):
@@ -87,7 +87,6 @@ class FileAnalysis(FileGyro):
         self.turns: list = []
         self.method = cfg.method        # "auto" becomes "six" or "multi" in run()
         self.fg = rec.gyro_factor()
-        self._bias: TriadFit | None = None
         self.gyro_refused: str | None = None
         self.gsens: dict | None = None
         self.fa: float | None = None
@@ -175,43 +174,75 @@ class FileAnalysis(FileGyro):
         self.say(f"still intervals: {len(keep)} found by the data (window {cfg.window_s:g} s, k = {ivs.k:g} × the "
                  f"rest noise): " + ", ".join(f"{f} {i.t_start_s:.1f}–{i.t_start_s + i.duration_s:.1f} s"
                                             for f, i in zip(self.faces, keep)))
-        picked: dict = {}
-
-        def chosen(choice) -> None:         # the rests the accelerometer's fit used: the gyro's and the tables'
-            used = self._accel_chosen(choice)
-            picked.update(keep=[keep[k] for k in used], means=means[used], sigmas=sigmas[used])
-            self.intervals, self.faces = picked["keep"], [self.faces[k] for k in used]
-
-        def gyro_fitter(cal):
-            chosen(cal.accel_choice)
-            try:
-                return self._gyro(rec, cfg, fs, picked["keep"], acc, picked["means"], cal.accel)
-            finally:
-                cal.gyro_bias = self._bias
         from imubench.calib.fit import FitRefused
+        ev = self._evidence(means, sigmas, acc)
+        ev.recording = self._recording_evidence(keep, acc)
         try:
-            cal = fit(self._evidence(means, sigmas, acc), method=cfg.method,
-                      gyro=cfg.gyro if self.gyro_refused is None else None,
-                      excess_limit_mps2=self._excess_limit(means, sigmas), gsens=False, gyro_fitter=gyro_fitter)
+            cal = fit(ev, method=cfg.method, gyro=cfg.gyro if self.gyro_refused is None else None,
+                      excess_limit_mps2=self._excess_limit(means, sigmas), gsens=False)
         except FitRefused as e:             # how the rests were seen stays for the evidence of the refusal
             self._records(e.rests)
             self.accel_candidates = e.candidates
             raise
-        if not picked:                      # no gyro asked for: the accelerometer's choice, told here
-            chosen(cal.accel_choice)
         self.calibration = cal
-        means, sigmas = picked["means"], picked["sigmas"]
+        used = self._accel_chosen(cal.accel_choice)      # the rests the accelerometer's fit used: the gyro's too
+        self.intervals, self.faces = [keep[k] for k in used], [self.faces[k] for k in used]
+        means, sigmas = means[used], sigmas[used]
+        self._present(cal)
         if cal.gyro_refused is not None:    # a refusal keeps the accelerometer's result
             self.gyro_refused, self.gyro = cal.gyro_refused, cal.gyro
         elif cfg.gyro and self.gyro_refused is None:
             self.gyro = cal.gyro
-        if self.gyro_refused:
+        elif self.gyro_refused:             # refused before the fit (the declared gyro unit)
             self.say(f"gyro not calibrated: {self.gyro_refused}")
         if self.fg is None:         # raw gyro counts that no turn scaled: nothing of the gyro can be said in °/s
             raise RecordingError("the gyro is in counts without a nominal scale and no known-angle turn in the "
                                  "recording scales it: give --gyro-scale COUNTS_PER_DPS (the data sheet's), or "
                                  "--sensor NAME with --gyro-range DPS (its full-scale setting)")
         return self._result(means, sigmas)
+
+    def _present(self, cal) -> None:
+        """What the fit found of the gyro, kept for the result and said in order (its notes among
+        the result's notes; the gyro's full scale found in the data among the recording's detected)."""
+        from imubench.results.record import fit_dict
+        for line in cal.said:
+            if isinstance(line, Note):
+                self._note(str(line))
+            else:
+                self.say(line)
+        if cal.gyro_scale is not None:
+            self.fg = cal.gyro_scale
+        self.turns = cal.turns
+        self.gyro_parts = ({"fits": {k: fit_dict(v, "rad_s") for k, v in cal.gyro_parts["fits"].items()},
+                            "refused": cal.gyro_parts["refused"]} if cal.gyro_parts else {})
+        self.gsens = cal.gsens_report
+        self.clipping["gyro"] = list(cal.gyro_clipping)
+        if cal.detected is not None:
+            line, dps = cal.detected
+            self.rec.detected.append(line)
+            self.rec.options["gyro_range_dps"] = dps
+
+    def _recording_evidence(self, rests: list, acc: np.ndarray | None = None) -> RecordingEvidence:
+        """The recording's one stream as calib.fit takes it for the gyro (its rests: `rests`)."""
+        rec, cfg = self.rec, self.cfg
+        return RecordingEvidence(
+            gyro=rec.gyro, gyro_scale=rec.gyro_factor(), accel_mps2=rec.accel * self.fa if acc is None else acc,
+            rests=list(rests), rate_hz=rec.fs_hz, breaks=tuple(b for b, _ in rec.breaks), parts=rec.parts,
+            turn_deg=cfg.turn_deg, angle_sigma_deg=cfg.angle_sigma_deg, axis_sigma_deg=cfg.axis_sigma_deg,
+            gyro_range_dps=cfg.gyro_range_dps, range_known="gyro_range_dps" in rec.options)
+
+    def _clipped_motions(self, rests) -> None:
+        """The gyro's clipping between the rests as the fit finds it (calib.fit.gyro_clipping), for
+        the evidence of a refusal before the gyro was fitted: kept and noted."""
+        from imubench.calib.fit import gyro_clipping
+        clip = gyro_clipping(self._recording_evidence(rests), rests)
+        self.clipping["gyro"] = clip.rows
+        if clip.detected is not None:
+            self.rec.detected.append(clip.detected[0])
+            self.rec.options["gyro_range_dps"] = clip.detected[1]
+        for line in clip.said:
+            if isinstance(line, Note):
+                self._note(str(line))
 
     def _rests_at_full_scale(self, ivs) -> set[int]:
         """The rests where the accelerometer sat at its full scale (calib.clipping, from the data):
@@ -269,13 +300,13 @@ class FileAnalysis(FileGyro):
         self._records(choice.rests)
         self.accel_choice = choice
         self.accel_candidates = choice.candidates
-        self.method = "six" if choice.fit.method == "six_position" else "multi"
-        short = {"multi_position": "multi-position |a| = g", "six_position": "six-position"}
+        self.method = self.calibration.method
+        short = accel_model_words(choice.fit.method)
         first = choice.candidates[0]
         if first["status"] == "kept":
-            self.say(f"method: {short[choice.fit.method]} (the rests resolve its parameters and it fits them)")
+            self.say(f"method: {short} (the rests resolve its parameters and it fits them)")
         else:
-            self.say(f"method: {short[choice.fit.method]} (the {first['model'].split(',')[0]} fit cannot be used: "
+            self.say(f"method: {short} (the {first['model'].split(',')[0]} fit cannot be used: "
                      f"{first['reason']})")
         self.say(f"accelerometer model: {choice.summary}")
         self.accel = choice.fit
@@ -413,125 +444,3 @@ def verdict_text(accel_ok: bool, rms_mg: float, tol_mg: float, gyro_method, gyro
         return acc + "; gyro bias at rest only (scale and misalignment not asked for)"
     held = (gyro.extra or {}).get("held") or []
     return acc + f"; gyro calibrated ({gyro.method}" + (f"; {', '.join(held)} held at nominal)" if held else ")")
-
-
-# ------------------------------------------------------------------ the whole run
-def calibrate_recording(rec: Recording, directory, cfg: FileConfig, say=print) -> tuple[dict, FileAnalysis]:
-    """Analyse a recording and write what a session writes into directory: session.json (with
-    the result), residuals.png, segmentation.png, report.html and the layouts of cfg.writers.
-    Returns (result, analysis). Recording in the history is the caller's (it owns the
-    database's path)."""
-    from imubench.results import paramfiles
-    from imubench.results.calibration import plot_pose_residuals
-    from imubench.results.recording import plot_segmentation
-    from imubench.results.report import build_report
-    from imubench.results.recording import README, RESTS_CSV, rests_table, write_evidence
-    d = Path(directory)
-    held = [f for f in ("session.json", RESTS_CSV, README, "segmentation.png") if (d / f).exists()]
-    if held:
-        raise RecordingError(f"{d} already holds a session ({', '.join(held)}); choose another --dir (nothing was "
-                             "overwritten)")
-    for line in timing_lines(rec) + rec.notes:
-        say(f"  {line}")
-    fa = FileAnalysis(rec, cfg, say)
-    try:
-        result = fa.run()
-    except Exception as e:      # noqa: BLE001 - refused or not, the folder shows what was found; then the error
-        _leave_evidence(d, fa, e, say)
-        raise
-    make_dir(d)
-    result["capture_dir"] = str(d.resolve())
-    files = {}
-    for kind in cfg.writers:
-        try:
-            files[kind] = [str(p) for p in _write_one(kind, d / f"calibration-{_safe(result['device_name'])}",
-                                                      fa, result, paramfiles)]
-        except RecordingError as e:
-            files[kind] = []
-            result["notes"].append(f"{kind} not written: {e}")
-            say(f"  note: {kind} not written: {e}")
-    result["exports"] = files
-    if any(files.values()):             # what each file is for, also those that take no comments (imu_tk, JSON)
-        from imubench.results.exports import write_index
-        write_index(d, "calibration", {k: v for k, v in files.items() if v}, f"calibration of {result['device_name']}")
-    if files.get("px4"):
-        result["px4_missing_ids"] = paramfiles.px4_missing_ids(cfg.px4_acc_id, cfg.px4_gyro_id, fa.gyro is not None)
-    state = {"schema": SESSION_SCHEMA, "started": result["started"],
-             "config": {"method": fa.method, "gyro": cfg.gyro, "rate_hz": rec.fs_hz, "hold_s": cfg.min_still_s,
-                        "rest_s": 0.0, "settle_s": cfg.window_s, "note": cfg.note, "write": False,
-                        "tolerances": result["tolerances"], "from_file": rec.source},
-             "rest": None,
-             "poses": [{"name": p["name"], "direction": [0.0, 0.0, 0.0], "mean_mps2": iv.mean.tolist(),
-                        "sigma_mean_mps2": iv.sigma_mean.tolist(), "n": int(iv.n), "start_index": int(iv.start),
-                        "stop_index": int(iv.stop), "gyro_mean_rad_s": (rec.gyro[iv.start:iv.stop].mean(axis=0)
-                                                                         * fa.fg).tolist(), "stream": 0}
-                       for p, iv in zip(result["poses"], fa.intervals)],
-             "result": result, "complete": True}
-    write_json_atomic(d / "session.json", jsonable(state))
-    plot_pose_residuals(result, d / "residuals.png")
-    plot_segmentation(rec, result, d / "segmentation.png", accel_factor=fa.fa, gyro_factor=fa.fg)
-    write_evidence(d, result, command=cfg.command)
-    result["report"] = str(build_report(d))
-    uses = [r["use"] for r in result["rests"]]
-    if any(u != "used" for u in uses):
-        say(rests_table(result))
-    say(f"rests: {uses.count('used')} used, {uses.count('down-weighted')} down-weighted, {uses.count('left out')} "
-        f"left out (the table: {d / RESTS_CSV}, {d / README})")
-    return result, fa
-
-
-def _leave_evidence(d: Path, fa: FileAnalysis, error: Exception, say) -> None:
-    """A refused (or failed) analysis still writes its folder: the segmentation plot with the
-    rests coloured by use, rests.csv and README.md with the reason; and says where. A failure
-    to write it is said, never raised over the refusal."""
-    from imubench.errors import ImubenchError
-    from imubench.results.recording import plot_segmentation, rests_table, write_evidence
-    reason = str(error) if isinstance(error, ImubenchError) else f"internal error ({type(error).__name__}: {error})"
-    rec = fa.rec
-    if not fa.clipping["gyro"] and len(fa.intervals) >= 2:   # refused before the gyro: its clipping is evidence too
-        quiet, fa.say = fa.say, (lambda _line: None)
-        try:
-            fa._clipped_motions(fa.intervals)
-        except Exception:  # noqa: BLE001 - the refusal's evidence, not a second failure
-            pass
-        finally:
-            fa.say = quiet
-    result = {"source": fa.source(), "rests": fa.rest_rows(), "clipping": fa.clipping, "notes": list(fa.notes),
-              "refused": reason, "turns": [], "segmentation": []}
-    try:
-        make_dir(d)
-        fa_si = fa.fa or U.G0_MPS2 / max(float(np.median(np.linalg.norm(rec.accel, axis=1))), 1e-300)
-        plot_segmentation(rec, result, d / "segmentation.png", accel_factor=fa_si, gyro_factor=fa.fg or 1.0)
-        write_evidence(d, result, command=fa.cfg.command)
-    except (OSError, ValueError, ImubenchError) as e:
-        say(f"note: the evidence of the refusal could not be written to {d}: {e}")
-        return
-    say(rests_table(result))
-    say(f"refused; what was found is in {d}: segmentation.png (rests coloured by use), rests.csv, README.md "
-        "(the reason)")
-
-
-def _safe(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "imu"
-
-
-def _write_one(kind: str, prefix: Path, fa: FileAnalysis, result: dict, paramfiles) -> list[Path]:
-    rec = fa.rec
-    comment = f"imubench from {Path(rec.source.split(' + ')[0]).name}, {result['finished']}"
-    if kind in paramfiles.SI_WRITERS and not (rec.accel_scaled and (rec.gyro_scaled or fa.gyro is None)):
-        raise RecordingError("needs SI parameters, i.e. a declared nominal scale of the raw counts "
-                             "(--accel-scale / --gyro-scale); imutk and imucal take counts as they are")
-    params = None
-    gs = fa.gsens or {}
-    gsens = np.radians(np.array(gs["g_dps_per_g"])) if gs.get("applied") else None     # rad/s per g
-    if kind == "params":
-        from imubench.calib.gsens import GSensFit
-        from imubench.procedures.writeback import params_from_fits
-        from imubench.wire import params as PR
-        g_fit = None if gsens is None else GSensFit(b=np.zeros(3), g=gsens, cov=np.zeros((12, 12)), chi2=0.0, dof=0,
-                                                    residuals=np.zeros((0, 3)))
-        params = params_from_fits(fa.accel, fa.gyro, PR.identity(), 0, g_fit)
-    return paramfiles.write(kind, prefix, accel=fa.accel, gyro=fa.gyro, accel_factor=fa.fa, gyro_factor=fa.fg,
-                        accel_unit=rec.accel_unit, gyro_unit=rec.gyro_unit, scaled=rec.accel_scaled,
-                        params=params, comment=comment, gsens=gsens, px4_acc_id=fa.cfg.px4_acc_id,
-                        px4_gyro_id=fa.cfg.px4_gyro_id)

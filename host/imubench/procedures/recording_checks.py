@@ -17,13 +17,6 @@ from imubench.recordings import Recording, RecordingError
 ACCEL_PLAUSIBLE_G = (0.8, 1.25)          # still |a| in the declared unit, in g
 GYRO_REST_MAX_DPS = 20.0                 # a MEMS gyro's bias (zero-rate output) stays below this (MPU-6050: ±20 °/s)
 GYRO_REST_REFUSE_DPS = 60.0              # 3× that at rest leaves no doubt: the declared unit is wrong
-_AXES = "XYZ"
-
-
-def face_of(d: np.ndarray) -> str:
-    k = int(np.argmax(np.abs(d)))
-    ang = math.degrees(math.acos(min(1.0, abs(d[k]) / np.linalg.norm(d))))
-    return (("+" if d[k] > 0 else "-") + _AXES[k]) if ang <= 30.0 else "other"
 
 
 # ------------------------------------------------------------------ units
@@ -72,26 +65,6 @@ def check_gyro_unit(rec: Recording, rest_rate: np.ndarray, factor: float) -> str
                              f"allow (±{GYRO_REST_MAX_DPS:g} °/s): the unit is wrong; {hint}")
     return (f"{text}, more than a MEMS gyro's bias usually is ({GYRO_REST_MAX_DPS:g} °/s) but possible: the declared "
             f"unit is used; {hint} if that is wrong")
-
-
-def check_turn_scale(measured_rad: list[float], turn_rad: float, rec: Recording) -> str | None:
-    """A warning (never a refusal: the angle of a motion is not known, and returning to an
-    attitude by a small motion is normal) when the motions about the vertical between rests of
-    the same attitude integrate to a constant multiple of whole turns, as °/s read as rad/s
-    (57.3×) or the reverse would; None otherwise."""
-    if len(measured_rad) < 2:
-        return None
-    r = np.abs(np.asarray(measured_rad)) / turn_rad
-    med = float(np.median(r))
-    for factor, fix in ((180.0 / math.pi, "°/s read as rad/s: declare --gyro-unit dps"),
-                        (math.pi / 180.0, "rad/s read as °/s: declare --gyro-unit rad_s")):
-        near = np.abs(r / factor - np.round(r / factor)) < 0.1
-        if np.all(near & (np.round(r / factor) >= 1)):
-            return (f"the motions about the vertical between rests of the same attitude integrate to "
-                    f"{', '.join(f'{math.degrees(abs(m)):.0f}°' for m in measured_rad)} (median {med:.3g} turns of "
-                    f"{math.degrees(turn_rad):g}°): all {len(r)} are whole turns only if the gyro unit is off by "
-                    f"{factor:.4g}× ({fix}); the declared unit is used, as the turns' angles are not known")
-    return None
 
 
 # ------------------------------------------------------------------ segmentation vs annotation

@@ -26,7 +26,7 @@ import numpy as np
 
 from imubench import units as U
 from imubench.calib import TriadFit
-from imubench.calib.fit import Calibration, Evidence, RotationEvidence, fit, gyro_method_names
+from imubench.calib.fit import Calibration, Evidence, RotationEvidence, data_needed, fit
 from imubench.calib.geometry import rotation_to  # noqa: F401 - where callers found it
 from imubench.device.link import Device
 from imubench.files import MAX_CAPTURE_BYTES, make_dir, open_growing, read_bytes
@@ -263,7 +263,7 @@ class Session:
         b = SampleBlock.concat(got)
         acc, gyr = b.si()
         self.rest = {"noise_mps2": rest_noise(acc, self.cfg.rate_hz).tolist(),
-                     "gyro": gyr.tolist() if self.cfg.gyro in gyro_method_names(live=True) else None,
+                     "gyro": gyr.tolist() if "rest" in data_needed(self.cfg.method, self.cfg.gyro) else None,
                      "start_index": int(b.sample_index[0]), "stop_index": int(b.sample_index[-1]) + 1}
         self.save()
         return self.rest
@@ -359,24 +359,23 @@ class Session:
             self.bench_time_s = (None if self._first_index is None else
                                  (self._last_index - self._first_index) / self.cfg.rate_hz)
             motion = MotionCapture(self.cfg, self.rest, self.ui, self._next_block)
-            segments = motion.capture_turntable() if self.cfg.gyro == "turntable" else None
-            turn_runs = motion.capture_known_turns() if self.cfg.gyro == "turns" else None
+            needs = data_needed(self.cfg.method, self.cfg.gyro)     # calib.fit: what its strategy needs
+            segments = motion.capture_turntable() if "turntable" in needs else None
+            turn_runs = motion.capture_known_turns() if "turns" in needs else None
         finally:
             self._stop_stream()
 
         means, sigmas = self._fit_inputs()
         self.ui.step("fit", f"fitting {self.cfg.method}-position to {len(means)} attitudes", "running")
         rest_gyr = np.asarray(self.rest["gyro"]) if self.rest.get("gyro") is not None else None
-        needs_stream = self.cfg.gyro == "rotation" or (self.cfg.method == "multi" and self.cfg.gyro == "turntable")
         ev = Evidence(means_mps2=means, sigmas_mps2=sigmas, rate_hz=self.cfg.rate_hz,
                       gyro_means_rad_s=np.array([p.gyro_mean_rad_s for p in self.poses]),
                       rest_gyro_rad_s=rest_gyr, turntable_segments=segments, turn_runs=turn_runs,
                       turn_noise_mps2=np.asarray(self.rest["noise_mps2"]),
                       turn_min_still_s=min(1.0, 0.5 * self.cfg.hold_s),
-                      rotation=self._rotation_evidence() if needs_stream else None)
+                      rotation=self._rotation_evidence() if "stream" in needs else None)
         cal = fit(ev, method=self.cfg.method, gyro=self.cfg.gyro,
-                  excess_limit_mps2=self.cfg.tolerances.accel_rms_mg * 1e-3 * U.G0_MPS2,
-                  align_frames=self.cfg.method == "multi")
+                  excess_limit_mps2=self.cfg.tolerances.accel_rms_mg * 1e-3 * U.G0_MPS2)
         for line in cal.said:
             self.ui.say(line)
         accel, gyro, gyro_refused, frame_note = cal.accel, cal.gyro, cal.gyro_refused, cal.frame_note

@@ -4,7 +4,7 @@ them itself).
 
 Model (docs/conventions.md), per axis k, ΔT_k = T_k − t_ref:
     v_k = (u_k − b_k − bias_tc_k·ΔT_k) / (1 + scale_tc_k·ΔT_k)        x = M⁻¹·v
-T_k: the ADXL355 temperature for every accelerometer axis, each ADXRS450's own temperature
+T_k: the accelerometer's temperature for every accelerometer axis, each gyro's own temperature
 for its gyro axis.
 
 What a sweep measures at each temperature (RAW stream, nominal scaling, board still):
@@ -41,7 +41,8 @@ from imubench.results.thermal import (
     format_drift,
     format_fit,
 )
-from imubench.wire.ids import device_identity
+from imubench.wire.board_parts import BoardParts, coarsest_temp_step_c
+from imubench.wire.ids import device_identity, parts_text
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
 # ------------------------------------------------------------------ the fit
@@ -89,7 +90,7 @@ def sim_hooks(vb, say: Callable[[str], None] = lambda s: None, ramp_c_per_s: flo
 # ------------------------------------------------------------------ thermal settling
 @dataclass(frozen=True)
 class Settling:
-    """Measure only when every sensor's temperature (ADXL355, gyro X/Y/Z) changes slower than
+    """Measure only when every sensor's temperature (accelerometer, gyro X/Y/Z) changes slower than
     rate_c_per_min, the rate being the slope of a straight line through the last window_s
     seconds (device time) of its readings; give up after timeout_s (device time)."""
     rate_c_per_min: float = 0.1
@@ -107,7 +108,7 @@ DEFAULT_SETTLING = Settling()
 
 class SettleTimeout(ImubenchError):
     """The sensors' temperatures did not settle in time; the message says where they were
-    and how fast they moved (also as temp_c and rate_c_per_min: ADXL355, gyro X, Y, Z)."""
+    and how fast they moved (also as temp_c and rate_c_per_min: accelerometer, gyro X, Y, Z)."""
 
     def __init__(self, msg: str, target_c: float | None, temp_c, rate_c_per_min):
         super().__init__(msg)
@@ -117,19 +118,25 @@ class SettleTimeout(ImubenchError):
 
 
 SELF_HEAT_ALLOWANCE_C = 5.0    # how far a powered die may sit above the chamber's air (the virtual
-                               # part draws 2-5 °C for the gyros, 0.5-2.5 °C for the ADXL355)
-TEMP_RESOLUTION_C = 0.2        # one LSB of the ADXRS450 temperature (the ADXL355's: 1/9.05 °C)
+                               # part draws 2-5 °C for the gyros, 0.5-2.5 °C for the accelerometer)
+# one LSB of the coarsest part's temperature (protocol/parts.toml; ADXRS450: 0.2 °C, ADXL355: 1/9.05 °C),
+# for what is said before a device has told which parts it has
+TEMP_RESOLUTION_C = coarsest_temp_step_c()
 
 
 def wait_settled(dev, settle: Settling, rate_hz: int = 200, target_c: float | None = None,
-                 say: Callable[[str], None] = lambda s: None, report_every_s: float = 30.0) -> dict:
+                 say: Callable[[str], None] = lambda s: None, report_every_s: float = 30.0,
+                 parts: BoardParts | None = None) -> dict:
     """On a running stream, read the sensors' temperatures until all four change slower than
     settle.rate_c_per_min over a full window of settle.window_s (device time). Returns
-    {"waited_s", "window_s", "limit_c_per_min", "rate_c_per_min" (4: ADXL355, gyro X, Y, Z),
+    {"waited_s", "window_s", "limit_c_per_min", "rate_c_per_min" (4: accelerometer, gyro X, Y, Z),
     "temp_c" (4, the latest readings)}. Raises SettleTimeout after settle.timeout_s of device
     time, naming the temperatures reached and their rates. While it waits it says where the
     temperatures are every report_every_s of WALL time (a person watching; a fast virtual
-    chamber settles before the first report), and once when they have settled."""
+    chamber settles before the first report), and once when they have settled. parts: the
+    board's (wire.board_parts; None: asked of the device), named with their temperatures."""
+    if parts is None:
+        parts = BoardParts.of_info(dev.info())
     chunk_s = min(1.0, settle.window_s / 10.0)
     chunk_n = max(1, round(rate_hz * chunk_s))
     dev.discard_buffered()
@@ -157,26 +164,26 @@ def wait_settled(dev, settle: Settling, rate_hz: int = 200, target_c: float | No
             info = {"waited_s": float(t_now - t_begin), "window_s": settle.window_s,
                     "limit_c_per_min": settle.rate_c_per_min, "rate_c_per_min": [float(r) for r in rates],
                     "temp_c": [float(v) for v in now_c]}
-            say(f"  settled after {t_now - t_begin:.0f} s: {_fmt_temps(now_c)} "
+            say(f"  settled after {t_now - t_begin:.0f} s: {_fmt_temps(now_c, parts)} "
                 f"(|dT/dt| ≤ {np.max(np.abs(rates)):.3f} °C/min over {settle.window_s:g} s)")
             return info
         if t_now - t_begin > settle.timeout_s:
             at_c = f" at the set point {target_c:g} °C" if target_c is not None else ""
             raise SettleTimeout(
                 f"temperature not settled{at_c} within {settle.timeout_s:g} s: the sensors reached "
-                f"{_fmt_temps(now_c)}, changing at {_fmt_rates(rates)} (limit {settle.rate_c_per_min:g} °C/min "
+                f"{_fmt_temps(now_c, parts)}, changing at {_fmt_rates(rates, parts)} (limit {settle.rate_c_per_min:g} °C/min "
                 f"over {settle.window_s:g} s)", target_c, now_c, rates)
         if time.monotonic() - said_wall >= report_every_s:
             said_wall = time.monotonic()
-            say(f"  settling: {_fmt_temps(now_c)}, {_fmt_rates(rates)} after {t_now - t_begin:.0f} s")
+            say(f"  settling: {_fmt_temps(now_c, parts)}, {_fmt_rates(rates, parts)} after {t_now - t_begin:.0f} s")
 
 
-def _fmt_temps(c) -> str:
-    return f"ADXL355 {c[0]:.2f} °C, gyros {c[1]:.2f}/{c[2]:.2f}/{c[3]:.2f} °C"
+def _fmt_temps(c, parts: BoardParts) -> str:
+    return f"{parts.accel.name} {c[0]:.2f} °C, gyros ({parts.gyro_words}) {c[1]:.2f}/{c[2]:.2f}/{c[3]:.2f} °C"
 
 
-def _fmt_rates(r) -> str:
-    return "[" + ", ".join(f"{v:+.3f}" for v in r) + "] °C/min (ADXL355, gyro X/Y/Z)"
+def _fmt_rates(r, parts: BoardParts) -> str:
+    return "[" + ", ".join(f"{v:+.3f}" for v in r) + f"] °C/min ({parts.accel.name}, gyro X/Y/Z)"
 
 
 def _settled(dev, n: int):
@@ -239,7 +246,8 @@ def measure_point(dev, hooks: Hooks, target_c: float | None, n: int = 2000,
                      t_first_us=min(times), t_last_us=max(times))
 
 
-def _go_to(dev, hooks: Hooks, c: float | None, settle: Settling | None, rate_hz: int) -> dict | None:
+def _go_to(dev, hooks: Hooks, c: float | None, settle: Settling | None, rate_hz: int,
+           parts: BoardParts | None = None) -> dict | None:
     """Bring the board to c (set point, or the user) and, with settle, wait for the sensors."""
     if hooks.set_temperature is not None and c is not None:
         hooks.set_temperature(c)
@@ -247,7 +255,7 @@ def _go_to(dev, hooks: Hooks, c: float | None, settle: Settling | None, rate_hz:
         hooks.ready(c)
     if settle is None:
         return None
-    return wait_settled(dev, settle, rate_hz=rate_hz, target_c=c, say=hooks.say)
+    return wait_settled(dev, settle, rate_hz=rate_hz, target_c=c, say=hooks.say, parts=parts)
 
 
 def sweep(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 2000,
@@ -262,10 +270,11 @@ def sweep(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 2000,
     tolerance (above it: that plus SELF_HEAT_ALLOWANCE_C, a powered die's self-heating)."""
     h = hooks if turntable else Hooks(hooks.set_temperature, hooks.orient, None, hooks.ready, hooks.say)
     out = []
+    parts = BoardParts.of_info(dev.info())      # the parts it reported: named in what is said
     dev.start_stream(rate_hz=rate_hz, calibrated=False)
     try:
         for c in temps:
-            st = _go_to(dev, h, c, settle, rate_hz)
+            st = _go_to(dev, h, c, settle, rate_hz, parts)
             p = measure_point(dev, h, c, n=n, poses=poses)
             p.settle = st
             if check_tol_c is not None and h.set_temperature is not None and c is not None:
@@ -299,10 +308,11 @@ def measure_drift(dev, temps: Sequence[float | None], hooks: Hooks, n: int = 200
     acc, gyr, tc = [], [], []
     if hooks.orient is not None:
         hooks.orient(np.array(POSES["+z"], dtype=float))
+    parts = BoardParts.of_info(dev.info())
     dev.start_stream(rate_hz=rate_hz, calibrated=True)
     try:
         for c in temps:
-            _go_to(dev, hooks, c, settle, rate_hz)
+            _go_to(dev, hooks, c, settle, rate_hz, parts)
             b = _settled(dev, n)
             a = b.accel_mps2.astype(np.float64)
             acc.append(np.r_[a.mean(axis=0), np.linalg.norm(a, axis=1).mean()])
@@ -366,6 +376,7 @@ def run_thermal(dev, out_dir, temps: Sequence[float | None], hooks: Hooks, *, n:
         old = dev.get_params(ParamsWhich.ACTIVE).params
         t_ref = float(old.accel_t_ref_c) if t_ref_c is None else float(t_ref_c)
         rec.update(device=_device_json(dev), t_ref_c=t_ref, stage="sweep")
+        say(f"parts: {parts_text(rec.data['device']['parts'])}")
         points = sweep(dev, temps, hooks, n=n, poses=poses, rate_hz=rate_hz, turntable=turntable,
                        settle=settle, on_point=rec.add_point)
         fit = fit_sweep(points, t_ref)

@@ -42,15 +42,14 @@ from imubench.results.thermal_warmup import (
     plot_warmup,
 )
 from imubench.wire import params as PR
-from imubench.wire.ids import SENSOR_BAD_BITS, device_identity
+from imubench.wire.board_parts import DEFAULT as DEFAULT_PARTS
+from imubench.wire.board_parts import BoardParts
+from imubench.wire.ids import SENSOR_BAD_BITS, device_identity, part_names, parts_text
 from imubench.wire.protocol_gen import Params, ParamsWhich
 
 CAPTURE_NAME = "capture.bin"
 PLOT_NAME = "warmup.png"
-SENSORS = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
 BAD_MASK = int(sum(int(b) for b in SENSOR_BAD_BITS))
-ACCEL_RES_C = 1.0 / 9.05       # the ADXL355's temperature step
-GYRO_RES_C = 0.2               # the ADXRS450's
 MIN_BINS_TO_FIT = 6
 NOW_WINDOW_S = 0.5             # "now": the temperatures' mean over the latest half second
 
@@ -217,33 +216,36 @@ def _honest(b: Binned) -> Binned:
     return Binned(b.t_s, b.temp_c, b.mean, np.maximum(b.sigma, floor[None, :]), b.n)
 
 
-def fit_bins(segments: Sequence[tuple[np.ndarray, Binned]], t_ref: dict, max_order: int = 3) -> dict:
-    """Fit one or more warm-ups (face direction, its bins): {"accel": [AxisFit]*3, "gyro": [AxisFit]*3}."""
+def fit_bins(segments: Sequence[tuple[np.ndarray, Binned]], t_ref: dict, max_order: int = 3,
+             parts: BoardParts = DEFAULT_PARTS) -> dict:
+    """Fit one or more warm-ups (face direction, its bins): {"accel": [AxisFit]*3, "gyro": [AxisFit]*3}.
+    parts: the board's (wire.board_parts): each triad's span is rounded to its parts' temperature step."""
     segs = [(np.asarray(d, float), _honest(b)) for d, b in segments if len(b) >= 2]
     if not segs:
         raise WarmupError("no bins to fit")
     acc = [FaceSegment(d, b.temp_c[:, 0], b.mean[:, :3], b.sigma[:, :3], b.t_s) for d, b in segs]
     gyr = [FaceSegment(d, b.temp_c[:, 1:4], b.mean[:, 3:6], b.sigma[:, 3:6], b.t_s) for d, b in segs]
     try:
-        return {"accel": fit_triad_faces(acc, t_ref["accel"], U.G0_MPS2, max_order, resolution_c=ACCEL_RES_C),
-                "gyro": fit_triad_faces(gyr, t_ref["gyro"], None, max_order, resolution_c=GYRO_RES_C)}
+        return {"accel": fit_triad_faces(acc, t_ref["accel"], U.G0_MPS2, max_order, resolution_c=parts.accel_temp_step_c),
+                "gyro": fit_triad_faces(gyr, t_ref["gyro"], None, max_order, resolution_c=parts.gyro_temp_step_c)}
     except ValueError as e:
         raise WarmupError(f"cannot fit: {e}") from None
 
 
-def export_fits(segments, t_ref: dict, fits: dict, max_order: int = 3) -> dict:
+def export_fits(segments, t_ref: dict, fits: dict, max_order: int = 3, parts: BoardParts = DEFAULT_PARTS) -> dict:
     """Per export kind (fits, words): an autopilot has one temperature per gyro sensor (PX4) or
     per IMU (ArduPilot), ours are one per axis: the gyro terms are fitted again against the
     temperature that firmware would be given (PX4: the mean of the three gyro temperatures;
-    ArduPilot: the ADXL355's, the IMU's temperature for both)."""
+    ArduPilot: the accelerometer's, the IMU's temperature for both). parts: the board's, named in
+    the words and giving the gyros' temperature step."""
     segs = [(np.asarray(d, float), _honest(b)) for d, b in segments if len(b) >= 2]
     out = {}
-    for kind, col, words in (("px4", None, "the mean of the three ADXRS450 temperatures"),
-                             ("ardupilot", 0, "the ADXL355 temperature (for accelerometer and gyro)")):
+    for kind, col, words in (("px4", None, f"the mean of the three {parts.gyro_words} temperatures"),
+                             ("ardupilot", 0, f"the {parts.accel.name} temperature (for accelerometer and gyro)")):
         g = [FaceSegment(d, b.temp_c[:, 1:4].mean(axis=1) if col is None else b.temp_c[:, col], b.mean[:, 3:6],
                          b.sigma[:, 3:6], b.t_s) for d, b in segs]
         try:
-            gf = fit_triad_faces(g, t_ref["gyro"], None, max_order, resolution_c=GYRO_RES_C)
+            gf = fit_triad_faces(g, t_ref["gyro"], None, max_order, resolution_c=parts.gyro_temp_step_c)
         except ValueError as e:
             raise WarmupError(f"cannot fit the gyro for {kind}: {e}") from None
         out[kind] = ({"accel": fits["accel"], "gyro": gf}, words)
@@ -289,8 +291,17 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
             raise WarmupError(f"span {cfg.span_c[0]:g}..{cfg.span_c[1]:g} °C: this bench brings the sensors from "
                               f"{lo:g} to about {hi:.1f} °C only")
     info = dev.info()            # a port with no device on it fails here, before anything is recorded
+    parts = BoardParts.of_info(info)     # the parts it reported: their names, steps and ranges
+    if cfg.span_c is not None:
+        for t_c in cfg.span_c:
+            bad = parts.limiting_part(t_c)
+            if bad is not None:
+                raise WarmupError(f"span {cfg.span_c[0]:g}..{cfg.span_c[1]:g} °C: this board's {bad.name} works from "
+                                  f"{bad.t_min_c:g} to {bad.t_max_c:g} °C only (its data sheet); give a span inside "
+                                  f"{parts.operating_c[0]:g}..{parts.operating_c[1]:g} °C")
     rec = WarmupRecord(out_dir, {**cfg.to_json(), **(config_extra or {})})
     say(f"recording in {rec.path} (raw stream: {out_dir / CAPTURE_NAME})")
+    say(f"parts: {parts_text(part_names(info))}")
     st = _State(cfg)
     status, error, reason = "done", None, None
     direction = np.array(POSES[cfg.face], dtype=float)
@@ -324,9 +335,9 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         if hooks.warm is not None:
             hooks.warm()
         say(f"streaming raw at {cfg.rate_hz} Hz while the board warms ({cfg.face.upper()} up, still); every "
-            f"{cfg.fit_every_s:g} s: time, temperatures ADXL355/gyro X/Y/Z, their rates, the span covered, the "
+            f"{cfg.fit_every_s:g} s: time, temperatures {parts.temperatures_text}, their rates, the span covered, the "
             "fitted orders. Ctrl-C ends it with the fit of what came")
-        reason = _stream(dev, st, rec, say, on_progress, stop, t_ref)
+        reason = _stream(dev, st, rec, say, on_progress, stop, t_ref, parts)
         if reason.startswith("stopped"):
             status = "interrupted"
     except KeyboardInterrupt:
@@ -358,11 +369,11 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         rec.update(status=status if status != "done" else "failed", error=error or msg, stage="done")
         return rec.data
     try:
-        fits = fit_bins([(direction, b)], t_ref, cfg.max_order)
+        fits = fit_bins([(direction, b)], t_ref, cfg.max_order, parts)
     except WarmupError as e:
         rec.update(status="failed", error=error or str(e), stage="done")
         return rec.data
-    fj = fit_json(fits, t_ref)
+    fj = fit_json(fits, t_ref, parts)
     rec.update(fit=fj)
     say(format_fit(fj))
     png = plot_warmup(rec.data, out_dir / PLOT_NAME)
@@ -370,7 +381,7 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
         rec.update(plot=PLOT_NAME)
         say(f"plot: {png}")
     if cfg.exports:
-        _exports(rec, out_dir, [(direction, b)], t_ref, fits, cfg, say)
+        _exports(rec, out_dir, [(direction, b)], t_ref, fits, cfg, say, parts)
     if cfg.write:
         if status != "done":
             say("not written: the run did not finish (the fit of what came is in thermal.json)")
@@ -388,11 +399,12 @@ def run_warmup(dev, out_dir, cfg: WarmupConfig, hooks: WarmupHooks, on_progress:
     return rec.data
 
 
-def _exports(rec: WarmupRecord, out_dir: Path, segments, t_ref: dict, fits: dict, cfg: WarmupConfig, say) -> None:
+def _exports(rec: WarmupRecord, out_dir: Path, segments, t_ref: dict, fits: dict, cfg: WarmupConfig, say,
+             parts: BoardParts) -> None:
     """The PX4 / ArduPilot parameter files beside thermal.json; the fit is kept when they fail."""
     try:
-        files = TX.write_exports(out_dir, export_fits(segments, t_ref, fits, cfg.max_order), t_ref,
-                                 cfg.exports, comment=f"imubench warm-up {rec.data['started']}")
+        files = TX.write_exports(out_dir, export_fits(segments, t_ref, fits, cfg.max_order, parts), t_ref,
+                                 cfg.exports, comment=f"imubench warm-up {rec.data['started']}", parts=parts)
     except (WarmupError, OSError) as e:           # the exports say why they are missing
         rec.update(exports={"error": str(e)})
         say(f"exports not written: {e}")
@@ -406,7 +418,7 @@ def _fmt(v) -> str:
     return "/".join(f"{x:.1f}" for x in v)
 
 
-def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -> str:
+def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref, parts: BoardParts) -> str:
     cfg = st.cfg
     next_say = 0.0          # the progress line is due at every multiple of fit_every_s of device time
     prog = None
@@ -429,7 +441,7 @@ def _stream(dev, st: _State, rec: WarmupRecord, say, on_progress, stop, t_ref) -
         if st.elapsed_s - st.last_fit_s >= cfg.fit_every_s and len(b) >= MIN_BINS_TO_FIT:
             st.last_fit_s = st.elapsed_s
             try:
-                st.fits = fit_bins([(np.array(POSES[cfg.face], float), b)], t_ref, cfg.max_order)
+                st.fits = fit_bins([(np.array(POSES[cfg.face], float), b)], t_ref, cfg.max_order, parts)
             except WarmupError:
                 st.fits = None
         prog = _progress(st, b)
@@ -461,7 +473,7 @@ def _set(p: Params, name: str, value) -> None:
 def params_from_warmup(old: Params, fits: dict, t_ref: dict) -> tuple[Params, list[str]]:
     """The parameter block with the warm-up's terms: c1..c3 per axis, the accelerometer's linear
     scale term where the faces separated it (an axis along gravity on one face: 0, its slope is in
-    c1), the other scale terms kept; the span rounded inwards to whole °C (accel: the ADXL355's;
+    c1), the other scale terms kept; the span rounded inwards to whole °C (accel: the accelerometer's;
     gyro: where all three gyros were). t_ref: the device's unless asked otherwise (then b moves
     along the fitted curve). Returns (params, notes); validated (params.validate)."""
     p = Params.from_values(old.values())
@@ -513,7 +525,7 @@ def params_from_warmup(old: Params, fits: dict, t_ref: dict) -> tuple[Params, li
 def expected_calibrated(p: Params, raw_accel, raw_gyro, temps) -> tuple[np.ndarray, np.ndarray]:
     """The device's model (docs/conventions.md; imubench.wire.params.correct, with the clamp) on
     the host: calibrated accel and gyro from nominal-scaled raw means (3,), at the temperatures
-    (4,) (ADXL355, gyro X, Y, Z)."""
+    (4,) (the accelerometer's, gyro X, Y, Z)."""
     a = PR.correct(PR.accel(p), np.asarray(raw_accel, float)[None, :], np.array([temps[0]]))
     g = PR.correct(PR.gyro(p), np.asarray(raw_gyro, float)[None, :], np.asarray(temps[1:4], float)[None, :],
                    accel_mps2=a)

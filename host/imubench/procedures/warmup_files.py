@@ -14,6 +14,7 @@ from imubench.analysis.thermal_poly import Binned
 from imubench.files import MAX_JSON_BYTES, read_text
 from imubench.procedures.warmup import CAPTURE_NAME, WarmupConfig, WarmupError, _State, fit_bins
 from imubench.results.thermal_warmup import WarmupRecord
+from imubench.wire.board_parts import BoardParts
 from imubench.wire.decoder import StreamDecoder
 
 
@@ -68,4 +69,5 @@ def fit_warmups(dirs: Sequence, t_ref_c: float | None = None, max_order: int = 3
     uids = {(x[2].get("device") or {}).get("mcu_uid") for x in loaded}
     if len(uids) > 1:
         raise WarmupError(f"the warm-ups come from different devices ({', '.join(sorted(str(u) for u in uids))})")
-    return fit_bins([(d, b) for d, b, _ in loaded], t_ref, max_order), t_ref, [x[2] for x in loaded]
+    parts = BoardParts.of_device(loaded[0][2].get("device"))     # one device: its parts, as it reported them
+    return fit_bins([(d, b) for d, b, _ in loaded], t_ref, max_order, parts), t_ref, [x[2] for x in loaded]

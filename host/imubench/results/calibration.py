@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
+from imubench.calib.fit import accel_method_words
 from imubench.results.atomic import save_figure
 from imubench.results.numbers import pm
 from imubench.files import make_dir
@@ -67,8 +68,7 @@ def _uid(result: dict) -> str:
 
 
 def _method(result: dict) -> str:
-    m = result.get("method", "?")
-    return {"six": "six-position", "multi": "multi-position"}.get(m, str(m))
+    return accel_method_words(result.get("method", "?"))
 
 
 # ------------------------------------------------------------------ plot

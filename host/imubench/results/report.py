@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from imubench import units as U
+from imubench.calib.fit import accel_method_words, fit_text   # the front door's one list of methods
 
 from imubench.results.atomic import write_text_atomic
 from imubench.results.numbers import pm as _pm_sigma
@@ -110,15 +111,6 @@ def _device_section(state: dict, result: dict | None) -> str:
     return _table(["", "value"], rows, left=2)
 
 
-FIT_METHODS = {"six_position": "six-position least squares (full M and b)",
-               "multi_position": "multi-position |a| = g (3 biases, 3 scales, 3 non-orthogonality angles)",
-               "bias": "bias at rest (scale and misalignment not estimated)",
-               "turntable": "turntable (known rates about each axis, both ways)",
-               "rotation": "rotation method (gyro integrated between attitudes)",
-               "turns": "known-angle turns (Ferraris: hand turns of a known angle about the vertical)",
-               "turns+rotation": "known-angle turns and the rotation method, combined (inverse-covariance)"}
-
-
 def _fit_table(fit: dict, kind: str) -> str:
     """M (dimensionless; the scale error M_ii − 1 in ppm) and b in SI and usual units, every
     estimate ± 1σ to the precision its σ allows; entries the model does not estimate say so."""
@@ -151,7 +143,7 @@ def _fit_table(fit: dict, kind: str) -> str:
             esc(bu[0]) + " ± 1σ", esc(bu[1]) + " ± 1σ"]
     out = _table(head, rows)
     method = fit.get("method", "?")
-    facts = [f"method: <b>{esc(FIT_METHODS.get(method, method))}</b>"]
+    facts = [f"method: <b>{esc(fit_text(method))}</b>"]
     rr = _f(fit.get("residual_rms_mps2", fit.get("residual_rms")))
     extra = fit.get("extra") if isinstance(fit.get("extra"), dict) else {}
     if math.isfinite(rr):
@@ -230,7 +222,7 @@ def _calibration_section(session_dir: Path, state: dict) -> str:
     out.append("<h3>Device</h3>" + _device_section(state, result))
     method = (result or {}).get("method", cfg.get("method"))
     gyro_method = (result or {}).get("gyro_method", cfg.get("gyro"))
-    out.append(f"<p>accelerometer method: <b>{esc({'six': 'six-position', 'multi': 'multi-position'}.get(method, method))}</b>; "
+    out.append(f"<p>accelerometer method: <b>{esc(accel_method_words(method))}</b>; "
                f"gyro method: <b>{esc(gyro_method if gyro_method else 'none')}</b>; "
                f"rate {esc(_num(cfg.get('rate_hz'), '{:g}'))} Hz, hold {esc(_num(cfg.get('hold_s'), '{:g}'))} s per pose</p>")
     note = (result or {}).get("note", cfg.get("note"))

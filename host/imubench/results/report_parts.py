@@ -7,6 +7,7 @@ import tempfile
 from pathlib import Path
 
 from imubench import units as U
+from imubench.wire.board_parts import BoardParts
 
 from imubench.results.numbers import pm as _pm_sigma
 from imubench.results.report_html import (
@@ -253,7 +254,9 @@ def _thermal_section(path: Path | None, session_uid: str | None = None) -> str:
                          esc(_num(max(rates) if rates else None, "{:.3f}")),
                          esc(f"{_num(t0, '{:.1f}')} – {_num(t1, '{:.1f}')}")]
                         + [pm(g, s, ".4f", RAD2DEG) for g, s in zip(seq(p.get("gyro_rest_rad_s")), seq(gs))])
-        out.append(_table(["set [°C]", "ADXL355 [°C]", "gyro X / Y / Z [°C]", "settled after [s]",
+        parts = BoardParts.of_device(data.get("device"))     # the board's parts, as it reported them
+        out.append(_table(["set [°C]", f"{parts.accel.name} [°C]", f"gyro X / Y / Z ({parts.gyro_words}) [°C]",
+                           "settled after [s]",
                            "max |dT/dt| [°C/min]", "measured, device time [s]", "gyro at rest x [°/s]",
                            "y [°/s]", "z [°/s]"], rows, left=0))
         out.append("<p>Temperatures are the sensors' own readings (the fit uses them, not the set point); "

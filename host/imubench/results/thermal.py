@@ -13,6 +13,7 @@ from imubench.results.atomic import save_figure, write_json_atomic
 from imubench.results.numbers import pm
 from imubench.results.record import now_utc
 from imubench.files import make_dir
+from imubench.wire.board_parts import BoardParts
 
 THERMAL_SCHEMA = 1
 
@@ -134,7 +135,7 @@ def format_drift(before: dict, after: dict | None) -> str:
 
 def plot_thermal(data: dict, path) -> Path | None:
     """PNG of a thermal.json: each gyro's rest rate against its own temperature, and the
-    accelerometer's level (+Z up) means against the ADXL355 temperature, with the fitted
+    accelerometer's level (+Z up) means against its own temperature, with the fitted
     temperature coefficients as lines through the points' mean. None when there are fewer
     than two points."""
     pts = [p for p in data.get("points") or [] if isinstance(p, dict)]
@@ -158,7 +159,7 @@ def plot_thermal(data: dict, path) -> Path | None:
             tt = np.array([tg.min(), tg.max()])
             ax_g.plot(tt, g.mean() + coef * deg * (tt - tg.mean()), "--", color=colors[k], lw=1,
                       label=f"fit: {coef * deg * 1e3:+.3g} m°/s/°C")
-    ax_g.set_xlabel("gyro temperature (°C, each gyro's own)")
+    ax_g.set_xlabel(f"gyro temperature (°C, each gyro's own: {BoardParts.of_device(data.get('device')).gyro_words})")
     ax_g.set_ylabel("rate at rest (°/s, nominal scaling)")
     ax_g.set_title("gyro bias against temperature", fontsize=10)
     ta = np.array([p["accel_temp_c"] for p in pts], dtype=float)
@@ -177,7 +178,7 @@ def plot_thermal(data: dict, path) -> Path | None:
                 ax_a.plot(tt, slope * 1e3 / U.G0_MPS2 * (tt - ta.mean()), "--", color=colors[k], lw=1,
                           label=(f"fit: bias {coef * 1e6 / U.G0_MPS2:+.3g} µg/°C"
                                  + (f" + scale {stc * 1e6:+.3g} ppm/°C × 1 g" if k == 2 else "")))
-    ax_a.set_xlabel("ADXL355 temperature (°C)")
+    ax_a.set_xlabel(f"{BoardParts.of_device(data.get('device')).accel.name} temperature (°C)")
     ax_a.set_ylabel("change of the level mean (mg)")
     ax_a.set_title("accelerometer, level, against temperature", fontsize=10)
     for ax in (ax_g, ax_a):

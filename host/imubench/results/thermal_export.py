@@ -38,6 +38,8 @@ from imubench.analysis.thermal_poly import AxisFit, shift_poly
 from imubench.results.atomic import write_text_atomic
 from imubench.results.exports import names
 from imubench.text import comment as comment_line
+from imubench.wire.board_parts import DEFAULT as DEFAULT_PARTS
+from imubench.wire.board_parts import BoardParts
 
 KINDS = names("thermal")          # the export registry's (results.exports)
 AP_TREF_C = 35.0          # ArduPilot's TEMP_REFERENCE
@@ -69,16 +71,18 @@ def _dropped(fits: dict) -> list[str]:
     return out
 
 
-def px4_text(fits: dict, t_ref: dict, gyro_temp: str, comment: str = "") -> str:
-    """QGroundControl parameter file (tab separated) with TC_A0_* and TC_G0_*."""
+def px4_text(fits: dict, t_ref: dict, gyro_temp: str, comment: str = "", parts: BoardParts = DEFAULT_PARTS) -> str:
+    """QGroundControl parameter file (tab separated) with TC_A0_* and TC_G0_*; parts: the board's,
+    named with the temperatures."""
     rows = [comment_line(comment or "imubench warm-up temperature calibration"),
             "# PX4 temperature_compensation: offset = X0 + X1*dT + X2*dT^2 + X3*dT^3, dT = clamp(T, TMIN, TMAX) - TREF;",
             "# corrected = (raw - offset - CAL_*_OFF) * CAL_*_SCALE; m/s^2 (TC_A0) and rad/s (TC_G0).",
             "# X0 = 0: the offset at TREF stays in CAL_ACC0_xOFF / CAL_GYRO0_xOFF (imubench calibrate --export px4).",
             "# TC_A0_ID / TC_G0_ID: replace 0 with the PX4 device id of the sensor (CAL_ACC0_ID / CAL_GYRO0_ID).",
-            "# TC_A0: against the ADXL355 temperature. TC_G0: PX4 has one temperature per gyro sensor; ours are three",
-            comment_line(f"ADXRS450s: these coefficients are fitted against {gyro_temp}, the temperature the driver "
-                         "must report."),
+            f"# TC_A0: against the {parts.accel.name} temperature. TC_G0: PX4 has one temperature per gyro sensor; "
+            "ours are three",
+            comment_line(f"{parts.gyro_words} gyros: these coefficients are fitted against {gyro_temp}, the temperature "
+                         "the driver must report."),
             "# PX4 holds: a bias polynomial of order <= 3 per axis about TREF, clamped to TMIN..TMAX, one per sensor;",
             f"# ours: orders accel {_orders(fits['accel'])}, gyro {_orders(fits['gyro'])} (x/y/z).",
             "# PX4 cannot hold: scale temperature terms, a temperature per gyro axis."]
@@ -126,15 +130,17 @@ def ardupilot_text(fits: dict, t_ref: dict, imu_temp: str, comment: str = "") ->
 
 
 def write_exports(out_dir, fits_by_kind: dict, t_ref: dict, kinds, comment: str = "",
-                  prefix: str = "warmup") -> dict:
+                  prefix: str = "warmup", parts: BoardParts = DEFAULT_PARTS) -> dict:
     """Write the asked files into out_dir: fits_by_kind[kind] = (fits, temperature words) with the
-    gyro fitted against the temperature that firmware uses. Returns {kind: [path]}."""
+    gyro fitted against the temperature that firmware uses; parts: the board's (named in the
+    files). Returns {kind: [path]}."""
     from imubench.results import exports as X
     out = {}
     for kind in kinds:
         fits, temp = fits_by_kind[kind]
         path = Path(out_dir) / X.file_names("thermal", kind, prefix)[0]
-        text = px4_text(fits, t_ref, temp, comment) if kind == "px4" else ardupilot_text(fits, t_ref, temp, comment)
+        text = (px4_text(fits, t_ref, temp, comment, parts) if kind == "px4" else
+                ardupilot_text(fits, t_ref, temp, comment))
         out[kind] = [write_text_atomic(path, X.stamp(text, X.get("thermal", kind)))]
     if out:
         X.write_index(out_dir, "thermal", out, comment or "warm-up temperature calibration")

@@ -15,12 +15,19 @@ from imubench.results.numbers import pm
 from imubench.results.record import now_utc
 from imubench.results.thermal import _js
 from imubench.files import make_dir
+from imubench.wire.board_parts import DEFAULT as DEFAULT_PARTS
+from imubench.wire.board_parts import BoardParts
 
 WARMUP_SCHEMA = 1
 KIND = "imubench thermal warmup"
-SENSORS = ("ADXL355", "gyro X", "gyro Y", "gyro Z")
-TRIADS = {"accel": ("m/s^2", "the ADXL355 temperature (all three axes)"),
-          "gyro": ("rad/s", "each ADXRS450's own temperature (gyro X, Y, Z)")}
+UNITS = {"accel": "m/s^2", "gyro": "rad/s"}
+
+
+def temperature_words(triad: str, parts: BoardParts = DEFAULT_PARTS) -> str:
+    """The temperature a triad is fitted against, named with the board's parts."""
+    if triad == "accel":
+        return f"the {parts.accel.name} temperature (all three axes)"
+    return f"each {parts.gyro_words}'s own temperature (gyro X, Y, Z)"
 
 
 def axis_json(a: AxisFit) -> dict:
@@ -63,19 +70,20 @@ def polyfit_from_json(a: dict, t_ref_c: float) -> PolyFit:
                    rw_timelines=[(np.asarray(T, float), np.asarray(t, float)) for T, t in a.get("rw_timelines") or []])
 
 
-def fit_json(fits: dict, t_ref: dict) -> dict:
+def fit_json(fits: dict, t_ref: dict, parts: BoardParts = DEFAULT_PARTS) -> dict:
     """{"accel": {...}, "gyro": {...}}: per triad the unit (coefficient i in unit/°C^i), the
-    temperature each axis is fitted against, t_ref_c and the three axes (axis_json)."""
+    temperature each axis is fitted against (named with the board's parts), t_ref_c and the
+    three axes (axis_json)."""
     out = {}
     for triad, axes in fits.items():
-        unit, temp = TRIADS[triad]
+        unit, temp = UNITS[triad], temperature_words(triad, parts)
         out[triad] = {"unit": unit, "coef_unit": f"{unit} per degC^i (coef[i])", "temperature": temp,
                       "t_ref_c": t_ref[triad], "axes": [axis_json(a) for a in axes]}
     return out
 
 
 def bins_json(b: Binned) -> dict:
-    """The bins of a run (device time, temperatures ADXL355/gyro X/Y/Z, accel and gyro means and σ)."""
+    """The bins of a run (device time, temperatures: accelerometer, gyro X/Y/Z; accel and gyro means and σ)."""
     return _js({"t_s": b.t_s, "temp_c": b.temp_c, "accel_mps2": b.mean[:, :3], "gyro_rad_s": b.mean[:, 3:6],
                 "accel_sigma_mps2": b.sigma[:, :3], "gyro_sigma_rad_s": b.sigma[:, 3:6], "n": b.n})
 
@@ -116,7 +124,7 @@ def _rate(r) -> str:
 
 
 def format_progress(p: dict) -> str:
-    """One line: device time, the four temperatures (ADXL355, gyro X/Y/Z), their rates, the span
+    """One line: device time, the four temperatures (accelerometer, gyro X/Y/Z), their rates, the span
     each covered, and the orders fitted so far (accel x/y/z, gyro x/y/z)."""
     span = " ".join(f"{lo:.1f}..{hi:.1f}" for lo, hi in p["span_c"])
     s = (f"{p['elapsed_s']:6.0f} s  T {_temps(p['temp_c'])} °C  dT/dt {'/'.join(_rate(r) for r in p['rate_c_per_min'])}"
@@ -171,6 +179,7 @@ def plot_warmup(data: dict, path) -> Path | None:
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 2)
     temp = np.asarray(bins["temp_c"], float)
+    parts = BoardParts.of_device(data.get("device"))     # the parts the board reported, named on the axes
     colors = ("tab:red", "tab:green", "tab:blue")
     for ax, triad, key in ((axes[0], "accel", "accel_mps2"), (axes[1], "gyro", "gyro_rad_s")):
         k, u = _SHOW[triad]
@@ -190,7 +199,8 @@ def plot_warmup(data: dict, path) -> Path | None:
             f = poly_eval(c, tt, d["t_ref_c"])
             ax.plot(tt, f * k, "-", color=colors[i], lw=1.2, label=f"{'xyz'[i]} fit, order {a['order']}")
             ax.fill_between(tt, (f - sg) * k, (f + sg) * k, color=colors[i], alpha=0.2, lw=0)
-        ax.set_xlabel("ADXL355 temperature (°C)" if triad == "accel" else "gyro temperature (°C, each its own)")
+        ax.set_xlabel(f"{parts.accel.name} temperature (°C)" if triad == "accel" else
+                      f"gyro temperature (°C, each its own: {parts.gyro_words})")
         ax.set_ylabel(f"bias − bias at t_ref ({u})")
         ax.set_title(f"{triad}: warm-up bins and fitted polynomial (t_ref {d['t_ref_c']:g} °C)", fontsize=10)
         ax.grid(True, alpha=0.3)

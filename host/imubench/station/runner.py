@@ -10,14 +10,15 @@ import threading
 import time
 from pathlib import Path
 
-from imubench.calib.fit import gyro_method_names
+from imubench.calib.fit import accel_method_names, data_needed, gyro_method_names
+from imubench.wire.board_parts import any_board_c
 from imubench.errors import ImubenchError
 from imubench.station.presenter import SessionStopped, WebPresenter
 from imubench.station.security import PortPolicy, StationError, bool_field, int_field, number_field, text_field
 from imubench.station.state import Refused, StationState
 
 SIM_KEY = "sim"
-METHODS = ("multi", "six")
+METHODS = accel_method_names(live=True)     # calib.fit.ACCEL_METHOD_LIST: the accelerometer methods of a session
 GYRO_METHODS = gyro_method_names(live=True)   # calib.fit.GYRO_METHODS: those a session on a device can use
 CAPTURES = ("adaptive", "plan")
 OPTIONS = ("port", "method", "gyro", "capture", "write", "note", "rate_hz")
@@ -25,7 +26,8 @@ NOTE_CHARS = 500
 WARMUP_OPTIONS = ("port", "span_lo_c", "span_hi_c", "face", "write", "rate_hz")
 FACES = ("+z", "-z", "+x", "-x", "+y", "-y")
 WARMUP_SPAN_C = (5.0, 45.0)          # the span a warm-up asks for unless the page says otherwise
-WARMUP_LIMITS_C = (-40.0, 85.0)      # the sensors' operating range (ADXL355, ADXRS450 data sheets)
+# a warm-up's span before its board said which parts it has: what every part of the table works in
+WARMUP_LIMITS_C = any_board_c()     # (then run_warmup checks it against the parts the device reported)
 PROGRESS_MIN_INTERVAL_S = 0.2        # a warm-up's progress reaches the pages at most five times a second
 __all__ = ["Station", "StationError", "SIM_KEY"]
 
@@ -363,7 +365,7 @@ class Station:
             cfg = SessionConfig(method=o["method"], gyro=None if o["gyro"] == "none" else o["gyro"],
                                 rate_hz=o["rate_hz"], write=o["write"], note=o["note"],
                                 adaptive=o["capture"] == "adaptive", pose_timeout_s=None)
-            ui.turns_total = 6 * len(cfg.turntable_rates_dps) if cfg.gyro == "turntable" else 0
+            ui.turns_total = 6 * len(cfg.turntable_rates_dps) if "turntable" in data_needed(cfg.method, cfg.gyro) else 0
             if o["method"] == "six":
                 ui.say("warning: six-position needs a square fixture (a machined cube against a square); held by "
                        "hand its faces are degrees off square and the fit fails: use multi")

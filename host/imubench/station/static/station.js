@@ -388,7 +388,11 @@
   // ------------------------------------------------------------------ a temperature warm-up
   // run_warmup's progress (procedures.warmup: elapsed_s, temp_c[4], rate_c_per_min[4],
   // span_c[4][2], fit per triad {order, heldout_rms}), then its result
-  const SENSORS = ["ADXL355", "gyro X", "gyro Y", "gyro Z"];
+  // the four temperatures, named with the parts the board reported (b.device.parts: accel, gyro X, Y, Z)
+  function sensorNames(b) {
+    const p = (b && b.device && b.device.parts) || [];
+    return [p[0] || "accelerometer"].concat(["X", "Y", "Z"].map((a, i) => `gyro ${a}` + (p[i + 1] ? ` ${p[i + 1]}` : "")));
+  }
   async function startWarmup(port, lo, hi, face, write) {
     const body = { port: port, span_lo_c: Number(lo), span_hi_c: Number(hi), face: face, write: !!write };
     if (!isFinite(body.span_lo_c) || !isFinite(body.span_hi_c) || lo === "" || hi === "") throw new Error("give the span as two temperatures in °C");
@@ -440,6 +444,7 @@
     const T = P.temp_c || [], Rt = P.rate_c_per_min || [], S = P.span_c || [];
     const bars = [];
     let rows = "<tr><th>sensor</th><th>now</th><th>rate</th><th>covered</th><th>of the span asked</th></tr>";
+    const SENSORS = sensorNames(b);
     for (let i = 0; i < 4; i++) {
       const s = S[i] || [null, null];
       const a = s[0] == null ? 0 : Math.max(0, Math.min(1, (s[0] - lo) / (hi - lo)));
@@ -447,7 +452,7 @@
       const now = T[i] == null ? null : Math.max(0, Math.min(1, (T[i] - lo) / (hi - lo)));
       const full = s[0] != null && s[0] <= lo + 0.5 && s[1] >= hi - 0.5;
       const r = Rt[i];
-      rows += `<tr><td>${SENSORS[i]}</td><td>${fmt(T[i], 2)} °C</td>` +
+      rows += `<tr><td>${esc(SENSORS[i])}</td><td>${fmt(T[i], 2)} °C</td>` +
         `<td class="${r == null ? "" : Math.abs(r) < (C.stop_rate_c_per_min || 0.05) ? "flat" : "rising"}">${r == null ? "–" : (r >= 0 ? "+" : "") + fmt(r, 2)} °C/min</td>` +
         `<td>${s[0] == null ? "–" : `${fmt(s[0], 1)}–${fmt(s[1], 1)} °C`}</td>` +
         `<td class="span-cell"><div class="span-bar"><div class="span-covered${full ? " full" : ""}"></div>` +
