@@ -131,3 +131,92 @@ def test_a_constant_axis_is_said_not_an_internal_error(tmp_path, capsys):
                      "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err
     assert "the gyro's axis x: its samples do not vary" in err and "internal error" not in err
+
+
+def _moving_counts_csv(path, seed: int = 8) -> None:
+    """Raw counts (exact in float32) of 30 s still, a 4 s turn about the vertical that only the gyro sees,
+    70 s still, a 3 s shove the accelerometer sees, 25 s still: three stretches, the middle one longest."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    for k, (still_s, move) in enumerate(((30, "turn"), (70, "shove"), (25, None))):
+        n = int(still_s * FS_HZ)
+        parts.append((rng.normal(0, 40, (n, 3)) + [0, 0, 16384], rng.normal(0, 8, (n, 3))))
+        if move:
+            m = int((4 if move == "turn" else 3) * FS_HZ)
+            a, g = rng.normal(0, 40, (m, 3)) + [0, 0, 16384], rng.normal(0, 8, (m, 3))
+            bump = np.sin(np.linspace(0, np.pi, m))
+            if move == "turn":
+                g[:, 2] += 131.0 * 180.0 * bump            # ~180 °/s at its peak, gravity unmoved
+            else:
+                a[:, 0] += 8000.0 * bump                   # ~0.5 g along x
+            parts.append((a, g))
+    acc, gyr = np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
+    with open(path, "w") as f:
+        f.write("t_s,ax,ay,az,gx,gy,gz\n")
+        np.savetxt(f, np.column_stack([np.arange(len(acc)) / FS_HZ, np.round(acc), np.round(gyr)]),
+                   delimiter=",", fmt=["%.3f"] + ["%d"] * 6)
+
+
+def test_small_budget_finds_the_same_still_stretch_a_block_at_a_time(tmp_path, monkeypatch):
+    """A recording with a turn and a shove: under a budget too small for the in-memory search (float64
+    SI copies), the still stretch is found a block at a time on the float32 values (blocks of ~2000 rows:
+    the runs and the gyro's cuts are carried across blocks; runs over 3000 samples have their drift from
+    block sums) and is the in-memory one exactly; the read-offs agree within 1e-9."""
+    import imubench.calib.static as static
+    import imubench.calib.still_blocks as still_blocks
+    monkeypatch.setattr("imubench.procedures.allan.plot_allan", lambda *a, **k: None)
+    monkeypatch.setattr(static, "VAR_BLOCK_ROWS", 2000)
+    monkeypatch.setattr(still_blocks, "EXACT_ROWS", 3000)
+    calls = []
+    real = still_blocks.still_pieces
+    monkeypatch.setattr(still_blocks, "still_pieces", lambda *a, **k: calls.append(1) or real(*a, **k))
+    f = tmp_path / "moving.csv"
+    _moving_counts_csv(f)
+    opts = dict(accel_unit="counts", gyro_unit="counts", accel_counts_per_g=16384.0, gyro_counts_per_dps=131.0)
+    ref = read(f, **opts)
+    small = memory.BASE_BYTES + 1_500_000      # float32 storage (1.1 MB), no float64 SI copy
+    low = read(f, memory_budget=small, **opts)
+    n = len(ref)
+    assert low.accel.dtype == np.float32 and not memory.still_in_memory(n, low.accel.nbytes * 2, small)
+    r1 = analyse_recording(ref, tmp_path / "ref", log=lambda s: None)
+    assert not calls                                        # the default budget searches in memory
+    r2 = analyse_recording(low, tmp_path / "low", log=lambda s: None, memory_budget=small)
+    assert calls == [1]
+    assert r2["still"] == r1["still"]
+    assert r1["still"]["stretches"] == 3 and r1["still"]["start"] > 34 * FS_HZ and r1["still"]["duration_s"] > 60
+    for kind in ("accel", "gyro"):
+        for ax in "xyz":
+            a, b = r1[kind][ax], r2[kind][ax]
+            np.testing.assert_allclose(b["adev"], a["adev"], rtol=1e-9, atol=0)
+            for key in ("N", "B", "K"):
+                if a[key] is None:
+                    assert b[key] is None
+                else:
+                    assert b[key] == pytest.approx(a[key], rel=1e-9, abs=0), (kind, ax, key)
+
+
+def test_block_search_is_the_in_memory_one_on_float64_and_float32():
+    """still_stretch_blocks against still_stretch on the SI arrays, for float64 storage and for float32
+    storage scaled by a factor, with blocks far smaller than the recording: the same stretch."""
+    import imubench.calib.static as static
+    from imubench.procedures.allan import still_stretch, still_stretch_blocks
+    rng = np.random.default_rng(4)
+    g0 = 9.80665
+    parts = [(rng.normal(0, 2e-3, (n, 3)) + [0, 0, g0], rng.normal(0, 1e-3, (n, 3))) for n in (9000, 14000, 5000)]
+    shove = rng.normal(0, 2e-3, (500, 3)) + [0, 0, g0]
+    shove[:, 1] += 3.0 * np.sin(np.linspace(0, np.pi, 500))
+    acc = np.vstack([parts[0][0], shove, parts[1][0], parts[2][0]])
+    turn = np.zeros((len(acc), 3))
+    turn[9500 + 14000:9500 + 14000 + 400, 2] = 2.0          # a yaw between the second and third rest
+    gyr = np.vstack([parts[0][1], rng.normal(0, 1e-3, (500, 3)), parts[1][1], parts[2][1]]) + turn
+    old = static.VAR_BLOCK_ROWS
+    try:
+        static.VAR_BLOCK_ROWS = 3000
+        for dtype, f in ((np.float64, 1.0), (np.float32, 1.0 / g0)):
+            a, g = (acc * f).astype(dtype), gyr.astype(dtype)
+            ref = still_stretch(a * (1 / f if f != 1.0 else 1.0), g * 1.0, FS_HZ)
+            got = still_stretch_blocks(a, g, FS_HZ, 1 / f if f != 1.0 else 1.0, 1.0)
+            assert got == ref, dtype
+            assert ref["stretches"] == 3 and 9500 <= ref["start"] and ref["stop"] <= 23500, ref   # the second rest
+    finally:
+        static.VAR_BLOCK_ROWS = old
