@@ -220,3 +220,82 @@ def test_block_search_is_the_in_memory_one_on_float64_and_float32():
             assert ref["stretches"] == 3 and 9500 <= ref["start"] and ref["stop"] <= 23500, ref   # the second rest
     finally:
         static.VAR_BLOCK_ROWS = old
+
+
+def _irregular(seed: int, n: int = 20_000):
+    """Time stamps of a logging PC: 0.8 ms RMS jitter on 5 ms steps, a clock 3 % slow for the first half
+    (the grid runs ahead of the samples there), 40 repeated stamps (half with repeated values too) and
+    three gaps; float32 values."""
+    rng = np.random.default_rng(seed)
+    steps = np.full(n - 1, 0.005)
+    steps[: n // 2] *= 1.03
+    steps += rng.normal(0, 0.0008, n - 1).clip(-0.004, 0.004)
+    steps[rng.choice(n - 1, 40, replace=False)] = 0.0
+    steps[[3000, 9000, 15000]] = [0.3, 0.8, 0.05]
+    t = np.concatenate([[10.0], 10.0 + np.cumsum(steps)])
+    a, g = rng.normal(0, 1, (n, 3)), rng.normal(0, 1, (n, 3))
+    rep = np.flatnonzero(steps == 0)[::2] + 1
+    a[rep], g[rep] = a[rep - 1], g[rep - 1]
+    return t, a.astype(np.float32), g.astype(np.float32)
+
+
+def _timing_reference(t, a, g):
+    """What check_timing does, on whole arrays: drop the repeated stamps, then each piece between the
+    gaps onto a grid from its first stamp at the mean step (numpy.interp), in the values' type."""
+    from imubench.recordings import check_timing
+    *_, breaks, timing = check_timing(t, a, g, resample=False)
+    keep = np.concatenate([[True], np.diff(t) != 0])
+    t, a, g = t[keep], a[keep], g[keep]
+    mean = timing["mean_dt_s"]
+    cuts = [gp["index"] for gp in timing["gaps"]]
+    ts, As, Gs = [], [], []
+    for p0, p1 in zip([0] + cuts, cuts + [len(t)]):
+        grid = t[p0] + np.arange(int(np.floor((t[p1 - 1] - t[p0]) / mean + 1e-9)) + 1) * mean
+        ts.append(grid)
+        As.append(np.column_stack([np.interp(grid, t[p0:p1], a[p0:p1, j]) for j in range(3)]).astype(a.dtype))
+        Gs.append(np.column_stack([np.interp(grid, t[p0:p1], g[p0:p1, j]) for j in range(3)]).astype(g.dtype))
+    return np.concatenate(ts), np.concatenate(As), np.concatenate(Gs)
+
+
+@pytest.mark.parametrize("step", [257, 1 << 18])
+def test_repeats_and_resampling_a_block_at_a_time_in_place(monkeypatch, step):
+    """Dropping repeated stamps and resampling a jittery clock, a block of `step` rows at a time: written
+    over a reader's own arrays (in place) or into new ones (the caller's arrays are left alone), both
+    exactly the whole-array computation; the grid running ahead of the samples (the slow half) overwrites
+    rows it still needs, which are kept aside."""
+    import imubench.recordings as recordings
+    monkeypatch.setattr(recordings, "STEP_ROWS", step)
+    t, a, g = _irregular(1)
+    want = _timing_reference(t.copy(), a.copy(), g.copy())
+    mine = (t.copy(), a.copy(), g.copy())
+    copied = recordings.check_timing(*mine)
+    assert np.array_equal(mine[1], a) and np.array_equal(mine[0], t)          # the caller's arrays untouched
+    own = (t.copy(), a.copy(), g.copy())
+    inplace = recordings.check_timing(*own, in_place=True)
+    assert np.shares_memory(inplace[1], own[1]) and np.shares_memory(inplace[0], own[0])
+    for got in (copied, inplace):
+        timing = got[5]
+        assert timing["resampled"] and timing["duplicates"] == 40 and timing["duplicates_identical"] == 20
+        assert len(timing["gaps"]) >= 3 and got[4] == copied[4] and timing["gaps"] == copied[5]["gaps"]
+        for x, y in zip(got[:3], want):
+            assert x.dtype == y.dtype and np.array_equal(x, y)
+
+
+def test_resampling_in_place_holds_no_second_recording(monkeypatch):
+    """200,000 jittery samples read by a reader (from_arrays copy=False): the timing check's peak beyond
+    the recording is its one float64 working column and blocks, not a second recording (56 B a sample)."""
+    import tracemalloc
+
+    import imubench.recordings as recordings
+    monkeypatch.setattr(recordings, "STEP_ROWS", 4096)
+    monkeypatch.setattr(recordings, "BLOCK", 4096)
+    rng = np.random.default_rng(2)
+    n = 200_000
+    t = np.cumsum(0.005 + rng.normal(0, 0.0008, n).clip(-0.004, 0.004))
+    a, g = rng.normal(0, 1, (n, 3)).astype(np.float32), rng.normal(0, 1, (n, 3)).astype(np.float32)
+    tracemalloc.start()
+    rec = recordings.from_arrays(a, g, t_s=t, copy=False)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert rec.timing["resampled"] and np.shares_memory(rec.accel, a)
+    assert peak < 12 * n, f"{peak / n:.1f} B a sample"
