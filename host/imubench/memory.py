@@ -105,15 +105,3 @@ def budget_text(budget_bytes: int | None) -> str:
     per = getattr(b, "per_sample", 0)
     return text(int(b)) + (f" at the {per} B a sample the analysis takes" if per else "")
 
-
-#: the still-stretch search of `allan --from` in memory (procedures.allan.still_stretch), per sample
-#: beyond the recording: float64 SI copies of both sensors (48 B), the product in the stored type
-#: (24-48 B), the detection's columns and the std temporaries of an interval of the whole recording
-STILL_IN_MEMORY_BYTES = 160
-
-
-def still_in_memory(n: int, held_bytes: int, budget_bytes: int | None = None) -> bool:
-    """True when the in-memory still-stretch search of n samples fits the budget beside the held_bytes
-    the recording takes; else it runs a block at a time (calib.still_blocks: one float64 working column)."""
-    b = DEFAULT_BUDGET_BYTES if budget_bytes is None else int(budget_bytes)
-    return BASE_BYTES + held_bytes + n * STILL_IN_MEMORY_BYTES <= b

@@ -158,32 +158,30 @@ def _moving_counts_csv(path, seed: int = 8) -> None:
 
 
 def test_small_budget_finds_the_same_still_stretch_a_block_at_a_time(tmp_path, monkeypatch):
-    """A recording with a turn and a shove: under a budget too small for the in-memory search (float64
-    SI copies), the still stretch is found a block at a time on the float32 values (blocks of ~2000 rows:
-    the runs and the gyro's cuts are carried across blocks; runs over 3000 samples have their drift from
-    block sums) and is the in-memory one exactly; the read-offs agree within 1e-9."""
+    """A recording with a turn and a shove, read under the default budget (float64) and under one that
+    forces float32 storage and the chunked Allan sums: allan --from finds its still stretch a block at a
+    time on either storage (blocks of ~2000 rows: the runs and the gyro's cuts are carried across
+    blocks; runs over 3000 samples have their drift from block sums), and it is the stretch of the
+    in-memory search (still_stretch on float64 SI copies) exactly; the read-offs agree within 1e-9."""
     import imubench.calib.static as static
     import imubench.calib.still_blocks as still_blocks
+    from imubench.procedures.allan import still_stretch
     monkeypatch.setattr("imubench.procedures.allan.plot_allan", lambda *a, **k: None)
     monkeypatch.setattr(static, "VAR_BLOCK_ROWS", 2000)
     monkeypatch.setattr(still_blocks, "EXACT_ROWS", 3000)
-    calls = []
-    real = still_blocks.still_pieces
-    monkeypatch.setattr(still_blocks, "still_pieces", lambda *a, **k: calls.append(1) or real(*a, **k))
     f = tmp_path / "moving.csv"
     _moving_counts_csv(f)
     opts = dict(accel_unit="counts", gyro_unit="counts", accel_counts_per_g=16384.0, gyro_counts_per_dps=131.0)
     ref = read(f, **opts)
-    small = memory.BASE_BYTES + 1_500_000      # float32 storage (1.1 MB), no float64 SI copy
+    small = memory.BASE_BYTES + 1_500_000      # float32 storage (1.1 MB), no float64 copy of an axis
     low = read(f, memory_budget=small, **opts)
-    n = len(ref)
-    assert low.accel.dtype == np.float32 and not memory.still_in_memory(n, low.accel.nbytes * 2, small)
+    assert ref.accel.dtype == np.float64 and low.accel.dtype == np.float32
+    in_memory = still_stretch(ref.accel * ref.accel_factor(), ref.gyro * ref.gyro_factor(), ref.fs_hz)
     r1 = analyse_recording(ref, tmp_path / "ref", log=lambda s: None)
-    assert not calls                                        # the default budget searches in memory
     r2 = analyse_recording(low, tmp_path / "low", log=lambda s: None, memory_budget=small)
-    assert calls == [1]
-    assert r2["still"] == r1["still"]
-    assert r1["still"]["stretches"] == 3 and r1["still"]["start"] > 34 * FS_HZ and r1["still"]["duration_s"] > 60
+    assert r2["method"].startswith("chunked sums") and r1["method"] == "allantools.oadev in memory"
+    assert r2["still"] == r1["still"] == in_memory
+    assert in_memory["stretches"] == 3 and in_memory["start"] > 34 * FS_HZ and in_memory["duration_s"] > 60
     for kind in ("accel", "gyro"):
         for ax in "xyz":
             a, b = r1[kind][ax], r2[kind][ax]
