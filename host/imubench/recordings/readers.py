@@ -1214,7 +1214,6 @@ def _rosbag_messages(reader, conns, path: Path, budget: int | None):
     float32 values by the budget). Each message is read at the offsets of its layout (_imu_offsets,
     checked against the full deserializer on the first message of each connection and whenever the
     layout changes), else deserialized; a tqdm bar counts the messages on reads over a second."""
-    import struct
     counts = [getattr(r, "counts", None) for r in getattr(reader, "readers", [])]
     if counts and all(x is not None for x in counts):             # ROS 1 (_ros1_reader): counted
         total = sum(x.get(c.id, 0) for x in counts for c in conns)
@@ -1234,14 +1233,43 @@ def _rosbag_messages(reader, conns, path: Path, budget: int | None):
     known: dict = {}
     k = 0
     bar = _progress(total, f"reading {path.name}", unit="msg") if total > 100_000 else None
-    unpack = struct.unpack_from
+    # messages of one layout are gathered and decoded together, a block at a time (numpy views of
+    # their bytes at the layout's offsets: the same values as struct.unpack_from, without a Python
+    # call for each number); one that changes the layout, or needs the deserializer, ends a block
+    block: list = []
+    stamps: list = []
+    layout = None                                   # (offsets, length) of the block's messages
+
+    def room(m: int) -> None:
+        nonlocal t, recv, a, g
+        if k + m > len(t):
+            if total:
+                raise RecordingError(f"{path}: more messages than the bag's index counts ({total}); damaged?")
+            size = max(2 * len(t), k + m)
+            t, recv = np.resize(t, size), np.resize(recv, size)
+            a, g = np.resize(a, (size, 3)), np.resize(g, (size, 3))
+
+    def flush() -> None:
+        nonlocal k
+        m = len(block)
+        if not m:
+            return
+        room(m)
+        (o0, o1, o2), length = layout
+        raw = np.frombuffer(b"".join(block), np.uint8).reshape(m, length)
+        sec = raw[:, o0:o0 + 4].copy().view("<i4")[:, 0].astype(np.float64)
+        nsec = raw[:, o0 + 4:o0 + 8].copy().view("<u4")[:, 0].astype(np.float64)
+        t[k:k + m] = sec + 1e-9 * nsec
+        g[k:k + m] = raw[:, o1:o1 + 24].copy().view("<f8")
+        a[k:k + m] = raw[:, o2:o2 + 24].copy().view("<f8")
+        recv[k:k + m] = np.array(stamps, dtype=np.int64) * 1e-9
+        k += m
+        block.clear()
+        stamps.clear()
+        if bar is not None:
+            bar.update(m)
     try:
         for c, ts, raw in reader.messages(connections=conns):
-            if k == len(t):
-                if total:
-                    raise RecordingError(f"{path}: more messages than the bag's index counts ({total}); damaged?")
-                t, recv = np.resize(t, 2 * k), np.resize(recv, 2 * k)
-                a, g = np.resize(a, (2 * k, 3)), np.resize(g, (2 * k, 3))
             key = (c.id, len(raw))
             off = known.get(key, False)
             if off is False:
@@ -1249,20 +1277,22 @@ def _rosbag_messages(reader, conns, path: Path, budget: int | None):
                 off = off if off is not None and _offsets_agree(reader, c, raw, off) else None
                 known[key] = off
             if off is not None:
-                sec, nsec = unpack("<iI", raw, off[0]) if len(raw) else (0, 0)
-                t[k] = sec + 1e-9 * nsec
-                g[k] = unpack("<3d", raw, off[1])
-                a[k] = unpack("<3d", raw, off[2])
-            else:
-                m = reader.deserialize(raw, c.msgtype)
-                t[k] = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
-                la, av = m.linear_acceleration, m.angular_velocity
-                a[k] = (la.x, la.y, la.z)
-                g[k] = (av.x, av.y, av.z)
+                if layout != (off, len(raw)) or len(block) >= 16384:
+                    flush()
+                    layout = (off, len(raw))
+                block.append(raw)
+                stamps.append(ts)
+                continue
+            flush()
+            room(1)
+            m = reader.deserialize(raw, c.msgtype)
+            t[k] = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
+            la, av = m.linear_acceleration, m.angular_velocity
+            a[k] = (la.x, la.y, la.z)
+            g[k] = (av.x, av.y, av.z)
             recv[k] = ts * 1e-9
             k += 1
-            if bar is not None and not k % 65536:
-                bar.update(65536)
+        flush()
     except RecordingError:
         raise
     except Exception as e:  # noqa: BLE001 - rosbags raises its own classes for a damaged bag
