@@ -104,3 +104,4 @@ def budget_text(budget_bytes: int | None) -> str:
     b = DEFAULT_BUDGET_BYTES if budget_bytes is None else budget_bytes
     per = getattr(b, "per_sample", 0)
     return text(int(b)) + (f" at the {per} B a sample the analysis takes" if per else "")
+

@@ -66,15 +66,22 @@ def _as_samples(acc) -> np.ndarray:
     return a
 
 
+def _block(a, i: int, j: int) -> np.ndarray:
+    """Rows i..j-1 of an array, or of rows handed out a block at a time (.rows: calib.still_blocks)."""
+    return a.rows(i, j) if hasattr(a, "rows") else a[i:j]
+
+
 def _scale_of(a: np.ndarray) -> float:
     """Typical magnitude of the data (median |a|; for an accelerometer at rest, g in the data's
     unit). Falls back to the largest absolute value for data near zero."""
     norms = np.empty(len(a))                 # a block at a time: no (n, 3) temporary
     for i in range(0, len(a), VAR_BLOCK_ROWS):
-        norms[i:i + VAR_BLOCK_ROWS] = np.linalg.norm(a[i:i + VAR_BLOCK_ROWS], axis=1)
+        norms[i:i + VAR_BLOCK_ROWS] = np.linalg.norm(_block(a, i, i + VAR_BLOCK_ROWS), axis=1)
     s = float(np.median(norms, overwrite_input=True)) if len(a) else 0.0
+    del norms
     if not s > 0:
-        s = float(np.max(np.abs(a))) if a.size else 0.0
+        s = max((float(np.max(np.abs(_block(a, i, i + VAR_BLOCK_ROWS)))) for i in range(0, len(a), VAR_BLOCK_ROWS)),
+                default=0.0)
     return s if s > 0 else 1.0
 
 
@@ -83,12 +90,18 @@ def noise_floor(acc) -> np.ndarray:
     or the quantisation noise (LSB/√12) when the data are visibly quantised, whichever is
     larger. Keeps a noise-free recording usable."""
     a = _as_samples(acc)
-    floor = REL_SIGMA_FLOOR * _scale_of(a)
+    return _noise_floor(a, _scale_of(a))
+
+
+def _noise_floor(a, scale: float) -> np.ndarray:
+    """noise_floor of samples a (an array, or rows handed out a block at a time, whose .sorted(j) is a
+    column sorted in its stored type) whose median |a| is scale."""
+    floor = REL_SIGMA_FLOOR * scale
     out = np.full(3, floor)
     for j in range(3):
-        u = np.sort(a[:, j])                 # the smallest step between distinct values (as of np.unique),
-        steps = [d[d > 0] for d in (np.diff(u[i:i + VAR_BLOCK_ROWS + 1])   # a block at a time
-                                    for i in range(0, max(len(u) - 1, 0), VAR_BLOCK_ROWS))]
+        u = a.sorted(j) if hasattr(a, "rows") else np.sort(a[:, j])   # the smallest step between distinct
+        steps = [d[d > 0] for d in (np.diff(np.asarray(u[i:i + VAR_BLOCK_ROWS + 1], dtype=np.float64))  # values,
+                                    for i in range(0, max(len(u) - 1, 0), VAR_BLOCK_ROWS))]   # a block at a time
         steps = [float(d.min()) for d in steps if d.size]
         del u
         if steps:
@@ -119,18 +132,30 @@ def _window_sums(y: np.ndarray, w: int) -> np.ndarray:
     return (suf + nxt).reshape(nb * w, c)[:nwin]
 
 
+def _column_medians(a) -> np.ndarray:
+    """The median of each column as float64 (np.median of the column); of rows handed out a block
+    at a time (.rows, .median), each column's own median, one column at a time."""
+    if hasattr(a, "rows"):
+        return np.array([a.median(j) for j in range(a.shape[1])], dtype=np.float64)
+    return np.array([np.median(a[:, j]) for j in range(a.shape[1])], dtype=np.float64)
+
+
 #: window starts computed at a time by moving_variance (rounded to a multiple of the window): its
 #: temporaries are a few arrays of this many rows, not of the recording's length
 VAR_BLOCK_ROWS = 1 << 16
 
 
-def _variance_blocks(a: np.ndarray, w: int, centred: bool = True):
+def _variance_blocks(a, w: int, centred: bool = True, ref: np.ndarray | None = None):
     """(start, variances) of moving_variance a block of window starts at a time. Each block starts at a
     multiple of w, where _window_sums restarts its prefix sums, so its sums are those of the whole
-    recording at once, bit for bit."""
-    a = np.asarray(a)
+    recording at once, bit for bit. a: an array, or rows handed out a block at a time (calib.still_blocks
+    .Scaled: a recording's stored values in SI, never copied whole); ref: the column medians (the
+    values are taken about them), when the caller has them."""
+    if not hasattr(a, "rows"):
+        a = np.asarray(a)
     n, c = a.shape
-    ref = np.array([np.median(a[:, j]) for j in range(c)], dtype=np.float64) if n else np.zeros(c)
+    if ref is None:
+        ref = _column_medians(a) if n else np.zeros(c)
     h = w // 2 if centred else 0
     L = n + 2 * h
     nwin = L - w + 1
@@ -141,7 +166,7 @@ def _variance_blocks(a: np.ndarray, w: int, centred: bool = True):
         dp = np.zeros((p1 - p0, c))
         lo, hi = max(p0, h), min(p1, h + n)
         if hi > lo:
-            np.subtract(a[lo - h:hi - h], ref, out=dp[lo - p0:hi - p0])
+            np.subtract(_block(a, lo - h, hi - h), ref, out=dp[lo - p0:hi - p0])
         s1 = _window_sums(dp, w)[:e - s]
         s2 = _window_sums(dp * dp, w)[:e - s]
         if centred:
@@ -243,17 +268,21 @@ def rest_noise(acc, fs_hz: float, window_s: float = 0.5, quantile: float = 0.1) 
     the mean of a chi-square truncated there: a far less noisy estimate than one quantile (it
     uses every still window), still unbiased. Works at any rate; a recording shorter than two
     windows gives its plain std."""
-    a = _as_samples(acc)
+    return _rest_noise(_as_samples(acc), fs_hz, window_s, quantile)
+
+
+def _rest_noise(a, fs_hz: float, window_s: float, quantile: float) -> np.ndarray:
+    """rest_noise of samples a: an array, or rows handed out a block at a time (.rows)."""
     w = max(3, int(round(window_s * fs_hz)))
     nw = len(a) // w
     if nw < 2:
-        return a.std(axis=0, ddof=1) if len(a) > 1 else np.zeros(3)
+        return _block(a, 0, len(a)).std(axis=0, ddof=1) if len(a) > 1 else np.zeros(3)
     nu = w - 1
-    blocks = a[: nw * w].reshape(nw, w, 3)
     v = np.empty((nw, 3))                                # (nw, 3), a few thousand windows at a time
     step = max(1, VAR_BLOCK_ROWS // w)
     for i in range(0, nw, step):
-        v[i:i + step] = blocks[i:i + step].var(axis=1, ddof=1)
+        k = min(nw, i + step)
+        v[i:k] = _block(a, i * w, k * w).reshape(k - i, w, 3).var(axis=1, ddof=1)
     q = float(np.clip(quantile, 0.01, 0.5))
     s0 = np.quantile(np.sqrt(v), q, axis=0) / math.sqrt(2.0 * special.gammaincinv(nu / 2.0, q) / nu)
     cut = 2.0 * special.gammaincinv(nu / 2.0, 0.999) / nu   # χ²_ν's 0.999 quantile / ν, in units of sigma²
@@ -340,8 +369,14 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
 def _intervals_for_k(ratio: np.ndarray, k: float, n: int, h: int, min_n: int):
     """Trimmed still runs for one k: (kept, short). Edges next to motion are trimmed by h
     samples (half a window); the ends of the recording are not."""
+    return _trim_runs(_runs(ratio <= k * k), n, h, min_n)
+
+
+def _trim_runs(runs, n: int, h: int, min_n: int):
+    """(kept, short) of still runs [start, stop): trimmed by h at edges next to motion, kept when
+    min_n samples remain."""
     kept, short = [], []
-    for s, e in _runs(ratio <= k * k):
+    for s, e in runs:
         s2 = s + h if s > 0 else s
         e2 = e - h if e < n else e
         if e2 - s2 >= min_n:

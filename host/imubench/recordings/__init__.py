@@ -194,7 +194,8 @@ def _gaps(t: np.ndarray, long: np.ndarray, step: float) -> tuple[list, int]:
     return out, int(long.size - len(out))
 
 
-def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: bool = True):
+def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: bool = True,
+                 in_place: bool = False):
     """Find and handle what is wrong with a recording's timestamps.
 
     Returns (t, accel, gyro, fs_hz, breaks, timing): timestamps that go backwards are refused
@@ -207,7 +208,13 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
     continuous piece is resampled onto a uniform grid at the mean rate by linear interpolation
     (numpy.interp) between the time stamps: the gyro's integrals (which assume uniform samples)
     then integrate over the time stamps the file has. timing says all of it (counts, jitter,
-    what was done)."""
+    what was done).
+
+    Memory: the checks go a block at a time; dropping repeated samples and resampling write the result
+    over the arrays given when in_place (a reader's own arrays, never the caller's: from_arrays
+    copy=False), else into one new set of arrays of the result's length; either way no mask or index
+    array of the recording's length, and resampling in place keeps aside only the original samples
+    the grid still needs after overwriting them (a block and the clock's lead on the grid)."""
     t = np.asarray(t_s, dtype=np.float64).reshape(-1)
     a, g = _floats(accel), _floats(gyro)
     if len(t) < 3:
@@ -217,29 +224,22 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
         if not fin.all():
             k = i + int(np.flatnonzero(~fin)[0])
             raise RecordingError(f"timestamp of sample {k} is not a number; fix the file")
-    back, first_back, dups = 0, None, []
+    back, first_back, ndup = 0, None, 0
     for i, d in _diffs(t):
         neg = np.flatnonzero(d < 0)
         if neg.size:
             back += neg.size
             first_back = first_back if first_back is not None else i + int(neg[0])
-        dups.append(np.flatnonzero(d == 0) + i + 1)
+        ndup += int(np.count_nonzero(d == 0))
     if back:
         k = first_back
         raise RecordingError(
             f"timestamps go backwards at sample {k + 1} (t = {t[k]:.6f} s, then {t[k + 1]:.6f} s; "
             f"{back} time(s) in all): the file is not in time order (merged or restarted logs?); "
             "sort it by time or cut it at the restart")
-    dup = np.concatenate(dups) if dups else np.empty(0, np.int64)
-    timing: dict = {"n_read": len(t), "duplicates": int(dup.size)}
-    if dup.size:
-        keep = np.ones(len(t), bool)
-        keep[dup] = False
-        same = int(sum(np.array_equal(a[i], a[i - 1]) and np.array_equal(g[i], g[i - 1]) for i in dup))
-        timing["duplicates_identical"] = same
-        t, a, g = t[keep], a[keep], g[keep]
-        del keep
-    del dup, dups
+    timing: dict = {"n_read": len(t), "duplicates": ndup}
+    if ndup:
+        t, a, g, timing["duplicates_identical"] = _drop_repeats(t, a, g, len(t) - ndup, in_place)
     if len(t) < 3:
         raise RecordingError("the timestamps do not advance (median step 0); check the time column and its unit")
     buf = np.diff(t)                                   # the one working array of the recording's length
@@ -277,23 +277,117 @@ def check_timing(t_s, accel, gyro, *, gap_factor: float = GAP_FACTOR, resample: 
     breaks = [(int(k + 1), f"gap of {dt_at[k]:.3f} s ({m} samples missing) at t = {t[k]:.3f} s") for k, m in found]
     timing["resampled"] = False
     if resample and dev_max > JITTER_RESAMPLE:
-        pieces = np.split(np.arange(len(t)), gaps + 1)
-        ts, As, Gs, nb = [], [], [], []
-        n0 = 0
-        for p in pieces:
-            tp = t[p]
-            grid = tp[0] + np.arange(int(math.floor((tp[-1] - tp[0]) / mean + 1e-9)) + 1) * mean
-            ts.append(grid)
-            As.append(np.column_stack([np.interp(grid, tp, a[p, j]) for j in range(3)]).astype(a.dtype, copy=False))
-            Gs.append(np.column_stack([np.interp(grid, tp, g[p, j]) for j in range(3)]).astype(g.dtype, copy=False))
-            if n0:
-                nb.append(n0)
-            n0 += len(grid)
-        t, a, g = np.concatenate(ts), np.concatenate(As), np.concatenate(Gs)
+        t, a, g, nb = _resample(t, a, g, gaps, mean, in_place or ndup > 0)
         breaks = [(i, r) for i, (_, r) in zip(nb, breaks)]
         timing["resampled"] = True
     timing["n_used"] = len(t)
     return t, a, g, fs, breaks, timing
+
+
+#: rows a time the repeats are dropped and the grid interpolated (their copies: a few MB)
+STEP_ROWS = 1 << 18
+
+
+def _drop_repeats(t, a, g, m: int, in_place: bool):
+    """(t, a, g, identical) without the samples whose time stamp repeats the one before (m remain): written
+    over t, a, g from the start when in_place (the rows kept move down; the result is views of their first
+    m rows), else into new arrays of m rows; a block at a time. identical: the dropped samples whose values
+    repeat the sample before them too."""
+    n = len(t)
+    if in_place:
+        t2, a2, g2 = t, a, g
+    else:
+        t2, a2, g2 = np.empty(m), np.empty((m, a.shape[1]), a.dtype), np.empty((m, g.shape[1]), g.dtype)
+    w, same = 0, 0
+    prev = None                                   # the original row before the block: (t, a, g)
+    for i in range(0, n, STEP_ROWS):
+        j = min(n, i + STEP_ROWS)
+        tb, ab, gb = t[i:j].copy(), a[i:j].copy(), g[i:j].copy()
+        rep = np.empty(j - i, bool)
+        rep[1:] = tb[1:] == tb[:-1]
+        rep[0] = prev is not None and tb[0] == prev[0]
+        if rep.any():
+            k = np.flatnonzero(rep)
+            pa = np.concatenate([prev[1][None], ab[:-1]]) if prev is not None else np.concatenate([ab[:1], ab[:-1]])
+            pg = np.concatenate([prev[2][None], gb[:-1]]) if prev is not None else np.concatenate([gb[:1], gb[:-1]])
+            same += int(np.count_nonzero(np.all(ab[k] == pa[k], axis=1) & np.all(gb[k] == pg[k], axis=1)))
+        prev = (tb[-1], ab[-1].copy(), gb[-1].copy())
+        keep = ~rep
+        c = int(np.count_nonzero(keep))
+        t2[w:w + c], a2[w:w + c], g2[w:w + c] = tb[keep], ab[keep], gb[keep]
+        w += c
+    return t2[:m], a2[:m], g2[:m], same
+
+
+def _resample(t, a, g, gaps, mean: float, in_place: bool):
+    """(t, a, g, piece_starts) of check_timing's resampling: each continuous piece (between the gaps)
+    onto a uniform grid from its first time stamp at the mean step, linear interpolation (numpy.interp)
+    between the time stamps, the values kept in their floating type; piece_starts: the first row of
+    each piece after the first. A block of grid points at a time; in_place: written over t, a, g (the
+    grid has at most as many points as the samples: each piece's span over the mean step, floored),
+    keeping aside the original rows the grid still needs after it has written over them."""
+    n = len(t)
+    bounds = [0] + [int(k) + 1 for k in gaps] + [n]
+    spans = [(p0, p1, float(t[p0]), int(math.floor((t[p1 - 1] - t[p0]) / mean + 1e-9)) + 1)
+             for p0, p1 in zip(bounds[:-1], bounds[1:])]
+    m = sum(s[3] for s in spans)
+    if in_place and m > n:                       # never with the mean step of the pieces; rounding aside
+        in_place = False
+    if in_place:
+        to, ao, go = t, a, g
+    else:
+        to, ao, go = np.empty(m), np.empty((m, a.shape[1]), a.dtype), np.empty((m, g.shape[1]), g.dtype)
+    w = 0                                        # rows written
+    s_lo, st, sa, sg = 0, t[:0].copy(), a[:0].copy(), g[:0].copy()   # original rows s_lo.. kept aside
+
+    def search(x: float, hi: int, side: str) -> int:
+        """The index of x in the original time stamps (sorted) up to row hi: those kept aside (rows s_lo
+        to w, the rows the grid still needs after overwriting them), then those still in place."""
+        if not in_place:
+            return int(np.searchsorted(t[:hi], x, side))
+        k = int(np.searchsorted(st, x, side)) if len(st) else 0
+        if k < len(st):
+            return s_lo + k
+        return w + int(np.searchsorted(t[w:hi], x, side))
+
+    def rows(r0: int, r1: int):
+        """The original rows r0..r1-1: kept aside below w, still in place from w."""
+        if not in_place or r0 >= w:
+            return t[r0:r1].copy(), a[r0:r1].astype(np.float64), g[r0:r1].astype(np.float64)
+        k0, k1 = r0 - s_lo, min(r1, w) - s_lo
+        parts = [(st[k0:k1], sa[k0:k1], sg[k0:k1])]
+        if r1 > w:
+            parts.append((t[w:r1], a[w:r1], g[w:r1]))
+        return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]).astype(np.float64),
+                np.concatenate([p[2] for p in parts]).astype(np.float64))
+    starts = []
+    for p0, p1, t0, count in spans:
+        if w:
+            starts.append(w)
+        for k0 in range(0, count, STEP_ROWS):
+            k1 = min(count, k0 + STEP_ROWS)
+            grid = t0 + np.arange(k0, k1) * mean
+            lo = max(p0, search(grid[0], p1, "right") - 1)
+            hi = min(p1, search(grid[-1], p1, "left") + 1)
+            tp, av, gv = rows(lo, hi)
+            ab = np.column_stack([np.interp(grid, tp, av[:, j]) for j in range(av.shape[1])]).astype(a.dtype, copy=False)
+            gb = np.column_stack([np.interp(grid, tp, gv[:, j]) for j in range(gv.shape[1])]).astype(g.dtype, copy=False)
+            del tp, av, gv
+            o1 = w + len(grid)
+            if in_place:   # the grid's rows lo.. are needed later: keep aside those it overwrites now
+                if len(st) and s_lo < lo:                  # (the kept rows are s_lo..w-1, when any)
+                    k = min(len(st), lo - s_lo)
+                    st, sa, sg = st[k:], sa[k:], sg[k:]
+                    s_lo += k
+                r0 = max(w, lo)
+                if o1 > r0:
+                    if not len(st):
+                        s_lo = r0
+                    st, sa, sg = (np.concatenate([st, t[r0:o1]]), np.concatenate([sa, a[r0:o1]]),
+                                  np.concatenate([sg, g[r0:o1]]))
+            to[w:o1], ao[w:o1], go[w:o1] = grid, ab, gb
+            w = o1
+    return to[:m], ao[:m], go[:m], starts
 
 
 def _outside(d: np.ndarray, start: int, gaps: np.ndarray) -> np.ndarray:
@@ -489,7 +583,7 @@ def from_arrays(accel, gyro, *, t_s=None, rate_hz: float | None = None, accel_un
     timing: dict = {}
     t = None
     if t_s is not None:
-        t, a, g, fs, tb, timing = check_timing(t_s, a, g)
+        t, a, g, fs, tb, timing = check_timing(t_s, a, g, in_place=not copy)
         brk = sorted(brk + tb)
         if rate_hz:
             notes.append(f"--rate {rate_hz:g} ignored: the file has timestamps ({fs:.4g} Hz)")

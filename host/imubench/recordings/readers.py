@@ -1118,6 +1118,8 @@ def read_rosbag(path: Path, *, topic: str | None = None, **opt) -> Recording:
         raise RecordingError(f"reading ROS bags needs the optional rosbags library: {INSTALL_ROSBAGS}") from None
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        if not reader.is2:                  # ROS 1: the message index counted, not held (_Ros1Reader)
+            reader.readers = [_ros1_reader()(path)]
         reader.open()
     except Exception as e:  # noqa: BLE001 - rosbags raises its own classes for every damaged bag
         raise RecordingError(f"{path}: not a readable ROS bag ({type(e).__name__}: {e})") from None
@@ -1147,6 +1149,60 @@ def read_rosbag(path: Path, *, topic: str | None = None, **opt) -> Recording:
                        copy=False)
 
 
+_ROS1_READER = None
+
+
+def _ros1_reader():
+    """rosbags' ROS 1 bag reader, with the bag's message index counted instead of held: rosbags keeps
+    an IndexData tuple for every message (~170 B: 3 GB for a day at 200 Hz, before a sample is read);
+    this one keeps each connection's count, and reads the messages chunk by chunk in the file's
+    order, each chunk's records one after the other (as rosbags' own messages() reads a record).
+    The order is the file's: _rosbag_messages puts the samples in receive-time order when it is not."""
+    global _ROS1_READER
+    if _ROS1_READER is not None:
+        return _ROS1_READER
+    import os
+    from io import BytesIO
+
+    from rosbags.rosbag1.reader import Header, Reader, RecordType, read_bytes, read_uint32
+
+    class Ros1Reader(Reader):
+        def open(self) -> None:
+            self.counts: dict = {}
+            super().open()
+
+        def read_index_data(self, pos, indexes) -> None:          # noqa: ARG002 - rosbags' signature
+            header = Header.read(self.bio, RecordType.IDXDATA)
+            conn, count = header.get_uint32("conn"), header.get_uint32("count")
+            self.bio.seek(read_uint32(self.bio), os.SEEK_CUR)
+            self.counts[conn] = self.counts.get(conn, 0) + count
+
+        def messages(self, connections=(), start=None, stop=None):
+            self._check_open()
+            ids = {c.id for c in (connections or self.connections)}
+            byid = {c.id: c for c in self.connections}
+            for info in sorted(self.chunk_infos, key=lambda c: (c.start_time, c.pos)):
+                if not ids & set(info.connection_counts):
+                    continue
+                ch = self.chunks[info.pos]
+                self.bio.seek(ch.datapos)
+                raw = ch.decompressor(read_bytes(self.bio, ch.datasize))
+                buf, end = BytesIO(raw), len(raw)
+                del raw
+                while buf.tell() < end:
+                    header = Header.read(buf)
+                    size = read_uint32(buf)
+                    if header.get_uint8("op") == RecordType.MSGDATA and header.get_uint32("conn") in ids:
+                        t = header.get_time("time")
+                        if (start is None or t >= start) and (stop is None or t < stop):
+                            yield byid[header.get_uint32("conn")], t, read_bytes(buf, size)
+                            continue
+                    buf.seek(size, os.SEEK_CUR)
+
+    _ROS1_READER = Ros1Reader
+    return Ros1Reader
+
+
 def _advances(t: np.ndarray) -> bool:
     """True when any time stamp is later than the one before (a block at a time)."""
     return any(np.any(np.diff(t[i:i + (1 << 20) + 1]) > 0) for i in range(0, max(len(t) - 1, 0), 1 << 20))
@@ -1158,8 +1214,11 @@ def _rosbag_messages(reader, conns, path: Path, budget: int | None):
     float32 values by the budget). Each message is read at the offsets of its layout (_imu_offsets,
     checked against the full deserializer on the first message of each connection and whenever the
     layout changes), else deserialized; a tqdm bar counts the messages on reads over a second."""
-    import struct
-    total = sum(int(getattr(c, "msgcount", 0) or 0) for c in conns)
+    counts = [getattr(r, "counts", None) for r in getattr(reader, "readers", [])]
+    if counts and all(x is not None for x in counts):             # ROS 1 (_ros1_reader): counted
+        total = sum(x.get(c.id, 0) for x in counts for c in conns)
+    else:
+        total = sum(int(getattr(c, "msgcount", 0) or 0) for c in conns)
     limit = memory.sample_limit(budget, 6, True)
     if total > limit:
         raise RecordingError(f"{path}: {total:,} messages on the topic, more than the limit of {limit:,} samples "
@@ -1174,14 +1233,43 @@ def _rosbag_messages(reader, conns, path: Path, budget: int | None):
     known: dict = {}
     k = 0
     bar = _progress(total, f"reading {path.name}", unit="msg") if total > 100_000 else None
-    unpack = struct.unpack_from
+    # messages of one layout are gathered and decoded together, a block at a time (numpy views of
+    # their bytes at the layout's offsets: the same values as struct.unpack_from, without a Python
+    # call for each number); one that changes the layout, or needs the deserializer, ends a block
+    block: list = []
+    stamps: list = []
+    layout = None                                   # (offsets, length) of the block's messages
+
+    def room(m: int) -> None:
+        nonlocal t, recv, a, g
+        if k + m > len(t):
+            if total:
+                raise RecordingError(f"{path}: more messages than the bag's index counts ({total}); damaged?")
+            size = max(2 * len(t), k + m)
+            t, recv = np.resize(t, size), np.resize(recv, size)
+            a, g = np.resize(a, (size, 3)), np.resize(g, (size, 3))
+
+    def flush() -> None:
+        nonlocal k
+        m = len(block)
+        if not m:
+            return
+        room(m)
+        (o0, o1, o2), length = layout
+        raw = np.frombuffer(b"".join(block), np.uint8).reshape(m, length)
+        sec = raw[:, o0:o0 + 4].copy().view("<i4")[:, 0].astype(np.float64)
+        nsec = raw[:, o0 + 4:o0 + 8].copy().view("<u4")[:, 0].astype(np.float64)
+        t[k:k + m] = sec + 1e-9 * nsec
+        g[k:k + m] = raw[:, o1:o1 + 24].copy().view("<f8")
+        a[k:k + m] = raw[:, o2:o2 + 24].copy().view("<f8")
+        recv[k:k + m] = np.array(stamps, dtype=np.int64) * 1e-9
+        k += m
+        block.clear()
+        stamps.clear()
+        if bar is not None:
+            bar.update(m)
     try:
         for c, ts, raw in reader.messages(connections=conns):
-            if k == len(t):
-                if total:
-                    raise RecordingError(f"{path}: more messages than the bag's index counts ({total}); damaged?")
-                t, recv = np.resize(t, 2 * k), np.resize(recv, 2 * k)
-                a, g = np.resize(a, (2 * k, 3)), np.resize(g, (2 * k, 3))
             key = (c.id, len(raw))
             off = known.get(key, False)
             if off is False:
@@ -1189,20 +1277,22 @@ def _rosbag_messages(reader, conns, path: Path, budget: int | None):
                 off = off if off is not None and _offsets_agree(reader, c, raw, off) else None
                 known[key] = off
             if off is not None:
-                sec, nsec = unpack("<iI", raw, off[0]) if len(raw) else (0, 0)
-                t[k] = sec + 1e-9 * nsec
-                g[k] = unpack("<3d", raw, off[1])
-                a[k] = unpack("<3d", raw, off[2])
-            else:
-                m = reader.deserialize(raw, c.msgtype)
-                t[k] = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
-                la, av = m.linear_acceleration, m.angular_velocity
-                a[k] = (la.x, la.y, la.z)
-                g[k] = (av.x, av.y, av.z)
+                if layout != (off, len(raw)) or len(block) >= 16384:
+                    flush()
+                    layout = (off, len(raw))
+                block.append(raw)
+                stamps.append(ts)
+                continue
+            flush()
+            room(1)
+            m = reader.deserialize(raw, c.msgtype)
+            t[k] = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
+            la, av = m.linear_acceleration, m.angular_velocity
+            a[k] = (la.x, la.y, la.z)
+            g[k] = (av.x, av.y, av.z)
             recv[k] = ts * 1e-9
             k += 1
-            if bar is not None and not k % 65536:
-                bar.update(65536)
+        flush()
     except RecordingError:
         raise
     except Exception as e:  # noqa: BLE001 - rosbags raises its own classes for a damaged bag
@@ -1210,7 +1300,11 @@ def _rosbag_messages(reader, conns, path: Path, budget: int | None):
     finally:
         if bar is not None:
             bar.close()
-    return t[:k], recv[:k], a[:k], g[:k], k
+    t, recv, a, g = t[:k], recv[:k], a[:k], g[:k]
+    if any(np.any(np.diff(recv[i:i + (1 << 20) + 1]) < 0) for i in range(0, max(k - 1, 0), 1 << 20)):
+        order = np.argsort(recv, kind="stable")     # chunks written out of time order: the bag's time order
+        t, recv, a, g = t[order], recv[order], a[order], g[order]
+    return t, recv, a, g, k
 
 
 def _offsets_agree(reader, c, raw: bytes, off) -> bool:
