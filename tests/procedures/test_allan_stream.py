@@ -306,9 +306,8 @@ def test_a_ros1_bag_is_read_without_holding_its_message_index(tmp_path, monkeypa
     import struct
     import tracemalloc
 
-    import imubench.recordings.readers as readers
-    pytest.importorskip("rosbags")
-    from rosbags.rosbag1 import Reader, Writer
+    import imubench.recordings.bags as bags
+    from rosbags.rosbag1 import Reader, Writer     # a test dependency (pyproject's test extra)
     from rosbags.typesys import Stores, get_typestore
     n = 12_000
     rng = np.random.default_rng(6)
@@ -325,7 +324,7 @@ def test_a_ros1_bag_is_read_without_holding_its_message_index(tmp_path, monkeypa
     peaks = {}
     for name in ("imubench", "rosbags"):
         if name == "rosbags":
-            monkeypatch.setattr(readers, "_ros1_reader", lambda: Reader)
+            monkeypatch.setattr(bags, "_ros1_reader", lambda: Reader)
         tracemalloc.start()
         rec = read(p)
         peaks[name] = tracemalloc.get_traced_memory()[1]
@@ -341,8 +340,7 @@ def test_bag_messages_of_changing_layouts_are_decoded_in_order(tmp_path):
     messages (three layouts) and stamps set apart from the receive times give every value back, in order."""
     import struct
 
-    pytest.importorskip("rosbags")
-    from rosbags.rosbag1 import Writer
+    from rosbags.rosbag1 import Writer     # a test dependency (pyproject's test extra)
     from rosbags.typesys import Stores, get_typestore
     n = 2000
     rng = np.random.default_rng(9)

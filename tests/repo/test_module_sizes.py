@@ -10,7 +10,7 @@ ROOT = Path(__file__).resolve().parents[2]
 PKG = ROOT / "host" / "imubench"
 LIMIT = 600
 # above the limit when this test came, each to be split by concern: no more lines than these
-KNOWN = {"calib/gyro.py": 780, "station/security.py": 608, "recordings/readers.py": 1256}
+KNOWN = {"calib/gyro.py": 780, "station/security.py": 608, "recordings/readers.py": 900}
 
 
 def _sizes() -> dict[str, int]:

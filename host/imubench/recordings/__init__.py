@@ -32,7 +32,7 @@ from imubench.errors import ImubenchError
 from imubench.units import G0_MPS2
 
 __all__ = ["Recording", "RecordingError", "ACCEL_UNITS", "GYRO_UNITS", "accel_unit", "gyro_unit",
-           "check_timing", "from_arrays", "read", "FORMATS", "unsigned_offset", "command_options", "command_line"]
+           "check_timing", "from_arrays", "read", "FORMATS", "unsigned_offset", "command_options", "command_line", "timing_lines"]
 
 FORMATS = ("csv", "imutk", "imucal", "npz", "capture", "rosbag")
 
@@ -396,37 +396,6 @@ def _outside(d: np.ndarray, start: int, gaps: np.ndarray) -> np.ndarray:
     return np.delete(d, inside - start) if inside.size else d
 
 
-def timing_lines(rec: Recording) -> list[str]:
-    """What the timing check found and did, for a person."""
-    tm = rec.timing or {}
-    out = []
-    if not tm:
-        return [f"{len(rec)} samples at {rec.fs_hz:g} Hz (declared rate; no timestamps to check)"]
-    mean = tm.get("mean_dt_s", tm["median_dt_s"])
-    rate = f"{tm['n_read']} samples at {tm['fs_hz']:.4g} Hz measured from the time stamps (mean step {mean * 1e3:.4g} ms)"
-    if tm["jitter_rel"] < 1e-4:
-        out.append(f"{rate}, regular steps (jitter under 0.01 % of a step)")
-    else:
-        out.append(f"{rate}, step jitter {tm.get('jitter_s', tm['jitter_rel'] * mean) * 1e3:.2g} ms RMS "
-                   f"({100 * tm['jitter_rel']:.2g} %; steps {tm.get('min_dt_s', mean) * 1e3:.3g}"
-                   f"–{tm.get('max_dt_s', mean) * 1e3:.3g} ms outside gaps)")
-    if tm.get("long_steps_jitter"):
-        out.append(f"{tm['long_steps_jitter']} steps longer than {GAP_FACTOR:g}× the mean are the clock's jitter, "
-                   "not gaps: the next time stamps make them up (no sample missing)")
-    if tm.get("duplicates"):
-        out.append(f"{tm['duplicates']} samples repeat the timestamp before them "
-                   f"({tm.get('duplicates_identical', 0)} identical rows): dropped")
-    for gp in tm.get("gaps", [])[:10]:
-        out.append(f"gap of {gp['duration_s']:.3f} s at t = {gp['t_s']:.3f} s ({gp['missing']} samples missing): "
-                   "a still interval may continue across it; a turn or motion across it is not used for the gyro")
-    if len(tm.get("gaps", [])) > 10:
-        out.append(f"… {len(tm['gaps']) - 10} more gaps")
-    if tm.get("resampled"):
-        out.append(f"irregular steps: each continuous piece was resampled to a uniform {tm['fs_hz']:.4g} Hz grid "
-                   f"(linear interpolation between the time stamps), {tm['n_used']} samples")
-    return out
-
-
 #: samples whose values are integers in [0, 2^n) for one of these n are looked at as unsigned counts
 UNSIGNED_BITS = (12, 16, 24, 32)
 
@@ -485,38 +454,6 @@ def _minus(v: np.ndarray, offset: float, copy: bool) -> np.ndarray:
         return v - offset
     v -= offset
     return v
-
-
-#: read() options and the command-line options that give them (imubench calibrate/allan --from)
-_FLAGS = (("format", "--format"), ("gyro_file", "--gyro-file"), ("skip_rows", "--skip-rows"),
-          ("columns", "--columns"), ("time_column", "--time-column"), ("time_unit", "--time-unit"),
-          ("rate_hz", "--rate"), ("accel_unit", "--accel-unit"), ("gyro_unit", "--gyro-unit"), ("sensor", "--sensor"),
-          ("accel_counts_per_g", "--accel-scale"), ("gyro_counts_per_dps", "--gyro-scale"),
-          ("accel_offset", "--accel-offset"), ("gyro_offset", "--gyro-offset"), ("gyro_range_dps", "--gyro-range"),
-          ("topic", "--topic"), ("device", "--device"))
-
-
-def command_options(rec: Recording) -> list[str]:
-    """The command-line options that read rec's file again the same way (rec.options: declared
-    and detected), for a person to type and for session.json."""
-    out = []
-    for key, flag in _FLAGS:
-        v = rec.options.get(key)
-        if v is None or v == {}:
-            continue
-        if isinstance(v, dict):
-            v = ",".join(f"{k}={x}" for k, x in v.items())
-        elif isinstance(v, float):
-            v = f"{v:g}"
-        out += [flag, str(v)]
-    return out
-
-
-def command_line(rec: Recording, command: str = "calibrate") -> str:
-    """`imubench COMMAND --from FILE OPTIONS`: the command that reads rec's file again the same way."""
-    import shlex
-    return " ".join(["imubench", command, "--from"] + [shlex.quote(x) for x in
-                                                       [rec.source.split(" + ")[0], *command_options(rec)]])
 
 
 #: a value beyond this in any unit (m/s², g, mg, rad/s, °/s, counts of a 32-bit register) is no
@@ -605,3 +542,7 @@ def read(path, fmt: str | None = None, **options) -> Recording:
     header). options: see imubench.recordings.readers (units, columns, rate, topic...)."""
     from imubench.recordings import readers
     return readers.read(path, fmt, **options)
+
+
+# said back (recordings.restate), importable from here as before
+from imubench.recordings.restate import command_line, command_options, timing_lines  # noqa: E402

@@ -28,7 +28,6 @@ import io
 import json
 import os
 import re
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,13 +37,15 @@ from imubench.files import (
     MAX_JSON_BYTES,
     MAX_LINE_CHARS,
     FileRefused,
-    MiB,
     bounded_lines,
     open_input,
     read_text,
 )
 from imubench import memory
 from imubench.recordings import FORMATS, Recording, RecordingError, from_arrays
+from imubench.recordings.bags import read_rosbag
+from imubench.recordings.captures import read_capture, read_npz
+from imubench.recordings.progress import progress
 
 #: the most samples a recording may hold under the default memory budget (imubench.memory.sample_limit:
 #: 24 h at 200 Hz is a normal input); --memory-budget sets another
@@ -54,8 +55,6 @@ MAX_SAMPLES = memory.sample_limit()
 ABSURD = 1e12
 #: the lines parsed at a time: text is never held whole, only this many lines of it
 CHUNK_LINES = 65536
-#: what the arrays of one .npz member may take once read (checked from its header before reading)
-MAX_NPZ_MEMBER_BYTES = 1024 * MiB
 
 KEYS = ("ax", "ay", "az", "gx", "gy", "gz")
 _CANDIDATES = {
@@ -248,14 +247,6 @@ def _preamble_rate(lay: Layout) -> tuple[float, str] | None:
     return rate, text
 
 
-def _progress(total: int, desc: str, unit: str = "B"):
-    """A tqdm bar (as the rest of the tool) on stderr, shown only when the work lasts over a second
-    and stderr is a terminal: bytes (or samples) done and the time left."""
-    from tqdm import tqdm
-    return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, unit_divisor=1024 if unit == "B" else 1000,
-                delay=1.0, leave=False, disable=None, dynamic_ncols=True)
-
-
 def _position(f) -> int:
     """The bytes of the file on disk consumed so far (of the compressed file for .gz)."""
     try:
@@ -376,7 +367,7 @@ def _load_table(path: Path, delim: str | None, usecols: list[int], start: int, *
     t = np.empty(rows, dtype=np.float64) if time_at is not None else None
     n = 0
     size = path.stat().st_size
-    bar = _progress(size, f"reading {path.name}") if size > (1 << 20) else None
+    bar = progress(size, f"reading {path.name}") if size > (1 << 20) else None
     try:
         for chunk, numbers in _chunks(path, start, bar):
             try:                                   # comments: numpy's C parser only without any (see _chunks)
@@ -871,454 +862,6 @@ def read_annotation(path) -> list[tuple[str, int, int]]:
         raise RecordingError(str(e)) from None
     except (ValueError, KeyError, TypeError, AttributeError) as e:
         raise RecordingError(f"{path}: not imucal's section list (name: {{start, end}}): {e}") from None
-
-
-# ------------------------------------------------------------------ our captures
-def _check_npz(path: Path) -> None:
-    """Refuse a .npz whose members would take more than MAX_NPZ_MEMBER_BYTES once read, or
-    that are not what their header says: each member's .npy header (shape, dtype) is read
-    before numpy allocates anything (a 10 MB file may claim gigabytes)."""
-    fmt = np.lib.format
-    try:
-        with open_input(path) as fh, zipfile.ZipFile(fh) as zf:
-            for info in zf.infolist():
-                if not info.filename.endswith(".npy"):
-                    continue
-                with zf.open(info) as m:
-                    version = fmt.read_magic(m)
-                    shape, _fortran, dtype = (fmt.read_array_header_1_0 if version == (1, 0)
-                                              else fmt.read_array_header_2_0)(m, max_header_size=10000)
-                    if dtype.hasobject:
-                        raise RecordingError(f"{path}: member {info.filename} holds Python objects; "
-                                             "imubench's npz holds numbers only")
-                    nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
-                    if nbytes > MAX_NPZ_MEMBER_BYTES:
-                        raise RecordingError(f"{path}: member {info.filename} declares {nbytes / MiB:.0f} MiB "
-                                             f"(shape {shape}), more than the limit of "
-                                             f"{MAX_NPZ_MEMBER_BYTES / MiB:.0f} MiB")
-                    if nbytes > info.file_size:
-                        raise RecordingError(f"{path}: member {info.filename} declares {nbytes} bytes of data but "
-                                             f"holds {info.file_size}: damaged")
-    except FileRefused as e:
-        raise RecordingError(str(e)) from None
-    except RecordingError:
-        raise
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
-        raise RecordingError(f"{path}: not a .npz file ({e})") from None
-
-
-def _npz_members(path: Path) -> dict:
-    """{name: (member, shape, dtype, fortran)} of a .npz's .npy members, from their headers."""
-    fmt = np.lib.format
-    out = {}
-    with open_input(path) as fh, zipfile.ZipFile(fh) as zf:
-        for info in zf.infolist():
-            if info.filename.endswith(".npy"):
-                with zf.open(info) as m:
-                    version = fmt.read_magic(m)
-                    shape, fortran, dtype = (fmt.read_array_header_1_0 if version == (1, 0)
-                                             else fmt.read_array_header_2_0)(m, max_header_size=10000)
-                out[info.filename[:-4]] = (info.filename, shape, dtype, fortran)
-    return out
-
-
-def _npz_blocks(path: Path, member, step: int = 1 << 20):
-    """(start, rows) of a .npz member (C order) a block of `step` rows at a time, read from the zip
-    stream: the member is never held whole."""
-    fmt = np.lib.format
-    name, shape, dtype, _ = member
-    row = int(np.prod(shape[1:], dtype=np.int64)) if len(shape) > 1 else 1
-    with open_input(path) as fh, zipfile.ZipFile(fh) as zf, zf.open(name) as m:
-        version = fmt.read_magic(m)
-        (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(m, max_header_size=10000)
-        n = shape[0] if shape else 1
-        for i in range(0, n, step):
-            k = min(step, n - i)
-            buf = m.read(k * row * dtype.itemsize)
-            if len(buf) != k * row * dtype.itemsize:
-                raise RecordingError(f"{path}: member {name} ends early: damaged")
-            yield i, np.frombuffer(buf, dtype=dtype).reshape((k,) + tuple(shape[1:]))
-
-
-def read_npz(path: Path, **opt) -> Recording:
-    _check_npz(path)
-    try:
-        members = _npz_members(path)
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
-        raise RecordingError(f"{path}: not a .npz file ({e})") from None
-    need = ("accel_mps2", "rate_rad_s")
-    if not all(k in members for k in need):
-        raise RecordingError(f"{path.name} holds {', '.join(members)}; imubench's npz (imubench decode --npz) "
-                             f"has {', '.join(need)} and t_us")
-    n = members["accel_mps2"][1][0] if members["accel_mps2"][1] else 0
-    for k in ("accel_mps2", "rate_rad_s", "t_us", "sample_index", "status"):
-        if k in members and (members[k][3] or not members[k][1] or members[k][1][0] != n):
-            raise RecordingError(f"{path}: member {k} has shape {members[k][1]} (Fortran order: {members[k][3]}); "
-                                 f"expected {n} rows in C order as imubench decode --npz writes them")
-    budget = opt.get("memory_budget")
-    limit = memory.sample_limit(budget, 6, "t_us" in members)
-    if n > limit:
-        raise RecordingError(f"{path}: {n:,} samples, more than the limit of {limit:,} of the memory budget of "
-                             f"{memory.budget_text(budget)}; give a larger --memory-budget")
-    dtype = memory.storage_dtype(n, budget, 6, "t_us" in members) or np.float32
-    arrays = {}
-    try:
-        for k in need:
-            out = np.empty(members[k][1], dtype=dtype)
-            for i, blk in _npz_blocks(path, members[k]):
-                out[i:i + len(blk)] = blk
-            arrays[k] = out
-        t = None
-        if "t_us" in members:
-            t = np.empty(n)
-            for i, blk in _npz_blocks(path, members["t_us"]):
-                np.multiply(blk, 1e-6, out=t[i:i + len(blk)])
-        breaks, notes = [], []
-        if "sample_index" in members:
-            last = None
-            for i, blk in _npz_blocks(path, members["sample_index"]):
-                si = np.asarray(blk, np.int64)
-                if last is not None:
-                    si = np.concatenate([[last], si])
-                    i -= 1
-                for k in np.flatnonzero(np.diff(si) > 1):
-                    breaks.append((int(i + k + 1), f"{int(si[k + 1] - si[k] - 1)} samples lost on the link before "
-                                                   f"sample {i + k + 1}"))
-                last = int(si[-1]) if len(si) else last
-        if "status" in members:
-            bad = sum(int(np.count_nonzero(blk)) for _, blk in _npz_blocks(path, members["status"]))
-            if bad:
-                notes.append(f"{bad} samples flagged bad by the device (status bits)")
-    except RecordingError:
-        raise
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, TypeError) as e:
-        raise RecordingError(f"{path}: not a .npz file ({e})") from None
-    rec = from_arrays(arrays["accel_mps2"], arrays["rate_rad_s"], t_s=t, rate_hz=opt.get("rate_hz"), source=str(path),
-                      fmt="npz", notes=notes, device=opt.get("device"), copy=False)
-    rec.breaks = sorted(rec.breaks + [b for b in breaks if b[0] not in {x[0] for x in rec.breaks}])
-    return rec
-
-
-class _Growing:
-    """Samples appended block by block into arrays allocated once from an estimate of the count (grown
-    by half when it was short), values float64 or float32 as the budget holds them, the sample limit
-    checked at every allocation."""
-
-    def __init__(self, path: Path, budget: int | None):
-        self.path, self.budget, self.n = path, budget, 0
-        self.acc = self.gyr = self.t_us = self.index = None
-
-    def _alloc(self, rows: int) -> None:
-        limit = memory.sample_limit(self.budget, 6, True)
-        if rows > limit:
-            raise RecordingError(f"{self.path}: about {rows:,} samples, more than the limit of {limit:,} of the memory "
-                                 f"budget of {memory.budget_text(self.budget)}; give a larger "
-                                 "--memory-budget, or cut the capture")
-        dtype = self.acc.dtype if self.acc is not None else (memory.storage_dtype(rows, self.budget, 6, True)
-                                                            or np.float32)
-        new = [np.empty((rows, 3), dtype), np.empty((rows, 3), dtype), np.empty(rows, np.int64), np.empty(rows, np.int64)]
-        if self.acc is not None:
-            for dst, src in zip(new, (self.acc, self.gyr, self.t_us, self.index)):
-                dst[:self.n] = src[:self.n]
-        self.acc, self.gyr, self.t_us, self.index = new
-
-    def append(self, block, estimate: int) -> None:
-        m = len(block)
-        if self.acc is None:
-            self._alloc(max(estimate, m))
-        elif self.n + m > len(self.acc):
-            self._alloc(max(self.n + m, int(len(self.acc) * 1.5)))
-        acc, gyr = block.si()
-        sl = slice(self.n, self.n + m)
-        self.acc[sl], self.gyr[sl], self.t_us[sl], self.index[sl] = acc, gyr, block.t_us, block.sample_index
-        self.n += m
-
-
-def read_capture(path: Path, **opt) -> Recording:
-    """A session's capture-N.bin, fed to the stream decoder a megabyte at a time; the samples of each
-    megabyte converted (nominal scaling) into arrays sized from the file's length: the file and the
-    decoded frames are never held whole."""
-    from imubench.wire.decoder import StreamDecoder
-    size = path.stat().st_size
-    dec = StreamDecoder()
-    got = {False: _Growing(path, opt.get("memory_budget")), True: _Growing(path, opt.get("memory_budget"))}
-    step, done = 1 << 20, 0
-    bar = _progress(size, f"reading {path.name}") if size > (8 << 20) else None
-    try:
-        with open_input(path) as f:
-            while True:
-                data = f.read(step)
-                if not data:
-                    break
-                done += len(data)
-                dec.feed(data)
-                for cal in (False, True):
-                    b = dec.take_samples(cal)
-                    if b is not None and len(b):
-                        got[cal].append(b, int((got[cal].n + len(b)) * size / done * 1.02) + 16)
-                if bar is not None:
-                    bar.update(len(data))
-    except FileRefused as e:
-        raise RecordingError(str(e)) from None
-    finally:
-        if bar is not None:
-            bar.close()
-    st = dec.stats
-    g = got[False] if got[False].n else got[True]
-    if g.n < 3:
-        raise RecordingError(f"{path.name}: no samples decoded (frames ok {st.frames_ok}, rejected "
-                             f"{st.frames_rejected}); is it a capture-N.bin of an imubench session?")
-    n = g.n
-    notes = [f"{'raw' if g is got[False] else 'calibrated'} samples of an imubench device, nominal scaling"]
-    breaks = []
-    si = g.index[:n]
-    for k in np.flatnonzero(np.diff(si) > 1):
-        breaks.append((int(k + 1), f"{int(si[k + 1] - si[k] - 1)} samples lost on the link before sample {k + 1}"))
-    t = g.t_us[:n].astype(np.float64)
-    t *= 1e-6
-    g.t_us = g.index = None
-    rec = from_arrays(g.acc[:n], g.gyr[:n], t_s=t, source=str(path), fmt="capture", notes=notes,
-                      device=opt.get("device"), copy=False)
-    rec.breaks = sorted(rec.breaks + [b for b in breaks if b[0] not in {x[0] for x in rec.breaks}])
-    return rec
-
-
-# ------------------------------------------------------------------ ROS bags
-INSTALL_ROSBAGS = "pip install 'imubench[rosbag]' (the rosbags library)"
-
-
-def _imu_offsets(raw: bytes, ros1: bool) -> tuple[int, int, int] | None:
-    """(stamp, angular_velocity, linear_acceleration) byte offsets of a serialized sensor_msgs/Imu whose
-    frame_id is as long as this message's: ROS 1 (Header seq, stamp, frame_id; no alignment) or ROS 2
-    CDR little-endian (a 4-byte encapsulation header; stamp, frame_id; the doubles aligned to 8 from
-    after the encapsulation header). None when the layout is not one of those two."""
-    import struct
-    try:
-        if ros1:
-            (flen,) = struct.unpack_from("<I", raw, 12)
-            base = 16 + flen
-            stamp = 4
-        else:
-            if raw[:2] != b"\x00\x01":               # CDR_LE
-                return None
-            (flen,) = struct.unpack_from("<I", raw, 4 + 8)
-            base = 4 + ((12 + flen + 7) // 8) * 8
-            stamp = 4
-        av, la = base + 32 + 72, base + 32 + 72 + 24 + 72
-        return (stamp, av, la) if la + 24 + 72 == len(raw) else None
-    except struct.error:
-        return None
-
-
-def read_rosbag(path: Path, *, topic: str | None = None, **opt) -> Recording:
-    try:
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
-    except ImportError:
-        raise RecordingError(f"reading ROS bags needs the optional rosbags library: {INSTALL_ROSBAGS}") from None
-    try:
-        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
-        if not reader.is2:                  # ROS 1: the message index counted, not held (_Ros1Reader)
-            reader.readers = [_ros1_reader()(path)]
-        reader.open()
-    except Exception as e:  # noqa: BLE001 - rosbags raises its own classes for every damaged bag
-        raise RecordingError(f"{path}: not a readable ROS bag ({type(e).__name__}: {e})") from None
-    try:
-        imu = [c for c in reader.connections if c.msgtype in ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")]
-        if not imu:
-            raise RecordingError(f"{path.name} has no sensor_msgs/Imu topic (topics: "
-                                 f"{', '.join(sorted({c.topic for c in reader.connections})) or 'none'})")
-        topics = sorted({c.topic for c in imu})
-        if topic is None and len(topics) > 1:
-            raise RecordingError(f"{path.name} has several sensor_msgs/Imu topics ({', '.join(topics)}): "
-                                 "choose one with --topic")
-        topic = topic or topics[0]
-        conns = [c for c in imu if c.topic == topic]
-        if not conns:
-            raise RecordingError(f"{path.name} has no sensor_msgs/Imu topic {topic!r} (it has {', '.join(topics)})")
-        t, recv, a, g, k = _rosbag_messages(reader, conns, path, opt.get("memory_budget"))
-    finally:
-        reader.close()
-    notes = [f"topic {topic}: {k} sensor_msgs/Imu messages (m/s², rad/s by the message definition, REP 103)"]
-    if k and not _advances(t):
-        t = recv
-        notes.append("the messages' header stamps are not set: the bag's receive times are used")
-    else:
-        del recv
-    return from_arrays(a, g, t_s=t, source=str(path), fmt="rosbag", notes=notes, device=opt.get("device"),
-                       copy=False)
-
-
-_ROS1_READER = None
-
-
-def _ros1_reader():
-    """rosbags' ROS 1 bag reader, with the bag's message index counted instead of held: rosbags keeps
-    an IndexData tuple for every message (~170 B: 3 GB for a day at 200 Hz, before a sample is read);
-    this one keeps each connection's count, and reads the messages chunk by chunk in the file's
-    order, each chunk's records one after the other (as rosbags' own messages() reads a record).
-    The order is the file's: _rosbag_messages puts the samples in receive-time order when it is not."""
-    global _ROS1_READER
-    if _ROS1_READER is not None:
-        return _ROS1_READER
-    import os
-    from io import BytesIO
-
-    from rosbags.rosbag1.reader import Header, Reader, RecordType, read_bytes, read_uint32
-
-    class Ros1Reader(Reader):
-        def open(self) -> None:
-            self.counts: dict = {}
-            super().open()
-
-        def read_index_data(self, pos, indexes) -> None:          # noqa: ARG002 - rosbags' signature
-            header = Header.read(self.bio, RecordType.IDXDATA)
-            conn, count = header.get_uint32("conn"), header.get_uint32("count")
-            self.bio.seek(read_uint32(self.bio), os.SEEK_CUR)
-            self.counts[conn] = self.counts.get(conn, 0) + count
-
-        def messages(self, connections=(), start=None, stop=None):
-            self._check_open()
-            ids = {c.id for c in (connections or self.connections)}
-            byid = {c.id: c for c in self.connections}
-            for info in sorted(self.chunk_infos, key=lambda c: (c.start_time, c.pos)):
-                if not ids & set(info.connection_counts):
-                    continue
-                ch = self.chunks[info.pos]
-                self.bio.seek(ch.datapos)
-                raw = ch.decompressor(read_bytes(self.bio, ch.datasize))
-                buf, end = BytesIO(raw), len(raw)
-                del raw
-                while buf.tell() < end:
-                    header = Header.read(buf)
-                    size = read_uint32(buf)
-                    if header.get_uint8("op") == RecordType.MSGDATA and header.get_uint32("conn") in ids:
-                        t = header.get_time("time")
-                        if (start is None or t >= start) and (stop is None or t < stop):
-                            yield byid[header.get_uint32("conn")], t, read_bytes(buf, size)
-                            continue
-                    buf.seek(size, os.SEEK_CUR)
-
-    _ROS1_READER = Ros1Reader
-    return Ros1Reader
-
-
-def _advances(t: np.ndarray) -> bool:
-    """True when any time stamp is later than the one before (a block at a time)."""
-    return any(np.any(np.diff(t[i:i + (1 << 20) + 1]) > 0) for i in range(0, max(len(t) - 1, 0), 1 << 20))
-
-
-def _rosbag_messages(reader, conns, path: Path, budget: int | None):
-    """(header stamps s, receive times s, accel, gyro, count) of the messages of conns, into arrays
-    allocated once from the bag's message count (the budget's sample limit checked first; float64 or
-    float32 values by the budget). Each message is read at the offsets of its layout (_imu_offsets,
-    checked against the full deserializer on the first message of each connection and whenever the
-    layout changes), else deserialized; a tqdm bar counts the messages on reads over a second."""
-    counts = [getattr(r, "counts", None) for r in getattr(reader, "readers", [])]
-    if counts and all(x is not None for x in counts):             # ROS 1 (_ros1_reader): counted
-        total = sum(x.get(c.id, 0) for x in counts for c in conns)
-    else:
-        total = sum(int(getattr(c, "msgcount", 0) or 0) for c in conns)
-    limit = memory.sample_limit(budget, 6, True)
-    if total > limit:
-        raise RecordingError(f"{path}: {total:,} messages on the topic, more than the limit of {limit:,} samples "
-                             f"of the memory budget of {memory.budget_text(budget)}; give a "
-                             "larger --memory-budget, or cut the bag")
-    dtype = memory.storage_dtype(total, budget, 6, True) or np.float32
-    size = max(total, 1)
-    t = np.empty(size)
-    recv = np.empty(size)
-    a = np.empty((size, 3), dtype=dtype)
-    g = np.empty((size, 3), dtype=dtype)
-    known: dict = {}
-    k = 0
-    bar = _progress(total, f"reading {path.name}", unit="msg") if total > 100_000 else None
-    # messages of one layout are gathered and decoded together, a block at a time (numpy views of
-    # their bytes at the layout's offsets: the same values as struct.unpack_from, without a Python
-    # call for each number); one that changes the layout, or needs the deserializer, ends a block
-    block: list = []
-    stamps: list = []
-    layout = None                                   # (offsets, length) of the block's messages
-
-    def room(m: int) -> None:
-        nonlocal t, recv, a, g
-        if k + m > len(t):
-            if total:
-                raise RecordingError(f"{path}: more messages than the bag's index counts ({total}); damaged?")
-            size = max(2 * len(t), k + m)
-            t, recv = np.resize(t, size), np.resize(recv, size)
-            a, g = np.resize(a, (size, 3)), np.resize(g, (size, 3))
-
-    def flush() -> None:
-        nonlocal k
-        m = len(block)
-        if not m:
-            return
-        room(m)
-        (o0, o1, o2), length = layout
-        raw = np.frombuffer(b"".join(block), np.uint8).reshape(m, length)
-        sec = raw[:, o0:o0 + 4].copy().view("<i4")[:, 0].astype(np.float64)
-        nsec = raw[:, o0 + 4:o0 + 8].copy().view("<u4")[:, 0].astype(np.float64)
-        t[k:k + m] = sec + 1e-9 * nsec
-        g[k:k + m] = raw[:, o1:o1 + 24].copy().view("<f8")
-        a[k:k + m] = raw[:, o2:o2 + 24].copy().view("<f8")
-        recv[k:k + m] = np.array(stamps, dtype=np.int64) * 1e-9
-        k += m
-        block.clear()
-        stamps.clear()
-        if bar is not None:
-            bar.update(m)
-    try:
-        for c, ts, raw in reader.messages(connections=conns):
-            key = (c.id, len(raw))
-            off = known.get(key, False)
-            if off is False:
-                off = _imu_offsets(raw, not getattr(reader, "is2", True))
-                off = off if off is not None and _offsets_agree(reader, c, raw, off) else None
-                known[key] = off
-            if off is not None:
-                if layout != (off, len(raw)) or len(block) >= 16384:
-                    flush()
-                    layout = (off, len(raw))
-                block.append(raw)
-                stamps.append(ts)
-                continue
-            flush()
-            room(1)
-            m = reader.deserialize(raw, c.msgtype)
-            t[k] = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
-            la, av = m.linear_acceleration, m.angular_velocity
-            a[k] = (la.x, la.y, la.z)
-            g[k] = (av.x, av.y, av.z)
-            recv[k] = ts * 1e-9
-            k += 1
-        flush()
-    except RecordingError:
-        raise
-    except Exception as e:  # noqa: BLE001 - rosbags raises its own classes for a damaged bag
-        raise RecordingError(f"{path}: damaged after {k} messages ({type(e).__name__}: {e})") from None
-    finally:
-        if bar is not None:
-            bar.close()
-    t, recv, a, g = t[:k], recv[:k], a[:k], g[:k]
-    if any(np.any(np.diff(recv[i:i + (1 << 20) + 1]) < 0) for i in range(0, max(k - 1, 0), 1 << 20)):
-        order = np.argsort(recv, kind="stable")     # chunks written out of time order: the bag's time order
-        t, recv, a, g = t[order], recv[order], a[order], g[order]
-    return t, recv, a, g, k
-
-
-def _offsets_agree(reader, c, raw: bytes, off) -> bool:
-    """True when the values read at off are those the full deserializer gives for this message."""
-    import struct
-    try:
-        m = reader.deserialize(raw, c.msgtype)
-    except Exception:  # noqa: BLE001
-        return False
-    la, av = m.linear_acceleration, m.angular_velocity
-    sec, nsec = struct.unpack_from("<iI", raw, off[0])
-    return (struct.unpack_from("<3d", raw, off[1]) == (av.x, av.y, av.z)
-            and struct.unpack_from("<3d", raw, off[2]) == (la.x, la.y, la.z)
-            and (sec, nsec) == (m.header.stamp.sec, m.header.stamp.nanosec))
 
 
 def load_profile(path) -> dict:
