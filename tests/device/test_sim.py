@@ -599,3 +599,34 @@ def test_the_bench_is_a_resource_its_drivers_and_a_strategy(sim_bin):
             vb.strategy.transition("running")
     finally:
         vb.close()
+
+
+def test_ctrl_c_between_a_request_and_its_reply_leaves_no_stale_reply(sim_bin):
+    """Ctrl-C while a control command waits for its reply: the reply still comes, later. Read by
+    the next command it would answer the wrong question (a thermal run interrupted that way saved
+    "KeyError: 'time_us'" instead of the interrupt), so the channel drops the connection and
+    the next command opens a new one and gets its own reply."""
+    vb = VirtualBench(speed=0, seed=3, binary=sim_bin)
+    try:
+        ch = vb.channel
+        assert "time_us" in ch.control("status")
+
+        class Interrupted:
+            def __init__(self, rfile):
+                self.rfile, self.hit = rfile, False
+
+            def readline(self):                         # the first wait is interrupted
+                if not self.hit:
+                    self.hit = True
+                    raise KeyboardInterrupt
+                return self.rfile.readline()
+
+            def close(self):
+                self.rfile.close()
+        ch._rfile = Interrupted(ch._rfile)
+        with pytest.raises(KeyboardInterrupt):
+            ch.control("get_truth")                     # sent; its reply is left in the socket
+        st = ch.control("status")                       # a new connection: status's own reply
+        assert "time_us" in st and "accel" not in st and not isinstance(ch._rfile, Interrupted)
+    finally:
+        vb.close()

@@ -183,25 +183,45 @@ class _Control:
     """A control connection of its own to a lockstep device another process started."""
 
     def __init__(self, address: str, speed: float):
-        host, _, port = address.rpartition(":")
         self.address = address
         self.speed = float(speed)
+        self._sock = self._rfile = None
+        self._lock = threading.Lock()
+        self._connect()
+
+    def _connect(self) -> None:
+        host, _, port = self.address.rpartition(":")
         try:
             self._sock = socket.create_connection((host, int(port)), timeout=10.0)
         except OSError as e:
-            raise ClockError(f"cannot reach the virtual device's control channel {address}: {e}") from e
+            raise ClockError(f"cannot reach the virtual device's control channel {self.address}: {e}") from e
         self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._rfile = self._sock.makefile("rb")
-        self._lock = threading.Lock()
+
+    def _drop(self) -> None:
+        for obj in (self._rfile, self._sock):
+            try:
+                obj.close()
+            except (OSError, AttributeError):
+                pass
+        self._sock = self._rfile = None
 
     def control(self, _cmd: str, *, timeout: float | None = 10.0, **fields) -> dict:
         with self._lock:
+            if self._sock is None:
+                self._connect()
             try:
                 self._sock.settimeout(timeout)
                 self._sock.sendall((json.dumps({"cmd": _cmd, **fields}) + "\n").encode())
                 line = self._rfile.readline()
             except OSError as e:
+                self._drop()
                 raise ClockError(f"the virtual device's control channel {self.address} failed: {e}") from e
+            except BaseException:
+                # Ctrl-C between the request and its reply: that reply must not answer the
+                # next request, so the connection goes and the next one opens afresh
+                self._drop()
+                raise
         if not line:
             raise ClockError(f"the virtual device closed its control channel {self.address}")
         r = json.loads(line)

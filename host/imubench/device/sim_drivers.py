@@ -88,6 +88,11 @@ class ControlChannel:
             except OSError as e:
                 self.disconnect()
                 raise SimError(f"control channel failed: {e}{tail(10)}") from e
+            except BaseException:
+                # Ctrl-C between the request and its reply: the reply would answer the next
+                # request (a `run` reply read as `status`'s), so the connection goes with it
+                self.disconnect()
+                raise
         if not reply:
             self.disconnect()
             raise SimError(f"the virtual device closed the control channel{tail(10)}")
