@@ -630,3 +630,25 @@ def test_ctrl_c_between_a_request_and_its_reply_leaves_no_stale_reply(sim_bin):
         assert "time_us" in st and "accel" not in st and not isinstance(ch._rfile, Interrupted)
     finally:
         vb.close()
+
+
+def test_a_socket_port_closes_without_pyserials_pause_and_reopens_at_once(sim_bin, monkeypatch):
+    """pyserial sleeps 0.3 s in every close of a socket:// port; a command pays it each time it
+    lets a device go. Our close does not, and the virtual device takes the next client at once."""
+    import serial.urlhandler.protocol_socket as ps
+
+    from imubench.device.link import Device
+
+    def no_pause(s):
+        raise AssertionError(f"pyserial's close paused {s} s")
+    vb = VirtualBench(speed=0, seed=3, binary=sim_bin)
+    try:
+        monkeypatch.setattr(ps.time, "sleep", no_pause)
+        for _ in range(3):
+            dev = Device.open(vb.port_url, timeout=0.5)
+            assert dev.info().sensors_present == 0b1111
+            sock = dev.link.port._socket
+            dev.close()
+            assert not dev.link.port.is_open and sock.fileno() == -1
+    finally:
+        vb.close()

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 import select
+import socket
 import threading
 import time
 from collections import deque
@@ -369,9 +370,29 @@ class Link:
         self._stop.set()
         self._thread.join(timeout=2.0)
         try:
+            _close_socket_port(self.port)
             self.port.close()
         except Exception:  # noqa: BLE001 - closing a dead port must not hide the real error
             pass
+
+
+def _close_socket_port(port) -> None:
+    """Close a socket:// port without pyserial's pause. pyserial 3.5's socket handler sleeps
+    0.3 s in every close() "in case of quick reconnects"; our devices need no such pause (the
+    virtual device takes a new client at once, and a board on a serial-to-TCP bridge is the
+    bridge's business), so a command that opens and closes a port should not pay it each time.
+    The socket is shut down and closed here, as pyserial would, and the port marked closed, so
+    that its own close() has nothing left to do."""
+    sock = getattr(port, "_socket", None)
+    if sock is None or not type(port).__module__.endswith("protocol_socket"):
+        return
+    try:
+        sock.shutdown(socket.SHUT_RDWR)
+    except OSError:
+        pass
+    sock.close()
+    port._socket = None
+    port.is_open = False
 
 
 class Device:
