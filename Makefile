@@ -88,11 +88,19 @@ lint: system-deps
 # its simulator, so two workers left a quarter of the CPU idle (fresh clone, idle: 2 workers 13 min
 # 46 s of pytest at 70 % of both cores, 3 workers 12 min 15 s at 86 %). A module's tests stay on one
 # worker (--dist loadscope), so module- and session-scoped fixtures (a virtual bench, a database
-# server) are set up once per worker; the 30 slowest tests are listed at the end.
+# server) are set up once per worker; the workers take the modules heaviest first, in the order
+# tests/conftest.py gives them (--no-loadscope-reorder; tests/module_seconds.json, rewritten from
+# build/test-results.xml by tools/test-weights.py). The 30 slowest tests are listed at the end.
+# The suite starts a few hundred Python processes; their bytecode is cached under build/pycache
+# even where PYTHONDONTWRITEBYTECODE is set (each process would otherwise compile every module
+# of imubench it imports again, about 0.1 s apiece).
 PYTEST_WORKERS ?= 3
+test: export PYTHONDONTWRITEBYTECODE :=
+test: export PYTHONPYCACHEPREFIX := $(CURDIR)/build/pycache
 test: system-deps venv c-tests sim firmware
 	$(VENV)/bin/ruff check --no-cache host bench tests
-	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadscope --durations=30
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadscope --no-loadscope-reorder --durations=30 \
+	    --junitxml=build/test-results.xml
 
 demo: system-deps venv sim
 	$(PY) -m imubench demo

@@ -61,3 +61,26 @@ def browser():
             yield b
         finally:
             b.close()
+
+
+# The heaviest modules first. `make test` runs pytest-xdist with --dist loadscope (a module stays on
+# one worker) and --no-loadscope-reorder (the workers take modules in collection order), so this
+# order is the schedule: longest first (Graham's LPT rule), and no worker is left at the end with
+# a two-minute module while the others are idle. The seconds come from a whole run (JUnit report,
+# tools/test-weights.py); a module not listed yet counts half a second a test.
+MODULE_SECONDS = ROOT / "tests" / "module_seconds.json"
+
+
+def pytest_collection_modifyitems(session, config, items):
+    import json
+    try:
+        seconds = json.loads(MODULE_SECONDS.read_text())
+    except (OSError, ValueError) as e:
+        raise pytest.UsageError(f"{MODULE_SECONDS}: {e} (rewrite it with tools/test-weights.py)") from e
+    count: dict[str, int] = {}
+    for item in items:
+        m = item.nodeid.split("::")[0]
+        count[m] = count.get(m, 0) + 1
+    weight = {m: float(seconds.get(m, 0.5 * n)) for m, n in count.items()}
+    first_seen = {m: i for i, m in enumerate(count)}
+    items.sort(key=lambda it: (-weight[it.nodeid.split("::")[0]], first_seen[it.nodeid.split("::")[0]]))
