@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import signal
 import subprocess
 import tempfile
 from pathlib import Path
@@ -20,6 +21,14 @@ if "IMUBENCH_TEST_DATA_HOME" not in os.environ:
     os.environ["IMUBENCH_TEST_DATA_HOME"] = tempfile.mkdtemp(prefix="imubench-test-data-")
 os.environ["XDG_DATA_HOME"] = os.environ["IMUBENCH_TEST_DATA_HOME"]
 os.environ.pop("IMUBENCH_DB", None)
+
+# Tests send Ctrl-C (SIGINT) to commands they start and expect them to stop. A shell without job
+# control starts a background job (`make test &`, a CI step run that way) with SIGINT ignored, and
+# a child inherits an ignored signal across exec: such a command never sees the Ctrl-C and runs
+# to its end (test_warmup's Ctrl-C test then failed with exit 0). The suite's processes take
+# SIGINT as Python does by default, so that the commands they start do too.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 ROOT = Path(__file__).resolve().parent.parent
 HOST_BUILD = ROOT / "build" / "host"
