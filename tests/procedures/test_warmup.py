@@ -232,8 +232,13 @@ def test_warmup_cli_on_the_virtual_part_recovers_the_truth(tmp_path):
 
 
 def test_ctrl_c_keeps_the_fit_of_what_came(tmp_path):
+    # A ceiling of 50x (lockstep: the same samples, at most 50 s of device time per wall s): the
+    # first fit comes after 20 s of device time, and the rest of the warm-up (tau 300 s: about
+    # 1100 s of device time, over 20 s of wall time at the ceiling) cannot end before the signal
+    # arrives, however busy the machine. Unbounded with tau 60 s, it once ran its whole warm-up in
+    # the time a loaded machine took to deliver SIGINT (exit 0, not 130).
     out = tmp_path / "w"
-    p = _cli("--warmup", "--sim", "--sim-seed", "4", "--tau", "60", "--out", str(out))
+    p = _cli("--warmup", "--sim", "--sim-seed", "4", "--tau", "300", "--sim-speed", "50", "--out", str(out))
     lines: list[str] = []
     wait_for_line(p, r"orders accel \d/\d/\d", lines, timeout_s=120)        # a fit exists
     p.send_signal(signal.SIGINT)
@@ -368,11 +373,12 @@ def test_bias_random_walk_is_seen_and_enters_the_curve_sigma():
 
 
 def test_warmup_on_the_f103_image_writes_terms_the_image_applies(tmp_path):
-    """The exact STM32F103 image under the emulator (short: τ 10 s, 1 s bins; about 23 s wall): the
+    """The exact STM32F103 image under the emulator (short: τ 5 s, 1 s bins, stopped at 2 °C/min over
+    5 s: about 30 s of device time from 5 to 45 °C, then the write's 2 x 1000-sample check): the
     warm-up runs, writes layout-3 terms, and the image's own calibrated output matches the host's
     model after the reboot (the device check of the write)."""
     out = tmp_path / "w"
-    p = _cli("--warmup", "--sim", "--target", "f103", "--tau", "10", "--stop-window", "10", "--stop-rate", "1.0",
+    p = _cli("--warmup", "--sim", "--target", "f103", "--tau", "5", "--stop-window", "5", "--stop-rate", "2.0",
              "--bin", "1", "--write", "--out", str(out))
     stdout, stderr = finish(p, 300)
     assert p.returncode == 0, stdout + stderr
