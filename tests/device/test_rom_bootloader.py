@@ -351,7 +351,7 @@ def _erased(log: str) -> set[int]:
 @pytest.mark.parametrize("name", ["f103", "f4"])
 def test_stm32flash_writes_starts_and_a_reflash_keeps_the_calibration(name, tmp_path, capsys):
     """stm32flash writes, verifies and starts the previous image; the board, BOOT0 low, passes
-    a calibration session and saves it; BOOT0 high again, stm32flash writes the current
+    a calibration session (six faces, gyro bias) and saves it; BOOT0 high again, stm32flash writes the current
     build (only the image's pages/sectors erased, the parameter file untouched); BOOT0 low,
     the new image boots with the same parameters from flash and calibrated output."""
     _stm32flash()
@@ -376,13 +376,15 @@ def test_stm32flash_writes_starts_and_a_reflash_keeps_the_calibration(name, tmp_
     with VirtualBench(speed=0, seed=41, truth="random", target=name, flash=flash, elf=elfs) as vb:
         assert f'"elf": "{prev_elf}"' in Path(vb.log_path).read_text() or vb.info["elf"]
         vb.set_truth(accel={"rw_k": 0.0}, gyro=[GYRO_NO_DRIFT] * 3)
-        cfg = SessionConfig(method="multi", gyro="turntable", rate_hz=100, rest_s=0.5, settle_s=0.1, hold_s=0.25,
-                            turntable_s=0.8, turntable_rates_dps=(90.0,))
+        # the six faces and the gyro bias from the rests: a whole session (capture, fit, write
+        # back, save by the image's flash driver) at a fraction of the 26-attitude multi-position
+        # session with turntable, which tests/device/test_arm_images.py runs on both images
+        cfg = SessionConfig(method="six", gyro="bias", rate_hz=100, rest_s=0.5, settle_s=0.1, hold_s=0.25)
         with Device.open(vb.port_url, timeout=10.0) as dev:
             prev_tag = image_tag(image_bytes(prev_elf))    # None: an image from before the board tag
             assert prev_tag is None or dev.info().fw_build == prev_tag["build"]
             s = Session(dev, tmp_path / "s", cfg, SimPresenter(vb, rate_dps=1000, quiet=True))
-            result = s.run(plan_for("multi"))
+            result = s.run(plan_for("six"))
             assert result["passed"], result
             wb = s.write_back(s.accel_fit, s.gyro_fit, cal_id=7)
             stored = _pack(dev.get_params(ParamsWhich.STORED).params)

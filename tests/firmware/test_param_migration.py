@@ -109,8 +109,13 @@ def test_a_previous_layout_block_is_used_and_the_next_save_writes_layout3(tmp_pa
                 pass
         newest = max(recs, key=lambda r: r.generation)
         assert newest.generation == 18 and newest.payload_version == 3 and len(newest.payload) == 248
-        vb.restart()
+        # a reboot of the device (its firmware loads the block from flash again, as at power-up:
+        # the file-backed flash was read at start-up above); not a restart of the emulator's
+        # process, which cost a second start-up of the ARM emulator per case
         with Device.open(vb.port_url, timeout=5.0) as d:
+            reboots = vb.status()["reboots"]
+            info = d.reboot()
+            assert vb.status()["reboots"] == reboots + 1 and info.param_generation == 18
             act = d.get_params(ParamsWhich.ACTIVE)
             assert act.source == ParamSource.FLASH
             got = act.params

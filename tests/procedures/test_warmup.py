@@ -368,11 +368,12 @@ def test_bias_random_walk_is_seen_and_enters_the_curve_sigma():
 
 
 def test_warmup_on_the_f103_image_writes_terms_the_image_applies(tmp_path):
-    """The exact STM32F103 image under the emulator (short: τ 10 s, 1 s bins; about 23 s wall): the
+    """The exact STM32F103 image under the emulator (short: τ 5 s, 1 s bins, stopped at 2 °C/min over
+    5 s: about 30 s of device time from 5 to 45 °C, then the write's 2 x 1000-sample check): the
     warm-up runs, writes layout-3 terms, and the image's own calibrated output matches the host's
     model after the reboot (the device check of the write)."""
     out = tmp_path / "w"
-    p = _cli("--warmup", "--sim", "--target", "f103", "--tau", "10", "--stop-window", "10", "--stop-rate", "1.0",
+    p = _cli("--warmup", "--sim", "--target", "f103", "--tau", "5", "--stop-window", "5", "--stop-rate", "2.0",
              "--bin", "1", "--write", "--out", str(out))
     stdout, stderr = finish(p, 300)
     assert p.returncode == 0, stdout + stderr

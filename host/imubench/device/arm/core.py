@@ -34,6 +34,7 @@ from unicorn import (
     UC_PROT_EXEC,
     UC_PROT_READ,
     Uc,
+    UcError,
 )
 from unicorn import arm_const as A
 
@@ -78,6 +79,24 @@ class RegBatch:
         err = uclib.uc_reg_write_batch(self.uch, self.ids, self.ptrs, self.n)
         if err:
             raise RuntimeError(f"uc_reg_write_batch failed: {err}")
+
+
+class Reg:
+    """One 32-bit register read in one libunicorn call (the binding's reg_read looks up the
+    register's class and builds a ctypes value on every call; PC and PRIMASK are read on
+    every run segment and every exception check)."""
+
+    def __init__(self, uc, reg):
+        self.uch = uc._uch
+        self.reg = reg
+        self.val = ctypes.c_uint64()
+        self.ref = ctypes.byref(self.val)
+
+    def read(self) -> int:
+        err = uclib.uc_reg_read(self.uch, self.reg, self.ref)
+        if err:
+            raise RuntimeError(f"uc_reg_read({self.reg}) failed: {err}")
+        return self.val.value & 0xFFFFFFFF
 
 
 class ElfImage:
@@ -153,6 +172,9 @@ class Cpu:
                                                              A.UC_ARM_REG_PC])
         self._fp = RegBatch(uc, list(FP_REGS) + [A.UC_ARM_REG_FPSCR]) if target.cpu == "cortex-m4" else None
         self._ctrl = RegBatch(uc, [A.UC_ARM_REG_CONTROL])
+        self._pc = Reg(uc, A.UC_ARM_REG_PC)
+        self._primask = Reg(uc, A.UC_ARM_REG_PRIMASK)
+        self._words = {n: ctypes.create_string_buffer(n) for n in (4, 32)}
 
     # ---------------------------------------------------------------- memory
     def map_memory(self, mmio_regions: list[tuple[int, int, object, object]]) -> None:
@@ -268,14 +290,30 @@ class Cpu:
         self.fp_saved = []
 
     def pc(self) -> int:
-        return self.uc.reg_read(A.UC_ARM_REG_PC)
+        return self._pc.read()
 
     def primask(self) -> int:
-        return self.uc.reg_read(A.UC_ARM_REG_PRIMASK) & 1
+        return self._primask.read() & 1
+
+    def _read(self, addr: int, n: int) -> bytes:
+        """n (4 or 32) bytes of memory in one libunicorn call into a buffer kept for it."""
+        buf = self._words[n]
+        err = uclib.uc_mem_read(self.uc._uch, addr, buf, n)
+        if err:
+            raise UcError(err)
+        return buf.raw
 
     def run(self) -> None:
-        """Run from the current PC until the block hook's limit, emu_stop or an error."""
-        self.uc.emu_start(self.pc() | 1, 0xFFFFFFFE)
+        """Run from the current PC until the block hook's limit, emu_stop or an error. What
+        Uc.emu_start does, without its Python frame: an exception raised in a Python hook
+        (the binding keeps it in _hook_exception) is raised here."""
+        uc = self.uc
+        uc._hook_exception = None
+        err = uclib.uc_emu_start(uc._uch, self._pc.read() | 1, 0xFFFFFFFE, 0, 0)
+        if err:
+            raise UcError(err)
+        if uc._hook_exception is not None:
+            raise uc._hook_exception
 
     # ------------------------------------------------------------ exceptions
     def enter_exception(self, exc: int, vtor: int) -> None:
@@ -299,7 +337,7 @@ class Cpu:
             self._ctrl.write([control & ~4])
         else:
             self.fp_saved.append(None)
-        handler = struct.unpack("<I", bytes(uc.mem_read(vtor + 4 * exc, 4)))[0]
+        handler = struct.unpack("<I", self._read(vtor + 4 * exc, 4))[0]
         # The handler starts with EPSR.IT cleared (B1.5.6: ITSTATE = 0) and T set; the
         # flags (N Z C V Q, GE) are kept. Unicorn keeps the interrupted code's IT state
         # otherwise: stopped inside an IT block (a translation block ends at a 1 KB page),
@@ -310,10 +348,9 @@ class Cpu:
 
     def exit_exception(self) -> None:
         """Exception return through EXC_RETURN (B1.5.8 ExceptionReturn + PopStack)."""
-        uc = self.uc
         self.exc_exit = False
         sp = self._rd_sp.read()[0]
-        vals = struct.unpack("<8I", bytes(uc.mem_read(sp, 32)))
+        vals = struct.unpack("<8I", self._read(sp, 32))
         sp += 32
         if vals[7] & (1 << 9):
             sp += 4
