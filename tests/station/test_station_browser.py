@@ -137,10 +137,15 @@ def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
     import subprocess
     import sys
     import urllib.request
-    cmd = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "3", "--sim-speed", "4",
+    # the page's own speed ceiling (20, --sim-speed not given); 100 Hz: what the page shows does
+    # not depend on the stream's rate, and it is a fifth of the samples to make and decode
+    cmd = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "3", "--rate", "100",
            "--ui", "web", "--http-port", "0", "--dir", str(tmp_path / "st"), "--db", str(tmp_path / "h.sqlite"),
            "--hold", "0.5", "--sim-fault", "2:gyro_y"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    # SIGINT to its default in the child: a run started in the background by a non-interactive
+    # shell ignores it, and the child would too (the Ctrl-C below would then never stop it)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     try:
         url = wait_for_line(proc, FIRST_URL, lines).group(1)
