@@ -19,7 +19,11 @@ ARTIFACTS = Path(__file__).resolve().parents[2] / "build" / "test-artifacts"
 
 
 def test_a_whole_session_on_the_station_page(tmp_path, browser):
-    station = Station(workdir=tmp_path, db=tmp_path / "history.sqlite", sim_speed=12.0, sim_seed=5)
+    # the simulated person's hand moves take 1.5-4 s of device time rather than 3-8 s: the page's
+    # cards, live |a|, stop and resume do not depend on how long a move takes, and the moves
+    # were most of the session's device time
+    station = Station(workdir=tmp_path, db=tmp_path / "history.sqlite", sim_speed=12.0, sim_seed=5,
+                      person={"move_s": (1.5, 4.0)})
     server = Server(station).start()
     try:
         page = browser.new_page(viewport={"width": 1280, "height": 1400})
