@@ -181,6 +181,26 @@ def test_a_faulty_board_fails_alone_the_others_pass(tmp_path_factory, case):
     _check(run, res, faults, plan)
 
 
+def test_a_bench_whose_control_connection_was_dropped_still_quits():
+    """A frozen board's grant past its guard (or an interrupted command) drops the bench's
+    control connection; closing the bench afterwards must still ask the simulator to quit (a
+    new connection), not leave it to SIGTERM after the stop timeout (3 s of every frozen-board
+    session here). On a process continued after a freeze, as Faults.close does."""
+    vb = VirtualBench(speed=0, seed=590, truth="random")
+    try:
+        with vb.device() as dev:
+            dev.info()                              # a lockstep exchange on the channel
+        os.kill(vb.pid, signal.SIGSTOP)
+        vb.channel.disconnect()                     # what a failed or interrupted command does
+        os.kill(vb.pid, signal.SIGCONT)
+        assert not vb.channel.connected
+        vb.stop()                                   # the log is kept until close()
+        log = vb.resource.log
+        assert "exiting (quit)" in log and "exiting (Terminated)" not in log, log[-400:]
+    finally:
+        vb.close()
+
+
 @pytest.mark.parametrize("stage", ["plate", "poses", "write"])
 def test_a_frozen_board_is_dropped_from_the_plate_at_its_first_missed_deadline(tmp_path, stage):
     """The issue's case: a board frozen while the plate works (SIGSTOP: the link stays open,
