@@ -201,6 +201,21 @@ def test_a_bench_whose_control_connection_was_dropped_still_quits():
         vb.close()
 
 
+def test_an_idle_f103_image_quits_when_asked():
+    """The emulated F103 on the lockstep clock ends on the control command "quit" between
+    grants too (it checked only after a grant: every close of an idle ARM-image bench waited
+    the stop timeout, 3 s, for SIGTERM)."""
+    vb = VirtualBench(speed=0, seed=591, truth="random", target="f103")
+    try:
+        with vb.device() as dev:
+            dev.info()                              # grants run; then the device is idle
+        vb.stop()                                   # quit over the control channel; the log is kept
+        log = vb.resource.log
+        assert "exiting (quit)" in log and "signal" not in log.split("exiting")[-1], log[-400:]
+    finally:
+        vb.close()
+
+
 @pytest.mark.parametrize("stage", ["plate", "poses", "write"])
 def test_a_frozen_board_is_dropped_from_the_plate_at_its_first_missed_deadline(tmp_path, stage):
     """The issue's case: a board frozen while the plate works (SIGSTOP: the link stays open,
