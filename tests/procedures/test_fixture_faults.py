@@ -39,6 +39,10 @@ from imubench.procedures.virtual import PlatePresenter
 LINK_TIMEOUT_S = 2.0
 #: how much wall time past its guard a faulty board may take to be failed (a loaded machine)
 SLACK_WALL_S = 20.0
+#: the virtual plate's turn rate, °/s (PlatePresenter's default is 90): these tests are about
+#: faults, not the plate's pace; a quicker move is less device time to run for every board
+#: (on the F103 image, a third less emulator time)
+PLATE_RATE_DPS = 360.0
 #: the stages a fault may start at (the board's published stage)
 STAGES = ("connect", "rest", "poses", "plate", "write", "verify")     # plate: waiting at the plate
 FAULTS = ("kill", "freeze", "slow", "garbage")
@@ -123,7 +127,7 @@ def _station(tmp_path, n: int, plan: dict[int, tuple[str, str]], seed0: int = 50
             benches.append(VirtualBench(speed=0, seed=seed0 + k, truth="random", target=target))
         faults = Faults(benches, plan)
         run = FixtureRun([vb.port_url for vb in benches], tmp_path / "station", cfg or _cfg(),
-                         PlatePresenter(benches, quiet=True, guard_wall_s=LINK_TIMEOUT_S),
+                         PlatePresenter(benches, quiet=True, guard_wall_s=LINK_TIMEOUT_S, rate_dps=PLATE_RATE_DPS),
                          station=Station("S-faults"), on_event=faults, link_timeout_s=LINK_TIMEOUT_S,
                          say=lambda s: None, plots=False, plate_timeout_s=120.0)
         t0 = time.monotonic()
@@ -177,6 +181,41 @@ def test_a_faulty_board_fails_alone_the_others_pass(tmp_path_factory, case):
     _check(run, res, faults, plan)
 
 
+def test_a_bench_whose_control_connection_was_dropped_still_quits():
+    """A frozen board's grant past its guard (or an interrupted command) drops the bench's
+    control connection; closing the bench afterwards must still ask the simulator to quit (a
+    new connection), not leave it to SIGTERM after the stop timeout (3 s of every frozen-board
+    session here). On a process continued after a freeze, as Faults.close does."""
+    vb = VirtualBench(speed=0, seed=590, truth="random")
+    try:
+        with vb.device() as dev:
+            dev.info()                              # a lockstep exchange on the channel
+        os.kill(vb.pid, signal.SIGSTOP)
+        vb.channel.disconnect()                     # what a failed or interrupted command does
+        os.kill(vb.pid, signal.SIGCONT)
+        assert not vb.channel.connected
+        vb.stop()                                   # the log is kept until close()
+        log = vb.resource.log
+        assert "exiting (quit)" in log and "exiting (Terminated)" not in log, log[-400:]
+    finally:
+        vb.close()
+
+
+def test_an_idle_f103_image_quits_when_asked():
+    """The emulated F103 on the lockstep clock ends on the control command "quit" between
+    grants too (it checked only after a grant: every close of an idle ARM-image bench waited
+    the stop timeout, 3 s, for SIGTERM)."""
+    vb = VirtualBench(speed=0, seed=591, truth="random", target="f103")
+    try:
+        with vb.device() as dev:
+            dev.info()                              # grants run; then the device is idle
+        vb.stop()                                   # quit over the control channel; the log is kept
+        log = vb.resource.log
+        assert "exiting (quit)" in log and "signal" not in log.split("exiting")[-1], log[-400:]
+    finally:
+        vb.close()
+
+
 @pytest.mark.parametrize("stage", ["plate", "poses", "write"])
 def test_a_frozen_board_is_dropped_from_the_plate_at_its_first_missed_deadline(tmp_path, stage):
     """The issue's case: a board frozen while the plate works (SIGSTOP: the link stays open,
@@ -207,7 +246,7 @@ def test_ctrl_c_sigterm_or_sighup_records_every_board_and_exits_130(tmp_path, si
     from imubench.results.history import History
     d, db = tmp_path / "st", tmp_path / "h.sqlite"
     cmd = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "3", "--sim-speed", "50",
-           "--method", "six", "--gyro", "none", "--dir", str(d), "--db", str(db), "--link-timeout", "2"]
+           "--method", "six", "--gyro", "none", "--rate", "100", "--dir", str(d), "--db", str(db), "--link-timeout", "2"]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          preexec_fn=_sigint_default)
     out = []
@@ -250,7 +289,7 @@ def test_a_stopped_station_session_resumes_each_board_where_it_stopped(tmp_path)
     from imubench.results.history import History
     d, db = tmp_path / "st", tmp_path / "h.sqlite"
     base = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-speed", "50", "--method", "six",
-            "--gyro", "none", "--db", str(db), "--link-timeout", "2"]
+            "--gyro", "none", "--rate", "100", "--db", str(db), "--link-timeout", "2"]
     p = subprocess.Popen(base + ["--sim-boards", "2", "--sim-seed", "77", "--dir", str(d)],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          preexec_fn=_sigint_default)
@@ -270,7 +309,8 @@ def test_a_stopped_station_session_resumes_each_board_where_it_stopped(tmp_path)
     first = json.loads((d / "station.json").read_text())
     poses_before = {b["slot"]: len(json.loads((d / f"slot-{b['slot']}" / "session.json").read_text())["poses"])
                     for b in first["boards"] if (d / f"slot-{b['slot']}" / "session.json").is_file()}
-    r = subprocess.run(base + ["--resume", str(d)], capture_output=True, text=True, timeout=180)
+    # the resumed run stops nowhere: no ceiling (the lockstep clock gives the same session)
+    r = subprocess.run(base + ["--resume", str(d), "--sim-speed", "0"], capture_output=True, text=True, timeout=180)
     assert r.returncode == 0, (r.stdout[-2000:], r.stderr)
     st = json.loads((d / "station.json").read_text())
     assert st["session_id"] == first["session_id"] and st["resumed"] and st["finished"] and not st["stopped"]

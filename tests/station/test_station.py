@@ -164,9 +164,11 @@ def test_known_angle_turns_by_hand_on_the_station_page(tmp_path):
     """--gyro turns from the page: for X, Y and Z up the page asks for the attitude (a step),
     then for one full turn by hand (its own picture); the simulated person does both and the
     gyro is calibrated from the turns."""
-    st = Station(workdir=tmp_path, db=tmp_path / "h.sqlite", sim_speed=40.0, sim_seed=3)
+    st = Station(workdir=tmp_path, db=tmp_path / "h.sqlite", sim_speed=0, sim_seed=3)      # no ceiling: no page watches
     try:
-        st.start({"port": "sim", "gyro": "turns", "write": False}, token=None)
+        # 100 Hz (the station API's rate_hz; the default is 500): the turns by hand are what this
+        # test is about, and a 360° turn integrates as well from a fifth of the samples
+        st.start({"port": "sim", "gyro": "turns", "write": False, "rate_hz": 100}, token=None)
         st.wait("sim", timeout=600)
         b = st.state.boards["sim"]
     finally:
@@ -209,8 +211,10 @@ def test_any_order_with_a_hint_no_timeout_and_adaptive_stop(tmp_path):
         def pose_event(self, name, state, detail):
             self.events.append((name, state))
 
-    cfg = SessionConfig(method="multi", gyro=None, write=False, adaptive=True, pose_timeout_s=None)
-    with VirtualBench(speed=30, seed=11, truth="random") as vb, vb.device() as dev:
+    # 100 Hz, not the default 500: the order, the hint and the adaptive stop do not depend on
+    # the rate (the adaptive hold is to a sigma target, whatever the rate)
+    cfg = SessionConfig(method="multi", gyro=None, write=False, adaptive=True, pose_timeout_s=None, rate_hz=100)
+    with VirtualBench(speed=0, seed=11, truth="random") as vb, vb.device() as dev:     # lockstep, no ceiling
         person = Watch(vb, seed=4, wrong_first=True)
         result = Session(dev, tmp_path / "s", cfg, person).run(plan_for("multi"))
     assert any("in no planned attitude" in h for h in person.hints), person.hints[:10]
@@ -226,17 +230,17 @@ def test_any_order_with_a_hint_no_timeout_and_adaptive_stop(tmp_path):
     assert result["bench_time_s"] > 0 and result["passed"]
 
 
-def test_station_commands_fail_in_one_line(tmp_path):
-    import os
-    import subprocess
-    import sys
-    env = {k: v for k, v in os.environ.items() if k != "IMUBENCH_PORT"}
-    r = subprocess.run([sys.executable, "-m", "imubench", "station", "--http-port", "70000"],
-                       capture_output=True, text=True, timeout=60, env=env)
-    assert r.returncode == 2 and "70000 is not a TCP port" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--ui", "web", "--dir", str(tmp_path / "s")],
-                       capture_output=True, text=True, timeout=60, env=env)
-    assert r.returncode == 2 and "no device: give --port URL" in r.stderr and "Traceback" not in r.stderr
+def test_station_commands_fail_in_one_line(tmp_path, capsys, monkeypatch):
+    # in-process (the command's main, as `python -m imubench` calls it): the one-line usage
+    # errors are the library's; the busy-port test below runs the command as a process
+    from imubench.cli import main as imubench
+    monkeypatch.delenv("IMUBENCH_PORT", raising=False)
+    assert imubench(["station", "--http-port", "70000"]) == 2
+    err = capsys.readouterr().err
+    assert "70000 is not a TCP port" in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert imubench(["calibrate", "--ui", "web", "--dir", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err
+    assert "no device: give --port URL" in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
 
 
 def test_the_verdict_says_in_words_why_six_faces_failed():

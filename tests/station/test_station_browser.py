@@ -19,7 +19,11 @@ ARTIFACTS = Path(__file__).resolve().parents[2] / "build" / "test-artifacts"
 
 
 def test_a_whole_session_on_the_station_page(tmp_path, browser):
-    station = Station(workdir=tmp_path, db=tmp_path / "history.sqlite", sim_speed=12.0, sim_seed=5)
+    # the simulated person's hand moves take 1.5-4 s of device time rather than 3-8 s: the page's
+    # cards, live |a|, stop and resume do not depend on how long a move takes, and the moves
+    # were most of the session's device time
+    station = Station(workdir=tmp_path, db=tmp_path / "history.sqlite", sim_speed=12.0, sim_seed=5,
+                      person={"move_s": (1.5, 4.0)})
     server = Server(station).start()
     try:
         page = browser.new_page(viewport={"width": 1280, "height": 1400})
@@ -137,10 +141,15 @@ def test_several_boards_one_column_each_on_the_page(tmp_path, browser):
     import subprocess
     import sys
     import urllib.request
-    cmd = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "3", "--sim-speed", "4",
+    # the page's own speed ceiling (20, --sim-speed not given); 100 Hz: what the page shows does
+    # not depend on the stream's rate, and it is a fifth of the samples to make and decode
+    cmd = [sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-boards", "3", "--rate", "100",
            "--ui", "web", "--http-port", "0", "--dir", str(tmp_path / "st"), "--db", str(tmp_path / "h.sqlite"),
            "--hold", "0.5", "--sim-fault", "2:gyro_y"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    # SIGINT to its default in the child: a run started in the background by a non-interactive
+    # shell ignores it, and the child would too (the Ctrl-C below would then never stop it)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     try:
         url = wait_for_line(proc, FIRST_URL, lines).group(1)

@@ -54,9 +54,14 @@ class ControlChannel:
         return self._sock is not None
 
     def quit(self) -> None:
-        """Ask the simulator to exit (best effort: a gone process is not an error)."""
-        if self._sock is not None and self.resource.running:
+        """Ask the simulator to exit (best effort: a gone process is not an error). A
+        connection dropped earlier (a command that failed or was interrupted, a grant past
+        its guard) is opened anew: without the quit the process is only ended by SIGTERM
+        after the stop timeout."""
+        if self.resource.running:
             try:
+                if self._sock is None:
+                    self.connect()
                 self._sock.settimeout(1.0)
                 self._sock.sendall(b'{"cmd": "quit"}\n')
                 self._rfile.readline()

@@ -259,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
                 break
             machine = None
     finally:
+        # why it ended, as the host build logs it (sim_main.c)
+        why = "signal or parent gone" if should_stop() else "quit" if lib.simlib_quit() else "stopped"
+        _log(f"[imubench-arm {a.target}] exiting ({why})")
         if machine is not None:
             machine.flash.close()
         lib.simlib_close()

@@ -142,7 +142,9 @@ class Server:
         pfd = (simlib.PollFd * 16)()
         target = ctypes.c_uint64()
         active = False
-        while not self.quit and not should_stop() and not m.exit_to_rom:
+        # the control command "quit" (lib.simlib_quit) ends it between grants too: checked only
+        # after a grant, an idle device ran on until the host's SIGTERM, 3 s after the quit
+        while not self.quit and not should_stop() and not m.exit_to_rom and not lib.simlib_quit():
             st = lib.sim_control_run_target(ctypes.byref(target))
             if st == 2:
                 while lib.simlib_link_accept() == 0:
