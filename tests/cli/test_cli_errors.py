@@ -3,7 +3,10 @@
     one line on stderr `imubench CMD: error: what happened; what to do`,
     exit 2 (usage), 1 (failure) or 130 (interrupted), no traceback, nothing captured lost.
 
-Each case runs the real command line in a subprocess, as a user runs it.
+Each kind of mistake runs the real command line in a subprocess, as a user runs it, at least
+once (SUBPROCESS_CASES: the interpreter's exit, its stderr and exit code seen from outside); the
+other cases of the same kind run the same entry point, imubench.cli.main, in this process, where
+an exception that escaped it would fail the test as a traceback would.
 """
 from __future__ import annotations
 
@@ -37,6 +40,25 @@ def env_without_port(tmp: Path) -> dict:
 def run(argv, tmp: Path, timeout=120):
     return subprocess.run([sys.executable, "-m", "imubench", *argv], capture_output=True, text=True,
                           timeout=timeout, env=env_without_port(tmp), cwd=tmp, stdin=subprocess.DEVNULL)
+
+
+def run_in_process(argv, tmp: Path, monkeypatch, capsys) -> subprocess.CompletedProcess:
+    """imubench.cli.main(argv) as `run` starts it (no port in the environment, TMPDIR and the
+    working directory `tmp`, stdin empty), its exit code and output as a subprocess's."""
+    import io
+    import tempfile
+
+    from imubench.cli import main as imubench
+    for k in ("IMUBENCH_PORT", "IMUBENCH_DEBUG"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setenv("TMPDIR", str(tmp))
+    monkeypatch.setattr(tempfile, "tempdir", None)          # read TMPDIR again, as a new process does
+    monkeypatch.chdir(tmp)
+    monkeypatch.setattr(sys, "stdin", io.StringIO(""))
+    capsys.readouterr()
+    code = imubench(list(argv))
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(argv, code, out, err)
 
 
 def assert_one_error_line(r, cmd: str, code: int, *needles: str):
@@ -159,10 +181,33 @@ def _case_id(c):
     return f"{c[0]} {' '.join(c[1])}".replace(REFUSED, "REFUSED").replace("{", "").replace("}", "")
 
 
+# one case of each kind of mistake runs as a user runs it, in a subprocess of `python -m imubench`
+SUBPROCESS_CASES = {
+    "calibrate ",                                   # no port
+    "info --port REFUSED",                          # a port that does not open (socket)
+    "info --port " + NO_DEVICE,                     # a serial device that does not exist
+    "allan --duration 1s --rate 333",               # a rate the protocol does not support
+    "calibrate --method seven",                     # an unknown choice (argparse)
+    "sim --boot0",                                  # a usage error the command checks itself
+    "decode dir",                                   # a directory where a file belongs
+    "report png",                                   # a file where a directory belongs
+    "decode missing",                               # no such file
+    "decode png",                                   # garbage
+    "calibrate --db png --port REFUSED",            # a history that is not one, before any capture
+    "report session",                               # a damaged session.json
+    "decode capture --csv full",                    # a device as an output
+    "calibrat ",                                    # not a command
+}
+assert SUBPROCESS_CASES <= {_case_id(c) for c in CASES}, SUBPROCESS_CASES - {_case_id(c) for c in CASES}
+
+
 @pytest.mark.parametrize("cmd,args,code,needles", CASES, ids=[_case_id(c) for c in CASES])
-def test_mistake_gives_one_line(files, cmd, args, code, needles):
+def test_mistake_gives_one_line(files, cmd, args, code, needles, monkeypatch, capsys):
     argv = [cmd] + [a.format(**{k: str(v) for k, v in files.items()}) for a in args]
-    r = run(argv, files["tmp"])
+    if _case_id((cmd, args)) in SUBPROCESS_CASES:
+        r = run(argv, files["tmp"])
+    else:
+        r = run_in_process(argv, files["tmp"], monkeypatch, capsys)
     prefix_cmd = cmd if cmd != "calibrat" else ""
     if cmd == "calibrat":            # an unknown command is the top-level parser's error
         assert r.returncode == 2 and "Traceback" not in r.stderr
