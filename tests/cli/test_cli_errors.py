@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from inproc import run_main
 from procio import finish
 from imubench.wire import frame as P
 from imubench.wire.decoder import decode_bytes
@@ -45,20 +46,8 @@ def run(argv, tmp: Path, timeout=120):
 def run_in_process(argv, tmp: Path, monkeypatch, capsys) -> subprocess.CompletedProcess:
     """imubench.cli.main(argv) as `run` starts it (no port in the environment, TMPDIR and the
     working directory `tmp`, stdin empty), its exit code and output as a subprocess's."""
-    import io
-    import tempfile
-
-    from imubench.cli import main as imubench
-    for k in ("IMUBENCH_PORT", "IMUBENCH_DEBUG"):
-        monkeypatch.delenv(k, raising=False)
-    monkeypatch.setenv("TMPDIR", str(tmp))
-    monkeypatch.setattr(tempfile, "tempdir", None)          # read TMPDIR again, as a new process does
-    monkeypatch.chdir(tmp)
-    monkeypatch.setattr(sys, "stdin", io.StringIO(""))
-    capsys.readouterr()
-    code = imubench(list(argv))
-    out, err = capsys.readouterr()
-    return subprocess.CompletedProcess(argv, code, out, err)
+    return run_main(argv, monkeypatch, capsys, cwd=tmp, env={"TMPDIR": tmp},
+                    unset=("IMUBENCH_PORT", "IMUBENCH_DEBUG"))
 
 
 def assert_one_error_line(r, cmd: str, code: int, *needles: str):
