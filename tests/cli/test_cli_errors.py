@@ -223,11 +223,19 @@ def test_debug_shows_the_traceback(files):
 
 
 # ----------------------------------------------------------------------- Ctrl-C in the middle
+def _terminal_sigint():
+    """In the child: Ctrl-C's default disposition, as a command started from a terminal has it.
+    A pytest started in the background of a non-interactive shell (nohup, `cmd &`) ignores
+    SIGINT, and its children inherit that: the Ctrl-C tests then saw commands run to the end."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupt(argv, tmp: Path, marker: str, timeout: float = 120.0):
     """Start the command, wait until its output shows `marker`, send SIGINT as a terminal's
     Ctrl-C does, and return (exit code, stdout, stderr)."""
     p = subprocess.Popen([sys.executable, "-m", "imubench", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True, env=env_without_port(tmp), cwd=tmp, stdin=subprocess.DEVNULL)
+                         text=True, env=env_without_port(tmp), cwd=tmp, stdin=subprocess.DEVNULL,
+                         preexec_fn=_terminal_sigint)
     out = []
     t0 = time.monotonic()
     try:
@@ -305,7 +313,7 @@ def test_ctrl_c_stops_imubench_sim_even_while_it_says_where_it_listens(tmp_path)
     printed the rest and waits) is a stop like any other, exit 0, its folder removed."""
     p = subprocess.Popen([sys.executable, "-m", "imubench", "sim", "--speed", "0", "--thermal-lag"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env_without_port(tmp_path),
-                         cwd=tmp_path, stdin=subprocess.DEVNULL)
+                         cwd=tmp_path, stdin=subprocess.DEVNULL, preexec_fn=_terminal_sigint)
     try:
         first = p.stdout.readline()
         p.send_signal(signal.SIGINT)
@@ -329,6 +337,20 @@ def test_ctrl_c_ends_a_live_view_normally(tmp_path):
     assert code == 0 and "Traceback" not in err and "done:" in out
     _, raw, _, stats = decode_bytes(rec.read_bytes())
     assert raw is not None and len(raw) > 0 and stats.frames_rejected == 0
+
+
+def test_monitor_in_process_gives_back_the_callers_ctrl_c_handler(tmp_path, monkeypatch, capsys):
+    """monitor takes Ctrl-C to end its view; called in-process (main(), as tests and embedding
+    programs call it) it set its own handler for good, and every later Ctrl-C was swallowed."""
+    def mine(signum, frame):
+        raise KeyboardInterrupt
+    old = signal.signal(signal.SIGINT, mine)
+    try:
+        r = run_in_process(["monitor", "--port", REFUSED], tmp_path, monkeypatch, capsys)
+        assert_one_error_line(r, "monitor", 1, "cannot open")
+        assert signal.getsignal(signal.SIGINT) is mine
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def test_a_refused_command_leaves_no_empty_history_database(tmp_path, capsys):
