@@ -3,7 +3,10 @@
     one line on stderr `imubench CMD: error: what happened; what to do`,
     exit 2 (usage), 1 (failure) or 130 (interrupted), no traceback, nothing captured lost.
 
-Each case runs the real command line in a subprocess, as a user runs it.
+Each kind of mistake runs the real command line in a subprocess, as a user runs it, at least
+once (SUBPROCESS_CASES: the interpreter's exit, its stderr and exit code seen from outside); the
+other cases of the same kind run the same entry point, imubench.cli.main, in this process, where
+an exception that escaped it would fail the test as a traceback would.
 """
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from inproc import run_main
 from procio import finish
 from imubench.wire import frame as P
 from imubench.wire.decoder import decode_bytes
@@ -37,6 +41,13 @@ def env_without_port(tmp: Path) -> dict:
 def run(argv, tmp: Path, timeout=120):
     return subprocess.run([sys.executable, "-m", "imubench", *argv], capture_output=True, text=True,
                           timeout=timeout, env=env_without_port(tmp), cwd=tmp, stdin=subprocess.DEVNULL)
+
+
+def run_in_process(argv, tmp: Path, monkeypatch, capsys) -> subprocess.CompletedProcess:
+    """imubench.cli.main(argv) as `run` starts it (no port in the environment, TMPDIR and the
+    working directory `tmp`, stdin empty), its exit code and output as a subprocess's."""
+    return run_main(argv, monkeypatch, capsys, cwd=tmp, env={"TMPDIR": tmp},
+                    unset=("IMUBENCH_PORT", "IMUBENCH_DEBUG"))
 
 
 def assert_one_error_line(r, cmd: str, code: int, *needles: str):
@@ -159,10 +170,33 @@ def _case_id(c):
     return f"{c[0]} {' '.join(c[1])}".replace(REFUSED, "REFUSED").replace("{", "").replace("}", "")
 
 
+# one case of each kind of mistake runs as a user runs it, in a subprocess of `python -m imubench`
+SUBPROCESS_CASES = {
+    "calibrate ",                                   # no port
+    "info --port REFUSED",                          # a port that does not open (socket)
+    "info --port " + NO_DEVICE,                     # a serial device that does not exist
+    "allan --duration 1s --rate 333",               # a rate the protocol does not support
+    "calibrate --method seven",                     # an unknown choice (argparse)
+    "sim --boot0",                                  # a usage error the command checks itself
+    "decode dir",                                   # a directory where a file belongs
+    "report png",                                   # a file where a directory belongs
+    "decode missing",                               # no such file
+    "decode png",                                   # garbage
+    "calibrate --db png --port REFUSED",            # a history that is not one, before any capture
+    "report session",                               # a damaged session.json
+    "decode capture --csv full",                    # a device as an output
+    "calibrat ",                                    # not a command
+}
+assert SUBPROCESS_CASES <= {_case_id(c) for c in CASES}, SUBPROCESS_CASES - {_case_id(c) for c in CASES}
+
+
 @pytest.mark.parametrize("cmd,args,code,needles", CASES, ids=[_case_id(c) for c in CASES])
-def test_mistake_gives_one_line(files, cmd, args, code, needles):
+def test_mistake_gives_one_line(files, cmd, args, code, needles, monkeypatch, capsys):
     argv = [cmd] + [a.format(**{k: str(v) for k, v in files.items()}) for a in args]
-    r = run(argv, files["tmp"])
+    if _case_id((cmd, args)) in SUBPROCESS_CASES:
+        r = run(argv, files["tmp"])
+    else:
+        r = run_in_process(argv, files["tmp"], monkeypatch, capsys)
     prefix_cmd = cmd if cmd != "calibrat" else ""
     if cmd == "calibrat":            # an unknown command is the top-level parser's error
         assert r.returncode == 2 and "Traceback" not in r.stderr
@@ -189,11 +223,19 @@ def test_debug_shows_the_traceback(files):
 
 
 # ----------------------------------------------------------------------- Ctrl-C in the middle
+def _terminal_sigint():
+    """In the child: Ctrl-C's default disposition, as a command started from a terminal has it.
+    A pytest started in the background of a non-interactive shell (nohup, `cmd &`) ignores
+    SIGINT, and its children inherit that: the Ctrl-C tests then saw commands run to the end."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupt(argv, tmp: Path, marker: str, timeout: float = 120.0):
     """Start the command, wait until its output shows `marker`, send SIGINT as a terminal's
     Ctrl-C does, and return (exit code, stdout, stderr)."""
     p = subprocess.Popen([sys.executable, "-m", "imubench", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True, env=env_without_port(tmp), cwd=tmp, stdin=subprocess.DEVNULL)
+                         text=True, env=env_without_port(tmp), cwd=tmp, stdin=subprocess.DEVNULL,
+                         preexec_fn=_terminal_sigint)
     out = []
     t0 = time.monotonic()
     try:
@@ -271,7 +313,7 @@ def test_ctrl_c_stops_imubench_sim_even_while_it_says_where_it_listens(tmp_path)
     printed the rest and waits) is a stop like any other, exit 0, its folder removed."""
     p = subprocess.Popen([sys.executable, "-m", "imubench", "sim", "--speed", "0", "--thermal-lag"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env_without_port(tmp_path),
-                         cwd=tmp_path, stdin=subprocess.DEVNULL)
+                         cwd=tmp_path, stdin=subprocess.DEVNULL, preexec_fn=_terminal_sigint)
     try:
         first = p.stdout.readline()
         p.send_signal(signal.SIGINT)
@@ -295,6 +337,20 @@ def test_ctrl_c_ends_a_live_view_normally(tmp_path):
     assert code == 0 and "Traceback" not in err and "done:" in out
     _, raw, _, stats = decode_bytes(rec.read_bytes())
     assert raw is not None and len(raw) > 0 and stats.frames_rejected == 0
+
+
+def test_monitor_in_process_gives_back_the_callers_ctrl_c_handler(tmp_path, monkeypatch, capsys):
+    """monitor takes Ctrl-C to end its view; called in-process (main(), as tests and embedding
+    programs call it) it set its own handler for good, and every later Ctrl-C was swallowed."""
+    def mine(signum, frame):
+        raise KeyboardInterrupt
+    old = signal.signal(signal.SIGINT, mine)
+    try:
+        r = run_in_process(["monitor", "--port", REFUSED], tmp_path, monkeypatch, capsys)
+        assert_one_error_line(r, "monitor", 1, "cannot open")
+        assert signal.getsignal(signal.SIGINT) is mine
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def test_a_refused_command_leaves_no_empty_history_database(tmp_path, capsys):

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from inproc import run_main
 from imu_synth import (
     G0,
     ferraris_session,
@@ -242,6 +243,12 @@ def _cli(args, cwd: Path, command="calibrate"):
                           cwd=cwd, timeout=300, stdin=subprocess.DEVNULL, env=env)
 
 
+def _main(args, cwd: Path, monkeypatch, capsys, command="calibrate"):
+    """_cli's command through the same entry point (imubench.cli.main) in this process, with its
+    working directory and history: for runs whose behaviour a subprocess run here also shows."""
+    return run_main([command, *args], monkeypatch, capsys, cwd=cwd, env={"IMUBENCH_DB": cwd / "history.sqlite"})
+
+
 def _shape(name, rec6, d: Path):
     """The file of a shape in d, and the units a user declares for it."""
     ag, gd, _, _ = rec6
@@ -286,11 +293,19 @@ SHAPES = {  # shape: what the run must say it detected
 }
 
 
+# the shape whose two runs are subprocesses, as a user types them; the others' runs take the same
+# entry point in-process (the reader's detection and the options are the same code either way)
+AS_TYPED = "preamble"
+
+
 @pytest.mark.parametrize("name", list(SHAPES))
-def test_each_shape_through_the_command_line(rec6, tmp_path, name):
+def test_each_shape_through_the_command_line(rec6, tmp_path, name, monkeypatch, capsys):
     _, _, truth, _ = rec6
     path, units = _shape(name, rec6, tmp_path)
-    r = _cli(["--from", path.name, *units, "--dir", "out"], tmp_path)
+
+    def cli(args):
+        return _cli(args, tmp_path) if name == AS_TYPED else _main(args, tmp_path, monkeypatch, capsys)
+    r = cli(["--from", path.name, *units, "--dir", "out"])
     out = r.stdout
     assert r.returncode == 0 and r.stderr == "" and "Traceback" not in out, out + r.stderr
     detected = [ln.strip()[len("detected: "):] for ln in out.splitlines() if ln.strip().startswith("detected: ")]
@@ -307,13 +322,13 @@ def test_each_shape_through_the_command_line(rec6, tmp_path, name):
     assert cmd.startswith(f"imubench calibrate --from {path.name} --format ")
     assert f"\n```\n{cmd}\n```\n" in (tmp_path / "out" / "README.md").read_text()
     assert f"the same reading, every option stated: {cmd}" in out
-    r2 = _cli([*cmd.split()[2:], "--dir", "again"], tmp_path)
+    r2 = cli([*cmd.split()[2:], "--dir", "again"])
     assert r2.returncode == 0 and "detected:" not in r2.stdout, r2.stdout + r2.stderr
     res2 = json.loads((tmp_path / "again" / "session.json").read_text())["result"]
     assert res2["accel"]["m"] == res["accel"]["m"] and res2["source"]["rate_hz"] == res["source"]["rate_hz"]
 
 
-def test_a_jittery_logging_clock_keeps_every_motion(tmp_path):
+def test_a_jittery_logging_clock_keeps_every_motion(tmp_path, monkeypatch, capsys):
     """Time stamps of a logging PC, 97.6 Hz with steps alternating long and short: no gap, no
     motion left out of the gyro fit; the rate is the measured mean with the jitter stated; the
     result is that of the same recording on a steady clock."""
@@ -326,7 +341,8 @@ def test_a_jittery_logging_clock_keeps_every_motion(tmp_path):
                 fmt="%.6f", header=hdr)
     runs = {}
     for name in ("jitter", "steady"):
-        r = _cli(["--from", f"{name}.csv", "--accel-unit", "mps2", "--gyro-unit", "rad_s", "--dir", name], tmp_path)
+        r = _main(["--from", f"{name}.csv", "--accel-unit", "mps2", "--gyro-unit", "rad_s", "--dir", name], tmp_path,
+                  monkeypatch, capsys)
         assert r.returncode == 0 and "Traceback" not in r.stdout + r.stderr, r.stdout + r.stderr
         assert "gap of" not in r.stdout and "not continuous" not in r.stdout and "samples missing" not in r.stdout
         runs[name] = (r.stdout, json.loads((tmp_path / name / "session.json").read_text())["result"])
@@ -343,7 +359,7 @@ def test_a_jittery_logging_clock_keeps_every_motion(tmp_path):
     assert np.abs(m - truth["gyro_m"]).max() < 5e-4
 
 
-def test_counts_without_a_gyro_scale_ask_for_it_in_one_line(rec6, tmp_path):
+def test_counts_without_a_gyro_scale_ask_for_it_in_one_line(rec6, tmp_path, monkeypatch, capsys):
     """Raw gyro counts that no known-angle turn scales: one line asking for the scale (once an
     internal TypeError); a named sensor without its gyro setting: one line asking for it."""
     ag, gd, _, events = rec6
@@ -356,11 +372,13 @@ def test_counts_without_a_gyro_scale_ask_for_it_in_one_line(rec6, tmp_path):
              "the gyro is in counts without a nominal scale and no known-angle turn in the recording scales it: "
              "give --gyro-scale COUNTS_PER_DPS"),
             (["--sensor", "MPU-6050"], "--sensor MPU-6050: its gyro has several full-scale settings")):
-        r = _cli(["--from", "raw.csv", *args, "--dir", "o"], tmp_path)
+        argv = ["--from", "raw.csv", *args, "--dir", "o"]        # the first as typed, the second in-process
+        r = _cli(argv, tmp_path) if "--gyro" in args else _main(argv, tmp_path, monkeypatch, capsys)
         err = [ln for ln in r.stderr.splitlines() if ln.strip()]
         assert r.returncode == 1 and len(err) == 1 and "Traceback" not in r.stdout + r.stderr, r.stdout + r.stderr
         assert err[0].startswith("imubench calibrate: error: ") and needle in err[0], err[0]
-    r = _cli(["--from", "raw.csv", "--sensor", "MPU-6050", "--gyro-range", "500", "--dir", "o2"], tmp_path)
+    r = _main(["--from", "raw.csv", "--sensor", "MPU-6050", "--gyro-range", "500", "--dir", "o2"], tmp_path,
+              monkeypatch, capsys)
     assert r.returncode == 0 and "gyro calibrated (rotation)" in r.stdout, r.stdout + r.stderr
 
 

@@ -1,5 +1,7 @@
 """Issue 32 items 1-2 and issue 40 item 5 through the command line, as a user types it:
-hand-held recordings (tests/imu_synth.handheld_session) calibrated with the defaults. Accepted
+hand-held recordings (tests/imu_synth.handheld_session) calibrated with the defaults (an accepted
+and a refused run in a subprocess; the others through the same entry point, imubench.cli.main,
+in-process: tests/inproc.py). Accepted
 where the truth is observable, with the scales within 3σ of the truth; refused with the reason
 where not; never worse than no calibration on the same rests."""
 from __future__ import annotations
@@ -24,10 +26,19 @@ def _cli(path, d, *extra):
                           stdin=subprocess.DEVNULL)
 
 
-def _run(tmp_path, name, ups, *extra, **kw):
+def _main(path, d, monkeypatch, capsys, *extra):
+    """_cli's command in this process."""
+    from inproc import run_main
+    return run_main(["calibrate", "--from", path, "--dir", d, "--accel-unit", "g", "--gyro-unit", "dps", "--db",
+                     d.parent / f"{d.name}.sqlite", *extra], monkeypatch, capsys, cwd=d.parent)
+
+
+def _run(tmp_path, name, ups, *extra, inproc=None, **kw):
+    """The recording calibrated by the command line: in a subprocess, or in-process when inproc
+    is (monkeypatch, capsys)."""
     ua, ug, truth, _ = handheld_session(ups, fs=FS, **kw)
     p = write_csv(tmp_path / f"{name}.csv", ua / G0, np.degrees(ug), FS)
-    r = _cli(p, tmp_path / name, *extra)
+    r = _cli(p, tmp_path / name, *extra) if inproc is None else _main(p, tmp_path / name, *inproc, *extra)
     assert "Traceback" not in r.stdout + r.stderr, r.stdout + r.stderr
     return r, truth
 
@@ -65,8 +76,8 @@ def test_hand_held_rests_with_slow_tilts(tmp_path):
     assert res["accel"]["method"] == "multi_position" and not res["accel_held"]
 
 
-def test_one_rest_per_face(tmp_path):
-    r, truth = _run(tmp_path, "faces", list(FACES6), seed=5)
+def test_one_rest_per_face(tmp_path, monkeypatch, capsys):
+    r, truth = _run(tmp_path, "faces", list(FACES6), seed=5, inproc=(monkeypatch, capsys))
     res = _accepted(r, tmp_path / "faces", truth)
     assert res["accel"]["method"] == "six_position"
     assert "method: six-position (the multi-position fit cannot be used: too few poses" in r.stdout
@@ -78,8 +89,8 @@ def six_handheld_ups():
     return [tilted(f, 3, rng) for f in [tilted(d, 22, rng) for d in FACES6] for _ in range(2)]
 
 
-def test_six_face_only_hand_held_keeps_biases_and_scales(tmp_path, six_handheld_ups):
-    r, truth = _run(tmp_path, "six", six_handheld_ups, tilt_deg=0.3, drift_mg=0.2, seed=5)
+def test_six_face_only_hand_held_keeps_biases_and_scales(tmp_path, six_handheld_ups, monkeypatch, capsys):
+    r, truth = _run(tmp_path, "six", six_handheld_ups, tilt_deg=0.3, drift_mg=0.2, seed=5, inproc=(monkeypatch, capsys))
     res = _accepted(r, tmp_path / "six", truth)
     assert res["accel_held"] == ["a_yx", "a_zx", "a_zy"]
     assert "a_yx, a_zx, a_zy held at nominal" in res["verdict"]
@@ -97,23 +108,23 @@ def test_six_face_only_hand_held_with_method_six_is_refused_not_fitted(tmp_path,
     assert "PASSED" not in r.stdout
 
 
-def test_ten_rests_one_per_face_and_four_edges(tmp_path):
+def test_ten_rests_one_per_face_and_four_edges(tmp_path, monkeypatch, capsys):
     rng = np.random.default_rng(3)
     ups = [tilted(d, 1.5, rng) for d in list(FACES6) + list(EDGES_XZ_YZ)]
-    r, truth = _run(tmp_path, "ten", ups, tilt_deg=0.3, drift_mg=0.2, seed=5)
+    r, truth = _run(tmp_path, "ten", ups, tilt_deg=0.3, drift_mg=0.2, seed=5, inproc=(monkeypatch, capsys))
     res = _accepted(r, tmp_path / "ten", truth)
     assert res["accel_held"] == ["a_yx"] and "a_yx held at nominal" in res["verdict"]
     assert res["accel_candidates"][0]["kind"] == "multi9" and res["accel_candidates"][0]["status"] != "kept"
     assert len(res["rests"]) == 10
 
 
-def test_gyro_motions_never_about_z_fit_the_rest_and_hold_its_column(tmp_path):
+def test_gyro_motions_never_about_z_fit_the_rest_and_hold_its_column(tmp_path, monkeypatch, capsys):
     """Issue 40 item 5 for the gyro: turns about X and Y only leave M's Z column (m02, m12,
     m22) unresolved; the rotation method fits the other six entries and holds those."""
     z, y, x = [0, 0, 1], [0, 1, 0], [1, 0, 0]
     neg = lambda v: [-a for a in v]     # noqa: E731
     ups = [z, y, neg(z), neg(y), z, x, neg(z), neg(x), z, neg(y), neg(z), y, z, neg(x), neg(z), x, z]
-    r, truth = _run(tmp_path, "gyro", ups, seed=4)
+    r, truth = _run(tmp_path, "gyro", ups, seed=4, inproc=(monkeypatch, capsys))
     res = _accepted(r, tmp_path / "gyro", truth)
     g = res["gyro"]
     assert g["method"] == "rotation" and g["extra"]["held"] == ["m02", "m12", "m22"]

@@ -329,7 +329,14 @@ def _cli(args, cwd: Path, timeout=180):
                           cwd=cwd, timeout=timeout, stdin=subprocess.DEVNULL)
 
 
-def test_cli_end_to_end(session, tmp_path):
+def _main(args, cwd: Path, monkeypatch, capsys, command="calibrate"):
+    """_cli's command through the same entry point (imubench.cli.main) in this process: for runs
+    whose behaviour a subprocess run in this module also shows (tests/inproc.py)."""
+    from inproc import run_main
+    return run_main([command, *args], monkeypatch, capsys, cwd=cwd)
+
+
+def test_cli_end_to_end(session, tmp_path, monkeypatch, capsys):
     ua, ug, truth, _ = session
     p = write_csv(tmp_path / "board7.csv", ua / G0, np.degrees(ug), FS)
     db = tmp_path / "h.sqlite"
@@ -362,9 +369,8 @@ def test_cli_end_to_end(session, tmp_path):
     with sqlite3.connect(db) as con:
         (n, method), = con.execute("SELECT count(*), gyro_method FROM runs").fetchall()
     assert n == 1 and method == "turns"
-    # the report command reads the directory like any session's
-    r2 = subprocess.run([sys.executable, "-m", "imubench", "report", str(d), "--out", str(tmp_path / "r.html")],
-                        capture_output=True, text=True, timeout=120)
+    # the report command reads the directory like any session's (as typed: tests/results/test_report.py)
+    r2 = _main([d, "--out", tmp_path / "r.html"], tmp_path, monkeypatch, capsys, command="report")
     assert r2.returncode == 0 and (tmp_path / "r.html").is_file(), r2.stderr
 
 
@@ -375,10 +381,12 @@ def test_cli_end_to_end(session, tmp_path):
     (["--accel-unit", "g", "--gyro-unit", "dps", "--port", "socket://127.0.0.1:1"], 2, "--from and --port exclude"),
     (["--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "turntable"], 2, "--gyro turntable needs a turntable"),
 ])
-def test_cli_mistakes_give_one_line(session, tmp_path, args, code, needle):
+def test_cli_mistakes_give_one_line(session, tmp_path, args, code, needle, monkeypatch, capsys):
     ua, ug, _, _ = session
     p = write_csv(tmp_path / "log.csv", ua / G0, np.degrees(ug), FS)
-    r = _cli(["--from", str(p), "--dir", "o", "--db", str(tmp_path / "h.sqlite"), *args], tmp_path)
+    argv = ["--from", str(p), "--dir", "o", "--db", str(tmp_path / "h.sqlite"), *args]
+    # the first as typed (a subprocess); the others through the same entry point in-process
+    r = _cli(argv, tmp_path) if args == ["--accel-unit", "g"] else _main(argv, tmp_path, monkeypatch, capsys)
     err = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert r.returncode == code and len(err) == 1 and "Traceback" not in r.stdout + r.stderr, r.stdout + r.stderr
     assert err[0].startswith("imubench calibrate: error: ") and needle in err[0], err[0]
@@ -459,7 +467,7 @@ def test_headerless_table_read_by_position(session, tmp_path):
         read(q, rate_hz=FS, accel_unit="mps2", gyro_unit="rad_s", columns={"ax": "AccX"})
 
 
-def test_explicit_gyro_method_refused_keeps_the_accelerometer_and_exits_1(session, tmp_path):
+def test_explicit_gyro_method_refused_keeps_the_accelerometer_and_exits_1(session, tmp_path, monkeypatch, capsys):
     """--gyro rotation on a recording whose motions cannot give it: the accelerometer's result is
     printed, kept in session.json and the history, exported; the verdict says why; exit 1."""
     ua, ug, _, events = session
@@ -467,8 +475,8 @@ def test_explicit_gyro_method_refused_keeps_the_accelerometer_and_exits_1(sessio
     cut = rests[5][2]                         # the six faces: five motions, fewer than the method needs
     p = write_csv(tmp_path / "short.csv", ua[:cut] / G0, np.degrees(ug[:cut]), FS)
     db = tmp_path / "h.sqlite"
-    r = _cli(["--from", str(p), "--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "rotation", "--method", "six",
-              "--dir", "out", "--db", str(db), "--export", "imucal"], tmp_path)
+    r = _main(["--from", str(p), "--accel-unit", "g", "--gyro-unit", "dps", "--gyro", "rotation", "--method", "six",
+               "--dir", "out", "--db", str(db), "--export", "imucal"], tmp_path, monkeypatch, capsys)
     if "not enough still poses" in r.stderr:
         pytest.fail("the synthetic session's first rests are not six faces: " + r.stderr)
     assert r.returncode == 1, r.stdout + r.stderr
@@ -483,10 +491,9 @@ def test_explicit_gyro_method_refused_keeps_the_accelerometer_and_exits_1(sessio
         assert con.execute("SELECT count(*) FROM runs").fetchone()[0] == 1
 
 
-def test_live_six_with_rotation_is_refused_before_capture(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--sim", "--method", "six", "--gyro",
-                        "rotation", "--dir", "s", "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True,
-                       cwd=tmp_path, timeout=60, stdin=subprocess.DEVNULL)
+def test_live_six_with_rotation_is_refused_before_capture(tmp_path, monkeypatch, capsys):
+    r = _main(["--sim", "--method", "six", "--gyro", "rotation", "--dir", "s", "--db", str(tmp_path / "h.sqlite")],
+              tmp_path, monkeypatch, capsys)
     assert r.returncode == 2, r.stdout + r.stderr
     assert "6 attitudes give 5 motion(s)" in r.stderr and "nothing was captured" in r.stderr
     assert not (tmp_path / "s").exists()
@@ -588,7 +595,7 @@ def _few_faces_file(tmp_path):
     return p
 
 
-def test_a_refused_accelerometer_leaves_its_evidence(tmp_path):
+def test_a_refused_accelerometer_leaves_its_evidence(tmp_path, monkeypatch, capsys):
     """A refusal writes the folder: the segmentation plot, the rests table (CSV and README) and
     the reason, and says where; the error is still one line."""
     p = _few_faces_file(tmp_path)
@@ -611,8 +618,8 @@ def test_a_refused_accelerometer_leaves_its_evidence(tmp_path):
     assert f"**REFUSED:** {reason}" in readme
     assert "imubench calibrate --from" in readme and rests_header() in readme
     # the same folder again: refused, nothing overwritten
-    r2 = _cli(["--from", str(p), "--accel-unit", "mps2", "--gyro-unit", "rad_s", "--rate", "100", "--dir", "out",
-               "--db", str(tmp_path / "h.sqlite")], tmp_path)
+    r2 = _main(["--from", str(p), "--accel-unit", "mps2", "--gyro-unit", "rad_s", "--rate", "100", "--dir", "out",
+                "--db", str(tmp_path / "h.sqlite")], tmp_path, monkeypatch, capsys)
     assert r2.returncode == 1 and "already holds a session" in r2.stderr
 
 

@@ -272,7 +272,7 @@ def test_human_presenter_tells_what_to_do(capsys):
     assert "-90.0 °/s" in out.out
 
 
-def test_calibrate_command_end_to_end(tmp_path):
+def test_calibrate_command_end_to_end(tmp_path, monkeypatch, capsys):
     import subprocess
     import sys
     r = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-seed", "3",
@@ -288,13 +288,14 @@ def test_calibrate_command_end_to_end(tmp_path):
     # was drawn before and said "written NO, verified NO" under a verified session)
     title = _png_text(png)["Title"]
     assert "passed yes, written yes, verified yes" in title, title
-    h = subprocess.run([sys.executable, "-m", "imubench", "history", "--db", str(tmp_path / "h.sqlite")],
-                       capture_output=True, text=True, timeout=60)
+    # the history and the resume through the same entry point in-process (history as typed:
+    # tests/cli/test_cli.py; a resume as typed: tests/cli/test_cli_errors.py's Ctrl-C test)
+    from inproc import run_main
+    h = run_main(["history", "--db", tmp_path / "h.sqlite"], monkeypatch, capsys)
     assert h.returncode == 0 and "SIM" in h.stdout
     # resuming a finished session with --redo recaptures one pose and passes again
-    r2 = subprocess.run([sys.executable, "-m", "imubench", "calibrate", "--sim", "--sim-seed", "3",
-                         "--resume", str(tmp_path / "s"), "--redo", "+Z up (level)", "--no-write",
-                         "--db", str(tmp_path / "h.sqlite")], capture_output=True, text=True, timeout=300)
+    r2 = run_main(["calibrate", "--sim", "--sim-seed", "3", "--resume", tmp_path / "s", "--redo", "+Z up (level)",
+                   "--no-write", "--db", tmp_path / "h.sqlite"], monkeypatch, capsys)
     assert r2.returncode == 0, r2.stdout[-3000:] + r2.stderr[-2000:]
 
 

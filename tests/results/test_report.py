@@ -267,11 +267,19 @@ def _report_cli(argv, tmp_path, timeout=60):
                           preexec_fn=cap)
 
 
+def _report_in_process(argv, tmp_path, monkeypatch, capsys):
+    """`imubench report` through the same entry point (imubench.cli.main) in this process, as
+    _report_cli starts it: for the cases a subprocess adds nothing to (no memory cap or time
+    limit needed; the same kind of case runs in a subprocess too)."""
+    from inproc import run_main
+    return run_main(["report", *argv], monkeypatch, capsys, cwd=tmp_path, unset=("IMUBENCH_DEBUG",))
+
+
 SECRET = PNG_MAGIC + b"\0\0\0\rIHDR" + b"SECRET-IMAGE-FROM-ELSEWHERE" * 40
 
 
 @pytest.mark.parametrize("case", ["absolute", "dotdot", "symlink", "dev_zero", "fifo", "oversized", "not_a_name"])
-def test_report_embeds_only_regular_plots_inside_the_closure_dir(session_dir, tmp_path, case):
+def test_report_embeds_only_regular_plots_inside_the_closure_dir(session_dir, tmp_path, case, monkeypatch, capsys):
     import os
     outside = tmp_path / "elsewhere"
     outside.mkdir()
@@ -293,7 +301,10 @@ def test_report_embeds_only_regular_plots_inside_the_closure_dir(session_dir, tm
             fh.truncate(64 << 20)
     (cd / "closure.json").write_text(json.dumps({"schema": 1, "path": "box", "after": {"distance_m": 0.1},
                                                  "plot": plot}))
-    r = _report_cli([sd, "--out", tmp_path / "r.html"], tmp_path)
+    if case in ("dev_zero", "fifo", "absolute"):   # a memory cap and a time limit; one path as typed
+        r = _report_cli([sd, "--out", tmp_path / "r.html"], tmp_path)
+    else:
+        r = _report_in_process([sd, "--out", tmp_path / "r.html"], tmp_path, monkeypatch, capsys)
     assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-2000:]
     doc = (tmp_path / "r.html").read_text(encoding="utf-8")
     _check_self_contained(doc)
@@ -341,7 +352,7 @@ WRONG_TYPES = [
 
 
 @pytest.mark.parametrize("field,value", WRONG_TYPES, ids=[f for f, _ in WRONG_TYPES])
-def test_a_session_json_of_wrong_types_is_named_in_one_line(session_dir, tmp_path, field, value):
+def test_a_session_json_of_wrong_types_is_named_in_one_line(session_dir, tmp_path, field, value, monkeypatch, capsys):
     from test_cli_errors import assert_one_error_line
     sd = tmp_path / "s"
     shutil.copytree(session_dir, sd)
@@ -349,7 +360,11 @@ def test_a_session_json_of_wrong_types_is_named_in_one_line(session_dir, tmp_pat
     state["result"].setdefault("verification", []).append({"name": "+Z up (level)", "after_g": 1.0001})
     _set(state, field, value)
     (sd / "session.json").write_text(json.dumps(state))
-    r = _report_cli([sd, "--out", tmp_path / "r.html"], tmp_path)
+    # the first as a user types it (a subprocess); the others through the same entry point in-process
+    if (field, value) == WRONG_TYPES[0]:
+        r = _report_cli([sd, "--out", tmp_path / "r.html"], tmp_path)
+    else:
+        r = _report_in_process([sd, "--out", tmp_path / "r.html"], tmp_path, monkeypatch, capsys)
     line = assert_one_error_line(r, "report", 1, f"'{field}'", "session.json")
     assert not (tmp_path / "r.html").exists(), line
 

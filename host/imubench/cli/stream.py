@@ -208,7 +208,9 @@ def run_info(a) -> int:
 def run_monitor(a) -> int:
     capture = open(a.record, "ab", buffering=0) if a.record else None  # noqa: SIM115 - closed below
     stop = {"now": False}
-    signal.signal(signal.SIGINT, lambda *_: stop.__setitem__("now", True))
+    # Ctrl-C ends the view; the caller's handler is put back after (main() in-process, as tests
+    # and embedding programs call it, kept a dead handler that swallowed every later Ctrl-C)
+    old_sigint = signal.signal(signal.SIGINT, lambda *_: stop.__setitem__("now", True))
     try:
         with Device.open(a.port, baudrate=a.baud, capture=capture) as dev:
             _print_info(dev.info())
@@ -247,6 +249,8 @@ def run_monitor(a) -> int:
             print(f"done: {st.samples} samples, {st.frames_ok} frames, {st.frames_rejected} rejected, "
                   f"{st.samples_missing} samples lost")
     finally:
+        if old_sigint is not None:          # None: a handler not set from Python, nothing to put back
+            signal.signal(signal.SIGINT, old_sigint)
         if capture:
             capture.close()
     return 0
