@@ -916,4 +916,4 @@ def test_compiled_value_rules_say_what_the_rule_by_rule_check_says(data):
     fails = any(P._rule_fails(kind, arg, v) for slot, n, _p, kind, arg in rules for v in values[slot:slot + n])
     note(f"type 0x{mtype:02X}, values {values}")
     event("refused" if fails else "accepted")
-    assert P._VALUE_OK[mtype](values) == (not fails)
+    assert P.VALUE_OK[mtype](values) == (not fails)

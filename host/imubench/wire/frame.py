@@ -99,7 +99,7 @@ def _compile_rules(rules) -> Callable[[tuple], bool]:
 
 
 #: msg_type -> compiled check of its VALUE_RULES (value_error's fast path)
-_VALUE_OK = {mtype: _compile_rules(rules) for mtype, rules in gen.VALUE_RULES.items()}
+VALUE_OK = {mtype: _compile_rules(rules) for mtype, rules in gen.VALUE_RULES.items()}
 
 
 def value_error(msg_type: int, payload: bytes | memoryview, values: tuple | None = None) -> FrameError | None:
@@ -111,7 +111,7 @@ def value_error(msg_type: int, payload: bytes | memoryview, values: tuple | None
     if rules:
         if values is None:
             values = d.cls.STRUCT.unpack_from(payload, 0)
-        if _VALUE_OK[msg_type](values):
+        if VALUE_OK[msg_type](values):
             rules = ()                     # all hold: no need to look for the first that fails
         for slot, n, _path, kind, arg in rules:
             for v in values[slot:slot + n]:
