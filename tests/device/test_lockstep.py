@@ -173,58 +173,47 @@ COMMANDS = {
 CASES = [*COMMANDS, "f103", "f4"]
 
 
-def _run_cases(root: Path, parallel: bool) -> dict:
-    """Every case once under root: the digest of what each wrote. In parallel (each its own
-    thread: the commands are processes of their own, the ARM sessions run an emulator process
-    each) or one after the other."""
-    def one(case: str):
-        if case in COMMANDS:
-            d = root / case
-            r = subprocess.run([sys.executable, "-m", "imubench",
-                                *[str(d) + a[3:] if a.startswith("DIR") else a for a in COMMANDS[case]]],
-                               capture_output=True, text=True, timeout=600, cwd=root)
-            assert r.returncode == 0, (case, r.stdout[-2000:] + r.stderr[-2000:])
-            return _calibrate_digest(d) if case == "host" else _command_captures(d)
-        return _arm_session(case, root / f"{case}.bin")
-
-    root.mkdir(parents=True)
-    if not parallel:
-        return {case: one(case) for case in CASES}
-    from concurrent.futures import ThreadPoolExecutor
-    with ThreadPoolExecutor(len(CASES)) as pool:
-        futures = {case: pool.submit(one, case) for case in CASES}
-        return {case: f.result() for case, f in futures.items()}
+def _run_case(case: str, root: Path):
+    """One case under root: the digest of what it wrote."""
+    if case in COMMANDS:
+        d = root / case
+        r = subprocess.run([sys.executable, "-m", "imubench",
+                            *[str(d) + a[3:] if a.startswith("DIR") else a for a in COMMANDS[case]]],
+                           capture_output=True, text=True, timeout=600, cwd=root)
+        assert r.returncode == 0, (case, r.stdout[-2000:] + r.stderr[-2000:])
+        return _calibrate_digest(d) if case == "host" else _command_captures(d)
+    return _arm_session(case, root / f"{case}.bin")
 
 
 @pytest.fixture(scope="module")
-def idle_and_busy(tmp_path_factory) -> tuple[dict, dict]:
-    """Each case run idle (alone, one after the other), then all of them at once beside two
-    CPU-bound processes: the busy runs share the two cores with the two hogs and with each
-    other, a heavier load than one run beside two hogs, for a third of the hogs' CPU time."""
-    root = tmp_path_factory.mktemp("lockstep")
-    idle = _run_cases(root / "idle", parallel=False)
-    with _beside(2):
-        busy = _run_cases(root / "busy", parallel=True)
-    return idle, busy
+def busy(tmp_path_factory) -> dict:
+    """Every case at once beside two CPU-bound processes (each in a thread of its own: the
+    commands are processes of their own, the ARM sessions run an emulator process each): the
+    busy runs share the two cores with the two hogs and with each other, a heavier load than
+    one run beside two hogs, for a fraction of the hogs' CPU time. Each test then runs its
+    case idle, alone, and compares."""
+    from concurrent.futures import ThreadPoolExecutor
+    root = tmp_path_factory.mktemp("busy")
+    with _beside(2), ThreadPoolExecutor(len(CASES)) as pool:
+        futures = {case: pool.submit(_run_case, case, root) for case in CASES}
+        return {case: f.result() for case, f in futures.items()}
 
 
-def test_same_seed_same_session_idle_and_beside_two_busy_processes(idle_and_busy):
+def test_same_seed_same_session_idle_and_beside_two_busy_processes(busy, tmp_path):
     """`imubench calibrate --sim --sim-seed 5` (lockstep, every default): stream, poses,
     write-back, verification."""
-    idle, busy = idle_and_busy
-    assert idle["host"][0] == busy["host"][0]         # the captures, byte for byte
-    assert idle["host"][1] == busy["host"][1]         # every number of the session
+    idle = _run_case("host", tmp_path)
+    assert idle[0] == busy["host"][0]                 # the captures, byte for byte
+    assert idle[1] == busy["host"][1]                 # every number of the session
 
 
 @pytest.mark.parametrize("case", ["station", "warmup"])
-def test_a_station_and_a_warmup_give_the_same_bytes_idle_and_busy(case, idle_and_busy):
+def test_a_station_and_a_warmup_give_the_same_bytes_idle_and_busy(case, busy, tmp_path):
     """The other two command cases of issue 33's table, smaller: four boards on one virtual
     fixture, and a warm-up of a part with short time constants."""
-    idle, busy = idle_and_busy
-    assert idle[case] == busy[case]
+    assert _run_case(case, tmp_path) == busy[case]
 
 
 @pytest.mark.parametrize("target", ["f103", "f4"])
-def test_the_arm_images_give_the_same_bytes_idle_and_busy(target, idle_and_busy):
-    idle, busy = idle_and_busy
-    assert idle[target] == busy[target]
+def test_the_arm_images_give_the_same_bytes_idle_and_busy(target, busy, tmp_path):
+    assert _run_case(target, tmp_path) == busy[target]
