@@ -129,57 +129,26 @@ def _beside(busy: int):
             h.wait()
 
 
-def _command(tmp: Path, name: str, args: list[str], busy: int = 0) -> Path:
-    """`imubench ARGS`, every argument starting with DIR rooted at tmp/name, beside `busy`
-    CPU-bound processes; the folder it wrote."""
-    d = tmp / name
-    with _beside(busy):
-        r = subprocess.run([sys.executable, "-m", "imubench", *[str(d) + a[3:] if a.startswith("DIR") else a for a in args]],
-                           capture_output=True, text=True, timeout=600, cwd=tmp)
-    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    return d
-
-
-def _calibrate(tmp: Path, name: str, busy: int = 0) -> tuple[str, dict]:
-    """`imubench calibrate --sim --sim-seed 5` (lockstep) in a fresh directory, beside `busy`
-    CPU-bound processes: (SHA-256 of the capture, session.json without wall times and paths)."""
-    d = _command(tmp, name, ["calibrate", "--sim", "--sim-seed", "5", "--sim-speed", "1000", "--dir", "DIR",
-                             "--db", "DIR.db"], busy)
+def _calibrate_digest(d: Path) -> tuple[str, dict]:
+    """What `imubench calibrate --sim` wrote into d: (SHA-256 of the capture, session.json
+    without wall times and paths)."""
     caps = sorted(d.glob("capture-*.bin"))
     assert caps
     digest = hashlib.sha256(b"".join(c.read_bytes() for c in caps)).hexdigest()
     return digest, _normalised(json.loads((d / "session.json").read_text()))
 
 
-def test_same_seed_same_session_idle_and_beside_two_busy_processes(tmp_path):
-    idle = _calibrate(tmp_path, "idle")
-    busy = _calibrate(tmp_path, "busy", busy=2)
-    assert idle[0] == busy[0]                         # the captures, byte for byte
-    assert idle[1] == busy[1]                         # every number of the session
-
-
-def _command_captures(tmp: Path, name: str, args: list[str], busy: int = 0) -> str:
-    """_command, then the SHA-256 of every .bin it wrote, by path."""
-    digest, _ = tree_digest(_command(tmp, name, args, busy))      # the hash bench/determinism.py takes
+def _command_captures(d: Path) -> str:
+    """The SHA-256 of every .bin a command wrote into d, by path."""
+    digest, _ = tree_digest(d)                  # the hash bench/determinism.py takes
     assert digest is not None, "the command wrote no .bin"
     return digest
 
 
-@pytest.mark.parametrize("case", ["station", "warmup"])
-def test_a_station_and_a_warmup_give_the_same_bytes_idle_and_busy(case, tmp_path):
-    """The other two cases of issue 33's table (docs/simulator.md, bench/determinism.py), smaller:
-    four boards on one virtual fixture, and a warm-up of a part with short time constants."""
-    args = {"station": ["calibrate", "--sim", "--sim-seed", "5", "--sim-boards", "4", "--method", "six",
-                        "--gyro", "bias", "--hold", "0.5", "--dir", "DIR", "--db", "DIR.db"],
-            "warmup": ["thermal", "--sim", "--warmup", "--sim-seed", "7", "--tau", "30", "--out", "DIR"]}[case]
-    idle = _command_captures(tmp_path, "idle", args)
-    assert idle == _command_captures(tmp_path, "busy", args, busy=2)
-
-
-def _arm_session(target: str, path: Path, busy: int = 0) -> str:
-    """A short session on the ARM image in lockstep (info, a stream, a turn while streaming),
-    beside `busy` CPU-bound processes: the SHA-256 of the link's capture."""
-    with _beside(busy), VirtualBench(speed=0, seed=3, target=target) as vb, open(path, "wb") as cap, \
+def _arm_session(target: str, path: Path) -> str:
+    """A short session on the ARM image in lockstep (info, a stream, a turn while streaming):
+    the SHA-256 of the link's capture."""
+    with VirtualBench(speed=0, seed=3, target=target) as vb, open(path, "wb") as cap, \
             Device.open(vb.port_url, capture=cap, timeout=5.0) as dev:
         assert vb.info["clock"] == "lockstep"
         dev.info()
@@ -191,18 +160,60 @@ def _arm_session(target: str, path: Path, busy: int = 0) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+#: issue 33's five cases (docs/simulator.md, bench/determinism.py): the command a user types
+#: for the host build (`imubench calibrate --sim --sim-seed 5`, every default), four boards on
+#: one virtual fixture and a warm-up of a part with short time constants (both smaller), and a
+#: stream with a turn on the F103 and F4 images
+COMMANDS = {
+    "host": ["calibrate", "--sim", "--sim-seed", "5", "--dir", "DIR", "--db", "DIR.db"],
+    "station": ["calibrate", "--sim", "--sim-seed", "5", "--sim-boards", "4", "--method", "six",
+                "--gyro", "bias", "--hold", "0.5", "--dir", "DIR", "--db", "DIR.db"],
+    "warmup": ["thermal", "--sim", "--warmup", "--sim-seed", "7", "--tau", "30", "--out", "DIR"],
+}
+CASES = [*COMMANDS, "f103", "f4"]
+
+
+def _run_case(case: str, root: Path):
+    """One case under root: the digest of what it wrote."""
+    if case in COMMANDS:
+        d = root / case
+        r = subprocess.run([sys.executable, "-m", "imubench",
+                            *[str(d) + a[3:] if a.startswith("DIR") else a for a in COMMANDS[case]]],
+                           capture_output=True, text=True, timeout=600, cwd=root)
+        assert r.returncode == 0, (case, r.stdout[-2000:] + r.stderr[-2000:])
+        return _calibrate_digest(d) if case == "host" else _command_captures(d)
+    return _arm_session(case, root / f"{case}.bin")
+
+
+@pytest.fixture(scope="module")
+def busy(tmp_path_factory) -> dict:
+    """Every case at once beside two CPU-bound processes (each in a thread of its own: the
+    commands are processes of their own, the ARM sessions run an emulator process each): the
+    busy runs share the two cores with the two hogs and with each other, a heavier load than
+    one run beside two hogs, for a fraction of the hogs' CPU time. Each test then runs its
+    case idle, alone, and compares."""
+    from concurrent.futures import ThreadPoolExecutor
+    root = tmp_path_factory.mktemp("busy")
+    with _beside(2), ThreadPoolExecutor(len(CASES)) as pool:
+        futures = {case: pool.submit(_run_case, case, root) for case in CASES}
+        return {case: f.result() for case, f in futures.items()}
+
+
+def test_same_seed_same_session_idle_and_beside_two_busy_processes(busy, tmp_path):
+    """`imubench calibrate --sim --sim-seed 5` (lockstep, every default): stream, poses,
+    write-back, verification."""
+    idle = _run_case("host", tmp_path)
+    assert idle[0] == busy["host"][0]                 # the captures, byte for byte
+    assert idle[1] == busy["host"][1]                 # every number of the session
+
+
+@pytest.mark.parametrize("case", ["station", "warmup"])
+def test_a_station_and_a_warmup_give_the_same_bytes_idle_and_busy(case, busy, tmp_path):
+    """The other two command cases of issue 33's table, smaller: four boards on one virtual
+    fixture, and a warm-up of a part with short time constants."""
+    assert _run_case(case, tmp_path) == busy[case]
+
+
 @pytest.mark.parametrize("target", ["f103", "f4"])
-def test_the_arm_images_give_the_same_bytes_idle_and_busy(target, tmp_path):
-    idle = _arm_session(target, tmp_path / "idle.bin")
-    assert idle == _arm_session(target, tmp_path / "busy.bin", busy=2)
-
-
-def test_targets_of_one_seed_are_boards_of_their_own():
-    ids = {}
-    for target in ("host", "f103", "f4"):
-        with VirtualBench(seed=9, target=target) as vb, Device.open(vb.port_url, timeout=5.0) as dev:
-            info = dev.info()
-            ids[target] = (bytes(info.mcu_uid).hex(), tuple(info.gyro_sn))
-            assert ids[target][0] == vb.info["uid"]
-    assert len({u for u, _ in ids.values()}) == 3          # three UIDs
-    assert len({sn for _, sn in ids.values()}) == 3        # three sets of gyro serial numbers
+def test_the_arm_images_give_the_same_bytes_idle_and_busy(target, busy, tmp_path):
+    assert _run_case(target, tmp_path) == busy[target]

@@ -137,6 +137,18 @@ def test_quit_command(sim_bin):
     b.close()
 
 
+def test_the_arm_image_quits_between_grants():
+    """The emulator of an ARM image on the lockstep clock takes "quit" when no run is granted
+    (the host closing the bench): it used to look at quit only at the end of a grant, so every
+    close waited out stop()'s 3 s and ended in SIGTERM (-15 is what SIGTERM would give)."""
+    with VirtualBench(speed=0, seed=5, target="f103") as b:
+        assert b.info["clock"] == "lockstep"
+        b.wait(0.01)                                    # one grant run and answered
+        proc = b.proc
+        assert b.control("quit")["ok"] is True
+        assert proc.wait(timeout=5) == 0
+
+
 def test_exits_when_parent_dies(sim_bin):
     code = textwrap.dedent(f"""
         import os, sys

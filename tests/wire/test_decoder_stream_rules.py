@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from imubench.wire import frame as P
 from imubench.wire import protocol_gen as G
-from imubench.wire.decoder import StreamDecoder, decode_bytes
+from imubench.wire.decoder import MAX_PENDING_SAMPLES, StreamDecoder, decode_bytes
 
 PERIOD_US = 250      # 4 kHz
 
@@ -216,11 +216,15 @@ def test_undelivered_samples_are_capped_and_counted():
 
 
 def test_memory_of_a_stream_never_taken_is_bounded():
-    """20 MB of batches fed and never taken: the decoder holds at most its cap (2^20 samples,
-    about 17 MB of frame bytes plus the per-batch objects), not a multiple of the input."""
+    """Batches fed and never taken: the decoder holds at most its cap of samples (about 16 bytes
+    of frame per sample plus the per-batch objects), not the input. Eight times the cap is fed,
+    with a cap of 2^16 samples: the memory is linear in the cap (the default, 2^20, holds 16
+    times as much), and a decoder without a cap grows by 13 MB here (the input is 8.5 MB)."""
+    cap = 1 << 16
+    assert StreamDecoder().max_pending_samples == MAX_PENDING_SAMPLES == 1 << 20
     data = b"".join(raw_batch(k & 0xFFFF, 16 * k, ts=(16 * k * PERIOD_US + 1000) & 0xFFFFFFFF)
-                    for k in range(20_000_000 // 260))
-    dec = StreamDecoder()
+                    for k in range(8 * cap // 16))
+    dec = StreamDecoder(max_pending_samples=cap)
     tracemalloc.start()
     try:
         base = tracemalloc.get_traced_memory()[0]
@@ -229,8 +233,10 @@ def test_memory_of_a_stream_never_taken_is_bounded():
         grown = tracemalloc.get_traced_memory()[1] - base
     finally:
         tracemalloc.stop()
-    assert dec.stats.samples_overflow > 0
-    assert grown < 40e6, f"{grown / 1e6:.0f} MB"
+    assert dec.pending_samples() <= cap and dec.stats.samples_overflow == 7 * cap
+    # 38 bytes per sample of the cap (the 40 MB the default's 2^20 had), and 2.5 MB for the
+    # 1 MB pieces in flight: measured 2.8 MB
+    assert grown < 38 * cap + 2.5e6, f"{grown / 1e6:.1f} MB"
 
 
 def test_one_feed_of_many_zero_bytes_works_in_bounded_pieces():

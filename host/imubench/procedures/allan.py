@@ -223,6 +223,10 @@ def _allan_of(values, what: str, fs_hz: float, factor: float, memory_budget, hel
         raise RecordingError(f"the {what}'s {e}") from None
 
 
+#: device time granted per step when recording from a lockstep virtual device, s
+LOCKSTEP_STEP_S = 10.0
+
+
 def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int = DEFAULT_BAUD,
            progress_s: float = 5.0, stop: dict | None = None, log=print) -> str:
     """Stream raw at rate_hz into capture_path (every byte appended as it arrives) until
@@ -246,8 +250,10 @@ def record(port, duration_s: float, rate_hz: int, capture_path: Path, baud: int 
             log(f"recording raw at {rate_hz} Hz for {duration_s:g} s of device time to {capture_path}; "
                 "Ctrl-C stops and analyses what was recorded")
             try:
-                # a lockstep virtual device: a second of device time per step (hours take minutes)
-                for b in dev.stream(poll_s=1.0 if dev.clock.lockstep else 0.1):
+                # a lockstep virtual device: ten seconds of device time per step (one control
+                # round trip each: an hour is 360 of them); what runs past the duration is cut
+                # off by the analysis (analyse_capture's duration_s)
+                for b in dev.stream(poll_s=LOCKSTEP_STEP_S if dev.clock.lockstep else 0.1):
                     if len(b):
                         have += len(b)
                         t_first = b.t_us[0] if t_first is None else t_first

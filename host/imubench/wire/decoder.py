@@ -41,6 +41,11 @@ _COUNT_OFF = _RAW.count_offset
 _BATCH = struct.Struct(P.MESSAGES[MsgType.RAW_BATCH].cls.FORMAT)   # the batch header's values
 # CRC-32C over a frame *including* its little-endian CRC field is this constant when the
 # frame is intact (the CRC's residue), which saves slicing the CRC off every frame.
+# a raw batch has rules on its header only (none on its records, RECORD_RULES): one compiled
+# check of the header (frame.VALUE_OK) says it is valid; a definition with record rules for it
+# sends every raw batch through value_error again
+_RAW_HEADER_OK = (P.VALUE_OK[int(MsgType.RAW_BATCH)] if _RAW.record not in P.gen.RECORD_RULES
+                  else (lambda _hdr: False))
 _CRC_RESIDUE = P.crc32c(b"\0\0\0\0")
 _CRC_RESIDUE = P.crc32c(b"\0\0\0\0" + _CRC_RESIDUE.to_bytes(4, "little"))
 
@@ -253,6 +258,7 @@ class StreamDecoder:
         decode = self._decode
         max_enc = P.MAX_ENCODED
         max_frame = P.MAX_FRAME
+        raw_ok = _RAW_HEADER_OK
         for chunk in parts:
             if not chunk:
                 continue           # back-to-back delimiters: idle fill, not an error
@@ -292,7 +298,8 @@ class StreamDecoder:
                     st.bad_length += 1
                     continue
                 hdr = _BATCH.unpack_from(raw, 8)
-                err = P.value_error(mtype, memoryview(raw)[8:-4], hdr)
+                # a raw batch has rules on its header only: when they hold, nothing to name
+                err = None if mtype == 0x90 and raw_ok(hdr) else P.value_error(mtype, memoryview(raw)[8:-4], hdr)
                 if err is not None:
                     setattr(st, err.value, getattr(st, err.value) + 1)
                     continue
