@@ -191,8 +191,6 @@ class Server:
             else:
                 active = False
             self._io(pfd, 0.0 if active else 0.02)
-            if lib.simlib_quit():      # asked between grants (a host closing the bench): exit now
-                break
             k = lib.simlib_take_reset()
             if k == RESET_POWER_CUT:
                 m.request_reset("power_cut", "power cut (control channel)")
