@@ -91,6 +91,7 @@ lint: system-deps
 # server) are set up once per worker; the workers take the modules heaviest first, in the order
 # tests/conftest.py gives them (--no-loadscope-reorder; tests/module_seconds.json, rewritten from
 # build/test-results.xml by tools/test-weights.py). The 30 slowest tests are listed at the end.
+# Idle, fresh clone, 2 cores (2026-11-28): 1,512 tests, 6 min 47 s of pytest, 8 min 4 s in all.
 # The suite starts a few hundred Python processes; their bytecode is cached under build/pycache
 # even where PYTHONDONTWRITEBYTECODE is set (each process would otherwise compile every module
 # of imubench it imports again, about 0.1 s apiece).
