@@ -84,18 +84,19 @@ lint: system-deps
 	cppcheck --enable=warning,style,performance,portability --error-exitcode=1 --inline-suppr --quiet \
 	    -Ifirmware/core -Ifirmware/drivers -Ifirmware/boards/sim -Ifirmware/boards/sim/models $(CPPCHECK_DIRS)
 
-# Three workers on two cores (pytest-xdist): a lockstep session alternates between the host and
-# its simulator, so two workers left a quarter of the CPU idle (fresh clone, idle: 2 workers 13 min
-# 46 s of pytest at 70 % of both cores, 3 workers 12 min 15 s at 86 %). A module's tests stay on one
-# worker (--dist loadscope), so module- and session-scoped fixtures (a virtual bench, a database
-# server) are set up once per worker; the workers take the modules heaviest first, in the order
-# tests/conftest.py gives them (--no-loadscope-reorder; tests/module_seconds.json, rewritten from
+# Four workers on two cores (pytest-xdist): a lockstep session alternates between the host and
+# its simulator, and many tests wait on a process they started, so fewer workers leave CPU idle
+# (fresh clone, idle: 2 workers 13 min 46 s of pytest at 70 % of both cores, 3 workers 12 min 15 s
+# at 86 %, on 2026-11-28 morning's suite; on the afternoon's, 3 workers 8 min 9 s and 8 min 14 s,
+# 4 workers 6 min 47 s, in runs one after the other). A module's tests stay on one worker (--dist
+# loadscope), so module- and session-scoped fixtures (a virtual bench, a database server) are set
+# up once per worker; the workers take the modules heaviest first, in the order tests/conftest.py
+# gives them (--no-loadscope-reorder; tests/module_seconds.json, rewritten from
 # build/test-results.xml by tools/test-weights.py). The 30 slowest tests are listed at the end.
-# Idle, fresh clone, 2 cores (2026-11-28): 1,512 tests, 6 min 47 s of pytest, 8 min 4 s in all.
 # The suite starts a few hundred Python processes; their bytecode is cached under build/pycache
 # even where PYTHONDONTWRITEBYTECODE is set (each process would otherwise compile every module
 # of imubench it imports again, about 0.1 s apiece).
-PYTEST_WORKERS ?= 3
+PYTEST_WORKERS ?= 4
 test: export PYTHONDONTWRITEBYTECODE :=
 test: export PYTHONPYCACHEPREFIX := $(CURDIR)/build/pycache
 test: system-deps venv c-tests sim firmware
