@@ -39,13 +39,13 @@ _CAL = P.MESSAGES[MsgType.CAL_BATCH]
 _BH = BATCH_HEADER_DTYPE.itemsize
 _COUNT_OFF = _RAW.count_offset
 _BATCH = struct.Struct(P.MESSAGES[MsgType.RAW_BATCH].cls.FORMAT)   # the batch header's values
-# CRC-32C over a frame *including* its little-endian CRC field is this constant when the
-# frame is intact (the CRC's residue), which saves slicing the CRC off every frame.
-# a raw batch has rules on its header only (none on its records, RECORD_RULES): one compiled
+# A raw batch has rules on its header only (none on its records, RECORD_RULES): one compiled
 # check of the header (frame.VALUE_OK) says it is valid; a definition with record rules for it
-# sends every raw batch through value_error again
+# sends every raw batch through value_error again.
 _RAW_HEADER_OK = (P.VALUE_OK[int(MsgType.RAW_BATCH)] if _RAW.record not in P.gen.RECORD_RULES
                   else (lambda _hdr: False))
+# CRC-32C over a frame *including* its little-endian CRC field is this constant when the
+# frame is intact (the CRC's residue), which saves slicing the CRC off every frame.
 _CRC_RESIDUE = P.crc32c(b"\0\0\0\0")
 _CRC_RESIDUE = P.crc32c(b"\0\0\0\0" + _CRC_RESIDUE.to_bytes(4, "little"))
 
